@@ -1,0 +1,220 @@
+"""The frozen mass-spring model of a soft object: lumped masses, edge springs, volume term, dampers.
+
+``build_body(mesh, material)`` turns a tet mesh and a material into a :class:`Body`; forces on a
+body are computed by :mod:`softgrasp.forces` and collected per scene by :mod:`softgrasp.scene`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from softgrasp.errors import MaterialError
+from softgrasp.forces import (
+    edge_damping_forces,
+    edge_damping_jacobian,
+    spring_forces,
+    spring_jacobian,
+    volume_forces,
+    volume_jacobian,
+)
+from softgrasp.material import Material
+from softgrasp.mesh.tetmesh import TetMesh
+from softgrasp.network import NetworkCalibration, calibrate_network
+
+__all__ = ["Body", "build_body", "STANDARD_GRAVITY", "DEFAULT_DAMPING_RATIO"]
+
+#: Standard gravity [m/s^2].
+STANDARD_GRAVITY = 9.80665
+#: Default damping ratio of the body's fundamental mode (edge dashpots, stiffness-proportional).
+DEFAULT_DAMPING_RATIO = 0.1
+
+
+@dataclass(frozen=True, eq=False)
+class Body:
+    """A calibrated non-linear mass-spring body (static model; positions live in the state).
+
+    Attributes
+    ----------
+    mesh: the rest configuration.
+    material: elastic constants, density, stress-strain law.
+    mass: lumped node masses [kg], (N,); ``m_i = rho sum_{t ∋ i} V_t / 4``.
+    stiffness: spring constants [N/m], (E,), on ``mesh.edges``.
+    rest_length: spring rest lengths [m], (E,).
+    kappa: volume-term modulus [Pa] (Lame lambda - mu).
+    damping: edge dashpot constants [N s/m], (E,).
+    damping_time: stiffness-proportional damping time beta [s] with ``damping = beta * stiffness``.
+    gravity: acceleration of gravity [m/s^2], (3,).
+    calibration: how springs and volume term were set (see :mod:`softgrasp.network`).
+    """
+
+    mesh: TetMesh
+    material: Material
+    mass: NDArray[np.float64]
+    stiffness: NDArray[np.float64]
+    rest_length: NDArray[np.float64]
+    kappa: float
+    damping: NDArray[np.float64]
+    damping_time: float
+    gravity: NDArray[np.float64]
+    calibration: NetworkCalibration
+
+    @property
+    def n_nodes(self) -> int:
+        """Number of nodes."""
+        return self.mesh.n_nodes
+
+    @property
+    def edges(self) -> NDArray[np.int64]:
+        """Spring node pairs, (E, 2)."""
+        return self.mesh.edges
+
+    @property
+    def total_mass(self) -> float:
+        """Total mass [kg]."""
+        return float(self.mass.sum())
+
+    @property
+    def barrier(self) -> bool:
+        """Whether the volume term uses the inversion barrier (kappa >= 0)."""
+        return self.kappa >= 0
+
+    @property
+    def weight(self) -> NDArray[np.float64]:
+        """Total gravity force [N], (3,)."""
+        return self.total_mass * self.gravity
+
+    def internal_forces(self, x: NDArray[np.float64], v: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """Spring + volume (+ edge damping if ``v`` is given) forces on the nodes [N], (N, 3)."""
+        f, _ = spring_forces(x, self.edges, self.rest_length, self.stiffness, self.material.law)
+        if self.kappa != 0.0:
+            f += volume_forces(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)[0]
+        if v is not None and self.damping_time > 0:
+            f += edge_damping_forces(x, v, self.edges, self.damping)
+        return f
+
+    def internal_energy(self, x: NDArray[np.float64]) -> float:
+        """Elastic energy of springs and volume term [J]."""
+        e = spring_forces(x, self.edges, self.rest_length, self.stiffness, self.material.law)[1]
+        if self.kappa != 0.0:
+            e += volume_forces(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)[1]
+        return e
+
+    def internal_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
+        """``d f_internal / d x`` (negative stiffness), sparse (3N, 3N)."""
+        J = spring_jacobian(x, self.edges, self.rest_length, self.stiffness, self.material.law)
+        if self.kappa != 0.0:
+            J = J + volume_jacobian(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)
+        return J.tocsr()
+
+    def damping_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
+        """``d f_damping / d v``, sparse (3N, 3N)."""
+        return edge_damping_jacobian(x, self.edges, self.damping)
+
+    @cached_property
+    def rest_jacobian(self) -> sp.csr_matrix:
+        """Internal Jacobian at the rest configuration."""
+        return self.internal_jacobian(np.asarray(self.mesh.points))
+
+    @cached_property
+    def node_stiffness(self) -> NDArray[np.float64]:
+        """Per-node stiffness scale [N/m], (N,): Gershgorin row sum of the rest stiffness / 3.
+
+        Used to size penalty contacts and time steps.
+        """
+        K = abs(self.rest_jacobian)
+        rows = np.asarray(K.sum(axis=1)).ravel().reshape(-1, 3)
+        return rows.max(axis=1) / 2.0
+
+    @cached_property
+    def fundamental_frequency(self) -> float:
+        """Estimate of the lowest elastic angular frequency [rad/s]: pi c / L with the bar-wave
+        speed c = sqrt(E / rho) and L the largest extent of the mesh."""
+        rho = self.total_mass / self.mesh.volume
+        L = float(np.ptp(self.mesh.points, axis=0).max())
+        return math.pi * math.sqrt(self.material.E / rho) / L
+
+    def describe(self) -> dict[str, object]:
+        """JSON-ready summary of the model."""
+        return {
+            "nodes": self.mesh.n_nodes,
+            "tets": self.mesh.n_tets,
+            "edges": int(len(self.edges)),
+            "facets": int(len(self.mesh.facets)),
+            "volume_m3": self.mesh.volume,
+            "mass_kg": self.total_mass,
+            "material": self.material.describe(),
+            "damping_time_s": self.damping_time,
+            "gravity_m_s2": self.gravity.tolist(),
+            "network": self.calibration.describe(),
+        }
+
+
+def build_body(
+    mesh: TetMesh,
+    material: Material,
+    *,
+    mass: float | None = None,
+    damping_ratio: float = DEFAULT_DAMPING_RATIO,
+    gravity: float = STANDARD_GRAVITY,
+    isotropize: bool = True,
+) -> Body:
+    """Build the mass-spring model of ``mesh`` made of ``material``.
+
+    Parameters
+    ----------
+    mesh:
+        Rest configuration.
+    material:
+        Elastic constants and law; its density is used unless ``mass`` is given.
+    mass:
+        Total mass [kg]; overrides the material density (density = mass / volume).
+    damping_ratio:
+        Damping ratio of the fundamental mode (>= 0); edge dashpots ``c_e = beta k_e`` with
+        ``beta = 2 zeta / omega_1``. 0 gives an undamped body.
+    gravity:
+        Magnitude [m/s^2] of gravity, acting along -z. 0 switches it off.
+    isotropize:
+        Direction re-weighting of the springs (see :func:`softgrasp.network.calibrate_network`).
+
+    Raises
+    ------
+    MaterialError
+        No density and no mass, or a non-positive mass, damping ratio or gravity.
+    """
+    if mass is not None:
+        if not (math.isfinite(mass) and mass > 0):
+            raise MaterialError(f"object mass = {mass} kg is invalid: it must be > 0")
+        rho = mass / mesh.volume
+    elif material.density is not None:
+        rho = material.density
+    else:
+        raise MaterialError("material has no density; give the object's mass or a density")
+    if not (math.isfinite(damping_ratio) and damping_ratio >= 0):
+        raise MaterialError(f"damping ratio = {damping_ratio} is invalid: it must be >= 0")
+    if not (math.isfinite(gravity) and gravity >= 0):
+        raise MaterialError(f"gravity = {gravity} m/s^2 is invalid: it must be >= 0")
+    node_mass = np.zeros(mesh.n_nodes)
+    np.add.at(node_mass, mesh.tets.ravel(), np.repeat(rho * mesh.volumes / 4.0, 4))
+    cal = calibrate_network(mesh, material.E, material.nu, isotropize=isotropize)
+    L = float(np.ptp(mesh.points, axis=0).max())
+    omega1 = math.pi * math.sqrt(material.E / rho) / L
+    beta = 2.0 * damping_ratio / omega1
+    mat = material if material.density == rho else material.with_density(rho)
+    return Body(
+        mesh=mesh,
+        material=mat,
+        mass=node_mass,
+        stiffness=cal.stiffness,
+        rest_length=np.asarray(mesh.edge_lengths),
+        kappa=cal.kappa,
+        damping=beta * cal.stiffness,
+        damping_time=beta,
+        gravity=np.array([0.0, 0.0, -gravity]),
+        calibration=cal,
+    )

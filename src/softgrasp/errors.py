@@ -1,0 +1,60 @@
+"""Exception hierarchy of softgrasp.
+
+Every error softgrasp raises on purpose derives from :class:`SoftgraspError`; the command-line
+interface turns any of them into one clear line and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "SoftgraspError",
+    "MeshError",
+    "MaterialError",
+    "ContactError",
+    "InfeasibleGrasp",
+    "NotConverged",
+    "SimulationUnstable",
+    "ConfigError",
+]
+
+
+class SoftgraspError(Exception):
+    """Root of every error raised deliberately by softgrasp."""
+
+
+class MeshError(SoftgraspError):
+    """A mesh is unusable: bad shape, inverted or degenerate tets, broken boundary, bad file."""
+
+
+class MaterialError(SoftgraspError):
+    """A material parameter or stress-strain law is outside its valid range."""
+
+
+class ContactError(SoftgraspError):
+    """A contact parameter or fingertip description is invalid."""
+
+
+class InfeasibleGrasp(SoftgraspError):
+    """No grasp satisfying the requested conditions exists (unreachable, no equilibrium, ...)."""
+
+
+class NotConverged(SoftgraspError):
+    """An iterative solver stopped before reaching its tolerance."""
+
+
+class SimulationUnstable(SoftgraspError):
+    """A time integration blew up (NaN, energy growth, inverted tets).
+
+    Attributes
+    ----------
+    suggested_dt:
+        A time step [s] that should be stable, or ``None`` when no suggestion can be made.
+    """
+
+    def __init__(self, message: str, suggested_dt: float | None = None) -> None:
+        super().__init__(message)
+        self.suggested_dt = suggested_dt
+
+
+class ConfigError(SoftgraspError):
+    """A command-line option or configuration value is invalid."""

@@ -1,0 +1,70 @@
+"""Built-in objects of the paper's experiments, and loading user objects.
+
+* ``cube`` — the foam cube of the indentation experiment: 50 mm edge (the paper does not give its
+  size; 50 mm fits the hand), mass 12.5 g (density 100 kg/m^3, a dense polyurethane foam), material
+  ``foam`` (Table 1: E = 4.9284 MPa, nu = 0.39). Meshed as a structured BCC box.
+* ``sphere`` — the rubber sphere of the grasp experiment: radius 0.064 m, mass 0.05 kg (Sec. 4.2),
+  material ``rubber`` (Table 1: E = 0.0793 MPa, nu = 0.45). Meshed with gmsh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from softgrasp.errors import MeshError
+from softgrasp.material import Material, preset
+from softgrasp.mesh.tetmesh import TetMesh
+
+__all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object"]
+
+#: Edge of the default foam cube [m].
+CUBE_SIZE = 0.05
+#: Radius of the default rubber sphere [m] (paper, Sec. 4.2).
+SPHERE_RADIUS = 0.064
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A built-in object: its default material, total mass [kg] and default element size [m]."""
+
+    name: str
+    material: str
+    mass: float
+    mesh_size: float
+    description: str
+
+
+OBJECTS: dict[str, ObjectSpec] = {
+    "cube": ObjectSpec("cube", "foam", 0.0125, CUBE_SIZE / 6, "50 mm foam cube, 12.5 g"),
+    "sphere": ObjectSpec("sphere", "rubber", 0.05, SPHERE_RADIUS / 4, "rubber sphere, radius 64 mm, 50 g"),
+}
+
+
+def make_object(name_or_path: str, mesh_size: float | None = None) -> tuple[TetMesh, Material, float | None]:
+    """Mesh, default material and mass [kg] of a built-in object or a mesh file.
+
+    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) is taken in metres and gets
+    the ``rubber`` material and no fixed mass (the material density decides).
+    The mesh stands on the table plane z = 0.
+    """
+    from softgrasp.mesh import generate
+
+    if mesh_size is not None and not mesh_size > 0:
+        raise MeshError(f"mesh size must be > 0 m, got {mesh_size}")
+    if name_or_path in OBJECTS:
+        spec = OBJECTS[name_or_path]
+        h = spec.mesh_size if mesh_size is None else mesh_size
+        if spec.name == "cube":
+            n = max(1, round(CUBE_SIZE / h))
+            mesh = generate.box(CUBE_SIZE, n, name="cube")
+        else:
+            mesh = generate.sphere(SPHERE_RADIUS, h, name="sphere")  # type: ignore[attr-defined]
+        return mesh, preset(spec.material), spec.mass
+    path = Path(name_or_path)
+    if not path.suffix:
+        raise MeshError(f"unknown object {name_or_path!r}; built-in objects are {sorted(OBJECTS)}, or give a mesh file")
+    from softgrasp.mesh.io import load_mesh  # type: ignore[import-not-found]
+
+    mesh = load_mesh(path, mesh_size=mesh_size).on_table()
+    return mesh, preset("rubber"), None

@@ -1,0 +1,224 @@
+"""Rigid planes touching the body's nodes: the table, and the plates of a compression test.
+
+Normal force: a penalty spring-dashpot per node, ``f_n = max(0, k_c p - c_c v_n)`` with penetration
+p = -(x - P)·n. Friction: the elastic-slider model of the paper's Algorithm 1 applied per node: a
+tangential spring from the node to an *anchor* fixed on the plane (stick displacement v) gives
+``f_t = -k_t v - c_t v_t``; when its norm would exceed ``mu f_n`` the node slips, the force is
+``mu f_n`` along the trial direction and the anchor is dragged along (slip displacement u). Anchors
+are created when a node touches the plane and dropped when it leaves.
+
+Stiffnesses are per node and proportional to the node's own elastic stiffness
+(:attr:`softgrasp.body.Body.node_stiffness`), so the contact is equally stiff on any mesh.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from softgrasp.body import Body
+from softgrasp.errors import ContactError
+from softgrasp.forces import assemble_blocks
+
+__all__ = ["Plane", "PlaneContact", "PlaneState"]
+
+
+@dataclass(frozen=True)
+class Plane:
+    """An infinite rigid plane moving at constant velocity.
+
+    Attributes
+    ----------
+    point: a point of the plane at t = 0 [m], (3,).
+    normal: unit normal pointing towards the body (the free side), (3,).
+    velocity: plane velocity [m/s], (3,).
+    """
+
+    point: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    velocity: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64)
+        norm = float(np.linalg.norm(n))
+        if not norm > 0:
+            raise ContactError("plane normal must be a non-zero vector")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "point", np.asarray(self.point, dtype=np.float64))
+        object.__setattr__(self, "velocity", np.asarray(self.velocity, dtype=np.float64))
+
+    def point_at(self, t: float) -> NDArray[np.float64]:
+        """A point of the plane at time t [m]."""
+        return self.point + t * self.velocity
+
+
+@dataclass(frozen=True)
+class PlaneState:
+    """Friction state of one plane: which nodes touch and their anchors.
+
+    Attributes
+    ----------
+    active: nodes in contact, (N,) bool.
+    anchor: anchor positions relative to the plane's moving point [m], (N, 3); meaningful
+        only where ``active``.
+    """
+
+    active: NDArray[np.bool_]
+    anchor: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PlaneContact:
+    """Penalty contact with Coulomb friction between a plane and every node of the body.
+
+    Parameters
+    ----------
+    plane: the plane.
+    mu: friction coefficient (>= 0); 0 is frictionless.
+    penalty: normal stiffness per node as a multiple of the node's elastic stiffness.
+    damping_ratio: damping ratio of each node's penalty spring (with the node's mass).
+    tangential_ratio: k_t / k_n.
+    name: label (``table``, ``bottom``, ``top``).
+    """
+
+    plane: Plane
+    mu: float = 0.5
+    penalty: float = 50.0
+    damping_ratio: float = 0.5
+    tangential_ratio: float = 1.0
+    name: str = "plane"
+
+    def __post_init__(self) -> None:
+        for k in ("mu", "penalty", "damping_ratio", "tangential_ratio"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v >= 0):
+                raise ContactError(f"{self.name}: {k} = {v} is invalid; it must be >= 0")
+        if self.penalty <= 0:
+            raise ContactError(f"{self.name}: penalty must be > 0")
+
+    # ------------------------------------------------------------------ parameters
+    def stiffness(self, body: Body) -> NDArray[np.float64]:
+        """Normal penalty stiffness per node [N/m], (N,)."""
+        return self.penalty * body.node_stiffness
+
+    def _coeffs(self, body: Body) -> tuple[NDArray[np.float64], ...]:
+        k = self.stiffness(body)
+        c = 2.0 * self.damping_ratio * np.sqrt(k * body.mass)
+        return k, c, self.tangential_ratio * k, self.tangential_ratio * c
+
+    def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> PlaneState:
+        """State with anchors at the current position of nodes already touching."""
+        n = body.n_nodes
+        return self.update(body, x, np.zeros_like(x), t, PlaneState(np.zeros(n, bool), np.zeros((n, 3))))
+
+    def stiffness_bound(self, body: Body) -> NDArray[np.float64]:
+        """Largest stiffness the contact may add to each node [N/m], (N,) (for time steps)."""
+        k = self.stiffness(body)
+        return k * max(1.0, self.tangential_ratio)
+
+    def damping_bound(self, body: Body) -> NDArray[np.float64]:
+        """Largest damping the contact may add to each node [N s/m], (N,)."""
+        _, c, _, ct = self._coeffs(body)
+        return np.maximum(c, ct)
+
+    # ------------------------------------------------------------------ kernels
+    def _geometry(self, x: NDArray[np.float64], t: float):
+        p0 = self.plane.point_at(t)
+        n = self.plane.normal
+        pen = -(x - p0) @ n
+        return p0, n, pen
+
+    def _tangential_stretch(self, x, p0, n, state: PlaneState, touching) -> NDArray[np.float64]:
+        anchor = np.where((state.active & touching)[:, None], p0 + state.anchor, x)
+        s = x - anchor
+        return s - (s @ n)[:, None] * n
+
+    def forces(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
+    ) -> NDArray[np.float64]:
+        """Contact forces on the nodes [N], (N, 3); slip is capped at ``mu f_n`` (Eq. 15-16)."""
+        k, c, kt, ct = self._coeffs(body)
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        vrel = v - self.plane.velocity
+        vn = vrel @ n
+        fn = np.where(touching, np.maximum(k * pen - c * vn, 0.0), 0.0)
+        f = fn[:, None] * n
+        if self.mu > 0:
+            s = self._tangential_stretch(x, p0, n, state, touching)
+            vt = vrel - vn[:, None] * n
+            ft = -kt[:, None] * s - ct[:, None] * vt
+            ft[~touching] = 0.0
+            mag = np.linalg.norm(ft, axis=1)
+            cap = self.mu * fn
+            over = mag > cap
+            ft[over] *= (cap[over] / np.maximum(mag[over], 1e-300))[:, None]
+            f += ft
+        return f
+
+    def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
+        """Potential of the normal penalty springs and of the sticking tangential springs [J]."""
+        k, _, kt, _ = self._coeffs(body)
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        e = 0.5 * float(np.sum(k[touching] * pen[touching] ** 2))
+        if self.mu > 0:
+            s = self._tangential_stretch(x, p0, n, state, touching)
+            e += 0.5 * float(np.sum(kt[touching] * np.einsum("ij,ij->i", s, s)[touching]))
+        return e
+
+    def static_forces(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> NDArray[np.float64]:
+        """Forces at rest with every touching node sticking (no cap): minus the gradient of
+        :meth:`energy`. The static solver enforces the Coulomb cap by moving anchors."""
+        k, _, kt, _ = self._coeffs(body)
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        f = np.where(touching, k * pen, 0.0)[:, None] * n
+        if self.mu > 0:
+            f -= kt[:, None] * self._tangential_stretch(x, p0, n, state, touching)
+        return f
+
+    def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:
+        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N)."""
+        k, _, kt, _ = self._coeffs(body)
+        _, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        nn = np.outer(n, n)
+        kt_eff = kt if self.mu > 0 else np.zeros_like(kt)
+        blocks = -(k[:, None, None] * nn + kt_eff[:, None, None] * (np.eye(3) - nn))
+        blocks[~touching] = 0.0
+        idx = np.arange(body.n_nodes)
+        return assemble_blocks(body.n_nodes, idx, idx, blocks)
+
+    def update(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
+    ) -> PlaneState:
+        """Advance the friction state after an accepted step (Algorithm 1).
+
+        Nodes that touch for the first time get an anchor where they are; nodes that left lose it;
+        a sticking node whose elastic force exceeds ``mu f_n`` slips: its anchor is dragged so the
+        stretch is exactly ``mu f_n / k_t``.
+        """
+        k, _, kt, _ = self._coeffs(body)
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        rel = x - p0
+        rel_t = rel - (rel @ n)[:, None] * n
+        anchor = np.where((state.active & touching)[:, None], state.anchor, rel_t)
+        if self.mu > 0:
+            s = rel_t - anchor
+            s_norm = np.linalg.norm(s, axis=1)
+            limit = self.mu * k * np.maximum(pen, 0.0) / np.maximum(kt, 1e-300)
+            slip = touching & (s_norm > limit)
+            if slip.any():
+                anchor[slip] = rel_t[slip] - s[slip] * (limit[slip] / s_norm[slip])[:, None]
+        anchor[~touching] = 0.0
+        return replace(state, active=touching.copy(), anchor=anchor)
+
+    def normal_reaction(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState) -> float:
+        """Total force [N] the plane exerts on the body along its normal."""
+        return float(self.forces(body, x, v, t, state).sum(axis=0) @ self.plane.normal)

@@ -1,0 +1,125 @@
+"""A scene: one body plus the rigid things that touch it, and the simulation state.
+
+The :class:`Scene` is the static model (brax-style ``System``); :class:`State` is what changes.
+Every interaction (table, plates, and later fingertips) implements the small
+:class:`Interaction` protocol, so integrators and the static solver treat them alike.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from softgrasp.body import Body
+from softgrasp.forces import gravity_forces
+
+__all__ = ["Interaction", "Scene", "State"]
+
+
+class Interaction(Protocol):
+    """Something that pushes on the body's nodes and may carry friction state."""
+
+    name: str
+
+    def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> Any: ...
+
+    def forces(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: Any) -> NDArray[np.float64]: ...
+
+    def static_forces(self, body: Body, x: NDArray[np.float64], t: float, state: Any) -> NDArray[np.float64]: ...
+
+    def energy(self, body: Body, x: NDArray[np.float64], t: float, state: Any) -> float: ...
+
+    def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: Any) -> sp.csr_matrix: ...
+
+    def update(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: Any) -> Any: ...
+
+    def stiffness_bound(self, body: Body) -> NDArray[np.float64]: ...
+
+    def damping_bound(self, body: Body) -> NDArray[np.float64]: ...
+
+
+@dataclass(frozen=True)
+class State:
+    """What changes during a simulation.
+
+    Attributes
+    ----------
+    x: node positions [m], (N, 3).
+    v: node velocities [m/s], (N, 3).
+    t: time [s].
+    contacts: one state per interaction of the scene, in the same order.
+    """
+
+    x: NDArray[np.float64]
+    v: NDArray[np.float64]
+    t: float = 0.0
+    contacts: tuple[Any, ...] = field(default=())
+
+    def replace(self, **kw: Any) -> State:
+        """A copy with fields replaced."""
+        return replace(self, **kw)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A body, gravity, and the interactions acting on it."""
+
+    body: Body
+    interactions: tuple[Interaction, ...] = ()
+
+    def initial_state(self, x: NDArray[np.float64] | None = None, v: NDArray[np.float64] | None = None, t: float = 0.0) -> State:
+        """State at rest in the mesh configuration (or at ``x``, ``v``), contacts initialised."""
+        x0 = np.array(self.body.mesh.points if x is None else x, dtype=np.float64)
+        v0 = np.zeros_like(x0) if v is None else np.array(v, dtype=np.float64)
+        contacts = tuple(i.init_state(self.body, x0, t) for i in self.interactions)
+        return State(x0, v0, t, contacts)
+
+    def forces(self, x: NDArray[np.float64], v: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> NDArray[np.float64]:
+        """Total force on every node [N], (N, 3): internal, damping, gravity, interactions."""
+        b = self.body
+        f = b.internal_forces(x, v) + gravity_forces(b.mass, b.gravity)
+        for inter, st in zip(self.interactions, contacts):
+            f += inter.forces(b, x, v, t, st)
+        return f
+
+    def static_forces(self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> NDArray[np.float64]:
+        """Total force at rest with sticking friction: minus the gradient of :meth:`energy`."""
+        b = self.body
+        f = b.internal_forces(x) + gravity_forces(b.mass, b.gravity)
+        for inter, st in zip(self.interactions, contacts):
+            f += inter.static_forces(b, x, t, st)
+        return f
+
+    def energy(self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> float:
+        """Total potential energy [J]: elastic, gravitational, contact penalty and stick springs."""
+        b = self.body
+        e = b.internal_energy(x) - float(np.sum(b.mass * (x @ b.gravity)))
+        for inter, st in zip(self.interactions, contacts):
+            e += inter.energy(b, x, t, st)
+        return e
+
+    def jacobian(self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> sp.csr_matrix:
+        """``d static_forces / d x``, sparse (3N, 3N)."""
+        J = self.body.internal_jacobian(x)
+        for inter, st in zip(self.interactions, contacts):
+            J = J + inter.jacobian(self.body, x, t, st)
+        return J.tocsr()
+
+    def update_contacts(self, x: NDArray[np.float64], v: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> tuple[Any, ...]:
+        """Friction states after an accepted step or static solve."""
+        return tuple(i.update(self.body, x, v, t, st) for i, st in zip(self.interactions, contacts))
+
+    def kinetic_energy(self, v: NDArray[np.float64]) -> float:
+        """Kinetic energy [J]."""
+        return 0.5 * float(np.sum(self.body.mass * np.einsum("ij,ij->i", v, v)))
+
+    def interaction(self, name: str) -> tuple[int, Interaction]:
+        """Index and object of the interaction called ``name``."""
+        for i, inter in enumerate(self.interactions):
+            if inter.name == name:
+                return i, inter
+        raise KeyError(f"no interaction named {name!r}; have {[i.name for i in self.interactions]}")

@@ -1,0 +1,220 @@
+"""Static equilibrium of a scene: Newton's method with a sparse Jacobian and a line search.
+
+The equilibrium is the minimum of the total potential (elastic + gravity + contact penalty + the
+tangential springs of sticking contacts). Friction is advanced incrementally: Newton solves with the
+contact anchors held fixed (stick predictor); then anchors whose spring exceeds the Coulomb limit are
+dragged back onto it (slip return, :meth:`Scene.update_contacts`) and Newton runs again, until the
+anchors no longer move.
+
+Linear constraints ``C (x - x_ref) = 0`` (e.g. fixing the rigid motions a frictionless set-up leaves
+free) are enforced with Lagrange multipliers in a saddle-point system.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
+
+from softgrasp.errors import NotConverged, SimulationUnstable
+from softgrasp.mesh.tetmesh import signed_volumes
+from softgrasp.sim.scene import Scene, State
+
+__all__ = ["StaticInfo", "solve_static", "rigid_constraints"]
+
+
+@dataclass(frozen=True)
+class StaticInfo:
+    """Diagnostics of a static solve.
+
+    Attributes
+    ----------
+    newton_iterations: total Newton iterations over all friction passes.
+    friction_passes: number of stick-predictor / slip-return passes.
+    residual_N: final largest unbalanced nodal force component [N].
+    constraint_forces_N: Lagrange multipliers of the constraints (generalised forces), (k,).
+    """
+
+    newton_iterations: int
+    friction_passes: int
+    residual_N: float
+    constraint_forces_N: NDArray[np.float64]
+
+
+def rigid_constraints(
+    x_ref: NDArray[np.float64], mass: NDArray[np.float64], modes: str = "xyXYZ"
+) -> sp.csr_matrix:
+    """Rows fixing the mass-weighted rigid motions of a body about its configuration ``x_ref``.
+
+    ``modes`` picks translations (``x``, ``y``, ``z``) and linearised rotations about the centre of
+    mass (``X``, ``Y``, ``Z``). Returns a sparse (k, 3N) matrix C; the constraints are
+    ``C (x - x_ref) = 0``.
+    """
+    n = x_ref.shape[0]
+    w = mass / mass.sum()
+    r = x_ref - (w[:, None] * x_ref).sum(axis=0)
+    rows = []
+    axes = {"x": 0, "y": 1, "z": 2}
+    for m in modes:
+        row = np.zeros((n, 3))
+        if m in axes:
+            row[:, axes[m]] = w
+        else:
+            a = np.zeros(3)
+            a["XYZ".index(m)] = 1.0
+            row = w[:, None] * np.cross(a, r)  # rotation field a x r, mass weighted
+            row /= max(float(np.sqrt((row**2).sum())), 1e-300)
+        rows.append(row.ravel())
+    return sp.csr_matrix(np.array(rows))
+
+
+def _solve(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", spla.MatrixRankWarning)
+        try:
+            if C is None:
+                return spla.spsolve(A.tocsc(), b, permc_spec="MMD_AT_PLUS_A"), np.zeros(0)
+            k = C.shape[0]
+            K = sp.bmat([[A, C.T], [C, None]], format="csc")
+            sol = spla.spsolve(K, np.concatenate([b, np.zeros(k)]), permc_spec="MMD_AT_PLUS_A")
+            return sol[: A.shape[0]], sol[A.shape[0] :]
+        except (spla.MatrixRankWarning, RuntimeError) as exc:
+            raise NotConverged(
+                "static solve failed: the stiffness matrix is singular, so the body is not held in "
+                "place (it could slide, spin or fall freely); add support (table friction, contacts) "
+                "or constraints"
+            ) from exc
+
+
+def _newton(
+    scene: Scene,
+    x: NDArray[np.float64],
+    t: float,
+    contacts: tuple,
+    C: sp.csr_matrix | None,
+    rtol: float,
+    max_iter: int,
+) -> tuple[NDArray[np.float64], int, float, NDArray[np.float64]]:
+    body = scene.body
+    L = float(np.ptp(body.mesh.points, axis=0).max())
+    lam = np.zeros(0 if C is None else C.shape[0])
+    grav = np.abs(body.mass[:, None] * body.gravity[None, :]).max()
+    for it in range(1, max_iter + 1):
+        f = scene.static_forces(x, t, contacts)
+        f_int = body.internal_forces(x)
+        scale = max(np.abs(f_int).max(), np.abs(f - f_int).max(), grav, 1e-300)
+        A = -scene.jacobian(x, t, contacts)
+        dx, lam_new = _solve(A, f.ravel(), C)
+        r = f.ravel() + (C.T @ lam_new if C is not None else 0.0)
+        res = float(np.abs(r).max())
+        if res <= rtol * scale:
+            return x, it - 1, res, lam_new
+        descent = float(f.ravel() @ dx)
+        shift = 1e-4
+        while descent <= 0 and shift < 1e4:
+            # Indefinite stiffness (buckling springs): Levenberg shift towards the diagonal.
+            D = sp.diags(np.abs(A.diagonal()) * shift + 1e-300)
+            dx, lam_new = _solve((A + D).tocsr(), f.ravel(), C)
+            descent = float(f.ravel() @ dx)
+            shift *= 10.0
+        lam = lam_new
+        d = dx.reshape(-1, 3)
+        # Cap the step so that no node moves more than a tenth of the object per iteration.
+        step_max = float(np.abs(d).max())
+        alpha = min(1.0, 0.1 * L / step_max) if step_max > 0 else 1.0
+        e0 = scene.energy(x, t, contacts)
+        accepted = False
+        for _ in range(30):
+            xn = x + alpha * d
+            if (signed_volumes(xn, body.mesh.tets) > 0).all():
+                en = scene.energy(xn, t, contacts)
+                if en <= e0 - 1e-4 * alpha * descent or abs(en - e0) <= 1e-13 * max(abs(e0), 1e-300):
+                    accepted = True
+                    break
+            alpha *= 0.5
+        if not accepted:
+            # Energy cannot decrease at round-off level: accept when the residual still drops.
+            xn = x + alpha * d
+            rn = np.abs(scene.static_forces(xn, t, contacts).ravel() + (C.T @ lam if C is not None else 0.0)).max()
+            if not (rn < res and (signed_volumes(xn, body.mesh.tets) > 0).all()):
+                raise NotConverged(
+                    f"static solve stalled at iteration {it}: largest unbalanced force {res:.3g} N "
+                    f"(scale {scale:.3g} N); the load step may be too large or the body unstable"
+                )
+        if float(np.abs(alpha * d).max()) <= 1e-13 * L:
+            x = xn
+            return x, it, res, lam
+        x = xn
+    f = scene.static_forces(x, t, contacts).ravel()
+    res = float(np.abs(f + (C.T @ lam if C is not None else 0.0)).max())
+    raise NotConverged(
+        f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
+        f"{res:.3g} N); use smaller load steps"
+    )
+
+
+def solve_static(
+    scene: Scene,
+    state: State,
+    *,
+    t: float | None = None,
+    constraints: sp.csr_matrix | None = None,
+    x_ref: NDArray[np.float64] | None = None,
+    rtol: float = 1e-9,
+    max_iter: int = 60,
+    max_friction_passes: int = 30,
+) -> tuple[State, StaticInfo]:
+    """Bring the scene to rest at time (load parameter) ``t``, starting from ``state``.
+
+    Parameters
+    ----------
+    scene: the body and interactions.
+    state: the starting positions and contact states (e.g. the previous load step).
+    t: load parameter passed to the interactions (moving plates, fingertips); default ``state.t``.
+    constraints: optional sparse (k, 3N) C with ``C (x - x_ref) = 0`` enforced.
+    x_ref: reference positions for the constraints; default ``state.x``.
+    rtol: convergence when the largest unbalanced force <= rtol x the largest force present.
+
+    Returns
+    -------
+    (State at rest with updated friction anchors and v = 0, StaticInfo)
+
+    Raises
+    ------
+    NotConverged: Newton stalled, or the body is not held (singular stiffness).
+    SimulationUnstable: the configuration is invalid (inverted tets) at the start.
+    """
+    tt = state.t if t is None else float(t)
+    x = np.array(state.x, dtype=np.float64)
+    if not (signed_volumes(x, scene.body.mesh.tets) > 0).all():
+        raise SimulationUnstable("static solve started from a configuration with inverted tets")
+    C = constraints
+    if C is not None:
+        ref = state.x if x_ref is None else x_ref
+        # Start on the constraint manifold (project the initial guess).
+        viol = C @ (x - ref).ravel()
+        if np.abs(viol).max() > 0:
+            CCt = (C @ C.T).toarray()
+            x = x - (C.T @ np.linalg.solve(CCt, viol)).reshape(-1, 3)
+    zeros = np.zeros_like(x)
+    contacts = scene.update_contacts(x, zeros, tt, state.contacts)
+    total_it = 0
+    for p in range(1, max_friction_passes + 1):
+        x, it, res, lam = _newton(scene, x, tt, contacts, C, rtol, max_iter)
+        total_it += it
+        new_contacts = scene.update_contacts(x, zeros, tt, contacts)
+        f = scene.static_forces(x, tt, new_contacts).ravel()
+        if C is not None:
+            f = f + C.T @ lam
+        f_int = scene.body.internal_forces(x)
+        scale = max(np.abs(f_int).max(), np.abs(scene.body.mass).max() * 9.81, 1e-300)
+        contacts = new_contacts
+        if np.abs(f).max() <= max(10 * rtol * scale, 2 * res):
+            return State(x, zeros, tt, contacts), StaticInfo(total_it, p, float(np.abs(f).max()), lam)
+    raise NotConverged(
+        f"friction did not settle in {max_friction_passes} stick/slip passes; use smaller load steps"
+    )

@@ -1,0 +1,1 @@
+"""Figures (matplotlib, imported lazily; never imported by the numerical core)."""

@@ -1,0 +1,56 @@
+"""Matplotlib figures written as PNG files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.output import atomic_write
+
+__all__ = ["plot_stress_strain"]
+
+
+def _figure():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_stress_strain(
+    path: str | Path,
+    strain: NDArray[np.float64],
+    stress_Pa: NDArray[np.float64],
+    *,
+    apparent_E_Pa: float,
+    title: str,
+    linear_E_Pa: float | None = None,
+) -> Path:
+    """Stress-strain curve of a compression test (paper Fig. 9 style): stress in kPa vs strain in %.
+
+    Also draws the initial-slope line and, if given, the linear-elastic line of the material's E.
+    """
+    plt = _figure()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    ax.plot(100 * strain, stress_Pa / 1e3, "o-", ms=3.5, lw=1.6, label="softgrasp simulation")
+    e = np.linspace(0, float(strain.max()), 50)
+    ax.plot(100 * e, apparent_E_Pa * e / 1e3, "--", lw=1.0, color="0.4",
+            label=f"initial slope {apparent_E_Pa / 1e3:.4g} kPa")
+    if linear_E_Pa is not None:
+        ax.plot(100 * e, linear_E_Pa * e / 1e3, ":", lw=1.0, color="tab:red",
+                label=f"material E = {linear_E_Pa / 1e3:.4g} kPa")
+    ax.set_xlabel("compressive strain [%]")
+    ax.set_ylabel("nominal stress [kPa]")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+    ax.legend(frameon=False)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+    return out
