@@ -14,6 +14,7 @@ from pathlib import Path
 
 from softgrasp.errors import MeshError
 from softgrasp.material import Material, preset
+from softgrasp.mesh.placement import rest_on_table
 from softgrasp.mesh.tetmesh import TetMesh
 
 __all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object"]
@@ -46,7 +47,7 @@ def make_object(name_or_path: str, mesh_size: float | None = None) -> tuple[TetM
 
     A file (any tet mesh meshio reads, or a closed .stl/.obj surface) is taken in metres and gets
     the ``rubber`` material and no fixed mass (the material density decides).
-    The mesh stands on the table plane z = 0.
+    The mesh rests on the table plane z = 0 in a stable pose (:func:`rest_on_table`).
     """
     from softgrasp.mesh import generate
 
@@ -59,12 +60,12 @@ def make_object(name_or_path: str, mesh_size: float | None = None) -> tuple[TetM
             n = max(1, round(CUBE_SIZE / h))
             mesh = generate.box(CUBE_SIZE, n, name="cube")
         else:
-            mesh = generate.sphere(SPHERE_RADIUS, h, name="sphere")  # type: ignore[attr-defined]
+            mesh = rest_on_table(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
         return mesh, preset(spec.material), spec.mass
     path = Path(name_or_path)
     if not path.suffix:
         raise MeshError(f"unknown object {name_or_path!r}; built-in objects are {sorted(OBJECTS)}, or give a mesh file")
-    from softgrasp.mesh.io import load_mesh  # type: ignore[import-not-found]
+    from softgrasp.mesh.io import load_mesh
 
-    mesh = load_mesh(path, mesh_size=mesh_size).on_table()
+    mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size))
     return mesh, preset("rubber"), None

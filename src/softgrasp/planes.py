@@ -186,9 +186,13 @@ class PlaneContact:
         """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N)."""
         k, _, kt, _ = self._coeffs(body)
         _, n, pen = self._geometry(x, t)
-        touching = pen > 0
+        # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
+        # body resting on the plane must not look unsupported to Newton's method.
+        touching = pen >= 0
         nn = np.outer(n, n)
-        kt_eff = kt if self.mu > 0 else np.zeros_like(kt)
+        # Only anchored (sticking) nodes have a tangential spring; a node that has just touched
+        # gets its anchor at the next update, like in static_forces.
+        kt_eff = np.where(state.active & touching, kt, 0.0) if self.mu > 0 else np.zeros_like(kt)
         blocks = -(k[:, None, None] * nn + kt_eff[:, None, None] * (np.eye(3) - nn))
         blocks[~touching] = 0.0
         idx = np.arange(body.n_nodes)

@@ -1,6 +1,6 @@
 """Uniaxial compression between two rigid plates (paper Sec. 4.2, Figs. 8-9).
 
-The object stands on a fixed bottom plate; a top plate starting at the object's highest point moves
+The object settles under gravity on a fixed bottom plate; a top plate starting on its top moves
 down to the requested engineering strain in quasi-static increments. Each increment is a static
 solve (:func:`softgrasp.sim.static.solve_static`) with gravity. The plate force is read from the
 top plate. Plates are frictionless by default (a lubricated test, giving a uniaxial stress state);
@@ -25,7 +25,9 @@ from softgrasp.body import Body
 from softgrasp.errors import ConfigError
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.scene import Scene
-from softgrasp.sim.static import rigid_constraints, solve_static
+from softgrasp.sim.linsolve import SolverCache
+from softgrasp.sim.static import solve_static
+from softgrasp.supports import Tether
 
 __all__ = ["CompressionResult", "compression_test", "outline_area"]
 
@@ -38,9 +40,12 @@ class CompressionResult:
     ----------
     displacement_m: top plate travel [m], (K,), starting at 0.
     force_N: force of the top plate on the object [N], (K,).
+    bottom_force_N: force of the bottom plate on the object [N], (K,) (= force + weight).
     strain: nominal compressive strain (displacement / height), (K,).
     stress_Pa: nominal compressive stress (force / area) [Pa], (K,).
-    lateral_strain: change of the object's x extent over its initial x extent, (K,).
+    lateral_strain: change of the object's width along x over its initial width, (K,): the
+        area-weighted mean x displacement of the boundary facets facing +x minus that of the facets
+        facing -x (like an extensometer across the faces), over the initial x extent.
     height_m: initial height [m].
     area_m2: nominal area [m^2].
     apparent_E_Pa: initial slope of stress vs strain [Pa] (least squares through the origin over
@@ -48,12 +53,14 @@ class CompressionResult:
     apparent_nu: minus lateral strain over axial strain over the same range.
     fit_strain: largest strain used for the initial-slope fits.
     newton_iterations: Newton iterations per increment, (K,).
+    tether_force_N: largest net force of the weak lateral tethers over the test [N] (~0).
     wall_time_s: wall time of the test [s].
     final_positions_m: node positions at the last increment, (N, 3).
     """
 
     displacement_m: NDArray[np.float64]
     force_N: NDArray[np.float64]
+    bottom_force_N: NDArray[np.float64]
     strain: NDArray[np.float64]
     stress_Pa: NDArray[np.float64]
     lateral_strain: NDArray[np.float64]
@@ -63,6 +70,7 @@ class CompressionResult:
     apparent_nu: float
     fit_strain: float
     newton_iterations: NDArray[np.int64]
+    tether_force_N: float
     wall_time_s: float
     final_positions_m: NDArray[np.float64]
 
@@ -70,6 +78,20 @@ class CompressionResult:
 def outline_area(points: NDArray[np.float64]) -> float:
     """Area [m^2] of the convex outline of ``points`` projected on the xy plane."""
     return float(ConvexHull(points[:, :2]).volume)
+
+
+def _side_weights(mesh) -> tuple[NDArray[np.float64], float]:
+    """Node weights (N,) whose dot product with x displacements gives the mean x displacement of
+    the +x-facing boundary minus that of the -x-facing boundary; and the initial x extent [m]."""
+    nx = mesh.facet_normals[:, 0]
+    w = np.zeros(mesh.n_nodes)
+    for sign in (1.0, -1.0):
+        sel = sign * nx > 0.9
+        if not sel.any():
+            raise ConfigError("the object has no boundary facing the x direction to measure its width")
+        a = mesh.facet_areas[sel] / mesh.facet_areas[sel].sum()
+        np.add.at(w, mesh.facets[sel].ravel(), sign * np.repeat(a / 3.0, 3))
+    return w, float(np.ptp(mesh.points[:, 0]))
 
 
 def _schedule(strain: float, steps: int, first: float) -> NDArray[np.float64]:
@@ -115,21 +137,32 @@ def compression_test(
     H = zmax - zmin
     area = outline_area(x0)
     bottom = PlaneContact(Plane([0, 0, zmin], [0, 0, 1]), mu=plate_friction, penalty=penalty, name="bottom")
-    top = PlaneContact(Plane([0, 0, zmax], [0, 0, -1], velocity=[0, 0, -1.0]), mu=plate_friction, penalty=penalty, name="top")
-    scene = Scene(body, (bottom, top))
-    # Rigid motions the plates may leave free (sliding, spinning about the axis) are fixed by
-    # mass-weighted constraints; the symmetric load makes their reactions vanish.
-    C = rigid_constraints(x0, body.mass, "xyXYZ")
+    # Rigid motions the plates may leave free (sliding, spinning, tilting on single-node contacts)
+    # are held by weak lateral tethers; under the symmetric load their net force vanishes.
+    tether = Tether("xy")
+    cache = SolverCache()
+    # The object first settles under its own weight; like a rig zeroed at first contact, the top
+    # plate then starts on the settled top.
+    rest = Scene(body, (bottom, tether))
+    settled, _ = solve_static(rest, rest.initial_state(), cache=cache)
+    ztop = float(settled.x[:, 2].max())
+    top = PlaneContact(Plane([0, 0, ztop], [0, 0, -1], velocity=[0, 0, -1.0]), mu=plate_friction,
+                       penalty=penalty, name="top")
+    scene = Scene(body, (bottom, top, tether))
     levels = _schedule(strain, steps, fit_strain / 4)
-    state = scene.initial_state()
-    xs0 = np.ptp(x0[:, 0])
-    disp, force, lat, iters = [], [], [], []
+    state = scene.initial_state(settled.x)
+    side_w, width = _side_weights(body.mesh)
+    disp, force, lat, iters, fbot = [], [], [], [], []
+    tether_force = 0.0
     for i, e in enumerate(levels):
-        state, info = solve_static(scene, state, t=e * H, constraints=C, x_ref=x0)
+        state, info = solve_static(scene, state, t=e * H, cache=cache)
         f = top.static_forces(body, state.x, state.t, state.contacts[1]).sum(axis=0)
         disp.append(e * H)
         force.append(float(-f[2]))
-        lat.append(float(np.ptp(state.x[:, 0]) / xs0 - 1.0))
+        fb = bottom.static_forces(body, state.x, state.t, state.contacts[0]).sum(axis=0)
+        fbot.append(float(fb[2]))
+        lat.append(float(side_w @ (state.x[:, 0] - x0[:, 0])) / width)
+        tether_force = max(tether_force, float(np.abs(tether.total_force(body, state.x)).max()))
         iters.append(info.newton_iterations)
         if progress is not None:
             progress((i + 1) / len(levels))
@@ -147,6 +180,7 @@ def compression_test(
     return CompressionResult(
         displacement_m=d,
         force_N=F,
+        bottom_force_N=np.array(fbot),
         strain=eps,
         stress_Pa=sig,
         lateral_strain=latv,
@@ -156,6 +190,7 @@ def compression_test(
         apparent_nu=nu_app,
         fit_strain=fit_strain,
         newton_iterations=np.array(iters),
+        tether_force_N=tether_force,
         wall_time_s=time.perf_counter() - t0,
         final_positions_m=state.x,
     )

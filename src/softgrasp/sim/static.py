@@ -12,16 +12,15 @@ free) are enforced with Lagrange multipliers in a saddle-point system.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.mesh.tetmesh import signed_volumes
+from softgrasp.sim.linsolve import SolverCache, solve_newton_system
 from softgrasp.sim.scene import Scene, State
 
 __all__ = ["StaticInfo", "solve_static", "rigid_constraints"]
@@ -36,7 +35,8 @@ class StaticInfo:
     newton_iterations: total Newton iterations over all friction passes.
     friction_passes: number of stick-predictor / slip-return passes.
     residual_N: final largest unbalanced nodal force component [N].
-    constraint_forces_N: Lagrange multipliers of the constraints (generalised forces), (k,).
+    constraint_forces_N: reactions of the constraints (generalised forces, ``C^T r`` acts on the
+        nodes), (k,).
     """
 
     newton_iterations: int
@@ -72,24 +72,6 @@ def rigid_constraints(
     return sp.csr_matrix(np.array(rows))
 
 
-def _solve(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", spla.MatrixRankWarning)
-        try:
-            if C is None:
-                return spla.spsolve(A.tocsc(), b, permc_spec="MMD_AT_PLUS_A"), np.zeros(0)
-            k = C.shape[0]
-            K = sp.bmat([[A, C.T], [C, None]], format="csc")
-            sol = spla.spsolve(K, np.concatenate([b, np.zeros(k)]), permc_spec="MMD_AT_PLUS_A")
-            return sol[: A.shape[0]], sol[A.shape[0] :]
-        except (spla.MatrixRankWarning, RuntimeError) as exc:
-            raise NotConverged(
-                "static solve failed: the stiffness matrix is singular, so the body is not held in "
-                "place (it could slide, spin or fall freely); add support (table friction, contacts) "
-                "or constraints"
-            ) from exc
-
-
 def _newton(
     scene: Scene,
     x: NDArray[np.float64],
@@ -98,6 +80,7 @@ def _newton(
     C: sp.csr_matrix | None,
     rtol: float,
     max_iter: int,
+    cache: SolverCache,
 ) -> tuple[NDArray[np.float64], int, float, NDArray[np.float64]]:
     body = scene.body
     L = float(np.ptp(body.mesh.points, axis=0).max())
@@ -108,8 +91,8 @@ def _newton(
         f_int = body.internal_forces(x)
         scale = max(np.abs(f_int).max(), np.abs(f - f_int).max(), grav, 1e-300)
         A = -scene.jacobian(x, t, contacts)
-        dx, lam_new = _solve(A, f.ravel(), C)
-        r = f.ravel() + (C.T @ lam_new if C is not None else 0.0)
+        dx, lam_new = solve_newton_system(A, f.ravel(), C, x, cache)
+        r = f.ravel() - (C.T @ lam_new if C is not None else 0.0)
         res = float(np.abs(r).max())
         if res <= rtol * scale:
             return x, it - 1, res, lam_new
@@ -118,7 +101,7 @@ def _newton(
         while descent <= 0 and shift < 1e4:
             # Indefinite stiffness (buckling springs): Levenberg shift towards the diagonal.
             D = sp.diags(np.abs(A.diagonal()) * shift + 1e-300)
-            dx, lam_new = _solve((A + D).tocsr(), f.ravel(), C)
+            dx, lam_new = solve_newton_system((A + D).tocsr(), f.ravel(), C, x, SolverCache(cache.method))
             descent = float(f.ravel() @ dx)
             shift *= 10.0
         lam = lam_new
@@ -139,7 +122,7 @@ def _newton(
         if not accepted:
             # Energy cannot decrease at round-off level: accept when the residual still drops.
             xn = x + alpha * d
-            rn = np.abs(scene.static_forces(xn, t, contacts).ravel() + (C.T @ lam if C is not None else 0.0)).max()
+            rn = np.abs(scene.static_forces(xn, t, contacts).ravel() - (C.T @ lam if C is not None else 0.0)).max()
             if not (rn < res and (signed_volumes(xn, body.mesh.tets) > 0).all()):
                 raise NotConverged(
                     f"static solve stalled at iteration {it}: largest unbalanced force {res:.3g} N "
@@ -150,7 +133,7 @@ def _newton(
             return x, it, res, lam
         x = xn
     f = scene.static_forces(x, t, contacts).ravel()
-    res = float(np.abs(f + (C.T @ lam if C is not None else 0.0)).max())
+    res = float(np.abs(f - (C.T @ lam if C is not None else 0.0)).max())
     raise NotConverged(
         f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
         f"{res:.3g} N); use smaller load steps"
@@ -167,6 +150,7 @@ def solve_static(
     rtol: float = 1e-9,
     max_iter: int = 60,
     max_friction_passes: int = 30,
+    cache: SolverCache | None = None,
 ) -> tuple[State, StaticInfo]:
     """Bring the scene to rest at time (load parameter) ``t``, starting from ``state``.
 
@@ -178,6 +162,7 @@ def solve_static(
     constraints: optional sparse (k, 3N) C with ``C (x - x_ref) = 0`` enforced.
     x_ref: reference positions for the constraints; default ``state.x``.
     rtol: convergence when the largest unbalanced force <= rtol x the largest force present.
+    cache: linear-solver state to reuse across calls (e.g. the increments of one loading).
 
     Returns
     -------
@@ -200,21 +185,22 @@ def solve_static(
         if np.abs(viol).max() > 0:
             CCt = (C @ C.T).toarray()
             x = x - (C.T @ np.linalg.solve(CCt, viol)).reshape(-1, 3)
+    cache = cache if cache is not None else SolverCache()
     zeros = np.zeros_like(x)
     contacts = scene.update_contacts(x, zeros, tt, state.contacts)
     total_it = 0
     for p in range(1, max_friction_passes + 1):
-        x, it, res, lam = _newton(scene, x, tt, contacts, C, rtol, max_iter)
+        x, it, res, lam = _newton(scene, x, tt, contacts, C, rtol, max_iter, cache)
         total_it += it
         new_contacts = scene.update_contacts(x, zeros, tt, contacts)
         f = scene.static_forces(x, tt, new_contacts).ravel()
         if C is not None:
-            f = f + C.T @ lam
+            f = f - C.T @ lam
         f_int = scene.body.internal_forces(x)
         scale = max(np.abs(f_int).max(), np.abs(scene.body.mass).max() * 9.81, 1e-300)
         contacts = new_contacts
         if np.abs(f).max() <= max(10 * rtol * scale, 2 * res):
-            return State(x, zeros, tt, contacts), StaticInfo(total_it, p, float(np.abs(f).max()), lam)
+            return State(x, zeros, tt, contacts), StaticInfo(total_it, p, float(np.abs(f).max()), -lam)
     raise NotConverged(
         f"friction did not settle in {max_friction_passes} stick/slip passes; use smaller load steps"
     )

@@ -1,0 +1,60 @@
+"""Compression test between rigid plates (paper Fig. 8-9)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softgrasp.body import build_body
+from softgrasp.errors import ConfigError
+from softgrasp.experiments.compression import compression_test
+from softgrasp.material import Material, Polynomial
+from softgrasp.mesh import box
+from softgrasp.objects import make_object
+
+
+def _force_at(res, strain: float) -> float:
+    return float(np.interp(strain, res.strain, res.force_N))
+
+
+@pytest.mark.slow
+def test_sphere_force_converges_under_refinement():
+    """The rubber sphere's force at 10 % strain changes < 10 % between successive refinements."""
+    forces = []
+    for h in (0.016, 0.011, 0.008):
+        mesh, mat, mass = make_object("sphere", h)
+        res = compression_test(build_body(mesh, mat, mass=mass), strain=0.1, steps=4)
+        forces.append(_force_at(res, 0.1))
+    changes = np.abs(np.diff(forces)) / np.array(forces[1:])
+    assert (changes < 0.10).all(), forces
+
+
+def test_polynomial_law_stiffens_the_response():
+    mesh = box(0.05, 3)
+    lin = compression_test(build_body(mesh, Material(1e5, 0.3, 100.0)), strain=0.2, steps=4)
+    stiff = compression_test(build_body(mesh, Material(1e5, 0.3, 100.0, Polynomial(a3=3.0))), strain=0.2, steps=4)
+    # Same small-strain modulus, much larger force at 20 % strain.
+    assert stiff.apparent_E_Pa == pytest.approx(lin.apparent_E_Pa, rel=0.02)
+    assert _force_at(stiff, 0.2) > 1.08 * _force_at(lin, 0.2)
+
+
+def test_linear_box_force_is_linear_at_small_strain():
+    res = compression_test(build_body(box(0.05, 3), Material(1e5, 0.3, 100.0)), strain=0.02, steps=4)
+    slope = res.force_N[1:] / res.displacement_m[1:]
+    assert np.ptp(slope) / slope.mean() < 0.03
+
+
+def test_plate_friction_stiffens_a_box():
+    """Sticking plates stop the faces from spreading (barrelling): a stiffer apparent response."""
+    body = build_body(box(0.05, 4), Material(1e5, 0.45, 100.0))
+    free = compression_test(body, strain=0.05, steps=2)
+    stuck = compression_test(body, strain=0.05, steps=2, plate_friction=2.0)
+    assert _force_at(stuck, 0.05) > 1.01 * _force_at(free, 0.05)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [({"strain": 0.0}, "strain = 0.0 is invalid"),
+                                               ({"strain": 0.95}, "strain = 0.95"),
+                                               ({"steps": 0}, "steps = 0 is invalid")])
+def test_compression_errors(kwargs, match):
+    with pytest.raises(ConfigError, match=match):
+        compression_test(build_body(box(0.05, 2), Material(1e5, 0.3, 100.0)), **kwargs)
