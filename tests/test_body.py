@@ -16,8 +16,9 @@ def _isotropic_tensor(E: float, nu: float) -> np.ndarray:
     lam = E * nu / ((1 + nu) * (1 - 2 * nu))
     mu = E / (2 * (1 + nu))
     d = np.eye(3)
-    return (lam * np.einsum("ij,kl->ijkl", d, d)
-            + mu * (np.einsum("ik,jl->ijkl", d, d) + np.einsum("il,jk->ijkl", d, d)))
+    return lam * np.einsum("ij,kl->ijkl", d, d) + mu * (
+        np.einsum("ik,jl->ijkl", d, d) + np.einsum("il,jk->ijkl", d, d)
+    )
 
 
 def test_lumped_masses():
@@ -72,9 +73,12 @@ def test_uniaxial_compression_recovers_E_and_nu(nu):
 
 @pytest.mark.parametrize(
     ("kwargs", "match"),
-    [({"mass": 0.0}, r"mass = 0.0 kg is invalid"), ({"mass": -1.0}, r"must be > 0"),
-     ({"damping_ratio": -0.1}, r"damping ratio = -0.1 is invalid"),
-     ({"gravity": float("inf")}, r"gravity = inf")],
+    [
+        ({"mass": 0.0}, r"mass = 0.0 kg is invalid"),
+        ({"mass": -1.0}, r"must be > 0"),
+        ({"damping_ratio": -0.1}, r"damping ratio = -0.1 is invalid"),
+        ({"gravity": float("inf")}, r"gravity = inf"),
+    ],
 )
 def test_body_errors(kwargs, match):
     with pytest.raises(MaterialError, match=match):

@@ -13,13 +13,31 @@ from softgrasp.cli import main
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "softgrasp.cli", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "softgrasp.cli", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_compress_writes_csv_json_png(tmp_path):
     out = tmp_path / "run"
-    assert main(["compress", "--object", "cube", "--mesh-size", "0.0125", "--strain", "0.05", "--steps", "3",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "compress",
+                "--object",
+                "cube",
+                "--mesh-size",
+                "0.0125",
+                "--strain",
+                "0.05",
+                "--steps",
+                "3",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader((out / "compress.csv").open()))
     assert list(rows[0]) == ["displacement_m", "force_N", "strain", "stress_Pa"]
     assert float(rows[-1]["strain"]) == pytest.approx(0.05)
@@ -45,8 +63,11 @@ def test_compress_writes_csv_json_png(tmp_path):
 )
 def test_compress_bad_input_one_line_nonzero(tmp_path, args, needle):
     out = tmp_path / "out"
-    proc = _run("compress", "--object", "cube", *args, "--out", str(out)) if "--object" not in args else \
-        _run("compress", *args, "--out", str(out))
+    proc = (
+        _run("compress", "--object", "cube", *args, "--out", str(out))
+        if "--object" not in args
+        else _run("compress", *args, "--out", str(out))
+    )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr

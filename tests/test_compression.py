@@ -32,7 +32,9 @@ def test_sphere_force_converges_under_refinement():
 def test_polynomial_law_stiffens_the_response():
     mesh = box(0.05, 3)
     lin = compression_test(build_body(mesh, Material(1e5, 0.3, 100.0)), strain=0.2, steps=4)
-    stiff = compression_test(build_body(mesh, Material(1e5, 0.3, 100.0, Polynomial(a3=3.0))), strain=0.2, steps=4)
+    stiff = compression_test(
+        build_body(mesh, Material(1e5, 0.3, 100.0, Polynomial(a3=3.0))), strain=0.2, steps=4
+    )
     # Same small-strain modulus, much larger force at 20 % strain.
     assert stiff.apparent_E_Pa == pytest.approx(lin.apparent_E_Pa, rel=0.02)
     assert _force_at(stiff, 0.2) > 1.08 * _force_at(lin, 0.2)
@@ -52,9 +54,14 @@ def test_plate_friction_stiffens_a_box():
     assert _force_at(stuck, 0.05) > 1.01 * _force_at(free, 0.05)
 
 
-@pytest.mark.parametrize(("kwargs", "match"), [({"strain": 0.0}, "strain = 0.0 is invalid"),
-                                               ({"strain": 0.95}, "strain = 0.95"),
-                                               ({"steps": 0}, "steps = 0 is invalid")])
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"strain": 0.0}, "strain = 0.0 is invalid"),
+        ({"strain": 0.95}, "strain = 0.95"),
+        ({"steps": 0}, "steps = 0 is invalid"),
+    ],
+)
 def test_compression_errors(kwargs, match):
     with pytest.raises(ConfigError, match=match):
         compression_test(build_body(box(0.05, 2), Material(1e5, 0.3, 100.0)), **kwargs)

@@ -59,7 +59,9 @@ def test_internal_jacobian_matches_finite_differences(perturbed, law, nu):
         xp, xm = flat.copy(), flat.copy()
         xp[i] += h
         xm[i] -= h
-        Jfd[:, i] = (body.internal_forces(xp.reshape(-1, 3)) - body.internal_forces(xm.reshape(-1, 3))).ravel() / (2 * h)
+        Jfd[:, i] = (
+            body.internal_forces(xp.reshape(-1, 3)) - body.internal_forces(xm.reshape(-1, 3))
+        ).ravel() / (2 * h)
     assert np.abs(J - Jfd).max() < 1e-5 * np.abs(J).max()
     # A conservative force field has a symmetric Jacobian.
     assert np.abs(J - J.T).max() < 1e-10 * np.abs(J).max()

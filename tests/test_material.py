@@ -30,8 +30,12 @@ def test_lame_constants_are_consistent():
 
 @pytest.mark.parametrize(
     "law",
-    [Linear(), Polynomial(a2=-0.5, a3=2.0), Polynomial(a3=-0.3),
-     Tabulated(np.array([0.1, 0.2, 0.4]), np.array([1.0e4, 2.5e4, 8.0e4]))],
+    [
+        Linear(),
+        Polynomial(a2=-0.5, a3=2.0),
+        Polynomial(a3=-0.3),
+        Tabulated(np.array([0.1, 0.2, 0.4]), np.array([1.0e4, 2.5e4, 8.0e4])),
+    ],
 )
 def test_law_normalised_and_consistent(law):
     e = np.linspace(-0.5, 0.5, 201)
@@ -94,10 +98,15 @@ def test_parse_material():
     assert (m.E, m.nu, m.density, mass) == (80e3, 0.4, None, 0.05)
     m, _ = parse_material("foam,nu=0.3,a3=0.5")
     assert m.nu == 0.3 and isinstance(m.law, Polynomial)
-    for bad, match in [("", "empty"), ("steel", "unknown material 'steel'"), ("E=1e5", "lacks nu"),
-                       ("E=1e5,nu=0.3", "needs density"), ("E=abc,nu=0.3,density=1", "not a number"),
-                       ("E=1e5,nu=0.3,density=1,colour=3", "unknown material key 'colour'"),
-                       ("E=1e5,nu=0.3,mass=-2", "mass = -2.0 kg is invalid"),
-                       ("E=1e5,nu=0.7,density=5", "nu = 0.7")]:
+    for bad, match in [
+        ("", "empty"),
+        ("steel", "unknown material 'steel'"),
+        ("E=1e5", "lacks nu"),
+        ("E=1e5,nu=0.3", "needs density"),
+        ("E=abc,nu=0.3,density=1", "not a number"),
+        ("E=1e5,nu=0.3,density=1,colour=3", "unknown material key 'colour'"),
+        ("E=1e5,nu=0.3,mass=-2", "mass = -2.0 kg is invalid"),
+        ("E=1e5,nu=0.7,density=5", "nu = 0.7"),
+    ]:
         with pytest.raises(MaterialError, match=match):
             parse_material(bad)

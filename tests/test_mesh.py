@@ -239,9 +239,7 @@ def test_tetmesh_edge_only_contact_is_non_manifold() -> None:
 
 
 def test_tetmesh_face_shared_by_three_tets() -> None:
-    p = np.array(
-        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1], [0.2, 0.2, 2]], dtype=float
-    )
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1], [0.2, 0.2, 2]], dtype=float)
     t = np.array([[0, 1, 2, 3], [0, 1, 2, 4], [0, 1, 2, 5]])
     with pytest.raises(MeshError, match=r"face \[0, 1, 2\] is shared by 3 tetrahedra"):
         TetMesh(p, t, reorient=True)
@@ -414,9 +412,7 @@ def test_open_and_broken_surfaces(tmp_path, coarse_sphere: TetMesh) -> None:
     with pytest.raises(MeshError, match=match):
         load_mesh(tmp_path / "double.stl")
     n = len(p)
-    write_surface(
-        tmp_path / "two.stl", np.vstack([p, p + np.array([0.2, 0, 0])]), np.vstack([f, f + n])
-    )
+    write_surface(tmp_path / "two.stl", np.vstack([p, p + np.array([0.2, 0, 0])]), np.vstack([f, f + n]))
     with pytest.raises(MeshError, match="several separate closed pieces"):
         load_mesh(tmp_path / "two.stl")
     flat = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], dtype=float)

@@ -7,6 +7,7 @@ body are computed by :mod:`softgrasp.forces` and collected per scene by :mod:`so
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -31,6 +32,8 @@ __all__ = ["Body", "build_body", "STANDARD_GRAVITY", "DEFAULT_DAMPING_RATIO"]
 
 #: Standard gravity [m/s^2].
 STANDARD_GRAVITY = 9.80665
+#: Residual directional stiffness spread above which build_body warns.
+ANISOTROPY_WARNING = 0.02
 #: Default damping ratio of the body's fundamental mode (edge dashpots, stiffness-proportional).
 DEFAULT_DAMPING_RATIO = 0.1
 
@@ -89,7 +92,9 @@ class Body:
         """Total gravity force [N], (3,)."""
         return self.total_mass * self.gravity
 
-    def internal_forces(self, x: NDArray[np.float64], v: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    def internal_forces(
+        self, x: NDArray[np.float64], v: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
         """Spring + volume (+ edge damping if ``v`` is given) forces on the nodes [N], (N, 3)."""
         f, _ = spring_forces(x, self.edges, self.rest_length, self.stiffness, self.material.law)
         if self.kappa != 0.0:
@@ -123,13 +128,14 @@ class Body:
 
     @cached_property
     def node_stiffness(self) -> NDArray[np.float64]:
-        """Per-node stiffness scale [N/m], (N,): Gershgorin row sum of the rest stiffness / 3.
+        """Per-node stiffness scale [N/m], (N,): half the largest absolute row sum of the node's rest
+        stiffness rows (the sum of the stiffnesses attaching it, for springs).
 
         Used to size penalty contacts and time steps.
         """
         K = abs(self.rest_jacobian)
         rows = np.asarray(K.sum(axis=1)).ravel().reshape(-1, 3)
-        return rows.max(axis=1) / 2.0
+        return rows.max(axis=1) / 2.0  # diagonal + off-diagonal row sums: twice the spring sum
 
     @cached_property
     def fundamental_frequency(self) -> float:
@@ -202,6 +208,13 @@ def build_body(
     node_mass = np.zeros(mesh.n_nodes)
     np.add.at(node_mass, mesh.tets.ravel(), np.repeat(rho * mesh.volumes / 4.0, 4))
     cal = calibrate_network(mesh, material.E, material.nu, isotropize=isotropize)
+    if isotropize and cal.anisotropy_after > ANISOTROPY_WARNING:
+        warnings.warn(
+            f"the springs of mesh '{mesh.name}' cannot be made isotropic (directional stiffness "
+            f"spread {cal.anisotropy_after:.0%} after re-weighting); stiffness will depend on the "
+            "loading direction. Use cells closer to cubes (box) or an unstructured mesh.",
+            stacklevel=2,
+        )
     L = float(np.ptp(mesh.points, axis=0).max())
     omega1 = math.pi * math.sqrt(material.E / rho) / L
     beta = 2.0 * damping_ratio / omega1

@@ -43,8 +43,15 @@ def _positive(name: str):
 def _progress(desc: str, total: int = 1000):
     from tqdm import tqdm
 
-    bar = tqdm(total=total, desc=desc, unit="‰", leave=False, disable=None, file=sys.stderr,
-               bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}")
+    bar = tqdm(
+        total=total,
+        desc=desc,
+        unit="‰",
+        leave=False,
+        disable=None,
+        file=sys.stderr,
+        bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}",
+    )
 
     def update(fraction: float) -> None:
         bar.n = int(round(fraction * total))
@@ -58,7 +65,7 @@ def _load(args: argparse.Namespace):
     from softgrasp.material import parse_material
     from softgrasp.objects import make_object
 
-    mesh, material, mass = make_object(args.object, args.mesh_size)
+    mesh, material, mass = make_object(args.object, args.mesh_size, reorient=args.reorient)
     if args.material is not None:
         material, spec_mass = parse_material(args.material)
         # A material given with its own density or mass decides the mass; a preset keeps the
@@ -84,14 +91,15 @@ def _cmd_compress(args: argparse.Namespace) -> int:
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}, density = {m.density:.4g} kg/m^3")
     bar, update = _progress("compress")
     try:
-        res = compression_test(body, strain=args.strain, steps=args.steps,
-                               plate_friction=args.plate_friction, progress=update)
+        res = compression_test(
+            body, strain=args.strain, steps=args.steps, plate_friction=args.plate_friction, progress=update
+        )
     finally:
         bar.close()
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["displacement_m", "force_N", "strain", "stress_Pa"])
-    for row in zip(res.displacement_m, res.force_N, res.strain, res.stress_Pa):
+    for row in zip(res.displacement_m, res.force_N, res.strain, res.stress_Pa, strict=True):
         w.writerow([f"{v:.9g}" for v in row])
     write_text(out / "compress.csv", buf.getvalue())
     write_json(
@@ -117,21 +125,43 @@ def _cmd_compress(args: argparse.Namespace) -> int:
             "wall_time_s": time.perf_counter() - t0,
         },
     )
-    plot_stress_strain(out / "compress.png", res.strain, res.stress_Pa, apparent_E_Pa=res.apparent_E_Pa,
-                       title=f"Compression of the {args.object} ({m.name})", linear_E_Pa=m.E)
+    plot_stress_strain(
+        out / "compress.png",
+        res.strain,
+        res.stress_Pa,
+        apparent_E_Pa=res.apparent_E_Pa,
+        title=f"Compression of the {args.object} ({m.name})",
+        linear_E_Pa=m.E,
+    )
     print(f"height {res.height_m * 1e3:.1f} mm, area {res.area_m2 * 1e6:.0f} mm^2, strain {args.strain:.0%}")
-    print(f"apparent E {res.apparent_E_Pa / 1e3:.4g} kPa (initial slope), peak force {res.force_N.max():.3g} N")
+    print(
+        f"apparent E {res.apparent_E_Pa / 1e3:.4g} kPa (initial slope), peak force {res.force_N.max():.3g} N"
+    )
     print(f"wrote {out}/compress.csv, compress.json, compress.png ({time.perf_counter() - t0:.1f} s)")
     return 0
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--object", default="sphere",
-                   help="built-in object (cube, sphere) or a mesh file (.msh .vtk .vtu .stl .obj ..., metres)")
-    p.add_argument("--material", default=None,
-                   help="preset (foam, rubber) or E=..,nu=..,density=.. [Pa, -, kg/m^3]; default: the object's")
-    p.add_argument("--mesh-size", type=_positive("--mesh-size"), default=None, metavar="M",
-                   help="target element size [m]")
+    p.add_argument(
+        "--object",
+        default="sphere",
+        help="built-in object (cube, sphere) or a mesh file (.msh .vtk .vtu .stl .obj ..., metres)",
+    )
+    p.add_argument(
+        "--material",
+        default=None,
+        help="preset (foam, rubber) or E=..,nu=..,density=.. [Pa, -, kg/m^3]; default: the object's",
+    )
+    p.add_argument(
+        "--mesh-size",
+        type=_positive("--mesh-size"),
+        default=None,
+        metavar="M",
+        help="target element size [m]",
+    )
+    p.add_argument(
+        "--reorient", action="store_true", help="flip inverted tets of a mesh file instead of refusing it"
+    )
     p.add_argument("--out", default=None, metavar="DIR", help="output folder")
 
 
@@ -143,9 +173,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", parser_class=_Parser)
     c = sub.add_parser("compress", help="compression test between rigid plates (paper Fig. 8-9)")
     _common(c)
-    c.add_argument("--strain", type=_positive("--strain"), default=0.3, help="final compressive strain (default 0.3)")
+    c.add_argument(
+        "--strain", type=_positive("--strain"), default=0.3, help="final compressive strain (default 0.3)"
+    )
     c.add_argument("--steps", type=int, default=30, help="load increments (default 30)")
-    c.add_argument("--plate-friction", type=float, default=0.0, help="plate friction coefficient (default 0: lubricated)")
+    c.add_argument(
+        "--plate-friction", type=float, default=0.0, help="plate friction coefficient (default 0: lubricated)"
+    )
     c.set_defaults(func=_cmd_compress)
     return p
 
@@ -170,8 +204,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # a bug: keep it to one line unless asked
         if args.debug:
             raise
-        print(f"softgrasp: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
-              file=sys.stderr)
+        print(
+            f"softgrasp: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
+            file=sys.stderr,
+        )
         return 3
 
 

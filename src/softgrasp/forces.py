@@ -187,7 +187,9 @@ def volume_jacobian(
     H[:, 1:, 0] = -H[:, 1:, 1:].sum(axis=2)
     H[:, 0, 0] = H[:, 1:, 1:].sum(axis=(1, 2))
     gg = g[:, :, None, :, None] * g[:, None, :, None, :]  # (M, 4, 4, 3, 3)
-    hess = (kappa * d2w / rest_volume)[:, None, None, None, None] * gg + (kappa * dw)[:, None, None, None, None] * H
+    hess = (kappa * d2w / rest_volume)[:, None, None, None, None] * gg + (kappa * dw)[
+        :, None, None, None, None
+    ] * H
     rows = np.repeat(tets, 4, axis=1).ravel()
     cols = np.tile(tets, (1, 4)).ravel()
     return assemble_blocks(x.shape[0], rows, cols, -hess.reshape(-1, 3, 3))

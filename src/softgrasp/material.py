@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from softgrasp.errors import MaterialError
 
@@ -179,15 +179,15 @@ class Tabulated:
         object.__setattr__(self, "_end_slopes", (float(d(e[0])), float(d(e[-1]))))
         anti = spline.antiderivative()
         object.__setattr__(self, "_anti", anti)
-        object.__setattr__(self, "_end_energy", (float(anti(e[0]) - anti(0.0)), float(anti(e[-1]) - anti(0.0))))
+        object.__setattr__(
+            self, "_end_energy", (float(anti(e[0]) - anti(0.0)), float(anti(e[-1]) - anti(0.0)))
+        )
 
     def stress(self, strain: NDArray[np.float64]) -> NDArray[np.float64]:
         x = np.asarray(strain, dtype=np.float64)
         e, s = self.strain, self.stress_Pa
         lo, hi = self._end_slopes  # type: ignore[attr-defined]
-        out = np.where(
-            x < e[0], s[0] + lo * (x - e[0]), np.where(x > e[-1], s[-1] + hi * (x - e[-1]), 0.0)
-        )
+        out = np.where(x < e[0], s[0] + lo * (x - e[0]), np.where(x > e[-1], s[-1] + hi * (x - e[-1]), 0.0))
         inside = (x >= e[0]) & (x <= e[-1])
         out = np.where(inside, np.nan_to_num(self._spline(np.clip(x, e[0], e[-1]))), out)  # type: ignore[attr-defined]
         return out / self.E0

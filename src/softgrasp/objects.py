@@ -42,11 +42,14 @@ OBJECTS: dict[str, ObjectSpec] = {
 }
 
 
-def make_object(name_or_path: str, mesh_size: float | None = None) -> tuple[TetMesh, Material, float | None]:
+def make_object(
+    name_or_path: str, mesh_size: float | None = None, *, reorient: bool = False
+) -> tuple[TetMesh, Material, float | None]:
     """Mesh, default material and mass [kg] of a built-in object or a mesh file.
 
     A file (any tet mesh meshio reads, or a closed .stl/.obj surface) is taken in metres and gets
-    the ``rubber`` material and no fixed mass (the material density decides).
+    the ``rubber`` material and no fixed mass (the material density decides); ``reorient`` flips
+    its inverted tets instead of refusing them.
     The mesh rests on the table plane z = 0 in a stable pose (:func:`rest_on_table`).
     """
     from softgrasp.mesh import generate
@@ -64,8 +67,10 @@ def make_object(name_or_path: str, mesh_size: float | None = None) -> tuple[TetM
         return mesh, preset(spec.material), spec.mass
     path = Path(name_or_path)
     if not path.suffix:
-        raise MeshError(f"unknown object {name_or_path!r}; built-in objects are {sorted(OBJECTS)}, or give a mesh file")
+        raise MeshError(
+            f"unknown object {name_or_path!r}; built-in objects are {sorted(OBJECTS)}, or give a mesh file"
+        )
     from softgrasp.mesh.io import load_mesh
 
-    mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size))
+    mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size, reorient=reorient))
     return mesh, preset("rubber"), None

@@ -62,13 +62,18 @@ class PlaneState:
 
     Attributes
     ----------
-    active: nodes in contact, (N,) bool.
-    anchor: anchor positions relative to the plane's moving point [m], (N, 3); meaningful
-        only where ``active``.
+    active: nodes in contact at the last update, (N,) bool.
+    anchor: anchor positions in the plane, relative to its moving point [m], (N, 3). A free node's
+        anchor follows it, so that a node touching during a step sticks where it entered contact.
+    cap: Coulomb limits ``mu f_n`` [N], (N,), from the last update; the static solver lags the
+        normal force this way so that friction is a potential within one pass. NaN where no normal
+        force is known yet (a node not in contact at the last update): such a node sticks until
+        the next update gives it a limit.
     """
 
     active: NDArray[np.bool_]
     anchor: NDArray[np.float64]
+    cap: NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -111,9 +116,12 @@ class PlaneContact:
         return k, c, self.tangential_ratio * k, self.tangential_ratio * c
 
     def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> PlaneState:
-        """State with anchors at the current position of nodes already touching."""
-        n = body.n_nodes
-        return self.update(body, x, np.zeros_like(x), t, PlaneState(np.zeros(n, bool), np.zeros((n, 3))))
+        """State with every node's anchor at its current position (nodes already touching stick
+        where they are)."""
+        p0, n, pen = self._geometry(x, t)
+        rel = x - p0
+        anchor = rel - (rel @ n)[:, None] * n
+        return PlaneState(active=pen > 0, anchor=anchor, cap=np.full(body.n_nodes, np.nan))
 
     def stiffness_bound(self, body: Body) -> NDArray[np.float64]:
         """Largest stiffness the contact may add to each node [N/m], (N,) (for time steps)."""
@@ -133,8 +141,7 @@ class PlaneContact:
         return p0, n, pen
 
     def _tangential_stretch(self, x, p0, n, state: PlaneState, touching) -> NDArray[np.float64]:
-        anchor = np.where((state.active & touching)[:, None], p0 + state.anchor, x)
-        s = x - anchor
+        s = np.where(touching[:, None], x - (p0 + state.anchor), 0.0)
         return s - (s @ n)[:, None] * n
 
     def forces(
@@ -160,59 +167,88 @@ class PlaneContact:
             f += ft
         return f
 
-    def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
-        """Potential of the normal penalty springs and of the sticking tangential springs [J]."""
+    def _static_tangential(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
+        """Tangential stretch s, its norm, the Coulomb cap mu f_n and the slip mask at rest."""
         k, _, kt, _ = self._coeffs(body)
         p0, n, pen = self._geometry(x, t)
         touching = pen > 0
+        s = self._tangential_stretch(x, p0, n, state, touching)
+        s_norm = np.linalg.norm(s, axis=1)
+        cap = np.where(touching, np.nan_to_num(state.cap, nan=np.inf), 0.0)
+        slip = touching & (kt * s_norm > cap)
+        return k, kt, n, pen, touching, s, s_norm, cap, slip
+
+    def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
+        """Potential [J] of the normal penalty springs and of the friction springs.
+
+        A sticking node stores ``k_t |s|^2 / 2``; a slipping one the C1 continuation
+        ``c |s| - c^2 / (2 k_t)`` with its lagged Coulomb limit ``c`` (:attr:`PlaneState.cap`), so
+        that friction at fixed normal forces is a potential whose gradient is
+        :meth:`static_forces`.
+        """
+        k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
         e = 0.5 * float(np.sum(k[touching] * pen[touching] ** 2))
         if self.mu > 0:
-            s = self._tangential_stretch(x, p0, n, state, touching)
-            e += 0.5 * float(np.sum(kt[touching] * np.einsum("ij,ij->i", s, s)[touching]))
+            stick = touching & ~slip
+            e += 0.5 * float(np.sum(kt[stick] * s_norm[stick] ** 2))
+            e += float(np.sum(cap[slip] * s_norm[slip] - cap[slip] ** 2 / (2.0 * kt[slip])))
         return e
 
-    def static_forces(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> NDArray[np.float64]:
-        """Forces at rest with every touching node sticking (no cap): minus the gradient of
-        :meth:`energy`. The static solver enforces the Coulomb cap by moving anchors."""
-        k, _, kt, _ = self._coeffs(body)
-        p0, n, pen = self._geometry(x, t)
-        touching = pen > 0
+    def static_forces(
+        self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState
+    ) -> NDArray[np.float64]:
+        """Forces at rest [N], (N, 3): penalty normal force and elastic-slider friction capped at the
+        lagged Coulomb limit ``mu f_n`` (Eq. 15-16 without the dashpots)."""
+        k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
         f = np.where(touching, k * pen, 0.0)[:, None] * n
         if self.mu > 0:
-            f -= kt[:, None] * self._tangential_stretch(x, p0, n, state, touching)
+            ft = -kt[:, None] * s
+            ft[slip] *= (cap[slip] / (kt[slip] * s_norm[slip]))[:, None]
+            f += ft
         return f
 
     def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:
-        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N)."""
-        k, _, kt, _ = self._coeffs(body)
-        _, n, pen = self._geometry(x, t)
+        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N).
+
+        Slipping nodes contribute ``-(c / |s|)(P_t - s^ s^T)`` with their lagged limit c: the exact,
+        symmetric derivative at fixed normal forces.
+        """
+        k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
         # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
         # body resting on the plane must not look unsupported to Newton's method.
-        touching = pen >= 0
+        on = pen >= 0
         nn = np.outer(n, n)
-        # Only anchored (sticking) nodes have a tangential spring; a node that has just touched
-        # gets its anchor at the next update, like in static_forces.
-        kt_eff = np.where(state.active & touching, kt, 0.0) if self.mu > 0 else np.zeros_like(kt)
-        blocks = -(k[:, None, None] * nn + kt_eff[:, None, None] * (np.eye(3) - nn))
-        blocks[~touching] = 0.0
+        Pt = np.eye(3) - nn
+        blocks = -k[:, None, None] * nn[None]
+        if self.mu > 0:
+            kt_eff = np.where(touching, kt, 0.0)
+            blocks = blocks - kt_eff[:, None, None] * Pt[None]
+            if slip.any():
+                sh = s[slip] / s_norm[slip, None]
+                ratio = cap[slip] / s_norm[slip]
+                blocks[slip] = -k[slip, None, None] * nn[None] - ratio[:, None, None] * (
+                    Pt[None] - sh[:, :, None] * sh[:, None, :]
+                )
+        blocks[~on] = 0.0
         idx = np.arange(body.n_nodes)
         return assemble_blocks(body.n_nodes, idx, idx, blocks)
 
     def update(
         self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
     ) -> PlaneState:
-        """Advance the friction state after an accepted step (Algorithm 1).
+        """Advance the friction state after an accepted step or static solve (Algorithm 1).
 
-        Nodes that touch for the first time get an anchor where they are; nodes that left lose it;
-        a sticking node whose elastic force exceeds ``mu f_n`` slips: its anchor is dragged so the
-        stretch is exactly ``mu f_n / k_t``.
+        Free nodes carry their anchor along; a node in contact keeps its anchor (stick) unless its
+        tangential spring exceeds ``mu f_n``, in which case it slips: the anchor is dragged so that
+        the stretch is exactly ``mu f_n / k_t``. Leaving contact resets the state (the anchor
+        follows the node again).
         """
         k, _, kt, _ = self._coeffs(body)
         p0, n, pen = self._geometry(x, t)
         touching = pen > 0
         rel = x - p0
         rel_t = rel - (rel @ n)[:, None] * n
-        anchor = np.where((state.active & touching)[:, None], state.anchor, rel_t)
+        anchor = np.where(touching[:, None], state.anchor, rel_t)
         if self.mu > 0:
             s = rel_t - anchor
             s_norm = np.linalg.norm(s, axis=1)
@@ -220,9 +256,13 @@ class PlaneContact:
             slip = touching & (s_norm > limit)
             if slip.any():
                 anchor[slip] = rel_t[slip] - s[slip] * (limit[slip] / s_norm[slip])[:, None]
-        anchor[~touching] = 0.0
-        return replace(state, active=touching.copy(), anchor=anchor)
+        else:
+            anchor = rel_t
+        cap = np.where(touching, self.mu * k * np.maximum(pen, 0.0), np.nan)
+        return replace(state, active=touching.copy(), anchor=anchor, cap=cap)
 
-    def normal_reaction(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState) -> float:
+    def normal_reaction(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
+    ) -> float:
         """Total force [N] the plane exerts on the body along its normal."""
         return float(self.forces(body, x, v, t, state).sum(axis=0) @ self.plane.normal)

@@ -46,7 +46,9 @@ class Tether:
     def static_forces(self, body: Body, x: NDArray[np.float64], t: float, state: None) -> NDArray[np.float64]:
         return -self._k(body) * (x - body.mesh.points)
 
-    def forces(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: None) -> NDArray[np.float64]:
+    def forces(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: None
+    ) -> NDArray[np.float64]:
         return self.static_forces(body, x, t, state)
 
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: None) -> float:
@@ -57,7 +59,9 @@ class Tether:
         blocks = -self._k(body)[:, :, None] * np.eye(3)[None]
         return assemble_blocks(body.n_nodes, idx, idx, blocks)
 
-    def update(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: None) -> None:
+    def update(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: None
+    ) -> None:
         return None
 
     def stiffness_bound(self, body: Body) -> NDArray[np.float64]:

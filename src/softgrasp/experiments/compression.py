@@ -24,8 +24,8 @@ from scipy.spatial import ConvexHull
 from softgrasp.body import Body
 from softgrasp.errors import ConfigError
 from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim.scene import Scene
 from softgrasp.sim.linsolve import SolverCache
+from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
 from softgrasp.supports import Tether
 
@@ -146,8 +146,9 @@ def compression_test(
     rest = Scene(body, (bottom, tether))
     settled, _ = solve_static(rest, rest.initial_state(), cache=cache)
     ztop = float(settled.x[:, 2].max())
-    top = PlaneContact(Plane([0, 0, ztop], [0, 0, -1], velocity=[0, 0, -1.0]), mu=plate_friction,
-                       penalty=penalty, name="top")
+    top = PlaneContact(
+        Plane([0, 0, ztop], [0, 0, -1], velocity=[0, 0, -1.0]), mu=plate_friction, penalty=penalty, name="top"
+    )
     scene = Scene(body, (bottom, top, tether))
     levels = _schedule(strain, steps, fit_strain / 4)
     state = scene.initial_state(settled.x)

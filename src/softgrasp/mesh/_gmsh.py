@@ -64,8 +64,7 @@ def _import_gmsh() -> ModuleType:
         import gmsh
     except ImportError as exc:  # pragma: no cover - depends on the installation
         raise MeshError(
-            "meshing spheres, cylinders and surface files needs the gmsh Python package "
-            "(pip install gmsh)"
+            "meshing spheres, cylinders and surface files needs the gmsh Python package (pip install gmsh)"
         ) from exc
     return gmsh
 
@@ -117,9 +116,7 @@ def gmsh_session(mesh_size: float) -> Iterator[ModuleType]:
             _close(gmsh, owner, model, previous_model, saved)
 
 
-def _close(
-    gmsh: ModuleType, owner: bool, model: str, previous: str, saved: dict[str, float]
-) -> None:
+def _close(gmsh: ModuleType, owner: bool, model: str, previous: str, saved: dict[str, float]) -> None:
     """End a session: finalise gmsh if we started it, else drop our model and restore options."""
     if owner:
         gmsh.finalize()

@@ -31,6 +31,18 @@ def _check_positive(name: str, values: Sequence[float]) -> None:
             raise MeshError(f"{name} must be positive and finite, got {list(values)}")
 
 
+def _at(
+    grid: np.ndarray, axis: int, layer: int, first: tuple[int, np.ndarray], second: tuple[int, np.ndarray]
+) -> np.ndarray:
+    """Entries of a 3D index grid at ``layer`` along ``axis`` and the given coordinates along the
+    two other axes."""
+    idx: list[int | np.ndarray] = [0, 0, 0]
+    idx[axis] = layer
+    idx[first[0]] = first[1]
+    idx[second[0]] = second[1]
+    return grid[idx[0], idx[1], idx[2]]
+
+
 def box(
     size: float | Sequence[float] = 0.05,
     divisions: int | Sequence[int] = 6,
@@ -85,23 +97,11 @@ def box(
             A = A.ravel()
             B = B.ravel()
 
-            def corner(da: int, db: int, p: int = p, A: np.ndarray = A, B: np.ndarray = B) -> np.ndarray:
-                idx = [0, 0, 0]
-                idx[axis] = p  # type: ignore[call-overload]
-                idx[u] = A + da  # type: ignore[call-overload]
-                idx[v] = B + db  # type: ignore[call-overload]
-                return cid[idx[0], idx[1], idx[2]]
-
-            def cell(q: int, A: np.ndarray = A, B: np.ndarray = B) -> np.ndarray:
-                idx = [0, 0, 0]
-                idx[axis] = q  # type: ignore[call-overload]
-                idx[u] = A  # type: ignore[call-overload]
-                idx[v] = B  # type: ignore[call-overload]
-                return eid[idx[0], idx[1], idx[2]]
-
-            ring = [corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)]
+            ring = [
+                _at(cid, axis, p, (u, A + da), (v, B + db)) for da, db in ((0, 0), (1, 0), (1, 1), (0, 1))
+            ]
             if 0 < p < n[axis]:
-                lo, hi = cell(p - 1), cell(p)
+                lo, hi = _at(eid, axis, p - 1, (u, A), (v, B)), _at(eid, axis, p, (u, A), (v, B))
             else:
                 fc = np.zeros((A.size, 3))
                 fc[:, axis] = p * h[axis]
@@ -110,7 +110,10 @@ def box(
                 face_ids = n_pts + np.arange(A.size)
                 points.append(fc)
                 n_pts += A.size
-                lo, hi = (face_ids, cell(p)) if p == 0 else (cell(p - 1), face_ids)
+                if p == 0:
+                    lo, hi = face_ids, _at(eid, axis, p, (u, A), (v, B))
+                else:
+                    lo, hi = _at(eid, axis, p - 1, (u, A), (v, B)), face_ids
             for k in range(4):
                 tets.append(np.stack([lo, hi, ring[k], ring[(k + 1) % 4]], axis=1))
 

@@ -105,9 +105,7 @@ def _read(path: Path, formats: tuple[str, ...]) -> Any:
                 return getattr(meshio, fmt).read(str(path))
         except Exception as exc:  # meshio raises many types on bad input
             failures.append((fmt, exc))
-    detail = "; ".join(
-        f"as {fmt}: {type(e).__name__}" + (f": {e}" if str(e) else "") for fmt, e in failures
-    )
+    detail = "; ".join(f"as {fmt}: {type(e).__name__}" + (f": {e}" if str(e) else "") for fmt, e in failures)
     raise MeshError(
         f"cannot read {path}: the file is corrupt or not in the format its suffix says ({detail})"
     ) from failures[0][1]
@@ -293,8 +291,7 @@ def _orient_closed_surface(path: Path, tri: NDArray[np.int64]) -> NDArray[np.int
                 )
     if -1 in flip:
         raise MeshError(
-            f"{path}: the surface consists of several separate closed pieces; give one object "
-            "per file"
+            f"{path}: the surface consists of several separate closed pieces; give one object per file"
         )
     flipped = np.asarray(flip, dtype=bool)
     out = tri.copy()
@@ -311,9 +308,7 @@ def _outward(points: NDArray[np.float64], tri: NDArray[np.int64]) -> NDArray[np.
     return tri if enclosed > 0 else tri[:, ::-1].copy()
 
 
-def _mesh_surface_file(
-    path: Path, fmt: str, mesh_size: float | None, factor: float, label: str
-) -> TetMesh:
+def _mesh_surface_file(path: Path, fmt: str, mesh_size: float | None, factor: float, label: str) -> TetMesh:
     """Tet-mesh the closed surface in ``path`` with gmsh."""
     points, tri = _surface_triangles(path, _read(path, (fmt,)))
     points = points * factor
@@ -321,9 +316,7 @@ def _mesh_surface_file(
     extent = np.ptp(points, axis=0)
     box_volume = float(np.prod(extent))
     if box_volume <= 0.0:
-        raise MeshError(
-            f"{path}: the surface is flat (extent {extent.tolist()} m) and encloses nothing"
-        )
+        raise MeshError(f"{path}: the surface is flat (extent {extent.tolist()} m) and encloses nothing")
     h = default_mesh_size(box_volume) if mesh_size is None else mesh_size
     h = check_mesh_size(h, box_volume, f"{path}:")
     try:

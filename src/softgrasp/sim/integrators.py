@@ -146,7 +146,7 @@ def _same_tree(a: Any, b: Any) -> bool:
     if isinstance(a, np.ndarray):
         return a.shape == b.shape and bool(np.array_equal(a, b))
     if isinstance(a, (tuple, list)):
-        return len(a) == len(b) and all(_same_tree(p, q) for p, q in zip(a, b))
+        return len(a) == len(b) and all(_same_tree(p, q) for p, q in zip(a, b, strict=True))
     if dataclasses.is_dataclass(a) and not isinstance(a, type):
         return all(_same_tree(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
     if isinstance(a, (int, float, complex, str, bool, type(None))):
@@ -218,10 +218,10 @@ class DormandPrince45(Integrator):
         """One trial step: (y_new, f(y_new), error norm)."""
         ks = [k1]
         for i in range(1, 7):
-            yi = y + h * sum(a * k for a, k in zip(_DP_A[i], ks) if a != 0.0)
+            yi = y + h * sum(a * k for a, k in zip(_DP_A[i], ks, strict=True) if a != 0.0)
             ks.append(self._rhs(scene, yi, t + _DP_C[i] * h, c))
         y_new = yi  # stage 7 is evaluated at the fifth-order solution (FSAL)
-        err = h * sum(e * k for e, k in zip(_DP_E, ks) if e != 0.0)
+        err = h * sum(e * k for e, k in zip(_DP_E, ks, strict=True) if e != 0.0)
         n = y.shape[0] // 2
         atol = np.empty((y.shape[0], 1))
         atol[:n], atol[n:] = self.atol_x, self.atol_v
@@ -251,14 +251,18 @@ class DormandPrince45(Integrator):
                 break
             self.rejected += 1
             rejected_here += 1
-            factor = self.safety * norm ** -0.2 if math.isfinite(norm) else self.fac_min
+            factor = self.safety * norm**-0.2 if math.isfinite(norm) else self.fac_min
             h *= min(1.0, max(self.fac_min, factor))
             if h < self.dt_min or rejected_here > self.max_rejections:
                 raise unstable_error(
-                    scene, self.method, state.t, h, f"error control failed after {rejected_here} rejected steps"
+                    scene,
+                    self.method,
+                    state.t,
+                    h,
+                    f"error control failed after {rejected_here} rejected steps",
                 )
         self.accepted += 1
-        growth = self.safety * norm ** -0.2 if norm > 0 else self.fac_max
+        growth = self.safety * norm**-0.2 if norm > 0 else self.fac_max
         growth = min(self.fac_max if rejected_here == 0 else 1.0, max(self.fac_min, growth))
         self.dt_next = min(h * growth, cap)
         n = state.x.shape[0]
@@ -301,6 +305,23 @@ def _check_time_step(scene: Scene, integ: Integrator, dt: float | None, check_dt
     return dt
 
 
+def _guarded_step(
+    scene: Scene, state: State, integ: Integrator, dt: float, monitor: BlowupMonitor | None
+) -> State:
+    """One step followed by the monitor's checks.
+
+    Floating-point overflow and invalid-operation warnings are silenced during the step: a blow-up
+    (e.g. a tet flattened in an intermediate stage makes the volume barrier explode) surfaces as
+    non-finite positions or velocities, which the monitor turns into :class:`SimulationUnstable`.
+    """
+    t_prev = state.t
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        new = integ.step(scene, state, dt)
+        if monitor is not None:
+            monitor.after_step(new, new.t - t_prev)
+    return new
+
+
 def _advance(
     scene: Scene, state: State, integ: Integrator, dt: float, t_end: float, monitor: BlowupMonitor | None
 ) -> Iterator[State]:
@@ -315,22 +336,18 @@ def _advance(
     if not integ.adaptive:
         n = max(1, math.ceil(span / dt * (1.0 - 1e-12)))
         h = span / n
-        for i in range(1, n + 1):
-            state = integ.step(scene, state, h)
-            state = dataclasses.replace(state, t=t0 + i * h) if i == n else state
-            if monitor is not None:
-                monitor.after_step(state, h)
+        for _ in range(n - 1):
+            state = _guarded_step(scene, state, integ, h, monitor)
             yield state
+        # Land exactly on t_end: the last step is t_end - t, not h, to avoid accumulated round-off.
+        yield _guarded_step(scene, state, integ, t_end - state.t, monitor)
         return
     h = dt
     while state.t < t_end:
         remaining = t_end - state.t
         if remaining <= 1e-12 * max(1.0, abs(t_end)):
             break
-        t_prev = state.t
-        state = integ.step(scene, state, min(h, remaining))
-        if monitor is not None:
-            monitor.after_step(state, state.t - t_prev)
+        state = _guarded_step(scene, state, integ, min(h, remaining), monitor)
         nxt = getattr(integ, "dt_next", None)
         h = dt if nxt is None else min(nxt, dt)
         yield state

@@ -100,7 +100,7 @@ def _pcg(
         def proj(v: NDArray[np.float64]) -> NDArray[np.float64]:
             return v
 
-    for attempt in range(2):
+    for _attempt in range(2):
         if cache._ml is None:
             cache._ml = pyamg.smoothed_aggregation_solver(
                 A, B=_rigid_modes(x_nodes), symmetry="symmetric", max_coarse=300, coarse_solver="splu"
@@ -171,9 +171,7 @@ def solve_newton_system(
     # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
     # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
     direct = (
-        cache.method == "direct"
-        or C is not None
-        or (cache.method == "auto" and A.shape[0] <= DIRECT_MAX_DOF)
+        cache.method == "direct" or C is not None or (cache.method == "auto" and A.shape[0] <= DIRECT_MAX_DOF)
     )
     if direct:
         return _direct(A, b, C)

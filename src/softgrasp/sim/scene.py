@@ -27,15 +27,21 @@ class Interaction(Protocol):
 
     def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> Any: ...
 
-    def forces(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: Any) -> NDArray[np.float64]: ...
+    def forces(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: Any
+    ) -> NDArray[np.float64]: ...
 
-    def static_forces(self, body: Body, x: NDArray[np.float64], t: float, state: Any) -> NDArray[np.float64]: ...
+    def static_forces(
+        self, body: Body, x: NDArray[np.float64], t: float, state: Any
+    ) -> NDArray[np.float64]: ...
 
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: Any) -> float: ...
 
     def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: Any) -> sp.csr_matrix: ...
 
-    def update(self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: Any) -> Any: ...
+    def update(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: Any
+    ) -> Any: ...
 
     def stiffness_bound(self, body: Body) -> NDArray[np.float64]: ...
 
@@ -71,26 +77,32 @@ class Scene:
     body: Body
     interactions: tuple[Interaction, ...] = ()
 
-    def initial_state(self, x: NDArray[np.float64] | None = None, v: NDArray[np.float64] | None = None, t: float = 0.0) -> State:
+    def initial_state(
+        self, x: NDArray[np.float64] | None = None, v: NDArray[np.float64] | None = None, t: float = 0.0
+    ) -> State:
         """State at rest in the mesh configuration (or at ``x``, ``v``), contacts initialised."""
         x0 = np.array(self.body.mesh.points if x is None else x, dtype=np.float64)
         v0 = np.zeros_like(x0) if v is None else np.array(v, dtype=np.float64)
         contacts = tuple(i.init_state(self.body, x0, t) for i in self.interactions)
         return State(x0, v0, t, contacts)
 
-    def forces(self, x: NDArray[np.float64], v: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> NDArray[np.float64]:
+    def forces(
+        self, x: NDArray[np.float64], v: NDArray[np.float64], t: float, contacts: tuple[Any, ...]
+    ) -> NDArray[np.float64]:
         """Total force on every node [N], (N, 3): internal, damping, gravity, interactions."""
         b = self.body
         f = b.internal_forces(x, v) + gravity_forces(b.mass, b.gravity)
-        for inter, st in zip(self.interactions, contacts):
+        for inter, st in zip(self.interactions, contacts, strict=True):
             f += inter.forces(b, x, v, t, st)
         return f
 
-    def static_forces(self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> NDArray[np.float64]:
+    def static_forces(
+        self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]
+    ) -> NDArray[np.float64]:
         """Total force at rest with sticking friction: minus the gradient of :meth:`energy`."""
         b = self.body
         f = b.internal_forces(x) + gravity_forces(b.mass, b.gravity)
-        for inter, st in zip(self.interactions, contacts):
+        for inter, st in zip(self.interactions, contacts, strict=True):
             f += inter.static_forces(b, x, t, st)
         return f
 
@@ -98,20 +110,24 @@ class Scene:
         """Total potential energy [J]: elastic, gravitational, contact penalty and stick springs."""
         b = self.body
         e = b.internal_energy(x) - float(np.sum(b.mass * (x @ b.gravity)))
-        for inter, st in zip(self.interactions, contacts):
+        for inter, st in zip(self.interactions, contacts, strict=True):
             e += inter.energy(b, x, t, st)
         return e
 
     def jacobian(self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> sp.csr_matrix:
         """``d static_forces / d x``, sparse (3N, 3N)."""
         J = self.body.internal_jacobian(x)
-        for inter, st in zip(self.interactions, contacts):
+        for inter, st in zip(self.interactions, contacts, strict=True):
             J = J + inter.jacobian(self.body, x, t, st)
         return J.tocsr()
 
-    def update_contacts(self, x: NDArray[np.float64], v: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> tuple[Any, ...]:
+    def update_contacts(
+        self, x: NDArray[np.float64], v: NDArray[np.float64], t: float, contacts: tuple[Any, ...]
+    ) -> tuple[Any, ...]:
         """Friction states after an accepted step or static solve."""
-        return tuple(i.update(self.body, x, v, t, st) for i, st in zip(self.interactions, contacts))
+        return tuple(
+            i.update(self.body, x, v, t, st) for i, st in zip(self.interactions, contacts, strict=True)
+        )
 
     def kinetic_energy(self, v: NDArray[np.float64]) -> float:
         """Kinetic energy [J]."""

@@ -81,7 +81,7 @@ def _newton(
     rtol: float,
     max_iter: int,
     cache: SolverCache,
-) -> tuple[NDArray[np.float64], int, float, NDArray[np.float64]]:
+) -> tuple[NDArray[np.float64], int, float, NDArray[np.float64], tuple]:
     body = scene.body
     L = float(np.ptp(body.mesh.points, axis=0).max())
     lam = np.zeros(0 if C is None else C.shape[0])
@@ -95,7 +95,7 @@ def _newton(
         r = f.ravel() - (C.T @ lam_new if C is not None else 0.0)
         res = float(np.abs(r).max())
         if res <= rtol * scale:
-            return x, it - 1, res, lam_new
+            return x, it - 1, res, lam_new, contacts
         descent = float(f.ravel() @ dx)
         shift = 1e-4
         while descent <= 0 and shift < 1e4:
@@ -122,7 +122,9 @@ def _newton(
         if not accepted:
             # Energy cannot decrease at round-off level: accept when the residual still drops.
             xn = x + alpha * d
-            rn = np.abs(scene.static_forces(xn, t, contacts).ravel() - (C.T @ lam if C is not None else 0.0)).max()
+            rn = np.abs(
+                scene.static_forces(xn, t, contacts).ravel() - (C.T @ lam if C is not None else 0.0)
+            ).max()
             if not (rn < res and (signed_volumes(xn, body.mesh.tets) > 0).all()):
                 raise NotConverged(
                     f"static solve stalled at iteration {it}: largest unbalanced force {res:.3g} N "
@@ -130,8 +132,11 @@ def _newton(
                 )
         if float(np.abs(alpha * d).max()) <= 1e-13 * L:
             x = xn
-            return x, it, res, lam
+            return x, it, res, lam, contacts
         x = xn
+        # Friction state follows every accepted step: nodes that touched stick where they entered
+        # contact, lagged Coulomb limits follow the normal forces, slipping anchors are returned.
+        contacts = scene.update_contacts(x, np.zeros_like(x), t, contacts)
     f = scene.static_forces(x, t, contacts).ravel()
     res = float(np.abs(f - (C.T @ lam if C is not None else 0.0)).max())
     raise NotConverged(
@@ -190,7 +195,7 @@ def solve_static(
     contacts = scene.update_contacts(x, zeros, tt, state.contacts)
     total_it = 0
     for p in range(1, max_friction_passes + 1):
-        x, it, res, lam = _newton(scene, x, tt, contacts, C, rtol, max_iter, cache)
+        x, it, res, lam, contacts = _newton(scene, x, tt, contacts, C, rtol, max_iter, cache)
         total_it += it
         new_contacts = scene.update_contacts(x, zeros, tt, contacts)
         f = scene.static_forces(x, tt, new_contacts).ravel()

@@ -38,11 +38,23 @@ def plot_stress_strain(
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
     ax.plot(100 * strain, stress_Pa / 1e3, "o-", ms=3.5, lw=1.6, label="softgrasp simulation")
     e = np.linspace(0, float(strain.max()), 50)
-    ax.plot(100 * e, apparent_E_Pa * e / 1e3, "--", lw=1.0, color="0.4",
-            label=f"initial slope {apparent_E_Pa / 1e3:.4g} kPa")
+    ax.plot(
+        100 * e,
+        apparent_E_Pa * e / 1e3,
+        "--",
+        lw=1.0,
+        color="0.4",
+        label=f"initial slope {apparent_E_Pa / 1e3:.4g} kPa",
+    )
     if linear_E_Pa is not None:
-        ax.plot(100 * e, linear_E_Pa * e / 1e3, ":", lw=1.0, color="tab:red",
-                label=f"material E = {linear_E_Pa / 1e3:.4g} kPa")
+        ax.plot(
+            100 * e,
+            linear_E_Pa * e / 1e3,
+            ":",
+            lw=1.0,
+            color="tab:red",
+            label=f"material E = {linear_E_Pa / 1e3:.4g} kPa",
+        )
     ax.set_xlabel("compressive strain [%]")
     ax.set_ylabel("nominal stress [kPa]")
     ax.set_title(title)

@@ -1,0 +1,81 @@
+"""Static solver: analytic self-weight, resting on the table, agreement with dynamics, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softgrasp.body import build_body
+from softgrasp.errors import NotConverged
+from softgrasp.material import Material
+from softgrasp.mesh import box
+from softgrasp.objects import make_object
+from softgrasp.planes import Plane, PlaneContact
+from softgrasp.sim.integrators import settle
+from softgrasp.sim.scene import Scene
+from softgrasp.sim.static import solve_static
+from softgrasp.supports import Tether
+
+G = 9.80665
+
+
+def _table(mu: float = 0.5) -> PlaneContact:
+    return PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=mu, name="table")
+
+
+@pytest.mark.parametrize("nu", [0.25, 0.45])
+def test_column_shortens_under_its_own_weight_as_a_bar(nu):
+    """On a frictionless table a prism carries uniaxial stress rho g (H - z): it shortens by
+    rho g H^2 / (2 E), whatever nu."""
+    H, E, rho = 0.06, 1e5, 1000.0
+    mesh = box((0.03, 0.03, H), (4, 4, 8))
+    body = build_body(mesh, Material(E, nu, rho))
+    scene = Scene(body, (_table(0.0), Tether("xy")))
+    state, _ = solve_static(scene, scene.initial_state())
+    X = np.asarray(mesh.points)
+    u = state.x[:, 2] - X[:, 2]
+    sag = u[X[:, 2] > H - 1e-9].mean() - u[X[:, 2] < 1e-9].mean()
+    assert sag == pytest.approx(-rho * G * H**2 / (2 * E), rel=0.04)
+
+
+def test_sphere_rests_on_table_without_rolling():
+    mesh, mat, mass = make_object("sphere", 0.016)
+    body = build_body(mesh, mat, mass=mass)
+    table = _table()
+    scene = Scene(body, (table,))
+    state, _ = solve_static(scene, scene.initial_state())
+    R = table.static_forces(body, state.x, 0.0, state.contacts[0]).sum(axis=0)
+    assert R[2] == pytest.approx(body.total_mass * G, rel=1e-8)
+    assert np.abs(R[:2]).max() < 1e-9 * R[2]
+    com0 = body.mass @ np.asarray(mesh.points) / body.total_mass
+    com = body.mass @ state.x / body.total_mass
+    assert np.hypot(*(com - com0)[:2]) < 1e-3  # leans on its tripod, does not roll away
+
+
+def test_static_and_dynamic_rest_states_agree():
+    """The static solve and a damped dynamic settle find the same rest state on the table.
+
+    The table is frictionless (friction makes the rest state depend on the path: nodes that slip
+    while the body bounces stick elsewhere) and weak tethers hold the sliding modes, so the
+    equilibrium is unique."""
+    body = build_body(box(0.04, 3), Material(2e4, 0.3, 200.0), damping_ratio=0.5)
+    scene = Scene(body, (_table(0.0), Tether("xy")))
+    static, _ = solve_static(scene, scene.initial_state())
+    dynamic = settle(scene, scene.initial_state(), t_max=2.0, tol_velocity=1e-5)
+    sag_static = static.x[:, 2].max() - 0.04
+    sag_dynamic = dynamic.x[:, 2].max() - 0.04
+    assert sag_static < 0
+    assert sag_dynamic == pytest.approx(sag_static, rel=0.02)
+    assert np.abs(dynamic.x - static.x).max() < 0.01 * abs(sag_static)
+
+
+def test_unsupported_body_is_reported():
+    body = build_body(box(0.04, 2), Material(2e4, 0.3, 200.0))
+    scene = Scene(body, ())
+    with pytest.raises(NotConverged, match="not held"):
+        solve_static(scene, scene.initial_state())
+
+
+def test_non_cubic_cells_warn_about_anisotropy():
+    with pytest.warns(UserWarning, match="cannot be made isotropic"):
+        build_body(box((0.03, 0.03, 0.05), (3, 3, 6)), Material(1e5, 0.3, 100.0))
