@@ -79,3 +79,30 @@ def test_unsupported_body_is_reported():
 def test_non_cubic_cells_warn_about_anisotropy():
     with pytest.warns(UserWarning, match="cannot be made isotropic"):
         build_body(box((0.03, 0.03, 0.05), (3, 3, 6)), Material(1e5, 0.3, 100.0))
+
+
+def test_constraints_and_tethers_hold_a_frictionless_squeeze_alike():
+    """Two independent ways of removing the rigid motions frictionless plates leave free (exact
+    linear constraints with multipliers, weak tether springs) give the same equilibrium, and both
+    carry no net reaction under the symmetric load."""
+    from softgrasp.sim.static import rigid_constraints
+
+    body = build_body(box(0.04, 3), Material(5e4, 0.4, 100.0))
+    X = np.asarray(body.mesh.points)
+    bottom = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.0, name="bottom")
+    top = PlaneContact(Plane([0, 0, 0.04], [0, 0, -1], velocity=[0, 0, -1.0]), mu=0.0, name="top")
+    C = rigid_constraints(X, body.mass, "xyZ")
+    s1 = Scene(body, (bottom, top))
+    a, info = solve_static(s1, s1.initial_state(), t=0.001, constraints=C)
+    tether = Tether("xy")
+    s2 = Scene(body, (bottom, top, tether))
+    b, _ = solve_static(s2, s2.initial_state(), t=0.001)
+    f1 = top.static_forces(body, a.x, a.t, a.contacts[1]).sum(axis=0)[2]
+    f2 = top.static_forces(body, b.x, b.t, b.contacts[1]).sum(axis=0)[2]
+    # The tethers resist the lateral (Poisson) expansion with 1e-6 of each node's stiffness: a bias
+    # of the order of that ratio (times the ~6 springs per node), nothing more.
+    bias = 20 * tether.ratio
+    assert f1 < 0 and f2 == pytest.approx(f1, rel=bias)
+    assert np.abs(a.x - b.x).max() < bias * np.abs(a.x - X).max()
+    assert np.abs(info.constraint_forces_N).max() < 1e-9 * abs(f1)
+    assert np.abs(tether.total_force(body, b.x)).max() < 1e-9 * abs(f1)
