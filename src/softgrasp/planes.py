@@ -117,7 +117,7 @@ class PlaneContact:
 
     def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> PlaneState:
         """State with every node's anchor at its current position (nodes already touching stick
-        where they are)."""
+        where they are)."""  # noqa: D401
         p0, n, pen = self._geometry(x, t)
         rel = x - p0
         anchor = rel - (rel @ n)[:, None] * n
@@ -174,18 +174,16 @@ class PlaneContact:
         touching = pen > 0
         s = self._tangential_stretch(x, p0, n, state, touching)
         s_norm = np.linalg.norm(s, axis=1)
-        cap = np.where(touching, np.nan_to_num(state.cap, nan=np.inf), 0.0)
-        slip = touching & (kt * s_norm > cap)
+        # At rest the table holds every touching node where it touched (a rough table): stick
+        # without a Coulomb limit keeps the static problem a potential, which Newton's method
+        # solves reliably. Sliding on the table is simulated by the dynamic solvers.
+        cap = np.where(touching, np.inf, 0.0)
+        slip = np.zeros_like(touching)
         return k, kt, n, pen, touching, s, s_norm, cap, slip
 
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
-        """Potential [J] of the normal penalty springs and of the friction springs.
-
-        A sticking node stores ``k_t |s|^2 / 2``; a slipping one the C1 continuation
-        ``c |s| - c^2 / (2 k_t)`` with its lagged Coulomb limit ``c`` (:attr:`PlaneState.cap`), so
-        that friction at fixed normal forces is a potential whose gradient is
-        :meth:`static_forces`.
-        """
+        """Potential [J] of the normal penalty springs and of the sticking friction springs
+        ``k_t |s|^2 / 2`` (at rest the table does not let touching nodes slip)."""
         k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
         e = 0.5 * float(np.sum(k[touching] * pen[touching] ** 2))
         if self.mu > 0:
@@ -197,8 +195,8 @@ class PlaneContact:
     def static_forces(
         self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState
     ) -> NDArray[np.float64]:
-        """Forces at rest [N], (N, 3): penalty normal force and elastic-slider friction capped at the
-        lagged Coulomb limit ``mu f_n`` (Eq. 15-16 without the dashpots)."""
+        """Forces at rest [N], (N, 3): penalty normal force and the sticking elastic-slider friction
+        of touching nodes (minus the gradient of :meth:`energy`)."""
         k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
         f = np.where(touching, k * pen, 0.0)[:, None] * n
         if self.mu > 0:
@@ -221,7 +219,7 @@ class PlaneContact:
         Pt = np.eye(3) - nn
         blocks = -k[:, None, None] * nn[None]
         if self.mu > 0:
-            kt_eff = np.where(touching, kt, 0.0)
+            kt_eff = np.where(on, kt, 0.0)  # a node on the plane sticks where it is
             blocks = blocks - kt_eff[:, None, None] * Pt[None]
             if slip.any():
                 sh = s[slip] / s_norm[slip, None]
@@ -260,6 +258,17 @@ class PlaneContact:
             anchor = rel_t
         cap = np.where(touching, self.mu * k * np.maximum(pen, 0.0), np.nan)
         return replace(state, active=touching.copy(), anchor=anchor, cap=cap)
+
+    def static_update(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
+        """State update of a static solve: free nodes carry their anchors along, so a node that
+        touches sticks where it entered contact; touching nodes keep their anchors (no slip)."""
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        rel = x - p0
+        rel_t = rel - (rel @ n)[:, None] * n
+        anchor = np.where(touching[:, None], state.anchor, rel_t)
+        cap = np.where(touching & state.active, state.cap, np.nan)
+        return replace(state, anchor=anchor, cap=cap, active=touching.copy())
 
     def normal_reaction(
         self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState

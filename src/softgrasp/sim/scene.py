@@ -129,6 +129,33 @@ class Scene:
             i.update(self.body, x, v, t, st) for i, st in zip(self.interactions, contacts, strict=True)
         )
 
+    def refresh_contacts(
+        self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]
+    ) -> tuple[Any, ...]:
+        """Light state refresh between Newton steps of a static solve: ``refresh`` where an
+        interaction defines it, else its static update."""
+        out = []
+        for inter, st in zip(self.interactions, contacts, strict=True):
+            if hasattr(inter, "refresh"):
+                out.append(inter.refresh(self.body, x, t, st))
+            else:
+                out.append(self._static_update(inter, x, t, st))
+        return tuple(out)
+
+    def _static_update(self, inter: Interaction, x: NDArray[np.float64], t: float, st: Any) -> Any:
+        if hasattr(inter, "static_update"):
+            return inter.static_update(self.body, x, t, st)
+        return inter.update(self.body, x, np.zeros_like(x), t, st)
+
+    def static_update_contacts(
+        self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]
+    ) -> tuple[Any, ...]:
+        """Contact states after a static solve pass (``static_update`` where an interaction
+        defines one, else ``update`` at rest)."""
+        return tuple(
+            self._static_update(i, x, t, st) for i, st in zip(self.interactions, contacts, strict=True)
+        )
+
     def kinetic_energy(self, v: NDArray[np.float64]) -> float:
         """Kinetic energy [J]."""
         return 0.5 * float(np.sum(self.body.mass * np.einsum("ij,ij->i", v, v)))

@@ -1,0 +1,132 @@
+"""Pure contact laws of the paper's Sec. 3.3: Hunt-Crossley normal force and Coulomb friction.
+
+All functions are vectorised over contacts and use SI units. Equation numbers are the paper's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from softgrasp.errors import ContactError
+
+__all__ = [
+    "effective_modulus",
+    "contact_stiffness",
+    "contact_damping",
+    "normal_force",
+    "normal_force_derivative",
+    "mindlin_ratio",
+    "slip_force",
+    "restitution_hunt_crossley",
+    "PAPER_PREFACTOR",
+    "HERTZ_PREFACTOR",
+]
+
+#: K = 2 Psi sqrt(R) (Eq. 11).
+PAPER_PREFACTOR = 2.0
+#: Hertz's sphere-on-half-space K = 4/3 E* sqrt(R).
+HERTZ_PREFACTOR = 4.0 / 3.0
+
+
+def effective_modulus(E1: float, nu1: float, E2: float, nu2: float) -> float:
+    """Psi = 1 / ((1 - nu1^2)/E1 + (1 - nu2^2)/E2) [Pa] (Eq. 12).
+
+    ``E1 = inf`` stands for a rigid body (its term vanishes).
+    """
+    for E, nu, who in ((E1, nu1, "finger"), (E2, nu2, "object")):
+        if not (E > 0 and -1.0 < nu < 0.5):
+            raise ContactError(f"{who}: E = {E} Pa and nu = {nu} must satisfy E > 0 and -1 < nu < 0.5")
+    c1 = 0.0 if math.isinf(E1) else (1.0 - nu1**2) / E1
+    c2 = 0.0 if math.isinf(E2) else (1.0 - nu2**2) / E2
+    if c1 + c2 == 0.0:
+        raise ContactError("both bodies are rigid: the contact stiffness would be infinite")
+    return 1.0 / (c1 + c2)
+
+
+def contact_stiffness(psi: float, radius: float, prefactor: float = PAPER_PREFACTOR) -> float:
+    """K = c Psi sqrt(R) [N/m^1.5] (Eq. 11 with c = 2; Hertz has c = 4/3)."""
+    if not radius > 0:
+        raise ContactError(f"fingertip radius = {radius} m is invalid: it must be > 0")
+    if not prefactor > 0:
+        raise ContactError(f"stiffness prefactor = {prefactor} must be > 0")
+    return prefactor * psi * math.sqrt(radius)
+
+
+def contact_damping(radius: float, gamma: float) -> float:
+    """C = 4 pi R gamma [N s/m] (Eq. 13)."""
+    if not gamma >= 0:
+        raise ContactError(f"damping constant gamma = {gamma} must be >= 0")
+    return 4.0 * math.pi * radius * gamma
+
+
+def normal_force(
+    delta: ArrayLike,
+    delta_rate: ArrayLike,
+    K: float,
+    C: float,
+    n: float = 1.5,
+    *,
+    damping: str = "linear",
+) -> NDArray[np.float64]:
+    """Normal contact force magnitude [N] (Eq. 9).
+
+    ``damping="linear"`` (the paper): f_n = max(0, K delta^n + C delta_dot);
+    ``damping="hunt-crossley"`` (classic form, no force jump at first touch):
+    f_n = max(0, K delta^n + C delta^n delta_dot), so that C plays the role of Hunt and Crossley's
+    lambda [N s/m^(n+1)]. Zero where delta <= 0.
+    """
+    d = np.asarray(delta, dtype=np.float64)
+    r = np.asarray(delta_rate, dtype=np.float64)
+    dp = np.maximum(d, 0.0)
+    dn = dp**n
+    if damping == "linear":
+        f = K * dn + C * r
+    elif damping == "hunt-crossley":
+        f = dn * (K + C * r)
+    else:
+        raise ContactError(f"unknown damping form {damping!r}; use 'linear' or 'hunt-crossley'")
+    return np.where(d > 0, np.maximum(f, 0.0), 0.0)
+
+
+def normal_force_derivative(delta: ArrayLike, K: float, n: float = 1.5) -> NDArray[np.float64]:
+    """d(K delta^n)/d delta = n K delta^(n-1) [N/m], the elastic normal contact stiffness."""
+    d = np.maximum(np.asarray(delta, dtype=np.float64), 0.0)
+    with np.errstate(divide="ignore"):
+        return np.where(d > 0, n * K * d ** (n - 1.0), 0.0)
+
+
+def mindlin_ratio(nu: float) -> float:
+    """k_t / k_n = 2 (1 - nu) / (2 - nu) for a sphere on a half-space (Mindlin 1949)."""
+    return 2.0 * (1.0 - nu) / (2.0 - nu)
+
+
+def slip_force(f_n: ArrayLike, v_t: NDArray[np.float64], mu: float) -> NDArray[np.float64]:
+    """Coulomb sliding friction on the finger, -mu f_n V_t / |V_t| (Eq. 15), shape (k, 3).
+
+    Zero where the sliding speed is zero.
+    """
+    fn = np.asarray(f_n, dtype=np.float64)
+    speed = np.linalg.norm(v_t, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        direction = np.where(speed[..., None] > 0, v_t / speed[..., None], 0.0)
+    return -mu * fn[..., None] * direction
+
+
+def restitution_hunt_crossley(beta_v_in: float) -> float:
+    """Coefficient of restitution of a Hunt-Crossley impact with damping lambda = beta K.
+
+    Solves ``-b_out - ln(1 - b_out) = b_in - ln(1 + b_in)`` for ``b_out = beta v_out`` given
+    ``b_in = beta v_in`` and returns e = v_out / v_in. Closed form of the energy balance of
+    m x'' = -K x^n (1 + beta x'), independent of m, K and n.
+    """
+    from scipy.optimize import brentq
+
+    b = float(beta_v_in)
+    if not b > 0:
+        raise ContactError(f"beta v_in = {b} must be > 0")
+    rhs = b - math.log1p(b)
+    g = lambda y: -y - math.log1p(-y) - rhs  # noqa: E731 - increasing on (0, 1)
+    return brentq(g, 1e-15, 1.0 - 1e-15, xtol=1e-15) / b

@@ -1,0 +1,453 @@
+"""The fingertip-object contact interaction (paper Sec. 3): forces, friction state, distribution.
+
+For every touching (fingertip, facet) pair j (Sec. 3.1, :func:`softgrasp.contact.geometry.detect`):
+
+* normal force ``f_n = w_j max(0, K delta^n + C delta_dot)`` along the facet's inward normal
+  (Eq. 9-14), with the rule's weight w_j (:class:`ContactParams`);
+* friction by an elastic slider per pair (Eq. 15-16, Algorithm 1): an anchor (a material point of the
+  facet, kept in barycentric coordinates) and the stick displacement v from it to the contact point;
+  stick force ``-w (k_t v + c_t V_t)`` while its norm <= mu f_n, otherwise Coulomb slip
+  ``-mu f_n V_t / |V_t|`` and the anchor is dragged (slip displacement u). Both reset when the finger
+  leaves the object. A pair that starts while its finger is already sliding on a neighbouring facet
+  inherits the finger's stick displacement, so friction is continuous across facet edges;
+* the pair's force on the object is spread on the facet's nodes by the shape functions H (Eq. 17-20),
+  ``f_l = (A_l / A_G) f_pj``, so nodal forces balance the fingertip's force and moment exactly.
+
+Static solves use the same laws at zero velocity; between Newton steps the anchors of new pairs are
+registered (:meth:`FingertipContact.refresh`), and after each converged pass the slip return of
+Algorithm 1 is applied (:meth:`FingertipContact.update`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from softgrasp.body import Body
+from softgrasp.contact.fingertip import ContactParams, Fingertip
+from softgrasp.contact.geometry import ContactPairs, barycentric, detect, relative_velocity
+from softgrasp.contact.laws import (
+    contact_damping,
+    contact_stiffness,
+    effective_modulus,
+    mindlin_ratio,
+    normal_force,
+    normal_force_derivative,
+)
+from softgrasp.errors import ContactError
+from softgrasp.forces import assemble_blocks
+
+__all__ = ["FingertipContact", "FingerState", "FingerReport"]
+
+
+@dataclass(frozen=True)
+class FingerState:
+    """Contact state of all (fingertip, facet) pairs, arrays over (n_fingers, F).
+
+    Attributes
+    ----------
+    active: pair in contact at the last update, bool.
+    anchor: barycentric coordinates of the stick anchor on the facet, (n_f, F, 3) (the stick
+        displacement v of Eq. 16 runs from this material point to the contact point).
+    slip: accumulated slip displacement u [m], (n_f, F, 3).
+    memory: each finger's weighted mean stick displacement at the last update [m], (n_f, 3).
+    """
+
+    active: NDArray[np.bool_]
+    anchor: NDArray[np.float64]
+    slip: NDArray[np.float64]
+    memory: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FingerReport:
+    """Per-fingertip totals at one instant.
+
+    Attributes
+    ----------
+    force: force of each fingertip on the object [N], (n_f, 3).
+    moment: moment of those forces about each fingertip centre [N m], (n_f, 3).
+    normal: sum of the normal force magnitudes [N], (n_f,).
+    tangential: norm of the summed friction force [N], (n_f,).
+    contacts: number of touched facets, (n_f,).
+    depth: largest facet penetration delta [m], (n_f,).
+    """
+
+    force: NDArray[np.float64]
+    moment: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    tangential: NDArray[np.float64]
+    contacts: NDArray[np.int64]
+    depth: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _Eval:
+    pairs: ContactPairs
+    fn: NDArray[np.float64]  # weighted normal force magnitude per pair [N]
+    ft: NDArray[np.float64]  # friction on the finger per pair [N], (k, 3)
+    w: NDArray[np.float64]
+    kt: NDArray[np.float64]
+    stick: NDArray[np.float64]  # tangential stick displacement per pair [m], (k, 3)
+    cap: NDArray[np.float64]
+    slipping: NDArray[np.bool_]
+
+
+def _pair_normal_forces(
+    tri: NDArray[np.float64],
+    centre: NDArray[np.float64],
+    radius: NDArray[np.float64],
+    coef: NDArray[np.float64],
+    n_exp: float,
+) -> NDArray[np.float64]:
+    """Static normal forces on the three nodes of each facet, (k, 3, 3): ``-coef delta^n b_l n``
+    for triangles ``tri`` (k, 3, 3) and fingertip centres (k, 3). Smooth in the node positions
+    (the projection may leave the triangle: barycentric coordinates extrapolate)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    N = np.cross(b - a, c - a)
+    n = N / np.linalg.norm(N, axis=1, keepdims=True)
+    d = np.einsum("ij,ij->i", centre - a, n)
+    P = centre - d[:, None] * n
+    bary = barycentric(P, a, b, c)
+    mag = coef * np.maximum(radius - d, 0.0) ** n_exp
+    return -(mag[:, None, None] * bary[:, :, None]) * n[:, None, :]
+
+
+def _normal_jacobian_blocks(
+    tri: NDArray[np.float64],
+    centre: NDArray[np.float64],
+    radius: NDArray[np.float64],
+    coef: NDArray[np.float64],
+    n_exp: float,
+) -> NDArray[np.float64]:
+    """d(nodal normal forces)/d(node positions) per pair by central differences, symmetrised,
+    (k, 3, 3, 3, 3) indexed [pair, node_l, node_m, axis_l, axis_m]."""
+    k = tri.shape[0]
+    h = 1e-7 * np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1)  # (k,)
+    J = np.zeros((k, 3, 3, 3, 3))
+    for m in range(3):
+        for ax in range(3):
+            tp = tri.copy()
+            tm = tri.copy()
+            tp[:, m, ax] += h
+            tm[:, m, ax] -= h
+            dF = _pair_normal_forces(tp, centre, radius, coef, n_exp) - _pair_normal_forces(
+                tm, centre, radius, coef, n_exp
+            )
+            J[:, :, m, :, ax] = dF / (2 * h)[:, None, None]
+    return 0.5 * (J + J.transpose(0, 2, 1, 4, 3))
+
+
+@dataclass(frozen=True, eq=False)
+class FingertipContact:
+    """Contact between rigid (or stiff) spherical fingertips and the body's boundary facets.
+
+    Parameters
+    ----------
+    fingertips: the fingertips.
+    params: contact parameters (defaults documented in :mod:`softgrasp.contact.fingertip`).
+    name: interaction label.
+    """
+
+    fingertips: tuple[Fingertip, ...]
+    params: ContactParams = ContactParams()
+    name: str = "fingers"
+
+    def __post_init__(self) -> None:
+        if not self.fingertips:
+            raise ContactError("a fingertip contact needs at least one fingertip")
+
+    # ------------------------------------------------------------------ constants
+    def stiffness(self, body: Body) -> NDArray[np.float64]:
+        """K of each fingertip [N/m^n] (Eq. 11-12)."""
+        m = body.material
+        return np.array(
+            [
+                contact_stiffness(effective_modulus(f.E, f.nu, m.E, m.nu), f.radius, self.params.prefactor)
+                for f in self.fingertips
+            ]
+        )
+
+    def damping(self) -> NDArray[np.float64]:
+        """C of each fingertip [N s/m] (Eq. 13)."""
+        return np.array([contact_damping(f.radius, self.params.gamma) for f in self.fingertips])
+
+    def _ratio(self, body: Body) -> float:
+        p = self.params
+        return p.tangential_ratio if p.tangential_ratio is not None else mindlin_ratio(body.material.nu)
+
+    def _radii(self) -> NDArray[np.float64]:
+        return np.array([f.radius for f in self.fingertips])
+
+    def centres(self, t: float) -> NDArray[np.float64]:
+        """Fingertip centres at time t [m], (n_f, 3)."""
+        return np.array([f.centre_at(t) for f in self.fingertips])
+
+    def pairs(self, body: Body, x: NDArray[np.float64], t: float) -> ContactPairs:
+        """Touching pairs at positions x and time t."""
+        return detect(x, body.mesh.facets, self.centres(t), self._radii())
+
+    # ------------------------------------------------------------------ core evaluation
+    def _patch_weights(self, pairs: ContactPairs) -> NDArray[np.float64]:
+        if self.params.rule == "facet" or len(pairs) == 0:
+            return np.ones(len(pairs))
+        a = pairs.area * pairs.depth
+        tot = np.bincount(pairs.finger, weights=a, minlength=len(self.fingertips))
+        return a / tot[pairs.finger]
+
+    def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState, inherit: bool):
+        """Stick anchors in space: kept for continuing pairs; for new pairs the contact point
+        minus the finger's remembered stick displacement (or the contact point itself)."""
+        fac = body.mesh.facets[pairs.facet]
+        cont = state.active[pairs.finger, pairs.facet]
+        b_anchor = state.anchor[pairs.finger, pairs.facet]
+        kept = np.einsum("ki,kij->kj", b_anchor, x[fac])
+        fresh = pairs.point - (state.memory[pairs.finger] if inherit else 0.0)
+        return np.where(cont[:, None], kept, fresh), cont
+
+    def _evaluate(self, body: Body, x, v, t: float, state: FingerState, static: bool) -> _Eval:
+        p = self.params
+        pairs = self.pairs(body, x, t)
+        K = self.stiffness(body)[pairs.finger]
+        C = self.damping()[pairs.finger]
+        n_exp = p.exponent
+        if static:
+            vt = np.zeros((len(pairs), 3))
+            rate = np.zeros(len(pairs))
+        else:
+            vr, _, vt = relative_velocity(
+                pairs,
+                body.mesh.facets,
+                v,
+                self.centres(t),
+                np.array([f.velocity for f in self.fingertips]),
+                np.array([f.omega for f in self.fingertips]),
+            )
+            rate = -np.einsum("ij,ij->i", vr, pairs.normal)  # d delta / dt
+        raw = normal_force(pairs.depth, rate, K, C, n_exp, damping=p.damping)
+        w = self._patch_weights(pairs)
+        fn = w * raw
+        ft = np.zeros((len(pairs), 3))
+        stick = np.zeros((len(pairs), 3))
+        cap = np.zeros(len(pairs))
+        slipping = np.zeros(len(pairs), bool)
+        kt = np.zeros(len(pairs))
+        if p.mu > 0 and len(pairs):
+            Xa, _ = self._anchor_points(body, x, pairs, state, inherit=True)
+            s = pairs.point - Xa
+            s -= np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal
+            stick = s
+            kt = self._ratio(body) * normal_force_derivative(
+                np.maximum(pairs.depth, p.min_depth_ratio * self._radii()[pairs.finger]), K, n_exp
+            )
+            ct = self._ratio(body) * C
+            trial = -(w * kt)[:, None] * s - (w * ct)[:, None] * vt
+            cap = p.mu * fn
+            mag = np.linalg.norm(trial, axis=1)
+            slipping = mag > cap
+            ft = trial.copy()
+            if slipping.any():
+                speed = np.linalg.norm(vt, axis=1)
+                moving = slipping & (speed > 0)
+                still = slipping & ~moving
+                ft[moving] = -(cap[moving] / speed[moving])[:, None] * vt[moving]  # Eq. 15
+                ft[still] = trial[still] * (cap[still] / mag[still])[:, None]
+        return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping)
+
+    def _nodal(self, body: Body, x, ev: _Eval) -> NDArray[np.float64]:
+        """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20)."""
+        f = np.zeros_like(x)
+        if len(ev.pairs):
+            F = -ev.fn[:, None] * ev.pairs.normal - ev.ft  # on the object
+            fac = body.mesh.facets[ev.pairs.facet]
+            np.add.at(f, fac.ravel(), (ev.pairs.bary[:, :, None] * F[:, None, :]).reshape(-1, 3))
+        return f
+
+    # ------------------------------------------------------------------ Interaction protocol
+    def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> FingerState:
+        """Empty contact state; refuses fingertips whose centre starts inside the object."""
+        self._check_outside(body, x, t)
+        nf, F = len(self.fingertips), len(body.mesh.facets)
+        empty = FingerState(
+            active=np.zeros((nf, F), bool),
+            anchor=np.zeros((nf, F, 3)),
+            slip=np.zeros((nf, F, 3)),
+            memory=np.zeros((nf, 3)),
+        )
+        return self.update(body, x, np.zeros_like(x), t, empty)
+
+    def _check_outside(self, body: Body, x: NDArray[np.float64], t: float) -> None:
+        p = x[body.mesh.tets]
+        T = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)  # (M, 3, 3)
+        Tinv = np.linalg.inv(T)
+        for f, c in zip(self.fingertips, self.centres(t), strict=True):
+            lam = np.einsum("mij,mj->mi", Tinv, c[None, :] - p[:, 0])
+            inside = (lam >= -1e-12).all(axis=1) & (lam.sum(axis=1) <= 1 + 1e-12)
+            if inside.any():
+                raise ContactError(
+                    f"fingertip {f.name!r} starts with its centre inside the object (its penetration "
+                    f"would exceed its radius {f.radius * 1e3:.1f} mm); start it outside the surface"
+                )
+
+    def forces(self, body: Body, x, v, t: float, state: FingerState) -> NDArray[np.float64]:
+        """Contact forces on the nodes during dynamics (Eq. 9-20)."""
+        return self._nodal(body, x, self._evaluate(body, x, v, t, state, static=False))
+
+    def static_forces(self, body: Body, x, t: float, state: FingerState) -> NDArray[np.float64]:
+        """Contact forces at rest with lagged weights, limits and k_t."""
+        return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True))
+
+    def energy(self, body: Body, x, t: float, state: FingerState) -> float:
+        """Elastic energy of the normal contact springs [J], sum of w K delta^(n+1) / (n+1).
+
+        Friction is dissipative and the patch rule's weights depend on the configuration, so the
+        contact is not a potential: the static solver does not use this for its line search."""
+        pr = self.pairs(body, x, t)
+        if not len(pr):
+            return 0.0
+        K = self.stiffness(body)[pr.finger]
+        n = self.params.exponent
+        return float(np.sum(self._patch_weights(pr) * K * pr.depth ** (n + 1) / (n + 1)))
+
+    def jacobian(self, body: Body, x, t: float, state: FingerState) -> sp.csr_matrix:
+        """``d f / d x`` at rest, symmetrised: the normal forces' exact per-pair derivative
+        (central differences of the 9 facet coordinates, so the facet's rotation and the moving
+        contact point are included) and the friction springs' ``w k_t H^T P_t H`` (or the slip
+        tangent)."""
+        ev = self._evaluate(body, x, None, t, state, static=True)
+        N = body.n_nodes
+        if not len(ev.pairs):
+            return sp.csr_matrix((3 * N, 3 * N))
+        pr = ev.pairs
+        K = self.stiffness(body)[pr.finger]
+        fac = body.mesh.facets[pr.facet]
+        # Normal part: exact per-pair blocks (facet rotation and the moving contact point included).
+        Jn = _normal_jacobian_blocks(
+            x[fac], self.centres(t)[pr.finger], self._radii()[pr.finger], ev.w * K, self.params.exponent
+        )
+        blk_t = np.zeros((len(pr), 3, 3))
+        if self.params.mu > 0:
+            nn = pr.normal[:, :, None] * pr.normal[:, None, :]
+            Pt = np.eye(3)[None] - nn
+            s = np.linalg.norm(ev.stick, axis=1)
+            ktan = np.where(ev.slipping, ev.cap / np.maximum(s, 1e-300), ev.w * ev.kt)
+            blk_t = ktan[:, None, None] * Pt
+        bb = pr.bary[:, :, None] * pr.bary[:, None, :]  # (k, 3, 3)
+        blocks = Jn - bb[:, :, :, None, None] * blk_t[:, None, None, :, :]
+        rows = np.repeat(fac, 3, axis=1).ravel()
+        cols = np.tile(fac, (1, 3)).ravel()
+        blocks = blocks.reshape(-1, 3, 3)
+        return assemble_blocks(N, rows, cols, blocks)
+
+    def update(self, body: Body, x, v, t: float, state: FingerState) -> FingerState:
+        """Advance the contact state after an accepted step or static solve (Algorithm 1).
+
+        New pairs start sticking (inheriting their finger's stick displacement when it slides on
+        from a neighbouring facet); a pair whose stick force exceeds mu f_n slips: its anchor is
+        dragged so that the stick force is exactly mu f_n and the drag is added to the slip
+        displacement u; pairs that separate are reset.
+        """
+        p = self.params
+        pairs = self.pairs(body, x, t)
+        nf, F = state.active.shape
+        active = np.zeros((nf, F), bool)
+        anchor = np.zeros((nf, F, 3))
+        slip = np.zeros((nf, F, 3))
+        memory = np.zeros((nf, 3))
+        if len(pairs):
+            i, j = pairs.finger, pairs.facet
+            K = self.stiffness(body)[i]
+            w = self._patch_weights(pairs)
+            elastic = normal_force(pairs.depth, np.zeros(len(pairs)), K, 0.0, p.exponent)
+            kt = self._ratio(body) * normal_force_derivative(
+                np.maximum(pairs.depth, p.min_depth_ratio * self._radii()[i]), K, p.exponent
+            )
+            Xa, cont = self._anchor_points(body, x, pairs, state, inherit=True)
+            s = pairs.point - Xa
+            s -= np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal
+            u = np.where(cont[:, None], state.slip[i, j], 0.0)
+            if p.mu > 0:
+                lim = p.mu * w * elastic
+                s_norm = np.linalg.norm(s, axis=1)
+                keff = w * kt
+                over = keff * s_norm > lim
+                if over.any():
+                    new_s = s[over] * (lim[over] / (keff[over] * s_norm[over]))[:, None]
+                    u[over] += s[over] - new_s  # the anchor is dragged: slip displacement
+                    s[over] = new_s
+            else:
+                s = np.zeros_like(s)
+            Xa = pairs.point - s
+            xf = x[body.mesh.facets[j]]
+            anchor[i, j] = barycentric(Xa, xf[:, 0], xf[:, 1], xf[:, 2])
+            active[i, j] = True
+            slip[i, j] = u
+            ws = np.bincount(i, weights=w, minlength=nf)
+            for k in range(3):
+                memory[:, k] = np.bincount(i, weights=w * s[:, k], minlength=nf) / np.maximum(ws, 1e-300)
+        return replace(state, active=active, anchor=anchor, slip=slip, memory=memory)
+
+    def refresh(self, body: Body, x, t: float, state: FingerState) -> FingerState:
+        """Light update between Newton steps of a static solve: continuing pairs keep their
+        anchors, pairs that start are anchored where they start (minus their finger's stick
+        displacement), pairs that end are dropped; no slip return."""
+        pairs = self.pairs(body, x, t)
+        nf, F = state.active.shape
+        active = np.zeros((nf, F), bool)
+        anchor = np.zeros((nf, F, 3))
+        slip = np.zeros((nf, F, 3))
+        if len(pairs):
+            i, j = pairs.finger, pairs.facet
+            Xa, cont = self._anchor_points(body, x, pairs, state, inherit=True)
+            xf = x[body.mesh.facets[j]]
+            anchor[i, j] = barycentric(Xa, xf[:, 0], xf[:, 1], xf[:, 2])
+            active[i, j] = True
+            slip[i, j] = np.where(cont[:, None], state.slip[i, j], 0.0)
+        return replace(state, active=active, anchor=anchor, slip=slip)
+
+    def stiffness_bound(self, body: Body) -> NDArray[np.float64]:
+        """Largest contact stiffness a node may see [N/m] (at a penetration of half the radius)."""
+        K = self.stiffness(body)
+        kmax = float(np.max(normal_force_derivative(0.5 * self._radii(), K, self.params.exponent)))
+        if self.params.rule == "facet":
+            kmax *= 6.0  # a node shares its force with up to ~6 touched facets
+        return np.full(body.n_nodes, kmax * (1.0 + self._ratio(body)))
+
+    def damping_bound(self, body: Body) -> NDArray[np.float64]:
+        """Largest contact damping a node may see [N s/m]."""
+        C = float(self.damping().max())
+        if self.params.damping == "hunt-crossley":
+            C *= float((0.5 * self._radii().max()) ** self.params.exponent)
+        return np.full(body.n_nodes, C * (1.0 + self._ratio(body)))
+
+    # ------------------------------------------------------------------ reporting
+    def report(self, body: Body, x, v, t: float, state: FingerState, *, static: bool = False) -> FingerReport:
+        """Per-fingertip totals: force and moment on the object, normal and friction parts."""
+        ev = self._evaluate(body, x, v, t, state, static=static)
+        nf = len(self.fingertips)
+        pr = ev.pairs
+        F = -ev.fn[:, None] * pr.normal - ev.ft
+        force = np.zeros((nf, 3))
+        moment = np.zeros((nf, 3))
+        ftan = np.zeros((nf, 3))
+        c = self.centres(t)
+        for k in range(3):
+            force[:, k] = np.bincount(pr.finger, weights=F[:, k], minlength=nf)
+            ftan[:, k] = np.bincount(pr.finger, weights=-ev.ft[:, k], minlength=nf)
+        M = np.cross(pr.point - c[pr.finger], F)
+        for k in range(3):
+            moment[:, k] = np.bincount(pr.finger, weights=M[:, k], minlength=nf)
+        depth = np.zeros(nf)
+        if len(pr):
+            np.maximum.at(depth, pr.finger, pr.depth)
+        return FingerReport(
+            force=force,
+            moment=moment,
+            normal=np.bincount(pr.finger, weights=ev.fn, minlength=nf),
+            tangential=np.linalg.norm(ftan, axis=1),
+            contacts=np.bincount(pr.finger, minlength=nf).astype(np.int64),
+            depth=depth,
+        )
