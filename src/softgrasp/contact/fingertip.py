@@ -96,9 +96,11 @@ class ContactParams:
         (K delta^n + C delta^n delta_dot, with C then read as lambda).
     rule: ``"patch"`` (default): the facet forces of one fingertip are weighted by
         w_j = A_j delta_j / sum_k A_k delta_k, so its total normal force is K <delta^n> — exactly
-        K delta^n on a flat surface for any mesh, continuous as facets enter, converging under
-        refinement; ``"facet"``: the paper's literal rule, every touched facet gets the full
-        K delta_j^n (the total grows with the number of facets touched).
+        K delta^n on a flat surface for any mesh, whatever the number of facets sharing the
+        contact point, and continuous as facets enter or leave at zero depth. (A facet also leaves
+        when the projection of the centre crosses one of its edges, at finite depth; the force then
+        jumps. That is the detection rule of Sec. 3.1.) ``"facet"``: the paper's literal rule, every
+        touched facet gets the full K delta_j^n (the total grows with the number of facets touched).
     tangential_ratio: k_t / k_n; ``None`` for Mindlin's 2(1 - nu)/(2 - nu) of the object.
     min_depth_ratio: k_t is evaluated at a penetration of at least this fraction of R.
     """

@@ -200,7 +200,9 @@ def solve_static(
             x = x - (C.T @ np.linalg.solve(CCt, viol)).reshape(-1, 3)
     cache = cache if cache is not None else SolverCache()
     zeros = np.zeros_like(x)
-    contacts = scene.static_update_contacts(x, tt, state.contacts)
+    # Register contacts that start at this load step without slip returns: slip is decided only
+    # once the body has deformed under the new load (at the end of each pass).
+    contacts = scene.refresh_contacts(x, tt, state.contacts)
     total_it = 0
     for p in range(1, max_friction_passes + 1):
         x, it, res, lam, contacts = _newton(scene, x, tt, contacts, C, rtol, max_iter, cache)
