@@ -23,7 +23,10 @@ __all__ = ["Interaction", "Scene", "State"]
 class Interaction(Protocol):
     """Something that pushes on the body's nodes and may carry friction state."""
 
-    name: str
+    @property
+    def name(self) -> str:
+        """Label of the interaction."""
+        ...
 
     def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> Any: ...
 

@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from softgrasp.output import atomic_write
 
-__all__ = ["plot_stress_strain"]
+__all__ = ["plot_force_penetration", "plot_stress_strain"]
 
 
 def _figure():
@@ -62,6 +62,56 @@ def plot_stress_strain(
     ax.set_xlim(left=0)
     ax.set_ylim(bottom=0)
     ax.legend(frameon=False)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+    return out
+
+
+def plot_force_penetration(
+    path: str | Path,
+    penetration_m: NDArray[np.float64],
+    force_N: NDArray[np.float64],
+    *,
+    title: str,
+    measured: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    mean_abs_error_N: float | None = None,
+) -> Path:
+    """Force against penetration of an indentation test (paper Fig. 11 style): N vs mm.
+
+    Parameters
+    ----------
+    path: PNG file to write.
+    penetration_m: simulated penetrations [m], (K,).
+    force_N: simulated fingertip forces [N], (K,).
+    title: figure title.
+    measured: optional measured (penetration [m], force [N]) drawn as markers.
+    mean_abs_error_N: mean absolute force error [N] shown in the legend with the measurements.
+    """
+    plt = _figure()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    ax.plot(1e3 * penetration_m, force_N, "o-", ms=3.0, lw=1.6, label="softgrasp simulation")
+    if measured is not None:
+        label = "measured"
+        if mean_abs_error_N is not None:
+            label += f" (mean |error| {mean_abs_error_N:.3g} N)"
+        ax.plot(
+            1e3 * measured[0],
+            measured[1],
+            "s",
+            ms=5.0,
+            mfc="none",
+            mew=1.3,
+            color="tab:red",
+            label=label,
+        )
+    ax.set_xlabel("penetration [mm]")
+    ax.set_ylabel("force [N]")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+    ax.legend(frameon=False, loc="upper left")
     fig.tight_layout()
     out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
     plt.close(fig)
