@@ -74,3 +74,14 @@ def test_compress_bad_input_one_line_nonzero(tmp_path, args, needle):
     assert lines[0].startswith("softgrasp: error:") and needle in lines[0]
     assert "Traceback" not in proc.stderr
     assert not out.exists() or not any(out.iterdir())  # nothing half-written
+
+
+def test_default_compress_job_runs(tmp_path):
+    """The README's main job, `softgrasp compress` with every default (rubber sphere to 30 %)."""
+    out = tmp_path / "default"
+    assert main(["compress", "--out", str(out)]) == 0
+    data = json.loads((out / "compress.json").read_text())
+    assert data["parameters"]["strain"] == 0.3
+    rows = list(csv.DictReader((out / "compress.csv").open()))
+    forces = [float(r["force_N"]) for r in rows]
+    assert forces[-1] == max(forces) > 0

@@ -284,7 +284,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--steps", type=int, default=30, help="load increments (default 30)")
     c.add_argument(
-        "--plate-friction", type=float, default=0.0, help="plate friction coefficient (default 0: lubricated)"
+        "--plate-friction",
+        type=float,
+        default=0.5,
+        help="plate friction coefficient (default 0.5, rubber on steel platens; faces stick at rest). "
+        "0 is a lubricated test, whose free sliding and rolling only weak tethers hold",
     )
     c.set_defaults(func=_cmd_compress)
     i = sub.add_parser("indent", help="one fingertip pressed into the object (paper Fig. 10-11)")

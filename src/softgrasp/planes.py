@@ -65,15 +65,10 @@ class PlaneState:
     active: nodes in contact at the last update, (N,) bool.
     anchor: anchor positions in the plane, relative to its moving point [m], (N, 3). A free node's
         anchor follows it, so that a node touching during a step sticks where it entered contact.
-    cap: Coulomb limits ``mu f_n`` [N], (N,), from the last update; the static solver lags the
-        normal force this way so that friction is a potential within one pass. NaN where no normal
-        force is known yet (a node not in contact at the last update): such a node sticks until
-        the next update gives it a limit.
     """
 
     active: NDArray[np.bool_]
     anchor: NDArray[np.float64]
-    cap: NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -121,7 +116,7 @@ class PlaneContact:
         p0, n, pen = self._geometry(x, t)
         rel = x - p0
         anchor = rel - (rel @ n)[:, None] * n
-        return PlaneState(active=pen > 0, anchor=anchor, cap=np.full(body.n_nodes, np.nan))
+        return PlaneState(active=pen > 0, anchor=anchor)
 
     def stiffness_bound(self, body: Body) -> NDArray[np.float64]:
         """Largest stiffness the contact may add to each node [N/m], (N,) (for time steps)."""
@@ -168,28 +163,26 @@ class PlaneContact:
         return f
 
     def _static_tangential(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
-        """Tangential stretch s, its norm, the Coulomb cap mu f_n and the slip mask at rest."""
+        """Penalty and friction stiffnesses, normal, penetration, contact mask and tangential
+        stretch at rest.
+
+        At rest the table holds every touching node where it touched (a rough table): sticking
+        without a Coulomb limit keeps the static problem a potential, which Newton's method solves
+        reliably. Sliding on the table is simulated by the dynamic solvers.
+        """
         k, _, kt, _ = self._coeffs(body)
         p0, n, pen = self._geometry(x, t)
         touching = pen > 0
         s = self._tangential_stretch(x, p0, n, state, touching)
-        s_norm = np.linalg.norm(s, axis=1)
-        # At rest the table holds every touching node where it touched (a rough table): stick
-        # without a Coulomb limit keeps the static problem a potential, which Newton's method
-        # solves reliably. Sliding on the table is simulated by the dynamic solvers.
-        cap = np.where(touching, np.inf, 0.0)
-        slip = np.zeros_like(touching)
-        return k, kt, n, pen, touching, s, s_norm, cap, slip
+        return k, kt, n, pen, touching, s
 
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
         """Potential [J] of the normal penalty springs and of the sticking friction springs
-        ``k_t |s|^2 / 2`` (at rest the table does not let touching nodes slip)."""
-        k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
+        ``k_t |s|^2 / 2``."""
+        k, kt, n, pen, touching, s = self._static_tangential(body, x, t, state)
         e = 0.5 * float(np.sum(k[touching] * pen[touching] ** 2))
         if self.mu > 0:
-            stick = touching & ~slip
-            e += 0.5 * float(np.sum(kt[stick] * s_norm[stick] ** 2))
-            e += float(np.sum(cap[slip] * s_norm[slip] - cap[slip] ** 2 / (2.0 * kt[slip])))
+            e += 0.5 * float(np.sum(kt[touching] * np.einsum("ij,ij->i", s, s)[touching]))
         return e
 
     def static_forces(
@@ -197,36 +190,22 @@ class PlaneContact:
     ) -> NDArray[np.float64]:
         """Forces at rest [N], (N, 3): penalty normal force and the sticking elastic-slider friction
         of touching nodes (minus the gradient of :meth:`energy`)."""
-        k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
+        k, kt, n, pen, touching, s = self._static_tangential(body, x, t, state)
         f = np.where(touching, k * pen, 0.0)[:, None] * n
         if self.mu > 0:
-            ft = -kt[:, None] * s
-            ft[slip] *= (cap[slip] / (kt[slip] * s_norm[slip]))[:, None]
-            f += ft
+            f -= kt[:, None] * s
         return f
 
     def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:
-        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N).
-
-        Slipping nodes contribute ``-(c / |s|)(P_t - s^ s^T)`` with their lagged limit c: the exact,
-        symmetric derivative at fixed normal forces.
-        """
-        k, kt, n, pen, touching, s, s_norm, cap, slip = self._static_tangential(body, x, t, state)
+        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N)."""
+        k, kt, n, pen, touching, s = self._static_tangential(body, x, t, state)
         # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
-        # body resting on the plane must not look unsupported to Newton's method.
+        # body resting on the plane must not look unsupported to Newton's method (nor slide).
         on = pen >= 0
         nn = np.outer(n, n)
-        Pt = np.eye(3) - nn
         blocks = -k[:, None, None] * nn[None]
         if self.mu > 0:
-            kt_eff = np.where(on, kt, 0.0)  # a node on the plane sticks where it is
-            blocks = blocks - kt_eff[:, None, None] * Pt[None]
-            if slip.any():
-                sh = s[slip] / s_norm[slip, None]
-                ratio = cap[slip] / s_norm[slip]
-                blocks[slip] = -k[slip, None, None] * nn[None] - ratio[:, None, None] * (
-                    Pt[None] - sh[:, :, None] * sh[:, None, :]
-                )
+            blocks = blocks - np.where(on, kt, 0.0)[:, None, None] * (np.eye(3) - nn)[None]
         blocks[~on] = 0.0
         idx = np.arange(body.n_nodes)
         return assemble_blocks(body.n_nodes, idx, idx, blocks)
@@ -256,8 +235,7 @@ class PlaneContact:
                 anchor[slip] = rel_t[slip] - s[slip] * (limit[slip] / s_norm[slip])[:, None]
         else:
             anchor = rel_t
-        cap = np.where(touching, self.mu * k * np.maximum(pen, 0.0), np.nan)
-        return replace(state, active=touching.copy(), anchor=anchor, cap=cap)
+        return replace(state, active=touching.copy(), anchor=anchor)
 
     def static_update(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
         """State update of a static solve: free nodes carry their anchors along, so a node that
@@ -267,8 +245,7 @@ class PlaneContact:
         rel = x - p0
         rel_t = rel - (rel @ n)[:, None] * n
         anchor = np.where(touching[:, None], state.anchor, rel_t)
-        cap = np.where(touching & state.active, state.cap, np.nan)
-        return replace(state, anchor=anchor, cap=cap, active=touching.copy())
+        return replace(state, anchor=anchor, active=touching.copy())
 
     def normal_reaction(
         self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState

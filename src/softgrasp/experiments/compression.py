@@ -26,7 +26,7 @@ from softgrasp.errors import ConfigError
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.scene import Scene
-from softgrasp.sim.static import solve_static
+from softgrasp.sim.static import solve_increment, solve_static
 from softgrasp.supports import Tether
 
 __all__ = ["CompressionResult", "compression_test", "outline_area"]
@@ -156,7 +156,7 @@ def compression_test(
     disp, force, lat, iters, fbot = [], [], [], [], []
     tether_force = 0.0
     for i, e in enumerate(levels):
-        state, info = solve_static(scene, state, t=e * H, cache=cache)
+        state, its, _ = solve_increment(scene, state, e * H, cache=cache)
         f = top.static_forces(body, state.x, state.t, state.contacts[1]).sum(axis=0)
         disp.append(e * H)
         force.append(float(-f[2]))
@@ -164,7 +164,7 @@ def compression_test(
         fbot.append(float(fb[2]))
         lat.append(float(side_w @ (state.x[:, 0] - x0[:, 0])) / width)
         tether_force = max(tether_force, float(np.abs(tether.total_force(body, state.x)).max()))
-        iters.append(info.newton_iterations)
+        iters.append(its)
         if progress is not None:
             progress((i + 1) / len(levels))
     d = np.array(disp)

@@ -49,7 +49,7 @@ from softgrasp.errors import ConfigError, ContactError, NotConverged
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.scene import Scene, State
-from softgrasp.sim.static import solve_static
+from softgrasp.sim.static import solve_increment, solve_static
 
 __all__ = [
     "DEFAULT_INCREMENT",
@@ -262,24 +262,12 @@ def _check(depth, radius, speed, steps, table_mu, fingertip_E, fingertip_nu, hei
 def _solve(
     scene: Scene, state: State, t: float, cache: SolverCache, hint: str = ""
 ) -> tuple[State, int, int]:
-    """Static solve at travel ``t`` from ``state``; an increment that fails is split in halves
-    (up to :data:`MAX_HALVINGS` times). Returns (state, Newton iterations, halvings used)."""
-    t_prev = state.t
-    for level in range(MAX_HALVINGS + 1):
-        n = 2**level
-        try:
-            s, iters = state, 0
-            for k in range(1, n + 1):
-                s, info = solve_static(scene, s, t=t_prev + (t - t_prev) * k / n, cache=cache)
-                iters += info.newton_iterations
-            return s, iters, level
-        except NotConverged as exc:
-            if level == MAX_HALVINGS:
-                raise NotConverged(
-                    f"indentation increment to travel {t * 1e3:.4g} mm did not converge even when split "
-                    f"into {n} parts: {exc}{hint}"
-                ) from exc
-    raise AssertionError("unreachable")  # pragma: no cover
+    """Static solve at travel ``t`` from ``state``, split in halves when it fails
+    (:func:`softgrasp.sim.static.solve_increment`). Returns (state, Newton iterations, halvings)."""
+    try:
+        return solve_increment(scene, state, t, cache=cache, max_halvings=MAX_HALVINGS)
+    except NotConverged as exc:
+        raise NotConverged(f"indentation increment to travel {t * 1e3:.4g} mm failed: {exc}{hint}") from exc
 
 
 def indentation_test(

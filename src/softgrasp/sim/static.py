@@ -23,7 +23,13 @@ from softgrasp.mesh.tetmesh import signed_volumes
 from softgrasp.sim.linsolve import SolverCache, solve_newton_system
 from softgrasp.sim.scene import Scene, State
 
-__all__ = ["StaticInfo", "solve_static", "rigid_constraints"]
+__all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints", "MAX_HALVINGS"]
+
+#: A Newton iteration that stalls (contact kinks) is accepted when the largest unbalanced force
+#: is below this fraction of the largest force present (the target is ``rtol``).
+STALL_RTOL = 1e-6
+#: How often :func:`solve_increment` halves a load increment that does not converge.
+MAX_HALVINGS = 4
 
 
 @dataclass(frozen=True)
@@ -132,6 +138,10 @@ def _newton(
                     break
             if not accepted:
                 if shift >= 1e6:
+                    if res <= STALL_RTOL * scale:
+                        # Cycling across a contact kink (a node flipping in and out of contact)
+                        # with the forces balanced to 1e-6 of the largest force: accept.
+                        return x, it, res, lam_new, contacts
                     raise NotConverged(
                         f"static solve stalled at iteration {it}: largest unbalanced force {res:.3g} N "
                         f"(scale {scale:.3g} N); the load step may be too large or the body unstable"
@@ -147,6 +157,10 @@ def _newton(
         if small:
             return x, it, res, lam, contacts
     res = float(np.abs(_residual(scene, x, t, contacts, C, lam)).max())
+    f_int = body.internal_forces(x)
+    scale = max(np.abs(f_int).max(), grav, 1e-300)
+    if res <= STALL_RTOL * scale:
+        return x, max_iter, res, lam, contacts
     raise NotConverged(
         f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
         f"{res:.3g} N); use smaller load steps"
@@ -219,3 +233,40 @@ def solve_static(
     raise NotConverged(
         f"friction did not settle in {max_friction_passes} stick/slip passes; use smaller load steps"
     )
+
+
+def solve_increment(
+    scene: Scene,
+    state: State,
+    t: float,
+    *,
+    cache: SolverCache | None = None,
+    max_halvings: int = MAX_HALVINGS,
+) -> tuple[State, int, int]:
+    """Static solve of one load increment from ``state`` (at ``state.t``) to load parameter ``t``;
+    an increment that does not converge is split in halves from the last converged state, up to
+    ``max_halvings`` times (contact kinks can make Newton cycle on a large increment).
+
+    Returns
+    -------
+    (State at t, Newton iterations used, halvings needed)
+
+    Raises
+    ------
+    NotConverged: the increment did not converge even when split into ``2**max_halvings`` parts.
+    """
+    t_prev = state.t
+    for level in range(max_halvings + 1):
+        n = 2**level
+        try:
+            s, iters = state, 0
+            for k in range(1, n + 1):
+                s, info = solve_static(scene, s, t=t_prev + (t - t_prev) * k / n, cache=cache)
+                iters += info.newton_iterations
+            return s, iters, level
+        except NotConverged as exc:
+            if level == max_halvings:
+                raise NotConverged(
+                    f"load increment to t = {t:.6g} did not converge even when split into {n} parts: {exc}"
+                ) from exc
+    raise AssertionError("unreachable")  # pragma: no cover
