@@ -112,7 +112,7 @@ class PlaneContact:
 
     def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> PlaneState:
         """State with every node's anchor at its current position (nodes already touching stick
-        where they are)."""  # noqa: D401
+        where they are)."""
         p0, n, pen = self._geometry(x, t)
         rel = x - p0
         anchor = rel - (rel @ n)[:, None] * n

@@ -36,6 +36,7 @@ from softgrasp.contact.laws import (
     mindlin_ratio,
     normal_force,
     normal_force_derivative,
+    slip_force,
 )
 from softgrasp.errors import ContactError
 from softgrasp.forces import assemble_blocks
@@ -198,15 +199,29 @@ class FingertipContact:
         tot = np.bincount(pairs.finger, weights=a, minlength=len(self.fingertips))
         return a / tot[pairs.finger]
 
-    def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState, inherit: bool):
-        """Stick anchors in space: kept for continuing pairs; for new pairs the contact point
-        minus the finger's remembered stick displacement (or the contact point itself)."""
+    def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState):
+        """Stick anchors in space: kept for continuing pairs; for new pairs the contact point minus
+        the finger's remembered stick displacement (zero unless it slides on from a neighbour)."""
         fac = body.mesh.facets[pairs.facet]
         cont = state.active[pairs.finger, pairs.facet]
         b_anchor = state.anchor[pairs.finger, pairs.facet]
         kept = np.einsum("ki,kij->kj", b_anchor, x[fac])
-        fresh = pairs.point - (state.memory[pairs.finger] if inherit else 0.0)
+        fresh = pairs.point - state.memory[pairs.finger]
         return np.where(cont[:, None], kept, fresh), cont
+
+    def _stick(self, body: Body, x, pairs: ContactPairs, state: FingerState):
+        """Tangential stick displacement v of each pair [m], (k, 3) (Eq. 16), and the mask of
+        pairs that continue from the last update."""
+        Xa, cont = self._anchor_points(body, x, pairs, state)
+        s = pairs.point - Xa
+        return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, cont
+
+    def _tangential_stiffness(self, body: Body, pairs: ContactPairs, K) -> NDArray[np.float64]:
+        """k_t of each pair [N/m]: Mindlin's ratio times dF_n/d delta at the pair's penetration
+        (not below ``min_depth_ratio`` R)."""
+        p = self.params
+        depth = np.maximum(pairs.depth, p.min_depth_ratio * self._radii()[pairs.finger])
+        return self._ratio(body) * normal_force_derivative(depth, K, p.exponent)
 
     def _evaluate(self, body: Body, x, v, t: float, state: FingerState, static: bool) -> _Eval:
         p = self.params
@@ -236,13 +251,9 @@ class FingertipContact:
         slipping = np.zeros(len(pairs), bool)
         kt = np.zeros(len(pairs))
         if p.mu > 0 and len(pairs):
-            Xa, _ = self._anchor_points(body, x, pairs, state, inherit=True)
-            s = pairs.point - Xa
-            s -= np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal
+            s, _ = self._stick(body, x, pairs, state)
             stick = s
-            kt = self._ratio(body) * normal_force_derivative(
-                np.maximum(pairs.depth, p.min_depth_ratio * self._radii()[pairs.finger]), K, n_exp
-            )
+            kt = self._tangential_stiffness(body, pairs, K)
             ct = self._ratio(body) * C
             trial = -(w * kt)[:, None] * s - (w * ct)[:, None] * vt
             cap = p.mu * fn
@@ -253,7 +264,7 @@ class FingertipContact:
                 speed = np.linalg.norm(vt, axis=1)
                 moving = slipping & (speed > 0)
                 still = slipping & ~moving
-                ft[moving] = -(cap[moving] / speed[moving])[:, None] * vt[moving]  # Eq. 15
+                ft[moving] = slip_force(fn[moving], vt[moving], p.mu)  # Eq. 15
                 ft[still] = trial[still] * (cap[still] / mag[still])[:, None]
         return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping)
 
@@ -362,12 +373,8 @@ class FingertipContact:
             K = self.stiffness(body)[i]
             w = self._patch_weights(pairs)
             elastic = normal_force(pairs.depth, np.zeros(len(pairs)), K, 0.0, p.exponent)
-            kt = self._ratio(body) * normal_force_derivative(
-                np.maximum(pairs.depth, p.min_depth_ratio * self._radii()[i]), K, p.exponent
-            )
-            Xa, cont = self._anchor_points(body, x, pairs, state, inherit=True)
-            s = pairs.point - Xa
-            s -= np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal
+            kt = self._tangential_stiffness(body, pairs, K)
+            s, cont = self._stick(body, x, pairs, state)
             u = np.where(cont[:, None], state.slip[i, j], 0.0)
             if p.mu > 0:
                 lim = p.mu * w * elastic
@@ -401,7 +408,7 @@ class FingertipContact:
         slip = np.zeros((nf, F, 3))
         if len(pairs):
             i, j = pairs.finger, pairs.facet
-            Xa, cont = self._anchor_points(body, x, pairs, state, inherit=True)
+            Xa, cont = self._anchor_points(body, x, pairs, state)
             xf = x[body.mesh.facets[j]]
             anchor[i, j] = barycentric(Xa, xf[:, 0], xf[:, 1], xf[:, 2])
             active[i, j] = True

@@ -21,6 +21,18 @@ def _figure():
     return plt
 
 
+def _save(plt, fig, ax, path: str | Path, legend_loc: str = "best") -> Path:
+    """Common finish of softgrasp's curves: grid, axes from the origin, legend, atomic PNG."""
+    ax.grid(alpha=0.3)
+    ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+    ax.legend(frameon=False, loc=legend_loc)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+    return out
+
+
 def plot_stress_strain(
     path: str | Path,
     strain: NDArray[np.float64],
@@ -58,13 +70,7 @@ def plot_stress_strain(
     ax.set_xlabel("compressive strain [%]")
     ax.set_ylabel("nominal stress [kPa]")
     ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.set_xlim(left=0)
-    ax.set_ylim(bottom=0)
-    ax.legend(frameon=False)
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
-    plt.close(fig)
+    out = _save(plt, fig, ax, path)
     return out
 
 
@@ -108,11 +114,5 @@ def plot_force_penetration(
     ax.set_xlabel("penetration [mm]")
     ax.set_ylabel("force [N]")
     ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.set_xlim(left=0)
-    ax.set_ylim(bottom=0)
-    ax.legend(frameon=False, loc="upper left")
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
-    plt.close(fig)
+    out = _save(plt, fig, ax, path, legend_loc="upper left")
     return out
