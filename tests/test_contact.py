@@ -387,35 +387,29 @@ def test_patch_weights_on_a_dented_surface_by_hand():
         assert fc.static_forces(body, x, 0.0, state).sum(axis=0) == pytest.approx(expected, rel=1e-12)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "the patch rule is continuous when a facet enters or leaves at zero depth, but the "
-        "projection test of Sec. 3.1 drops a facet when the centre's projection crosses its edge, "
-        "at finite depth: on this bowl the total normal force jumps 19.4 -> 20.6 -> 24.0 N and "
-        "26.0 -> 31.2 N (4 -> 3 -> 2 -> 1 facets) over 10 um of fingertip travel"
-    ),
-)
 def test_patch_rule_force_is_continuous_as_facets_leave_a_dent():
     """The same bowl as above; the fingertip slides 4 mm sideways in 10 um steps at a fixed height
-    while the facets it touches drop out one by one. A continuous contact force changes by
-    ~0.15 % per step here (3 N/mm); assert < 1 %."""
+    while the facets it touches drop out one by one (they leave where their closest point meets
+    the staying facets'). A continuous contact force changes by ~0.15 % per step here (3 N/mm);
+    assert < 1 % for the force vector. (With the projection test of Sec. 3.1 the total normal
+    force jumped 19.4 -> 20.6 -> 24.0 N and 26.0 -> 31.2 N over 10 um.)"""
     mesh = box(0.02, 1)
     body = build_body(mesh, preset("foam"), mass=0.01)
     x = np.array(mesh.points)
     top = int(np.flatnonzero((np.abs(x[:, 0]) < 1e-12) & (np.abs(x[:, 1]) < 1e-12) & (x[:, 2] > 0.019))[0])
     x[top, 2] -= 0.002
     R = 0.008
-    normal, counts = [], []
+    force, counts = [], []
     for xc in np.linspace(0.0, 0.004, 401):
         fc = FingertipContact((Fingertip(R, centre=[xc, 0.0002, 0.02 + R - 0.0025]),))
         state = fc.init_state(body, x)
         rep = fc.report(body, x, np.zeros_like(x), 0.0, state, static=True)
-        normal.append(rep.normal[0])
+        force.append(rep.force[0])
         counts.append(rep.contacts[0])
-    assert counts[0] == 4 and counts[-1] == 1
-    normal = np.array(normal)
-    assert np.abs(np.diff(normal) / normal[1:]).max() < 0.01
+    assert counts[0] == 4 and counts[-1] < 4  # facets did leave on the way
+    force = np.array(force)
+    step = np.linalg.norm(np.diff(force, axis=0), axis=1) / np.linalg.norm(force[1:], axis=1)
+    assert step.max() < 0.01
 
 
 # --------------------------------------------------------------------------- 4. restitution
@@ -530,10 +524,13 @@ def test_stuck_fingertip_holds_until_mu_fn_then_slides_at_mu_and_dissipates():
     state, centre = _press(body, table, start, depth, params)
     fc0 = FingertipContact((Fingertip(0.008, centre=centre, **SOFT_TIP),), params)
     rep0 = fc0.report(body, state.x, state.v, 0.0, state.contacts[1], static=True)
-    assert rep0.contacts.tolist() == [1]
+    assert rep0.contacts[0] >= 1
     fn, delta = float(rep0.normal[0]), float(rep0.depth[0])
     K = fc0.stiffness(body)[0]
-    assert fn == pytest.approx(K * delta**1.5, rel=1e-9) and delta == pytest.approx(depth, rel=0.02)
+    pr0 = fc0.pairs(body, state.x, 0.0)
+    w0 = pr0.area * pr0.depth * pr0.reach / (pr0.area * pr0.depth * pr0.reach).sum()
+    assert fn == pytest.approx(K * (w0 * pr0.depth**1.5).sum(), rel=1e-12)
+    assert fn == pytest.approx(K * delta**1.5, rel=1e-3) and delta == pytest.approx(depth, rel=0.02)
     kt = mindlin_ratio(0.3) * 1.5 * K * math.sqrt(delta)
     s_y = MU * fn / kt  # 0.4 mm
     L = 0.02
@@ -691,7 +688,8 @@ def test_literal_facet_rule_under_the_same_refinement():
 
 def test_force_depends_on_where_the_fingertip_lands_on_a_coarse_mesh():
     """Recorded behaviour on the default cube mesh (n = 6, h = 8.3 mm), 1.5 mm of travel: over a
-    facet interior both rules coincide (one facet, w = 1: 31.1 N). Over the node shared by 8
+    facet interior both rules nearly coincide (the literal rule touches one facet, 31.1 N; the
+    patch rule also reaches two neighbours within its edge fade, 30.9 N). Over the node shared by 8
     facets the literal rule gives 1.42 times that (44.1 N): its total contact stiffness is 8 K.
     The patch rule removes that factor (exact on a rigid surface, see above), yet still gives
     0.77 times the facet-interior force there (23.9 N): the contact patch (radius ~4 mm) is
@@ -699,8 +697,8 @@ def test_force_depends_on_where_the_fingertip_lands_on_a_coarse_mesh():
     body is softer under the more concentrated load."""
     f_facet = {rule: _indentation(6, rule, "facet", 1.5e-3) for rule in ("patch", "facet")}
     f_node = {rule: _indentation(6, rule, "node", 1.5e-3) for rule in ("patch", "facet")}
-    assert f_facet["patch"][0] == pytest.approx(f_facet["facet"][0], rel=1e-12)
-    assert f_facet["patch"][1] == f_facet["facet"][1] == 1
+    assert f_facet["patch"][0] == pytest.approx(f_facet["facet"][0], rel=0.02)
+    assert f_facet["facet"][1] == 1
     assert f_node["patch"][1] == f_node["facet"][1] == 8
     base = f_facet["patch"][0]
     assert f_node["facet"][0] / base == pytest.approx(1.42, abs=0.05)
@@ -710,8 +708,8 @@ def test_force_depends_on_where_the_fingertip_lands_on_a_coarse_mesh():
 @pytest.mark.xfail(
     strict=True,
     reason=(
-        "not mesh-converged in this range: at 1.5 mm over a facet the force drops ~15 % per "
-        "refinement (31.1, 27.1, 23.5 N for n = 6, 8, 10; 20.7 N at n = 12 with friction) because "
+        "not mesh-converged in this range: at 1.5 mm over a facet the force drops 10-20 % per "
+        "refinement (30.9, 24.7, 22.0 N for n = 6, 8, 10) because "
         "the contact patch (radius ~3.8 mm) is smaller than the elements: the load sits on the 3 "
         "nodes of one facet and the discrete body keeps softening under that near-point load"
     ),
@@ -741,21 +739,32 @@ def test_fingertip_that_misses_gives_zero_force():
             assert not np.any(field)
 
 
-def test_overlap_at_a_convex_edge_is_not_detected():
-    """Recorded limitation of the paper's detection rule (Sec. 3.1: the centre's projection must
-    fall inside a facet): a fingertip overlapping a box edge by 3.8 mm, with its centre beyond both
-    faces, touches no facet and gets no force. (On the convex sphere mesh about 15-20 % of
-    fingertip positions that overlap the surface fall in such edge/vertex zones, at any mesh size.)"""
+def test_overlap_near_a_convex_edge():
+    """A fingertip pressed 1 mm into the top of a box 0.5 mm beyond its edge (centre outside the
+    side face's plane too): the paper's detection rule (Sec. 3.1: the centre's projection must fall
+    inside a facet) finds no facet and no force; the patch rule's edge fade still finds the top
+    facets there, at their plane depth, 1 mm, and pushes the object down. 3 mm beyond the edge
+    (over half a facet) both miss: a sharp edge met that far out is recorded as a miss."""
     mesh = box(0.02, 2)
     body = build_body(mesh, preset("foam"), mass=0.01)
     x = np.asarray(mesh.points)
     R = 0.008
-    centre = np.array([0.01 + 0.003, 0.0025, 0.02 + 0.003])  # 4.2 mm from the edge x = 0.01, z = 0.02
-    assert math.hypot(0.003, 0.003) < R
+    mat = preset("foam")
+    K = 2.0 * mat.E / (1.0 - mat.nu**2) * math.sqrt(R)
+    centre = np.array([0.01 + 0.0005, 0.0025, 0.02 + R - 0.001])
     fc = FingertipContact((Fingertip(R, centre=centre),))
     state = fc.init_state(body, x)
-    assert fc.report(body, x, np.zeros_like(x), 0.0, state).contacts.tolist() == [0]
-    assert not fc.static_forces(body, x, 0.0, state).any()
+    rep = fc.report(body, x, np.zeros_like(x), 0.0, state, static=True)
+    assert rep.contacts[0] >= 1
+    assert rep.normal[0] == pytest.approx(K * 0.001**1.5, rel=1e-12)
+    assert rep.force[0] == pytest.approx([0.0, 0.0, -K * 0.001**1.5], abs=1e-12 * K * R**1.5)
+    assert (fc.pairs(body, x, 0.0).reach < 1).all()
+    literal = FingertipContact((Fingertip(R, centre=centre),), ContactParams(rule="facet"))
+    st = literal.init_state(body, x)
+    assert literal.report(body, x, np.zeros_like(x), 0.0, st).contacts.tolist() == [0]
+    assert not literal.static_forces(body, x, 0.0, st).any()
+    far = FingertipContact((Fingertip(R, centre=centre + [0.0025, 0, 0]),))
+    assert far.report(body, x, np.zeros_like(x), 0.0, far.init_state(body, x)).contacts.tolist() == [0]
 
 
 def test_fingertip_starting_inside_the_object_is_refused():
@@ -812,7 +821,7 @@ def test_invalid_contact_inputs_raise_clear_errors(make, match):
 # --------------------------------------------------------------------------- 8. broad phase
 
 
-def _brute_force_pairs(x, facets, centres, radii, tol=1e-12):
+def _brute_force_pairs(x, facets, centres, radii, fade=0.0, tol=1e-12):
     """Every (finger, facet) pair by Sec. 3.1, checking all facets, with area coordinates from
     signed sub-triangle areas. Returns {(finger, facet): (distance, bary)}."""
     tri = x[facets]
@@ -831,13 +840,14 @@ def _brute_force_pairs(x, facets, centres, radii, tol=1e-12):
             ],
             axis=1,
         )
-        hit = (d > 0) & (d < R) & (lam >= -tol).all(axis=1)
+        hit = (d > 0) & (d < R) & (lam.min(axis=1) > -fade if fade > 0 else (lam >= -tol).all(axis=1))
         for j in np.flatnonzero(hit):
             out[(i, int(j))] = (d[j], lam[j])
     return out
 
 
-def test_broad_phase_finds_exactly_the_brute_force_pairs():
+@pytest.mark.parametrize("fade", [0.0, 0.25])
+def test_broad_phase_finds_exactly_the_brute_force_pairs(fade):
     """The k-d tree broad phase of ``detect`` misses no pair and invents none: same pairs, distances
     and area coordinates as a check of every facet, for fingertips near the surface of the sphere
     mesh, undeformed (convex: at most one facet per fingertip) and dented (concave: several)."""
@@ -870,8 +880,8 @@ def test_broad_phase_finds_exactly_the_brute_force_pairs():
         radii = rng.uniform(0.0015, 0.02, size=k)
         centres = P + rng.uniform(-0.1, 1.02, size=(k, 1)) * radii[:, None] * nrm
         centres += 0.001 * rng.standard_normal((k, 3))
-        pairs = detect(x, facets, centres, radii)
-        brute = _brute_force_pairs(x, facets, centres, radii)
+        pairs = detect(x, facets, centres, radii, fade=fade)
+        brute = _brute_force_pairs(x, facets, centres, radii, fade)
         found = set(zip(pairs.finger.tolist(), pairs.facet.tolist(), strict=True))
         assert found == set(brute)
         assert len(found) == len(pairs)  # no duplicates

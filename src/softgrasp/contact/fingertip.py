@@ -97,12 +97,16 @@ class ContactParams:
     rule: ``"patch"`` (default): the facet forces of one fingertip are weighted by
         w_j = A_j delta_j / sum_k A_k delta_k, so its total normal force is K <delta^n> — exactly
         K delta^n on a flat surface for any mesh, whatever the number of facets sharing the
-        contact point, and continuous as facets enter or leave at zero depth. (A facet also leaves
-        when the projection of the centre crosses one of its edges, at finite depth; the force then
-        jumps. That is the detection rule of Sec. 3.1.) ``"facet"``: the paper's literal rule, every
+        contact point, and continuous as facets enter or leave: a facet whose projection point lies
+        just outside it (barycentric coordinates down to ``-edge_fade``) still counts, its weight
+        fading linearly to zero there, so a facet no longer drops out at finite depth when the
+        projection crosses its edge (Sec. 3.1's test), and overlaps of slightly convex edges and
+        vertices (a meshed sphere's) are found. ``"facet"``: the paper's literal rule, every
         touched facet gets the full K delta_j^n (the total grows with the number of facets touched).
     tangential_ratio: k_t / k_n; ``None`` for Mindlin's 2(1 - nu)/(2 - nu) of the object.
     min_depth_ratio: k_t is evaluated at a penetration of at least this fraction of R.
+    edge_fade: width of the patch rule's fade-out outside a facet, in barycentric units (0: the
+        paper's hard inside-the-triangle test).
     """
 
     mu: float = 0.8
@@ -113,6 +117,7 @@ class ContactParams:
     rule: str = "patch"
     tangential_ratio: float | None = None
     min_depth_ratio: float = 0.01
+    edge_fade: float = 0.25
 
     def __post_init__(self) -> None:
         checks = {
@@ -121,6 +126,7 @@ class ContactParams:
             "prefactor": self.prefactor > 0,
             "gamma": self.gamma >= 0,
             "min_depth_ratio": 0 < self.min_depth_ratio < 1,
+            "edge_fade": 0 <= self.edge_fade <= 1,
         }
         for k, ok in checks.items():
             v = getattr(self, k)
@@ -143,4 +149,5 @@ class ContactParams:
             "rule": self.rule,
             "tangential_ratio": self.tangential_ratio,
             "min_depth_ratio": self.min_depth_ratio,
+            "edge_fade": self.edge_fade,
         }

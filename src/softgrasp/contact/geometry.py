@@ -3,7 +3,10 @@
 A fingertip is a sphere of centre c and radius R. It touches boundary facet j when the projection
 P_j of c on the facet's plane lies inside the triangle and the distance d_j = (c - P_j)·n_j from
 the plane, measured along the facet's outward normal, satisfies 0 < d_j < R. Its penetration is
-delta_j = R - d_j (Eq. 14). A broad phase (a k-d tree on facet centroids) keeps the cost
+delta_j = R - d_j (Eq. 14). With ``fade`` > 0, projections up to ``fade`` outside the triangle in
+barycentric units also count, each pair carrying a reach factor that falls linearly from 1 on the
+triangle's edge to 0 at that distance (the patch rule weights facets by it, so no facet leaves the
+contact at finite weight). A broad phase (a k-d tree on facet centroids) keeps the cost
 proportional to the facets near the fingertips.
 """
 
@@ -35,6 +38,7 @@ class ContactPairs:
     distance: d_j, centre-to-plane distance [m], (k,).
     depth: delta_j = R - d_j [m], (k,) (Eq. 14).
     area: current facet area [m^2], (k,).
+    reach: 1 when the projection falls inside the facet, fading to 0 at ``fade`` outside it, (k,).
     """
 
     finger: NDArray[np.int64]
@@ -45,6 +49,7 @@ class ContactPairs:
     distance: NDArray[np.float64]
     depth: NDArray[np.float64]
     area: NDArray[np.float64]
+    reach: NDArray[np.float64]
 
     def __len__(self) -> int:
         return int(self.finger.size)
@@ -72,6 +77,8 @@ def detect(
     facets: NDArray[np.int64],
     centres: NDArray[np.float64],
     radii: NDArray[np.float64],
+    *,
+    fade: float = 0.0,
 ) -> ContactPairs:
     """All touching (fingertip, facet) pairs (Sec. 3.1).
 
@@ -79,15 +86,19 @@ def detect(
     ----------
     x: node positions [m], (N, 3).  facets: boundary facets (F, 3), outward ordering.
     centres: fingertip centres [m], (n_f, 3).  radii: fingertip radii [m], (n_f,).
+    fade: how far outside a triangle, in barycentric units, a projection still touches (with a
+        reach factor fading to 0 there); 0 is the paper's test.
     """
     tri = x[facets]  # (F, 3, 3)
     cen = tri.mean(axis=1)
-    reach = float(np.linalg.norm(tri - cen[:, None, :], axis=2).max())
+    # Projections with barycentric coordinates >= -fade lie in the triangle scaled by 1 + 3 fade
+    # about its centroid.
+    extent = (1.0 + 3.0 * fade) * float(np.linalg.norm(tri - cen[:, None, :], axis=2).max())
     tree = cKDTree(cen)
     fingers: list[NDArray[np.int64]] = []
     cand: list[NDArray[np.int64]] = []
     for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
-        near = np.asarray(tree.query_ball_point(c, R + reach), dtype=np.int64)
+        near = np.asarray(tree.query_ball_point(c, R + extent), dtype=np.int64)
         cand.append(near)
         fingers.append(np.full(near.size, i, dtype=np.int64))
     fi = np.concatenate(fingers) if fingers else np.zeros(0, np.int64)
@@ -103,7 +114,13 @@ def detect(
     R = radii[fi]
     P = ctr - d[:, None] * n
     bary = barycentric(P, a, b, c3)
-    ok = (d > 0) & (d < R) & (bary >= -INSIDE_TOL).all(axis=1)
+    low = bary.min(axis=1)
+    if fade > 0:
+        reach = np.clip(1.0 + low / fade, 0.0, 1.0)
+        ok = (d > 0) & (d < R) & (reach > 0)
+    else:
+        reach = np.ones(len(fj))
+        ok = (d > 0) & (d < R) & (low >= -INSIDE_TOL)
     return ContactPairs(
         finger=fi[ok],
         facet=fj[ok],
@@ -113,14 +130,14 @@ def detect(
         distance=d[ok],
         depth=R[ok] - d[ok],
         area=0.5 * twice_area[ok],
+        reach=reach[ok],
     )
 
 
 def _empty() -> ContactPairs:
     z3 = np.zeros((0, 3))
-    return ContactPairs(
-        np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, np.zeros(0), np.zeros(0), np.zeros(0)
-    )
+    z = np.zeros(0)
+    return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z)
 
 
 def relative_velocity(

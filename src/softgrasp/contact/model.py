@@ -189,13 +189,14 @@ class FingertipContact:
 
     def pairs(self, body: Body, x: NDArray[np.float64], t: float) -> ContactPairs:
         """Touching pairs at positions x and time t."""
-        return detect(x, body.mesh.facets, self.centres(t), self._radii())
+        fade = self.params.edge_fade if self.params.rule == "patch" else 0.0
+        return detect(x, body.mesh.facets, self.centres(t), self._radii(), fade=fade)
 
     # ------------------------------------------------------------------ core evaluation
     def _patch_weights(self, pairs: ContactPairs) -> NDArray[np.float64]:
         if self.params.rule == "facet" or len(pairs) == 0:
             return np.ones(len(pairs))
-        a = pairs.area * pairs.depth
+        a = pairs.area * pairs.depth * pairs.reach
         tot = np.bincount(pairs.finger, weights=a, minlength=len(self.fingertips))
         return a / tot[pairs.finger]
 
@@ -431,6 +432,28 @@ class FingertipContact:
         return np.full(body.n_nodes, C * (1.0 + self._ratio(body)))
 
     # ------------------------------------------------------------------ reporting
+    def contact_frames(
+        self, body: Body, x, t: float, state: FingerState
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Each fingertip's contact as one point contact, at rest: the normal-force-weighted mean
+        contact point [m] (n_f, 3), the unit direction of its resultant normal force on the object
+        (pointing into the object) (n_f, 3), and that resultant's magnitude [N] (n_f,). A finger
+        without contact gets zeros."""
+        ev = self._evaluate(body, x, None, t, state, static=True)
+        nf = len(self.fingertips)
+        pr = ev.pairs
+        point = np.zeros((nf, 3))
+        push = np.zeros((nf, 3))
+        total = np.bincount(pr.finger, weights=ev.fn, minlength=nf)
+        for k in range(3):
+            point[:, k] = np.bincount(pr.finger, weights=ev.fn * pr.point[:, k], minlength=nf)
+            push[:, k] = np.bincount(pr.finger, weights=-ev.fn * pr.normal[:, k], minlength=nf)
+        mag = np.linalg.norm(push, axis=1)
+        has = total > 0
+        point[has] /= total[has, None]
+        push[has] /= mag[has, None]
+        return point, push, np.where(has, mag, 0.0)
+
     def report(self, body: Body, x, v, t: float, state: FingerState, *, static: bool = False) -> FingerReport:
         """Per-fingertip totals: force and moment on the object, normal and friction parts."""
         ev = self._evaluate(body, x, v, t, state, static=static)
