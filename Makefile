@@ -17,7 +17,7 @@ install-test: $(BIN)/python
 
 # The main job on the built-in default object.
 run: install
-	$(BIN)/softgrasp compress
+	$(BIN)/softgrasp plan
 
 # The whole test suite (slow tests included).
 test: install-test

@@ -77,7 +77,7 @@ def test_compress_bad_input_one_line_nonzero(tmp_path, args, needle):
 
 
 def test_default_compress_job_runs(tmp_path):
-    """The README's main job, `softgrasp compress` with every default (rubber sphere to 30 %)."""
+    """`softgrasp compress` with every default (rubber sphere to 30 %)."""
     out = tmp_path / "default"
     assert main(["compress", "--out", str(out)]) == 0
     data = json.loads((out / "compress.json").read_text())

@@ -247,6 +247,127 @@ def _cmd_indent(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``softgrasp plan`` options that a --config TOML file may set, with their defaults.
+PLAN_DEFAULTS: dict[str, object] = {
+    "object": "sphere",
+    "material": None,
+    "mesh_size": None,
+    "mu": 0.8,
+    "fingertip_radius": 0.008,
+    "step": 0.0005,
+    "solver": "quasistatic",
+    "safety_factor": 1.0,
+    "hold_time": 1.0,
+    "max_squeeze": 0.5,
+    "out": "softgrasp-out/plan",
+    "reorient": False,
+}
+
+
+def _plan_options(args: argparse.Namespace) -> argparse.Namespace:
+    """Merge command-line options over a --config TOML file over the defaults."""
+    conf: dict[str, object] = {}
+    if args.config is not None:
+        import tomllib
+
+        try:
+            with open(args.config, "rb") as fh:
+                raw = tomllib.load(fh)
+        except OSError as exc:
+            raise ConfigError(f"cannot read config file {args.config}: {exc.strerror}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"config file {args.config} is not valid TOML: {exc}") from None
+        conf = {k.replace("-", "_"): v for k, v in raw.items()}
+        unknown = sorted(set(conf) - set(PLAN_DEFAULTS))
+        if unknown:
+            raise ConfigError(
+                f"config file {args.config}: unknown key(s) {', '.join(unknown)}; "
+                f"known: {', '.join(sorted(PLAN_DEFAULTS))}"
+            )
+    merged = {}
+    for key, default in PLAN_DEFAULTS.items():
+        cli = getattr(args, key, None)
+        value = cli if cli not in (None, False) else conf.get(key, default)
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if default is not None and not isinstance(value, type(default)):
+            raise ConfigError(f"option {key} must be a {type(default).__name__}, got {value!r}")
+        merged[key] = value
+    if merged["solver"] not in ("quasistatic", "dynamic"):
+        raise ConfigError(f"solver must be quasistatic or dynamic, got {merged['solver']!r}")
+    return argparse.Namespace(**{**vars(args), **merged})
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from softgrasp.contact.fingertip import ContactParams
+    from softgrasp.grasp.planner import PlanConfig, plan_grasp
+    from softgrasp.grasp.report import HISTORY_HEADER, history_rows, plan_document, plan_table
+    from softgrasp.output import write_json, write_text
+    from softgrasp.viz.plots import plot_grasp_3d, plot_plan_force_penetration, plot_plan_forces
+
+    t0 = time.perf_counter()
+    args = _plan_options(args)
+    body = _load(args)
+    out = Path(str(args.out))
+    m = body.material
+    print(f"object   {body.mesh.summary()}, mass {body.total_mass * 1e3:.1f} g")
+    print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
+    config = PlanConfig(
+        contact=ContactParams(mu=float(args.mu)),
+        fingertip_radius=float(args.fingertip_radius),
+        step=float(args.step),
+        solver=str(args.solver),
+        safety_factor=float(args.safety_factor),
+        hold_time=float(args.hold_time),
+        max_squeeze=float(args.max_squeeze),
+    )
+    bar, update = _progress("plan")
+    try:
+        plan = plan_grasp(body, config, progress=update)
+    finally:
+        bar.close()
+    doc = plan_document(
+        plan, body, Path(str(args.object)).stem if "." in str(args.object) else str(args.object)
+    )
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(HISTORY_HEADER)
+    for row in history_rows(plan):
+        w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+    names = [f.name for f in plan.fingers]
+    plot_plan_forces(np.arange(1.0, plan.increments + 1.0), plan.force_norm, names, out / "forces.png")
+    plot_plan_force_penetration(plan.penetration, plan.force_norm, names, out / "force_penetration.png")
+    plot_grasp_3d(
+        plan.positions,
+        body.mesh.facets,
+        plan.centres,
+        np.full(3, config.fingertip_radius),
+        np.array([f.force for f in plan.fingers]),
+        plan.contact_points,
+        names,
+        out / "grasp.png",
+        title=f"Held grasp of the {doc['object']['name']} ({m.name}), mu = {config.contact.mu:g}",
+        weight=(plan.com, body.total_mass * float(abs(body.gravity[2]))),
+    )
+    write_text(out / "history.csv", buf.getvalue())
+    doc["wall_time_s"] = time.perf_counter() - t0
+    write_json(out / "plan.json", doc)
+    print(plan_table(plan))
+    eq = doc["equilibrium"]
+    print(
+        f"held: residual {eq['force_residual_N']:.2e} N, {eq['torque_residual_Nm']:.2e} N m; "
+        f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
+        f"{plan.com_drift * 1e3:.2f} mm in {plan.hold_time:g} s"
+    )
+    print(
+        f"wrote {out}/plan.json, history.csv, forces.png, force_penetration.png, grasp.png "
+        f"({plan.increments} increments, {time.perf_counter() - t0:.1f} s)"
+    )
+    return 0
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--object",
@@ -329,6 +450,46 @@ def build_parser() -> argparse.ArgumentParser:
         help="measured CSV with a header: penetration_m (or penetration_mm) and force_N; "
         "penetrations must lie within 0..--depth; overlaid and compared (mean absolute error)",
     )
+    pl = sub.add_parser("plan", help="plan a three-finger grasp and its force set-points (paper Sec. 2, 4.3)")
+    _common(pl)
+    pl.set_defaults(object=None, func=_cmd_plan)
+    for action in pl._actions:
+        if action.dest == "object":
+            action.help = f"{action.help} (default: sphere, the paper's rubber sphere)"
+        elif action.dest == "out":
+            action.help = f"{action.help} (default: softgrasp-out/plan)"
+    pl.add_argument("--mu", type=float, default=None, help="fingertip friction coefficient (default 0.8)")
+    pl.add_argument(
+        "--fingertip-radius",
+        type=_positive("--fingertip-radius"),
+        default=None,
+        help="fingertip radius [m] (default 0.008)",
+    )
+    pl.add_argument(
+        "--step", type=_positive("--step"), default=None, help="closing increment [m] (default 0.0005)"
+    )
+    pl.add_argument(
+        "--solver",
+        choices=("quasistatic", "dynamic"),
+        default=None,
+        help="rest per increment by static Newton (default) or the paper's explicit Runge-Kutta",
+    )
+    pl.add_argument(
+        "--safety-factor",
+        type=float,
+        default=None,
+        help="the grasp test must hold this multiple of the weight (default 1)",
+    )
+    pl.add_argument(
+        "--hold-time", type=float, default=None, help="simulated holding time of the check [s] (default 1)"
+    )
+    pl.add_argument(
+        "--max-squeeze",
+        type=float,
+        default=None,
+        help="largest finger travel past first contact, fraction of its reach (default 0.5)",
+    )
+    pl.add_argument("--config", default=None, metavar="FILE.toml", help="TOML file with any of these options")
     return p
 
 

@@ -1,0 +1,1 @@
+"""Grasp mechanics of rigid-body point contacts: static equilibrium, friction cones, force closure."""

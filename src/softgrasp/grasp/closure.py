@@ -1,0 +1,115 @@
+"""Force closure and the Ferrari-Canny grasp quality of frictional point contacts.
+
+Each contact ``j`` (point ``p_j``, unit inward normal ``n_j``, friction coefficient ``mu``) can
+apply any force in its friction cone, linearised by the m-gon of
+:func:`softgrasp.grasp.equilibrium.friction_cone_edges` (same tangent basis and edges). With unit
+normal force the cone's edges are the forces ``f_jk = n_j + mu d_jk`` and the primitive wrenches
+``w_jk = (f_jk, (p_j - c) x f_jk / L)``; the torque scale ``L`` (default ``max_j |p_j - c|``) makes
+torques commensurate with forces, so the quality is dimensionless and scale invariant.
+
+The grasp is in force closure iff the origin of wrench space is strictly inside the convex hull
+of the primitive wrenches; Ferrari and Canny's epsilon (L1 or "sum" metric: total normal force
+at most 1) is the radius of the largest origin-centred ball in that hull. SI units throughout.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import ConvexHull, QhullError
+
+from softgrasp.errors import ConfigError
+from softgrasp.grasp.equilibrium import (
+    _edges_count,
+    _length_scale,
+    _mu,
+    _point3,
+    _unit_normals,
+    _vectors,
+    friction_cone_edges,
+)
+
+__all__ = ["primitive_wrenches", "ferrari_canny", "is_force_closure"]
+
+#: Singular values below this fraction of the largest count as zero in the rank test.
+RANK_RTOL = 1e-10
+
+
+def primitive_wrenches(
+    points: ArrayLike,
+    normals: ArrayLike,
+    mu: float,
+    centre: ArrayLike,
+    m: int = 8,
+    torque_scale: float | None = None,
+) -> NDArray[np.float64]:
+    """Primitive wrenches ``(f, tau / L)`` of unit normal force, shape ``(k*m, 6)``.
+
+    Row ``j*m + k`` is the cone edge ``f = n_j + mu d_jk`` and its torque ``(p_j - centre) x f``
+    divided by ``torque_scale`` ``L`` (default ``max_j |p_j - centre|``, or 1 if that is 0).
+    With ``mu = 0`` the cones collapse to the normals and the ``k`` normal wrenches ``(k, 6)``
+    are returned.
+    """
+    p = _vectors(points, "points")
+    n = _unit_normals(normals, p.shape[0])
+    mu = _mu(mu)
+    c = _point3(centre, "centre")
+    m = _edges_count(m)
+    r = p - c
+    if torque_scale is None:
+        L = _length_scale(r)
+    else:
+        L = float(torque_scale)
+        if not (math.isfinite(L) and L > 0.0):
+            raise ConfigError(f"torque_scale = {torque_scale} m is invalid: it must be finite and > 0")
+    if mu == 0.0:
+        f = n
+        rr = r
+    else:
+        _, d = friction_cone_edges(n, m)
+        f = (n[:, None, :] + mu * d).reshape(-1, 3)
+        rr = np.repeat(r, m, axis=0)
+    return np.hstack([f, np.cross(rr, f) / L])
+
+
+def ferrari_canny(
+    points: ArrayLike,
+    normals: ArrayLike,
+    mu: float,
+    centre: ArrayLike,
+    m: int = 8,
+    torque_scale: float | None = None,
+) -> float:
+    """Ferrari-Canny epsilon (L1 metric) of the grasp: dimensionless, ``>= 0``.
+
+    The distance from the origin to the nearest facet of the convex hull of
+    :func:`primitive_wrenches`; ``0.0`` when the origin is not strictly inside the hull (no force
+    closure), including rank-deficient (< 6) or otherwise degenerate wrench sets.
+    """
+    w = primitive_wrenches(points, normals, mu, centre, m, torque_scale)
+    if w.shape[0] < 7:
+        return 0.0
+    s = np.linalg.svd(w, compute_uv=False)
+    if s[0] == 0.0 or np.count_nonzero(s > RANK_RTOL * s[0]) < 6:
+        return 0.0
+    try:
+        hull = ConvexHull(w)
+    except (QhullError, ValueError):
+        return 0.0
+    # facet equations: unit outward normal a and offset b with a.x + b <= 0 inside
+    eps = float(np.min(-hull.equations[:, -1]))
+    return eps if eps > 0.0 else 0.0
+
+
+def is_force_closure(
+    points: ArrayLike,
+    normals: ArrayLike,
+    mu: float,
+    centre: ArrayLike,
+    m: int = 8,
+    tol: float = 1e-9,
+) -> bool:
+    """True iff the grasp is in force closure: ``ferrari_canny(...) > tol``."""
+    return ferrari_canny(points, normals, mu, centre, m) > tol

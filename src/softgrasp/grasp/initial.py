@@ -1,0 +1,216 @@
+"""The initial grasp (paper step 1, Sec. 2 and 4.3.2): three fingertip contact points on the
+undeformed surface, chosen by a force-closure criterion within reach of the hand.
+
+Palm layout (until a kinematic hand model constrains it): the hand approaches the object from the
+side with its palm vertical, so the three contacts lie on the horizontal *grasp plane* through the
+object's centre of mass (on a sphere: a great circle, as in the paper's Fig. 12). The thumb
+opposes the first and middle fingers, which sit side by side: seen from the centre of mass, the
+fingers lie at azimuths ``theta + pi -+ phi`` opposite the thumb at ``theta``. The hand limits
+
+* the spread between the first and middle fingertips' contacts, ``min_spread``..``max_spread``
+  (a Shadow-like hand: fingers 22 mm apart at the knuckles, abducting to about 90 mm at the tips);
+* the aperture, the distance between the thumb's contact and the midpoint of the fingers',
+  ``max_aperture`` (150 mm).
+
+Every (theta, phi) on a grid is cast from the centre of mass onto the surface; the candidate
+triples within the limits are scored by the Ferrari-Canny epsilon of their frictional point
+contacts (:mod:`softgrasp.grasp.closure`), and the best force-closure triple wins.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.grasp.closure import ferrari_canny
+
+__all__ = ["HandLayout", "InitialGrasp", "FINGER_NAMES", "raycast_surface", "initial_grasp"]
+
+#: Finger names in the order softgrasp uses everywhere.
+FINGER_NAMES = ("thumb", "first", "middle")
+
+
+@dataclass(frozen=True)
+class HandLayout:
+    """Reach of the hand's thumb, first and middle fingers, in the grasp plane.
+
+    Attributes
+    ----------
+    min_spread, max_spread: distance between the first and middle fingers' contacts [m].
+    max_aperture: largest distance from the thumb's contact to the fingers' midpoint [m].
+    azimuths: number of thumb directions tried around the object.
+    spreads: half-angles phi tried [rad] (first and middle fingers at theta + pi -+ phi).
+    """
+
+    min_spread: float = 0.02
+    max_spread: float = 0.09
+    max_aperture: float = 0.15
+    azimuths: int = 36
+    spreads: tuple[float, ...] = tuple(math.radians(a) for a in range(5, 66, 5))
+
+    def __post_init__(self) -> None:
+        if not (0 < self.min_spread < self.max_spread and self.max_aperture > 0):
+            raise ConfigError(
+                f"hand layout needs 0 < min_spread < max_spread and max_aperture > 0, got "
+                f"{self.min_spread}, {self.max_spread}, {self.max_aperture} m"
+            )
+        if self.azimuths < 1 or not self.spreads:
+            raise ConfigError("hand layout needs at least one azimuth and one spread angle")
+
+    def describe(self) -> dict[str, object]:
+        return {
+            "grasp_plane": "horizontal, through the centre of mass",
+            "min_spread_m": self.min_spread,
+            "max_spread_m": self.max_spread,
+            "max_aperture_m": self.max_aperture,
+            "azimuths": self.azimuths,
+            "spread_half_angles_deg": [round(math.degrees(a), 6) for a in self.spreads],
+        }
+
+
+@dataclass(frozen=True)
+class InitialGrasp:
+    """Three contact points on the surface (thumb, first, middle).
+
+    Attributes
+    ----------
+    points: contact points [m], (3, 3).
+    normals: outward unit surface normals there, (3, 3).
+    facets: boundary facet of each contact, (3,).
+    centroid: centroid of the contact triangle [m], (3,) (the fingers close towards it).
+    epsilon: Ferrari-Canny quality (force units per unit normal force; 0 = not force closure).
+    thumb_azimuth: theta [rad]; spread: phi [rad].
+    """
+
+    points: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    facets: NDArray[np.int64]
+    centroid: NDArray[np.float64]
+    epsilon: float
+    thumb_azimuth: float
+    spread: float
+
+
+def raycast_surface(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    origin: NDArray[np.float64],
+    directions: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Outermost crossing of rays from ``origin`` along unit ``directions`` (r, 3) with the
+    boundary facets (Moller-Trumbore). Returns (distance along each ray [m] (r,), facet (r,)); a ray
+    that crosses nothing gets distance nan and facet -1."""
+    tri = x[facets]
+    a = tri[:, 0]
+    e1 = tri[:, 1] - a
+    e2 = tri[:, 2] - a
+    s = origin[None, :] - a  # (F, 3)
+    dist = np.full(len(directions), np.nan)
+    which = np.full(len(directions), -1, dtype=np.int64)
+    for k, d in enumerate(directions):
+        p = np.cross(d[None, :], e2)
+        det = np.einsum("ij,ij->i", e1, p)
+        ok = np.abs(det) > 1e-18
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        u = np.einsum("ij,ij->i", s, p) * inv
+        q = np.cross(s, e1)
+        v = (q @ d) * inv
+        t = np.einsum("ij,ij->i", e2, q) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        if hit.any():
+            j = np.flatnonzero(hit)[np.argmax(t[hit])]
+            dist[k] = t[j]
+            which[k] = j
+    return dist, which
+
+
+def _outward_normals(x: NDArray[np.float64], facets: NDArray[np.int64]) -> NDArray[np.float64]:
+    tri = x[facets]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def initial_grasp(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    com: NDArray[np.float64],
+    mu: float,
+    layout: HandLayout = HandLayout(),  # noqa: B008 - frozen dataclass
+) -> InitialGrasp:
+    """Best force-closure triple (thumb, first, middle) in the grasp plane within the hand's reach.
+
+    Parameters
+    ----------
+    x: node positions [m] (the object at rest on the table).  facets: boundary facets, outward.
+    com: centre of mass [m].  mu: friction coefficient used for the closure test.
+    layout: the hand's reach.
+
+    Raises
+    ------
+    InfeasibleGrasp: no triple within the hand's reach is force closure (the object is too large
+        or too small for the hand, or mu = 0).
+    """
+    com = np.asarray(com, dtype=np.float64)
+    thetas = 2.0 * np.pi * np.arange(layout.azimuths) / layout.azimuths
+    # One ray per needed azimuth: thumb directions and every finger direction.
+    angles = [thetas]
+    for phi in layout.spreads:
+        angles += [thetas + np.pi - phi, thetas + np.pi + phi]
+    allang = np.mod(np.concatenate(angles), 2 * np.pi)
+    uniq, inv = np.unique(np.round(allang, 12), return_inverse=True)
+    dirs = np.stack([np.cos(uniq), np.sin(uniq), np.zeros_like(uniq)], axis=1)
+    dist, fac = raycast_surface(x, facets, com, dirs)
+    if np.isnan(dist).all():
+        raise InfeasibleGrasp(
+            "the horizontal plane through the centre of mass does not cross the object's surface; "
+            "check the mesh is closed and the object rests on the table"
+        )
+    pts = com[None, :] + dist[:, None] * dirs
+    nrm = _outward_normals(x, facets)
+    ray = {float(a): i for i, a in enumerate(uniq)}
+    best: InitialGrasp | None = None
+    widest = 0.0
+    for theta in thetas:
+        it = ray[float(np.round(np.mod(theta, 2 * np.pi), 12))]
+        for phi in layout.spreads:
+            i1 = ray[float(np.round(np.mod(theta + np.pi - phi, 2 * np.pi), 12))]
+            i2 = ray[float(np.round(np.mod(theta + np.pi + phi, 2 * np.pi), 12))]
+            idx = [it, i1, i2]
+            if np.isnan(dist[idx]).any():
+                continue
+            p = pts[idx]
+            spread = float(np.linalg.norm(p[1] - p[2]))
+            aperture = float(np.linalg.norm(p[0] - 0.5 * (p[1] + p[2])))
+            widest = max(widest, aperture)
+            if not (layout.min_spread <= spread <= layout.max_spread and aperture <= layout.max_aperture):
+                continue
+            n_out = nrm[fac[idx]]
+            eps = ferrari_canny(p, -n_out, mu, com)
+            if best is None or eps > best.epsilon + 1e-12:
+                best = InitialGrasp(
+                    points=p,
+                    normals=n_out,
+                    facets=fac[idx].astype(np.int64),
+                    centroid=p.mean(axis=0),
+                    epsilon=float(eps),
+                    thumb_azimuth=float(theta),
+                    spread=float(phi),
+                )
+    if best is None:
+        raise InfeasibleGrasp(
+            f"the hand cannot reach this object: no thumb/finger triple in the grasp plane has the "
+            f"fingers {layout.min_spread * 1e3:.0f}-{layout.max_spread * 1e3:.0f} mm apart and the "
+            f"thumb within {layout.max_aperture * 1e3:.0f} mm of them (the object is "
+            f"{widest * 1e3:.0f} mm across); use a smaller object or a hand layout with a wider reach"
+        )
+    if best.epsilon <= 0.0:
+        raise InfeasibleGrasp(
+            f"no reachable triple is force closure with mu = {mu:g}: the friction cones are too narrow "
+            "for three fingertips to resist every load on this surface (with mu = 0 none can); "
+            "raise the friction coefficient"
+        )
+    return best

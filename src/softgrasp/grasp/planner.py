@@ -1,0 +1,400 @@
+"""The closing simulation (paper step 2, Sec. 2 and 4.3.2): from the initial grasp, the three
+fingertips advance together in small increments along straight lines towards the centroid of the
+contact triangle; after each increment the object comes to rest; the first increment at which the
+fingers can hold the object against gravity stops the closing, and the forces of the *held* state
+(table removed) become the force set-points.
+
+Per increment: the object, standing on the table, is brought to static equilibrium with its
+fingertip contacts (quasi-static, Newton; :func:`softgrasp.sim.static.solve_increment`). Then the
+grasp test of Sec. 3.5 (Eq. 21-22): with each finger's contact point, normal direction and normal
+force, is there a set of friction forces inside the cones |f_t| <= mu f_n that holds
+``safety_factor`` times the weight in force and torque (:func:`friction_feasibility`)? When there
+is, the hold is verified: the table is removed and the object is solved to equilibrium in the
+fingers alone; then ``hold_time`` seconds of dynamics (RK4) from that state must move its centre of
+mass less than ``max_drift``. A failed verification continues the closing. Beyond
+``max_squeeze`` (a fraction of each finger's distance to the triangle's centroid) the object would
+be crushed: :class:`InfeasibleGrasp`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.body import Body
+from softgrasp.contact.fingertip import ContactParams, Fingertip
+from softgrasp.contact.model import FingerReport, FingertipContact
+from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged, SimulationUnstable
+from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
+from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, initial_grasp
+from softgrasp.planes import Plane, PlaneContact
+from softgrasp.sim.implicit import simulate_implicit
+from softgrasp.sim.integrators import simulate
+from softgrasp.sim.linsolve import SolverCache
+from softgrasp.sim.scene import Scene, State
+from softgrasp.sim.static import solve_increment, solve_static
+
+__all__ = ["PlanConfig", "FingerResult", "GraspPlan", "plan_grasp"]
+
+SOLVERS = ("quasistatic", "dynamic")
+#: Time step of the implicit holding simulation [s].
+HOLD_DT = 0.05
+
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """Everything the planner uses besides the object.
+
+    Attributes
+    ----------
+    contact: fingertip contact parameters (friction mu, exponent, K prefactor, rule ...).
+    fingertip_radius: R of the three fingertips [m] (Shadow-hand-like: 8 mm).
+    step: closing increment of each fingertip [m] (paper: small increments; 0.5 mm).
+    solver: ``quasistatic`` (static equilibrium per increment) or ``dynamic`` (the paper's
+        explicit Runge-Kutta through each increment at ``closing_speed``, then static settling).
+    closing_speed: fingertip speed of the dynamic solver [m/s].
+    safety_factor: the grasp test must hold this multiple of the weight (>= 1).
+    hold_time: simulated holding time of the verification [s].
+    max_drift: largest centre-of-mass motion over ``hold_time`` for a hold [m].
+    max_squeeze: largest travel of a finger past first contact, as a fraction of its distance to
+        the triangle's centroid (beyond it the object is crushed).
+    table_mu: friction between object and table.
+    layout: the hand's reach (:class:`HandLayout`).
+    """
+
+    contact: ContactParams = field(default_factory=ContactParams)
+    fingertip_radius: float = 0.008
+    step: float = 0.0005
+    solver: str = "quasistatic"
+    closing_speed: float = 0.05
+    safety_factor: float = 1.0
+    hold_time: float = 1.0
+    max_drift: float = 0.001
+    max_squeeze: float = 0.5
+    table_mu: float = 0.5
+    layout: HandLayout = field(default_factory=HandLayout)
+
+    def __post_init__(self) -> None:
+        checks = {
+            "fingertip_radius": self.fingertip_radius > 0,
+            "step": self.step > 0,
+            "closing_speed": self.closing_speed > 0,
+            "safety_factor": self.safety_factor >= 1.0,
+            "hold_time": self.hold_time >= 0,
+            "max_drift": self.max_drift > 0,
+            "max_squeeze": 0 < self.max_squeeze < 1,
+            "table_mu": self.table_mu >= 0,
+        }
+        for name, ok in checks.items():
+            v = getattr(self, name)
+            if not (ok and math.isfinite(v)):
+                raise ConfigError(f"plan parameter {name} = {v} is invalid")
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.step >= self.fingertip_radius:
+            raise ConfigError(
+                f"closing step {self.step * 1e3:g} mm must be smaller than the fingertip radius "
+                f"{self.fingertip_radius * 1e3:g} mm"
+            )
+
+    def describe(self) -> dict[str, object]:
+        return {
+            "contact": self.contact.describe(),
+            "fingertip_radius_m": self.fingertip_radius,
+            "step_m": self.step,
+            "solver": self.solver,
+            "closing_speed_m_s": self.closing_speed,
+            "safety_factor": self.safety_factor,
+            "hold_time_s": self.hold_time,
+            "max_drift_m": self.max_drift,
+            "max_squeeze": self.max_squeeze,
+            "table_mu": self.table_mu,
+            "hand_layout": self.layout.describe(),
+        }
+
+
+@dataclass(frozen=True)
+class FingerResult:
+    """One finger's set-point in the held state (forces on the object)."""
+
+    name: str
+    initial_contact: NDArray[np.float64]
+    final_position: NDArray[np.float64]
+    penetration: float
+    force: NDArray[np.float64]
+    normal_force: float
+    tangential_force: float
+
+    @property
+    def force_norm(self) -> float:
+        return float(np.linalg.norm(self.force))
+
+
+@dataclass(frozen=True)
+class GraspPlan:
+    """The planned grasp.
+
+    Attributes
+    ----------
+    initial: the initial grasp (step 1).
+    fingers: set-points of thumb, first and middle fingers in the held state.
+    force_residual, torque_residual: |Eq. 21| [N] and |Eq. 22| about the centre of mass [N m] of
+        the held state (finger forces and weight).
+    friction_margin: 1 - the largest ratio |f_t| / (mu f_n) among the fingers in the held state
+        (the share of the Coulomb cone left; >= 0 when the fingers stick).
+    com_drift: centre-of-mass motion over the holding time [m]; hold_time: that time [s].
+    increments: closing increments simulated.
+    travel: fingertip travel at each increment [m], (K,).
+    penetration, force_norm, normal_force, tangential_force: per increment and finger, (K, 3).
+    feasible: whether the grasp test passed at each increment, (K,).
+    rigid_normal_forces: the smallest normal forces that hold the object at the final contact
+        points if it were rigid [N], (3,).
+    positions: node positions of the held state [m], (N, 3).
+    centres: final fingertip centres [m], (3, 3).
+    contact_points: each finger's mean contact point in the held state [m], (3, 3).
+    com: centre of mass in the held state [m].
+    first_contact_travel: travel at which each finger touched [m], (3,).
+    config: the configuration used.  wall_time: seconds.
+    """
+
+    initial: InitialGrasp
+    fingers: tuple[FingerResult, ...]
+    force_residual: float
+    torque_residual: float
+    friction_margin: float
+    com_drift: float
+    hold_time: float
+    increments: int
+    travel: NDArray[np.float64]
+    penetration: NDArray[np.float64]
+    force_norm: NDArray[np.float64]
+    normal_force: NDArray[np.float64]
+    tangential_force: NDArray[np.float64]
+    feasible: NDArray[np.bool_]
+    rigid_normal_forces: NDArray[np.float64]
+    positions: NDArray[np.float64]
+    centres: NDArray[np.float64]
+    contact_points: NDArray[np.float64]
+    com: NDArray[np.float64]
+    first_contact_travel: NDArray[np.float64]
+    config: PlanConfig
+    wall_time: float
+
+
+def _com(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    return (body.mass @ x) / body.total_mass
+
+
+def _first_touch(body: Body, params: ContactParams, tip: Fingertip, x, t_max: float) -> float:
+    """Travel at which ``tip`` (moving along its velocity) first touches the surface ``x``."""
+
+    def touches(t: float) -> bool:
+        fc = FingertipContact((tip,), params)
+        return len(fc.pairs(body, x, t)) > 0
+
+    grid = np.linspace(0.0, t_max, 41)
+    hit = next((k for k, t in enumerate(grid) if touches(float(t))), None)
+    if hit is None:
+        raise InfeasibleGrasp(
+            f"the {tip.name} fingertip never touches the object along its closing line "
+            f"({t_max * 1e3:.1f} mm of travel); the initial grasp is not reachable"
+        )
+    if hit == 0:
+        return 0.0
+    lo, hi = float(grid[hit - 1]), float(grid[hit])
+    while hi - lo > 1e-9:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if touches(mid) else (mid, hi)
+    return hi
+
+
+def _torque_residual(rep: FingerReport, centres, com) -> NDArray[np.float64]:
+    """Sum of the fingers' moments about the centre of mass (the weight has none there)."""
+    return (rep.moment + np.cross(centres - com, rep.force)).sum(axis=0)
+
+
+def _check_hold(
+    body: Body, fc: FingertipContact, state: State, t: float, cfg: PlanConfig, cache: SolverCache
+) -> tuple[State, FingertipContact, float] | None:
+    """Remove the table and verify that the fingers hold the object. From the squeezed state at
+    rest on the table, with the fingertips fixed: ``hold_time`` seconds of implicit dynamics
+    (:func:`simulate_implicit`, steps of ``HOLD_DT``) must move the centre of mass less than
+    ``max_drift``; the held state is then brought to static equilibrium in the fingers alone.
+    Returns (held state, fixed fingers, drift) or None when the object is not held."""
+    fixed = FingertipContact(
+        tuple(replace(f, centre=f.centre_at(t), velocity=np.zeros(3)) for f in fc.fingertips),
+        fc.params,
+        name=fc.name,
+    )
+    scene = Scene(body, (fixed,))
+    start = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1],))
+    c0 = _com(body, start.x)
+    try:
+        end = (
+            simulate_implicit(scene, start, cfg.hold_time, HOLD_DT, cache=cache)
+            if cfg.hold_time > 0
+            else start
+        )
+        drift = float(np.linalg.norm(_com(body, end.x) - c0))
+        if drift >= cfg.max_drift:
+            return None
+        held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache)
+    except (NotConverged, SimulationUnstable):
+        return None
+    if fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True).contacts.min() == 0:
+        return None
+    return held, fixed, drift
+
+
+def plan_grasp(
+    body: Body,
+    config: PlanConfig = PlanConfig(),  # noqa: B008 - frozen dataclass
+    *,
+    progress: Callable[[float], None] | None = None,
+) -> GraspPlan:
+    """Plan a three-finger grasp of ``body`` (paper steps 1-2).
+
+    Raises
+    ------
+    InfeasibleGrasp: no reachable force-closure grasp, or no hold before the maximum squeeze.
+    NotConverged: an increment found no static equilibrium even when split.
+    """
+    t0 = time.perf_counter()
+    cfg = config
+    mu = cfg.contact.mu
+    cache = SolverCache()
+    x_mesh = np.asarray(body.mesh.points)
+    zmin = float(x_mesh[:, 2].min())
+    table = PlaneContact(
+        Plane(np.array([0.0, 0.0, zmin]), np.array([0.0, 0.0, 1.0])), mu=cfg.table_mu, name="table"
+    )
+    rest = Scene(body, (table,))
+    settled, _ = solve_static(rest, rest.initial_state(), cache=cache)
+    xs = settled.x
+    com0 = _com(body, xs)
+    facets = body.mesh.facets
+
+    ig = initial_grasp(xs, facets, com0, mu, cfg.layout)
+    R = cfg.fingertip_radius
+    u = ig.centroid[None, :] - ig.points
+    reach = np.linalg.norm(u, axis=1)
+    u /= reach[:, None]
+    # Each fingertip starts tangent to the surface at its contact point, backed off one step along
+    # its closing line.
+    start = ig.points + R * ig.normals - cfg.step * u
+    unit_tips = tuple(Fingertip(R, centre=start[j], velocity=u[j], name=FINGER_NAMES[j]) for j in range(3))
+    first = np.array([_first_touch(body, cfg.contact, tip, xs, 4 * cfg.step + R) for tip in unit_tips])
+    # The load parameter of the scene: travel [m] for the quasi-static solver, time [s] at the
+    # closing speed for the dynamic one.
+    scale = 1.0 if cfg.solver == "quasistatic" else 1.0 / cfg.closing_speed
+    tips = tuple(replace(tip, velocity=tip.velocity / scale) for tip in unit_tips)
+    fc = FingertipContact(tips, cfg.contact)
+    max_travel = float(first.max() + cfg.max_squeeze * reach.min())
+
+    scene = Scene(body, (table, fc))
+    state = State(xs, np.zeros_like(xs), 0.0, (settled.contacts[0], fc.init_state(body, xs, 0.0)))
+    rows: list[tuple[float, NDArray, NDArray, NDArray, NDArray, bool]] = []
+    held = None
+    k = 0
+    while held is None:
+        k += 1
+        t = k * cfg.step
+        if t > max_travel + 1e-12:
+            last = rows[-1][2] if rows else np.zeros(3)
+            raise InfeasibleGrasp(
+                f"no hold before the maximum squeeze ({(max_travel - first.max()) * 1e3:.1f} mm past "
+                f"first contact, {cfg.max_squeeze:.0%} of the fingers' reach): finger forces reached "
+                f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {mu:g}; raise the friction "
+                "coefficient, or grasp a lighter or stiffer object"
+            )
+        state = _advance(scene, state, t * scale, cfg, cache)
+        rep = fc.report(body, state.x, None, t * scale, state.contacts[1], static=True)
+        pen = np.maximum(t - first, 0.0)
+        feasible = False
+        if (rep.contacts > 0).all():
+            pts, push, fn = fc.contact_frames(body, state.x, t * scale, state.contacts[1])
+            s_need = squeeze_utilisation(
+                pts, push, fn, mu, _com(body, state.x), cfg.safety_factor * body.total_mass, body.gravity
+            )
+            feasible = s_need <= 1.0
+        rows.append(
+            (t, pen, np.linalg.norm(rep.force, axis=1), rep.normal.copy(), rep.tangential.copy(), feasible)
+        )
+        if progress is not None:
+            progress(min(t / max_travel, 1.0))
+        if feasible:
+            held = _check_hold(body, fc, state, t * scale, cfg, cache)
+
+    held_state, fixed, drift = held
+    hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
+    pts, push, fn = fixed.contact_frames(body, held_state.x, 0.0, held_state.contacts[0])
+    com = _com(body, held_state.x)
+    fres = np.linalg.norm(hrep.force.sum(axis=0) + body.total_mass * body.gravity)
+    centres = fixed.centres(0.0)
+    tres = np.linalg.norm(_torque_residual(hrep, centres, com))
+    # The held state's own friction forces against the (circular) Coulomb cones.
+    use = hrep.tangential / np.maximum(mu * hrep.normal, 1e-300)
+    margin = float(1.0 - use.max())
+    try:
+        rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity)
+    except InfeasibleGrasp:
+        rigid = np.full(3, np.nan)
+    t_final = rows[-1][0]
+    fingers = tuple(
+        FingerResult(
+            name=FINGER_NAMES[j],
+            initial_contact=ig.points[j],
+            final_position=centres[j],
+            penetration=float(max(t_final - first[j], 0.0)),
+            force=hrep.force[j],
+            normal_force=float(hrep.normal[j]),
+            tangential_force=float(hrep.tangential[j]),
+        )
+        for j in range(3)
+    )
+    if progress is not None:
+        progress(1.0)
+    return GraspPlan(
+        initial=ig,
+        fingers=fingers,
+        force_residual=float(fres),
+        torque_residual=float(tres),
+        friction_margin=margin,
+        com_drift=drift,
+        hold_time=cfg.hold_time,
+        increments=len(rows),
+        travel=np.array([r[0] for r in rows]),
+        penetration=np.array([r[1] for r in rows]),
+        force_norm=np.array([r[2] for r in rows]),
+        normal_force=np.array([r[3] for r in rows]),
+        tangential_force=np.array([r[4] for r in rows]),
+        feasible=np.array([r[5] for r in rows]),
+        rigid_normal_forces=rigid,
+        positions=held_state.x,
+        centres=centres,
+        contact_points=pts,
+        com=com,
+        first_contact_travel=first,
+        config=cfg,
+        wall_time=time.perf_counter() - t0,
+    )
+
+
+def _advance(scene: Scene, state: State, t: float, cfg: PlanConfig, cache: SolverCache) -> State:
+    """Bring the object to rest with the fingers at load parameter ``t`` (travel for the
+    quasi-static solver, time for the dynamic one)."""
+    try:
+        if cfg.solver == "dynamic":
+            # The paper's explicit Runge-Kutta while the fingers move through the increment at
+            # the closing speed, then a static solve brings the object to rest there.
+            state = simulate(scene, state, t, method="rk4")
+            state = State(state.x, np.zeros_like(state.v), state.t, state.contacts)
+        state, _, _ = solve_increment(scene, state, t, cache=cache)
+    except NotConverged as exc:
+        raise NotConverged(f"closing increment to {t * 1e3:.3g} mm of travel failed: {exc}") from exc
+    return state

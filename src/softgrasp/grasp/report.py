@@ -1,0 +1,107 @@
+"""A planned grasp as plain data: the ``softgrasp.plan/1`` JSON document, the per-increment
+history rows and the people-facing table (no file I/O here)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from softgrasp.body import Body
+from softgrasp.grasp.initial import FINGER_NAMES
+from softgrasp.grasp.planner import GraspPlan
+
+__all__ = ["SCHEMA", "plan_document", "history_rows", "HISTORY_HEADER", "plan_table"]
+
+SCHEMA = "softgrasp.plan/1"
+HISTORY_HEADER = (
+    "increment",
+    "finger",
+    "penetration_m",
+    "force_norm_N",
+    "normal_force_N",
+    "tangential_force_N",
+)
+
+
+def _v(a: np.ndarray) -> list[float]:
+    return [float(x) for x in np.asarray(a).ravel()]
+
+
+def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, Any]:
+    """The ``plan.json`` document (keys carry their units)."""
+    m = body.material
+    ig = plan.initial
+    return {
+        "schema": SCHEMA,
+        "object": {
+            "name": object_name,
+            "mass_kg": body.total_mass,
+            "nodes": int(body.n_nodes),
+            "tets": int(len(body.mesh.tets)),
+            "material": {"name": m.name, "E_Pa": m.E, "nu": m.nu, "density_kg_m3": m.density},
+        },
+        "parameters": plan.config.describe(),
+        "initial_grasp": {
+            "criterion": "Ferrari-Canny epsilon on 8-edge friction cones, grasp plane through the "
+            "centre of mass",
+            "epsilon": ig.epsilon,
+            "thumb_azimuth_deg": float(np.degrees(ig.thumb_azimuth)),
+            "finger_half_spread_deg": float(np.degrees(ig.spread)),
+            "triangle_centroid_m": _v(ig.centroid),
+        },
+        "fingers": [
+            {
+                "name": f.name,
+                "initial_contact_m": _v(f.initial_contact),
+                "final_position_m": _v(f.final_position),
+                "penetration_m": f.penetration,
+                "force_N": _v(f.force),
+                "force_norm_N": f.force_norm,
+                "normal_force_N": f.normal_force,
+                "tangential_force_N": f.tangential_force,
+                "rigid_minimum_normal_force_N": float(plan.rigid_normal_forces[j]),
+                "first_contact_travel_m": float(plan.first_contact_travel[j]),
+            }
+            for j, f in enumerate(plan.fingers)
+        ],
+        "equilibrium": {
+            "satisfied": bool(plan.friction_margin >= 0.0),
+            "force_residual_N": plan.force_residual,
+            "torque_residual_Nm": plan.torque_residual,
+            "friction_margin": plan.friction_margin,
+            "weight_N": float(body.total_mass * np.linalg.norm(body.gravity)),
+        },
+        "hold": {"com_drift_m": plan.com_drift, "duration_s": plan.hold_time},
+        "increments": plan.increments,
+        "wall_time_s": plan.wall_time,
+    }
+
+
+def history_rows(plan: GraspPlan) -> list[tuple[object, ...]]:
+    """One row per increment and finger, in :data:`HISTORY_HEADER` order."""
+    rows: list[tuple[object, ...]] = []
+    for k in range(plan.increments):
+        for j, name in enumerate(FINGER_NAMES):
+            rows.append(
+                (
+                    k + 1,
+                    name,
+                    float(plan.penetration[k, j]),
+                    float(plan.force_norm[k, j]),
+                    float(plan.normal_force[k, j]),
+                    float(plan.tangential_force[k, j]),
+                )
+            )
+    return rows
+
+
+def plan_table(plan: GraspPlan) -> str:
+    """The paper's Table 2 for this plan: finger, penetration [mm], force [N]."""
+    lines = [f"{'finger':<8} {'penetration mm':>15} {'force N':>9} {'normal N':>9} {'friction N':>11}"]
+    for f in plan.fingers:
+        lines.append(
+            f"{f.name:<8} {f.penetration * 1e3:>15.2f} {f.force_norm:>9.3f} {f.normal_force:>9.3f} "
+            f"{f.tangential_force:>11.3f}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,231 @@
+"""The grasp planner (paper Sec. 2, 3.5, 4.3.2): the default plan's physics, its failures, the
+implicit holding integrator, and ``softgrasp plan``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from softgrasp.body import build_body
+from softgrasp.cli import main
+from softgrasp.contact.fingertip import ContactParams
+from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.grasp.closure import is_force_closure
+from softgrasp.grasp.initial import HandLayout, initial_grasp
+from softgrasp.grasp.planner import PlanConfig, plan_grasp
+from softgrasp.material import preset
+from softgrasp.mesh.generate import box, sphere
+from softgrasp.objects import make_object
+from softgrasp.sim.implicit import simulate_implicit
+from softgrasp.sim.scene import Scene
+
+
+@pytest.fixture(scope="module")
+def sphere_body():
+    mesh, material, mass = make_object("sphere")
+    return build_body(mesh, material, mass=mass)
+
+
+@pytest.fixture(scope="module")
+def default_plan(sphere_body):
+    return plan_grasp(sphere_body, PlanConfig())
+
+
+# --------------------------------------------------------------------------- initial grasp
+
+
+def test_initial_grasp_on_the_sphere_lies_on_a_great_circle_with_the_thumb_opposite(sphere_body):
+    """Step 1 on the rubber sphere: three force-closure contacts in the horizontal plane through
+    the centre of mass, all at the sphere's radius from it (a great circle), the first and middle
+    fingers side by side opposite the thumb (their midpoint within 60 deg of the antipode)."""
+    x = np.asarray(sphere_body.mesh.points)
+    com = (sphere_body.mass @ x) / sphere_body.total_mass
+    ig = initial_grasp(x, sphere_body.mesh.facets, com, 0.8)
+    assert np.abs(ig.points[:, 2] - com[2]).max() < 1e-9
+    r = np.linalg.norm(ig.points - com, axis=1)
+    assert r == pytest.approx(np.full(3, 0.064), rel=0.05)  # on the (faceted) sphere
+    assert ig.epsilon > 0 and is_force_closure(ig.points, -ig.normals, 0.8, com)
+    thumb = ig.points[0] - com
+    mid = 0.5 * (ig.points[1] + ig.points[2]) - com
+    cos = thumb @ mid / (np.linalg.norm(thumb) * np.linalg.norm(mid))
+    assert cos < math.cos(math.radians(120))
+    spread = np.linalg.norm(ig.points[1] - ig.points[2])
+    layout = HandLayout()
+    assert layout.min_spread <= spread <= layout.max_spread
+
+
+def test_object_too_large_for_the_hand_is_refused_clearly():
+    body = build_body(sphere(0.15, 0.06), preset("rubber"), mass=0.5)
+    with pytest.raises(InfeasibleGrasp, match=r"the hand cannot reach this object.*\d+ mm across"):
+        plan_grasp(body, PlanConfig())
+
+
+def test_nearly_frictionless_fingers_fail_with_infeasible_grasp(sphere_body):
+    with pytest.raises(InfeasibleGrasp, match=r"mu = 0.01"):
+        plan_grasp(sphere_body, PlanConfig(contact=ContactParams(mu=0.01)))
+
+
+def test_no_hold_before_the_maximum_squeeze_fails_with_the_reason(sphere_body):
+    """Low friction and a squeeze limit of 2 % of the reach (~1 mm): the fingers cannot yet hold
+    the 50 g sphere there, and the planner says so instead of returning a plan."""
+    cfg = PlanConfig(contact=ContactParams(mu=0.2), max_squeeze=0.02, hold_time=0.0)
+    with pytest.raises(InfeasibleGrasp, match=r"no hold before the maximum squeeze .* mu = 0.2"):
+        plan_grasp(sphere_body, cfg)
+
+
+@pytest.mark.parametrize(
+    "kw, needle",
+    [
+        ({"step": 0.0}, "step = 0.0"),
+        ({"safety_factor": 0.5}, "safety_factor = 0.5"),
+        ({"solver": "euler"}, "solver must be one of"),
+        ({"step": 0.01}, "must be smaller than the fingertip radius"),
+        ({"max_squeeze": 1.5}, "max_squeeze = 1.5"),
+    ],
+)
+def test_bad_plan_parameters_raise_config_error(kw, needle):
+    with pytest.raises(ConfigError, match=needle):
+        PlanConfig(**kw)
+
+
+# --------------------------------------------------------------------------- the default plan
+
+
+def test_default_plan_holds_the_sphere_in_equilibrium(default_plan, sphere_body):
+    """Eq. 21-22 in the held state (table removed): finger forces and weight sum to < 2 % of the
+    weight, torques likewise (relative to weight x radius); the centre of mass moves < 1 mm over
+    1 s of holding; the fingers stick (friction margin >= 0)."""
+    plan = default_plan
+    W = sphere_body.total_mass * 9.81
+    total = np.sum([f.force for f in plan.fingers], axis=0) + sphere_body.total_mass * sphere_body.gravity
+    assert np.linalg.norm(total) < 0.02 * W
+    assert plan.force_residual < 0.02 * W
+    assert plan.torque_residual < 0.02 * W * 0.064
+    assert plan.hold_time == 1.0 and plan.com_drift < 1e-3
+    assert plan.friction_margin >= 0
+    # The fingers carry the weight: the vertical components of their forces sum to mg.
+    assert total[2] == pytest.approx(0.0, abs=0.02 * W)
+
+
+def test_default_plan_thumb_carries_the_largest_force_and_forces_are_minimal(default_plan):
+    """As on the paper's Table 2, the thumb balancing two fingers pushes hardest; each normal
+    force is at least what a rigid object would need at those contacts, and at most 3 times it
+    (the closing stops at the first increment that holds)."""
+    plan = default_plan
+    norms = [f.force_norm for f in plan.fingers]
+    assert norms[0] == max(norms)
+    normal = np.array([f.normal_force for f in plan.fingers])
+    rigid_total = plan.rigid_normal_forces.sum()
+    assert np.isfinite(plan.rigid_normal_forces).all()
+    assert normal.sum() >= rigid_total * (1 - 1e-9)
+    assert (normal <= 3.0 * plan.rigid_normal_forces).all(), (normal, plan.rigid_normal_forces)
+    assert (normal >= plan.rigid_normal_forces).all(), (normal, plan.rigid_normal_forces)
+    # Stopped at the first increment the grasp test passed or the one after (a hold check failed).
+    first_ok = int(np.flatnonzero(plan.feasible)[0]) + 1
+    assert plan.increments >= first_ok
+    assert not plan.feasible[: first_ok - 1].any()
+
+
+def test_default_plan_history_is_monotone_and_penetration_from_first_contact(default_plan):
+    plan = default_plan
+    assert plan.travel == pytest.approx(0.0005 * np.arange(1, plan.increments + 1))
+    assert (np.diff(plan.force_norm, axis=0) > 0).all()  # squeezing harder each increment
+    assert (plan.penetration >= 0).all()
+    pen = plan.travel[-1] - plan.first_contact_travel
+    assert [f.penetration for f in plan.fingers] == pytest.approx(pen)
+
+
+@pytest.mark.slow
+def test_quasistatic_and_dynamic_closing_agree(sphere_body, default_plan):
+    """The paper's explicit Runge-Kutta through each increment (fingers at 50 mm/s) and the
+    quasi-static Newton solve give each finger's final force within 10 %."""
+    dyn = plan_grasp(sphere_body, PlanConfig(solver="dynamic"))
+    assert dyn.increments == default_plan.increments
+    for a, b in zip(dyn.fingers, default_plan.fingers, strict=True):
+        assert a.force_norm == pytest.approx(b.force_norm, rel=0.10)
+
+
+# --------------------------------------------------------------------------- implicit holding
+
+
+def test_implicit_euler_free_fall_matches_the_closed_form():
+    """Backward Euler under constant gravity: v_n = v0 + n g dt exactly and
+    x_n = x0 + n dt v0 + g dt^2 n (n + 1) / 2 (a rigid translation: no internal force)."""
+    body = build_body(box(0.02, 2), preset("foam"), mass=0.01)
+    scene = Scene(body, ())
+    v0 = np.array([0.1, 0.0, 0.5])
+    state = scene.initial_state()
+    state = state.replace(v=np.tile(v0, (body.n_nodes, 1)))
+    dt, n = 0.01, 20
+    end = simulate_implicit(scene, state, n * dt, dt)
+    g = body.gravity
+    assert end.t == pytest.approx(n * dt)
+    assert end.v == pytest.approx(np.tile(v0 + n * dt * g, (body.n_nodes, 1)), abs=1e-9)
+    shift = n * dt * v0 + g * dt**2 * n * (n + 1) / 2
+    assert end.x - np.asarray(body.mesh.points) == pytest.approx(np.tile(shift, (body.n_nodes, 1)), abs=1e-9)
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def test_plan_cli_with_a_config_file_writes_everything(tmp_path):
+    """``softgrasp plan --config``: the TOML keys are used, and plan.json (schema softgrasp.plan/1),
+    history.csv and the three figures are written."""
+    cfg = tmp_path / "plan.toml"
+    cfg.write_text('mu = 0.8\nhold_time = 0.2\nstep = 0.0005\nsolver = "quasistatic"\n')
+    out = tmp_path / "out"
+    assert main(["plan", "--config", str(cfg), "--out", str(out)]) == 0
+    doc = json.loads((out / "plan.json").read_text())
+    assert doc["schema"] == "softgrasp.plan/1"
+    assert doc["object"]["name"] == "sphere" and doc["object"]["mass_kg"] == pytest.approx(0.05)
+    assert set(doc["object"]["material"]) >= {"E_Pa", "nu"}
+    assert doc["parameters"]["hold_time_s"] == 0.2 and doc["parameters"]["contact"]["mu"] == 0.8
+    assert [f["name"] for f in doc["fingers"]] == ["thumb", "first", "middle"]
+    for f in doc["fingers"]:
+        assert f["force_norm_N"] == pytest.approx(np.linalg.norm(f["force_N"]))
+        assert len(f["initial_contact_m"]) == 3 and len(f["final_position_m"]) == 3
+    assert set(doc["equilibrium"]) >= {
+        "satisfied",
+        "force_residual_N",
+        "torque_residual_Nm",
+        "friction_margin",
+    }
+    assert doc["equilibrium"]["satisfied"] is True
+    assert doc["hold"]["duration_s"] == 0.2
+    rows = list(csv.DictReader((out / "history.csv").open()))
+    assert len(rows) == 3 * doc["increments"]
+    assert [r["finger"] for r in rows[:3]] == ["thumb", "first", "middle"]
+    for name in ("forces.png", "force_penetration.png", "grasp.png"):
+        assert (out / name).stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        ("mu = 0.8\nsqueeze = 2\n", "unknown key(s) squeeze"),
+        ("mu = 'high'\n", "option mu must be a float"),
+        ("mu = [\n", "is not valid TOML"),
+    ],
+)
+def test_plan_cli_bad_config_is_one_clear_line(tmp_path, capsys, content, needle):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(content)
+    out = tmp_path / "out"
+    assert main(["plan", "--config", str(cfg), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("softgrasp: error:") and needle in err[0]
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_default_plan_job_runs(tmp_path, capsys):
+    """The README's main job, ``softgrasp plan`` with every default, prints the Table 2 layout."""
+    out = tmp_path / "default"
+    assert main(["plan", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "thumb" in printed and "penetration mm" in printed
+    assert json.loads((out / "plan.json").read_text())["equilibrium"]["satisfied"] is True
