@@ -26,6 +26,7 @@ test: install-test
 bench: install
 	$(BIN)/python benchmarks/bench_body.py
 	$(BIN)/python benchmarks/bench_contact.py
+	$(BIN)/python benchmarks/bench_plan.py
 
 clean:
 	rm -rf $(VENV) softgrasp-out .pytest_cache

@@ -94,15 +94,19 @@ class ContactParams:
     gamma: gamma of C = 4 pi R gamma (Eq. 13) [N s/m^2].
     damping: ``"linear"`` (paper: K delta^n + C delta_dot) or ``"hunt-crossley"``
         (K delta^n + C delta^n delta_dot, with C then read as lambda).
-    rule: ``"patch"`` (default): the facet forces of one fingertip are weighted by
-        w_j = A_j delta_j / sum_k A_k delta_k, so its total normal force is K <delta^n> — exactly
-        K delta^n on a flat surface for any mesh, whatever the number of facets sharing the
-        contact point, and continuous as facets enter or leave: a facet whose projection point lies
-        just outside it (barycentric coordinates down to ``-edge_fade``) still counts, its weight
-        fading linearly to zero there, so a facet no longer drops out at finite depth when the
-        projection crosses its edge (Sec. 3.1's test), and overlaps of slightly convex edges and
-        vertices (a meshed sphere's) are found. ``"facet"``: the paper's literal rule, every
-        touched facet gets the full K delta_j^n (the total grows with the number of facets touched).
+    rule: ``"patch"`` (default): a fingertip's elastic normal force is K delta_max^n, with
+        delta_max = R - dist(centre, surface) its overlap with the surface, shared among the
+        facets it touches by w_j = A_j delta_j / sum_k A_k delta_k (delta_j the overlap with
+        facet j), each part along its facet's normal at the centre's projection (so it passes
+        through the centre). Exactly K delta^n on a flat surface for any mesh, whatever the number
+        of facets sharing the contact point, and continuous as facets enter or leave: a facet
+        whose projection point lies just outside it (barycentric coordinates down to
+        ``-edge_fade``) still counts, its weight fading linearly to zero there, so no facet drops
+        out at finite weight when the projection crosses its edge (Sec. 3.1's test), and overlaps
+        just beyond convex edges are found, measured to the facet's closest point (no phantom
+        contact with a facet's plane extended past a convex edge). ``"facet"``: the paper's literal
+        rule, every touched facet gets the full K delta_j^n (the total grows with the number of
+        facets touched).
     tangential_ratio: k_t / k_n; ``None`` for Mindlin's 2(1 - nu)/(2 - nu) of the object.
     min_depth_ratio: k_t is evaluated at a penetration of at least this fraction of R.
     edge_fade: width of the patch rule's fade-out outside a facet, in barycentric units (0: the

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.geometry import ContactPairs, barycentric, detect, relative_velocity
+from softgrasp.contact.geometry import ContactPairs, FacetIndex, barycentric, detect, relative_velocity
 from softgrasp.contact.laws import (
     contact_damping,
     contact_stiffness,
@@ -113,7 +113,7 @@ def _pair_normal_forces(
     d = np.einsum("ij,ij->i", centre - a, n)
     P = centre - d[:, None] * n
     bary = barycentric(P, a, b, c)
-    mag = coef * np.maximum(radius - d, 0.0) ** n_exp
+    mag = coef * np.where(radius > d, np.abs(radius - d) ** n_exp, 0.0)
     return -(mag[:, None, None] * bary[:, :, None]) * n[:, None, :]
 
 
@@ -190,15 +190,33 @@ class FingertipContact:
     def pairs(self, body: Body, x: NDArray[np.float64], t: float) -> ContactPairs:
         """Touching pairs at positions x and time t."""
         fade = self.params.edge_fade if self.params.rule == "patch" else 0.0
-        return detect(x, body.mesh.facets, self.centres(t), self._radii(), fade=fade)
+        index = FacetIndex.of(body.mesh)
+        return detect(x, body.mesh.facets, self.centres(t), self._radii(), fade=fade, index=index)
 
     # ------------------------------------------------------------------ core evaluation
     def _patch_weights(self, pairs: ContactPairs) -> NDArray[np.float64]:
         if self.params.rule == "facet" or len(pairs) == 0:
             return np.ones(len(pairs))
-        a = pairs.area * pairs.depth * pairs.reach
+        a = pairs.area * pairs.overlap * pairs.reach
         tot = np.bincount(pairs.finger, weights=a, minlength=len(self.fingertips))
         return a / tot[pairs.finger]
+
+    def _deepest(self, pairs: ContactPairs) -> NDArray[np.int64]:
+        """Index of each pair's finger's deepest pair (largest overlap), (k,)."""
+        deep = np.zeros(len(pairs), np.int64)
+        for i in np.unique(pairs.finger):
+            idx = np.flatnonzero(pairs.finger == i)
+            deep[idx] = idx[np.argmax(pairs.overlap[idx])]
+        return deep
+
+    def _depths(self, pairs: ContactPairs) -> NDArray[np.float64]:
+        """Penetration at which each pair's normal law is evaluated [m], (k,): the pair's own
+        delta_j (literal rule), or its fingertip's overlap with the surface, max_j (R - |c - Q_j|)
+        = R - dist(c, surface) (patch rule: the fingertip's elastic normal force is
+        K delta_max^n, shared among its facets by the weights w_j)."""
+        if self.params.rule == "facet" or len(pairs) == 0:
+            return pairs.depth
+        return pairs.overlap[self._deepest(pairs)]
 
     def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState):
         """Stick anchors in space: kept for continuing pairs; for new pairs the contact point minus
@@ -221,7 +239,7 @@ class FingertipContact:
         """k_t of each pair [N/m]: Mindlin's ratio times dF_n/d delta at the pair's penetration
         (not below ``min_depth_ratio`` R)."""
         p = self.params
-        depth = np.maximum(pairs.depth, p.min_depth_ratio * self._radii()[pairs.finger])
+        depth = np.maximum(self._depths(pairs), p.min_depth_ratio * self._radii()[pairs.finger])
         return self._ratio(body) * normal_force_derivative(depth, K, p.exponent)
 
     def _evaluate(self, body: Body, x, v, t: float, state: FingerState, static: bool) -> _Eval:
@@ -243,7 +261,7 @@ class FingertipContact:
                 np.array([f.omega for f in self.fingertips]),
             )
             rate = -np.einsum("ij,ij->i", vr, pairs.normal)  # d delta / dt
-        raw = normal_force(pairs.depth, rate, K, C, n_exp, damping=p.damping)
+        raw = normal_force(self._depths(pairs), rate, K, C, n_exp, damping=p.damping)
         w = self._patch_weights(pairs)
         fn = w * raw
         ft = np.zeros((len(pairs), 3))
@@ -322,7 +340,7 @@ class FingertipContact:
             return 0.0
         K = self.stiffness(body)[pr.finger]
         n = self.params.exponent
-        return float(np.sum(self._patch_weights(pr) * K * pr.depth ** (n + 1) / (n + 1)))
+        return float(np.sum(self._patch_weights(pr) * K * self._depths(pr) ** (n + 1) / (n + 1)))
 
     def jacobian(self, body: Body, x, t: float, state: FingerState) -> sp.csr_matrix:
         """``d f / d x`` at rest, symmetrised: the normal forces' exact per-pair derivative
@@ -336,10 +354,22 @@ class FingertipContact:
         pr = ev.pairs
         K = self.stiffness(body)[pr.finger]
         fac = body.mesh.facets[pr.facet]
-        # Normal part: exact per-pair blocks (facet rotation and the moving contact point included).
-        Jn = _normal_jacobian_blocks(
-            x[fac], self.centres(t)[pr.finger], self._radii()[pr.finger], ev.w * K, self.params.exponent
-        )
+        centres = self.centres(t)[pr.finger]
+        radii = self._radii()[pr.finger]
+        n_exp = self.params.exponent
+        patch = self.params.rule == "patch"
+        if patch:
+            # Pair force w_j K delta_max^n along the facet normal at the centre's projection: the
+            # facet's rotation and the moving projection at fixed magnitude (central differences,
+            # exponent 0), plus the magnitude's dependence on the finger's deepest facet,
+            # d delta_max / d x_l = b_l (c - Q) / |c - Q| with Q its closest point (the closest
+            # point slides on the surface at no first-order cost); the weights are lagged.
+            deep = self._deepest(pr)
+            dmax = pr.overlap[deep]
+            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K * dmax**n_exp, 0.0)
+        else:
+            # Exact per-pair blocks (facet rotation and the moving contact point included).
+            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K, n_exp)
         blk_t = np.zeros((len(pr), 3, 3))
         if self.params.mu > 0:
             nn = pr.normal[:, :, None] * pr.normal[:, None, :]
@@ -352,6 +382,23 @@ class FingertipContact:
         rows = np.repeat(fac, 3, axis=1).ravel()
         cols = np.tile(fac, (1, 3)).ravel()
         blocks = blocks.reshape(-1, 3, 3)
+        if patch:
+            tri_d = x[fac[deep]]
+            q = np.einsum("ki,kij->kj", pr.near[deep], tri_d)
+            gap = centres - q
+            gdir = gap / np.maximum(np.linalg.norm(gap, axis=1), 1e-300)[:, None]
+            g = ev.w * K * n_exp * dmax ** (n_exp - 1.0)
+            bd = pr.near[deep]
+            cpl = (
+                -(g[:, None, None] * pr.bary[:, :, None] * bd[:, None, :])[:, :, :, None, None]
+                * (pr.normal[:, :, None] * gdir[:, None, :])[:, None, None, :, :]
+            )  # (k, own node, deep node, 3, 3)
+            r1 = np.repeat(fac, 3, axis=1).ravel()
+            c1 = np.tile(fac[deep], (1, 3)).ravel()
+            half = 0.5 * cpl.reshape(-1, 3, 3)
+            rows = np.concatenate([rows, r1, c1])
+            cols = np.concatenate([cols, c1, r1])
+            blocks = np.concatenate([blocks, half, half.transpose(0, 2, 1)])
         return assemble_blocks(N, rows, cols, blocks)
 
     def update(self, body: Body, x, v, t: float, state: FingerState) -> FingerState:
@@ -373,7 +420,7 @@ class FingertipContact:
             i, j = pairs.finger, pairs.facet
             K = self.stiffness(body)[i]
             w = self._patch_weights(pairs)
-            elastic = normal_force(pairs.depth, np.zeros(len(pairs)), K, 0.0, p.exponent)
+            elastic = normal_force(self._depths(pairs), np.zeros(len(pairs)), K, 0.0, p.exponent)
             kt = self._tangential_stiffness(body, pairs, K)
             s, cont = self._stick(body, x, pairs, state)
             u = np.where(cont[:, None], state.slip[i, j], 0.0)
@@ -472,7 +519,7 @@ class FingertipContact:
             moment[:, k] = np.bincount(pr.finger, weights=M[:, k], minlength=nf)
         depth = np.zeros(nf)
         if len(pr):
-            np.maximum.at(depth, pr.finger, pr.depth)
+            np.maximum.at(depth, pr.finger, self._depths(pr))
         return FingerReport(
             force=force,
             moment=moment,

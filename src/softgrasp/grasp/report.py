@@ -14,6 +14,8 @@ from softgrasp.grasp.planner import GraspPlan
 __all__ = ["SCHEMA", "plan_document", "history_rows", "HISTORY_HEADER", "plan_table"]
 
 SCHEMA = "softgrasp.plan/1"
+#: Equilibrium is "satisfied" when the held state's residuals are below this fraction of the weight.
+EQUILIBRIUM_TOL = 0.02
 HISTORY_HEADER = (
     "increment",
     "finger",
@@ -32,6 +34,13 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
     """The ``plan.json`` document (keys carry their units)."""
     m = body.material
     ig = plan.initial
+    weight = float(body.total_mass * np.linalg.norm(body.gravity))
+    arm = float(np.linalg.norm(plan.contact_points - plan.com, axis=1).max())
+    satisfied = (
+        plan.friction_margin >= 0.0
+        and plan.force_residual <= EQUILIBRIUM_TOL * weight
+        and plan.torque_residual <= EQUILIBRIUM_TOL * weight * arm
+    )
     return {
         "schema": SCHEMA,
         "object": {
@@ -66,11 +75,12 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             for j, f in enumerate(plan.fingers)
         ],
         "equilibrium": {
-            "satisfied": bool(plan.friction_margin >= 0.0),
+            "satisfied": bool(satisfied),
             "force_residual_N": plan.force_residual,
             "torque_residual_Nm": plan.torque_residual,
             "friction_margin": plan.friction_margin,
-            "weight_N": float(body.total_mass * np.linalg.norm(body.gravity)),
+            "weight_N": weight,
+            "tolerance": f"residuals <= {EQUILIBRIUM_TOL:.0%} of the weight (torque: x largest lever arm)",
         },
         "hold": {"com_drift_m": plan.com_drift, "duration_s": plan.hold_time},
         "increments": plan.increments,

@@ -169,6 +169,22 @@ class TetMesh:
         return _frozen(np.flatnonzero(counts[inv] == 1) // 4)
 
     @cached_property
+    def node_facets(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Boundary facets around each node, CSR ``(indptr (N+1,), indices)``: the facets of node
+        i are ``indices[indptr[i]:indptr[i + 1]]``."""
+        flat = self.facets.ravel()
+        order = np.argsort(flat, kind="stable")
+        counts = np.bincount(flat, minlength=self.n_nodes)
+        indptr = np.concatenate([[0], np.cumsum(counts)])
+        return _frozen(indptr.astype(np.int64)), _frozen((order // 3).astype(np.int64))
+
+    @cached_property
+    def max_facet_edge(self) -> float:
+        """Longest edge of a boundary facet at rest [m]."""
+        tri = self.points[self.facets]
+        return float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max())
+
+    @cached_property
     def boundary_nodes(self) -> NDArray[np.int64]:
         """Sorted indices of the nodes on the boundary surface, shape ``(B,)``."""
         return _frozen(np.unique(self.facets))
