@@ -257,7 +257,12 @@ def plan_grasp(
     *,
     progress: Callable[[float], None] | None = None,
 ) -> GraspPlan:
-    """Plan a three-finger grasp of ``body`` (paper steps 1-2).
+    """Plan a three-finger grasp of ``body`` resting on a table (paper steps 1-2).
+
+    Parameters
+    ----------
+    body: the object.  config: everything else (:class:`PlanConfig`).
+    progress: called with the fraction of the largest allowed travel reached after each increment.
 
     Raises
     ------
