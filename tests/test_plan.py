@@ -229,3 +229,23 @@ def test_default_plan_job_runs(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "thumb" in printed and "penetration mm" in printed
     assert json.loads((out / "plan.json").read_text())["equilibrium"]["satisfied"] is True
+
+
+def test_plan_cli_zero_values_are_used_not_replaced_by_defaults(tmp_path, capsys):
+    """``--mu 0`` means frictionless fingertips (no force closure: one clear error line), not the
+    default 0.8."""
+    out = tmp_path / "out"
+    assert main(["plan", "--mu", "0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mu = 0" in err[0] and "force closure" in err[0]
+    assert not out.exists()
+
+
+def test_implicit_integration_checks_its_step_and_accepts_an_empty_span():
+    body = build_body(box(0.02, 1), preset("foam"), mass=0.01)
+    scene = Scene(body, ())
+    state = scene.initial_state()
+    assert simulate_implicit(scene, state, state.t, 0.01) is state
+    for dt in (0.0, -0.05, float("nan")):
+        with pytest.raises(ConfigError, match="implicit time step"):
+            simulate_implicit(scene, state, 0.1, dt)

@@ -287,7 +287,8 @@ def _plan_options(args: argparse.Namespace) -> argparse.Namespace:
     merged = {}
     for key, default in PLAN_DEFAULTS.items():
         cli = getattr(args, key, None)
-        value = cli if cli not in (None, False) else conf.get(key, default)
+        given = cli is not None and cli is not False  # (0.0 == False: test identity, not equality)
+        value = cli if given else conf.get(key, default)
         if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if default is not None and not isinstance(value, type(default)):

@@ -343,10 +343,11 @@ class FingertipContact:
         return float(np.sum(self._patch_weights(pr) * K * self._depths(pr) ** (n + 1) / (n + 1)))
 
     def jacobian(self, body: Body, x, t: float, state: FingerState) -> sp.csr_matrix:
-        """``d f / d x`` at rest, symmetrised: the normal forces' exact per-pair derivative
-        (central differences of the 9 facet coordinates, so the facet's rotation and the moving
-        contact point are included) and the friction springs' ``w k_t H^T P_t H`` (or the slip
-        tangent)."""
+        """``d f / d x`` at rest, symmetrised: the normal forces' per-pair derivative (central
+        differences of the 9 facet coordinates, so the facet's rotation and the moving contact
+        point are included; exact for the literal rule; for the patch rule with the weights w_j
+        held fixed, plus the magnitude's dependence on the deepest facet) and the friction
+        springs' ``w k_t H^T P_t H`` (or the slip tangent)."""
         ev = self._evaluate(body, x, None, t, state, static=True)
         N = body.n_nodes
         if not len(ev.pairs):
@@ -500,6 +501,18 @@ class FingertipContact:
         point[has] /= total[has, None]
         push[has] /= mag[has, None]
         return point, push, np.where(has, mag, 0.0)
+
+    def friction_usage(self, body: Body, x, t: float, state: FingerState) -> NDArray[np.float64]:
+        """Largest |f_t| / (mu f_n) among each fingertip's contact pairs at rest, (n_f,): 1 when a
+        pair slips (Algorithm 1 caps it at the Coulomb limit), < 1 when all stick; 0 without
+        contact or friction."""
+        ev = self._evaluate(body, x, None, t, state, static=True)
+        use = np.zeros(len(self.fingertips))
+        if len(ev.pairs) and self.params.mu > 0:
+            ratio = np.linalg.norm(ev.ft, axis=1) / np.maximum(ev.cap, 1e-300)
+            ratio = np.where(ev.slipping, 1.0, np.minimum(ratio, 1.0))
+            np.maximum.at(use, ev.pairs.finger, ratio)
+        return use
 
     def report(self, body: Body, x, v, t: float, state: FingerState, *, static: bool = False) -> FingerReport:
         """Per-fingertip totals: force and moment on the object, normal and friction parts."""

@@ -21,12 +21,14 @@ penetration
     the sum of the contact-law depth (max delta_j of Eq. 14, reported separately) and the object's
     own deformation under the finger.
 
-The detection of Sec. 3.1 needs the projection of the fingertip centre on a facet to fall inside
-the facet. Above a mesh vertex or an edge where the surface is (even minutely) convex, every
-projection falls just outside its facet and the fingertip is never detected. The press point is
-therefore checked before loading: if the fingertip touching the surface under it is not detected,
-it is moved towards the centroid of the facet under it (first by 1e-4 of the way, then further)
-until it is. The point used and the shift are reported.
+First contact is found with the contact model's own detection (its rule and edge fade). The
+paper's detection (Sec. 3.1, ``rule="facet"``) needs the projection of the fingertip centre on a
+facet to fall inside the facet: above a mesh vertex or an edge where the surface is (even
+minutely) convex, every projection falls just outside its facet and the fingertip is never
+detected (the patch rule's edge fade removes most such blind spots). The press point is therefore
+checked before loading: if the fingertip touching the surface under it is not detected, it is moved
+towards the centroid of the facet under it (first by 1e-4 of the way, then further) until it is.
+The point used and the shift are reported.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import csv
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +45,6 @@ from numpy.typing import NDArray
 
 from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.geometry import detect
 from softgrasp.contact.model import FingerReport, FingertipContact
 from softgrasp.errors import ConfigError, ContactError, NotConverged
 from softgrasp.planes import Plane, PlaneContact
@@ -186,19 +187,22 @@ def surface_height(
     return float(z[k]), int(idx[k])
 
 
-def _contact_at(x, facets, xy, ztop: float, radius: float, travel: float) -> bool:
-    """Whether the fingertip above ``xy`` (centre at ztop, moving down) is detected at ``travel``."""
-    c = np.array([[xy[0], xy[1], ztop - travel]])
-    return len(detect(x, facets, c, np.array([radius]))) > 0
+def _contact_at(probe: FingertipContact, body: Body, x, xy, ztop: float, travel: float) -> bool:
+    """Whether the fingertip above ``xy`` (centre at ztop, moving down) is detected at ``travel``
+    by the contact model's own detection rule (``probe``: its parameters, one fingertip)."""
+    tip = replace(probe.fingertips[0], centre=np.array([xy[0], xy[1], ztop - travel]))
+    return len(replace(probe, fingertips=(tip,)).pairs(body, x, 0.0)) > 0
 
 
-def _first_contact(x, facets, xy, zc: float, radius: float, t_geo: float) -> float | None:
+def _first_contact(
+    probe: FingertipContact, body: Body, x, xy, zc: float, radius: float, t_geo: float
+) -> float | None:
     """Travel of first detected contact of a fingertip starting with its centre at height ``zc``
     above ``xy`` on the fixed positions ``x``; None if it is not detected by ``t_geo`` plus a small
     tolerance (the travel at which it reaches the surface under ``xy``)."""
     t_end = t_geo + 1e-3 * radius
     grid = np.linspace(0.0, t_end, 65)
-    hit = next((k for k, t in enumerate(grid) if _contact_at(x, facets, xy, zc, radius, t)), None)
+    hit = next((k for k, t in enumerate(grid) if _contact_at(probe, body, x, xy, zc, t)), None)
     if hit is None:
         return None
     if hit == 0:
@@ -206,7 +210,7 @@ def _first_contact(x, facets, xy, zc: float, radius: float, t_geo: float) -> flo
     lo, hi = float(grid[hit - 1]), float(grid[hit])
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        if _contact_at(x, facets, xy, zc, radius, mid):
+        if _contact_at(probe, body, x, xy, zc, mid):
             hi = mid
         else:
             lo = mid
@@ -215,17 +219,18 @@ def _first_contact(x, facets, xy, zc: float, radius: float, t_geo: float) -> flo
     return hi
 
 
-def _place_fingertip(x, facets, xy0, radius: float, gap: float):
+def _place_fingertip(probe: FingertipContact, body: Body, x, xy0, radius: float, gap: float):
     """Press point out of detection blind spots, surface height, start height and first contact.
 
     Returns (xy, shift, surface_z, start centre height, first-contact travel)."""
+    facets = body.mesh.facets
     _, f0 = surface_height(x, facets, xy0)
     target = x[facets[f0]].mean(axis=0)[:2]
     for frac in _NUDGES:
         xy = xy0 + frac * (target - xy0)
         zs, _ = surface_height(x, facets, xy)
         zc = zs + radius + gap
-        t0 = _first_contact(x, facets, xy, zc, radius, gap)
+        t0 = _first_contact(probe, body, x, xy, zc, radius, gap)
         if t0 is not None:
             return xy, float(np.linalg.norm(xy - xy0)), zs, zc, t0
     raise ContactError(
@@ -314,7 +319,6 @@ def indentation_test(
     """
     t_start = time.perf_counter()
     x_mesh = np.asarray(body.mesh.points)
-    facets = body.mesh.facets
     zmin = float(x_mesh[:, 2].min())
     height = float(x_mesh[:, 2].max()) - zmin
     steps = _check(depth, radius, speed, steps, table_mu, fingertip_E, fingertip_nu, height)
@@ -334,7 +338,8 @@ def indentation_test(
     sag = float(x_mesh[:, 2].max() - top)
 
     # The fingertip starts one increment above the surface under the press point.
-    xy, shift, zs, zc, t0 = _place_fingertip(xs, facets, xy0, radius, inc)
+    probe = FingertipContact((Fingertip(radius, E=fingertip_E, nu=fingertip_nu),), params)
+    xy, shift, zs, zc, t0 = _place_fingertip(probe, body, xs, xy0, radius, inc)
     centre = np.array([xy[0], xy[1], zc])
     moving = Fingertip(
         radius, centre=centre, velocity=np.array([0.0, 0.0, -1.0]), E=fingertip_E, nu=fingertip_nu

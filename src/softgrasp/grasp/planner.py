@@ -1,19 +1,22 @@
 """The closing simulation (paper step 2, Sec. 2 and 4.3.2): from the initial grasp, the three
 fingertips advance together in small increments along straight lines towards the centroid of the
 contact triangle; after each increment the object comes to rest; the first increment at which the
-fingers can hold the object against gravity stops the closing, and the forces of the *held* state
+fingers hold the object against gravity stops the closing, and the forces of the *held* state
 (table removed) become the force set-points.
 
 Per increment: the object, standing on the table, is brought to static equilibrium with its
-fingertip contacts (quasi-static, Newton; :func:`softgrasp.sim.static.solve_increment`). Then the
-grasp test of Sec. 3.5 (Eq. 21-22): with each finger's contact point, normal direction and normal
-force, is there a set of friction forces inside the cones |f_t| <= mu f_n that holds
-``safety_factor`` times the weight in force and torque (:func:`friction_feasibility`)? When there
-is, the hold is verified: the table is removed and the object is solved to equilibrium in the
-fingers alone; then ``hold_time`` seconds of dynamics (RK4) from that state must move its centre of
-mass less than ``max_drift``. A failed verification continues the closing. Beyond
-``max_squeeze`` (a fraction of each finger's distance to the triangle's centroid) the object would
-be crushed: :class:`InfeasibleGrasp`.
+fingertip contacts (quasi-static: :func:`softgrasp.sim.static.solve_increment`; dynamic: explicit
+RK4 through the increment at the closing speed, then that static solve). Then the grasp test of
+Sec. 3.5 (Eq. 21-22 with friction cones, :func:`squeeze_utilisation`): can normal forces no larger
+than each finger's current one, with friction inside the cones |f_t| <= mu f_n, hold
+``safety_factor`` times the weight in force and torque? (On the table the fingers' normal forces
+need not balance among themselves; lifted, the object shifts until they do.) When it can, the hold
+is verified: the table is removed, ``hold_time`` seconds of implicit (backward Euler) dynamics with
+the fingertips fixed must move the centre of mass less than ``max_drift``, and a static solve in
+the fingers alone must find the held state within ``max_drift`` of the start, every contact
+pair sticking. A failed verification continues the closing. Past ``max_squeeze`` (a fraction of
+the shortest finger-to-centroid distance, travelled beyond the last finger's first contact) the
+object would be crushed: :class:`InfeasibleGrasp`.
 """
 
 from __future__ import annotations
@@ -61,8 +64,8 @@ class PlanConfig:
     safety_factor: the grasp test must hold this multiple of the weight (>= 1).
     hold_time: simulated holding time of the verification [s].
     max_drift: largest centre-of-mass motion over ``hold_time`` for a hold [m].
-    max_squeeze: largest travel of a finger past first contact, as a fraction of its distance to
-        the triangle's centroid (beyond it the object is crushed).
+    max_squeeze: largest travel past the last finger's first contact, as a fraction of the
+        shortest finger-to-centroid distance (beyond it the object is crushed).
     table_mu: friction between object and table.
     layout: the hand's reach (:class:`HandLayout`).
     """
@@ -145,9 +148,10 @@ class GraspPlan:
     fingers: set-points of thumb, first and middle fingers in the held state.
     force_residual, torque_residual: |Eq. 21| [N] and |Eq. 22| about the centre of mass [N m] of
         the held state (finger forces and weight).
-    friction_margin: 1 - the largest ratio |f_t| / (mu f_n) among the fingers in the held state
-        (the share of the Coulomb cone left; >= 0 when the fingers stick).
-    com_drift: centre-of-mass motion over the holding time [m]; hold_time: that time [s].
+    friction_margin: 1 - the largest ratio |f_t| / (mu f_n) among the contact pairs in the held
+        state: the share of the Coulomb cone left (> 0: every pair sticks; 0: one slips).
+    com_drift: centre-of-mass motion from the release over the holding time, or to the held
+        state if that is farther [m]; hold_time: that time [s].
     increments: closing increments simulated.
     travel: fingertip travel at each increment [m], (K,).
     penetration, force_norm, normal_force, tangential_force: per increment and finger, (K, 3).
@@ -240,14 +244,19 @@ def _check_hold(
             if cfg.hold_time > 0
             else start
         )
-        drift = float(np.linalg.norm(_com(body, end.x) - c0))
-        if drift >= cfg.max_drift:
+        moved = float(np.linalg.norm(_com(body, end.x) - c0))
+        if moved >= cfg.max_drift:
             return None
         held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache)
     except (NotConverged, SimulationUnstable):
         return None
+    drift = max(moved, float(np.linalg.norm(_com(body, held.x) - c0)))
+    if drift >= cfg.max_drift:
+        return None
     if fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True).contacts.min() == 0:
         return None
+    if fixed.friction_usage(body, held.x, 0.0, held.contacts[0]).max() >= 1.0:
+        return None  # a pair slips: not held
     return held, fixed, drift
 
 
@@ -342,9 +351,8 @@ def plan_grasp(
     fres = np.linalg.norm(hrep.force.sum(axis=0) + body.total_mass * body.gravity)
     centres = fixed.centres(0.0)
     tres = np.linalg.norm(_torque_residual(hrep, centres, com))
-    # The held state's own friction forces against the (circular) Coulomb cones.
-    use = hrep.tangential / np.maximum(mu * hrep.normal, 1e-300)
-    margin = float(1.0 - use.max())
+    # The held state's friction forces against the (circular) Coulomb cones, pair by pair.
+    margin = float(1.0 - fixed.friction_usage(body, held_state.x, 0.0, held_state.contacts[0]).max())
     try:
         rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity)
     except InfeasibleGrasp:
@@ -401,5 +409,6 @@ def _advance(scene: Scene, state: State, t: float, cfg: PlanConfig, cache: Solve
             state = State(state.x, np.zeros_like(state.v), state.t, state.contacts)
         state, _, _ = solve_increment(scene, state, t, cache=cache)
     except NotConverged as exc:
-        raise NotConverged(f"closing increment to {t * 1e3:.3g} mm of travel failed: {exc}") from exc
+        what = f"{t * 1e3:.3g} mm of travel" if cfg.solver == "quasistatic" else f"t = {t:.4g} s"
+        raise NotConverged(f"closing increment to {what} failed: {exc}") from exc
     return state

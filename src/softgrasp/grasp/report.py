@@ -37,7 +37,7 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
     weight = float(body.total_mass * np.linalg.norm(body.gravity))
     arm = float(np.linalg.norm(plan.contact_points - plan.com, axis=1).max())
     satisfied = (
-        plan.friction_margin >= 0.0
+        plan.friction_margin > 0.0
         and plan.force_residual <= EQUILIBRIUM_TOL * weight
         and plan.torque_residual <= EQUILIBRIUM_TOL * weight * arm
     )

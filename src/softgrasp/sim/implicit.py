@@ -92,14 +92,18 @@ def simulate_implicit(
     cache: SolverCache | None = None,
 ) -> State:
     """Backward Euler from ``state.t`` to ``t_end`` in equal steps of at most ``dt``."""
+    if not (np.isfinite(dt) and dt > 0):
+        raise ConfigError(f"implicit time step dt = {dt} s must be a finite number > 0")
     span = t_end - state.t
     if not span >= 0:
         raise ConfigError(f"t_end = {t_end} s lies before the start time {state.t} s")
+    if callback is not None:
+        callback(state)
+    if span == 0:
+        return state
     n = max(1, int(np.ceil(span / dt - 1e-9)))
     h = span / n
     cache = cache if cache is not None else SolverCache()
-    if callback is not None:
-        callback(state)
     for _ in range(n):
         state = implicit_euler_step(scene, state, h, cache=cache)
         if callback is not None:

@@ -1,0 +1,425 @@
+"""Shadow-like hand kinematics: URDF reading, forward kinematics, Jacobian, WDLS and IK."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.hand.model import HandModel, _limited_step, follow_line, solve_ik, wdls_step
+
+MODEL = HandModel.default()
+FINGERS = ("thumb", "first", "middle")
+KNUCKLE = {"first": np.array([0.033, 0.095, 0.0]), "middle": np.array([0.011, 0.099, 0.0])}
+PROXIMAL, MIDDLE, DISTAL = 0.045, 0.025, 0.026
+FINGER_LENGTH = PROXIMAL + MIDDLE + DISTAL
+THUMB_BASE = np.array([0.034, 0.029, 0.0085])
+THUMB_LENGTH = 0.038 + 0.032 + 0.0275
+DEG = math.pi / 180.0
+
+
+def in_limits(finger: str, q: np.ndarray) -> bool:
+    lo, hi = MODEL.limits(finger)
+    return bool(np.all(q >= lo) and np.all(q <= hi))
+
+
+# ---------------------------------------------------------------------- model structure
+
+
+def test_default_model_fingers_joints_and_limits() -> None:
+    assert set(MODEL.fingers) == set(FINGERS)
+    assert MODEL.joint_names("first") == ("FFJ4", "FFJ3", "FFJ2")
+    assert MODEL.joint_names("middle") == ("MFJ4", "MFJ3", "MFJ2")
+    assert MODEL.joint_names("thumb") == ("THJ5", "THJ4", "THJ3", "THJ2", "THJ1")
+    lo, hi = MODEL.limits("first")
+    np.testing.assert_allclose(lo, np.array([-20.0, -15.0, 0.0]) * DEG, atol=1e-6)
+    np.testing.assert_allclose(hi, np.array([20.0, 90.0, 90.0]) * DEG, atol=1e-6)
+    lo, hi = MODEL.limits("thumb")
+    np.testing.assert_allclose(lo, np.array([-60.0, 0.0, -12.0, -30.0, 0.0]) * DEG, atol=1e-6)
+    np.testing.assert_allclose(hi, np.array([60.0, 70.0, 12.0, 30.0, 90.0]) * DEG, atol=1e-6)
+    for finger in FINGERS:
+        assert MODEL.fingertip_radius(finger) == 0.008
+    with pytest.raises(ConfigError, match="unknown finger 'ring'"):
+        MODEL.forward("ring", [0.0, 0.0, 0.0])
+    with pytest.raises(ConfigError, match="3 finite values"):
+        MODEL.forward("first", [0.0, 0.0])
+
+
+# ---------------------------------------------------------------------- forward kinematics
+
+
+@pytest.mark.parametrize("finger", ["first", "middle"])
+def test_fk_straight_and_flexed_finger(finger: str) -> None:
+    k = KNUCKLE[finger]
+    np.testing.assert_allclose(MODEL.forward(finger, [0, 0, 0]), k + [0, FINGER_LENGTH, 0], atol=1e-12)
+    # J3 = 90 deg: the whole straight finger points out of the palm (+z)
+    np.testing.assert_allclose(
+        MODEL.forward(finger, [0, math.pi / 2, 0]), k + [0, 0, FINGER_LENGTH], atol=1e-6
+    )
+    # J3 = J2 = 90 deg (J1 = 90 deg by the coupling): proximal +z, middle -y, distal -z
+    np.testing.assert_allclose(
+        MODEL.forward(finger, [0, math.pi / 2, math.pi / 2]), k + [0, -MIDDLE, PROXIMAL - DISTAL], atol=1e-6
+    )
+    # abduction J4 = 15 deg of the straight finger: rotation about +z
+    t = 15.0 * DEG
+    np.testing.assert_allclose(
+        MODEL.forward(finger, [t, 0, 0]),
+        k + FINGER_LENGTH * np.array([-math.sin(t), math.cos(t), 0]),
+        atol=1e-12,
+    )
+
+
+def test_fk_distal_joint_mimics_middle_joint() -> None:
+    a = 30.0 * DEG
+    tip = MODEL.forward("first", [0.0, 0.0, a])
+    # J2 = 30 deg and J1 = 30 deg: middle phalanx at 30 deg, distal phalanx at 60 deg from +y
+    expected = KNUCKLE["first"] + np.array(
+        [
+            0.0,
+            PROXIMAL + MIDDLE * math.cos(a) + DISTAL * math.cos(2 * a),
+            MIDDLE * math.sin(a) + DISTAL * math.sin(2 * a),
+        ]
+    )
+    np.testing.assert_allclose(tip, expected, atol=1e-12)
+    # not the J1 = 0 position
+    uncoupled = KNUCKLE["first"] + np.array(
+        [0.0, PROXIMAL + (MIDDLE + DISTAL) * math.cos(a), (MIDDLE + DISTAL) * math.sin(a)]
+    )
+    assert np.linalg.norm(tip - uncoupled) > 5e-3
+
+
+def test_fk_thumb_straight_and_lifted() -> None:
+    along = np.array([math.sqrt(0.5), math.sqrt(0.5), 0.0])  # 45 deg between +y and +x
+    np.testing.assert_allclose(
+        MODEL.forward("thumb", np.zeros(5)), THUMB_BASE + THUMB_LENGTH * along, atol=1e-6
+    )
+    # TH4 lifts the straight thumb off the palm towards +z
+    t = 60.0 * DEG
+    expected = THUMB_BASE + THUMB_LENGTH * (math.cos(t) * along + math.sin(t) * np.array([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(MODEL.forward("thumb", [0, t, 0, 0, 0]), expected, atol=1e-6)
+    # TH5 spins the thumb about its own axis: the straight thumb's tip does not move
+    np.testing.assert_allclose(
+        MODEL.forward("thumb", [0.7, 0, 0, 0, 0]), THUMB_BASE + THUMB_LENGTH * along, atol=1e-6
+    )
+
+
+# ---------------------------------------------------------------------- Jacobian
+
+
+@pytest.mark.parametrize("finger", FINGERS)
+def test_jacobian_matches_central_differences(finger: str) -> None:
+    rng = np.random.default_rng(11)
+    lo, hi = MODEL.limits(finger)
+    h = 1e-6
+    for _ in range(5):
+        q = rng.uniform(lo, hi)
+        J = MODEL.jacobian(finger, q)
+        assert J.shape == (3, q.size)
+        fd = np.empty_like(J)
+        for i in range(q.size):
+            e = np.zeros(q.size)
+            e[i] = h
+            fd[:, i] = (MODEL.forward(finger, q + e) - MODEL.forward(finger, q - e)) / (2 * h)
+        np.testing.assert_allclose(J, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+
+
+# ---------------------------------------------------------------------- WDLS
+
+
+def _random_problem(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(3, 5)) * 0.05, rng.normal(size=3) * 1e-3, rng.uniform(0.5, 3.0, size=5)
+
+
+def test_wdls_tends_to_weighted_pseudo_inverse() -> None:
+    J, dx, w = _random_problem(1)
+    Winv = np.diag(1.0 / w)
+    exact = Winv @ J.T @ np.linalg.solve(J @ Winv @ J.T, dx)
+    np.testing.assert_allclose(wdls_step(J, dx, w, damping=0.0), exact, rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(wdls_step(J, dx, np.diag(w), damping=1e-9), exact, rtol=1e-6)
+    np.testing.assert_allclose(J @ wdls_step(J, dx, w, damping=0.0), dx, rtol=1e-10, atol=1e-15)
+
+
+def test_wdls_solves_the_damped_weighted_least_squares_problem() -> None:
+    # minimiser of |J dq - dx|^2 + lambda^2 dq^T W dq: (J^T J + lambda^2 W) dq = J^T dx
+    J, dx, w = _random_problem(2)
+    lam = 0.02
+    expected = np.linalg.solve(J.T @ J + lam**2 * np.diag(w), J.T @ dx)
+    np.testing.assert_allclose(wdls_step(J, dx, w, damping=lam), expected, rtol=1e-9)
+
+
+def test_wdls_damping_shortens_the_step() -> None:
+    J, dx, w = _random_problem(3)
+    undamped = wdls_step(J, dx, damping=0.0)
+    for lam in (1e-3, 1e-2, 1e-1):
+        assert np.linalg.norm(wdls_step(J, dx, damping=lam)) < np.linalg.norm(undamped)
+    # with weights the W-norm shrinks
+    w_norm = lambda dq: float(np.sqrt(dq @ (w * dq)))  # noqa: E731
+    assert w_norm(wdls_step(J, dx, w, damping=0.05)) < w_norm(wdls_step(J, dx, w, damping=0.0))
+
+
+def test_wdls_rejects_bad_inputs() -> None:
+    J, dx, w = _random_problem(4)
+    with pytest.raises(ConfigError, match="diagonal"):
+        wdls_step(J, dx, np.ones((5, 5)))
+    with pytest.raises(ConfigError, match="> 0"):
+        wdls_step(J, dx, -w)
+    with pytest.raises(ConfigError, match="shape"):
+        wdls_step(J, dx, w[:3])
+    with pytest.raises(ConfigError, match="dx must be 3"):
+        wdls_step(J, dx[:2])
+    with pytest.raises(ConfigError, match="damping"):
+        wdls_step(J, dx, damping=-1.0)
+    with pytest.raises(ConfigError, match="matrix"):
+        wdls_step(dx, dx)
+
+
+# ---------------------------------------------------------------------- inverse kinematics
+
+
+@pytest.mark.parametrize("finger", FINGERS)
+def test_solve_ik_reaches_random_reachable_targets(finger: str) -> None:
+    rng = np.random.default_rng(7)
+    lo, hi = MODEL.limits(finger)
+    for _ in range(15):
+        target = MODEL.forward(finger, rng.uniform(lo, hi))
+        q = solve_ik(MODEL, finger, target, rng.uniform(lo, hi))
+        assert in_limits(finger, q)
+        assert np.linalg.norm(MODEL.forward(finger, q) - target) <= 1e-5
+
+
+def test_limited_step_freezes_joints_pushed_out_of_their_range() -> None:
+    # first finger with J3 at its upper limit (90 deg); the requested motion would need more J3,
+    # so J3 is frozen and the step is the WDLS step of the J4 and J2 columns alone
+    lo, hi = MODEL.limits("first")
+    q = np.array([0.0, hi[1], 0.3])
+    J = MODEL.jacobian("first", q)
+    dx = np.array([0.0, -2e-3, 1e-3])
+    free_step = wdls_step(J, dx, damping=1e-3)
+    assert free_step[1] > 0.0  # unconstrained, J3 would leave its range
+    dq = _limited_step(J, dx, q, lo, hi, np.ones(3), 1e-3)
+    assert dq[1] == 0.0
+    np.testing.assert_allclose(dq[[0, 2]], wdls_step(J[:, [0, 2]], dx, damping=1e-3), rtol=1e-12)
+    # a step pointing back into the range is left alone
+    np.testing.assert_allclose(_limited_step(J, -dx, q, lo, hi, np.ones(3), 1e-3), -free_step, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("finger", "q_star"),
+    [
+        ("first", [-20.0, 90.0, 30.0]),  # J4 and J3 at limits
+        ("middle", [20.0, 10.0, 90.0]),  # J4 and J2 (so also J1) at their upper limits
+        ("thumb", [30.0, 70.0, -12.0, 10.0, 0.0]),  # TH4, TH3 and TH1 at limits
+    ],
+)
+def test_solve_ik_targets_needing_joints_at_limits(finger: str, q_star: list[float]) -> None:
+    target = MODEL.forward(finger, np.array(q_star) * DEG)
+    lo, hi = MODEL.limits(finger)
+    for q0 in (np.zeros(lo.size), 0.5 * (lo + hi), hi):
+        q = solve_ik(MODEL, finger, target, q0)
+        assert in_limits(finger, q)
+        assert np.linalg.norm(MODEL.forward(finger, q) - target) <= 1e-5
+
+
+def test_solve_ik_clips_start_outside_limits_and_respects_weights() -> None:
+    target = MODEL.forward("thumb", np.array([20.0, 40.0, 5.0, 10.0, 45.0]) * DEG)
+    q = solve_ik(MODEL, "thumb", target, np.full(5, 3.0), weights=[10.0, 1.0, 1.0, 1.0, 1.0])
+    assert in_limits("thumb", q)
+    assert np.linalg.norm(MODEL.forward("thumb", q) - target) <= 1e-5
+
+
+@pytest.mark.parametrize("finger", FINGERS)
+def test_solve_ik_unreachable_target_raises(finger: str) -> None:
+    q0 = np.zeros(MODEL.fingers[finger].dof)
+    target = MODEL.forward(finger, q0) + np.array([0.0, 0.3, 0.4])  # 0.5 m away
+    with pytest.raises(InfeasibleGrasp, match=rf"the {finger} fingertip cannot reach .*closest \d+\.\d+ mm"):
+        solve_ik(MODEL, finger, target, q0)
+
+
+# ---------------------------------------------------------------------- Cartesian line following
+
+
+def _distance_to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    d = b - a
+    t = min(1.0, max(0.0, float((p - a) @ d / (d @ d))))
+    return float(np.linalg.norm(p - (a + t * d)))
+
+
+@pytest.mark.parametrize(
+    ("finger", "q0", "move"),
+    [
+        ("first", [0.0, 1.0, 0.6], [0.0, 0.0, -0.02]),  # towards the palm
+        ("first", [0.0, 1.0, 0.6], [0.0, 0.02, 0.0]),  # along the fingers
+        ("middle", [0.1, 1.2, 0.5], [0.0, -0.012, -0.016]),
+    ],
+)
+def test_follow_line_stays_on_the_line(finger: str, q0: list[float], move: list[float]) -> None:
+    start = MODEL.forward(finger, q0)
+    assert start[2] > 0.05  # in front of the palm
+    end = start + np.array(move)
+    traj = follow_line(MODEL, finger, q0, start, end, 20)
+    assert traj.shape == (21, 3)
+    np.testing.assert_allclose(traj[0], q0)
+    tips = np.array([MODEL.forward(finger, q) for q in traj])
+    assert max(_distance_to_segment(p, start, end) for p in tips) <= 5e-4
+    assert np.linalg.norm(tips[-1] - end) <= 5e-4
+    assert all(in_limits(finger, q) for q in traj)
+    # the tip progresses monotonically along the line
+    s = (tips - start) @ (end - start) / float((end - start) @ (end - start))
+    assert np.all(np.diff(s) > 0.0)
+
+
+def test_follow_line_out_of_the_workspace_raises() -> None:
+    q0 = [0.0, 1.0, 0.6]
+    start = MODEL.forward("first", q0)
+    with pytest.raises(InfeasibleGrasp, match="the first fingertip cannot follow the line"):
+        follow_line(MODEL, "first", q0, start, start + np.array([0.0, 0.0, 0.1]), 20)
+    with pytest.raises(ConfigError, match="steps"):
+        follow_line(MODEL, "first", q0, start, start, 0)
+
+
+# ---------------------------------------------------------------------- opposition
+
+
+@pytest.mark.parametrize(
+    ("finger", "point"),
+    # 60 mm in front of the palm over the finger's column (the J1 = J2 coupling puts a finger's
+    # reach at 60 mm height between ~66 and ~114 mm from the wrist, over its own column)
+    [("first", [0.033, 0.085, 0.060]), ("middle", [0.011, 0.090, 0.060])],
+)
+def test_thumb_opposes_finger(finger: str, point: list[float]) -> None:
+    target = np.array(point)
+    q_th = solve_ik(MODEL, "thumb", target, np.zeros(5))
+    q_f = solve_ik(MODEL, finger, target, np.zeros(3))
+    tip_th, tip_f = MODEL.forward("thumb", q_th), MODEL.forward(finger, q_f)
+    assert np.linalg.norm(tip_th - target) <= 1e-5
+    assert np.linalg.norm(tip_f - target) <= 1e-5
+    assert np.linalg.norm(tip_th - tip_f) <= 2e-5
+    assert in_limits("thumb", q_th) and in_limits(finger, q_f)
+    # an opposed thumb, not one lying in the palm plane
+    assert q_th[1] > 0.3  # lifted off the palm (TH4)
+
+
+# ---------------------------------------------------------------------- URDF reader
+
+LINK = '<link name="{0}"/>'
+TIP = '<link name="{0}"><collision><geometry><sphere radius="0.01"/></geometry></collision></link>'
+
+
+def _joint(name: str, parent: str, child: str, body: str = "", kind: str = "revolute") -> str:
+    return (
+        f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>{body}</joint>'
+    )
+
+
+LIM = '<limit lower="-1" upper="1"/>'
+
+
+def _write(tmp_path: Path, *parts: str) -> Path:
+    path = tmp_path / "hand.urdf"
+    path.write_text('<?xml version="1.0"?>\n<robot name="t">' + "".join(parts) + "</robot>")
+    return path
+
+
+def test_small_urdf_prismatic_rpy_and_scaled_mimic(tmp_path: Path) -> None:
+    path = _write(
+        tmp_path,
+        LINK.format("palm"),
+        LINK.format("a"),
+        LINK.format("b"),
+        LINK.format("c"),
+        TIP.format("xx_tip"),
+        _joint(
+            "S",
+            "palm",
+            "a",
+            '<origin xyz="0.1 0 0" rpy="0 0 1.5707963267948966"/><axis xyz="1 0 0"/>'
+            '<limit lower="0" upper="0.05"/>',
+            "prismatic",
+        ),
+        _joint("R1", "a", "b", '<axis xyz="0 0 1"/><limit lower="-1" upper="1"/>'),
+        _joint(
+            "R2",
+            "b",
+            "c",
+            '<origin xyz="0.02 0 0"/><axis xyz="0 0 1"/><limit lower="0" upper="1"/>'
+            '<mimic joint="R1" multiplier="2" offset="0"/>',
+        ),
+        _joint("T", "c", "xx_tip", '<origin xyz="0.03 0 0"/>', "fixed"),
+    )
+    model = HandModel.from_urdf(path)
+    assert list(model.fingers) == ["xx"]
+    assert model.fingertip_radius("xx") == 0.01
+    assert model.joint_names("xx") == ("S", "R1")
+    lo, hi = model.limits("xx")
+    np.testing.assert_allclose(lo, [0.0, 0.0])  # R2 = 2 R1 in [0, 1]  ->  R1 in [0, 0.5]
+    np.testing.assert_allclose(hi, [0.05, 0.5])
+    # yaw 90 deg: the frame's x is the palm's y; slide 0.04 along it, then R1 = t, R2 = 2 t
+    t = 0.3
+    tip = model.forward("xx", [0.04, t])
+    base = np.array([0.1, 0.04, 0.0])
+    expected = (
+        base
+        + 0.02 * np.array([-math.sin(t), math.cos(t), 0])
+        + 0.03 * np.array([-math.sin(3 * t), math.cos(3 * t), 0])
+    )
+    np.testing.assert_allclose(tip, expected, atol=1e-12)
+    J = model.jacobian("xx", [0.04, t])
+    np.testing.assert_allclose(J[:, 0], [0.0, 1.0, 0.0], atol=1e-12)
+    dt = 1e-6
+    fd = (model.forward("xx", [0.04, t + dt]) - model.forward("xx", [0.04, t - dt])) / (2 * dt)
+    np.testing.assert_allclose(J[:, 1], fd, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    ("parts", "message"),
+    [
+        (None, "does not exist"),
+        (("<robot><link name='palm'>",), "not well-formed XML"),
+        (
+            (LINK.format("palm"), TIP.format("ff_tip"), _joint("J", "palm", "ff_tip", '<axis xyz="1 0 0"/>')),
+            "joint 'J' has no <limit",
+        ),
+        (
+            (LINK.format("palm"), LINK.format("ff_distal"), _joint("J", "palm", "ff_distal", LIM)),
+            "chain ending at link 'ff_distal' has no fingertip link",
+        ),
+        (
+            (
+                LINK.format("palm"),
+                LINK.format("a"),
+                TIP.format("ff_tip"),
+                _joint("J2", "palm", "a", LIM),
+                _joint("J1", "a", "ff_tip", LIM + '<mimic joint="J9"/>'),
+            ),
+            "joint 'J1' mimics unknown joint 'J9'",
+        ),
+        (
+            (LINK.format("palm"), LINK.format("ff_tip"), _joint("J", "palm", "ff_tip", LIM)),
+            "no <collision> sphere",
+        ),
+        (
+            (LINK.format("palm"), TIP.format("ff_tip"), _joint("J", "palm", "ff_tip", LIM, "continuous")),
+            "type 'continuous'",
+        ),
+        (
+            (LINK.format("palm"), TIP.format("ff_tip"), _joint("J", "palm", "nowhere", LIM)),
+            "unknown child link 'nowhere'",
+        ),
+    ],
+)
+def test_malformed_urdf_raises_config_error(
+    tmp_path: Path, parts: tuple[str, ...] | None, message: str
+) -> None:
+    if parts is None:
+        path = tmp_path / "missing.urdf"
+    elif parts[0].startswith("<robot>"):
+        path = tmp_path / "bad.urdf"
+        path.write_text(parts[0])
+    else:
+        path = _write(tmp_path, *parts)
+    with pytest.raises(ConfigError, match=message):
+        HandModel.from_urdf(path)
