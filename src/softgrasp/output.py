@@ -12,6 +12,16 @@ from typing import Any
 __all__ = ["atomic_write", "write_json", "write_text"]
 
 
+def _read_umask() -> int:
+    """The process umask, read once at import (setting it is process-wide, so not per write)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
+
+
 def atomic_write(path: str | Path, writer: Callable[[Path], None]) -> Path:
     """Call ``writer(tmp_path)`` on a temporary file beside ``path``, then rename it into place.
 
@@ -25,9 +35,7 @@ def atomic_write(path: str | Path, writer: Callable[[Path], None]) -> Path:
     try:
         writer(tmp_path)
         # mkstemp creates the file private (0600); give it the permissions of an ordinary new file.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp_path, 0o666 & ~umask)
+        os.chmod(tmp_path, 0o666 & ~_UMASK)
         os.replace(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)

@@ -288,7 +288,12 @@ class FingertipContact:
         return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping)
 
     def _nodal(self, body: Body, x, ev: _Eval) -> NDArray[np.float64]:
-        """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20)."""
+        """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20), at the projection of the
+        fingertip centre on the facet's plane. For a facet reached through the patch rule's edge
+        fade that point lies just outside the triangle and one barycentric coordinate is negative
+        (down to -edge_fade): that node is pulled slightly towards the fingertip while the others
+        are pushed, so that the pair's force and moment stay exact (its line of action passes
+        through the fingertip centre)."""
         f = np.zeros_like(x)
         if len(ev.pairs):
             F = -ev.fn[:, None] * ev.pairs.normal - ev.ft  # on the object
