@@ -259,6 +259,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "safety_factor": 1.0,
     "hold_time": 1.0,
     "max_squeeze": 0.5,
+    "refine": 3,
     "out": "softgrasp-out/plan",
     "reorient": False,
 }
@@ -323,6 +324,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         safety_factor=float(args.safety_factor),
         hold_time=float(args.hold_time),
         max_squeeze=float(args.max_squeeze),
+        refine=int(args.refine),
     )
     bar, update = _progress("plan")
     try:
@@ -362,6 +364,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
         f"{plan.com_drift * 1e3:.2f} mm in {plan.hold_time:g} s"
     )
+    if eq["friction_margin"] < 0.05:
+        print(
+            f"note: held at the friction limit (margin {eq['friction_margin']:.1%}): the least squeeze "
+            "that holds; for a real hand, whose forces and friction vary, plan with --safety-factor 1.5 "
+            "or more"
+        )
     print(
         f"wrote {out}/plan.json, history.csv, forces.png, force_penetration.png, grasp.png "
         f"({plan.increments} increments, {time.perf_counter() - t0:.1f} s)"
@@ -489,6 +497,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="largest finger travel past first contact, fraction of its reach (default 0.5)",
+    )
+    pl.add_argument(
+        "--refine",
+        type=int,
+        default=None,
+        help="bisections of the last step for the smallest holding squeeze (default 3: step / 8)",
     )
     pl.add_argument("--config", default=None, metavar="FILE.toml", help="TOML file with any of these options")
     return p

@@ -42,6 +42,9 @@ class HandLayout:
     ----------
     min_spread, max_spread: distance between the first and middle fingers' contacts [m].
     max_aperture: largest distance from the thumb's contact to the fingers' midpoint [m].
+    max_finger_angle: largest angle between the first and middle fingers' surface normals [rad]
+        (side by side, they push the same way, not against each other).
+    min_opposition: smallest angle between the thumb's normal and the mean of the fingers' [rad].
     azimuths: number of thumb directions tried around the object.
     spreads: half-angles phi tried [rad] (first and middle fingers at theta + pi -+ phi).
     """
@@ -49,6 +52,8 @@ class HandLayout:
     min_spread: float = 0.02
     max_spread: float = 0.09
     max_aperture: float = 0.15
+    max_finger_angle: float = math.radians(90.0)
+    min_opposition: float = math.radians(135.0)
     azimuths: int = 36
     spreads: tuple[float, ...] = tuple(math.radians(a) for a in range(5, 66, 5))
 
@@ -67,6 +72,8 @@ class HandLayout:
             "min_spread_m": self.min_spread,
             "max_spread_m": self.max_spread,
             "max_aperture_m": self.max_aperture,
+            "max_finger_normal_angle_deg": round(math.degrees(self.max_finger_angle), 6),
+            "min_thumb_opposition_deg": round(math.degrees(self.min_opposition), 6),
             "azimuths": self.azimuths,
             "spread_half_angles_deg": [round(math.degrees(a), 6) for a in self.spreads],
         }
@@ -189,6 +196,11 @@ def initial_grasp(
             if not (layout.min_spread <= spread <= layout.max_spread and aperture <= layout.max_aperture):
                 continue
             n_out = nrm[fac[idx]]
+            fingers = n_out[1] + n_out[2]
+            side_by_side = n_out[1] @ n_out[2] >= math.cos(layout.max_finger_angle)
+            opposed = n_out[0] @ fingers <= math.cos(layout.min_opposition) * np.linalg.norm(fingers)
+            if not (side_by_side and opposed):
+                continue
             eps = ferrari_canny(p, -n_out, mu, com)
             if best is None or eps > best.epsilon + 1e-12:
                 best = InitialGrasp(

@@ -66,6 +66,8 @@ class PlanConfig:
     max_drift: largest centre-of-mass motion over ``hold_time`` for a hold [m].
     max_squeeze: largest travel past the last finger's first contact, as a fraction of the
         shortest finger-to-centroid distance (beyond it the object is crushed).
+    refine: bisections of the last closing step for the smallest travel that holds (the set-points
+        then resolve step / 2^refine: stiff objects gain force fast).
     table_mu: friction between object and table.
     layout: the hand's reach (:class:`HandLayout`).
     """
@@ -79,6 +81,7 @@ class PlanConfig:
     hold_time: float = 1.0
     max_drift: float = 0.001
     max_squeeze: float = 0.5
+    refine: int = 3
     table_mu: float = 0.5
     layout: HandLayout = field(default_factory=HandLayout)
 
@@ -92,6 +95,7 @@ class PlanConfig:
             "max_drift": self.max_drift > 0,
             "max_squeeze": 0 < self.max_squeeze < 1,
             "table_mu": self.table_mu >= 0,
+            "refine": 0 <= self.refine <= 10,
         }
         for name, ok in checks.items():
             v = getattr(self, name)
@@ -116,6 +120,7 @@ class PlanConfig:
             "hold_time_s": self.hold_time,
             "max_drift_m": self.max_drift,
             "max_squeeze": self.max_squeeze,
+            "refine": self.refine,
             "table_mu": self.table_mu,
             "hand_layout": self.layout.describe(),
         }
@@ -152,12 +157,15 @@ class GraspPlan:
         state: the share of the Coulomb cone left (> 0: every pair sticks; 0: one slips).
     com_drift: centre-of-mass motion from the release over the holding time, or to the held
         state if that is farther [m]; hold_time: that time [s].
-    increments: closing increments simulated.
-    travel: fingertip travel at each increment [m], (K,).
+    increments: closing increments simulated (the bisection's included).
+    travel: fingertip travel at each increment [m], (K,), increasing (the bisection's increments
+        sorted in among the regular ones).
     penetration, force_norm, normal_force, tangential_force: per increment and finger, (K, 3).
     feasible: whether the grasp test passed at each increment, (K,).
-    rigid_normal_forces: the smallest normal forces that hold the object at the final contact
-        points if it were rigid [N], (3,).
+    rigid_normal_forces: the normal forces of smallest sum that hold the object at the held
+        contact points and directions if it were rigid [N], (3,).
+    rigid_utilisation: the smallest fraction of the held normal forces that would still hold the
+        object if it were rigid (<= 1: they suffice; 1/3: three times what is needed).
     positions: node positions of the held state [m], (N, 3).
     centres: final fingertip centres [m], (3, 3).
     contact_points: each finger's mean contact point in the held state [m], (3, 3).
@@ -181,6 +189,7 @@ class GraspPlan:
     tangential_force: NDArray[np.float64]
     feasible: NDArray[np.bool_]
     rigid_normal_forces: NDArray[np.float64]
+    rigid_utilisation: float
     positions: NDArray[np.float64]
     centres: NDArray[np.float64]
     contact_points: NDArray[np.float64]
@@ -313,8 +322,35 @@ def plan_grasp(
     scene = Scene(body, (table, fc))
     state = State(xs, np.zeros_like(xs), 0.0, (settled.contacts[0], fc.init_state(body, xs, 0.0)))
     rows: list[tuple[float, NDArray, NDArray, NDArray, NDArray, bool]] = []
-    held = None
+    held: tuple[State, FingertipContact, float] | None = None
     k = 0
+
+    def attempt(start: State, t: float, verify: bool = True) -> tuple[State, bool, tuple | None]:
+        """Close to travel t from ``start`` and record the increment. Returns (state, whether the
+        grasp test passes, the verified hold when ``verify`` and it passes)."""
+        st = _advance(scene, start, t * scale, cfg, cache)
+        rep = fc.report(body, st.x, None, t * scale, st.contacts[1], static=True)
+        feasible = False
+        if (rep.contacts > 0).all():
+            pts, push, fn = fc.contact_frames(body, st.x, t * scale, st.contacts[1])
+            s_need = squeeze_utilisation(
+                pts, push, fn, mu, _com(body, st.x), cfg.safety_factor * body.total_mass, body.gravity
+            )
+            feasible = s_need <= 1.0
+        rows.append(
+            (
+                t,
+                np.maximum(t - first, 0.0),
+                np.linalg.norm(rep.force, axis=1),
+                rep.normal.copy(),
+                rep.tangential.copy(),
+                feasible,
+            )
+        )
+        hold = _check_hold(body, fc, st, t * scale, cfg, cache) if (feasible and verify) else None
+        return st, feasible, hold
+
+    t_lo, before = 0.0, state
     while held is None:
         k += 1
         t = k * cfg.step
@@ -326,23 +362,27 @@ def plan_grasp(
                 f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {mu:g}; raise the friction "
                 "coefficient, or grasp a lighter or stiffer object"
             )
-        state = _advance(scene, state, t * scale, cfg, cache)
-        rep = fc.report(body, state.x, None, t * scale, state.contacts[1], static=True)
-        pen = np.maximum(t - first, 0.0)
-        feasible = False
-        if (rep.contacts > 0).all():
-            pts, push, fn = fc.contact_frames(body, state.x, t * scale, state.contacts[1])
-            s_need = squeeze_utilisation(
-                pts, push, fn, mu, _com(body, state.x), cfg.safety_factor * body.total_mass, body.gravity
-            )
-            feasible = s_need <= 1.0
-        rows.append(
-            (t, pen, np.linalg.norm(rep.force, axis=1), rep.normal.copy(), rep.tangential.copy(), feasible)
-        )
+        before, t_lo = state, (k - 1) * cfg.step
+        state, _, held = attempt(before, t)
         if progress is not None:
             progress(min(t / max_travel, 1.0))
-        if feasible:
-            held = _check_hold(body, fc, state, t * scale, cfg, cache)
+    # Bisect the last step on the grasp test for the smallest travel that passes (stiff objects
+    # gain force fast), then verify the hold there; if it fails keep the step's verified hold.
+    t_hi = k * cfg.step
+    if k > 1 and cfg.refine > 0:
+        lo, hi, lo_state, hi_state = t_lo, t_hi, before, None
+        for _ in range(cfg.refine):
+            mid = 0.5 * (lo + hi)
+            st, ok, _ = attempt(lo_state, mid, verify=False)
+            if ok:
+                hi, hi_state = mid, st
+            else:
+                lo, lo_state = mid, st
+        if hi_state is not None:
+            h = _check_hold(body, fc, hi_state, hi * scale, cfg, cache)
+            if h is not None:
+                t_hi, held = hi, h
+    t_final = t_hi
 
     held_state, fixed, drift = held
     hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
@@ -357,7 +397,7 @@ def plan_grasp(
         rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity)
     except InfeasibleGrasp:
         rigid = np.full(3, np.nan)
-    t_final = rows[-1][0]
+    utilisation = squeeze_utilisation(pts, push, fn, mu, com, body.total_mass, body.gravity)
     fingers = tuple(
         FingerResult(
             name=FINGER_NAMES[j],
@@ -372,6 +412,7 @@ def plan_grasp(
     )
     if progress is not None:
         progress(1.0)
+    rows.sort(key=lambda r: r[0])  # the bisection's increments among the others, by travel
     return GraspPlan(
         initial=ig,
         fingers=fingers,
@@ -388,6 +429,7 @@ def plan_grasp(
         tangential_force=np.array([r[4] for r in rows]),
         feasible=np.array([r[5] for r in rows]),
         rigid_normal_forces=rigid,
+        rigid_utilisation=utilisation,
         positions=held_state.x,
         centres=centres,
         contact_points=pts,

@@ -79,6 +79,7 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             "force_residual_N": plan.force_residual,
             "torque_residual_Nm": plan.torque_residual,
             "friction_margin": plan.friction_margin,
+            "rigid_utilisation": plan.rigid_utilisation,
             "weight_N": weight,
             "tolerance": f"residuals <= {EQUILIBRIUM_TOL:.0%} of the weight (torque: x largest lever arm)",
         },
