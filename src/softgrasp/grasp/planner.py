@@ -36,7 +36,7 @@ from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged, Simulat
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, initial_grasp
 from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim.implicit import simulate_implicit
+from softgrasp.sim.implicit import implicit_euler_step
 from softgrasp.sim.integrators import simulate
 from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.scene import Scene, State
@@ -45,8 +45,10 @@ from softgrasp.sim.static import solve_increment, solve_static
 __all__ = ["PlanConfig", "FingerResult", "GraspPlan", "plan_grasp"]
 
 SOLVERS = ("quasistatic", "dynamic")
-#: Time step of the implicit holding simulation [s].
+#: First time step of the implicit holding simulation [s].
 HOLD_DT = 0.05
+#: Centre-of-mass motion per holding step below which the step is doubled [m].
+SETTLED = 1e-6
 
 
 @dataclass(frozen=True)
@@ -231,12 +233,26 @@ def _torque_residual(rep: FingerReport, centres, com) -> NDArray[np.float64]:
     return (rep.moment + np.cross(centres - com, rep.force)).sum(axis=0)
 
 
+def _hold(body: Body, scene: Scene, state: State, duration: float, cache: SolverCache) -> State:
+    """``duration`` seconds of backward Euler from ``state``: steps of ``HOLD_DT``, doubled after
+    every step in which the centre of mass moved less than ``SETTLED`` (the object has come to
+    rest: larger steps then cost nothing in accuracy)."""
+    dt = HOLD_DT
+    while state.t < duration - 1e-12:
+        h = min(dt, duration - state.t)
+        before = _com(body, state.x)
+        state = implicit_euler_step(scene, state, h, cache=cache)
+        if np.linalg.norm(_com(body, state.x) - before) < SETTLED:
+            dt *= 2.0
+    return state
+
+
 def _check_hold(
     body: Body, fc: FingertipContact, state: State, t: float, cfg: PlanConfig, cache: SolverCache
 ) -> tuple[State, FingertipContact, float] | None:
     """Remove the table and verify that the fingers hold the object. From the squeezed state at
     rest on the table, with the fingertips fixed: ``hold_time`` seconds of implicit dynamics
-    (:func:`simulate_implicit`, steps of ``HOLD_DT``) must move the centre of mass less than
+    (:func:`_hold`) must move the centre of mass less than
     ``max_drift``; the held state is then brought to static equilibrium in the fingers alone.
     Returns (held state, fixed fingers, drift) or None when the object is not held."""
     fixed = FingertipContact(
@@ -248,11 +264,7 @@ def _check_hold(
     start = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1],))
     c0 = _com(body, start.x)
     try:
-        end = (
-            simulate_implicit(scene, start, cfg.hold_time, HOLD_DT, cache=cache)
-            if cfg.hold_time > 0
-            else start
-        )
+        end = _hold(body, scene, start, cfg.hold_time, cache)
         moved = float(np.linalg.norm(_com(body, end.x) - c0))
         if moved >= cfg.max_drift:
             return None
