@@ -267,16 +267,7 @@ def friction_feasibility(
     A_ub[:, -1] = -mu * fn / F
     cost = np.zeros(k * mm + 1)
     cost[-1] = 1.0
-    res = linprog(
-        cost,
-        A_ub=A_ub,
-        b_ub=np.zeros(k),
-        A_eq=A_eq,
-        b_eq=b_eq,
-        bounds=(0, None),
-        method="highs",
-        options=_LP_OPTIONS,
-    )
+    res = _linprog(cost, A_ub, np.zeros(k), A_eq, b_eq)
     if res.status == 2:
         ft = np.zeros((k, 3))
         rho = math.inf
@@ -298,6 +289,41 @@ def friction_feasibility(
         tangential=ft,
         force_residual_N=float(np.linalg.norm(fres)),
         torque_residual_Nm=float(np.linalg.norm(tres)),
+    )
+
+
+def _holding_system(n, d, r, L: float, weight, mu: float, extra: int):  # type: ignore[no-untyped-def]
+    """Eq. 21-22 and the linearised cones for unknown normal forces, in units of the weight.
+
+    Variables ``x = [f_n (k), beta (k*m), extra...]``: equality rows ``A_eq x = b_eq`` (forces,
+    then torques about the centre of mass over the length scale L) and cone rows
+    ``sum_k beta_jk - mu f_n,j <= 0``. ``weight``: m g in units of the force scale."""
+    k, mm = d.shape[0], d.shape[1]
+    nv = k + k * mm + extra
+    A_eq = np.zeros((6, nv))
+    A_eq[:3, :k] = n.T
+    A_eq[:3, k : k + k * mm] = d.reshape(-1, 3).T
+    A_eq[3:, :k] = np.cross(r, n).T / L
+    A_eq[3:, k : k + k * mm] = np.cross(r[:, None, :], d).reshape(-1, 3).T / L
+    b_eq = np.concatenate([-np.asarray(weight), np.zeros(3)])
+    cone = np.zeros((k, nv))
+    cone[:, :k] = -mu * np.eye(k)
+    for j in range(k):
+        cone[j, k + j * mm : k + (j + 1) * mm] = 1.0
+    return A_eq, b_eq, cone
+
+
+def _linprog(cost, A_ub, b_ub, A_eq, b_eq):  # type: ignore[no-untyped-def]
+    """HiGHS on non-negative variables."""
+    return linprog(
+        cost,
+        A_ub=A_ub,
+        b_ub=b_ub,
+        A_eq=A_eq,
+        b_eq=b_eq,
+        bounds=(0, None),
+        method="highs",
+        options=_LP_OPTIONS,
     )
 
 
@@ -326,28 +352,9 @@ def minimum_normal_forces(
     """
     p, n, mu, c, g, mass, d, r, F, L = _setup(points, normals, mu, com, mass, gravity, m)
     k, mm = d.shape[0], d.shape[1]
-    # variables x = [f_n (k), b (k*m)], both in units of F
-    A_eq = np.zeros((6, k + k * mm))
-    A_eq[:3, :k] = n.T
-    A_eq[:3, k:] = d.reshape(-1, 3).T
-    A_eq[3:, :k] = np.cross(r, n).T / L
-    A_eq[3:, k:] = np.cross(r[:, None, :], d).reshape(-1, 3).T / L
-    b_eq = np.concatenate([-mass * g / F, np.zeros(3)])
-    A_ub = np.zeros((k, k + k * mm))
-    A_ub[:, :k] = -mu * np.eye(k)
-    for j in range(k):
-        A_ub[j, k + j * mm : k + (j + 1) * mm] = 1.0
+    A_eq, b_eq, A_ub = _holding_system(n, d, r, L, mass * g / F, mu, extra=0)
     cost = np.concatenate([np.ones(k), np.zeros(k * mm)])
-    res = linprog(
-        cost,
-        A_ub=A_ub,
-        b_ub=np.zeros(k),
-        A_eq=A_eq,
-        b_eq=b_eq,
-        bounds=(0, None),
-        method="highs",
-        options=_LP_OPTIONS,
-    )
+    res = _linprog(cost, A_ub, np.zeros(k), A_eq, b_eq)
     if res.status == 2:
         raise InfeasibleGrasp(
             f"no normal forces with friction inside the {mm}-gon cones of mu = {mu} hold the "
@@ -378,37 +385,19 @@ def squeeze_utilisation(
     """
     p, n, mu, c, g, mass, d, r, F, L = _setup(points, normals, mu, com, mass, gravity, m)
     fn = np.asarray(normal_forces, dtype=np.float64).reshape(-1)
-    k, mm = d.shape[0], d.shape[1]
+    k = d.shape[0]
     if fn.shape != (k,) or not (np.isfinite(fn).all() and (fn >= 0).all()):
         raise ConfigError(f"normal_forces must be {k} finite values >= 0 N, got {normal_forces!r}")
     if not fn.any():
         return math.inf
-    # variables x = [f_n (k), b (k*m), s], forces in units of F
-    nv = k + k * mm + 1
-    A_eq = np.zeros((6, nv))
-    A_eq[:3, :k] = n.T
-    A_eq[:3, k : k + k * mm] = d.reshape(-1, 3).T
-    A_eq[3:, :k] = np.cross(r, n).T / L
-    A_eq[3:, k : k + k * mm] = np.cross(r[:, None, :], d).reshape(-1, 3).T / L
-    b_eq = np.concatenate([-mass * g / F, np.zeros(3)])
-    A_ub = np.zeros((2 * k, nv))
-    A_ub[:k, :k] = -mu * np.eye(k)
-    for j in range(k):
-        A_ub[j, k + j * mm : k + (j + 1) * mm] = 1.0
-    A_ub[k:, :k] = np.eye(k)
-    A_ub[k:, -1] = -fn / F
-    cost = np.zeros(nv)
+    A_eq, b_eq, cone = _holding_system(n, d, r, L, mass * g / F, mu, extra=1)
+    # f_n,j - s f_n,j(given) <= 0 (forces in units of F)
+    cap = np.zeros((k, cone.shape[1]))
+    cap[:, :k] = np.eye(k)
+    cap[:, -1] = -fn / F
+    cost = np.zeros(cone.shape[1])
     cost[-1] = 1.0
-    res = linprog(
-        cost,
-        A_ub=A_ub,
-        b_ub=np.zeros(2 * k),
-        A_eq=A_eq,
-        b_eq=b_eq,
-        bounds=(0, None),
-        method="highs",
-        options=_LP_OPTIONS,
-    )
+    res = _linprog(cost, np.vstack([cone, cap]), np.zeros(2 * k), A_eq, b_eq)
     if res.status == 2:
         return math.inf
     if res.status != 0:
