@@ -337,9 +337,9 @@ def plan_grasp(
     held: tuple[State, FingertipContact, float] | None = None
     k = 0
 
-    def attempt(start: State, t: float, verify: bool = True) -> tuple[State, bool, tuple | None]:
+    def attempt(start: State, t: float) -> tuple[State, bool, tuple | None]:
         """Close to travel t from ``start`` and record the increment. Returns (state, whether the
-        grasp test passes, the verified hold when ``verify`` and it passes)."""
+        grasp test passes, the verified hold if it passes and holds)."""
         st = _advance(scene, start, t * scale, cfg, cache)
         rep = fc.report(body, st.x, None, t * scale, st.contacts[1], static=True)
         feasible = False
@@ -359,7 +359,7 @@ def plan_grasp(
                 feasible,
             )
         )
-        hold = _check_hold(body, fc, st, t * scale, cfg, cache) if (feasible and verify) else None
+        hold = _check_hold(body, fc, st, t * scale, cfg, cache) if feasible else None
         return st, feasible, hold
 
     t_lo, before = 0.0, state
@@ -378,22 +378,18 @@ def plan_grasp(
         state, _, held = attempt(before, t)
         if progress is not None:
             progress(min(t / max_travel, 1.0))
-    # Bisect the last step on the grasp test for the smallest travel that passes (stiff objects
-    # gain force fast), then verify the hold there; if it fails keep the step's verified hold.
+    # Bisect the last step for the smallest travel that holds (stiff objects gain force fast): a
+    # probe holds when it passes the grasp test and its hold check.
     t_hi = k * cfg.step
-    if k > 1 and cfg.refine > 0:
-        lo, hi, lo_state, hi_state = t_lo, t_hi, before, None
+    if k > 1:
+        lo, lo_state = t_lo, before
         for _ in range(cfg.refine):
-            mid = 0.5 * (lo + hi)
-            st, ok, _ = attempt(lo_state, mid, verify=False)
-            if ok:
-                hi, hi_state = mid, st
-            else:
+            mid = 0.5 * (lo + t_hi)
+            st, _, h = attempt(lo_state, mid)
+            if h is None:
                 lo, lo_state = mid, st
-        if hi_state is not None:
-            h = _check_hold(body, fc, hi_state, hi * scale, cfg, cache)
-            if h is not None:
-                t_hi, held = hi, h
+            else:
+                t_hi, held = mid, h
     t_final = t_hi
 
     held_state, fixed, drift = held
