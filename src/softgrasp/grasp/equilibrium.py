@@ -90,24 +90,24 @@ def _point3(a: ArrayLike, name: str) -> NDArray[np.float64]:
     return v
 
 
-def _mu(mu: float) -> float:
+def _number(value: float, what: str, unit: str, *, strict: bool) -> float:
+    """``value`` as a finite float, > 0 (strict) or >= 0, else a ConfigError naming ``what``."""
     try:
-        x = float(mu)
+        x = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"friction coefficient mu = {mu!r} is invalid: it must be a number") from None
-    if not (math.isfinite(x) and x >= 0.0):
-        raise ConfigError(f"friction coefficient mu = {mu} is invalid: it must be finite and >= 0")
+        raise ConfigError(f"{what} = {value!r} is invalid: it must be a number") from None
+    if not (math.isfinite(x) and (x > 0.0 if strict else x >= 0.0)):
+        bound = "> 0" if strict else ">= 0"
+        raise ConfigError(f"{what} = {value}{unit} is invalid: it must be finite and {bound}")
     return x
+
+
+def _mu(mu: float) -> float:
+    return _number(mu, "friction coefficient mu", "", strict=False)
 
 
 def _mass(mass: float) -> float:
-    try:
-        x = float(mass)
-    except (TypeError, ValueError):
-        raise ConfigError(f"mass = {mass!r} is invalid: it must be a number") from None
-    if not (math.isfinite(x) and x > 0.0):
-        raise ConfigError(f"mass = {mass} kg is invalid: it must be finite and > 0")
-    return x
+    return _number(mass, "mass", " kg", strict=True)
 
 
 def _edges_count(m: int) -> int:

@@ -337,9 +337,9 @@ def plan_grasp(
     held: tuple[State, FingertipContact, float] | None = None
     k = 0
 
-    def attempt(start: State, t: float) -> tuple[State, bool, tuple | None]:
-        """Close to travel t from ``start`` and record the increment. Returns (state, whether the
-        grasp test passes, the verified hold if it passes and holds)."""
+    def attempt(start: State, t: float) -> tuple[State, tuple | None]:
+        """Close to travel t from ``start`` and record the increment. Returns (state, the verified
+        hold if the grasp test passes and the object holds)."""
         st = _advance(scene, start, t * scale, cfg, cache)
         rep = fc.report(body, st.x, None, t * scale, st.contacts[1], static=True)
         feasible = False
@@ -360,7 +360,7 @@ def plan_grasp(
             )
         )
         hold = _check_hold(body, fc, st, t * scale, cfg, cache) if feasible else None
-        return st, feasible, hold
+        return st, hold
 
     t_lo, before = 0.0, state
     while held is None:
@@ -375,7 +375,7 @@ def plan_grasp(
                 "coefficient, or grasp a lighter or stiffer object"
             )
         before, t_lo = state, (k - 1) * cfg.step
-        state, _, held = attempt(before, t)
+        state, held = attempt(before, t)
         if progress is not None:
             progress(min(t / max_travel, 1.0))
     # Bisect the last step for the smallest travel that holds (stiff objects gain force fast): a
@@ -385,7 +385,7 @@ def plan_grasp(
         lo, lo_state = t_lo, before
         for _ in range(cfg.refine):
             mid = 0.5 * (lo + t_hi)
-            st, _, h = attempt(lo_state, mid)
+            st, h = attempt(lo_state, mid)
             if h is None:
                 lo, lo_state = mid, st
             else:
