@@ -423,3 +423,98 @@ def test_malformed_urdf_raises_config_error(
         path = _write(tmp_path, *parts)
     with pytest.raises(ConfigError, match=message):
         HandModel.from_urdf(path)
+
+
+# ---------------------------------------------------------------------- palm placement
+
+
+def _pose(rotvec: list[float], origin: list[float]) -> np.ndarray:
+    from softgrasp.hand.reach import _rotation
+
+    T = np.eye(4)
+    T[:3, :3] = _rotation(np.asarray(rotvec, dtype=float))
+    T[:3, 3] = origin
+    return T
+
+
+def test_link_points_start_at_the_knuckle_and_end_at_the_fingertip() -> None:
+    q = np.array([0.1, 0.4, 0.3])
+    pts = MODEL.link_points("first", q)
+    np.testing.assert_allclose(pts[0], KNUCKLE["first"], atol=1e-12)
+    np.testing.assert_allclose(pts[-1], MODEL.forward("first", q), atol=1e-12)
+    # Consecutive distinct points are the segment lengths of the finger.
+    steps = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    np.testing.assert_allclose(np.sort(steps[steps > 1e-12]), sorted([PROXIMAL, MIDDLE, DISTAL]), atol=1e-12)
+
+
+def test_place_hand_finds_a_posture_for_targets_of_a_known_posture() -> None:
+    """Targets made by forward kinematics from a palm pose and joint angles softgrasp does not see:
+    the placement reaches every one (to 10 um) within the joint limits. The posture found may
+    differ (the problem has 19 unknowns for 9 equations), the fingertips may not."""
+    from softgrasp.hand.reach import REACH_TOL, place_hand, transform
+
+    pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
+    q = {
+        "thumb": np.array([0.5, 0.7, 0.0, 0.1, 0.4]),
+        "first": np.array([0.05, 0.6, 0.5]),
+        "middle": np.array([-0.05, 0.6, 0.5]),
+    }
+    targets = {f: transform(pose, MODEL.forward(f, q[f])) for f in FINGERS}
+    pl = place_hand(MODEL, targets)
+    for f in FINGERS:
+        assert in_limits(f, pl.q[f])
+        assert np.linalg.norm(pl.fingertip(MODEL, f) - targets[f]) <= REACH_TOL
+    R = pl.palm_pose[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_place_hand_names_the_finger_that_cannot_reach() -> None:
+    from softgrasp.hand.reach import place_hand
+
+    targets = {"thumb": [0.0, 0.0, 0.1], "first": [0.05, 0.05, 0.1], "middle": [0.03, 0.6, 0.1]}
+    with pytest.raises(InfeasibleGrasp, match=r"the (middle|first|thumb) fingertip cannot reach .* mm away"):
+        place_hand(MODEL, targets)
+
+
+def test_place_hand_keeps_the_palm_out_of_the_object() -> None:
+    """The same targets, once free and once inside a large block that the hand cannot reach into
+    without putting its palm or joints inside: the second is refused with that reason."""
+    from softgrasp.hand.reach import place_hand, transform
+
+    pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
+    q = {
+        "thumb": np.array([0.5, 0.7, 0.0, 0.1, 0.4]),
+        "first": np.array([0.05, 0.6, 0.5]),
+        "middle": np.array([-0.05, 0.6, 0.5]),
+    }
+    targets = {f: transform(pose, MODEL.forward(f, q[f])) for f in FINGERS}
+    centre = np.mean(list(targets.values()), axis=0)
+    block = centre + 0.4 * (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T)
+    with pytest.raises(InfeasibleGrasp, match="inside the object"):
+        place_hand(MODEL, targets, obstacle=block)
+
+
+def test_closing_paths_move_fingertips_along_their_lines() -> None:
+    from softgrasp.hand.reach import closing_paths, place_hand, transform
+
+    pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
+    q = {
+        "thumb": np.array([0.5, 0.7, 0.0, 0.1, 0.4]),
+        "first": np.array([0.05, 0.6, 0.5]),
+        "middle": np.array([-0.05, 0.6, 0.5]),
+    }
+    targets = {f: transform(pose, MODEL.forward(f, q[f])) for f in FINGERS}
+    pl = place_hand(MODEL, targets)
+    centroid = np.mean(list(targets.values()), axis=0)
+    lines = {
+        f: (targets[f], targets[f] + 0.01 * (centroid - targets[f]) / np.linalg.norm(centroid - targets[f]))
+        for f in FINGERS
+    }
+    paths = closing_paths(MODEL, pl, lines, 10)
+    for f, (a, b) in lines.items():
+        assert paths[f].shape == (11, MODEL.chain(f).dof)
+        for k, qk in enumerate(paths[f]):
+            assert in_limits(f, qk)
+            tip = transform(pl.palm_pose, MODEL.forward(f, qk))
+            assert np.linalg.norm(tip - (a + k / 10 * (b - a))) < 1e-6

@@ -20,8 +20,11 @@ from softgrasp.grasp.planner import PlanConfig, plan_grasp
 from softgrasp.material import preset
 from softgrasp.mesh.generate import box, sphere
 from softgrasp.objects import make_object
+from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import simulate_implicit
+from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.scene import Scene
+from softgrasp.sim.static import solve_static
 
 
 @pytest.fixture(scope="module")
@@ -257,3 +260,69 @@ def test_implicit_integration_checks_its_step_and_accepts_an_empty_span():
     for dt in (0.0, -0.05, float("nan")):
         with pytest.raises(ConfigError, match="implicit time step"):
             simulate_implicit(scene, state, 0.1, dt)
+
+
+def test_a_mesh_balanced_on_one_node_is_stood_on_a_stable_facet():
+    """A coarse sphere meshed pole-down balances on one node, an unstable pose that tips over. The
+    planner's settling turns it onto the hull facet whose plane is nearest the centre of mass: there
+    the centre of mass projects inside the facet and three nodes carry the object."""
+    from scipy.spatial import ConvexHull
+
+    from softgrasp.grasp.planner import _stable_pose
+
+    body = build_body(sphere(0.15, 0.06), preset("rubber"), mass=0.5)
+    x = _stable_pose(body, np.asarray(body.mesh.points))
+    low = np.flatnonzero(x[:, 2] < x[:, 2].min() + 1e-9)
+    assert len(low) >= 3  # a facet down, not a node
+    com = body.mass @ x / body.total_mass
+    tri = x[low[:3], :2]
+    # Barycentric coordinates of the centre of mass's projection in the bottom facet: all positive.
+    T = np.column_stack([tri[1] - tri[0], tri[2] - tri[0]])
+    l1, l2 = np.linalg.solve(T, com[:2] - tri[0])
+    assert min(l1, l2, 1 - l1 - l2) > 0
+    assert ConvexHull(x).volume == pytest.approx(ConvexHull(body.mesh.points).volume, rel=1e-12)
+    table = PlaneContact(Plane(np.array([0.0, 0.0, x[:, 2].min()]), np.array([0.0, 0.0, 1.0])), mu=0.5)
+    rest = Scene(body, (table,))
+    state, _ = solve_static(rest, rest.initial_state(x), cache=SolverCache())
+    # At rest it stands on the nodes the table pushes (those below its plane), with the centre of
+    # mass above their support polygon: a stable rest, not a node balanced under it.
+    xs = state.x
+    support = xs[xs[:, 2] < x[:, 2].min(), :2]
+    assert len(support) >= 3
+    hull = ConvexHull(support)
+    c = body.mass @ xs / body.total_mass
+    assert (hull.equations[:, :2] @ c[:2] + hull.equations[:, 2] < 0).all()
+
+
+def test_default_plan_is_reachable_by_the_hand(default_plan):
+    """The hand model places each fingertip at its start centre, moves it along its straight
+    closing line to its final centre (the last row of its joint path) within the joint limits, and
+    keeps its palm and joints outside the object (only fingertips touch it)."""
+    from scipy.spatial import ConvexHull
+
+    from softgrasp.hand.reach import transform
+
+    plan = default_plan
+    hand, pl = plan.config.hand, plan.placement
+    assert hand is not None and pl is not None and plan.joint_paths is not None
+    hull = ConvexHull(plan.placed).equations
+    for j, f in enumerate(("thumb", "first", "middle")):
+        path = plan.joint_paths[f]
+        lo, hi = hand.limits(f)
+        assert (path >= lo - 1e-12).all() and (path <= hi + 1e-12).all()
+        tips = transform(pl.palm_pose, np.array([hand.forward(f, q) for q in path]))
+        np.testing.assert_allclose(tips[0], plan.start_centres[j], atol=1e-5)
+        np.testing.assert_allclose(tips[-1], plan.centres[j], atol=5e-4)
+        line = plan.centres[j] - plan.start_centres[j]
+        off = np.cross(tips - plan.start_centres[j], line / np.linalg.norm(line))
+        assert np.linalg.norm(off, axis=1).max() < 5e-4  # on the straight closing line
+        joints = transform(pl.palm_pose, hand.link_points(f, path[-1]))
+        joints = joints[np.linalg.norm(joints - joints[-1], axis=1) > hand.fingertip_radius(f)]
+        assert ((joints @ hull[:, :3].T + hull[:, 3]).max(axis=1) > 0).all()
+    assert (pl.palm_pose[:3, 3] @ hull[:, :3].T + hull[:, 3]).max() > 0
+
+
+def test_plan_without_a_hand_model_uses_the_layout_alone(sphere_body):
+    plan = plan_grasp(sphere_body, PlanConfig(hand=None, hold_time=0.0))
+    assert plan.placement is None and plan.joint_paths is None
+    assert plan.initial.epsilon > 0

@@ -17,12 +17,15 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import MaterialError
 from softgrasp.forces import (
+    BlockPattern,
     edge_damping_forces,
     edge_damping_jacobian,
     spring_forces,
-    spring_jacobian,
+    spring_jacobian_blocks,
+    spring_pairs,
     volume_forces,
-    volume_jacobian,
+    volume_jacobian_blocks,
+    volume_pairs,
 )
 from softgrasp.material import Material
 from softgrasp.mesh.tetmesh import TetMesh
@@ -110,12 +113,24 @@ class Body:
             e += volume_forces(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)[1]
         return e
 
-    def internal_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
-        """``d f_internal / d x`` (negative stiffness), sparse (3N, 3N)."""
-        J = spring_jacobian(x, self.edges, self.rest_length, self.stiffness, self.material.law)
+    @cached_property
+    def _jacobian_pattern(self) -> BlockPattern:
+        """Sparsity of :meth:`internal_jacobian`, built once: the spring blocks, then the volume
+        term's."""
+        rows, cols = spring_pairs(self.edges)
         if self.kappa != 0.0:
-            J = J + volume_jacobian(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)
-        return J.tocsr()
+            vr, vc = volume_pairs(self.mesh.tets)
+            rows, cols = np.concatenate([rows, vr]), np.concatenate([cols, vc])
+        return BlockPattern(self.n_nodes, rows, cols)
+
+    def internal_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
+        """``d f_internal / d x`` (negative stiffness), sparse (3N, 3N), assembled into the body's
+        fixed sparsity pattern."""
+        blocks = spring_jacobian_blocks(x, self.edges, self.rest_length, self.stiffness, self.material.law)
+        if self.kappa != 0.0:
+            vb = volume_jacobian_blocks(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)
+            blocks = np.concatenate([blocks, vb])
+        return self._jacobian_pattern.assemble(blocks)
 
     def damping_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
         """``d f_damping / d v``, sparse (3N, 3N)."""

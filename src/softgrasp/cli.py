@@ -300,12 +300,32 @@ def _plan_options(args: argparse.Namespace) -> argparse.Namespace:
     return argparse.Namespace(**{**vars(args), **merged})
 
 
+def _hand_links(plan) -> list:
+    """The hand in the held state as polylines (world, m): the palm from the wrist through the
+    knuckles, and each finger from its base joint to its fingertip."""
+    import numpy as np
+
+    from softgrasp.hand.reach import transform
+
+    hand, pl = plan.config.hand, plan.placement
+    if hand is None or pl is None or plan.joint_paths is None:
+        return []
+    fingers = {
+        f: transform(pl.palm_pose, hand.link_points(f, plan.joint_paths[f][-1])) for f in plan.joint_paths
+    }
+    wrist = pl.palm_pose[:3, 3]
+    palm = np.array([wrist] + [pts[0] for pts in fingers.values()] + [wrist])
+    return [palm, *fingers.values()]
+
+
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
     from softgrasp.contact.fingertip import ContactParams
     from softgrasp.grasp.planner import PlanConfig, plan_grasp
     from softgrasp.grasp.report import HISTORY_HEADER, history_rows, plan_document, plan_table
+    from softgrasp.mesh.io import save_mesh
+    from softgrasp.mesh.tetmesh import TetMesh
     from softgrasp.output import write_json, write_text
     from softgrasp.viz.plots import plot_grasp_3d, plot_plan_force_penetration, plot_plan_forces
 
@@ -353,8 +373,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         out / "grasp.png",
         title=f"Held grasp of the {doc['object']['name']} ({m.name}), mu = {config.contact.mu:g}",
         weight=(plan.com, body.total_mass * float(abs(body.gravity[2]))),
+        links=_hand_links(plan),
     )
     write_text(out / "history.csv", buf.getvalue())
+    # The unloaded object as the plan placed it on the table: what `execute` rebuilds.
+    save_mesh(TetMesh(plan.placed, body.mesh.tets, name=body.mesh.name), out / "object.vtu")
+    doc["object"]["mesh_file"] = "object.vtu"
     doc["wall_time_s"] = time.perf_counter() - t0
     write_json(out / "plan.json", doc)
     print(plan_table(plan))
@@ -371,7 +395,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             "or more"
         )
     print(
-        f"wrote {out}/plan.json, history.csv, forces.png, force_penetration.png, grasp.png "
+        f"wrote {out}/plan.json, history.csv, object.vtu, forces.png, force_penetration.png, grasp.png "
         f"({plan.increments} increments, {time.perf_counter() - t0:.1f} s)"
     )
     return 0

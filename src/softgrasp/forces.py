@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from softgrasp.material import StressStrainLaw
 
 __all__ = [
+    "BlockPattern",
     "assemble_blocks",
     "spring_forces",
     "spring_jacobian",
@@ -38,6 +39,54 @@ def assemble_blocks(
     c = (3 * cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
     m = sp.coo_matrix((blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * n_nodes, 3 * n_nodes))
     return m.tocsr()
+
+
+class BlockPattern:
+    """The CSR structure of a sparse (3N, 3N) matrix of 3x3 blocks at fixed node pairs, built once
+    per topology, so that assembling new block values is one ``bincount`` into the CSR data (no
+    COO conversion, sorting or duplicate summation per Newton iteration).
+
+    Parameters
+    ----------
+    n_nodes: N.  rows, cols: (K,) node pair of each block; repeated pairs are summed.
+    """
+
+    def __init__(self, n_nodes: int, rows: NDArray[np.int64], cols: NDArray[np.int64]) -> None:
+        rows = np.asarray(rows, dtype=np.int64)
+        cols = np.asarray(cols, dtype=np.int64)
+        if rows.shape != cols.shape or rows.ndim != 1:
+            raise ValueError("rows and cols must be equal-length 1-D arrays")
+        self.n_nodes = int(n_nodes)
+        self.n_blocks_in = len(rows)
+        pairs, inv = np.unique(rows * n_nodes + cols, return_inverse=True)  # by row, then column
+        brow, bcol = np.divmod(pairs, n_nodes)
+        count = np.bincount(brow, minlength=n_nodes)  # blocks per block row
+        start = np.concatenate([[0], np.cumsum(count)])  # first block of each block row
+        # Scalar row 3r + a holds 3 * count[r] entries: the blocks of block row r by column, three
+        # columns each. Entry (a, b) of unique block u sits at 9 start[r] + 3 a count[r] + 3 (u -
+        # start[r]) + b.
+        u = np.arange(len(pairs))
+        r = brow
+        a = np.arange(3)[None, :, None]
+        b = np.arange(3)[None, None, :]
+        pos = (9 * start[r] - 3 * start[r] + 3 * u)[:, None, None] + 3 * a * count[r][:, None, None] + b
+        self._pos = pos[inv].ravel()  # CSR data position of each input entry
+        self.nnz = 9 * len(pairs)
+        self.indptr = np.concatenate([[0], np.cumsum(np.repeat(3 * count, 3))]).astype(np.int64)
+        cols_per_row = np.empty(self.nnz, dtype=np.int64)
+        cols_per_row[pos.ravel()] = (3 * bcol[:, None, None] + b + 0 * a).ravel()
+        self.indices = cols_per_row
+
+    def assemble(self, blocks: NDArray[np.float64]) -> sp.csr_matrix:
+        """The matrix with ``blocks`` (K, 3, 3) at the pattern's node pairs, summed where repeated."""
+        if blocks.shape != (self.n_blocks_in, 3, 3):
+            raise ValueError(f"expected blocks of shape ({self.n_blocks_in}, 3, 3), got {blocks.shape}")
+        data = np.bincount(self._pos, weights=blocks.ravel(), minlength=self.nnz)
+        n = 3 * self.n_nodes
+        m = sp.csr_matrix((data, self.indices, self.indptr), shape=(n, n), copy=False)
+        m.has_sorted_indices = True
+        m.has_canonical_format = True
+        return m
 
 
 def _edge_geometry(
@@ -95,6 +144,27 @@ def spring_jacobian(
     With ``psd=True`` the geometric term of compressed springs is dropped, which makes the stiffness
     positive semi-definite (a Newton preconditioner), at the cost of exactness.
     """
+    rows, cols = spring_pairs(edges)
+    blocks = spring_jacobian_blocks(x, edges, rest_length, stiffness, law, psd=psd)
+    return assemble_blocks(x.shape[0], rows, cols, blocks)
+
+
+def spring_pairs(edges: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Node pairs (rows, cols) of the blocks of :func:`spring_jacobian_blocks`."""
+    i, j = edges[:, 0], edges[:, 1]
+    return np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j])
+
+
+def spring_jacobian_blocks(
+    x: NDArray[np.float64],
+    edges: NDArray[np.int64],
+    rest_length: NDArray[np.float64],
+    stiffness: NDArray[np.float64],
+    law: StressStrainLaw,
+    *,
+    psd: bool = False,
+) -> NDArray[np.float64]:
+    """The 3x3 blocks of :func:`spring_jacobian` at the node pairs of :func:`spring_pairs`, (4E, 3, 3)."""
     n, L = _edge_geometry(x, edges)
     eps = L / rest_length - 1.0
     T = stiffness * rest_length * law.stress(eps)
@@ -104,11 +174,7 @@ def spring_jacobian(
         geo = np.maximum(geo, 0.0)
     nn = n[:, :, None] * n[:, None, :]
     K = dT[:, None, None] * nn + geo[:, None, None] * (np.eye(3)[None] - nn)  # d f0 / d x1
-    i, j = edges[:, 0], edges[:, 1]
-    rows = np.concatenate([i, j, i, j])
-    cols = np.concatenate([j, i, i, j])
-    blocks = np.concatenate([K, K, -K, -K])
-    return assemble_blocks(x.shape[0], rows, cols, blocks)
+    return np.concatenate([K, K, -K, -K])
 
 
 def psi(J: NDArray[np.float64], barrier: bool) -> tuple[NDArray[np.float64], ...]:
@@ -175,6 +241,25 @@ def volume_jacobian(
     barrier: bool = True,
 ) -> sp.csr_matrix:
     """``d f / d x`` of :func:`volume_forces`, sparse (3N, 3N)."""
+    rows, cols = volume_pairs(tets)
+    return assemble_blocks(
+        x.shape[0], rows, cols, volume_jacobian_blocks(x, tets, rest_volume, kappa, barrier)
+    )
+
+
+def volume_pairs(tets: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Node pairs (rows, cols) of the blocks of :func:`volume_jacobian_blocks`."""
+    return np.repeat(tets, 4, axis=1).ravel(), np.tile(tets, (1, 4)).ravel()
+
+
+def volume_jacobian_blocks(
+    x: NDArray[np.float64],
+    tets: NDArray[np.int64],
+    rest_volume: NDArray[np.float64],
+    kappa: float,
+    barrier: bool = True,
+) -> NDArray[np.float64]:
+    """The 3x3 blocks of :func:`volume_jacobian` at the node pairs of :func:`volume_pairs`, (16M, 3, 3)."""
     V, g, (a1, a2, a3) = _tet_gradients(x, tets)
     _, dw, d2w = psi(V / rest_volume, barrier)
     # Hessian of V with respect to a1..a3 (node 0 follows from translation invariance).
@@ -190,9 +275,7 @@ def volume_jacobian(
     hess = (kappa * d2w / rest_volume)[:, None, None, None, None] * gg + (kappa * dw)[
         :, None, None, None, None
     ] * H
-    rows = np.repeat(tets, 4, axis=1).ravel()
-    cols = np.tile(tets, (1, 4)).ravel()
-    return assemble_blocks(x.shape[0], rows, cols, -hess.reshape(-1, 3, 3))
+    return -hess.reshape(-1, 3, 3)
 
 
 def edge_damping_forces(

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from softgrasp.errors import ConfigError, InfeasibleGrasp
 from softgrasp.grasp.closure import ferrari_canny
 
-__all__ = ["HandLayout", "InitialGrasp", "FINGER_NAMES", "raycast_surface", "initial_grasp"]
+__all__ = ["HandLayout", "InitialGrasp", "FINGER_NAMES", "raycast_surface", "initial_grasp", "initial_grasps"]
 
 #: Finger names in the order softgrasp uses everywhere.
 FINGER_NAMES = ("thumb", "first", "middle")
@@ -148,7 +148,20 @@ def initial_grasp(
     mu: float,
     layout: HandLayout = HandLayout(),  # noqa: B008 - frozen dataclass
 ) -> InitialGrasp:
-    """Best force-closure triple (thumb, first, middle) in the grasp plane within the hand's reach.
+    """Best force-closure triple (thumb, first, middle) in the grasp plane within the hand's reach:
+    the first of :func:`initial_grasps`."""
+    return initial_grasps(x, facets, com, mu, layout)[0]
+
+
+def initial_grasps(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    com: NDArray[np.float64],
+    mu: float,
+    layout: HandLayout = HandLayout(),  # noqa: B008 - frozen dataclass
+) -> list[InitialGrasp]:
+    """Every force-closure triple (thumb, first, middle) in the grasp plane within the layout's
+    reach, best (largest Ferrari-Canny epsilon) first; ties keep the search order.
 
     Parameters
     ----------
@@ -179,7 +192,7 @@ def initial_grasp(
     pts = com[None, :] + dist[:, None] * dirs
     nrm = _outward_normals(x, facets)
     ray = {float(a): i for i, a in enumerate(uniq)}
-    best: InitialGrasp | None = None
+    found: list[InitialGrasp] = []
     widest = 0.0
     for theta in thetas:
         it = ray[float(np.round(np.mod(theta, 2 * np.pi), 12))]
@@ -202,8 +215,8 @@ def initial_grasp(
             if not (side_by_side and opposed):
                 continue
             eps = ferrari_canny(p, -n_out, mu, com)
-            if best is None or eps > best.epsilon + 1e-12:
-                best = InitialGrasp(
+            found.append(
+                InitialGrasp(
                     points=p,
                     normals=n_out,
                     facets=fac[idx].astype(np.int64),
@@ -212,17 +225,21 @@ def initial_grasp(
                     thumb_azimuth=float(theta),
                     spread=float(phi),
                 )
-    if best is None:
+            )
+    if not found:
         raise InfeasibleGrasp(
             f"the hand cannot reach this object: no thumb/finger triple in the grasp plane has the "
             f"fingers {layout.min_spread * 1e3:.0f}-{layout.max_spread * 1e3:.0f} mm apart and the "
             f"thumb within {layout.max_aperture * 1e3:.0f} mm of them (the object is "
             f"{widest * 1e3:.0f} mm across); use a smaller object or a hand layout with a wider reach"
         )
-    if best.epsilon <= 0.0:
+    # Stable sort: equal qualities (symmetric objects) keep the azimuth order.
+    order = sorted(range(len(found)), key=lambda i: -round(found[i].epsilon, 12))
+    closure = [found[i] for i in order if found[i].epsilon > 0.0]
+    if not closure:
         raise InfeasibleGrasp(
             f"no reachable triple is force closure with mu = {mu:g}: the friction cones are too narrow "
             "for three fingertips to resist every load on this surface (with mu = 0 none can); "
             "raise the friction coefficient"
         )
-    return best
+    return closure

@@ -10,13 +10,15 @@ RK4 through the increment at the closing speed, then that static solve). Then th
 Sec. 3.5 (Eq. 21-22 with friction cones, :func:`squeeze_utilisation`): can normal forces no larger
 than each finger's current one, with friction inside the cones |f_t| <= mu f_n, hold
 ``safety_factor`` times the weight in force and torque? (On the table the fingers' normal forces
-need not balance among themselves; lifted, the object shifts until they do.) When it can, the hold
-is verified: the table is removed, ``hold_time`` seconds of implicit (backward Euler) dynamics with
+need not balance among themselves; lifted, the object shifts until they do.) When it can, the last
+step is bisected ``refine`` times on that test, and the hold is verified once at the smallest
+travel that passes it: the table is removed, ``hold_time`` seconds of implicit (backward Euler) dynamics with
 the fingertips fixed must move the centre of mass less than ``max_drift``, and a static solve in
 the fingers alone must find the held state within ``max_drift`` of the start, every contact
-pair sticking. A failed verification continues the closing. Past ``max_squeeze`` (a fraction of
-the shortest finger-to-centroid distance, travelled beyond the last finger's first contact) the
-object would be crushed: :class:`InfeasibleGrasp`.
+pair sticking. A failed verification continues the closing from there, by step / 2^refine at
+first and by doubling amounts up to a whole step, with a verification after each. Past
+``max_squeeze`` (a fraction of the shortest finger-to-centroid distance, travelled beyond the last
+finger's first contact) the object would be crushed: :class:`InfeasibleGrasp`.
 """
 
 from __future__ import annotations
@@ -28,13 +30,17 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import ConvexHull
 
 from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
 from softgrasp.contact.model import FingerReport, FingertipContact
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged, SimulationUnstable
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
-from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, initial_grasp
+from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, initial_grasps
+from softgrasp.hand.model import HandModel
+from softgrasp.hand.reach import HandPlacement, closing_paths, place_hand
+from softgrasp.mesh.placement import rotation_between
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import implicit_euler_step
 from softgrasp.sim.integrators import simulate
@@ -47,6 +53,12 @@ __all__ = ["PlanConfig", "FingerResult", "GraspPlan", "plan_grasp"]
 SOLVERS = ("quasistatic", "dynamic")
 #: First time step of the implicit holding simulation [s].
 HOLD_DT = 0.05
+#: Halvings of the holding simulation's step allowed when a step's Newton solve fails.
+MAX_HALVINGS = 6
+#: Initial-grasp shapes the planner tries to reach with the hand before giving up.
+MAX_PLACEMENTS = 12
+#: Failed placements after which the planner stops trying a spread angle of the layout.
+PER_SPREAD = 2
 #: Centre-of-mass motion per holding step below which the step is doubled [m].
 SETTLED = 1e-6
 
@@ -68,10 +80,13 @@ class PlanConfig:
     max_drift: largest centre-of-mass motion over ``hold_time`` for a hold [m].
     max_squeeze: largest travel past the last finger's first contact, as a fraction of the
         shortest finger-to-centroid distance (beyond it the object is crushed).
-    refine: bisections of the last closing step for the smallest travel that holds (the set-points
-        then resolve step / 2^refine: stiff objects gain force fast).
+    refine: bisections of the last closing step for the smallest travel that passes the grasp test
+        (the set-points then resolve step / 2^refine: stiff objects gain force fast).
     table_mu: friction between object and table.
-    layout: the hand's reach (:class:`HandLayout`).
+    layout: the search grid and coarse reach limits of the initial grasp (:class:`HandLayout`).
+    hand: the hand's kinematic model (default: the packaged Shadow-like hand); the initial grasp
+        must be reachable by it and its fingertips must follow the closing lines. ``None`` plans
+        for free fingertips (the layout alone limits the grasp).
     """
 
     contact: ContactParams = field(default_factory=ContactParams)
@@ -86,6 +101,7 @@ class PlanConfig:
     refine: int = 3
     table_mu: float = 0.5
     layout: HandLayout = field(default_factory=HandLayout)
+    hand: HandModel | None = field(default_factory=HandModel.default)
 
     def __post_init__(self) -> None:
         checks = {
@@ -125,6 +141,7 @@ class PlanConfig:
             "refine": self.refine,
             "table_mu": self.table_mu,
             "hand_layout": self.layout.describe(),
+            "hand": None if self.hand is None else self.hand.source,
         }
 
 
@@ -173,6 +190,12 @@ class GraspPlan:
     contact_points: each finger's mean contact point in the held state [m], (3, 3).
     com: centre of mass in the held state [m].
     first_contact_travel: travel at which each finger touched [m], (3,).
+    placed: the unloaded object as placed on the table [m], (N, 3): the mesh as given, or turned
+        onto a stable facet when it could not rest as given.
+    start_centres: fingertip centres where the closing starts [m], (3, 3).
+    placement: the hand's palm pose and joints at the start (None without a hand model).
+    joint_paths: per finger, the joint vectors moving its fingertip along its closing line from
+        the start to the final centre, (increments + 1, dof) (None without a hand model).
     config: the configuration used.  wall_time: seconds.
     """
 
@@ -197,6 +220,10 @@ class GraspPlan:
     contact_points: NDArray[np.float64]
     com: NDArray[np.float64]
     first_contact_travel: NDArray[np.float64]
+    placed: NDArray[np.float64]
+    start_centres: NDArray[np.float64]
+    placement: HandPlacement | None
+    joint_paths: dict[str, NDArray[np.float64]] | None
     config: PlanConfig
     wall_time: float
 
@@ -233,18 +260,131 @@ def _torque_residual(rep: FingerReport, centres, com) -> NDArray[np.float64]:
     return (rep.moment + np.cross(centres - com, rep.force)).sum(axis=0)
 
 
-def _hold(body: Body, scene: Scene, state: State, duration: float, cache: SolverCache) -> State:
+def _hold(
+    body: Body, scene: Scene, state: State, duration: float, cache: SolverCache, max_drift: float = np.inf
+) -> State | None:
     """``duration`` seconds of backward Euler from ``state``: steps of ``HOLD_DT``, doubled after
     every step in which the centre of mass moved less than ``SETTLED`` (the object has come to
-    rest: larger steps then cost nothing in accuracy)."""
+    rest: larger steps then cost nothing in accuracy). None as soon as the centre of mass has
+    moved ``max_drift`` from the start (the object is not held: no need to simulate on)."""
     dt = HOLD_DT
+    c0 = _com(body, state.x)
     while state.t < duration - 1e-12:
         h = min(dt, duration - state.t)
         before = _com(body, state.x)
-        state = implicit_euler_step(scene, state, h, cache=cache)
-        if np.linalg.norm(_com(body, state.x) - before) < SETTLED:
+        try:
+            state = implicit_euler_step(scene, state, h, cache=cache)
+        except NotConverged:
+            if h <= HOLD_DT / 2**MAX_HALVINGS:
+                raise
+            dt = h / 2.0  # a sudden slip or release: resolve it in shorter steps
+            continue
+        c = _com(body, state.x)
+        if np.linalg.norm(c - c0) >= max_drift:
+            return None
+        if np.linalg.norm(c - before) < SETTLED:
             dt *= 2.0
     return state
+
+
+def _table(x: NDArray[np.float64], mu: float) -> PlaneContact:
+    """The table: the horizontal plane under the lowest node of ``x``."""
+    zmin = float(x[:, 2].min())
+    return PlaneContact(Plane(np.array([0.0, 0.0, zmin]), np.array([0.0, 0.0, 1.0])), mu=mu, name="table")
+
+
+def _stable_pose(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``x`` turned rigidly about its centre of mass so that it stands on a stable facet of its
+    convex hull: the facet whose plane is nearest the centre of mass (the projection of the centre
+    of mass falls inside it, so the object cannot tip off it)."""
+    com = _com(body, x)
+    eq = ConvexHull(x).equations  # n . p + d <= 0 inside, n outward and unit
+    n = eq[int(np.argmin(-(eq[:, :3] @ com + eq[:, 3]))), :3]
+    R = rotation_between(n, np.array([0.0, 0.0, -1.0]))
+    return (x - com) @ R.T + com
+
+
+def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, PlaneContact, NDArray]:
+    """The object at rest on the table, and the table. First as the mesh stands; where that finds
+    no rest (a convex mesh balanced on one node tips over: Newton creeps along the nearly free
+    tipping mode), standing on its most stable hull facet, as a real object comes to rest.
+    Returns (the rest state, the table, the unloaded placement the rest was found from)."""
+    x = np.asarray(body.mesh.points, dtype=np.float64)
+    table = _table(x, cfg.table_mu)
+    rest = Scene(body, (table,))
+    try:
+        return solve_static(rest, rest.initial_state(), cache=cache)[0], table, x
+    except NotConverged:
+        pass
+    x = _stable_pose(body, x)
+    table = _table(x, cfg.table_mu)
+    rest = Scene(body, (table,))
+    try:
+        return solve_static(rest, rest.initial_state(x), cache=cache)[0], table, x
+    except NotConverged as exc:
+        raise NotConverged(
+            f"the object found no rest on the table, neither as meshed nor on its most stable facet: {exc}"
+        ) from exc
+
+
+def _start_centres(ig: InitialGrasp, cfg: PlanConfig) -> tuple[NDArray, NDArray, NDArray]:
+    """Fingertip centres where the closing starts: tangent to the surface at each contact point,
+    backed off one step along the closing line; the unit closing directions (towards the contact
+    triangle's centroid) and each contact's distance to that centroid."""
+    u = ig.centroid[None, :] - ig.points
+    reach = np.linalg.norm(u, axis=1)
+    u = u / reach[:, None]
+    return ig.points + cfg.fingertip_radius * ig.normals - cfg.step * u, u, reach
+
+
+def _hand_order(hand: HandModel, ig: InitialGrasp) -> InitialGrasp:
+    """``ig`` with the first and middle fingers' contacts swapped if the hand needs them the other
+    way round. Seen in a grasp from above (palm y from the thumb's contact to the fingers', palm
+    normal down), the finger whose knuckle lies farther along the palm's x axis takes the contact
+    farther along that axis: the fingers do not cross."""
+    up = np.array([0.0, 0.0, 1.0])
+    y = ig.points[1:].mean(axis=0) - ig.points[0]
+    y -= (y @ up) * up
+    x_axis = np.cross(y, -up)
+    knuckle = {f: hand.link_points(f, 0.5 * np.add(*hand.limits(f)))[0][0] for f in FINGER_NAMES[1:]}
+    want = knuckle["first"] > knuckle["middle"]
+    have = (ig.points[1] - ig.points[0]) @ x_axis > (ig.points[2] - ig.points[0]) @ x_axis
+    if want == have:
+        return ig
+    k = [0, 2, 1]
+    return replace(ig, points=ig.points[k], normals=ig.normals[k], facets=ig.facets[k])
+
+
+def _reachable_grasp(
+    xs: NDArray[np.float64], candidates: list[InitialGrasp], cfg: PlanConfig
+) -> tuple[InitialGrasp, HandPlacement | None]:
+    """The best initial grasp the hand reaches, and the hand's placement for it. Candidates come
+    best first; a spread angle (the layout's shape parameter) that failed ``PER_SPREAD`` times is
+    skipped (on a near-symmetric object its other azimuths fail alike), and at most
+    ``MAX_PLACEMENTS`` placements are tried."""
+    if cfg.hand is None:
+        return candidates[0], None
+    failures: dict[float, int] = {}
+    first_error: InfeasibleGrasp | None = None
+    tried = 0
+    for cand in candidates:
+        if failures.get(cand.spread, 0) >= PER_SPREAD:
+            continue
+        if tried >= MAX_PLACEMENTS:
+            break
+        tried += 1
+        ig = _hand_order(cfg.hand, cand)
+        start, _, _ = _start_centres(ig, cfg)
+        try:
+            placement = place_hand(cfg.hand, dict(zip(FINGER_NAMES, start, strict=True)), obstacle=xs)
+        except InfeasibleGrasp as exc:
+            first_error = first_error or exc
+            failures[cand.spread] = failures.get(cand.spread, 0) + 1
+            continue
+        return ig, placement
+    raise InfeasibleGrasp(
+        f"the hand reaches none of the {tried} best force-closure grasps tried; the best one: {first_error}"
+    )
 
 
 def _check_hold(
@@ -264,10 +404,10 @@ def _check_hold(
     start = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1],))
     c0 = _com(body, start.x)
     try:
-        end = _hold(body, scene, start, cfg.hold_time, cache)
-        moved = float(np.linalg.norm(_com(body, end.x) - c0))
-        if moved >= cfg.max_drift:
+        end = _hold(body, scene, start, cfg.hold_time, cache, cfg.max_drift)
+        if end is None:
             return None
+        moved = float(np.linalg.norm(_com(body, end.x) - c0))
         held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache)
     except (NotConverged, SimulationUnstable):
         return None
@@ -303,25 +443,14 @@ def plan_grasp(
     cfg = config
     mu = cfg.contact.mu
     cache = SolverCache()
-    x_mesh = np.asarray(body.mesh.points)
-    zmin = float(x_mesh[:, 2].min())
-    table = PlaneContact(
-        Plane(np.array([0.0, 0.0, zmin]), np.array([0.0, 0.0, 1.0])), mu=cfg.table_mu, name="table"
-    )
-    rest = Scene(body, (table,))
-    settled, _ = solve_static(rest, rest.initial_state(), cache=cache)
+    settled, table, placed = _settle(body, cfg, cache)
     xs = settled.x
     com0 = _com(body, xs)
     facets = body.mesh.facets
 
-    ig = initial_grasp(xs, facets, com0, mu, cfg.layout)
+    ig, placement = _reachable_grasp(xs, initial_grasps(xs, facets, com0, mu, cfg.layout), cfg)
     R = cfg.fingertip_radius
-    u = ig.centroid[None, :] - ig.points
-    reach = np.linalg.norm(u, axis=1)
-    u /= reach[:, None]
-    # Each fingertip starts tangent to the surface at its contact point, backed off one step along
-    # its closing line.
-    start = ig.points + R * ig.normals - cfg.step * u
+    start, u, reach = _start_centres(ig, cfg)
     unit_tips = tuple(Fingertip(R, centre=start[j], velocity=u[j], name=FINGER_NAMES[j]) for j in range(3))
     first = np.array([_first_touch(body, cfg.contact, tip, xs, 4 * cfg.step + R) for tip in unit_tips])
     # The load parameter of the scene: travel [m] for the quasi-static solver, time [s] at the
@@ -334,12 +463,11 @@ def plan_grasp(
     scene = Scene(body, (table, fc))
     state = State(xs, np.zeros_like(xs), 0.0, (settled.contacts[0], fc.init_state(body, xs, 0.0)))
     rows: list[tuple[float, NDArray, NDArray, NDArray, NDArray, bool]] = []
-    held: tuple[State, FingertipContact, float] | None = None
     k = 0
 
-    def attempt(start: State, t: float) -> tuple[State, tuple | None]:
-        """Close to travel t from ``start`` and record the increment. Returns (state, the verified
-        hold if the grasp test passes and the object holds)."""
+    def close(start: State, t: float) -> tuple[State, bool]:
+        """Close to travel t from ``start``, record the increment and apply the grasp test (the
+        squeeze-utilisation LP). Returns (state at rest, whether the test passes)."""
         st = _advance(scene, start, t * scale, cfg, cache)
         rep = fc.report(body, st.x, None, t * scale, st.contacts[1], static=True)
         feasible = False
@@ -359,13 +487,11 @@ def plan_grasp(
                 feasible,
             )
         )
-        hold = _check_hold(body, fc, st, t * scale, cfg, cache) if feasible else None
-        return st, hold
+        if progress is not None:
+            progress(min(t / max_travel, 1.0))
+        return st, feasible
 
-    t_lo, before = 0.0, state
-    while held is None:
-        k += 1
-        t = k * cfg.step
+    def too_far(t: float) -> None:
         if t > max_travel + 1e-12:
             last = rows[-1][2] if rows else np.zeros(3)
             raise InfeasibleGrasp(
@@ -374,23 +500,35 @@ def plan_grasp(
                 f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {mu:g}; raise the friction "
                 "coefficient, or grasp a lighter or stiffer object"
             )
-        before, t_lo = state, (k - 1) * cfg.step
-        state, held = attempt(before, t)
-        if progress is not None:
-            progress(min(t / max_travel, 1.0))
-    # Bisect the last step for the smallest travel that holds (stiff objects gain force fast): a
-    # probe holds when it passes the grasp test and its hold check.
+
+    # 1. Whole steps until the grasp test passes.
+    feasible, before = False, state
+    while not feasible:
+        k += 1
+        too_far(k * cfg.step)
+        before = state
+        state, feasible = close(before, k * cfg.step)
+    # 2. Bisect the last step on the grasp test for the smallest travel that passes it (stiff
+    # objects gain force fast within one step).
     t_hi = k * cfg.step
     if k > 1:
-        lo, lo_state = t_lo, before
+        lo, lo_state = (k - 1) * cfg.step, before
         for _ in range(cfg.refine):
             mid = 0.5 * (lo + t_hi)
-            st, h = attempt(lo_state, mid)
-            if h is None:
-                lo, lo_state = mid, st
+            st, ok = close(lo_state, mid)
+            if ok:
+                t_hi, state = mid, st
             else:
-                t_hi, held = mid, h
-    t_final = t_hi
+                lo, lo_state = mid, st
+    # 3. Remove the table and verify the hold there (the expensive check: implicit dynamics).
+    # Where the object is not held, the fingers close further, by the refined resolution at first
+    # and by doubling amounts up to a whole step, until it is.
+    t_final, extra = t_hi, cfg.step / 2**cfg.refine
+    while (held := _check_hold(body, fc, state, t_final * scale, cfg, cache)) is None:
+        t_final += extra
+        too_far(t_final)
+        state, _ = close(state, t_final)
+        extra = min(2.0 * extra, cfg.step)
 
     held_state, fixed, drift = held
     hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
@@ -418,6 +556,11 @@ def plan_grasp(
         )
         for j in range(3)
     )
+    joint_paths = None
+    if placement is not None:
+        assert cfg.hand is not None
+        lines = {f.name: (start[j], centres[j]) for j, f in enumerate(fingers)}
+        joint_paths = closing_paths(cfg.hand, placement, lines, max(1, int(np.ceil(t_final / cfg.step))))
     if progress is not None:
         progress(1.0)
     rows.sort(key=lambda r: r[0])  # the bisection's increments among the others, by travel
@@ -443,6 +586,10 @@ def plan_grasp(
         contact_points=pts,
         com=com,
         first_contact_travel=first,
+        placed=placed,
+        start_centres=start,
+        placement=placement,
+        joint_paths=joint_paths,
         config=cfg,
         wall_time=time.perf_counter() - t0,
     )

@@ -63,6 +63,7 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             {
                 "name": f.name,
                 "initial_contact_m": _v(f.initial_contact),
+                "start_position_m": _v(plan.start_centres[j]),
                 "final_position_m": _v(f.final_position),
                 "penetration_m": f.penetration,
                 "force_N": _v(f.force),
@@ -84,8 +85,29 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             "tolerance": f"residuals <= {EQUILIBRIUM_TOL:.0%} of the weight (torque: x largest lever arm)",
         },
         "hold": {"com_drift_m": plan.com_drift, "duration_s": plan.hold_time},
+        "hand": _hand_section(plan),
         "increments": plan.increments,
         "wall_time_s": plan.wall_time,
+    }
+
+
+def _hand_section(plan: GraspPlan) -> dict[str, Any] | None:
+    """The hand's posture: palm pose, and per finger its joints at the start of the closing and at
+    the held state (the last row of its closing path)."""
+    pl, hand = plan.placement, plan.config.hand
+    if pl is None or hand is None or plan.joint_paths is None:
+        return None
+    return {
+        "model": hand.source,
+        "palm_pose": [_v(row) for row in pl.palm_pose],
+        "fingers": {
+            f.name: {
+                "joints": list(hand.joint_names(f.name)),
+                "q_start_rad": _v(plan.joint_paths[f.name][0]),
+                "q_final_rad": _v(plan.joint_paths[f.name][-1]),
+            }
+            for f in plan.fingers
+        },
     }
 
 

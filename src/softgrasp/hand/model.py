@@ -482,6 +482,28 @@ class HandModel:
         chain, v = self._q(finger, q)
         return _kinematics(chain, v, False)[0]
 
+    def link_points(self, finger: str, q: ArrayLike) -> NDArray[np.float64]:
+        """Origins of the finger's joints in root-to-tip order, then the fingertip centre, ``(k + 1,
+        3)`` [m] in the palm frame: the polyline of its links (for clearance checks and drawings)."""
+        chain, v = self._q(finger, q)
+        T = np.eye(4)
+        out = []
+        for joint, k, gain, offset in zip(
+            chain.joints, chain.drive_index, chain.drive_gain, chain.drive_offset, strict=True
+        ):
+            T = T @ joint.origin
+            out.append(T[:3, 3].copy())
+            if k >= 0:
+                M = np.eye(4)
+                value = gain * v[k] + offset
+                if joint.kind == "revolute":
+                    M[:3, :3] = _axis_rotation(joint.axis, value)
+                else:
+                    M[:3, 3] = value * joint.axis
+                T = T @ M
+        out.append(T[:3, 3].copy())
+        return np.array(out)
+
     def jacobian(self, finger: str, q: ArrayLike) -> NDArray[np.float64]:
         """Analytic positional Jacobian ``d tip / d q``, shape ``(3, dof)``.
 

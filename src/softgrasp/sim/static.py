@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.mesh.tetmesh import signed_volumes
-from softgrasp.sim.linsolve import SolverCache, solve_newton_system
+from softgrasp.sim.linsolve import _SINGULAR, SolverCache, _rigid_modes, solve_newton_system
 from softgrasp.sim.scene import Scene, State
 
 __all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints", "MAX_HALVINGS"]
@@ -161,10 +161,26 @@ def _newton(
     scale = max(np.abs(f_int).max(), grav, 1e-300)
     if res <= STALL_RTOL * scale:
         return x, max_iter, res, lam, contacts
+    if _free_rigid_motion(scene, x, t, contacts, C):
+        raise NotConverged(f"static solve did not converge: {_SINGULAR}")
     raise NotConverged(
         f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
         f"{res:.3g} N); use smaller load steps"
     )
+
+
+def _free_rigid_motion(scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple, C) -> bool:
+    """Whether a rigid translation or rotation of the body meets (almost) no stiffness at ``x``:
+    nothing holds the body in place, which is why Newton could not converge. (Singular Newton
+    systems are used on the way, e.g. before the body touches the table, so this is asked only
+    once Newton has failed.)"""
+    if C is not None:
+        return False
+    A = -scene.jacobian(x, t, contacts)
+    B = _rigid_modes(x)
+    B /= np.linalg.norm(B, axis=0)
+    scale = float(np.abs(A).sum(axis=1).max()) or 1.0  # the largest row sum bounds |A|
+    return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * scale).any())
 
 
 def solve_static(

@@ -308,6 +308,7 @@ def plot_grasp_3d(
     *,
     elev: float = 20.0,
     azim: float | None = None,
+    links: Sequence[NDArray[np.float64]] = (),
 ) -> Path:
     """3D picture of a grasp: deformed object surface, fingertip spheres and contact force arrows.
 
@@ -326,6 +327,7 @@ def plot_grasp_3d(
     title: figure title (none if empty).
     weight: optional (centre of mass [m] (3,), weight [N]) drawn as a downward arrow.
     elev, azim: viewpoint [deg]; by default the azimuth is chosen so all fingers are visible.
+    links: the hand drawn as polylines [m], each (K, 3) (palm outline, finger joints to tip).
 
     Raises
     ------
@@ -454,6 +456,12 @@ def plot_grasp_3d(
 
     # Force arrows (on top of everything) with one shared scale.
     ends = [P[np.unique(tri)], (C - R[:, None]), (C + R[:, None])]
+    for k, line in enumerate(links):
+        L = 1e3 * _as_array(f"links[{k}]", line, (None, 3))
+        ends.append(L)
+        ax.plot(*L.T, color="0.35", lw=3.0, marker="o", ms=3.5, solid_capstyle="round", zorder=4)
+    if len(links):
+        handles.append(Line2D([], [], color="0.35", lw=3.0, marker="o", ms=3.5, label="hand"))
     from matplotlib.patheffects import Normal, Stroke
 
     # A white halo keeps each arrow readable over its own fingertip and over the surface edges.
