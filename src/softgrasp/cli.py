@@ -401,6 +401,155 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_execute(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from softgrasp.hand.execute import PHASES, ClosingLine, ExecuteConfig, execute_plan
+    from softgrasp.hand.planfile import load_plan_file
+    from softgrasp.hand.reach import invert, transform
+    from softgrasp.mesh.io import load_mesh
+    from softgrasp.output import write_json, write_text
+    from softgrasp.viz.plots import plot_execution_forces, plot_grasp_3d
+
+    t0 = time.perf_counter()
+    if not (np.isfinite(args.scale) and args.scale > 0):
+        raise ConfigError(f"--scale must be a number > 0, got {args.scale}")
+    if not (np.isfinite(args.lift) and args.lift >= 0):
+        raise ConfigError(f"--lift must be a height >= 0 m, got {args.lift}")
+    plan = load_plan_file(args.plan)
+    out = Path(str(args.out))
+    from softgrasp.hand.mujoco_hand import MujocoHand
+
+    hand = MujocoHand.from_plan(plan)
+    facets = load_mesh(plan.mesh_file).facets
+    to_palm = invert(plan.palm_pose)
+    lines = {}
+    for f in plan.fingers:
+        a, b = transform(to_palm, f.start), transform(to_palm, f.final)
+        L = float(np.linalg.norm(b - a))
+        # The crushing guard: three times the planned travel, at least 5 mm more than it.
+        lines[f.name] = ClosingLine(args.scale * f.normal_force, a, (b - a) / L, max(3.0 * L, L + 0.005))
+    cfg = ExecuteConfig(lift=float(args.lift))
+    names = [f.name for f in plan.fingers]
+    print(
+        f"executing {args.plan} on {args.backend}: set-points "
+        + ", ".join(f"{n} {lines[n].setpoint:.3f} N" for n in names)
+        + (f" (x {args.scale:g})" if args.scale != 1 else "")
+    )
+    frames: dict[str, tuple] = {}
+
+    def snapshot(event: str) -> None:
+        hand.scene._mj.mj_forward(hand.scene.model, hand.scene.data)
+        tips = np.array([hand.scene.fingertip_position(n) for n in names])
+        forces = np.array([hand.scene.fingertip_force(n) for n in names])
+        frames[event] = (hand.scene.object_nodes(), tips, forces, hand.links(), hand.time)
+
+    bar, update = _progress("execute")
+    try:
+        res = execute_plan(
+            hand, lines, cfg, palm_to_world=hand.palm_to_world, progress=update, on_event=snapshot
+        )
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    ser = res.series
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    head = ["t_s", "phase", "base_rise_m", "com_x_m", "com_y_m", "com_z_m"]
+    head += [f"{n}_normal_force_N" for n in names] + [f"{n}_travel_m" for n in names]
+    w.writerow(head)
+    for k in range(len(ser["t"])):
+        row = [ser["t"][k], PHASES[int(ser["phase"][k])], ser["base_z"][k], *ser["com"][k]]
+        row += list(ser["force"][k]) + list(ser["travel"][k])
+        w.writerow([f"{v:.9g}" if isinstance(v, float | np.floating) else v for v in row])
+    phases = [(p, res.events[p]) for p in PHASES if p in res.events]
+    plot_execution_forces(
+        ser["t"],
+        ser["force"],
+        [lines[n].setpoint for n in names],
+        names,
+        out / "execute_forces.png",
+        phases=phases,
+        tolerance=cfg.tolerance,
+    )
+    pictures = []
+    titles = {
+        "start": "initial pose",
+        "contact": "first contact",
+        "closed": "final deformation",
+        "end": "lifted",
+    }
+    for event, label in titles.items():
+        if event not in frames:
+            continue
+        nodes, tips, forces, links, t_ev = frames[event]
+        contact = tips - plan.fingertip_radius * np.nan_to_num(
+            forces / np.maximum(np.linalg.norm(forces, axis=1, keepdims=True), 1e-12)
+        )
+        name = f"frame_{event}.png"
+        plot_grasp_3d(
+            nodes,
+            facets,
+            tips,
+            np.full(len(names), plan.fingertip_radius),
+            forces,
+            contact,
+            names,
+            out / name,
+            title=f"{label} (t = {t_ev:.2f} s, MuJoCo)",
+            links=links,
+        )
+        pictures.append(name)
+    sim = float(ser["t"][-1]) if len(ser["t"]) else 0.0
+    doc = {
+        "schema": "softgrasp.execute/1",
+        "plan": str(Path(args.plan).resolve()),
+        "backend": args.backend,
+        "scale": args.scale,
+        "parameters": {**cfg.describe(), "mujoco_timestep_s": float(hand.scene.model.opt.timestep)},
+        "fingers": [
+            {
+                "name": n,
+                "setpoint_N": res.setpoints[n],
+                "measured_N": res.measured[n],
+                "error_N": res.measured[n] - res.setpoints[n],
+                "held_N": res.held[n],
+            }
+            for n in names
+        ],
+        "reached": res.reached,
+        "lifted": res.lifted,
+        "dropped": res.dropped,
+        "slip_m": res.slip,
+        "rise_m": res.rise,
+        "events_s": res.events,
+        "simulated_time_s": sim,
+        "wall_time_s": wall,
+        "realtime_factor": sim / wall if wall > 0 else None,
+    }
+    write_text(out / "execute.csv", buf.getvalue())
+    write_json(out / "execute.json", doc)
+    print("finger    set-point N  measured N  error %   held N")
+    for fd in doc["fingers"]:
+        print(
+            f"{fd['name']:<9}{fd['setpoint_N']:>12.3f}{fd['measured_N']:>12.3f}"
+            f"{100 * fd['error_N'] / fd['setpoint_N']:>9.1f}{fd['held_N']:>9.3f}"
+        )
+    state = "DROPPED" if res.dropped else "lifted"
+    print(
+        f"{state}: object rose {res.rise * 1e3:.1f} mm of {cfg.lift * 1e3:.0f} mm; slip "
+        f"{res.slip * 1e3:.2f} mm; set-points {'reached' if res.reached else 'NOT reached'} within "
+        f"{cfg.tolerance:.0%}; {sim:.2f} s simulated in {wall:.1f} s"
+    )
+    print(f"wrote {out}/execute.json, execute.csv, execute_forces.png, {', '.join(pictures)}")
+    if res.dropped:
+        print(
+            "softgrasp: the object dropped: raise the set-points (plan with --safety-factor)", file=sys.stderr
+        )
+        return 1
+    return 0
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--object",
@@ -529,6 +678,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="bisections of the last step for the smallest holding squeeze (default 3: step / 8)",
     )
     pl.add_argument("--config", default=None, metavar="FILE.toml", help="TOML file with any of these options")
+
+    ex = sub.add_parser("execute", help="execute a plan under force control on a simulated hand and lift")
+    ex.add_argument("plan", metavar="PLAN.json", help="a plan written by softgrasp plan")
+    ex.add_argument("--backend", choices=("mujoco",), default="mujoco", help="the hand (default: mujoco)")
+    ex.add_argument("--lift", type=float, default=0.10, help="lift height [m] (default 0.10)")
+    ex.add_argument("--scale", type=float, default=1.0, help="multiply the set-points (default 1)")
+    ex.add_argument(
+        "--out", default="softgrasp-out/execute", help="output directory (default softgrasp-out/execute)"
+    )
+    ex.add_argument("--debug", action="store_true", help="show tracebacks of internal errors")
+    ex.set_defaults(func=_cmd_execute)
     return p
 
 

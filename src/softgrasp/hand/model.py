@@ -39,6 +39,7 @@ __all__ = [
     "HandModel",
     "wdls_step",
     "solve_ik",
+    "track",
     "follow_line",
 ]
 
@@ -706,6 +707,22 @@ def solve_ik(
     raise InfeasibleGrasp(
         f"the {finger} fingertip cannot reach target {_mm(p)} mm: closest {1e3 * best:.3f} mm away"
     )
+
+
+def track(
+    model: HandModel,
+    finger: str,
+    target: ArrayLike,
+    q: ArrayLike,
+    *,
+    iterations: int = 10,
+    damping: float = 1e-3,
+) -> NDArray[np.float64]:
+    """Joint vector moving the fingertip from its posture ``q`` towards ``target`` (palm frame):
+    up to ``iterations`` limit-clamped WDLS iterations, no restarts, so successive calls give a
+    continuous motion (a Cartesian controller's inner loop). Never leaves the joint limits."""
+    chain, q0, w, lam = _ik_options(model, finger, q, damping, None)
+    return _descend(chain, _point(target, "target"), q0, w, lam, 1e-7, int(iterations))[0]
 
 
 def follow_line(

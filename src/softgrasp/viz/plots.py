@@ -167,6 +167,48 @@ def _check_names(names: Sequence[str], n_f: int) -> list[str]:
     return names
 
 
+def plot_execution_forces(
+    t: NDArray[np.float64],
+    forces: NDArray[np.float64],
+    setpoints: Sequence[float],
+    names: Sequence[str],
+    path: str | Path,
+    *,
+    phases: Sequence[tuple[str, float]] = (),
+    tolerance: float = 0.05,
+    title: str = "Executed grasp: measured normal force vs set-point",
+) -> Path:
+    """Measured fingertip normal force against time with each finger's set-point and its
+    tolerance band (paper Fig. 15 style), the phases marked by vertical lines.
+
+    Parameters
+    ----------
+    t: times [s], (K,).  forces: measured normal force per finger [N], (K, n_f).
+    setpoints: per finger [N].  names: one label per finger.  path: PNG file to write.
+    phases: (label, start time [s]) of each phase.  tolerance: relative half-width of the band.
+    """
+    x = _as_array("t", t, (None,))
+    f = _as_array("forces", forces, (x.shape[0], None))
+    sp = _as_array("setpoints", np.asarray(setpoints, dtype=np.float64), (f.shape[1],))
+    names = _check_names(names, f.shape[1])
+    plt = _figure()
+    fig, ax = plt.subplots(figsize=(7.2, 4.4), dpi=120)
+    for i, name in enumerate(names):
+        colour, _ = _finger_style(i)
+        ax.plot(x, f[:, i], lw=1.4, color=colour, label=f"{name} (set-point {sp[i]:.2f} N)")
+        ax.axhline(sp[i], color=colour, lw=1.0, ls="--")
+        ax.axhspan(sp[i] * (1 - tolerance), sp[i] * (1 + tolerance), color=colour, alpha=0.12, lw=0)
+    top = float(max(f.max(initial=0.0), sp.max()) * 1.25)
+    for label, start in phases:
+        ax.axvline(start, color="0.5", lw=0.8, ls=":")
+        ax.text(start, top * 0.98, f" {label}", va="top", ha="left", fontsize=8, color="0.35")
+    ax.set_ylim(0.0, top)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("normal force [N]")
+    ax.set_title(title)
+    return _save(plt, fig, ax, path, legend_loc="lower right")
+
+
 def plot_plan_forces(
     increments: NDArray[np.float64],
     force_norms: NDArray[np.float64],

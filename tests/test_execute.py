@@ -1,0 +1,126 @@
+"""The force-controlled execution (paper step 3) on a hand whose physics is known in closed form:
+Hertz-like fingertip springs and Coulomb friction against gravity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softgrasp.errors import ConfigError
+from softgrasp.hand.execute import ClosingLine, ExecuteConfig, execute_plan
+from softgrasp.hand.protocol import Hand
+
+G = 9.81
+
+
+class SpringHand:
+    """Three fingertips pressing a rigid-bodied object through springs F = k d^1.5 (d the
+    fingertip's advance past first contact at ``gap``); each tip follows its command through a
+    first-order servo lag ``tau``. The object rides with the base while friction can hold it
+    (mu * sum of normal forces >= m g), and otherwise slides down under gravity."""
+
+    fingers = ("thumb", "first", "middle")
+
+    def __init__(self, k=2.0e3, gap=5e-4, tau=0.02, mu=0.8, mass=0.05):
+        self.k, self.gap, self.tau, self.mu, self.mass = k, gap, tau, mu, mass
+        self.t = 0.0
+        dirs = {"thumb": [0, 1, 0], "first": [0, -1, 0], "middle": [0, -1, 0]}
+        self.dir = {f: np.array(v, float) for f, v in dirs.items()}
+        self.start = {f: -0.05 * self.dir[f] for f in self.fingers}
+        self.pos = dict(self.start)
+        self.cmd = dict(self.start)
+        self.base = np.zeros(3)
+        self.com = np.array([0.0, 0.0, 0.0])
+        self.vz = 0.0
+
+    @property
+    def time(self):
+        return self.t
+
+    def _advance(self, f):
+        return float((self.pos[f] - self.start[f]) @ self.dir[f])
+
+    def fingertip_positions(self):
+        return dict(self.pos)
+
+    def fingertip_normal_forces(self):
+        return {f: self.k * max(self._advance(f) - self.gap, 0.0) ** 1.5 for f in self.fingers}
+
+    def fingertip_forces(self):
+        n = self.fingertip_normal_forces()
+        return {f: n[f] * self.dir[f] for f in self.fingers}
+
+    def command_fingertips(self, targets):
+        self.cmd = {f: np.asarray(v, float) for f, v in targets.items()}
+
+    def command_base(self, offset):
+        self.base = np.asarray(offset, float)
+
+    def step(self, dt):
+        a = dt / (self.tau + dt)
+        for f in self.fingers:
+            self.pos[f] = self.pos[f] + a * (self.cmd[f] - self.pos[f])
+        grip = self.mu * sum(self.fingertip_normal_forces().values())
+        if grip >= self.mass * G and self.vz == 0.0:
+            self.com[2] = self.base[2]  # stuck to the fingertips: rides with the base
+        else:  # friction too weak: the object slides down, onto the table at z = 0
+            self.vz -= (G - grip / self.mass) * dt
+            self.com[2] = self.com[2] + self.vz * dt
+            if self.com[2] <= 0.0:
+                self.com[2], self.vz = 0.0, 0.0
+        self.t += dt
+
+    def object_position(self):
+        return self.com.copy()
+
+
+def lines_for(hand, setpoint):
+    return {
+        f: ClosingLine(setpoint=setpoint, start=hand.start[f], direction=hand.dir[f], max_travel=0.02)
+        for f in hand.fingers
+    }
+
+
+def test_spring_hand_satisfies_the_protocol():
+    assert isinstance(SpringHand(), Hand)
+
+
+def test_controller_reaches_the_set_points_and_lifts_without_slip():
+    hand = SpringHand()
+    # mu * 3 * 0.3 N = 0.72 N > m g = 0.49 N: the grasp holds.
+    res = execute_plan(hand, lines_for(hand, 0.3), ExecuteConfig(lift=0.05, hold_time=0.5))
+    assert res.reached
+    for f in hand.fingers:
+        assert abs(res.measured[f] - 0.3) <= 0.05 * 0.3
+        assert abs(res.held[f] - 0.3) <= 0.05 * 0.3
+    # The fingertip stops where the spring gives the set-point: d = gap + (F / k)^(2/3).
+    d = hand.gap + (0.3 / hand.k) ** (2 / 3)
+    assert res.series["travel"][-1] == pytest.approx(np.full(3, d), rel=0.02)
+    assert res.lifted and not res.dropped
+    assert res.rise == pytest.approx(0.05, abs=1e-3)
+    assert res.slip < 1e-5  # the fingertips re-adjust by microns; the object does not slide
+    assert res.events["settle"] < res.events["close"] < res.events["lift"] < res.events["hold"]
+    assert res.events["hold"] - res.events["lift"] == pytest.approx(0.05 / 0.05, abs=0.003)
+
+
+def test_too_small_set_points_drop_the_object():
+    hand = SpringHand()
+    # mu * 3 * 0.1 N = 0.24 N < m g: reaching the set-points does not hold the weight.
+    res = execute_plan(hand, lines_for(hand, 0.1), ExecuteConfig(lift=0.05, hold_time=0.5))
+    assert res.reached
+    assert res.dropped and not res.lifted
+    assert res.slip > 0.025
+
+
+def test_bad_lines_and_settings_are_refused():
+    with pytest.raises(ConfigError, match="set-point"):
+        ClosingLine(setpoint=-1.0, start=np.zeros(3), direction=np.array([1.0, 0, 0]), max_travel=0.01)
+    with pytest.raises(ConfigError, match="unit vector"):
+        ClosingLine(setpoint=1.0, start=np.zeros(3), direction=np.array([2.0, 0, 0]), max_travel=0.01)
+    with pytest.raises(ConfigError, match="lift_speed"):
+        ExecuteConfig(lift_speed=0.0)
+    hand = SpringHand()
+    lines = lines_for(hand, 0.3)
+    lines["ring"] = lines["thumb"]
+    with pytest.raises(ConfigError, match="no finger"):
+        execute_plan(hand, lines)
