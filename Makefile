@@ -27,6 +27,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_body.py
 	$(BIN)/python benchmarks/bench_contact.py
 	$(BIN)/python benchmarks/bench_plan.py
+	$(BIN)/python benchmarks/bench_execute.py
 
 clean:
 	rm -rf $(VENV) softgrasp-out .pytest_cache

@@ -260,6 +260,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "hold_time": 1.0,
     "max_squeeze": 0.5,
     "refine": 3,
+    "hand": "shadow_like",
     "out": "softgrasp-out/plan",
     "reorient": False,
 }
@@ -298,6 +299,17 @@ def _plan_options(args: argparse.Namespace) -> argparse.Namespace:
     if merged["solver"] not in ("quasistatic", "dynamic"):
         raise ConfigError(f"solver must be quasistatic or dynamic, got {merged['solver']!r}")
     return argparse.Namespace(**{**vars(args), **merged})
+
+
+def _hand(name: str):
+    """The hand model named by --hand: the packaged Shadow-like hand, a URDF file, or none."""
+    from softgrasp.hand.model import HandModel
+
+    if name == "shadow_like":
+        return HandModel.default()
+    if name == "none":
+        return None
+    return HandModel.from_urdf(name)
 
 
 def _hand_links(plan) -> list:
@@ -345,6 +357,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         hold_time=float(args.hold_time),
         max_squeeze=float(args.max_squeeze),
         refine=int(args.refine),
+        hand=_hand(str(args.hand)),
     )
     bar, update = _progress("plan")
     try:
@@ -676,6 +689,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="bisections of the last step for the smallest holding squeeze (default 3: step / 8)",
+    )
+    pl.add_argument(
+        "--hand",
+        default=None,
+        metavar="URDF",
+        help="the hand: a URDF file (fingertip links th_tip, ff_tip, mf_tip), 'shadow_like' (default, "
+        "packaged) or 'none' (free fingertips, no reachability check)",
     )
     pl.add_argument("--config", default=None, metavar="FILE.toml", help="TOML file with any of these options")
 

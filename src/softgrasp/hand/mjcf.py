@@ -21,14 +21,15 @@ Scene
   zero velocity in the contact solver, so friction would hold the object in place while the
   fingers slid up past it (measured: the sphere stayed on the table at any grip). The hand's
   bodies are gravity-compensated by the arm (``gravcomp``).
-* **Hand**: the palm (root link) rides on the arm at ``palm_pose``; below it a body per URDF link at its joint ``origin``, a hinge
-  (revolute) or slide (prismatic) joint about the URDF ``axis`` with the joint's own limits (fixed
-  joints weld), a capsule per link segment and a sphere per moving joint for looks (and link
-  inertia; density 1000 kg/m^3, no collisions) and a sphere of the finger's radius centred on
-  every fingertip link: the only hand geoms that collide, and only with the object. A mimic joint
-  is an equality ``q = offset + multiplier q_mimic``; every independent joint has a position
-  servo whose ``ctrl`` is its target [rad or m]. The keyframe ``initial`` holds ``q0`` and the
-  servo targets, so the XML alone starts where :func:`load_scene` does.
+* **Hand**: the palm (root link) rides on the arm at ``palm_pose``; below it a body per URDF link
+  at its joint ``origin``, a hinge (revolute) or slide (prismatic) joint about the URDF ``axis``
+  with the joint's own limits (fixed joints weld), a capsule per link segment and a sphere per
+  moving joint for looks (and link inertia; density 1000 kg/m^3, no collisions) and a sphere of
+  the finger's radius centred on every fingertip link: the only hand geoms that collide, and only
+  with the object. A mimic joint is an equality ``q = offset + multiplier q_mimic``; every
+  independent joint has a position servo whose ``ctrl`` is its target [rad or m]. The keyframe
+  ``initial`` holds ``q0`` and the servo targets, so the XML alone starts where :func:`load_scene`
+  does.
 
 Choices
 -------
@@ -156,7 +157,8 @@ ARM_DAMPING = 450.0
 
 #: Message of the :class:`ConfigError` raised when MuJoCo cannot be imported.
 MUJOCO_MISSING = (
-    "MuJoCo is not installed: pip install 'mujoco>=3.3' (or reinstall softgrasp with its execute extra)"
+    "MuJoCo is not installed: pip install 'mujoco>=4.0', or reinstall softgrasp with its extra: "
+    "pip install -e '.[execute]'"
 )
 
 #: Default simulation time step [s] (converged: 1 ms gives the same contact forces; module docstring).
