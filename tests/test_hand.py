@@ -437,6 +437,20 @@ def _pose(rotvec: list[float], origin: list[float]) -> np.ndarray:
     return T
 
 
+def _known_targets() -> dict[str, np.ndarray]:
+    """Fingertip targets made by forward kinematics from a palm pose and joint angles (a grasp from
+    above) that the placement does not see."""
+    from softgrasp.hand.reach import transform
+
+    pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
+    q = {
+        "thumb": np.array([0.5, 0.7, 0.0, 0.1, 0.4]),
+        "first": np.array([0.05, 0.6, 0.5]),
+        "middle": np.array([-0.05, 0.6, 0.5]),
+    }
+    return {f: transform(pose, MODEL.forward(f, q[f])) for f in FINGERS}
+
+
 def test_link_points_start_at_the_knuckle_and_end_at_the_fingertip() -> None:
     q = np.array([0.1, 0.4, 0.3])
     pts = MODEL.link_points("first", q)
@@ -451,15 +465,9 @@ def test_place_hand_finds_a_posture_for_targets_of_a_known_posture() -> None:
     """Targets made by forward kinematics from a palm pose and joint angles softgrasp does not see:
     the placement reaches every one (to 10 um) within the joint limits. The posture found may
     differ (the problem has 19 unknowns for 9 equations), the fingertips may not."""
-    from softgrasp.hand.reach import REACH_TOL, place_hand, transform
+    from softgrasp.hand.reach import REACH_TOL, place_hand
 
-    pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
-    q = {
-        "thumb": np.array([0.5, 0.7, 0.0, 0.1, 0.4]),
-        "first": np.array([0.05, 0.6, 0.5]),
-        "middle": np.array([-0.05, 0.6, 0.5]),
-    }
-    targets = {f: transform(pose, MODEL.forward(f, q[f])) for f in FINGERS}
+    targets = _known_targets()
     pl = place_hand(MODEL, targets)
     for f in FINGERS:
         assert in_limits(f, pl.q[f])
@@ -480,15 +488,9 @@ def test_place_hand_names_the_finger_that_cannot_reach() -> None:
 def test_place_hand_keeps_the_palm_out_of_the_object() -> None:
     """The same targets, once free and once inside a large block that the hand cannot reach into
     without putting its palm or joints inside: the second is refused with that reason."""
-    from softgrasp.hand.reach import place_hand, transform
+    from softgrasp.hand.reach import place_hand
 
-    pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
-    q = {
-        "thumb": np.array([0.5, 0.7, 0.0, 0.1, 0.4]),
-        "first": np.array([0.05, 0.6, 0.5]),
-        "middle": np.array([-0.05, 0.6, 0.5]),
-    }
-    targets = {f: transform(pose, MODEL.forward(f, q[f])) for f in FINGERS}
+    targets = _known_targets()
     centre = np.mean(list(targets.values()), axis=0)
     block = centre + 0.4 * (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T)
     with pytest.raises(InfeasibleGrasp, match="inside the object"):
@@ -498,13 +500,7 @@ def test_place_hand_keeps_the_palm_out_of_the_object() -> None:
 def test_closing_paths_move_fingertips_along_their_lines() -> None:
     from softgrasp.hand.reach import closing_paths, place_hand, transform
 
-    pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
-    q = {
-        "thumb": np.array([0.5, 0.7, 0.0, 0.1, 0.4]),
-        "first": np.array([0.05, 0.6, 0.5]),
-        "middle": np.array([-0.05, 0.6, 0.5]),
-    }
-    targets = {f: transform(pose, MODEL.forward(f, q[f])) for f in FINGERS}
+    targets = _known_targets()
     pl = place_hand(MODEL, targets)
     centroid = np.mean(list(targets.values()), axis=0)
     lines = {

@@ -260,31 +260,29 @@ def execute_plan(
     measured = dict(hand.fingertip_normal_forces())
     if on_event is not None:
         on_event("closed")
-    # 3. lift, force control running
+
+    # 3. lift, and 4. hold
+    def run(phase: int, duration: float, base_z: Callable[[float], float] | None = None) -> None:
+        """``duration`` seconds of control periods; ``base_z(elapsed)`` commands the base."""
+        start = hand.time
+        while hand.time < start + duration - 1e-12:
+            if base_z is not None:
+                base[2] = base_z(hand.time + dt - start)
+                hand.command_base(base.copy())
+            if cfg.force_control_in_lift:
+                control(hand.fingertip_normal_forces())
+                command()
+            hand.step(dt)
+            record(phase, hand.fingertip_normal_forces())
+
+    rise_time = cfg.lift / cfg.lift_speed
     events["lift"] = hand.time
     lift_start = len(rows)
-    rise_time = cfg.lift / cfg.lift_speed
-    t0 = hand.time
-    while hand.time < t0 + rise_time - 1e-12:
-        # A smooth rise (half a cosine: no jerk at either end) at lift_speed on average.
-        tau = min((hand.time + dt - t0) / rise_time, 1.0)
-        base = np.array([0.0, 0.0, cfg.lift * 0.5 * (1.0 - math.cos(math.pi * tau))])
-        hand.command_base(base)
-        if cfg.force_control_in_lift:
-            control(hand.fingertip_normal_forces())
-            command()
-        hand.step(dt)
-        record(2, hand.fingertip_normal_forces())
-    # 4. hold
+    # A smooth rise (half a cosine: no jerk at either end) at lift_speed on average.
+    run(2, rise_time, lambda e: cfg.lift * 0.5 * (1.0 - math.cos(math.pi * min(e / rise_time, 1.0))))
     events["hold"] = hand.time
     hold_start = len(rows)
-    t1 = hand.time
-    while hand.time < t1 + cfg.hold_time - 1e-12:
-        if cfg.force_control_in_lift:
-            control(hand.fingertip_normal_forces())
-            command()
-        hand.step(dt)
-        record(3, hand.fingertip_normal_forces())
+    run(3, cfg.hold_time)
     events["end"] = hand.time
     if on_event is not None:
         on_event("end")
