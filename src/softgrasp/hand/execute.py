@@ -3,8 +3,9 @@ planned set-points, then the lift and the hold, with the slip check.
 
 Phases, all driven through the :class:`~softgrasp.hand.protocol.Hand` interface:
 
-1. **settle**: the hand holds its starting posture (fingertips one step off their initial contacts,
-   reached by position control) while the object comes to rest on the table;
+1. **settle**: the hand starts in the plan's starting posture (fingertips one step off their
+   initial contacts; the backend puts it there, a hardware hand by position control) and holds it
+   while the object comes to rest on the table;
 2. **close**: each fingertip advances along its planned straight closing line (palm frame) at a
    speed set by its force error, ``ds/dt = v_max clip(gain (F_set - F) / F_set, -1, 1)``, an
    integral force controller on the tactile normal force; the closing is done when every finger
