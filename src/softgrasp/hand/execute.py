@@ -220,7 +220,7 @@ def execute_plan(
             line = lines[f]
             err = (line.setpoint - forces[f]) / line.setpoint
             v = cfg.speed * float(np.clip(cfg.gain * err, -1.0, 1.0))
-            travel[f] = float(np.clip(travel[f] + v * dt, 0.0, line.max_travel))
+            travel[f] = float(np.clip(travel[f] + v * dt, -line.max_travel, line.max_travel))
 
     # 1. settle
     command()
