@@ -89,6 +89,23 @@ class BlockPattern:
         return m
 
 
+def scatter_add(n_nodes: int, index: NDArray[np.int64], values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Sum of the rows of ``values`` (K, 3) at the nodes ``index`` (K,): (n_nodes, 3). The same as
+    ``np.add.at`` on zeros, by three ``bincount`` calls (several times faster)."""
+    out = np.empty((n_nodes, 3))
+    for k in range(3):
+        out[:, k] = np.bincount(index, weights=values[:, k], minlength=n_nodes)
+    return out
+
+
+def _edge_pairs_scatter(
+    n_nodes: int, edges: NDArray[np.int64], fe: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Node forces of edge forces ``fe`` (E, 3) acting on each edge's node 0, and their opposite on
+    node 1."""
+    return scatter_add(n_nodes, edges.T.ravel(), np.concatenate([fe, -fe]))
+
+
 def _edge_geometry(
     x: NDArray[np.float64], edges: NDArray[np.int64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -123,9 +140,7 @@ def spring_forces(
     eps = L / rest_length - 1.0
     T = stiffness * rest_length * law.stress(eps)
     fe = T[:, None] * n  # force on node 0 of each edge (pulled toward node 1 under tension)
-    f = np.zeros_like(x)
-    np.add.at(f, edges[:, 0], fe)
-    np.add.at(f, edges[:, 1], -fe)
+    f = _edge_pairs_scatter(x.shape[0], edges, fe)
     energy = float(np.sum(stiffness * rest_length**2 * law.energy(eps)))
     return f, energy
 
@@ -216,8 +231,7 @@ def volume_forces(
     V, g, _ = _tet_gradients(x, tets)
     w, dw, _ = psi(V / rest_volume, barrier)
     ft = -(kappa * dw)[:, None, None] * g  # (M, 4, 3)
-    f = np.zeros_like(x)
-    np.add.at(f, tets.ravel(), ft.reshape(-1, 3))
+    f = scatter_add(x.shape[0], tets.ravel(), ft.reshape(-1, 3))
     return f, float(kappa * np.sum(rest_volume * w))
 
 
@@ -288,10 +302,7 @@ def edge_damping_forces(
     n, _ = _edge_geometry(x, edges)
     rate = np.einsum("ij,ij->i", v[edges[:, 1]] - v[edges[:, 0]], n)
     fe = (damping * rate)[:, None] * n
-    f = np.zeros_like(x)
-    np.add.at(f, edges[:, 0], fe)
-    np.add.at(f, edges[:, 1], -fe)
-    return f
+    return _edge_pairs_scatter(x.shape[0], edges, fe)
 
 
 def edge_damping_jacobian(

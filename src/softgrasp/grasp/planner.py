@@ -58,7 +58,7 @@ MAX_HALVINGS = 6
 #: Initial-grasp shapes the planner tries to reach with the hand before giving up.
 MAX_PLACEMENTS = 12
 #: Failed placements after which the planner stops trying a spread angle of the layout.
-PER_SPREAD = 2
+PER_SPREAD = 1
 #: Centre-of-mass motion per holding step below which the step is doubled [m].
 SETTLED = 1e-6
 

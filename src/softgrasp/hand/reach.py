@@ -36,6 +36,10 @@ MAX_ITER = 300
 MAX_STEP = 0.01
 #: Damping of the WDLS steps [m].
 DAMPING = 1e-3
+#: A posture whose largest fingertip error fell by less than this fraction over ``STALL_WINDOW``
+#: iterations has stalled.
+STALL_FRACTION = 0.01
+STALL_WINDOW = 20
 
 
 @dataclass(frozen=True)
@@ -198,9 +202,13 @@ def _solve(
     tips, J = tips_and_jac(R, p, qv, True)
     e = targets.ravel() - tips
     err = float(np.linalg.norm(e.reshape(-1, 3), axis=1).max())
+    history = [err]
     for _ in range(MAX_ITER):
         if err <= REACH_TOL:
             break
+        if len(history) > STALL_WINDOW and history[-1 - STALL_WINDOW] - err < STALL_FRACTION * err:
+            break  # stalled short of the targets: a limit or the workspace's edge
+        history.append(err)
         norm = float(np.linalg.norm(e))
         dx = e if norm <= MAX_STEP else e * (MAX_STEP / norm)
         x = np.concatenate([np.zeros(6), qv])
