@@ -18,13 +18,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from softgrasp.cli import main as cli
-from softgrasp.hand.execute import ClosingLine, ExecuteConfig, execute_plan
+from softgrasp.hand.execute import ExecuteConfig, closing_lines, execute_plan
 from softgrasp.hand.mujoco_hand import MujocoHand
 from softgrasp.hand.planfile import load_plan_file
-from softgrasp.hand.reach import invert, transform
 
 
 def run(mesh_size: float | None) -> None:
@@ -37,12 +34,7 @@ def run(mesh_size: float | None) -> None:
         t0 = time.perf_counter()
         hand = MujocoHand.from_plan(plan)
         t_load = time.perf_counter() - t0
-        to_palm = invert(plan.palm_pose)
-        lines = {}
-        for f in plan.fingers:
-            a, b = transform(to_palm, f.start), transform(to_palm, f.final)
-            L = float(np.linalg.norm(b - a))
-            lines[f.name] = ClosingLine(f.normal_force, a, (b - a) / L, max(3 * L, L + 0.005))
+        lines = closing_lines(plan)
         t0 = time.perf_counter()
         res = execute_plan(hand, lines, ExecuteConfig(), palm_to_world=hand.palm_to_world)
         wall = time.perf_counter() - t0

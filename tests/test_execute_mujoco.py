@@ -38,7 +38,6 @@ def test_default_plan_set_points_are_reached_and_the_sphere_lifted(full):
     assert doc["reached"]
     for f in doc["fingers"]:
         assert abs(f["error_N"]) <= 0.05 * f["setpoint_N"], f
-        assert f["measured_N"] == pytest.approx(f["setpoint_N"] + f["error_N"])
     assert doc["lifted"] and not doc["dropped"]
     assert doc["rise_m"] > 0.09  # the 0.10 m lift, less the object's sag in the fingers
     assert doc["slip_m"] < 0.005
@@ -64,8 +63,9 @@ def test_a_quarter_of_the_set_points_slips_more_than_the_full_plan(plan_dir, ful
         [0.25 * f["setpoint_N"] for f in doc_full["fingers"]]
     )
     assert doc["slip_m"] > doc_full["slip_m"]
-    if doc["dropped"]:
-        assert rc == 1  # the exit status tells a script the object fell
+    # The plan holds at close to the least squeeze (11 % friction margin): a quarter lets it go.
+    assert doc["dropped"] and not doc["lifted"]
+    assert rc == 1  # the exit status tells a script the object fell
 
 
 def _write(tmp_path: Path, doc: dict, plan_dir: Path) -> Path:
@@ -94,7 +94,7 @@ def _write(tmp_path: Path, doc: dict, plan_dir: Path) -> Path:
             "normal_force_N' must be a finite number",
         ),
         (lambda d: d["fingers"][1].update(normal_force_N=0.0), "normal_force_N' = 0 is not physical"),
-        (lambda d: d["fingers"][2].pop("start_position_m"), "missing field 'x.start_position_m'"),
+        (lambda d: d["fingers"][2].pop("start_position_m"), r"missing field 'fingers\[2\].start_position_m'"),
         (lambda d: d.update(hand=None), "made without a hand model"),
         (lambda d: d["hand"].update(palm_pose=np.diag([2.0, 1, 1, 1]).tolist()), "not a rigid transform"),
         (lambda d: d["object"].update(mesh_file="nowhere.vtu"), "object mesh .*nowhere.vtu is missing"),

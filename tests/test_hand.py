@@ -481,7 +481,10 @@ def test_place_hand_names_the_finger_that_cannot_reach() -> None:
     from softgrasp.hand.reach import place_hand
 
     targets = {"thumb": [0.0, 0.0, 0.1], "first": [0.05, 0.05, 0.1], "middle": [0.03, 0.6, 0.1]}
-    with pytest.raises(InfeasibleGrasp, match=r"the (middle|first|thumb) fingertip cannot reach .* mm away"):
+    with pytest.raises(
+        InfeasibleGrasp,
+        match=r"the (middle|first|thumb) fingertip cannot reach its initial contact: [0-9.]+ mm away",
+    ):
         place_hand(MODEL, targets)
 
 

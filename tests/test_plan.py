@@ -326,3 +326,18 @@ def test_plan_without_a_hand_model_uses_the_layout_alone(sphere_body):
     plan = plan_grasp(sphere_body, PlanConfig(hand=None, hold_time=0.0))
     assert plan.placement is None and plan.joint_paths is None
     assert plan.initial.epsilon > 0
+
+
+def test_a_fingertip_radius_other_than_the_hands_is_refused():
+    with pytest.raises(
+        ConfigError, match=r"fingertip radius 6 mm differs from the hand's thumb fingertip \(8 mm"
+    ):
+        PlanConfig(fingertip_radius=0.006)
+    assert PlanConfig(fingertip_radius=0.006, hand=None).fingertip_radius == 0.006
+
+
+def test_plan_hand_option_names_a_missing_urdf(tmp_path, capsys):
+    assert main(["plan", "--hand", str(tmp_path / "nohand.urdf"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "nohand.urdf does not exist" in err and "Traceback" not in err
+    assert not (tmp_path / "o" / "plan.json").exists()

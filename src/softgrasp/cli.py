@@ -417,9 +417,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 def _cmd_execute(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from softgrasp.hand.execute import PHASES, ClosingLine, ExecuteConfig, execute_plan
+    from softgrasp.hand.execute import PHASES, ExecuteConfig, closing_lines, execute_plan
     from softgrasp.hand.planfile import load_plan_file
-    from softgrasp.hand.reach import invert, transform
     from softgrasp.mesh.io import load_mesh
     from softgrasp.output import write_json, write_text
     from softgrasp.viz.plots import plot_execution_forces, plot_grasp_3d
@@ -427,21 +426,15 @@ def _cmd_execute(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if not (np.isfinite(args.scale) and args.scale > 0):
         raise ConfigError(f"--scale must be a number > 0, got {args.scale}")
-    if not (np.isfinite(args.lift) and args.lift >= 0):
-        raise ConfigError(f"--lift must be a height >= 0 m, got {args.lift}")
+    if not (np.isfinite(args.lift) and args.lift > 0):
+        raise ConfigError(f"--lift must be a height > 0 m, got {args.lift}")
     plan = load_plan_file(args.plan)
     out = Path(str(args.out))
     from softgrasp.hand.mujoco_hand import MujocoHand
 
     hand = MujocoHand.from_plan(plan)
     facets = load_mesh(plan.mesh_file).facets
-    to_palm = invert(plan.palm_pose)
-    lines = {}
-    for f in plan.fingers:
-        a, b = transform(to_palm, f.start), transform(to_palm, f.final)
-        L = float(np.linalg.norm(b - a))
-        # The crushing guard: three times the planned travel, at least 5 mm more than it.
-        lines[f.name] = ClosingLine(args.scale * f.normal_force, a, (b - a) / L, max(3.0 * L, L + 0.005))
+    lines = closing_lines(plan, args.scale)
     cfg = ExecuteConfig(lift=float(args.lift))
     names = [f.name for f in plan.fingers]
     print(
@@ -452,7 +445,7 @@ def _cmd_execute(args: argparse.Namespace) -> int:
     frames: dict[str, tuple] = {}
 
     def snapshot(event: str) -> None:
-        hand.scene._mj.mj_forward(hand.scene.model, hand.scene.data)
+        hand.scene.forward()
         tips = np.array([hand.scene.fingertip_position(n) for n in names])
         forces = np.array([hand.scene.fingertip_force(n) for n in names])
         frames[event] = (hand.scene.object_nodes(), tips, forces, hand.links(), hand.time)
@@ -496,7 +489,8 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         if event not in frames:
             continue
         nodes, tips, forces, links, t_ev = frames[event]
-        contact = tips - plan.fingertip_radius * np.nan_to_num(
+        # The contact lies on the fingertip's side facing the object: along the force on the object.
+        contact = tips + plan.fingertip_radius * np.nan_to_num(
             forces / np.maximum(np.linalg.norm(forces, axis=1, keepdims=True), 1e-12)
         )
         name = f"frame_{event}.png"

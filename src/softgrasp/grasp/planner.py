@@ -30,7 +30,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import ConvexHull
 
 from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
@@ -40,7 +39,7 @@ from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisati
 from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, initial_grasps
 from softgrasp.hand.model import HandModel
 from softgrasp.hand.reach import HandPlacement, closing_paths, place_hand
-from softgrasp.mesh.placement import rotation_between
+from softgrasp.mesh.placement import stable_facet_pose
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import implicit_euler_step
 from softgrasp.sim.integrators import simulate
@@ -121,6 +120,15 @@ class PlanConfig:
                 raise ConfigError(f"plan parameter {name} = {v} is invalid")
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.hand is not None:
+            for finger in FINGER_NAMES:
+                r = self.hand.fingertip_radius(finger)
+                if abs(r - self.fingertip_radius) > 1e-9:
+                    raise ConfigError(
+                        f"fingertip radius {self.fingertip_radius * 1e3:g} mm differs from the hand's "
+                        f"{finger} fingertip ({r * 1e3:g} mm in {self.hand.source}); plan with the hand's "
+                        "radius, a URDF with the radius wanted, or no hand (--hand none)"
+                    )
         if self.step >= self.fingertip_radius:
             raise ConfigError(
                 f"closing step {self.step * 1e3:g} mm must be smaller than the fingertip radius "
@@ -195,7 +203,8 @@ class GraspPlan:
     start_centres: fingertip centres where the closing starts [m], (3, 3).
     placement: the hand's palm pose and joints at the start (None without a hand model).
     joint_paths: per finger, the joint vectors moving its fingertip along its closing line from
-        the start to the final centre, (increments + 1, dof) (None without a hand model).
+        the start to the final centre, one row per ``step`` of travel and the start,
+        (ceil(travel / step) + 1, dof) (None without a hand model).
     config: the configuration used.  wall_time: seconds.
     """
 
@@ -294,14 +303,9 @@ def _table(x: NDArray[np.float64], mu: float) -> PlaneContact:
 
 
 def _stable_pose(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``x`` turned rigidly about its centre of mass so that it stands on a stable facet of its
-    convex hull: the facet whose plane is nearest the centre of mass (the projection of the centre
-    of mass falls inside it, so the object cannot tip off it)."""
-    com = _com(body, x)
-    eq = ConvexHull(x).equations  # n . p + d <= 0 inside, n outward and unit
-    n = eq[int(np.argmin(-(eq[:, :3] @ com + eq[:, 3]))), :3]
-    R = rotation_between(n, np.array([0.0, 0.0, -1.0]))
-    return (x - com) @ R.T + com
+    """``x`` turned onto its most stable hull facet about its centre of mass
+    (:func:`softgrasp.mesh.placement.stable_facet_pose`)."""
+    return stable_facet_pose(x, _com(body, x))
 
 
 def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, PlaneContact, NDArray]:

@@ -30,9 +30,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
+from softgrasp.hand.planfile import PlanFile
 from softgrasp.hand.protocol import Hand
+from softgrasp.hand.reach import invert, transform
 
-__all__ = ["ClosingLine", "ExecuteConfig", "ExecutionResult", "execute_plan", "PHASES"]
+__all__ = ["ClosingLine", "ExecuteConfig", "ExecutionResult", "closing_lines", "execute_plan", "PHASES"]
 
 PHASES = ("settle", "close", "lift", "hold")
 
@@ -46,7 +48,8 @@ class ClosingLine:
     setpoint: normal force to reach [N] (> 0).
     start: fingertip centre where the closing starts [m], palm frame, (3,).
     direction: unit closing direction, palm frame, (3,).
-    max_travel: farthest the fingertip may advance along the line [m] (the crushing guard).
+    max_travel: farthest the fingertip may advance along the line [m] (the crushing guard), and
+        back off behind its start.
     """
 
     setpoint: float
@@ -62,6 +65,19 @@ class ClosingLine:
         d = np.asarray(self.direction, dtype=np.float64)
         if d.shape != (3,) or abs(np.linalg.norm(d) - 1.0) > 1e-6:
             raise ConfigError("a closing direction must be a unit vector (3,)")
+
+
+def closing_lines(plan: PlanFile, scale: float = 1.0) -> dict[str, ClosingLine]:
+    """Each finger's task from a plan: set-point ``scale`` times its planned normal force, the line
+    from its start to its final centre in the palm frame, and a crushing guard of three times the
+    planned travel (at least 5 mm more than it)."""
+    to_palm = invert(plan.palm_pose)
+    lines = {}
+    for f in plan.fingers:
+        a, b = transform(to_palm, f.start), transform(to_palm, f.final)
+        L = float(np.linalg.norm(b - a))
+        lines[f.name] = ClosingLine(scale * f.normal_force, a, (b - a) / L, max(3.0 * L, L + 0.005))
+    return lines
 
 
 @dataclass(frozen=True)
@@ -114,7 +130,7 @@ class ExecuteConfig:
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"execute parameter {name} = {v} must be finite and > 0")
 
-    def describe(self) -> dict[str, float]:
+    def describe(self) -> dict[str, float | bool]:
         return {
             "lift_m": self.lift,
             "lift_speed_m_s": self.lift_speed,
@@ -199,7 +215,8 @@ def execute_plan(
         hand.command_fingertips({f: lines[f].start + travel[f] * lines[f].direction for f in names})
 
     def record(phase: int, forces: Mapping[str, float]) -> None:
-        tips = np.array([hand.fingertip_positions()[f] for f in names])
+        where = hand.fingertip_positions()
+        tips = np.array([where[f] for f in names])
         world = palm_to_world(tips) if palm_to_world is not None else tips + base
         rows.append(
             (
@@ -226,9 +243,11 @@ def execute_plan(
     command()
     t_end = hand.time + cfg.settle_time
     events["settle"] = hand.time
+    last = hand.fingertip_normal_forces()  # the tactile reading after the latest step
     while hand.time < t_end - 1e-12:
         hand.step(dt)
-        record(0, hand.fingertip_normal_forces())
+        last = hand.fingertip_normal_forces()
+        record(0, last)
     if on_event is not None:
         on_event("start")
     # 2. force-controlled closing
@@ -238,7 +257,7 @@ def execute_plan(
     inside_since: float | None = None
     reached = False
     while hand.time < t_limit - 1e-12:
-        forces = hand.fingertip_normal_forces()
+        forces = last
         for f in names:
             if forces[f] > 0 and f"first_contact_{f}" not in events:
                 events[f"first_contact_{f}"] = hand.time
@@ -257,24 +276,27 @@ def execute_plan(
         control(forces)
         command()
         hand.step(dt)
-        record(1, hand.fingertip_normal_forces())
-    measured = dict(hand.fingertip_normal_forces())
+        last = hand.fingertip_normal_forces()
+        record(1, last)
+    measured = dict(last)
     if on_event is not None:
         on_event("closed")
 
     # 3. lift, and 4. hold
     def run(phase: int, duration: float, base_z: Callable[[float], float] | None = None) -> None:
         """``duration`` seconds of control periods; ``base_z(elapsed)`` commands the base."""
+        nonlocal last
         start = hand.time
         while hand.time < start + duration - 1e-12:
             if base_z is not None:
                 base[2] = base_z(hand.time + dt - start)
                 hand.command_base(base.copy())
             if cfg.force_control_in_lift:
-                control(hand.fingertip_normal_forces())
+                control(last)
                 command()
             hand.step(dt)
-            record(phase, hand.fingertip_normal_forces())
+            last = hand.fingertip_normal_forces()
+            record(phase, last)
 
     rise_time = cfg.lift / cfg.lift_speed
     events["lift"] = hand.time

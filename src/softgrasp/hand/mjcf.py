@@ -426,7 +426,7 @@ def _actuator_name(joint: str) -> str:
 
 
 def _add_hand(world: ET.Element, spec: SceneSpec) -> list[tuple[str, float]]:
-    """Append the mocap palm and the finger bodies; return ``(joint, q0 value)`` in qpos order."""
+    """Append the arm, the palm and the finger bodies; return ``(joint, q0 value)`` in qpos order."""
     hand = spec.hand
     chains = list(hand.fingers.values())
     roots = {c.joints[0].parent for c in chains}
@@ -862,6 +862,11 @@ class MujocoScene:
         self.data.qvel[self.model.jnt_dofadr[self.model.actuator_trnid[self._arm_act, 0]]] = 0.0
         self.data.ctrl[self._arm_act] = d
         self._mj.mj_kinematics(self.model, self.data)
+
+    def forward(self) -> None:
+        """Recompute the derived quantities (positions, contacts, contact forces) of the current
+        state (after :meth:`step` they are those of the start of the last step)."""
+        self._mj.mj_forward(self.model, self.data)
 
     def step(self, n: int = 1) -> None:
         """Advance the simulation by ``n`` time steps."""

@@ -5,7 +5,7 @@ simulated in MuJoCo (physics softgrasp did not write), from a plan.
   MuJoCo's contact forces on its sphere (what a pressure-sensing fingertip reads);
 * Cartesian fingertip commands go through softgrasp's WDLS (:func:`softgrasp.hand.model.track`)
   to the joints' position servos, from the last commanded posture;
-* the base (the arm) is MuJoCo's mocap palm, moved kinematically.
+* the base is the scene's arm (three stiff slide servos carrying the palm).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from softgrasp.hand.reach import invert, transform
 __all__ = ["MujocoHand", "hand_model_of", "scene_spec_of"]
 
 
-def hand_model_of(plan: PlanFile, fingertip_radius: float | None = None) -> HandModel:
+def hand_model_of(plan: PlanFile) -> HandModel:
     """The hand a plan was made with: its URDF file, or the packaged Shadow-like hand when the
     plan names that one (a plan written elsewhere carries another install's path)."""
     src = Path(plan.hand_source)

@@ -14,10 +14,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
+from softgrasp.grasp.report import SCHEMA
 
 __all__ = ["PlanFinger", "PlanFile", "load_plan_file", "SCHEMA"]
-
-SCHEMA = "softgrasp.plan/1"
 
 
 @dataclass(frozen=True)
@@ -29,7 +28,6 @@ class PlanFinger:
     start: NDArray[np.float64]
     final: NDArray[np.float64]
     normal_force: float
-    force_norm: float
     q_start: NDArray[np.float64]
 
 
@@ -144,8 +142,9 @@ def load_plan_file(path: str | Path) -> PlanFile:
             raise ConfigError(
                 f"plan file: field 'hand.fingers.{name}.q_start_rad' must be a list of finite angles"
             )
-        start = _vector({"x": f}, "x.start_position_m")
-        final = _vector({"x": f}, "x.final_position_m")
+        named = {where: f}
+        start = _vector(named, f"{where}.start_position_m")
+        final = _vector(named, f"{where}.final_position_m")
         if np.linalg.norm(final - start) <= 0:
             raise ConfigError(f"plan file: finger {name!r} has no closing travel (start = final position)")
         fingers.append(
@@ -153,8 +152,7 @@ def load_plan_file(path: str | Path) -> PlanFile:
                 name=name,
                 start=start,
                 final=final,
-                normal_force=_number({"x": f}, "x.normal_force_N", lo=0.0),
-                force_norm=_number({"x": f}, "x.force_norm_N", lo=0.0),
+                normal_force=_number(named, f"{where}.normal_force_N", lo=0.0),
                 q_start=qa,
             )
         )

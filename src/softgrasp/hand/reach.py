@@ -283,10 +283,12 @@ def place_hand(
     blocked = False
     for pose0, q0 in _seeds(model, fingers, T, np.asarray(up, dtype=np.float64)):
         pose, q, err = _solve(model, fingers, T, pose0, q0)
-        for k, f in enumerate(fingers):
-            closest[f] = min(
-                closest[f], float(np.linalg.norm(transform(pose, model.forward(f, q[f])) - T[k]))
-            )
+        errs = {
+            f: float(np.linalg.norm(transform(pose, model.forward(f, q[f])) - T[k]))
+            for k, f in enumerate(fingers)
+        }
+        if max(errs.values()) < max(closest.values()):
+            closest = errs  # the start that came nearest to reaching every target
         if err > REACH_TOL:
             continue
         joints = [pose[:3, 3][None, :]]
@@ -309,8 +311,8 @@ def place_hand(
                 "object; choose a smaller object or another hand"
             )
         raise InfeasibleGrasp(
-            f"the {worst} fingertip cannot reach its initial contact: closest "
-            f"{1e3 * closest[worst]:.1f} mm away within the joint limits of this hand"
+            f"the {worst} fingertip cannot reach its initial contact: {1e3 * closest[worst]:.1f} mm "
+            "away in the hand's best posture within its joint limits"
         )
     return best
 

@@ -13,7 +13,7 @@ from scipy.spatial import ConvexHull
 
 from softgrasp.mesh.tetmesh import TetMesh
 
-__all__ = ["rest_on_table", "rotation_between"]
+__all__ = ["rest_on_table", "rotation_between", "stable_facet_pose"]
 
 
 def rotation_between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -61,3 +61,15 @@ def rest_on_table(mesh: TetMesh) -> TetMesh:
     xr = (x - c) @ R.T
     xr[:, 2] -= xr[:, 2].min()
     return TetMesh(xr, mesh.tets, name=mesh.name)
+
+
+def stable_facet_pose(x: NDArray[np.float64], com: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``x`` (N, 3) turned rigidly about the centre of mass ``com`` so that it stands on the facet
+    of its convex hull whose plane is nearest ``com``: the projection of the centre of mass falls
+    inside that facet (were it outside, a neighbouring facet's plane would be nearer), so the
+    object cannot tip off it. (:func:`rest_on_table` takes the facet under the centroid, which
+    suits a mesh already standing; this is the rule for one that balances on a node.)"""
+    eq = ConvexHull(x).equations  # n . p + d <= 0 inside, n outward and unit
+    n = eq[int(np.argmin(-(eq[:, :3] @ com + eq[:, 3]))), :3]
+    R = rotation_between(n, np.array([0.0, 0.0, -1.0]))
+    return (x - com) @ R.T + com
