@@ -392,15 +392,21 @@ def _parse_urdf(text: str, source: str) -> dict[str, FingerChain]:
 
 
 def _kinematics(
-    chain: FingerChain, q: NDArray[np.float64], with_jacobian: bool
+    chain: FingerChain,
+    q: NDArray[np.float64],
+    with_jacobian: bool,
+    origins: list[NDArray[np.float64]] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Fingertip centre and (optionally) its positional Jacobian for an already validated ``q``."""
+    """Fingertip centre and (optionally) its positional Jacobian for an already validated ``q``;
+    ``origins``, if given, receives each joint's origin in root-to-tip order."""
     T = np.eye(4)
     moving: list[tuple[int, float, str, NDArray[np.float64], NDArray[np.float64]]] = []
     for joint, k, gain, offset in zip(
         chain.joints, chain.drive_index, chain.drive_gain, chain.drive_offset, strict=True
     ):
         T = T @ joint.origin
+        if origins is not None:
+            origins.append(T[:3, 3].copy())
         if k < 0:
             continue
         value = gain * q[k] + offset
@@ -487,23 +493,9 @@ class HandModel:
         """Origins of the finger's joints in root-to-tip order, then the fingertip centre, ``(k + 1,
         3)`` [m] in the palm frame: the polyline of its links (for clearance checks and drawings)."""
         chain, v = self._q(finger, q)
-        T = np.eye(4)
-        out = []
-        for joint, k, gain, offset in zip(
-            chain.joints, chain.drive_index, chain.drive_gain, chain.drive_offset, strict=True
-        ):
-            T = T @ joint.origin
-            out.append(T[:3, 3].copy())
-            if k >= 0:
-                M = np.eye(4)
-                value = gain * v[k] + offset
-                if joint.kind == "revolute":
-                    M[:3, :3] = _axis_rotation(joint.axis, value)
-                else:
-                    M[:3, 3] = value * joint.axis
-                T = T @ M
-        out.append(T[:3, 3].copy())
-        return np.array(out)
+        out: list[NDArray[np.float64]] = []
+        tip = _kinematics(chain, v, False, out)[0]
+        return np.array([*out, tip])
 
     def jacobian(self, finger: str, q: ArrayLike) -> NDArray[np.float64]:
         """Analytic positional Jacobian ``d tip / d q``, shape ``(3, dof)``.

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand.model import HandModel, _limited_step, follow_line
+from softgrasp.hand.model import HandModel, _axis_rotation, _limited_step, follow_line
 
 __all__ = ["HandPlacement", "place_hand", "closing_paths", "transform", "invert"]
 
@@ -83,13 +83,9 @@ def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _rotation(w: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rodrigues: rotation by the vector ``w`` (axis times angle)."""
+    """Rotation by the vector ``w`` (axis times angle)."""
     a = float(np.linalg.norm(w))
-    if a < 1e-15:
-        return np.eye(3)
-    k = w / a
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(a) * K + (1.0 - math.cos(a)) * K @ K
+    return np.eye(3) if a < 1e-15 else _axis_rotation(w / a, a)
 
 
 def _kabsch(src: NDArray[np.float64], dst: NDArray[np.float64]) -> NDArray[np.float64]:
