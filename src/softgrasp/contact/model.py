@@ -21,6 +21,7 @@ Algorithm 1 is applied (:meth:`FingertipContact.update`).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -156,6 +157,10 @@ class FingertipContact:
     fingertips: tuple[Fingertip, ...]
     params: ContactParams = ContactParams()
     name: str = "fingers"
+    #: :meth:`jacobian` is a symmetrised approximation (friction anchored on a rotating facet and the
+    #: patch rule's weights are not a potential): Newton solvers multiply by the exact derivative
+    #: through :meth:`static_forces` (finite differences along the direction) where it matters.
+    symmetric_jacobian: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         if not self.fingertips:

@@ -12,11 +12,13 @@ than each finger's current one, with friction inside the cones |f_t| <= mu f_n, 
 ``safety_factor`` times the weight in force and torque? (On the table the fingers' normal forces
 need not balance among themselves; lifted, the object shifts until they do.) When it can, the last
 step is bisected ``refine`` times on that test, and the hold is verified once at the smallest
-travel that passes it: the table is removed, ``hold_time`` seconds of implicit (backward Euler) dynamics with
-the fingertips fixed must move the centre of mass less than ``max_drift``, and a static solve in
-the fingers alone must find the held state within ``max_drift`` of the start, every contact
-pair sticking. A failed verification continues the closing from there, by step / 2^refine at
-first and by doubling amounts up to a whole step, with a verification after each. Past
+travel that passes it: with the fingertips fixed, the table's support is taken away in a few
+static load steps (the weight passes to the fingers quasi-statically, as in a slow lift), then
+``hold_time`` seconds of implicit (backward Euler) dynamics must keep the centre of mass within
+``max_drift`` of where it stood on the table, and a static solve in the fingers alone must find
+the held state within ``max_drift`` too, every contact pair sticking. A failed verification
+continues the closing from there, by step / 2^refine at first and by doubling amounts up to a
+whole step, with a verification after each. Past
 ``max_squeeze`` (a fraction of the shortest finger-to-centroid distance, travelled beyond the last
 finger's first contact) the object would be crushed: :class:`InfeasibleGrasp`.
 """
@@ -44,6 +46,7 @@ from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import implicit_euler_step
 from softgrasp.sim.integrators import simulate
 from softgrasp.sim.linsolve import SolverCache
+from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_increment, solve_static
 
@@ -60,6 +63,8 @@ MAX_PLACEMENTS = 12
 PER_SPREAD = 1
 #: Centre-of-mass motion per holding step below which the step is doubled [m].
 SETTLED = 1e-6
+#: Static load steps in which the table's support is taken away before the holding simulation.
+RELEASE_STEPS = 4
 
 
 @dataclass(frozen=True)
@@ -270,14 +275,21 @@ def _torque_residual(rep: FingerReport, centres, com) -> NDArray[np.float64]:
 
 
 def _hold(
-    body: Body, scene: Scene, state: State, duration: float, cache: SolverCache, max_drift: float = np.inf
+    body: Body,
+    scene: Scene,
+    state: State,
+    duration: float,
+    cache: SolverCache,
+    max_drift: float = np.inf,
+    origin: NDArray[np.float64] | None = None,
 ) -> State | None:
     """``duration`` seconds of backward Euler from ``state``: steps of ``HOLD_DT``, doubled after
     every step in which the centre of mass moved less than ``SETTLED`` (the object has come to
     rest: larger steps then cost nothing in accuracy). None as soon as the centre of mass has
-    moved ``max_drift`` from the start (the object is not held: no need to simulate on)."""
+    moved ``max_drift`` from ``origin`` (default: where it starts; the object is not held: no need
+    to simulate on)."""
     dt = HOLD_DT
-    c0 = _com(body, state.x)
+    c0 = _com(body, state.x) if origin is None else origin
     while state.t < duration - 1e-12:
         h = min(dt, duration - state.t)
         before = _com(body, state.x)
@@ -392,30 +404,47 @@ def _reachable_grasp(
 
 
 def _check_hold(
-    body: Body, fc: FingertipContact, state: State, t: float, cfg: PlanConfig, cache: SolverCache
+    body: Body,
+    table: PlaneContact,
+    fc: FingertipContact,
+    state: State,
+    t: float,
+    cfg: PlanConfig,
+    cache: SolverCache,
 ) -> tuple[State, FingertipContact, float] | None:
     """Remove the table and verify that the fingers hold the object. From the squeezed state at
-    rest on the table, with the fingertips fixed: ``hold_time`` seconds of implicit dynamics
-    (:func:`_hold`) must move the centre of mass less than
-    ``max_drift``; the held state is then brought to static equilibrium in the fingers alone.
-    Returns (held state, fixed fingers, drift) or None when the object is not held."""
+    rest on the table, with the fingertips fixed: the table's forces on the object, applied as a
+    dead load, ramp down to zero over ``RELEASE_STEPS`` static load steps (the weight passes to the
+    fingers quasi-statically, as in a slow lift, friction sticking or slipping pair by pair); then
+    ``hold_time`` seconds of implicit dynamics (:func:`_hold`) from that released state must keep
+    the centre of mass within ``max_drift`` of where it was on the table; the held state is then
+    brought to static equilibrium in the fingers alone. Returns (held state, fixed fingers, drift)
+    or None when the object is not held."""
     fixed = FingertipContact(
         tuple(replace(f, centre=f.centre_at(t), velocity=np.zeros(3)) for f in fc.fingertips),
         fc.params,
         name=fc.name,
     )
+    support = RampedLoad(table.static_forces(body, state.x, t, state.contacts[0]), state.x, name="support")
+    release = Scene(body, (fixed, support))
     scene = Scene(body, (fixed,))
-    start = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1],))
-    c0 = _com(body, start.x)
+    c0 = _com(body, state.x)
     try:
-        end = _hold(body, scene, start, cfg.hold_time, cache, cfg.max_drift)
+        st = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1], None))
+        for k in range(1, RELEASE_STEPS + 1):
+            st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache)
+            if np.linalg.norm(_com(body, st.x) - c0) >= cfg.max_drift:
+                return None
+        released = float(np.linalg.norm(_com(body, st.x) - c0))
+        start = State(st.x, np.zeros_like(st.x), 0.0, (st.contacts[0],))
+        end = _hold(body, scene, start, cfg.hold_time, cache, cfg.max_drift, origin=c0)
         if end is None:
             return None
         moved = float(np.linalg.norm(_com(body, end.x) - c0))
         held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache)
     except (NotConverged, SimulationUnstable):
         return None
-    drift = max(moved, float(np.linalg.norm(_com(body, held.x) - c0)))
+    drift = max(released, moved, float(np.linalg.norm(_com(body, held.x) - c0)))
     if drift >= cfg.max_drift:
         return None
     if fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True).contacts.min() == 0:
@@ -528,7 +557,7 @@ def plan_grasp(
     # Where the object is not held, the fingers close further, by the refined resolution at first
     # and by doubling amounts up to a whole step, until it is.
     t_final, extra = t_hi, cfg.step / 2**cfg.refine
-    while (held := _check_hold(body, fc, state, t_final * scale, cfg, cache)) is None:
+    while (held := _check_hold(body, table, fc, state, t_final * scale, cfg, cache)) is None:
         t_final += extra
         too_far(t_final)
         state, _ = close(state, t_final)

@@ -1,16 +1,28 @@
 """Linear solves of the Newton systems ``A dx = b`` with optional constraints ``C dx = 0``.
 
 A is the stiffness (minus the force Jacobian): symmetric and, away from buckling, positive definite
-on the constraint null space. Small systems are solved directly (sparse LU of the saddle-point
-system). Large ones use conjugate gradients preconditioned by smoothed-aggregation algebraic
-multigrid (pyamg) with the rigid-body modes as near-null space — the standard scalable solver for
-elasticity — with the constraints enforced by projection. The multigrid hierarchy is kept in a
-:class:`SolverCache` and reused while it still preconditions well.
+on the constraint null space. Three solvers, chosen by size and what is installed:
+
+* **PARDISO** (MKL's sparse direct solver, :mod:`softgrasp.sim.pardiso`) up to
+  :data:`PARDISO_MAX_DOF` unknowns: the ordering and symbolic factorisation are done once per
+  sparsity pattern (the body's pattern does not change between Newton iterations, load steps and
+  holding steps); each system first tries a few conjugate-gradient iterations preconditioned by the
+  factorisation it already has (a Newton matrix changes little from one iteration to the next),
+  and refactorises numerically only when they do not converge fast enough;
+* sparse LU of the saddle-point system for constrained systems (and small systems without MKL);
+* conjugate gradients preconditioned by smoothed-aggregation algebraic multigrid (pyamg) with the
+  rigid-body modes as near-null space — the standard scalable solver for elasticity — for the
+  largest systems, for singular ones (a body not yet held) and where MKL is missing. The
+  multigrid hierarchy is reused while it still preconditions well.
+
+All of it lives in a :class:`SolverCache` that the callers keep across the solves of one loading.
 """
 
 from __future__ import annotations
 
+import os
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,11 +31,21 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from softgrasp.errors import NotConverged
+from softgrasp.sim import pardiso
 
-__all__ = ["SolverCache", "solve_newton_system", "DIRECT_MAX_DOF"]
+__all__ = ["SolverCache", "solve_newton_system", "DIRECT_MAX_DOF", "PARDISO_MAX_DOF"]
 
-#: Systems with at most this many unknowns are solved by sparse LU.
+#: Without MKL, systems with at most this many unknowns are solved by sparse LU.
 DIRECT_MAX_DOF = 1500
+#: Systems with at most this many unknowns are factorised by PARDISO where MKL is installed
+#: (beyond, the factor's memory and time grow faster than multigrid's).
+PARDISO_MAX_DOF = 60_000
+#: Relative residual of the conjugate-gradient iterations preconditioned by an earlier
+#: factorisation (the Newton iteration checks the true unbalanced forces; this only has to be
+#: well below its contraction).
+STALE_RTOL = 1e-8
+#: GMRES iterations allowed with a fresh factorisation on the exact (non-symmetric) Newton matrix.
+EXACT_MAX_IT = 20
 
 _SINGULAR = (
     "the stiffness matrix is singular, so the body is not held in place (it could slide, spin or "
@@ -37,14 +59,22 @@ class SolverCache:
 
     Attributes
     ----------
-    method: ``"auto"`` (direct up to :data:`DIRECT_MAX_DOF` unknowns), ``"direct"`` or ``"amg"``.
-    rtol: relative tolerance of the iterative solve.
+    method: ``"auto"`` (PARDISO up to :data:`PARDISO_MAX_DOF` unknowns where MKL is installed,
+        else sparse LU up to :data:`DIRECT_MAX_DOF`; multigrid beyond), ``"pardiso"``,
+        ``"direct"`` or ``"amg"``; default from the environment variable ``SOFTGRASP_LINSOLVE``.
+    rtol: relative tolerance of the multigrid-preconditioned solve.
     """
 
-    method: str = "auto"
+    method: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_LINSOLVE", "auto"))
     rtol: float = 1e-10
     _ml: object | None = field(default=None, repr=False)
     _iterations: list[int] = field(default_factory=list, repr=False)
+    _factor: pardiso.PardisoFactor | None = field(default=None, repr=False)
+    _stale_cap: int = field(default=4, repr=False)
+    stats: dict[str, int] = field(
+        default_factory=lambda: {"analyses": 0, "factorisations": 0, "stale_solves": 0, "amg_solves": 0},
+        repr=False,
+    )
 
     @property
     def iterations(self) -> list[int]:
@@ -148,12 +178,126 @@ def _pcg(
     return x, lam
 
 
+def _stale_pcg(
+    A: sp.csr_matrix, b: NDArray[np.float64], f: pardiso.PardisoFactor, max_it: int
+) -> NDArray[np.float64] | None:
+    """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
+    matrix; None when they do not reach :data:`STALE_RTOL` in ``max_it`` iterations (or meet
+    negative curvature)."""
+    bnorm = float(np.linalg.norm(b))
+    if bnorm == 0:
+        return np.zeros_like(b)
+    x = f.solve(b)
+    r = b - A @ x
+    if float(np.linalg.norm(r)) <= STALE_RTOL * bnorm:
+        return x
+    z = f.solve(r)
+    p = z.copy()
+    rz = float(r @ z)
+    for _ in range(max_it):
+        Ap = A @ p
+        pAp = float(p @ Ap)
+        if not pAp > 0 or not rz > 0:
+            return None
+        alpha = rz / pAp
+        x += alpha * p
+        r -= alpha * Ap
+        if float(np.linalg.norm(r)) <= STALE_RTOL * bnorm:
+            return x
+        z = f.solve(r)
+        rz_new = float(r @ z)
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return None
+
+
+def _gmres(
+    matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    b: NDArray[np.float64],
+    precondition: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    max_it: int,
+    rtol: float,
+) -> NDArray[np.float64] | None:
+    """Right-preconditioned GMRES (no restart) on ``matvec(x) = b``: the true residual is what it
+    minimises and what it tests against ``rtol``. None when ``max_it`` iterations do not reach it."""
+    bnorm = float(np.linalg.norm(b))
+    if bnorm == 0:
+        return np.zeros_like(b)
+    V = [b / bnorm]
+    Z: list[NDArray[np.float64]] = []
+    H = np.zeros((max_it + 1, max_it))
+    e1 = np.zeros(max_it + 1)
+    e1[0] = bnorm
+    for k in range(max_it):
+        z = precondition(V[k])
+        Z.append(z)
+        w = matvec(z)
+        for i in range(k + 1):  # modified Gram-Schmidt
+            H[i, k] = float(w @ V[i])
+            w = w - H[i, k] * V[i]
+        H[k + 1, k] = float(np.linalg.norm(w))
+        y, *_ = np.linalg.lstsq(H[: k + 2, : k + 1], e1[: k + 2], rcond=None)
+        res = float(np.linalg.norm(H[: k + 2, : k + 1] @ y - e1[: k + 2]))
+        if res <= rtol * bnorm or H[k + 1, k] <= 1e-14 * bnorm:
+            return np.sum([yi * zi for yi, zi in zip(y, Z, strict=True)], axis=0)
+        V.append(w / H[k + 1, k])
+    return None
+
+
+def _pardiso(
+    A: sp.csr_matrix,
+    b: NDArray[np.float64],
+    x_nodes: NDArray[np.float64],
+    cache: SolverCache,
+    matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """PARDISO with the analysis reused per pattern and the factorisation reused as a
+    preconditioner while it converges in fewer iterations than a refactorisation costs. With
+    ``matvec`` (the product with the exact, non-symmetric Newton matrix, of which A is the
+    symmetric approximation), GMRES preconditioned by the factorisation of A solves the exact
+    system; where it does not converge the approximate step A^-1 b is returned."""
+    f = cache._factor
+    U = f.same_pattern(A) if f is not None and f.n == A.shape[0] else None
+    if U is not None:
+        assert f is not None
+        if matvec is not None:
+            x = _gmres(matvec, b, f.solve, cache._stale_cap + 2, STALE_RTOL)
+        else:
+            x = _stale_pcg(A, b, f, cache._stale_cap)
+        if x is not None:
+            cache.stats["stale_solves"] += 1
+            return x, np.zeros(0)
+        f.refactor(U)
+        cache.stats["factorisations"] += 1
+    else:
+        # A new pattern (contacts couple nodes that no edge joins, or others than before): analyse
+        # the union with the previous pattern, so that both kinds of system reuse it.
+        P = A if f is None or f.n != A.shape[0] else pardiso.PardisoFactor.union(A, f.matrix())
+        cache._factor = f = pardiso.PardisoFactor(P)
+        cache.stats["analyses"] += 1
+        cache.stats["factorisations"] += 1
+    if matvec is not None and f.perturbed_pivots == 0:
+        x = _gmres(matvec, b, f.solve, EXACT_MAX_IT, STALE_RTOL)
+        if x is not None:
+            return x, np.zeros(0)
+    if f.perturbed_pivots > 0:
+        # A singular stiffness (a body not yet held may slide or spin): the factor would blow the
+        # free motions up; multigrid-CG finds the solution orthogonal to them (the factor's
+        # analysis is kept for the next system).
+        cache.stats["amg_solves"] += 1
+        return _pcg(A, b, None, x_nodes, cache)
+    x = f.solve(b)
+    return x, np.zeros(0)
+
+
 def solve_newton_system(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
     C: sp.csr_matrix | None,
     x_nodes: NDArray[np.float64],
     cache: SolverCache | None = None,
+    *,
+    matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Solve ``A dx + C^T lam = b, C dx = 0``.
 
@@ -162,17 +306,28 @@ def solve_newton_system(
     A: (n, n) sparse symmetric stiffness.  b: (n,) right-hand side (the unbalanced forces).
     C: optional (k, n) constraint rows.  x_nodes: (n/3, 3) node positions (rigid modes for AMG).
     cache: reusable solver state; a fresh one if None.
+    matvec: the product with the exact Newton matrix where A is only its symmetric
+        approximation (used by the PARDISO path without constraints: GMRES on the exact system,
+        preconditioned by the factorisation of A).
 
     Returns
     -------
     (dx (n,), lam (k,))
     """
-    cache = cache or SolverCache()
+    cache = cache if cache is not None else SolverCache()
+    n = A.shape[0]
+    if cache.method not in ("auto", "pardiso", "direct", "amg"):
+        raise ValueError(f"unknown linear solver {cache.method!r}")
     # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
     # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
-    direct = (
-        cache.method == "direct" or C is not None or (cache.method == "auto" and A.shape[0] <= DIRECT_MAX_DOF)
-    )
-    if direct:
+    if C is not None or cache.method == "direct":
         return _direct(A, b, C)
+    use_pardiso = cache.method == "pardiso" or (
+        cache.method == "auto" and n <= PARDISO_MAX_DOF and pardiso.available()
+    )
+    if use_pardiso:
+        return _pardiso(A.tocsr(), b, x_nodes, cache, matvec)
+    if cache.method == "auto" and n <= DIRECT_MAX_DOF:
+        return _direct(A, b, C)
+    cache.stats["amg_solves"] += 1
     return _pcg(A.tocsr(), b, C, x_nodes, cache)

@@ -12,6 +12,7 @@ free) are enforced with Lagrange multipliers in a saddle-point system.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,13 @@ __all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints",
 STALL_RTOL = 1e-6
 #: How often :func:`solve_increment` halves a load increment that does not converge.
 MAX_HALVINGS = 4
+#: Newton gives up after this many consecutive accepted steps no longer than ``CREEP_ALPHA`` of
+#: the Newton step that reduced the largest unbalanced force by less than 1 %.
+CREEP_ITERATIONS = 6
+CREEP_ALPHA = 1.0 / 64
+#: Largest nodal displacement of the central differences in the exact Newton product, as a
+#: fraction of the body's size.
+FD_STEP = 1e-7
 
 
 @dataclass(frozen=True)
@@ -83,6 +91,42 @@ def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:
     return r - C.T @ lam if C is not None else r
 
 
+def _newton_matrix(
+    scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple, L: float
+) -> tuple[sp.csr_matrix, Callable[[NDArray[np.float64]], NDArray[np.float64]] | None]:
+    """The Newton matrix A = -d f / d x as assembled (symmetric: interactions whose Jacobian is a
+    symmetrised approximation contribute that), and, where there are such interactions, the
+    product with the exact matrix: their part of ``A v`` replaced by central differences of their
+    forces along v. (A Newton iteration with the symmetrised matrix converges only linearly,
+    about tenfold per iteration; with the exact product, quadratically.)"""
+    body = scene.body
+    J = body.internal_jacobian(x)
+    approx = []
+    for inter, st in zip(scene.interactions, contacts, strict=True):
+        Ji = inter.jacobian(body, x, t, st)
+        J = J + Ji
+        if not getattr(inter, "symmetric_jacobian", True) and Ji.nnz:
+            approx.append((inter, st, Ji))
+    A = -J.tocsr()
+    if not approx:
+        return A, None
+
+    def exact(v: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = A @ v
+        V = v.reshape(-1, 3)
+        vmax = float(np.abs(V).max())
+        if vmax == 0:
+            return out
+        h = FD_STEP * L / vmax
+        for inter, st, Ji in approx:
+            fp = inter.static_forces(body, x + h * V, t, st)
+            fm = inter.static_forces(body, x - h * V, t, st)
+            out += Ji @ v - ((fp - fm) / (2.0 * h)).ravel()
+        return out
+
+    return A, exact
+
+
 def _newton(
     scene: Scene,
     x: NDArray[np.float64],
@@ -105,15 +149,18 @@ def _newton(
     lam = np.zeros(0 if C is None else C.shape[0])
     grav = np.abs(body.mass[:, None] * body.gravity[None, :]).max()
     shift = 0.0
+    creep, last_res = 0, np.inf
     for it in range(1, max_iter + 1):
         f = scene.static_forces(x, t, contacts)
         f_int = body.internal_forces(x)
         scale = max(np.abs(f_int).max(), np.abs(f - f_int).max(), grav, 1e-300)
-        A = -scene.jacobian(x, t, contacts)
+        A, exact = _newton_matrix(scene, x, t, contacts, L)
         accepted = False
         while not accepted:
             As = A if shift == 0.0 else (A + sp.diags(shift * np.abs(A.diagonal()) + 1e-300)).tocsr()
-            dx, lam_new = solve_newton_system(As, f.ravel(), C, x, cache)
+            dx, lam_new = solve_newton_system(
+                As, f.ravel(), C, x, cache, matvec=exact if shift == 0.0 else None
+            )
             r0 = f.ravel() - (C.T @ lam_new if C is not None else 0.0)
             res = float(np.abs(r0).max())
             if res <= rtol * scale:
@@ -147,6 +194,16 @@ def _newton(
                         f"(scale {scale:.3g} N); the load step may be too large or the body unstable"
                     )
                 shift = max(10.0 * shift, 1e-4)
+        # Creeping: tiny accepted steps that barely reduce the unbalanced force mean Newton is
+        # crawling along a nearly free or unstable motion (a body balanced on a vertex tipping
+        # over); it will not converge, so say so now rather than after max_iter iterations.
+        creep = creep + 1 if alpha <= CREEP_ALPHA and res > 0.99 * last_res else 0
+        last_res = res
+        if creep >= CREEP_ITERATIONS and res > STALL_RTOL * scale:
+            raise NotConverged(
+                f"static solve creeps (steps of {alpha:.1e} of Newton's for {creep} iterations, largest "
+                f"unbalanced force {res:.3g} N): the body is not held in this configuration"
+            )
         lam = lam_new
         shift = shift / 10.0 if shift > 1e-4 else 0.0
         small = float(np.abs(xn - x).max()) <= 1e-13 * L
