@@ -207,6 +207,46 @@ def test_limited_step_freezes_joints_pushed_out_of_their_range() -> None:
     np.testing.assert_allclose(_limited_step(J, -dx, q, lo, hi, np.ones(3), 1e-3), -free_step, rtol=1e-12)
 
 
+def _limited_step_reference(J, dx, q, lo, hi, w, damping):  # type: ignore[no-untyped-def]
+    """The limit-clamped step written plainly on :func:`wdls_step`: drop the columns of joints at a
+    limit that the step pushes out, recompute, until none is left."""
+    at_lo, at_hi = q <= lo + 1e-12, q >= hi - 1e-12
+    free = ~(at_lo & at_hi)
+    while free.any():
+        dq = np.zeros_like(q)
+        dq[free] = wdls_step(J[:, free], dx, w[free], damping)
+        blocked = free & ((at_lo & (dq < 0)) | (at_hi & (dq > 0)))
+        if not blocked.any():
+            return dq
+        free &= ~blocked
+    return np.zeros_like(q)
+
+
+def test_batched_limited_steps_equal_the_plain_step_row_by_row() -> None:
+    """Many problems at once, with joints at their limits (some pushed out, some not, one pinned
+    with lower == upper): each row is the plain limit-clamped WDLS step of its own problem."""
+    from softgrasp.hand.model import _limited_steps
+
+    rng = np.random.default_rng(5)
+    B, m, n = 40, 9, 11
+    J = rng.normal(size=(B, m, n)) * 0.05
+    dx = rng.normal(size=(B, m)) * 1e-3
+    lo, hi = -np.ones(n), np.ones(n)
+    lo[4] = hi[4] = 0.2
+    q = rng.uniform(-0.5, 0.5, size=(B, n))
+    at = rng.random((B, n)) < 0.3
+    q[at] = np.where(rng.random(at.sum()) < 0.5, -1.0, 1.0)
+    q[:, 4] = 0.2
+    w = rng.uniform(0.5, 2.0, size=n)
+    for damping in (1e-3, 0.0):
+        dq = _limited_steps(J, dx, q, lo, hi, 1.0 / w, damping)
+        assert dq.shape == (B, n)
+        for b in range(B):
+            ref = _limited_step_reference(J[b], dx[b], q[b], lo, hi, w, damping)
+            np.testing.assert_allclose(dq[b], ref, rtol=1e-9, atol=1e-15)
+        assert np.all(dq[:, 4] == 0.0)
+
+
 @pytest.mark.parametrize(
     ("finger", "q_star"),
     [
@@ -303,6 +343,58 @@ def test_thumb_opposes_finger(finger: str, point: list[float]) -> None:
     assert q_th[1] > 0.3  # lifted off the palm (TH4)
 
 
+# ---------------------------------------------------------------------- batched kinematics
+
+
+def _check_stack(model: HandModel, fingers: tuple[str, ...], seed: int) -> None:
+    """Every finger at several configurations at once, in posed palm frames: the stacked fingertips,
+    Jacobians and joint origins are those of each finger alone, moved into the frame."""
+    from softgrasp.hand.model import chain_stack, stack_kinematics
+    from softgrasp.hand.reach import transform
+
+    rng = np.random.default_rng(seed)
+    chains = tuple(model.chain(f) for f in fingers)
+    stack = chain_stack(chains)
+    assert chain_stack(chains) is stack  # cached
+    B = 6
+    q = np.array([np.concatenate([rng.uniform(*model.limits(f)) for f in fingers]) for _ in range(B)])
+    poses = [_pose(list(rng.normal(size=3)), list(0.1 * rng.normal(size=3))) for _ in range(B)]
+    R = np.array([T[:3, :3] for T in poses])
+    p = np.array([T[:3, 3] for T in poses])
+    k = stack_kinematics(stack, q, R, p, jacobian=True, origins=True)
+    k0 = stack_kinematics(stack, q)  # palm frame, fingertips only
+    assert k.jacobian is not None and k.origins is not None
+    assert k.tips.shape == (B, len(fingers), 3) and k.jacobian.shape == (B, len(fingers), 3, stack.n)
+    for b in range(B):
+        for c, (f, chain) in enumerate(zip(fingers, chains, strict=True)):
+            qf = q[b, stack.starts[c] : stack.starts[c] + chain.dof]
+            tip = model.forward(f, qf)
+            np.testing.assert_allclose(k0.tips[b, c], tip, atol=1e-14)
+            np.testing.assert_allclose(k.tips[b, c], transform(poses[b], tip), atol=1e-14)
+            J = np.zeros((3, stack.n))
+            J[:, stack.starts[c] : stack.starts[c] + chain.dof] = R[b] @ model.jacobian(f, qf)
+            np.testing.assert_allclose(k.jacobian[b, c], J, atol=1e-14)
+            L = len(chain.joints)
+            pts = transform(poses[b], model.link_points(f, qf))
+            np.testing.assert_allclose(k.origins[b, c, :L], pts[:-1], atol=1e-14)
+            np.testing.assert_allclose(
+                k.origins[b, c, L:], np.broadcast_to(pts[-1], k.origins[b, c, L:].shape)
+            )
+    # the stacked Jacobian is the derivative of the stacked fingertips
+    h = 1e-6
+    for i in range(stack.n):
+        e = np.zeros(stack.n)
+        e[i] = h
+        fd = (stack_kinematics(stack, q + e, R, p).tips - stack_kinematics(stack, q - e, R, p).tips) / (2 * h)
+        np.testing.assert_allclose(k.jacobian[..., i], fd, atol=1e-8)
+
+
+def test_stacked_kinematics_of_the_hand_equal_each_finger_alone() -> None:
+    """Fingers of different lengths (the thumb has one joint more: the others are padded)."""
+    _check_stack(MODEL, FINGERS, 3)
+    _check_stack(MODEL, ("middle", "thumb"), 4)
+
+
 # ---------------------------------------------------------------------- URDF reader
 
 LINK = '<link name="{0}"/>'
@@ -372,6 +464,8 @@ def test_small_urdf_prismatic_rpy_and_scaled_mimic(tmp_path: Path) -> None:
     dt = 1e-6
     fd = (model.forward("xx", [0.04, t + dt]) - model.forward("xx", [0.04, t - dt])) / (2 * dt)
     np.testing.assert_allclose(J[:, 1], fd, atol=1e-8)
+    # the same chain twice in a stack (a prismatic joint, a scaled mimic, an rpy origin)
+    _check_stack(model, ("xx", "xx"), 6)
 
 
 @pytest.mark.parametrize(
@@ -498,6 +592,97 @@ def test_place_hand_keeps_the_palm_out_of_the_object() -> None:
     block = centre + 0.4 * (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T)
     with pytest.raises(InfeasibleGrasp, match="inside the object"):
         place_hand(MODEL, targets, obstacle=block)
+
+
+def _sphere_grasp() -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Fingertip centres touching a 40 mm sphere on the table (thumb opposite two fingers 1 rad
+    apart) and 200 points of the sphere (the obstacle)."""
+    r, n = 0.04, 200
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = math.pi * (1 + 5**0.5) * k
+    pts = np.column_stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
+    normals = np.array([[math.cos(a), math.sin(a), 0.0] for a in (0.0, math.pi - 0.5, math.pi + 0.5)])
+    centre = np.array([0.0, 0.0, r])
+    return {f: centre + (r + 0.008) * v for f, v in zip(FINGERS, normals, strict=True)}, centre + r * pts
+
+
+# Placements found by the seed-by-seed implementation (softgrasp before the batched solver), rows 0-2
+# of the palm pose and the joint vectors: the batched solver must find the same ones.
+PINNED = {
+    "known": (
+        [
+            [0.9489403410562461, -0.2998529979256229, -0.09798167558820102, 0.13573904447022],
+            [-0.2999531164474714, -0.9538503770788324, 0.014056531578559538, -0.019514692306500478],
+            [-0.09767475134088852, 0.01605109907719988, -0.9950889433457238, 0.22415585040979052],
+        ],
+        {
+            "thumb": [
+                0.3996535786614061,
+                0.8295476871924065,
+                0.06807477566283729,
+                0.16440181954898675,
+                1.0560068047275677,
+            ],
+            "first": [-0.020290779948393525, 0.3595057431030076, 0.6921712592231357],
+            "middle": [-0.17408558856709774, 0.4399025359306195, 0.498195207029718],
+        },
+    ),
+    "sphere": (
+        [
+            [0.5743171991038175, -0.814675604106718, 0.08039536607852707, 0.06749877993721741],
+            [0.8137704578062184, 0.557458320853751, -0.16437111216017866, -0.1040267507891533],
+            [0.08909206931822826, 0.15982453060863466, 0.9831168407673248, -0.042352214175506234],
+        ],
+        {
+            "thumb": [
+                -0.12969365187650642,
+                0.6138752651311774,
+                0.0012218390811899538,
+                -0.09608035035830363,
+                0.8053723344621796,
+            ],
+            "first": [-0.18629546601291544, 0.41590122489606374, 0.19474693290263612],
+            "middle": [0.014327701812999133, 0.2703580280816504, 0.7868223007175198],
+        },
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(PINNED))
+def test_place_hand_finds_the_pinned_placement(case: str) -> None:
+    from softgrasp.hand.reach import place_hand
+
+    if case == "known":
+        pl = place_hand(MODEL, _known_targets())
+    else:
+        targets, points = _sphere_grasp()
+        pl = place_hand(MODEL, targets, obstacle=points)
+    pose, q = PINNED[case]
+    np.testing.assert_allclose(pl.palm_pose[:3], pose, atol=1e-9)
+    np.testing.assert_array_equal(pl.palm_pose[3], [0.0, 0.0, 0.0, 1.0])
+    for f in FINGERS:
+        np.testing.assert_allclose(pl.q[f], q[f], atol=1e-9)
+
+
+def test_each_start_of_the_batched_placement_iterates_on_its_own() -> None:
+    """The starting postures advance together only to share NumPy calls: solving them all at once
+    or one by one gives the same end postures (including the ones that stall or get stuck)."""
+    from softgrasp.hand.model import chain_stack
+    from softgrasp.hand.reach import _seeds, _solve
+
+    targets, _ = _sphere_grasp()
+    targets["middle"] = targets["middle"] + np.array([0.0, 0.0, 0.05])  # some starts cannot reach it
+    T = np.array([targets[f] for f in FINGERS])
+    stack = chain_stack(tuple(MODEL.chain(f) for f in FINGERS))
+    seeds = _seeds(MODEL, FINGERS, T, np.array([0.0, 0.0, 1.0]))
+    poses = np.array([pose for pose, _ in seeds])
+    q0 = np.array([np.concatenate([q[f] for f in FINGERS]) for _, q in seeds])
+    together = _solve(stack, T, poses[:, :3, :3], poses[:, :3, 3], q0)
+    for s in range(len(seeds)):
+        alone = _solve(stack, T, poses[s : s + 1, :3, :3], poses[s : s + 1, :3, 3], q0[s : s + 1])
+        for a, b in zip(together, alone, strict=True):
+            np.testing.assert_allclose(a[s], b[0], rtol=0, atol=1e-12)
 
 
 def test_closing_paths_move_fingertips_along_their_lines() -> None:

@@ -22,9 +22,11 @@ import os
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,6 +39,14 @@ __all__ = [
     "Joint",
     "FingerChain",
     "HandModel",
+    "ChainStack",
+    "Kinematics",
+    "chain_stack",
+    "local_transforms",
+    "chain_product",
+    "chain_frames",
+    "frame_kinematics",
+    "stack_kinematics",
     "wdls_step",
     "solve_ik",
     "track",
@@ -67,6 +77,12 @@ STALL_WINDOW = 10
 
 #: Extra random starting configurations tried by :func:`solve_ik` after ``q0`` and mid-range.
 IK_RESTARTS = 6
+
+#: ``-[a]x = a @ _LEVI_CIVITA`` (reshaped to 3 x 3): the Levi-Civita symbol as ``eps[k, 3 i + j]``.
+_LEVI_CIVITA = np.zeros((3, 9))
+for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _LEVI_CIVITA[_k, 3 * _i + _j], _LEVI_CIVITA[_k, 3 * _j + _i] = 1.0, -1.0
+_LEVI_CIVITA.setflags(write=False)
 
 _MOVABLE = ("revolute", "prismatic")
 _SUPPORTED = ("revolute", "prismatic", "fixed")
@@ -391,6 +407,223 @@ def _parse_urdf(text: str, source: str) -> dict[str, FingerChain]:
 # ---------------------------------------------------------------------- kinematics
 
 
+@dataclass(frozen=True, eq=False)
+class ChainStack:
+    """Finger chains prepared for forward kinematics evaluated all at once, vectorised over a batch of
+    configurations and over the chains (:func:`chain_stack` builds and caches it).
+
+    The chains' joint vectors are concatenated, in order, into one vector of length ``n``
+    (``starts[c]`` is where chain ``c``'s begins). Chain ``c`` has ``length[c]`` joints, padded with
+    fixed identity joints to ``L = max(length)``. Per joint, arrays ``(L, C, ...)`` (joint index
+    first): joint ``(l, c)`` takes the value ``gain * q[column] + offset`` (``plain``: every gain is 1
+    or 0 and every offset 0, so the value is ``q[column]``). Its transform, origin times motion, is
+    linear in the coefficients ``(cos value, sin value, 1, value)``: ``basis`` ``(L, C, K, 16)``
+    holds the flattened 4 x 4 matrix of each coefficient (Rodrigues' formula split by coefficient
+    for a revolute joint, the shift for a prismatic one, the origin alone for a fixed or padding
+    joint, whose value is then irrelevant; ``K = 3`` without prismatic joints). ``axis``
+    ``(L, C, 3, 1)`` is its unit axis in its own frame (0 for a fixed joint); ``prismatic``
+    ``(L, C)`` its kind. ``select`` ``(C, L, n)`` is ``d value / d q`` (the Jacobian's scatter: a
+    mimic joint adds to its driver; zero for a fixed joint).
+    """
+
+    chains: tuple[FingerChain, ...]
+    n: int
+    starts: tuple[int, ...]
+    length: tuple[int, ...]
+    basis: NDArray[np.float64]
+    axis: NDArray[np.float64]
+    prismatic: NDArray[np.bool_]
+    column: NDArray[np.intp]
+    gain: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    select: NDArray[np.float64]
+    has_prismatic: bool
+    plain: bool
+
+
+@lru_cache(maxsize=64)
+def chain_stack(chains: tuple[FingerChain, ...]) -> ChainStack:
+    """The :class:`ChainStack` of ``chains`` (cached per tuple of chain objects)."""
+    C = len(chains)
+    L = max(len(c.joints) for c in chains)
+    dofs = [c.dof for c in chains]
+    starts = tuple(int(s) for s in np.concatenate([[0], np.cumsum(dofs)[:-1]]))
+    n = int(sum(dofs))
+    origin = np.tile(np.eye(4), (L, C, 1, 1))
+    axis = np.zeros((L, C, 3))
+    revolute = np.zeros((L, C), dtype=bool)
+    prismatic = np.zeros((L, C), dtype=bool)
+    column = np.zeros((L, C), dtype=np.intp)
+    gain = np.zeros((L, C))
+    offset = np.zeros((L, C))
+    select = np.zeros((C, L, n))
+    for c, chain in enumerate(chains):
+        for l, (joint, k, g, b) in enumerate(
+            zip(chain.joints, chain.drive_index, chain.drive_gain, chain.drive_offset, strict=True)
+        ):
+            origin[l, c] = joint.origin
+            if k < 0:
+                continue
+            axis[l, c] = joint.axis
+            revolute[l, c] = joint.kind == "revolute"
+            prismatic[l, c] = joint.kind == "prismatic"
+            column[l, c] = starts[c] + k
+            gain[l, c], offset[l, c] = g, b
+            select[c, l, starts[c] + k] = g
+    # A revolute joint's motion is [[c (I - A) + s K + A, 0], [0, 1]] (A = a a^T, K = [a]x), a
+    # prismatic one's [[I, t a], [0, 1]] (t its shift), a fixed one's I: each picks its coefficients.
+    rev = revolute[..., None, None]
+    A = np.where(rev, axis[..., :, None] * axis[..., None, :], 0.0)
+    motion = np.zeros((L, C, 4, 4, 4))
+    motion[:, :, 0, :3, :3] = np.where(rev, np.eye(3) - A, 0.0)
+    motion[:, :, 1, :3, :3] = np.where(rev, -(axis @ _LEVI_CIVITA).reshape(L, C, 3, 3), 0.0)
+    motion[:, :, 2] = np.where(rev, 0.0, np.eye(4))
+    motion[:, :, 2, :3, :3] += A
+    motion[:, :, 2, 3, 3] = 1.0
+    motion[:, :, 3, :3, 3] = np.where(prismatic[..., None], axis, 0.0)
+    K = 4 if prismatic.any() else 3
+    arrays = {
+        "basis": (origin[:, :, None] @ motion[:, :, :K]).reshape(L, C, K, 16),
+        "axis": axis[..., None],
+        "prismatic": prismatic,
+        "column": column,
+        "gain": gain,
+        "offset": offset,
+        "select": select,
+    }
+    for a in arrays.values():
+        a.setflags(write=False)
+    length = tuple(len(c.joints) for c in chains)
+    plain = bool(np.all((gain == 1.0) | (gain == 0.0)) and not offset.any())
+    return ChainStack(chains, n, starts, length, **arrays, has_prismatic=K == 4, plain=plain)
+
+
+class Kinematics(NamedTuple):
+    """Forward kinematics of a :class:`ChainStack` for a batch of ``B`` configurations.
+
+    tips: fingertip sphere centres, ``(B, C, 3)`` [m].
+    jacobian: ``d tips / d q``, ``(B, C, 3, n)`` (``None`` if not asked for).
+    origins: every joint's origin in root-to-tip order, ``(B, C, L, 3)`` [m], padding joints
+        repeating the fingertip (``None`` if not asked for).
+    """
+
+    tips: NDArray[np.float64]
+    jacobian: NDArray[np.float64] | None
+    origins: NDArray[np.float64] | None
+
+
+def _values(stack: ChainStack, q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Every joint's value ``(L, B, C)`` for the stacked joint vectors ``q`` ``(B, n)`` (a fixed
+    joint's value is arbitrary when the stack is ``plain``)."""
+    value = np.take(q, stack.column, axis=1).transpose(1, 0, 2)
+    return value if stack.plain else value * stack.gain[:, None] + stack.offset[:, None]
+
+
+def local_transforms(
+    stack: ChainStack,
+    q: NDArray[np.float64],
+    rot: NDArray[np.float64] | None = None,
+    pos: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
+    """Each joint's transform (its origin times its motion) for each row of ``q`` ``(B, n)``:
+    ``(L, B, C, 4, 4)``, preceded by the palm's pose (``rot`` ``(B, 3, 3)``, ``pos`` ``(B, 3)``, both
+    or neither) if given: ``(1 + L, B, C, 4, 4)``. Their product, root to tip, is the chain."""
+    B = q.shape[0]
+    L, C, K = stack.basis.shape[:3]
+    value = _values(stack, q)
+    coef = np.ones((L, B, C, 1, K))
+    np.cos(value, out=coef[..., 0, 0])
+    np.sin(value, out=coef[..., 0, 1])
+    if stack.has_prismatic:
+        coef[..., 0, 3] = value
+    root = rot is not None
+    E = np.empty((L + root, B, C, 1, 16))
+    np.matmul(coef, stack.basis[:, None], out=E[root:])
+    E = E.reshape(L + root, B, C, 4, 4)
+    if root:
+        assert rot is not None and pos is not None
+        E[0, :, :, :3, :3] = rot[:, None]
+        E[0, :, :, :3, 3] = pos[:, None]
+        E[0, :, :, 3] = (0.0, 0.0, 0.0, 1.0)
+    return E
+
+
+def chain_product(E: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The product ``E[0] @ E[1] @ ... `` of transforms ``(K, ..., 4, 4)`` (pairwise, log2 K rounds)."""
+    while len(E) > 1:
+        half = len(E) // 2
+        P = E[0 : 2 * half : 2] @ E[1 : 2 * half : 2]
+        E = np.concatenate([P, E[-1:]]) if len(E) % 2 else P
+    return E[0]
+
+
+def chain_frames(E: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The prefix products ``E[0] @ ... @ E[k]`` of transforms ``(K, ..., 4, 4)`` (a new array;
+    Hillis-Steele scan, log2 K rounds)."""
+    P = E.copy()
+    d = 1
+    while d < len(P):
+        P[d:] = P[:-d] @ P[d:]
+        d *= 2
+    return P
+
+
+def frame_kinematics(
+    stack: ChainStack,
+    frames: NDArray[np.float64],
+    q: NDArray[np.float64],
+    *,
+    jacobian: bool = False,
+    origins: bool = False,
+) -> Kinematics:
+    """:class:`Kinematics` from the frames ``(L, B, C, 4, 4)`` after each joint (the prefix products
+    of :func:`local_transforms` without the palm's) for the joint vectors ``q`` ``(B, n)``.
+
+    A revolute joint's Jacobian column is ``a x (p_tip - p_joint)``, a prismatic one's ``a`` (``a``
+    the joint axis in the output frame); a mimic joint adds its column times its multiplier to
+    its driver's.
+    """
+    L, B, C = frames.shape[:3]
+    tips = frames[-1, :, :, :3, 3]
+    if not (jacobian or origins):
+        return Kinematics(tips, None, None)
+    o = frames[..., :3, 3]  # a revolute or fixed joint does not move its own origin
+    a = None
+    if stack.has_prismatic or jacobian:
+        a = (frames[..., :3, :3] @ stack.axis[:, None])[..., 0]  # joint axes, (L, B, C, 3)
+        if stack.has_prismatic:
+            o = o - np.where(stack.prismatic[:, None], _values(stack, q), 0.0)[..., None] * a
+    J = None
+    if jacobian:
+        assert a is not None
+        neg_cross = (a @ _LEVI_CIVITA).reshape(L, B, C, 3, 3)  # -[a]x
+        col = (neg_cross @ (o - tips)[..., None])[..., 0]  # a x (tip - o), (L, B, C, 3)
+        if stack.has_prismatic:
+            col = np.where(stack.prismatic[:, None, :, None], a, col)
+        J = col.transpose(1, 2, 3, 0) @ stack.select  # fixed joints have zero rows in select
+    return Kinematics(tips, J, o.transpose(1, 2, 0, 3) if origins else None)
+
+
+def stack_kinematics(
+    stack: ChainStack,
+    q: NDArray[np.float64],
+    rot: NDArray[np.float64] | None = None,
+    pos: NDArray[np.float64] | None = None,
+    *,
+    jacobian: bool = False,
+    origins: bool = False,
+) -> Kinematics:
+    """Fingertips (and optionally the Jacobian and joint origins) of every chain of ``stack`` for each
+    row of ``q`` ``(B, n)`` (validated by the caller), in the frame where the palm has rotation
+    ``rot`` ``(B, 3, 3)`` and origin ``pos`` ``(B, 3)`` (both or neither; default: the palm frame).
+    See :func:`local_transforms` and :func:`frame_kinematics`."""
+    E = local_transforms(stack, q, rot, pos)
+    if not (jacobian or origins):
+        return Kinematics(chain_product(E)[..., :3, 3], None, None)
+    frames = chain_frames(E)
+    return frame_kinematics(stack, frames[rot is not None :], q, jacobian=jacobian, origins=origins)
+
+
 def _kinematics(
     chain: FingerChain,
     q: NDArray[np.float64],
@@ -399,34 +632,11 @@ def _kinematics(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     """Fingertip centre and (optionally) its positional Jacobian for an already validated ``q``;
     ``origins``, if given, receives each joint's origin in root-to-tip order."""
-    T = np.eye(4)
-    moving: list[tuple[int, float, str, NDArray[np.float64], NDArray[np.float64]]] = []
-    for joint, k, gain, offset in zip(
-        chain.joints, chain.drive_index, chain.drive_gain, chain.drive_offset, strict=True
-    ):
-        T = T @ joint.origin
-        if origins is not None:
-            origins.append(T[:3, 3].copy())
-        if k < 0:
-            continue
-        value = gain * q[k] + offset
-        axis_world = T[:3, :3] @ joint.axis
-        if with_jacobian:
-            moving.append((k, gain, joint.kind, T[:3, 3].copy(), axis_world))
-        M = np.eye(4)
-        if joint.kind == "revolute":
-            M[:3, :3] = _axis_rotation(joint.axis, value)
-        else:
-            M[:3, 3] = value * joint.axis
-        T = T @ M
-    tip = T[:3, 3].copy()
-    if not with_jacobian:
-        return tip, None
-    J = np.zeros((3, chain.dof))
-    for k, gain, kind, p, a in moving:
-        col = np.cross(a, tip - p) if kind == "revolute" else a
-        J[:, k] += gain * col
-    return tip, J
+    k = stack_kinematics(chain_stack((chain,)), q[None], jacobian=with_jacobian, origins=origins is not None)
+    if origins is not None:
+        assert k.origins is not None
+        origins.extend(k.origins[0, 0, : len(chain.joints)])
+    return k.tips[0, 0], None if k.jacobian is None else k.jacobian[0, 0]
 
 
 @dataclass(frozen=True, eq=False)
@@ -578,18 +788,42 @@ def _limited_step(
     its range is removed (its column dropped, i.e. infinite weight) and the step recomputed with the
     remaining joints, until no removed-worthy joint is left.
     """
+    return _limited_steps(J[None], dx[None], q[None], lower, upper, 1.0 / w, damping)[0]
+
+
+def _limited_steps(
+    J: NDArray[np.float64],
+    dx: NDArray[np.float64],
+    q: NDArray[np.float64],
+    lower: NDArray[np.float64],
+    upper: NDArray[np.float64],
+    winv: NDArray[np.float64],
+    damping: float,
+) -> NDArray[np.float64]:
+    """:func:`_limited_step` for a batch: ``J`` ``(B, m, n)``, ``dx`` ``(B, m)``, ``q`` ``(B, n)``;
+    ``lower``, ``upper`` and the inverse joint weights ``winv`` ``(n,)``. Returns ``dq`` ``(B, n)``.
+
+    A frozen joint gets the inverse weight 0 (the same as dropping its column: its step is exactly
+    0 and it adds nothing to ``J W^-1 J^T``).
+    """
     at_lower = q <= lower + LIMIT_EPS
     at_upper = q >= upper - LIMIT_EPS
     free = ~(at_lower & at_upper)  # a joint with lower == upper never moves
-    dq = np.zeros_like(q)
-    while free.any():
-        dq[:] = 0.0
-        dq[free] = wdls_step(J[:, free], dx, w[free], damping)
-        blocked = free & ((at_lower & (dq < 0.0)) | (at_upper & (dq > 0.0)))
+    outward = at_upper.astype(np.float64) - at_lower  # the sign of a step out of the range, or 0
+    JT = J.transpose(0, 2, 1)
+    damp = damping * damping * np.eye(J.shape[1])
+    while True:  # every row again (a row's result does not depend on the others)
+        JW = J * (winv * free)[:, None, :]  # J W^-1 with the frozen columns zeroed
+        A = JW @ JT
+        if damping > 0.0:
+            y = np.linalg.solve(A + damp, dx[..., None])
+        else:
+            y = np.linalg.pinv(A) @ dx[..., None]
+        dq = (JW.transpose(0, 2, 1) @ y)[..., 0]
+        blocked = free & (dq * outward > 0.0)
         if not blocked.any():
             return dq
         free &= ~blocked
-    return np.zeros_like(q)
 
 
 def _descend(

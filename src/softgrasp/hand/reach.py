@@ -5,9 +5,10 @@ and the joint paths that move the fingertips along their straight closing lines 
 The palm is a free rigid body (the arm positions it): its pose is found together with the
 fingers' joints by WDLS on the stacked fingertip tasks, the palm's six coordinates (a translation
 and a small rotation about world axes) acting as extra joints without limits. Several starting
-postures are tried (Kabsch's best rigid fit of a nominal posture's fingertips onto the targets);
-a solution must reach every target, keep every joint inside its limits and keep the palm and all
-finger joints outside the object. The one with the most room to its joint limits wins.
+postures are tried (Kabsch's best rigid fit of a nominal posture's fingertips onto the targets),
+each iterating on its own but all solved together, vectorised with NumPy; a solution must reach
+every target, keep every joint inside its limits and keep the palm and all finger joints outside
+the object. The one with the most room to its joint limits wins (the first one on a tie).
 
 All positions are world coordinates [m] unless named ``*_palm``.
 """
@@ -24,7 +25,20 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand.model import HandModel, _axis_rotation, _limited_step, follow_line
+from softgrasp.hand.model import (
+    _LEVI_CIVITA,
+    ChainStack,
+    HandModel,
+    _axis_rotation,
+    _limited_steps,
+    chain_frames,
+    chain_product,
+    chain_stack,
+    follow_line,
+    frame_kinematics,
+    local_transforms,
+    stack_kinematics,
+)
 
 __all__ = ["HandPlacement", "place_hand", "closing_paths", "transform", "invert"]
 
@@ -40,6 +54,14 @@ DAMPING = 1e-3
 #: iterations has stalled.
 STALL_FRACTION = 0.01
 STALL_WINDOW = 20
+#: Step halvings of the line search before a posture counts as stuck.
+MAX_HALVINGS = 20
+#: Trial steps of the line search evaluated at once, shared among the postures still searching (a
+#: cost trade-off only: each posture takes the first step of 1, 1/2, 1/4, ... that decreases its error).
+TRIAL_BUDGET = 24
+_ALPHA = 0.5 ** np.arange(MAX_HALVINGS)
+
+_EYE3 = np.eye(3)
 
 
 @dataclass(frozen=True)
@@ -88,6 +110,18 @@ def _rotation(w: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.eye(3) if a < 1e-15 else _axis_rotation(w / a, a)
 
 
+def _rotations(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`_rotation` of each row of ``w`` ``(B, 3)``: ``(B, 3, 3)``."""
+    a = np.sqrt(np.einsum("ij,ij->i", w, w))
+    small = a < 1e-15
+    u = w / np.where(small, 1.0, a)[:, None]
+    c, s = np.cos(a)[:, None, None], np.sin(a)[:, None, None]
+    skew = (u @ _LEVI_CIVITA).reshape(-1, 3, 3)  # -[u]x
+    R = c * _EYE3 - s * skew + (1.0 - c) * (u[:, :, None] * u[:, None, :])
+    R[small] = _EYE3
+    return R
+
+
 def _kabsch(src: NDArray[np.float64], dst: NDArray[np.float64]) -> NDArray[np.float64]:
     """The rigid transform (4, 4) that best maps points ``src`` onto ``dst`` (least squares)."""
     cs, cd = src.mean(axis=0), dst.mean(axis=0)
@@ -121,6 +155,8 @@ def _seeds(
     then Kabsch fits of nominal postures onto the targets."""
     out = []
     postures = _postures(model, fingers)
+    stack = chain_stack(tuple(model.chain(f) for f in fingers))
+    tips = stack_kinematics(stack, np.array([np.concatenate([q[f] for f in fingers]) for q in postures])).tips
     up = up / np.linalg.norm(up)
     if "thumb" in fingers and len(fingers) > 1:
         k = fingers.index("thumb")
@@ -131,27 +167,25 @@ def _seeds(
             y /= np.linalg.norm(y)
             z = -up
             base = np.column_stack([np.cross(y, z), y, z])  # palm axes in world: x, y (fingers), z (normal)
-            for q0 in postures[1::2]:
-                local = np.array([model.forward(f, q0[f]) for f in fingers])
+            for q0, local in zip(postures[1::2], tips[1::2], strict=True):
                 for tilt, yaw in product((0.3, 0.9), (0.0, -0.4, 0.4)):
                     R = _rotation(yaw * up) @ base @ _rotation(np.array([tilt, 0.0, 0.0]))
                     pose = np.eye(4)
                     pose[:3, :3] = R
                     pose[:3, 3] = T.mean(axis=0) - R @ local.mean(axis=0)
                     out.append((pose, dict(q0)))
-    for q0 in postures:
-        local = np.array([model.forward(f, q0[f]) for f in fingers])
+    for q0, local in zip(postures, tips, strict=True):
         out.append((_kabsch(local, T), dict(q0)))
     return out
 
 
-def _room(model: HandModel, q: Mapping[str, NDArray[np.float64]]) -> float:
-    room = math.inf
-    for f, v in q.items():
-        lo, hi = model.limits(f)
-        span = np.where(hi > lo, hi - lo, 1.0)
-        room = min(room, float(np.min(np.minimum(v - lo, hi - v) / span)))
-    return room
+def _rooms(stack: ChainStack, q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Smallest distance of any joint to its nearer limit as a fraction of its range, per row of the
+    stacked joint vectors ``q`` ``(S, n)``."""
+    lo = np.concatenate([c.lower for c in stack.chains])
+    hi = np.concatenate([c.upper for c in stack.chains])
+    span = np.where(hi > lo, hi - lo, 1.0)
+    return np.min(np.minimum(q - lo, hi - q) / span, axis=1)
 
 
 def _outside(points: NDArray[np.float64], hull_eq: NDArray[np.float64] | None, margin: float) -> bool:
@@ -162,79 +196,124 @@ def _outside(points: NDArray[np.float64], hull_eq: NDArray[np.float64] | None, m
     return bool((dist.max(axis=1) >= margin).all())
 
 
+def _jacobian(
+    stack: ChainStack, E: NDArray[np.float64], p: NDArray[np.float64], q: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Jacobian ``(B, 3 C, 6 + n)`` of the world fingertips with respect to the palm translation, a
+    small palm rotation about world axes and the joints, from the :func:`local_transforms` ``E``
+    (palm pose first) of hands with palm origins ``p`` ``(B, 3)`` and joints ``q`` ``(B, n)``."""
+    k = frame_kinematics(stack, chain_frames(E)[1:], q, jacobian=True)
+    assert k.jacobian is not None
+    B, C = k.tips.shape[:2]
+    J = np.empty((B, C, 3, 6 + stack.n))
+    J[:, :, :, 0:3] = _EYE3
+    J[:, :, :, 3:6] = ((k.tips - p[:, None, :]) @ _LEVI_CIVITA).reshape(B, C, 3, 3)  # -[r]x
+    J[:, :, :, 6:] = k.jacobian
+    return J.reshape(B, 3 * C, 6 + stack.n)
+
+
+def _norms(e: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Euclidean norm of each row of ``e`` ``(B, m)``."""
+    return np.sqrt(np.einsum("ij,ij->i", e, e))
+
+
+def _errors(e: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Largest fingertip distance per row of the stacked fingertip errors ``e`` ``(B, 3 C)``."""
+    d = e.reshape(len(e), e.shape[1] // 3, 3)
+    return np.sqrt(np.einsum("ijk,ijk->ij", d, d).max(axis=1))
+
+
 def _solve(
-    model: HandModel,
-    fingers: Sequence[str],
+    stack: ChainStack,
     targets: NDArray[np.float64],
-    pose: NDArray[np.float64],
-    q: dict[str, NDArray[np.float64]],
-) -> tuple[NDArray[np.float64], dict[str, NDArray[np.float64]], float]:
-    """Floating-palm WDLS from (pose, q) towards the targets; returns the last pose, q and the
-    largest fingertip error."""
-    dofs = [model.chain(f).dof for f in fingers]
-    n = 6 + sum(dofs)
-    lower = np.concatenate([np.full(6, -np.inf)] + [model.limits(f)[0] for f in fingers])
-    upper = np.concatenate([np.full(6, np.inf)] + [model.limits(f)[1] for f in fingers])
-    w = np.ones(n)
-    R, p = pose[:3, :3].copy(), pose[:3, 3].copy()
-    qv = np.concatenate([q[f] for f in fingers])
+    R: NDArray[np.float64],
+    p: NDArray[np.float64],
+    q: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Floating-palm WDLS towards the targets ``(C, 3)`` from each of ``S`` starting postures (palm
+    rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)``, joints ``q`` ``(S, n)``); returns the last
+    ``R``, ``p``, ``q`` and largest fingertip error ``(S,)`` of each.
 
-    def tips_and_jac(R, p, qv, jac: bool):
-        tips, J = [], np.zeros((3 * len(fingers), n))
-        off = 6
-        for k, (f, d) in enumerate(zip(fingers, dofs, strict=True)):
-            qf = qv[off - 6 : off - 6 + d]
-            local = model.forward(f, qf)
-            tips.append(p + R @ local)
-            if jac:
-                rows = slice(3 * k, 3 * k + 3)
-                J[rows, 0:3] = np.eye(3)
-                r = R @ local
-                J[rows, 3:6] = -np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-                J[rows, off : off + d] = R @ model.jacobian(f, qf)
-            off += d
-        return np.concatenate(tips), J
+    Every posture iterates on its own (they advance in lockstep only to share NumPy calls): a
+    limit-clamped WDLS step (:func:`~softgrasp.hand.model._limited_steps`) on the stacked fingertip
+    errors, shortened by halving until the error norm decreases; it stops at an error <= REACH_TOL,
+    when stalled, when no step moves it or no halving decreases the error, or after MAX_ITER
+    iterations.
+    """
+    S, n = q.shape
+    lower = np.concatenate([np.full(6, -np.inf)] + [c.lower for c in stack.chains])
+    upper = np.concatenate([np.full(6, np.inf)] + [c.upper for c in stack.chains])
+    winv = np.ones(6 + n)
+    goal = targets.ravel()
+    out = [R.copy(), p.copy(), np.empty((S, 6 + n)), np.empty(S)]
+    x = np.concatenate([np.zeros((S, 6)), q], axis=1)  # palm step coordinates (0 at the current pose), q
+    E = local_transforms(stack, q, R, p)
+    e = goal - chain_product(E)[..., :3, 3].reshape(S, -1)
+    err = _errors(e)
+    J = _jacobian(stack, E, p, q)
+    history = np.empty((S, MAX_ITER + 1))  # history[s, i]: the error after i iterations
+    history[:, 0] = err
+    ids = np.arange(S)  # the postures still iterating (all at iteration i), rows of the state
+    state = [R.copy(), p.copy(), x, err, e, J, history, ids]
 
-    tips, J = tips_and_jac(R, p, qv, True)
-    e = targets.ravel() - tips
-    err = float(np.linalg.norm(e.reshape(-1, 3), axis=1).max())
-    history = [err]
-    for _ in range(MAX_ITER):
-        if err <= REACH_TOL:
-            break
-        if len(history) > STALL_WINDOW and history[-1 - STALL_WINDOW] - err < STALL_FRACTION * err:
-            break  # stalled short of the targets: a limit or the workspace's edge
-        history.append(err)
-        norm = float(np.linalg.norm(e))
-        dx = e if norm <= MAX_STEP else e * (MAX_STEP / norm)
-        x = np.concatenate([np.zeros(6), qv])
-        dq = _limited_step(J, dx, x, lower, upper, w, DAMPING)
-        if not np.any(dq):
-            break
-        alpha = 1.0
-        for _ in range(20):
-            R_try = _rotation(alpha * dq[3:6]) @ R
-            p_try = p + alpha * dq[0:3]
-            q_try = np.clip(qv + alpha * dq[6:], lower[6:], upper[6:])
-            t_try, _ = tips_and_jac(R_try, p_try, q_try, False)
-            e_try = targets.ravel() - t_try
-            err_try = float(np.linalg.norm(e_try.reshape(-1, 3), axis=1).max())
-            if np.linalg.norm(e_try) < norm:
+    def retire(keep: NDArray[np.bool_]) -> None:
+        """Write the postures not kept to ``out`` and drop them from the state."""
+        done = state[7][~keep]
+        for k in range(4):
+            out[k][done] = state[k][~keep]
+        state[:] = [a[keep] for a in state]
+
+    for i in range(MAX_ITER):
+        R, p, x, err, e, J, history, ids = state
+        go = err > REACH_TOL
+        if i >= STALL_WINDOW:
+            # stalled short of the targets: a limit or the workspace's edge
+            go &= history[:, max(i - STALL_WINDOW - 1, 0)] - err >= STALL_FRACTION * err
+        if not go.all():
+            retire(go)
+            R, p, x, err, e, J, history, ids = state
+            if not ids.size:
                 break
-            alpha *= 0.5
-        else:
-            break
-        R, p, qv = R_try, p_try, q_try
-        tips, J = tips_and_jac(R, p, qv, True)
-        e = targets.ravel() - tips
-        err = err_try
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = R, p
-    qd, off = {}, 0
-    for f, d in zip(fingers, dofs, strict=True):
-        qd[f] = qv[off : off + d].copy()
-        off += d
-    return out, qd, err
+        norm = _norms(e)
+        dx = e * np.minimum(1.0, MAX_STEP / norm)[:, None]  # at most MAX_STEP long
+        dq = _limited_steps(J, dx, x, lower, upper, winv, DAMPING)
+        # Line search: the first of 1, 1/2, 1/4, ... that decreases the error norm, several
+        # halvings of every posture still searching at a time (about TRIAL_BUDGET trials at once).
+        moved = np.zeros(len(ids), dtype=bool)
+        todo = np.flatnonzero(dq.any(axis=1))
+        k0 = 0
+        E_moved = None
+        while todo.size and k0 < MAX_HALVINGS:
+            K = min(MAX_HALVINGS - k0, max(1, TRIAL_BUDGET // len(todo)))
+            src = todo.repeat(K)
+            step = (dq[todo][:, None, :] * _ALPHA[k0 : k0 + K, None]).reshape(-1, 6 + n)
+            k0 += K
+            x_try = np.clip(x[src] + step, lower, upper)  # the palm part is the step itself
+            p_try = p[src] + step[:, 0:3]
+            E = local_transforms(stack, x_try[:, 6:], _rotations(step[:, 3:6]) @ R[src], p_try)
+            e_try = goal - chain_product(E)[..., :3, 3].reshape(len(src), -1)
+            better = (_norms(e_try) < norm[src]).reshape(-1, K)
+            hit = better.any(axis=1)
+            pick = np.flatnonzero(hit) * K + better.argmax(axis=1)[hit]
+            dst = todo[hit]
+            if E_moved is None:
+                E_moved = np.empty((len(E), len(ids)) + E.shape[2:])
+            E_moved[:, dst] = E[:, pick]
+            p[dst], x[dst], e[dst] = p_try[pick], x_try[pick], e_try[pick]
+            moved[dst] = True
+            todo = todo[~hit]
+        if E_moved is not None:
+            x[:, :6] = 0.0
+            R[moved] = E_moved[0, moved, 0, :3, :3]
+            J[moved] = _jacobian(stack, E_moved[:, moved], p[moved], x[moved, 6:])
+            err[moved] = _errors(e[moved])
+        history[:, i + 1] = err
+        if not moved.all():
+            retire(moved)  # no step, or no shorter step decreased the error: stuck
+            if not state[7].size:
+                break
+    retire(np.zeros(len(state[7]), dtype=bool))
+    return out[0], out[1], out[2][:, 6:], out[3]
 
 
 def place_hand(
@@ -274,31 +353,40 @@ def place_hand(
         from scipy.spatial import ConvexHull
 
         hull_eq = ConvexHull(np.asarray(obstacle, dtype=np.float64)).equations
+    stack = chain_stack(tuple(model.chain(f) for f in fingers))
+    seeds = _seeds(model, fingers, T, np.asarray(up, dtype=np.float64))
+    poses = np.array([pose for pose, _ in seeds])
+    q0 = np.array([np.concatenate([q[f] for f in fingers]) for _, q in seeds])
+    R, p, q, err = _solve(stack, T, poses[:, :3, :3], poses[:, :3, 3], q0)
+    final = stack_kinematics(stack, q, R, p, origins=True)
+    assert final.origins is not None
+    tip_err = np.linalg.norm(final.tips - T, axis=2)  # (S, C)
+    rooms = _rooms(stack, q)
     best: HandPlacement | None = None
     closest: dict[str, float] = {f: math.inf for f in fingers}
     blocked = False
-    for pose0, q0 in _seeds(model, fingers, T, np.asarray(up, dtype=np.float64)):
-        pose, q, err = _solve(model, fingers, T, pose0, q0)
-        errs = {
-            f: float(np.linalg.norm(transform(pose, model.forward(f, q[f])) - T[k]))
-            for k, f in enumerate(fingers)
-        }
+    for s in range(len(seeds)):
+        errs = dict(zip(fingers, tip_err[s].tolist(), strict=True))
         if max(errs.values()) < max(closest.values()):
             closest = errs  # the start that came nearest to reaching every target
-        if err > REACH_TOL:
+        if err[s] > REACH_TOL:
             continue
-        joints = [pose[:3, 3][None, :]]
-        for f in fingers:
-            pts = model.link_points(f, q[f])
+        joints = [p[s][None, :]]
+        for c, chain in enumerate(stack.chains):
+            pts = final.origins[s, c, : stack.length[c]]
             # The joints, not the fingertip sphere (which touches the object by design).
-            near_tip = np.linalg.norm(pts - pts[-1], axis=1) <= model.fingertip_radius(f)
-            joints.append(transform(pose, pts[~near_tip]))
+            joints.append(pts[np.linalg.norm(pts - final.tips[s, c], axis=1) > chain.radius])
         if not _outside(np.vstack(joints), hull_eq, clearance):
             blocked = True
             continue
-        room = _room(model, q)
-        if best is None or room > best.limit_room:
-            best = HandPlacement(pose, MappingProxyType(q), err, room)
+        if best is None or rooms[s] > best.limit_room:
+            pose = np.eye(4)
+            pose[:3, :3], pose[:3, 3] = R[s], p[s]
+            qd = {
+                f: q[s, a : a + c.dof].copy()
+                for f, a, c in zip(fingers, stack.starts, stack.chains, strict=True)
+            }
+            best = HandPlacement(pose, MappingProxyType(qd), float(err[s]), float(rooms[s]))
     if best is None:
         worst = max(closest, key=lambda f: closest[f])
         if closest[worst] <= REACH_TOL and blocked:
