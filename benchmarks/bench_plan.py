@@ -1,98 +1,119 @@
-"""Benchmark of the grasp planner: wall time of the default plan (rubber sphere, three fingers,
-0.5 mm increments, 1 s implicit hold) at about 500, 2 000 and 8 000 nodes, for each solver.
+"""Benchmark of the grasp planner: wall time and peak memory of the default plan (rubber sphere,
+three fingers, 0.5 mm increments, the hand's placement, the quasi-static release and 1 s implicit
+hold) from about 500 to about 32 000 nodes, and the growth exponent of its cost.
 
-Peers measured in the same run: the quasi-static solver is the reference; the dynamic solver
-(the paper's explicit RK4 through every increment at 50 mm/s, then a static rest) is reported as a
-ratio to it. The explicit step is bounded by the stiffest node (~1e-5 s on the default sphere), so
-the dynamic solver's cost grows about as N^(4/3) per simulated second; above 1 000 nodes it is
-skipped unless ``--all`` is given (it takes tens of minutes) and its time is estimated from the
-measured cost per RK4 step and the number of steps.
+Every plan runs in a fresh process (so that its peak resident memory is its own: meshing and body
+included). Peers measured in the same run: the reference linear solver (SciPy's sparse LU of the
+symmetrised Newton matrix up to 1 500 unknowns, multigrid-preconditioned CG beyond, as softgrasp
+did before PARDISO; ``--reference``), and the dynamic solver (the paper's explicit RK4 through
+every increment at 50 mm/s, then a static rest; ``--dynamic``, the ~500-node mesh only: its cost
+grows as N^(4/3) per simulated second).
 
-Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_plan.py [--quick] [--all]``.
+Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_plan.py [--quick] [--large]
+[--reference] [--dynamic]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import multiprocessing as mp
 import os
 import platform
+import resource
 import time
 
 import numpy as np
 
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import Fingertip
-from softgrasp.contact.model import FingertipContact
-from softgrasp.grasp.planner import PlanConfig, plan_grasp
-from softgrasp.objects import make_object
-from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim.integrators import simulate
-from softgrasp.sim.scene import Scene
-from softgrasp.sim.stability import stable_time_step
-
-#: Sphere mesh sizes [m]: 549, 2 196 and 7 576 nodes.
+#: Sphere mesh sizes [m] and the node counts they give: 549, 2 196, 7 576; ~32 000 with --large.
 SIZES = (0.014, 0.008, 0.005)
-HEAD = ("nodes", "solver", "wall s", "incr", "ratio", "thumb N", "first N", "middle N")
-NOTE = "(estimated; --all runs it)"
+LARGE = 0.0031
 
 
-def _plan(body, solver: str):
+def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover - child process
+    os.environ["SOFTGRASP_LINSOLVE"] = linsolve
+    from softgrasp.body import build_body
+    from softgrasp.grasp.planner import PlanConfig, plan_grasp
+    from softgrasp.objects import make_object
+
     t0 = time.perf_counter()
-    plan = plan_grasp(body, PlanConfig(solver=solver))
-    return time.perf_counter() - t0, plan
-
-
-def _estimate_dynamic(body, quasi) -> float:
-    """Seconds the dynamic solver's closing would take: RK4 steps of the closing (travel / speed /
-    dt, with dt the stable step of the scene with the table and the three fingertips where the
-    plan put them) times the measured cost of one such step."""
-    cfg = PlanConfig()
-    tips = tuple(
-        Fingertip(cfg.fingertip_radius, centre=c, velocity=np.zeros(3), name=f.name)
-        for c, f in zip(quasi.centres, quasi.fingers, strict=True)
+    mesh, mat, mass = make_object("sphere", h)
+    body = build_body(mesh, mat, mass=mass)
+    t_build = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    try:
+        plan = plan_grasp(body, PlanConfig(solver=solver))
+        result = {
+            "forces": [f.force_norm for f in plan.fingers],
+            "increments": plan.increments,
+            "margin": plan.friction_margin,
+        }
+    except Exception as exc:  # noqa: BLE001 - reported, not hidden
+        result = {"error": f"{type(exc).__name__}: {exc}"}
+    result.update(
+        nodes=body.n_nodes,
+        build_s=t_build,
+        plan_s=time.perf_counter() - t0,
+        peak_MB=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     )
-    zmin = float(np.asarray(body.mesh.points)[:, 2].min())
-    table = PlaneContact(Plane(np.array([0.0, 0.0, zmin]), np.array([0.0, 0.0, 1.0])), mu=0.5)
-    scene = Scene(body, (table, FingertipContact(tips, cfg.contact)))
-    dt = stable_time_step(scene, "rk4")
-    state = scene.initial_state(quasi.positions)
-    t0 = time.perf_counter()
-    simulate(scene, state, 20 * dt, dt=dt, method="rk4")
-    per_step = (time.perf_counter() - t0) / 20
-    steps = quasi.travel.max() / cfg.closing_speed / dt
-    return steps * per_step
+    out.send(result)
+
+
+def measure(h: float, solver: str = "quasistatic", linsolve: str = "auto") -> dict:
+    """One plan in a fresh process: nodes, build and plan seconds, peak MB, forces."""
+    ctx = mp.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    p = ctx.Process(target=_run, args=(h, solver, linsolve, send))
+    p.start()
+    result = recv.recv()
+    p.join()
+    return result
+
+
+def _row(r: dict, label: str, ref: float | None) -> str:
+    ratio = f"{r['plan_s'] / ref:>6.2f}" if ref else f"{'1':>6}"
+    if "error" in r:
+        return f"{r['nodes']:>6} {label:>22} {r['plan_s']:>8.2f} {ratio} {r['peak_MB']:>8.0f}  {r['error']}"
+    f = " / ".join(f"{v:.3f}" for v in r["forces"])
+    return (
+        f"{r['nodes']:>6} {label:>22} {r['plan_s']:>8.2f} {ratio} {r['peak_MB']:>8.0f} "
+        f"{r['increments']:>5} {r['margin']:>7.1%}  {f}   (mesh+body {r['build_s']:.1f} s)"
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="only the ~500-node mesh")
-    ap.add_argument("--all", action="store_true", help="also run the dynamic solver above 1 000 nodes")
+    ap.add_argument("--quick", action="store_true", help="only the ~500 and ~2 000-node meshes")
+    ap.add_argument("--large", action="store_true", help="also the ~32 000-node mesh")
+    ap.add_argument("--reference", action="store_true", help="also the reference linear solver (slow)")
+    ap.add_argument("--dynamic", action="store_true", help="also the dynamic solver on the ~500-node mesh")
     args = ap.parse_args()
-    print(f"softgrasp plan benchmark on {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs")
-    print(" ".join(f"{h:>{w}}" for h, w in zip(HEAD, (6, 12, 8, 5, 7, 8, 8, 8), strict=True)))
-    for h in SIZES[:1] if args.quick else SIZES:
-        mesh, mat, mass = make_object("sphere", h)
-        body = build_body(mesh, mat, mass=mass)
-        tq, quasi = _plan(body, "quasistatic")
-        f = [x.force_norm for x in quasi.fingers]
-        print(
-            f"{body.n_nodes:>6} {'quasistatic':>12} {tq:>8.1f} {quasi.increments:>5} {1.0:>7.2f} "
-            + " ".join(f"{v:>8.3f}" for v in f)
+    print(
+        f"softgrasp plan benchmark on {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"SOFTGRASP_THREADS={os.environ.get('SOFTGRASP_THREADS', '1')}"
+    )
+    print(
+        f"{'nodes':>6} {'solver':>22} {'plan s':>8} {'ratio':>6} {'peak MB':>8} {'incr':>5} {'margin':>7}  "
+        "thumb / first / middle N"
+    )
+    sizes = list(SIZES[:2] if args.quick else SIZES) + ([LARGE] if args.large else [])
+    fast: list[tuple[int, float]] = []
+    for h in sizes:
+        r = measure(h)
+        print(_row(r, "quasi-static", None), flush=True)
+        fast.append((r["nodes"], r["plan_s"]))
+        if args.reference and r["nodes"] < 10_000:
+            print(_row(measure(h, linsolve="reference"), "quasi-static, reference", r["plan_s"]), flush=True)
+        if args.dynamic and h == SIZES[0]:
+            print(_row(measure(h, "dynamic"), "dynamic (RK4)", r["plan_s"]), flush=True)
+    if len(fast) >= 2:
+        n, t = np.array(fast, dtype=float).T
+        slope = float(np.polyfit(np.log(n), np.log(t), 1)[0])
+        pairs = ", ".join(
+            f"{int(n[i])}->{int(n[i + 1])}: {math.log(t[i + 1] / t[i]) / math.log(n[i + 1] / n[i]):.2f}"
+            for i in range(len(n) - 1)
         )
-        if body.n_nodes > 1000 and not args.all:
-            est = _estimate_dynamic(body, quasi) + tq
-            print(f"{body.n_nodes:>6} {'dynamic':>12} {est:>8.0f} {'-':>5} {est / tq:>7.1f}  {NOTE}")
-            continue
-        est = _estimate_dynamic(body, quasi) + tq
-        td, dyn = _plan(body, "dynamic")
-        g = [x.force_norm for x in dyn.fingers]
-        print(
-            f"{body.n_nodes:>6} {'dynamic':>12} {td:>8.1f} {dyn.increments:>5} {td / tq:>7.2f} "
-            + " ".join(f"{v:>8.3f}" for v in g)
-        )
-        diff = np.max(np.abs(np.array(g) / np.array(f) - 1))
-        print(f"{'':>6} largest finger-force difference dynamic vs quasistatic: {diff:.1%}")
-        print(f"{'':>6} (the estimate used above 1 000 nodes gives {est:.0f} s here)")
+        print(f"cost ~ N^{slope:.2f} over {int(n[0])}-{int(n[-1])} nodes (successive: {pairs})")
 
 
 if __name__ == "__main__":

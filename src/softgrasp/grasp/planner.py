@@ -16,7 +16,7 @@ travel that passes it: with the fingertips fixed, the table's support is taken a
 static load steps (the weight passes to the fingers quasi-statically, as in a slow lift), then
 ``hold_time`` seconds of implicit (backward Euler) dynamics must keep the centre of mass within
 ``max_drift`` of where it stood on the table, and a static solve in the fingers alone must find
-the held state within ``max_drift`` too, every contact pair sticking. A failed verification
+the held state within ``max_drift`` too, every fingertip sticking. A failed verification
 continues the closing from there, by step / 2^refine at first and by doubling amounts up to a
 whole step, with a verification after each. Past
 ``max_squeeze`` (a fraction of the shortest finger-to-centroid distance, travelled beyond the last
@@ -65,6 +65,8 @@ PER_SPREAD = 1
 SETTLED = 1e-6
 #: Static load steps in which the table's support is taken away before the holding simulation.
 RELEASE_STEPS = 4
+#: A fingertip counts as sliding when its resultant friction uses this close to all of its cone.
+STICK_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -185,8 +187,9 @@ class GraspPlan:
     fingers: set-points of thumb, first and middle fingers in the held state.
     force_residual, torque_residual: |Eq. 21| [N] and |Eq. 22| about the centre of mass [N m] of
         the held state (finger forces and weight).
-    friction_margin: 1 - the largest ratio |f_t| / (mu f_n) among the contact pairs in the held
-        state: the share of the Coulomb cone left (> 0: every pair sticks; 0: one slips).
+    friction_margin: 1 - the largest ratio |f_t| / (mu f_n) among the fingers in the held state,
+        with each finger's resultant friction and normal forces: the share of its Coulomb cone
+        left (> 0: every fingertip sticks; rim pairs of a contact patch may slip).
     com_drift: centre-of-mass motion from the release over the holding time, or to the held
         state if that is farther [m]; hold_time: that time [s].
     increments: closing increments simulated (the bisection's included).
@@ -447,11 +450,22 @@ def _check_hold(
     drift = max(released, moved, float(np.linalg.norm(_com(body, held.x) - c0)))
     if drift >= cfg.max_drift:
         return None
-    if fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True).contacts.min() == 0:
+    rep = fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True)
+    if rep.contacts.min() == 0:
         return None
-    if fixed.friction_usage(body, held.x, 0.0, held.contacts[0]).max() >= 1.0:
-        return None  # a pair slips: not held
+    if _cone_usage(rep, cfg.contact.mu).max() >= 1.0 - STICK_TOLERANCE:
+        return None  # a finger slides: not held
     return held, fixed, drift
+
+
+def _cone_usage(rep: FingerReport, mu: float) -> NDArray[np.float64]:
+    """Each finger's resultant friction force over mu times its resultant normal force, (3,): 1
+    when the whole fingertip slides (every pair at its Coulomb limit, all in one direction), below
+    1 when it sticks. Pairs at the rim of a contact patch may slip while the fingertip sticks
+    (partial slip, as in Mindlin's contact): they do not make the grasp let go."""
+    if mu <= 0:
+        return np.ones(len(rep.normal))
+    return rep.tangential / np.maximum(mu * rep.normal, 1e-300)
 
 
 def plan_grasp(
@@ -571,7 +585,7 @@ def plan_grasp(
     centres = fixed.centres(0.0)
     tres = np.linalg.norm(_torque_residual(hrep, centres, com))
     # The held state's friction forces against the (circular) Coulomb cones, pair by pair.
-    margin = float(1.0 - fixed.friction_usage(body, held_state.x, 0.0, held_state.contacts[0]).max())
+    margin = float(1.0 - _cone_usage(hrep, mu).max())
     try:
         rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity)
     except InfeasibleGrasp:

@@ -61,7 +61,9 @@ class SolverCache:
     ----------
     method: ``"auto"`` (PARDISO up to :data:`PARDISO_MAX_DOF` unknowns where MKL is installed,
         else sparse LU up to :data:`DIRECT_MAX_DOF`; multigrid beyond), ``"pardiso"``,
-        ``"direct"`` or ``"amg"``; default from the environment variable ``SOFTGRASP_LINSOLVE``.
+        ``"direct"``, ``"amg"`` or ``"reference"`` (sparse LU up to :data:`DIRECT_MAX_DOF`, multigrid
+        beyond, never the exact Newton product: the solver softgrasp had before PARDISO); default
+        from the environment variable ``SOFTGRASP_LINSOLVE``.
     rtol: relative tolerance of the multigrid-preconditioned solve.
     """
 
@@ -71,6 +73,7 @@ class SolverCache:
     _iterations: list[int] = field(default_factory=list, repr=False)
     _factor: pardiso.PardisoFactor | None = field(default=None, repr=False)
     _stale_cap: int = field(default=4, repr=False)
+    _try_stale: bool = field(default=True, repr=False)
     stats: dict[str, int] = field(
         default_factory=lambda: {"analyses": 0, "factorisations": 0, "stale_solves": 0, "amg_solves": 0},
         repr=False,
@@ -179,17 +182,17 @@ def _pcg(
 
 
 def _stale_pcg(
-    A: sp.csr_matrix, b: NDArray[np.float64], f: pardiso.PardisoFactor, max_it: int
+    A: sp.csr_matrix, b: NDArray[np.float64], f: pardiso.PardisoFactor, max_it: int, rtol: float = STALE_RTOL
 ) -> NDArray[np.float64] | None:
     """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
-    matrix; None when they do not reach :data:`STALE_RTOL` in ``max_it`` iterations (or meet
-    negative curvature)."""
+    matrix; None when they do not reach ``rtol`` in ``max_it`` iterations (or meet negative
+    curvature)."""
     bnorm = float(np.linalg.norm(b))
     if bnorm == 0:
         return np.zeros_like(b)
     x = f.solve(b)
     r = b - A @ x
-    if float(np.linalg.norm(r)) <= STALE_RTOL * bnorm:
+    if float(np.linalg.norm(r)) <= rtol * bnorm:
         return x
     z = f.solve(r)
     p = z.copy()
@@ -202,7 +205,7 @@ def _stale_pcg(
         alpha = rz / pAp
         x += alpha * p
         r -= alpha * Ap
-        if float(np.linalg.norm(r)) <= STALE_RTOL * bnorm:
+        if float(np.linalg.norm(r)) <= rtol * bnorm:
             return x
         z = f.solve(r)
         rz_new = float(r @ z)
@@ -250,6 +253,7 @@ def _pardiso(
     x_nodes: NDArray[np.float64],
     cache: SolverCache,
     matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
+    rtol: float = STALE_RTOL,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """PARDISO with the analysis reused per pattern and the factorisation reused as a
     preconditioner while it converges in fewer iterations than a refactorisation costs. With
@@ -260,10 +264,14 @@ def _pardiso(
     U = f.same_pattern(A) if f is not None and f.n == A.shape[0] else None
     if U is not None:
         assert f is not None
-        if matvec is not None:
-            x = _gmres(matvec, b, f.solve, cache._stale_cap + 2, STALE_RTOL)
-        else:
-            x = _stale_pcg(A, b, f, cache._stale_cap)
+        x = None
+        if cache._try_stale:
+            if matvec is not None:
+                x = _gmres(matvec, b, f.solve, cache._stale_cap + 2, rtol)
+            else:
+                x = _stale_pcg(A, b, f, cache._stale_cap, rtol)
+        # After a failed attempt the next system goes straight to a refactorisation.
+        cache._try_stale = x is not None
         if x is not None:
             cache.stats["stale_solves"] += 1
             return x, np.zeros(0)
@@ -276,8 +284,9 @@ def _pardiso(
         cache._factor = f = pardiso.PardisoFactor(P)
         cache.stats["analyses"] += 1
         cache.stats["factorisations"] += 1
+    cache._try_stale = True
     if matvec is not None and f.perturbed_pivots == 0:
-        x = _gmres(matvec, b, f.solve, EXACT_MAX_IT, STALE_RTOL)
+        x = _gmres(matvec, b, f.solve, EXACT_MAX_IT, rtol)
         if x is not None:
             return x, np.zeros(0)
     if f.perturbed_pivots > 0:
@@ -298,6 +307,7 @@ def solve_newton_system(
     cache: SolverCache | None = None,
     *,
     matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
+    rtol: float | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Solve ``A dx + C^T lam = b, C dx = 0``.
 
@@ -309,6 +319,8 @@ def solve_newton_system(
     matvec: the product with the exact Newton matrix where A is only its symmetric
         approximation (used by the PARDISO path without constraints: GMRES on the exact system,
         preconditioned by the factorisation of A).
+    rtol: relative residual the iterative parts must reach (an inexact Newton iteration's forcing
+        term); default :data:`STALE_RTOL`. Direct solves are exact regardless.
 
     Returns
     -------
@@ -316,8 +328,15 @@ def solve_newton_system(
     """
     cache = cache if cache is not None else SolverCache()
     n = A.shape[0]
-    if cache.method not in ("auto", "pardiso", "direct", "amg"):
+    if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
         raise ValueError(f"unknown linear solver {cache.method!r}")
+    if cache.method == "reference":
+        # softgrasp's first solver, kept as the reference of the benchmarks and tests: the
+        # symmetrised Newton matrix, sparse LU up to DIRECT_MAX_DOF unknowns, multigrid-CG beyond.
+        if C is not None or n <= DIRECT_MAX_DOF:
+            return _direct(A, b, C)
+        cache.stats["amg_solves"] += 1
+        return _pcg(A.tocsr(), b, C, x_nodes, cache)
     # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
     # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
     if C is not None or cache.method == "direct":
@@ -326,7 +345,7 @@ def solve_newton_system(
         cache.method == "auto" and n <= PARDISO_MAX_DOF and pardiso.available()
     )
     if use_pardiso:
-        return _pardiso(A.tocsr(), b, x_nodes, cache, matvec)
+        return _pardiso(A.tocsr(), b, x_nodes, cache, matvec, STALE_RTOL if rtol is None else min(rtol, 1e-2))
     if cache.method == "auto" and n <= DIRECT_MAX_DOF:
         return _direct(A, b, C)
     cache.stats["amg_solves"] += 1
