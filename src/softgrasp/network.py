@@ -32,6 +32,9 @@ __all__ = ["NetworkCalibration", "calibrate_network", "affine_tensor_quartic", "
 
 #: Smallest spring re-weighting factor accepted before the correction is damped.
 MIN_WEIGHT = 0.25
+#: Springs per block of the direction sums (bounds the (springs x directions) temporaries to
+#: ~40 MB whatever the mesh size).
+CHUNK = 20_000
 
 
 def sphere_directions(n: int = 200) -> NDArray[np.float64]:
@@ -60,7 +63,10 @@ def affine_tensor_quartic(
 
     With ``w_e = k_e L_e^2 / V`` this is C:(m⊗m⊗m⊗m) of the affine elasticity tensor [Pa].
     """
-    return ((directions @ probe.T) ** 4).T @ weights
+    out = np.zeros(len(probe))
+    for lo in range(0, len(directions), CHUNK):
+        out += ((directions[lo : lo + CHUNK] @ probe.T) ** 4).T @ weights[lo : lo + CHUNK]
+    return out
 
 
 @dataclass(frozen=True)
@@ -137,7 +143,10 @@ def calibrate_network(mesh: TetMesh, E: float, nu: float, *, isotropize: bool = 
     if isotropize:
         # D(m) with springs weighted by p(n_e) = sum_q c_q mono_q(n_e) is linear in c.
         mono = _quartic_monomials(n)  # (E, 15)
-        G = ((n @ probe.T) ** 4).T @ (w0[:, None] * mono)  # (P, 15)
+        G = np.zeros((len(probe), mono.shape[1]))  # (P, 15)
+        for lo in range(0, len(n), CHUNK):
+            sl = slice(lo, lo + CHUNK)
+            G += ((n[sl] @ probe.T) ** 4).T @ (w0[sl, None] * mono[sl])
         target = np.full(len(probe), D0.mean())
         c, *_ = np.linalg.lstsq(G, target, rcond=None)
         p = mono @ c
