@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp import kernels
 from softgrasp.errors import MaterialError
 from softgrasp.forces import (
     BlockPattern,
@@ -98,7 +99,26 @@ class Body:
     def internal_forces(
         self, x: NDArray[np.float64], v: NDArray[np.float64] | None = None
     ) -> NDArray[np.float64]:
-        """Spring + volume (+ edge damping if ``v`` is given) forces on the nodes [N], (N, 3)."""
+        """Spring + volume (+ edge damping if ``v`` is given) forces on the nodes [N], (N, 3).
+
+        Compiled kernels when :func:`softgrasp.kernels.compiled`, else the NumPy reference."""
+        if kernels.compiled():
+            from softgrasp.kernels import elastic
+
+            damped = v is not None and self.damping_time > 0
+            return elastic.internal_forces(
+                x,
+                v if damped else None,
+                self.edges,
+                self.rest_length,
+                self.stiffness,
+                self.damping if damped else None,
+                self.material.law,
+                self.mesh.tets,
+                self.mesh.volumes,
+                self.kappa,
+                self.barrier,
+            )
         f, _ = spring_forces(x, self.edges, self.rest_length, self.stiffness, self.material.law)
         if self.kappa != 0.0:
             f += volume_forces(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)[0]
@@ -107,7 +127,22 @@ class Body:
         return f
 
     def internal_energy(self, x: NDArray[np.float64]) -> float:
-        """Elastic energy of springs and volume term [J]."""
+        """Elastic energy of springs and volume term [J] (compiled kernels or NumPy reference, as
+        :meth:`internal_forces`)."""
+        if kernels.compiled():
+            from softgrasp.kernels import elastic
+
+            return elastic.internal_energy(
+                x,
+                self.edges,
+                self.rest_length,
+                self.stiffness,
+                self.material.law,
+                self.mesh.tets,
+                self.mesh.volumes,
+                self.kappa,
+                self.barrier,
+            )
         e = spring_forces(x, self.edges, self.rest_length, self.stiffness, self.material.law)[1]
         if self.kappa != 0.0:
             e += volume_forces(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)[1]
@@ -125,12 +160,30 @@ class Body:
 
     def internal_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
         """``d f_internal / d x`` (negative stiffness), sparse (3N, 3N), assembled into the body's
-        fixed sparsity pattern."""
+        fixed sparsity pattern (the compiled kernels sum their blocks straight into its CSR data)."""
+        pattern = self._jacobian_pattern
+        if kernels.compiled():
+            from softgrasp.kernels import elastic
+
+            data = elastic.internal_jacobian_data(
+                x,
+                self.edges,
+                self.rest_length,
+                self.stiffness,
+                self.material.law,
+                self.mesh.tets,
+                self.mesh.volumes,
+                self.kappa,
+                self.barrier,
+                pattern.positions,
+                pattern.nnz,
+            )
+            return pattern.matrix(data)
         blocks = spring_jacobian_blocks(x, self.edges, self.rest_length, self.stiffness, self.material.law)
         if self.kappa != 0.0:
             vb = volume_jacobian_blocks(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)
             blocks = np.concatenate([blocks, vb])
-        return self._jacobian_pattern.assemble(blocks)
+        return pattern.assemble(blocks)
 
     def damping_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
         """``d f_damping / d v``, sparse (3N, 3N)."""

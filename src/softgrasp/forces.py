@@ -4,6 +4,10 @@ Every kernel takes node positions ``x`` (N, 3) [m] and returns forces (N, 3) [N]
 and, where the force is conservative, the energy [J] whose negative gradient it is. Jacobians are
 ``d f / d x`` (the negative of the stiffness matrix), sparse ``(3N, 3N)`` with 3x3 node blocks
 ordered ``[x0, y0, z0, x1, ...]``.
+
+These NumPy functions are the reference implementation. Compiled twins with the same signatures
+live in :mod:`softgrasp.kernels.elastic`; :mod:`softgrasp.kernels` selects which one
+:class:`softgrasp.body.Body` uses.
 """
 
 from __future__ import annotations
@@ -77,11 +81,23 @@ class BlockPattern:
         cols_per_row[pos.ravel()] = (3 * bcol[:, None, None] + b + 0 * a).ravel()
         self.indices = cols_per_row
 
+    @property
+    def positions(self) -> NDArray[np.int64]:
+        """CSR data position of entry (a, b) of input block k at index ``9 k + 3 a + b``, (9K,):
+        a compiled kernel may sum its blocks straight into the data array (see :meth:`matrix`)."""
+        return self._pos
+
     def assemble(self, blocks: NDArray[np.float64]) -> sp.csr_matrix:
         """The matrix with ``blocks`` (K, 3, 3) at the pattern's node pairs, summed where repeated."""
         if blocks.shape != (self.n_blocks_in, 3, 3):
             raise ValueError(f"expected blocks of shape ({self.n_blocks_in}, 3, 3), got {blocks.shape}")
         data = np.bincount(self._pos, weights=blocks.ravel(), minlength=self.nnz)
+        return self.matrix(np.asarray(data, dtype=np.float64))
+
+    def matrix(self, data: NDArray[np.float64]) -> sp.csr_matrix:
+        """The matrix of this pattern with CSR data ``data`` (nnz,) (used without copying)."""
+        if data.shape != (self.nnz,):
+            raise ValueError(f"expected data of shape ({self.nnz},), got {data.shape}")
         n = 3 * self.n_nodes
         m = sp.csr_matrix((data, self.indices, self.indptr), shape=(n, n), copy=False)
         m.has_sorted_indices = True

@@ -13,6 +13,9 @@ the facet, so that a facet's plane extended past a convex edge adds no phantom c
 Broad phase: the surface nodes near each fingertip and the facets around them (a node-to-facet
 index computed once per mesh, :class:`FacetIndex`), so the cost grows with the boundary nodes at a
 few microseconds per thousand, not with F log F; without an index, a k-d tree of facet centroids.
+With an index and the compiled kernels selected (:mod:`softgrasp.kernels`), :func:`detect` runs
+both phases in one compiled pass (:mod:`softgrasp.kernels.contact`); the NumPy code here is the
+reference.
 """
 
 from __future__ import annotations
@@ -23,9 +26,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from softgrasp import kernels
 from softgrasp.mesh.tetmesh import TetMesh
 
-__all__ = ["ContactPairs", "FacetIndex", "detect", "barycentric", "relative_velocity"]
+__all__ = ["ContactPairs", "FacetIndex", "detect", "pair_geometry", "barycentric", "relative_velocity"]
 
 #: Tolerance on barycentric coordinates for "inside the triangle" (shared edges count for both).
 INSIDE_TOL = 1e-12
@@ -135,6 +139,12 @@ class FacetIndex:
 MAX_STRETCH = 3.0
 
 
+def broad_phase_reach(index: FacetIndex, fade: float) -> float:
+    """Margin [m] beyond a fingertip's radius within which a surface node may carry a facet in
+    contact: (1 + 3 fade) x the longest rest facet edge x :data:`MAX_STRETCH`."""
+    return (1.0 + 3.0 * fade) * MAX_STRETCH * index.max_edge
+
+
 def _candidates_tree(
     x: NDArray[np.float64], facets: NDArray[np.int64], centres, radii, fade: float
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -161,7 +171,7 @@ def _candidates_nodes(
     (1 + 3 fade) x its longest edge of one of its nodes, and edges are taken to stretch at most
     MAX_STRETCH times their rest length."""
     xb = x[index.boundary_nodes]
-    reach = (1.0 + 3.0 * fade) * MAX_STRETCH * index.max_edge
+    reach = broad_phase_reach(index, fade)
     fi, fj = [], []
     for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
         d2 = np.einsum("ij,ij->i", xb - c, xb - c)
@@ -200,12 +210,40 @@ def detect(
         each fingertip (cost ~ boundary nodes, a few microseconds per thousand) instead of
         building a k-d tree of all facet centroids (cost ~ F log F).
     """
+    if index is not None and kernels.compiled():
+        return _detect_compiled(x, facets, centres, radii, fade, index)
     if index is None:
         fi, fj = _candidates_tree(x, facets, centres, radii, fade)
     else:
         fi, fj = _candidates_nodes(x, index, centres, radii, fade)
     if fj.size == 0:
         return _empty()
+    return _narrow_phase(x, facets, centres, radii, fi, fj, fade, keep_all=False)
+
+
+def pair_geometry(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    finger: NDArray[np.int64],
+    facet: NDArray[np.int64],
+    *,
+    fade: float = 0.0,
+) -> ContactPairs:
+    """The geometry of given (fingertip, facet) pairs at ``x``, whether they touch there or not
+    (depths may be <= 0, projections outside the triangles): the pairs of an earlier
+    :func:`detect`, followed through a small displacement (derivatives along a direction with
+    the contact set fixed, as a Jacobian assumes)."""
+    if len(facet) == 0:
+        return _empty()
+    return _narrow_phase(
+        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), fade, keep_all=True
+    )
+
+
+def _narrow_phase(x, facets, centres, radii, fi, fj, fade: float, keep_all: bool) -> ContactPairs:
+    """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``."""
     tri = x[facets[fj]]  # (k, 3, 3) candidates only
     a, b, c3 = tri[:, 0], tri[:, 1], tri[:, 2]
     nrm = np.cross(b - a, c3 - a)
@@ -229,6 +267,8 @@ def detect(
     else:
         reach = np.ones(len(fj))
         ok = (d > 0) & (d < R) & (low >= -INSIDE_TOL)
+    if keep_all:
+        ok = np.ones(len(fj), bool)
     return ContactPairs(
         finger=fi[ok],
         facet=fj[ok],
@@ -241,6 +281,39 @@ def detect(
         reach=reach[ok],
         overlap=overlap[ok],
         near=near[ok],
+    )
+
+
+def _detect_compiled(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    fade: float,
+    index: FacetIndex,
+) -> ContactPairs:
+    """:func:`detect` with the node-index broad phase, by the compiled kernel
+    (:mod:`softgrasp.kernels.contact`): the same pairs in the same order, fields equal to
+    round-off. The float fields are read-only views of one (k, 17) array."""
+    from softgrasp.kernels.contact import detect_arrays
+
+    reach = broad_phase_reach(index, fade)
+    fi, fj, val = detect_arrays(
+        x, facets, index.boundary_nodes, index.indptr, index.indices, reach, centres, radii, fade, INSIDE_TOL
+    )
+    val.flags.writeable = False
+    return ContactPairs(
+        finger=fi,
+        facet=fj,
+        bary=val[:, 0:3],
+        point=val[:, 3:6],
+        normal=val[:, 6:9],
+        distance=val[:, 9],
+        depth=val[:, 10],
+        area=val[:, 11],
+        reach=val[:, 12],
+        overlap=val[:, 13],
+        near=val[:, 14:17],
     )
 
 

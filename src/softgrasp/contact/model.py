@@ -20,16 +20,27 @@ Algorithm 1 is applied (:meth:`FingertipContact.update`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp import kernels
 from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.geometry import ContactPairs, FacetIndex, barycentric, detect, relative_velocity
+from softgrasp.contact.geometry import (
+    INSIDE_TOL,
+    ContactPairs,
+    FacetIndex,
+    barycentric,
+    broad_phase_reach,
+    detect,
+    pair_geometry,
+    relative_velocity,
+)
 from softgrasp.contact.laws import (
     contact_damping,
     contact_stiffness,
@@ -247,9 +258,12 @@ class FingertipContact:
         depth = np.maximum(self._depths(pairs), p.min_depth_ratio * self._radii()[pairs.finger])
         return self._ratio(body) * normal_force_derivative(depth, K, p.exponent)
 
-    def _evaluate(self, body: Body, x, v, t: float, state: FingerState, static: bool) -> _Eval:
+    def _evaluate(
+        self, body: Body, x, v, t: float, state: FingerState, static: bool, pairs: ContactPairs | None = None
+    ) -> _Eval:
         p = self.params
-        pairs = self.pairs(body, x, t)
+        if pairs is None:
+            pairs = self.pairs(body, x, t)
         K = self.stiffness(body)[pairs.finger]
         C = self.damping()[pairs.finger]
         n_exp = p.exponent
@@ -333,12 +347,90 @@ class FingertipContact:
                 )
 
     def forces(self, body: Body, x, v, t: float, state: FingerState) -> NDArray[np.float64]:
-        """Contact forces on the nodes during dynamics (Eq. 9-20)."""
+        """Contact forces on the nodes during dynamics (Eq. 9-20).
+
+        With the compiled kernels selected (:mod:`softgrasp.kernels`) the whole evaluation is one
+        compiled call (:func:`softgrasp.kernels.contact.fingertip_forces`); the NumPy code of
+        :meth:`_evaluate` and :meth:`_nodal` is the reference."""
+        if kernels.compiled():
+            return self._forces_compiled(body, x, v, t, state)
         return self._nodal(body, x, self._evaluate(body, x, v, t, state, static=False))
+
+    def _compiled_kwargs(self, body: Body, t: float) -> dict[str, Any]:
+        """Geometry and parameters shared by the compiled forces and update."""
+        p = self.params
+        patch = p.rule == "patch"
+        fade = p.edge_fade if patch else 0.0
+        index = FacetIndex.of(body.mesh)
+        return {
+            "facets": body.mesh.facets,
+            "boundary_nodes": index.boundary_nodes,
+            "indptr": index.indptr,
+            "indices": index.indices,
+            "reach": broad_phase_reach(index, fade),
+            "centres": self.centres(t),
+            "radii": self._radii(),
+            "K": self.stiffness(body),
+            "fade": fade,
+            "inside_tol": INSIDE_TOL,
+            "mu": p.mu,
+            "exponent": p.exponent,
+            "patch": patch,
+            "ratio": self._ratio(body),
+            "min_depth_ratio": p.min_depth_ratio,
+        }
+
+    def _forces_compiled(self, body: Body, x, v, t: float, state: FingerState) -> NDArray[np.float64]:
+        from softgrasp.kernels.contact import fingertip_forces
+
+        return fingertip_forces(
+            x,
+            v,
+            velocities=np.array([f.velocity for f in self.fingertips]),
+            omegas=np.array([f.omega for f in self.fingertips]),
+            C=self.damping(),
+            hunt_crossley=self.params.damping == "hunt-crossley",
+            active=state.active,
+            anchor=state.anchor,
+            memory=state.memory,
+            **self._compiled_kwargs(body, t),
+        )
+
+    def _update_compiled(self, body: Body, x, t: float, state: FingerState) -> FingerState:
+        from softgrasp.kernels.contact import fingertip_update
+
+        active, anchor, slip, memory = fingertip_update(
+            x,
+            active=state.active,
+            anchor=state.anchor,
+            slip=state.slip,
+            memory=state.memory,
+            **self._compiled_kwargs(body, t),
+        )
+        return replace(state, active=active, anchor=anchor, slip=slip, memory=memory)
 
     def static_forces(self, body: Body, x, t: float, state: FingerState) -> NDArray[np.float64]:
         """Contact forces at rest with lagged weights, limits and k_t."""
         return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True))
+
+    def pinned_static_forces(
+        self, body: Body, x_ref: NDArray[np.float64], t: float, state: FingerState
+    ) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+        """The static contact forces as a function of the node positions near ``x_ref``, with the
+        touching pairs fixed to those at ``x_ref`` (their geometry followed, none added or
+        dropped): what the Newton solver differentiates along a direction. Without pinning, a
+        perturbation can cross a contact knife edge (a fingertip right over a vertex touches all
+        the facets around it or none)."""
+        ref = self.pairs(body, x_ref, t)
+        fade = self.params.edge_fade if self.params.rule == "patch" else 0.0
+        finger, facet = np.array(ref.finger), np.array(ref.facet)
+        centres, radii = self.centres(t), self._radii()
+
+        def forces(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            pairs = pair_geometry(x, body.mesh.facets, centres, radii, finger, facet, fade=fade)
+            return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True, pairs=pairs))
+
+        return forces
 
     def energy(self, body: Body, x, t: float, state: FingerState) -> float:
         """Elastic energy of the normal contact springs [J], sum of w K delta^(n+1) / (n+1).
@@ -419,7 +511,12 @@ class FingertipContact:
         from a neighbouring facet); a pair whose stick force exceeds mu f_n slips: its anchor is
         dragged so that the stick force is exactly mu f_n and the drag is added to the slip
         displacement u; pairs that separate are reset.
+
+        One compiled call (:func:`softgrasp.kernels.contact.fingertip_update`) with the compiled
+        kernels selected; the NumPy code below is the reference.
         """
+        if kernels.compiled():
+            return self._update_compiled(body, x, t, state)
         p = self.params
         pairs = self.pairs(body, x, t)
         nf, F = state.active.shape

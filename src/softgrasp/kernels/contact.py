@@ -1,0 +1,600 @@
+"""Compiled (Numba) fingertip-facet contact: detection (paper Sec. 3.1) and dynamic forces.
+
+* :func:`detect_arrays`: the same broad phase (surface nodes near each fingertip, then the facets
+  around them, through the mesh's :class:`~softgrasp.contact.geometry.FacetIndex`) and narrow phase
+  (projection, barycentric coordinates, edge fade, closest point, overlap) as the NumPy reference
+  :func:`softgrasp.contact.geometry.detect`, in one pass. Pairs come out in the reference's order
+  (by fingertip, then by facet index).
+* :func:`fingertip_forces`: detection, relative velocity (Eq. 1-8), normal force (Eq. 9-14) with
+  the patch or literal rule, elastic-slider friction with the Coulomb cap (Eq. 15-16, Algorithm 1)
+  and the nodal distribution (Eq. 17-20) of
+  :meth:`softgrasp.contact.model.FingertipContact.forces`, in one compiled call;
+  :func:`fingertip_update` likewise for the friction state update (Algorithm 1) of
+  :meth:`~softgrasp.contact.model.FingertipContact.update`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["detect_arrays", "fingertip_forces", "fingertip_update"]
+
+_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+
+
+@_jit
+def _closest_point(px, py, pz, tri, near):  # pragma: no cover - compiled
+    """Squared distance from p to the closest point of triangle ``tri`` (3, 3) on its edges (p's
+    projection lies outside it); that point's barycentric coordinates are written to ``near``.
+    Edges (0, 1), (1, 2), (2, 0) in that order, a later edge winning only when strictly closer."""
+    best = math.inf
+    for m in range(3):
+        i = m
+        j = (m + 1) % 3
+        ex = tri[j, 0] - tri[i, 0]
+        ey = tri[j, 1] - tri[i, 1]
+        ez = tri[j, 2] - tri[i, 2]
+        t = ((px - tri[i, 0]) * ex + (py - tri[i, 1]) * ey + (pz - tri[i, 2]) * ez) / (
+            ex * ex + ey * ey + ez * ez
+        )
+        t = min(max(t, 0.0), 1.0)
+        qx = px - (tri[i, 0] + t * ex)
+        qy = py - (tri[i, 1] + t * ey)
+        qz = pz - (tri[i, 2] + t * ez)
+        d2 = qx * qx + qy * qy + qz * qz
+        if d2 < best:
+            best = d2
+            near[0] = 0.0
+            near[1] = 0.0
+            near[2] = 0.0
+            near[i] = 1.0 - t
+            near[j] = t
+    return best
+
+
+@_jit
+def _detect(
+    x, facets, boundary, indptr, indices, reach, centres, radii, fade, inside_tol
+):  # pragma: no cover
+    """Touching pairs (see :func:`detect_arrays`), per fingertip in increasing facet order."""
+    n_fingers = centres.shape[0]
+    F = facets.shape[0]
+    mark = np.zeros(F, np.bool_)
+    cap = n_fingers * F  # at most every facet for every finger (np.empty: nothing is touched)
+    finger = np.empty(cap, np.int64)
+    facet = np.empty(cap, np.int64)
+    real = np.empty((cap, 17))  # bary 3, point 3, normal 3, distance, depth, area, reach, overlap, near 3
+    tri = np.empty((3, 3))
+    near = np.empty(3)
+    grow = 1.0 + 3.0 * max(fade, inside_tol)
+    k = 0
+    for f in range(n_fingers):
+        cx = centres[f, 0]
+        cy = centres[f, 1]
+        cz = centres[f, 2]
+        R = radii[f]
+        r2 = (R + reach) ** 2
+        # broad phase: facets around the surface nodes within R + reach of the centre
+        for b in range(boundary.shape[0]):
+            node = boundary[b]
+            dx = x[node, 0] - cx
+            dy = x[node, 1] - cy
+            dz = x[node, 2] - cz
+            if dx * dx + dy * dy + dz * dz < r2:
+                for p in range(indptr[node], indptr[node + 1]):
+                    mark[indices[p]] = True
+        # narrow phase, the marked facets in increasing order
+        for j in range(F):
+            if not mark[j]:
+                continue
+            mark[j] = False
+            for r in range(3):
+                node = facets[j, r]
+                tri[r, 0] = x[node, 0]
+                tri[r, 1] = x[node, 1]
+                tri[r, 2] = x[node, 2]
+            # Quick rejection, exact and conservative: every point of the triangle extended by
+            # the fade (barycentric coordinates >= -fade) lies within (1 + 3 fade) x its largest
+            # vertex distance of its centroid g, so a pair needs |c - g| < R + that.
+            gx = (tri[0, 0] + tri[1, 0] + tri[2, 0]) / 3.0
+            gy = (tri[0, 1] + tri[1, 1] + tri[2, 1]) / 3.0
+            gz = (tri[0, 2] + tri[1, 2] + tri[2, 2]) / 3.0
+            rmax2 = 0.0
+            for r in range(3):
+                ex = tri[r, 0] - gx
+                ey = tri[r, 1] - gy
+                ez = tri[r, 2] - gz
+                rmax2 = max(rmax2, ex * ex + ey * ey + ez * ez)
+            lim = (R + grow * math.sqrt(rmax2)) * (1.0 + 1e-9)
+            ex = cx - gx
+            ey = cy - gy
+            ez = cz - gz
+            if ex * ex + ey * ey + ez * ez > lim * lim:
+                continue
+            ux = tri[1, 0] - tri[0, 0]
+            uy = tri[1, 1] - tri[0, 1]
+            uz = tri[1, 2] - tri[0, 2]
+            wx = tri[2, 0] - tri[0, 0]
+            wy = tri[2, 1] - tri[0, 1]
+            wz = tri[2, 2] - tri[0, 2]
+            Nx = uy * wz - uz * wy
+            Ny = uz * wx - ux * wz
+            Nz = ux * wy - uy * wx
+            twice_area = math.sqrt(Nx * Nx + Ny * Ny + Nz * Nz)
+            nx = Nx / twice_area
+            ny = Ny / twice_area
+            nz = Nz / twice_area
+            d = (cx - tri[0, 0]) * nx + (cy - tri[0, 1]) * ny + (cz - tri[0, 2]) * nz
+            if not (d > 0.0 and d < R):
+                continue
+            Px = cx - d * nx
+            Py = cy - d * ny
+            Pz = cz - d * nz
+            # barycentric coordinates of P (as softgrasp.contact.geometry.barycentric)
+            vx = Px - tri[0, 0]
+            vy = Py - tri[0, 1]
+            vz = Pz - tri[0, 2]
+            d00 = ux * ux + uy * uy + uz * uz
+            d01 = ux * wx + uy * wy + uz * wz
+            d11 = wx * wx + wy * wy + wz * wz
+            d20 = vx * ux + vy * uy + vz * uz
+            d21 = vx * wx + vy * wy + vz * wz
+            den = d00 * d11 - d01 * d01
+            wb = (d11 * d20 - d01 * d21) / den
+            wc = (d00 * d21 - d01 * d20) / den
+            wa = 1.0 - wb - wc
+            low = min(wa, wb, wc)
+            near[0] = wa
+            near[1] = wb
+            near[2] = wc
+            overlap = R - d
+            if fade > 0.0:
+                rch = min(max(1.0 + low / fade, 0.0), 1.0)
+                if not rch > 0.0:
+                    continue
+                if low < 0.0:
+                    overlap = R - math.sqrt(_closest_point(cx, cy, cz, tri, near))
+                if not overlap > 0.0:
+                    continue
+            else:
+                rch = 1.0
+                if not low >= -inside_tol:
+                    continue
+            finger[k] = f
+            facet[k] = j
+            row = real[k]
+            row[0] = wa
+            row[1] = wb
+            row[2] = wc
+            row[3] = Px
+            row[4] = Py
+            row[5] = Pz
+            row[6] = nx
+            row[7] = ny
+            row[8] = nz
+            row[9] = d
+            row[10] = R - d
+            row[11] = 0.5 * twice_area
+            row[12] = rch
+            row[13] = overlap
+            row[14] = near[0]
+            row[15] = near[1]
+            row[16] = near[2]
+            k += 1
+    return finger[:k].copy(), facet[:k].copy(), real[:k].copy()
+
+
+def detect_arrays(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    boundary_nodes: NDArray[np.int64],
+    indptr: NDArray[np.int64],
+    indices: NDArray[np.int64],
+    reach: float,
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    fade: float,
+    inside_tol: float,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Touching pairs: (finger (k,), facet (k,), values (k, 17)) with values' columns bary 0-2,
+    point 3-5, normal 6-8, distance 9, depth 10, area 11, reach 12, overlap 13, near 14-16.
+
+    ``reach`` [m] is the broad phase's margin beyond each radius (a surface node farther than
+    R + reach from a centre has no facet in contact)."""
+    return _detect(
+        np.ascontiguousarray(x, dtype=np.float64),
+        np.ascontiguousarray(facets, dtype=np.int64),
+        np.ascontiguousarray(boundary_nodes, dtype=np.int64),
+        np.ascontiguousarray(indptr, dtype=np.int64),
+        np.ascontiguousarray(indices, dtype=np.int64),
+        float(reach),
+        np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3),
+        np.ascontiguousarray(radii, dtype=np.float64).ravel(),
+        float(fade),
+        float(inside_tol),
+    )
+
+
+@_jit
+def _patch(finger, val, nf):  # pragma: no cover - compiled
+    """Each finger's deepest pair (the first of largest overlap; -1 without pairs) and the sum of
+    its pairs' patch weights ``area x overlap x reach``."""
+    deep = np.full(nf, -1, np.int64)
+    total = np.zeros(nf)
+    for p in range(finger.shape[0]):
+        f = finger[p]
+        if deep[f] < 0 or val[p, 13] > val[deep[f], 13]:
+            deep[f] = p
+        total[f] += val[p, 11] * val[p, 13] * val[p, 12]
+    return deep, total
+
+
+@_jit
+def _weight_depth(p, f, val, deep, total, patch):  # pragma: no cover - compiled
+    """Pair p's weight w_j and the penetration its normal law is evaluated at."""
+    if patch:
+        return val[p, 11] * val[p, 13] * val[p, 12] / total[f], val[deep[f], 13]
+    return 1.0, val[p, 10]
+
+
+@_jit
+def _stick(p, f, j, val, x, facets, active, anchor, memory):  # pragma: no cover - compiled
+    """Tangential stick displacement (Eq. 16) of pair p from its anchor: kept for a continuing
+    pair, else the contact point minus the finger's memory; and whether the pair continues."""
+    cont = active[f, j]
+    if cont:
+        ax = 0.0
+        ay = 0.0
+        az = 0.0
+        for m in range(3):
+            node = facets[j, m]
+            ax += anchor[f, j, m] * x[node, 0]
+            ay += anchor[f, j, m] * x[node, 1]
+            az += anchor[f, j, m] * x[node, 2]
+    else:
+        ax = val[p, 3] - memory[f, 0]
+        ay = val[p, 4] - memory[f, 1]
+        az = val[p, 5] - memory[f, 2]
+    sx = val[p, 3] - ax
+    sy = val[p, 4] - ay
+    sz = val[p, 5] - az
+    sn = sx * val[p, 6] + sy * val[p, 7] + sz * val[p, 8]
+    return sx - sn * val[p, 6], sy - sn * val[p, 7], sz - sn * val[p, 8], cont
+
+
+@_jit
+def _tangential_stiffness(depth, radius, K, n_exp, ratio, min_depth_ratio):  # pragma: no cover
+    """k_t = ratio x d(K delta^n)/d delta at max(delta, min_depth_ratio R)."""
+    d = max(max(depth, min_depth_ratio * radius), 0.0)
+    return ratio * (n_exp * K * d ** (n_exp - 1.0)) if d > 0.0 else 0.0
+
+
+@_jit
+def _fingertip_forces(
+    x,
+    v,
+    facets,
+    boundary,
+    indptr,
+    indices,
+    reach,
+    centres,
+    radii,
+    velocities,
+    omegas,
+    K,
+    C,
+    fade,
+    inside_tol,
+    mu,
+    n_exp,
+    hunt_crossley,
+    patch,
+    ratio,
+    min_depth_ratio,
+    active,
+    anchor,
+    memory,
+    out,
+):  # pragma: no cover - compiled
+    """Dynamic contact forces added to ``out`` (N, 3); returns the number of touching pairs."""
+    finger, facet, val = _detect(
+        x, facets, boundary, indptr, indices, reach, centres, radii, fade, inside_tol
+    )
+    deep, total = _patch(finger, val, centres.shape[0])
+    for p in range(finger.shape[0]):
+        f = finger[p]
+        j = facet[p]
+        nx = val[p, 6]
+        ny = val[p, 7]
+        nz = val[p, 8]
+        # relative velocity at the contact point: finger (Eq. 1) minus facet (Eq. 4)
+        rx = val[p, 3] - centres[f, 0]
+        ry = val[p, 4] - centres[f, 1]
+        rz = val[p, 5] - centres[f, 2]
+        vrx = velocities[f, 0] + (omegas[f, 1] * rz - omegas[f, 2] * ry)
+        vry = velocities[f, 1] + (omegas[f, 2] * rx - omegas[f, 0] * rz)
+        vrz = velocities[f, 2] + (omegas[f, 0] * ry - omegas[f, 1] * rx)
+        for m in range(3):
+            node = facets[j, m]
+            vrx -= val[p, m] * v[node, 0]
+            vry -= val[p, m] * v[node, 1]
+            vrz -= val[p, m] * v[node, 2]
+        vn = vrx * nx + vry * ny + vrz * nz
+        vtx = vrx - vn * nx
+        vty = vry - vn * ny
+        vtz = vrz - vn * nz
+        rate = -vn
+        w, depth = _weight_depth(p, f, val, deep, total, patch)
+        # normal force (Eq. 9), zero unless delta > 0, never pulling
+        dn = max(depth, 0.0) ** n_exp
+        if hunt_crossley:
+            raw = dn * (K[f] + C[f] * rate)
+        else:
+            raw = K[f] * dn + C[f] * rate
+        raw = max(raw, 0.0) if depth > 0.0 else 0.0
+        fn = w * raw
+        ftx = 0.0
+        fty = 0.0
+        ftz = 0.0
+        if mu > 0.0:
+            sx, sy, sz, _ = _stick(p, f, j, val, x, facets, active, anchor, memory)
+            kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
+            a = -(w * kt)
+            b = w * (ratio * C[f])
+            ftx = a * sx - b * vtx
+            fty = a * sy - b * vty
+            ftz = a * sz - b * vtz
+            cap = mu * fn
+            mag = math.sqrt(ftx * ftx + fty * fty + ftz * ftz)
+            if mag > cap:
+                speed = math.sqrt(vtx * vtx + vty * vty + vtz * vtz)
+                if speed > 0.0:  # Coulomb slip (Eq. 15)
+                    ftx = -mu * fn * (vtx / speed)
+                    fty = -mu * fn * (vty / speed)
+                    ftz = -mu * fn * (vtz / speed)
+                else:
+                    r = cap / mag
+                    ftx *= r
+                    fty *= r
+                    ftz *= r
+        # the pair's force on the object, spread by the shape functions (Eq. 17-20)
+        Fx = -fn * nx - ftx
+        Fy = -fn * ny - fty
+        Fz = -fn * nz - ftz
+        for m in range(3):
+            node = facets[j, m]
+            out[node, 0] += val[p, m] * Fx
+            out[node, 1] += val[p, m] * Fy
+            out[node, 2] += val[p, m] * Fz
+    return finger.shape[0]
+
+
+@_jit
+def _fingertip_update(
+    x,
+    facets,
+    boundary,
+    indptr,
+    indices,
+    reach,
+    centres,
+    radii,
+    K,
+    fade,
+    inside_tol,
+    mu,
+    n_exp,
+    patch,
+    ratio,
+    min_depth_ratio,
+    active,
+    anchor,
+    slip,
+    memory,
+    new_active,
+    new_anchor,
+    new_slip,
+    new_memory,
+):  # pragma: no cover - compiled
+    """Algorithm 1's state update into the zeroed ``new_*`` arrays; returns the pair count."""
+    finger, facet, val = _detect(
+        x, facets, boundary, indptr, indices, reach, centres, radii, fade, inside_tol
+    )
+    nf = centres.shape[0]
+    deep, total = _patch(finger, val, nf)
+    wsum = np.zeros(nf)
+    for p in range(finger.shape[0]):
+        f = finger[p]
+        j = facet[p]
+        w, depth = _weight_depth(p, f, val, deep, total, patch)
+        elastic = K[f] * max(depth, 0.0) ** n_exp if depth > 0.0 else 0.0
+        elastic = max(elastic, 0.0)
+        kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
+        sx, sy, sz, cont = _stick(p, f, j, val, x, facets, active, anchor, memory)
+        ux = slip[f, j, 0] if cont else 0.0
+        uy = slip[f, j, 1] if cont else 0.0
+        uz = slip[f, j, 2] if cont else 0.0
+        if mu > 0.0:
+            lim = mu * w * elastic
+            s_norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+            keff = w * kt
+            if keff * s_norm > lim:  # slip: the anchor is dragged to the Coulomb limit
+                r = lim / (keff * s_norm)
+                nsx = sx * r
+                nsy = sy * r
+                nsz = sz * r
+                ux += sx - nsx
+                uy += sy - nsy
+                uz += sz - nsz
+                sx = nsx
+                sy = nsy
+                sz = nsz
+        else:
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+        # the anchor Xa = P - s in barycentric coordinates of the facet
+        a0 = facets[j, 0]
+        ux0 = x[facets[j, 1], 0] - x[a0, 0]
+        uy0 = x[facets[j, 1], 1] - x[a0, 1]
+        uz0 = x[facets[j, 1], 2] - x[a0, 2]
+        wx0 = x[facets[j, 2], 0] - x[a0, 0]
+        wy0 = x[facets[j, 2], 1] - x[a0, 1]
+        wz0 = x[facets[j, 2], 2] - x[a0, 2]
+        qx = (val[p, 3] - sx) - x[a0, 0]
+        qy = (val[p, 4] - sy) - x[a0, 1]
+        qz = (val[p, 5] - sz) - x[a0, 2]
+        d00 = ux0 * ux0 + uy0 * uy0 + uz0 * uz0
+        d01 = ux0 * wx0 + uy0 * wy0 + uz0 * wz0
+        d11 = wx0 * wx0 + wy0 * wy0 + wz0 * wz0
+        d20 = qx * ux0 + qy * uy0 + qz * uz0
+        d21 = qx * wx0 + qy * wy0 + qz * wz0
+        den = d00 * d11 - d01 * d01
+        wb = (d11 * d20 - d01 * d21) / den
+        wc = (d00 * d21 - d01 * d20) / den
+        new_anchor[f, j, 0] = 1.0 - wb - wc
+        new_anchor[f, j, 1] = wb
+        new_anchor[f, j, 2] = wc
+        new_active[f, j] = True
+        new_slip[f, j, 0] = ux
+        new_slip[f, j, 1] = uy
+        new_slip[f, j, 2] = uz
+        wsum[f] += w
+        new_memory[f, 0] += w * sx
+        new_memory[f, 1] += w * sy
+        new_memory[f, 2] += w * sz
+    for f in range(nf):
+        ws = max(wsum[f], 1e-300)
+        new_memory[f, 0] /= ws
+        new_memory[f, 1] /= ws
+        new_memory[f, 2] /= ws
+    return finger.shape[0]
+
+
+def fingertip_forces(
+    x: NDArray[np.float64],
+    v: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    boundary_nodes: NDArray[np.int64],
+    indptr: NDArray[np.int64],
+    indices: NDArray[np.int64],
+    reach: float,
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    velocities: NDArray[np.float64],
+    omegas: NDArray[np.float64],
+    K: NDArray[np.float64],
+    C: NDArray[np.float64],
+    *,
+    fade: float,
+    inside_tol: float,
+    mu: float,
+    exponent: float,
+    hunt_crossley: bool,
+    patch: bool,
+    ratio: float,
+    min_depth_ratio: float,
+    active: NDArray[np.bool_],
+    anchor: NDArray[np.float64],
+    memory: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Contact forces on the nodes [N], (N, 3), of fingertips (centres, radii, velocities, omegas,
+    stiffness K [N/m^n] and damping C [N s/m] per fingertip) with friction state (active (n_f, F),
+    anchor (n_f, F, 3), memory (n_f, 3)); parameters as in
+    :class:`softgrasp.contact.fingertip.ContactParams` (``ratio`` = k_t / k_n)."""
+    f64 = np.float64
+    x = np.ascontiguousarray(x, dtype=f64)
+    out = np.zeros_like(x)
+    _fingertip_forces(
+        x,
+        np.ascontiguousarray(v, dtype=f64),
+        np.ascontiguousarray(facets, dtype=np.int64),
+        np.ascontiguousarray(boundary_nodes, dtype=np.int64),
+        np.ascontiguousarray(indptr, dtype=np.int64),
+        np.ascontiguousarray(indices, dtype=np.int64),
+        float(reach),
+        np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(radii, dtype=f64).ravel(),
+        np.ascontiguousarray(velocities, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(omegas, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(K, dtype=f64).ravel(),
+        np.ascontiguousarray(C, dtype=f64).ravel(),
+        float(fade),
+        float(inside_tol),
+        float(mu),
+        float(exponent),
+        bool(hunt_crossley),
+        bool(patch),
+        float(ratio),
+        float(min_depth_ratio),
+        np.ascontiguousarray(active, dtype=np.bool_),
+        np.ascontiguousarray(anchor, dtype=f64),
+        np.ascontiguousarray(memory, dtype=f64),
+        out,
+    )
+    return out
+
+
+def fingertip_update(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    boundary_nodes: NDArray[np.int64],
+    indptr: NDArray[np.int64],
+    indices: NDArray[np.int64],
+    reach: float,
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    K: NDArray[np.float64],
+    *,
+    fade: float,
+    inside_tol: float,
+    mu: float,
+    exponent: float,
+    patch: bool,
+    ratio: float,
+    min_depth_ratio: float,
+    active: NDArray[np.bool_],
+    anchor: NDArray[np.float64],
+    slip: NDArray[np.float64],
+    memory: NDArray[np.float64],
+) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The friction state after an accepted step (Algorithm 1, as
+    :meth:`softgrasp.contact.model.FingertipContact.update`): new (active (n_f, F), anchor
+    (n_f, F, 3), slip (n_f, F, 3) [m], memory (n_f, 3) [m])."""
+    f64 = np.float64
+    new_active = np.zeros(active.shape, np.bool_)
+    new_anchor = np.zeros(anchor.shape)
+    new_slip = np.zeros(slip.shape)
+    new_memory = np.zeros(memory.shape)
+    _fingertip_update(
+        np.ascontiguousarray(x, dtype=f64),
+        np.ascontiguousarray(facets, dtype=np.int64),
+        np.ascontiguousarray(boundary_nodes, dtype=np.int64),
+        np.ascontiguousarray(indptr, dtype=np.int64),
+        np.ascontiguousarray(indices, dtype=np.int64),
+        float(reach),
+        np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(radii, dtype=f64).ravel(),
+        np.ascontiguousarray(K, dtype=f64).ravel(),
+        float(fade),
+        float(inside_tol),
+        float(mu),
+        float(exponent),
+        bool(patch),
+        float(ratio),
+        float(min_depth_ratio),
+        np.ascontiguousarray(active, dtype=np.bool_),
+        np.ascontiguousarray(anchor, dtype=f64),
+        np.ascontiguousarray(slip, dtype=f64),
+        np.ascontiguousarray(memory, dtype=f64),
+        new_active,
+        new_anchor,
+        new_slip,
+        new_memory,
+    )
+    return new_active, new_anchor, new_slip, new_memory

@@ -1,0 +1,470 @@
+"""Compiled (Numba) kernels of the body's forces, energies and Jacobians.
+
+Same signatures and results (to round-off) as the NumPy reference in :mod:`softgrasp.forces`, plus
+fused body-level kernels (:func:`internal_forces`, :func:`internal_energy`,
+:func:`internal_jacobian_data`) that :class:`softgrasp.body.Body` calls.
+
+The stress-strain law stays a general Python object (:class:`softgrasp.material.StressStrainLaw`):
+the compiled kernels compute the edge lengths, NumPy evaluates ``law.stress`` / ``law.tangent`` /
+``law.energy`` over all edges at once, and compiled kernels turn the tensions into node forces or
+Jacobian blocks. The two laws softgrasp defines as polynomials (:class:`~softgrasp.material.Linear`,
+:class:`~softgrasp.material.Polynomial`, exact types only, so a subclass overriding ``stress`` is
+never mistaken for one) are evaluated inside the force kernel in one pass.
+
+Kernels are compiled with ``cache=True`` (on-disk cache: only the first run compiles),
+``fastmath=False`` (results match the reference to round-off) and ``error_model="numpy"`` (a
+division by zero gives inf/nan like NumPy, which the blow-up monitor detects, rather than raising).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.material import Linear, Polynomial, StressStrainLaw
+
+__all__ = [
+    "polynomial_coefficients",
+    "edge_lengths",
+    "spring_forces",
+    "spring_jacobian_blocks",
+    "volume_forces",
+    "volume_jacobian_blocks",
+    "edge_damping_forces",
+    "internal_forces",
+    "internal_energy",
+    "internal_jacobian_data",
+]
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+
+#: Barrier floor of J in psi (the same as :func:`softgrasp.forces.psi`).
+_J_FLOOR = 1e-12
+
+
+def polynomial_coefficients(law: StressStrainLaw) -> tuple[float, float] | None:
+    """``(a2, a3)`` of ``s = eps + a2 eps^2 + a3 eps^3`` when ``law`` is exactly a
+    :class:`~softgrasp.material.Linear` or :class:`~softgrasp.material.Polynomial`, else None."""
+    if type(law) is Linear:
+        return 0.0, 0.0
+    if type(law) is Polynomial:
+        return float(law.a2), float(law.a3)
+    return None
+
+
+# ---------------------------------------------------------------------------------- edges
+@_jit
+def _edge_lengths(x, edges, out):  # pragma: no cover - compiled
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        out[e] = math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@_jit
+def _springs_polynomial(x, v, edges, rest, k, c, a2, a3, damped, want_energy, out):  # pragma: no cover
+    """Spring (+ dashpot) forces added to ``out`` (N, 3); returns the spring energy (0 unless
+    ``want_energy``). Two divisions and a square root per edge (the arithmetic's bottleneck)."""
+    energy = 0.0
+    a2_3 = a2 / 3.0
+    a3_4 = 0.25 * a3
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        L = math.sqrt(dx * dx + dy * dy + dz * dz)
+        inv = 1.0 / L
+        L0 = rest[e]
+        eps = L / L0 - 1.0
+        e2 = eps * eps
+        T = k[e] * L0 * (eps + a2 * e2 + a3 * e2 * eps)
+        if want_energy:
+            energy += k[e] * L0 * L0 * (0.5 * e2 + a2_3 * e2 * eps + a3_4 * e2 * e2)
+        if damped:
+            rate = ((v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz) * inv
+            T += c[e] * rate
+        s = T * inv
+        out[i, 0] += s * dx
+        out[i, 1] += s * dy
+        out[i, 2] += s * dz
+        out[j, 0] -= s * dx
+        out[j, 1] -= s * dy
+        out[j, 2] -= s * dz
+    return energy
+
+
+@_jit
+def _springs_tension(x, v, edges, L, T, c, damped, out):  # pragma: no cover - compiled
+    """Forces of edge tensions ``T`` (E,) at lengths ``L`` (+ dashpots), added to ``out``."""
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        inv = 1.0 / L[e]
+        t = T[e]
+        if damped:
+            t += c[e] * ((v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz) * inv
+        s = t * inv
+        out[i, 0] += s * dx
+        out[i, 1] += s * dy
+        out[i, 2] += s * dz
+        out[j, 0] -= s * dx
+        out[j, 1] -= s * dy
+        out[j, 2] -= s * dz
+
+
+@_jit
+def _spring_blocks(x, edges, L, T, dT, psd, pos, use_pos, offset, out):  # pragma: no cover
+    """Add the blocks ``[K, K, -K, -K]`` of each edge (K = d f0 / d x1) to ``out``: entry
+    (r, c) of block B = offset + (e, E + e, 2E + e, 3E + e) at ``pos[9 B + 3 r + c]`` (or at
+    ``9 B + 3 r + c`` itself when ``use_pos`` is false)."""
+    E = edges.shape[0]
+    for e in range(E):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        Le = L[e]
+        n0 = (x[j, 0] - x[i, 0]) / Le
+        n1 = (x[j, 1] - x[i, 1]) / Le
+        n2 = (x[j, 2] - x[i, 2]) / Le
+        n = (n0, n1, n2)
+        geo = T[e] / Le
+        if psd and geo < 0.0:
+            geo = 0.0
+        a = dT[e] - geo
+        for r in range(3):
+            for s in range(3):
+                val = a * n[r] * n[s]
+                if r == s:
+                    val += geo
+                for q in range(4):
+                    sign = 1.0 if q < 2 else -1.0
+                    idx = 9 * (offset + q * E + e) + 3 * r + s
+                    if use_pos:
+                        idx = pos[idx]
+                    out[idx] += sign * val
+
+
+# ---------------------------------------------------------------------------------- tets
+@_jit
+def _volume(x, tets, rest, kappa, barrier, want_energy, out):  # pragma: no cover - compiled
+    """Volume-term forces added to ``out`` (N, 3); returns the energy (0 unless want_energy).
+
+    With c_k = 6 g_k the unscaled cross products (g_k = dV / dx_k), the force on node k is
+    ``-kappa psi'(J) c_k / 6``: four divisions per tet instead of eleven."""
+    energy = 0.0
+    for t in range(tets.shape[0]):
+        p0 = tets[t, 0]
+        p1 = tets[t, 1]
+        p2 = tets[t, 2]
+        p3 = tets[t, 3]
+        ax = x[p1, 0] - x[p0, 0]
+        ay = x[p1, 1] - x[p0, 1]
+        az = x[p1, 2] - x[p0, 2]
+        bx = x[p2, 0] - x[p0, 0]
+        by = x[p2, 1] - x[p0, 1]
+        bz = x[p2, 2] - x[p0, 2]
+        cx = x[p3, 0] - x[p0, 0]
+        cy = x[p3, 1] - x[p0, 1]
+        cz = x[p3, 2] - x[p0, 2]
+        # c1 = a2 x a3, c2 = a3 x a1, c3 = a1 x a2 (a1, a2, a3 = a, b, c here)
+        c1x = by * cz - bz * cy
+        c1y = bz * cx - bx * cz
+        c1z = bx * cy - by * cx
+        c2x = cy * az - cz * ay
+        c2y = cz * ax - cx * az
+        c2z = cx * ay - cy * ax
+        c3x = ay * bz - az * by
+        c3y = az * bx - ax * bz
+        c3z = ax * by - ay * bx
+        V = (ax * c1x + ay * c1y + az * c1z) / 6.0
+        J = V / rest[t]
+        if barrier:
+            Jc = J if J > _J_FLOOR else _J_FLOOR
+            dw = 1.0 - 1.0 / Jc
+            if want_energy:
+                energy += kappa * rest[t] * (J - 1.0 - math.log(Jc))
+        else:
+            dw = J - 1.0
+            if want_energy:
+                energy += kappa * rest[t] * (0.5 * dw * dw)
+        s = -kappa * dw / 6.0
+        out[p1, 0] += s * c1x
+        out[p1, 1] += s * c1y
+        out[p1, 2] += s * c1z
+        out[p2, 0] += s * c2x
+        out[p2, 1] += s * c2y
+        out[p2, 2] += s * c2z
+        out[p3, 0] += s * c3x
+        out[p3, 1] += s * c3y
+        out[p3, 2] += s * c3z
+        out[p0, 0] -= s * (c1x + c2x + c3x)
+        out[p0, 1] -= s * (c1y + c2y + c3y)
+        out[p0, 2] -= s * (c1z + c2z + c3z)
+    return energy
+
+
+@_jit
+def _volume_blocks(x, tets, rest, kappa, barrier, pos, use_pos, offset, out):  # pragma: no cover
+    """Add the 16 blocks ``-d^2 (kappa V0 psi) / d x_a d x_b`` of every tet to ``out``: block
+    B = offset + 16 t + 4 a + b (a, b local node indices), placed as in :func:`_spring_blocks`."""
+    g = np.empty((4, 3))
+    w = np.empty((4, 4, 3))  # d^2 V / d x_a d x_b = skew(w[a, b]) / 6
+    av = np.empty((4, 3))  # av[1..3] = a1..a3
+    for t in range(tets.shape[0]):
+        for m in range(1, 4):
+            for d in range(3):
+                av[m, d] = x[tets[t, m], d] - x[tets[t, 0], d]
+        # g_k = (a_{k+1} x a_{k+2}) / 6 cyclically, g0 = -(g1 + g2 + g3)
+        for m in range(1, 4):
+            p = 1 + m % 3
+            q = 1 + (m + 1) % 3
+            g[m, 0] = (av[p, 1] * av[q, 2] - av[p, 2] * av[q, 1]) / 6.0
+            g[m, 1] = (av[p, 2] * av[q, 0] - av[p, 0] * av[q, 2]) / 6.0
+            g[m, 2] = (av[p, 0] * av[q, 1] - av[p, 1] * av[q, 0]) / 6.0
+        for d in range(3):
+            g[0, d] = -(g[1, d] + g[2, d] + g[3, d])
+        V = av[1, 0] * g[1, 0] + av[1, 1] * g[1, 1] + av[1, 2] * g[1, 2]
+        J = V / rest[t]
+        if barrier:
+            Jc = J if J > _J_FLOOR else _J_FLOOR
+            dw = 1.0 - 1.0 / Jc
+            d2w = 1.0 / (Jc * Jc)
+        else:
+            dw = J - 1.0
+            d2w = 1.0
+        cg = kappa * d2w / rest[t]
+        ch = kappa * dw / 6.0
+        for d in range(3):
+            w[0, 0, d] = 0.0
+            w[1, 1, d] = 0.0
+            w[2, 2, d] = 0.0
+            w[3, 3, d] = 0.0
+            w[1, 2, d] = -av[3, d]
+            w[1, 3, d] = av[2, d]
+            w[2, 3, d] = -av[1, d]
+            w[0, 1, d] = av[2, d] - av[3, d]
+            w[0, 2, d] = av[3, d] - av[1, d]
+            w[0, 3, d] = av[1, d] - av[2, d]
+            for a in range(4):
+                for b in range(a + 1, 4):
+                    w[b, a, d] = -w[a, b, d]
+        for a in range(4):
+            for b in range(4):
+                wx = w[a, b, 0]
+                wy = w[a, b, 1]
+                wz = w[a, b, 2]
+                # skew(w) = [[0, -wz, wy], [wz, 0, -wx], [-wy, wx, 0]]
+                base = 9 * (offset + 16 * t + 4 * a + b)
+                for r in range(3):
+                    for s in range(3):
+                        if r == s:
+                            sk = 0.0
+                        elif r == 0:
+                            sk = -wz if s == 1 else wy
+                        elif r == 1:
+                            sk = wz if s == 0 else -wx
+                        else:
+                            sk = -wy if s == 0 else wx
+                        val = -(cg * g[a, r] * g[b, s] + ch * sk)
+                        idx = base + 3 * r + s
+                        if use_pos:
+                            idx = pos[idx]
+                        out[idx] += val
+
+
+# ---------------------------------------------------------------------------------- wrappers
+_NO_POS = np.zeros(1, dtype=np.int64)
+
+
+def _f64(a: Array) -> Array:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _i64(a: IntArray) -> IntArray:
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+def edge_lengths(x: Array, edges: IntArray) -> Array:
+    """Current edge lengths [m], (E,)."""
+    out = np.empty(edges.shape[0])
+    _edge_lengths(_f64(x), _i64(edges), out)
+    return out
+
+
+def _add_springs(
+    out: Array,
+    x: Array,
+    v: Array | None,
+    edges: IntArray,
+    rest: Array,
+    k: Array,
+    c: Array | None,
+    law: StressStrainLaw,
+    want_energy: bool,
+) -> float:
+    """Spring (+ dashpot when v and c are given) forces added to ``out``; returns the energy
+    (0 unless ``want_energy``)."""
+    if v is not None and c is not None:
+        damped, vv, cc = True, _f64(v), _f64(c)
+    else:  # the kernels ignore vv and cc
+        damped, vv, cc = False, x, rest
+    coef = polynomial_coefficients(law)
+    if coef is not None:
+        return float(
+            _springs_polynomial(x, vv, edges, rest, k, cc, coef[0], coef[1], damped, want_energy, out)
+        )
+    L = edge_lengths(x, edges)
+    eps = L / rest - 1.0
+    T = k * rest * law.stress(eps)
+    _springs_tension(x, vv, edges, L, _f64(T), cc, damped, out)
+    return float(np.sum(k * rest**2 * law.energy(eps))) if want_energy else 0.0
+
+
+def spring_forces(
+    x: Array, edges: IntArray, rest_length: Array, stiffness: Array, law: StressStrainLaw
+) -> tuple[Array, float]:
+    """Compiled :func:`softgrasp.forces.spring_forces`: (forces (N, 3) [N], energy [J])."""
+    x = _f64(x)
+    out = np.zeros_like(x)
+    e = _add_springs(out, x, None, _i64(edges), _f64(rest_length), _f64(stiffness), None, law, True)
+    return out, e
+
+
+def edge_damping_forces(x: Array, v: Array, edges: IntArray, damping: Array) -> Array:
+    """Compiled :func:`softgrasp.forces.edge_damping_forces`, (N, 3) [N]."""
+    x = _f64(x)
+    out = np.zeros_like(x)
+    E = edges.shape[0]
+    _springs_tension(x, _f64(v), _i64(edges), edge_lengths(x, edges), np.zeros(E), _f64(damping), True, out)
+    return out
+
+
+def volume_forces(
+    x: Array, tets: IntArray, rest_volume: Array, kappa: float, barrier: bool = True
+) -> tuple[Array, float]:
+    """Compiled :func:`softgrasp.forces.volume_forces`: (forces (N, 3) [N], energy [J])."""
+    x = _f64(x)
+    out = np.zeros_like(x)
+    e = _volume(x, _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), True, out)
+    return out, float(e)
+
+
+def _law_tensions(x: Array, edges: IntArray, rest: Array, k: Array, law) -> tuple[Array, Array, Array]:
+    """Lengths L, tensions T = k L0 s(eps) and dT/dL = k s'(eps) of the edges, (E,) each."""
+    L = edge_lengths(x, edges)
+    eps = L / rest - 1.0
+    return L, _f64(k * rest * law.stress(eps)), _f64(k * law.tangent(eps))
+
+
+def spring_jacobian_blocks(
+    x: Array,
+    edges: IntArray,
+    rest_length: Array,
+    stiffness: Array,
+    law: StressStrainLaw,
+    *,
+    psd: bool = False,
+) -> Array:
+    """Compiled :func:`softgrasp.forces.spring_jacobian_blocks`, (4E, 3, 3)."""
+    x, edges = _f64(x), _i64(edges)
+    L, T, dT = _law_tensions(x, edges, _f64(rest_length), _f64(stiffness), law)
+    out = np.zeros(36 * edges.shape[0])
+    _spring_blocks(x, edges, L, T, dT, bool(psd), _NO_POS, False, 0, out)
+    return out.reshape(-1, 3, 3)
+
+
+def volume_jacobian_blocks(
+    x: Array, tets: IntArray, rest_volume: Array, kappa: float, barrier: bool = True
+) -> Array:
+    """Compiled :func:`softgrasp.forces.volume_jacobian_blocks`, (16M, 3, 3)."""
+    out = np.zeros(144 * tets.shape[0])
+    _volume_blocks(
+        _f64(x), _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), _NO_POS, False, 0, out
+    )
+    return out.reshape(-1, 3, 3)
+
+
+# ---------------------------------------------------------------------------------- body level
+def internal_forces(
+    x: Array,
+    v: Array | None,
+    edges: IntArray,
+    rest_length: Array,
+    stiffness: Array,
+    damping: Array | None,
+    law: StressStrainLaw,
+    tets: IntArray,
+    rest_volume: Array,
+    kappa: float,
+    barrier: bool,
+) -> Array:
+    """Springs + volume term (if kappa != 0) + edge dashpots (if ``v`` and ``damping`` are given)
+    [N], (N, 3): the fused :meth:`softgrasp.body.Body.internal_forces`."""
+    x = _f64(x)
+    out = np.zeros_like(x)
+    _add_springs(out, x, v, _i64(edges), _f64(rest_length), _f64(stiffness), damping, law, False)
+    if kappa != 0.0:
+        _volume(x, _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), False, out)
+    return out
+
+
+def internal_energy(
+    x: Array,
+    edges: IntArray,
+    rest_length: Array,
+    stiffness: Array,
+    law: StressStrainLaw,
+    tets: IntArray,
+    rest_volume: Array,
+    kappa: float,
+    barrier: bool,
+) -> float:
+    """Elastic energy of springs and volume term [J]."""
+    x = _f64(x)
+    scratch = np.zeros_like(x)
+    e = _add_springs(scratch, x, None, _i64(edges), _f64(rest_length), _f64(stiffness), None, law, True)
+    if kappa != 0.0:
+        e += float(_volume(x, _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), True, scratch))
+    return e
+
+
+def internal_jacobian_data(
+    x: Array,
+    edges: IntArray,
+    rest_length: Array,
+    stiffness: Array,
+    law: StressStrainLaw,
+    tets: IntArray,
+    rest_volume: Array,
+    kappa: float,
+    barrier: bool,
+    positions: IntArray,
+    nnz: int,
+) -> Array:
+    """CSR data (nnz,) of ``d f_internal / d x``: the spring blocks (then the volume term's, if
+    kappa != 0) summed straight into the entries ``positions`` of a
+    :class:`softgrasp.forces.BlockPattern` built on :func:`softgrasp.forces.spring_pairs` (then
+    :func:`softgrasp.forces.volume_pairs`), without forming the blocks."""
+    x, edges, positions = _f64(x), _i64(edges), _i64(positions)
+    data = np.zeros(nnz)
+    L, T, dT = _law_tensions(x, edges, _f64(rest_length), _f64(stiffness), law)
+    _spring_blocks(x, edges, L, T, dT, False, positions, True, 0, data)
+    if kappa != 0.0:
+        offset = 4 * edges.shape[0]
+        _volume_blocks(
+            x, _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), positions, True, offset, data
+        )
+    return data

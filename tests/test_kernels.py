@@ -1,0 +1,421 @@
+"""The compiled (Numba) kernels agree with the NumPy reference to 1e-8, and the backend switch works.
+
+Agreement is measured as max |fast - reference| / max |reference| over forces, energies and
+Jacobians, for the linear law, every non-linear law of :mod:`softgrasp.material` and a user-defined
+law, with the volume barrier on and off, on randomly perturbed sphere and box meshes; and over
+the fingertip contact's pairs, dynamic forces and friction-state updates (both contact rules, both
+damping forms, with and without friction, sticking and slipping pairs).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from softgrasp import forces as ref
+from softgrasp import kernels
+from softgrasp.body import build_body
+from softgrasp.contact.fingertip import ContactParams, Fingertip
+from softgrasp.contact.geometry import FacetIndex, detect
+from softgrasp.contact.model import FingertipContact
+from softgrasp.errors import ConfigError
+from softgrasp.material import Linear, Material, Polynomial, Tabulated
+from softgrasp.mesh import box, signed_volumes
+from softgrasp.objects import make_object
+from softgrasp.planes import Plane, PlaneContact
+from softgrasp.sim import Scene, simulate, stable_time_step
+
+numba = pytest.importorskip("numba")
+from softgrasp.kernels import elastic  # noqa: E402 - needs numba
+
+TOL = 1e-8
+
+
+class SoftTanh:
+    """A law softgrasp does not define: s = tanh(eps) (a general Python object, no coefficients)."""
+
+    def stress(self, strain):
+        return np.tanh(strain)
+
+    def tangent(self, strain):
+        return 1.0 / np.cosh(strain) ** 2
+
+    def energy(self, strain):
+        return np.log(np.cosh(strain))
+
+    def describe(self):
+        return {"kind": "tanh"}
+
+
+class ShiftedPolynomial(Polynomial):
+    """A Polynomial subclass with its own stress: must not be taken for a plain polynomial."""
+
+    def stress(self, strain):
+        return super().stress(strain) + 0.1 * np.asarray(strain) ** 2
+
+    def tangent(self, strain):
+        return super().tangent(strain) + 0.2 * np.asarray(strain)
+
+    def energy(self, strain):
+        return super().energy(strain) + 0.1 * np.asarray(strain) ** 3 / 3.0
+
+
+LAWS = {
+    "linear": Linear(),
+    "polynomial": Polynomial(a2=-0.4, a3=1.5),
+    "softening": Polynomial(a2=0.1, a3=-0.3),
+    "tabulated": Tabulated(np.array([0.05, 0.1, 0.2, 0.3]), np.array([5e3, 1.1e4, 2.6e4, 5e4])),
+    "tanh": SoftTanh(),
+    "subclass": ShiftedPolynomial(a3=0.5),
+}
+
+
+def _rel(fast, reference) -> float:
+    """max |fast - reference| / max |reference| (dense or sparse, arrays or scalars)."""
+    a = fast.toarray() if sp.issparse(fast) else np.asarray(fast, dtype=np.float64)
+    b = reference.toarray() if sp.issparse(reference) else np.asarray(reference, dtype=np.float64)
+    assert a.shape == b.shape
+    scale = np.abs(b).max()
+    assert scale > 0
+    return float(np.abs(a - b).max() / scale)
+
+
+def _perturbed(mesh, seed: int, amplitude: float):
+    rng = np.random.default_rng(seed)
+    x = np.asarray(mesh.points) + amplitude * rng.standard_normal(mesh.points.shape)
+    assert (signed_volumes(x, mesh.tets) > 0.2 * mesh.volumes).all()
+    v = 0.05 * rng.standard_normal(mesh.points.shape)
+    return x, v
+
+
+@pytest.fixture(scope="module", params=["sphere", "box"])
+def config(request):
+    """A mesh and a randomly perturbed configuration (positions [m], velocities [m/s])."""
+    if request.param == "sphere":
+        mesh = make_object("sphere", 0.014)[0]
+        x, v = _perturbed(mesh, 11, 4e-4)
+    else:
+        mesh = box(0.04, 3)
+        x, v = _perturbed(mesh, 12, 6e-4)
+    return mesh, x, v
+
+
+@pytest.fixture(autouse=True)
+def _restore_backend():
+    previous = kernels.get_backend()
+    yield
+    kernels.set_backend(previous)
+
+
+# ------------------------------------------------------------------------------- the kernels
+@pytest.mark.parametrize("law", LAWS.values(), ids=LAWS.keys())
+def test_spring_kernels_agree(config, law):
+    mesh, x, v = config
+    body = build_body(mesh, Material(1e5, 0.45, 50.0, law))
+    args = (x, mesh.edges, body.rest_length, body.stiffness, law)
+    f1, e1 = elastic.spring_forces(*args)
+    f0, e0 = ref.spring_forces(*args)
+    assert _rel(f1, f0) < TOL
+    assert _rel(e1, e0) < TOL
+    for psd in (False, True):
+        b1 = elastic.spring_jacobian_blocks(*args, psd=psd)
+        assert _rel(b1, ref.spring_jacobian_blocks(*args, psd=psd)) < TOL
+    d1 = elastic.edge_damping_forces(x, v, mesh.edges, body.damping)
+    assert _rel(d1, ref.edge_damping_forces(x, v, mesh.edges, body.damping)) < TOL
+
+
+@pytest.mark.parametrize("barrier", [True, False], ids=["barrier", "quadratic"])
+@pytest.mark.parametrize("kappa", [2.7e5, -1.4e4])
+def test_volume_kernels_agree(config, barrier, kappa):
+    mesh, x, _ = config
+    args = (x, mesh.tets, mesh.volumes, kappa, barrier)
+    f1, e1 = elastic.volume_forces(*args)
+    f0, e0 = ref.volume_forces(*args)
+    assert _rel(f1, f0) < TOL
+    assert _rel(e1, e0) < TOL
+    assert _rel(elastic.volume_jacobian_blocks(*args), ref.volume_jacobian_blocks(*args)) < TOL
+
+
+def test_volume_kernels_agree_on_an_inverted_tet(config):
+    """Past the barrier's floor (J <= 0) both paths use psi at J = 1e-12 the same way."""
+    mesh, x, _ = config
+    x = x.copy()
+    t = mesh.tets[0]
+    x[t[3]] = x[t[0]] + (x[t[0]] - x[t[3]])  # reflect node 3 through node 0: the tet inverts
+    assert signed_volumes(x, mesh.tets)[0] < 0
+    args = (x, mesh.tets, mesh.volumes, 2.7e5, True)
+    f1, e1 = elastic.volume_forces(*args)
+    f0, e0 = ref.volume_forces(*args)
+    assert _rel(f1, f0) < TOL
+    assert _rel(e1, e0) < TOL
+    assert _rel(elastic.volume_jacobian_blocks(*args), ref.volume_jacobian_blocks(*args)) < TOL
+
+
+# ------------------------------------------------------------------------------- the body
+@pytest.mark.parametrize("law", LAWS.values(), ids=LAWS.keys())
+@pytest.mark.parametrize("nu", [0.2, 0.45], ids=["quadratic", "barrier"])
+def test_body_backends_agree(config, law, nu):
+    """Body.internal_forces (with and without dampers), internal_energy and internal_jacobian."""
+    mesh, x, v = config
+    body = build_body(mesh, Material(1e5, nu, 50.0, law))
+    assert body.barrier == (nu > 0.25)
+    out = {}
+    for name in ("numba", "numpy"):
+        with kernels.use_backend(name):
+            out[name] = (
+                body.internal_forces(x, v),
+                body.internal_forces(x),
+                body.internal_energy(x),
+                body.internal_jacobian(x),
+            )
+    for fast, slow in zip(out["numba"], out["numpy"], strict=True):
+        assert _rel(fast, slow) < TOL
+    # The compiled Jacobian fills the same CSR structure.
+    J1, J0 = out["numba"][3], out["numpy"][3]
+    assert np.array_equal(J1.indptr, J0.indptr) and np.array_equal(J1.indices, J0.indices)
+
+
+def test_body_backends_agree_without_damping_or_volume_term(config):
+    """nu = 1/4 (kappa = 0: springs only) and an undamped body take the other branches."""
+    mesh, x, v = config
+    body = build_body(mesh, Material(1e5, 0.25, 50.0, LAWS["polynomial"]), damping_ratio=0.0)
+    with kernels.use_backend("numba"):
+        fast = (body.internal_forces(x, v), body.internal_energy(x), body.internal_jacobian(x))
+    with kernels.use_backend("numpy"):
+        slow = (body.internal_forces(x, v), body.internal_energy(x), body.internal_jacobian(x))
+    for a, b in zip(fast, slow, strict=True):
+        assert _rel(a, b) < TOL
+
+
+def test_polynomial_coefficients_only_for_exact_types():
+    assert elastic.polynomial_coefficients(Linear()) == (0.0, 0.0)
+    assert elastic.polynomial_coefficients(Polynomial(a2=-0.4, a3=1.5)) == (-0.4, 1.5)
+    assert elastic.polynomial_coefficients(ShiftedPolynomial(a3=0.5)) is None
+    assert elastic.polynomial_coefficients(SoftTanh()) is None
+
+
+# ------------------------------------------------------------------------------- contact
+R_TIP = 0.008
+
+
+def _tips_on(mesh, x, seed: int, depth: float, moving: bool = True) -> tuple[Fingertip, ...]:
+    """Three fingertips pressed ``depth`` into the surface near random facets, off their centroids
+    (so that contact patches straddle facet edges), moving and spinning (or at rest)."""
+    rng = np.random.default_rng(seed)
+    facets = mesh.facets
+    tri = x[facets]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    tips = []
+    for k, f in enumerate(rng.choice(len(facets), 3, replace=False)):
+        b = rng.dirichlet([1.0, 1.0, 1.0])
+        q = b @ tri[f]
+        tips.append(
+            Fingertip(
+                R_TIP,
+                centre=q + (R_TIP - depth) * nrm[f],
+                velocity=0.01 * rng.standard_normal(3) * moving,
+                omega=rng.standard_normal(3) * moving,
+                name=f"tip{k}",
+            )
+        )
+    return tuple(tips)
+
+
+@pytest.fixture(scope="module")
+def contact_setup():
+    """A perturbed sphere, its body, and positions/velocities (the fingertips are set per test)."""
+    mesh = make_object("sphere", 0.014)[0]
+    x, v = _perturbed(mesh, 21, 2e-4)
+    body = build_body(mesh, Material(0.0793e6, 0.45, 45.0))
+    return mesh, body, x, 0.01 * v
+
+
+def _pairs_equal(fast, slow) -> None:
+    assert len(slow) > 0
+    assert np.array_equal(fast.finger, slow.finger) and np.array_equal(fast.facet, slow.facet)
+    for name in ("bary", "point", "normal", "distance", "depth", "area", "reach", "overlap", "near"):
+        assert _rel(getattr(fast, name), getattr(slow, name)) < TOL, name
+
+
+def _state_equal(fast, slow) -> None:
+    assert np.array_equal(fast.active, slow.active)
+    for name in ("anchor", "slip", "memory"):
+        a, b = getattr(fast, name), getattr(slow, name)
+        assert np.abs(a - b).max() <= TOL * max(np.abs(b).max(), 1e-300), name
+
+
+@pytest.mark.parametrize("fade", [0.0, 0.25])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_detect_agrees(contact_setup, fade, seed):
+    mesh, _, x, _ = contact_setup
+    tips = _tips_on(mesh, x, seed, 0.002)
+    # and one whose centre projects just outside a facet (barycentric -0.004): for that facet the
+    # overlap is measured to the triangle's closest point
+    f = 7 * seed
+    a, b, c = x[mesh.facets[f]]
+    n = np.cross(b - a, c - a)
+    q = -0.004 * a + 0.502 * b + 0.502 * c
+    centres = np.array([t.centre for t in tips] + [q + 0.9 * R_TIP * n / np.linalg.norm(n)])
+    radii = np.full(len(centres), R_TIP)
+    index = FacetIndex.of(mesh)
+    with kernels.use_backend("numba"):
+        fast = detect(x, mesh.facets, centres, radii, fade=fade, index=index)
+    with kernels.use_backend("numpy"):
+        slow = detect(x, mesh.facets, centres, radii, fade=fade, index=index)
+    _pairs_equal(fast, slow)
+    assert set(slow.finger.tolist()) >= {0, 1, 2}  # the fourth may sit in a convex edge's blind spot
+    if fade > 0:  # the edge fade and its closest-point overlap are exercised
+        assert ((slow.finger == 3) & (slow.facet == f) & (slow.reach < 1) & (slow.reach > 0.98)).any()
+
+
+RULES = {
+    "patch": ContactParams(),
+    "facet": ContactParams(rule="facet"),
+    "hunt-crossley": ContactParams(damping="hunt-crossley"),
+    "frictionless": ContactParams(mu=0.0),
+    "given-ratio": ContactParams(tangential_ratio=0.5, min_depth_ratio=0.3),
+}
+
+
+@pytest.mark.parametrize("params", RULES.values(), ids=RULES.keys())
+@pytest.mark.parametrize("shift", [1e-6, 2e-3], ids=["stick", "slip"])
+@pytest.mark.parametrize("moving", [True, False], ids=["moving", "at-rest"])
+def test_fingertip_forces_and_update_agree(contact_setup, params, shift, moving):
+    """A state recorded at x0, then forces and update at x1 = x0 slid by ``shift`` [m] under the
+    fingertips (continuing pairs with anchors, new pairs inheriting the finger's memory), at a
+    later time (the fingertips have moved 10 um). At rest (no velocities) a slipping pair takes
+    the capped stick force instead of Coulomb's sliding direction."""
+    mesh, body, x0, v = contact_setup
+    v = v if moving else np.zeros_like(v)
+    fc = FingertipContact(_tips_on(mesh, x0, 5, 0.002, moving), params)
+    with kernels.use_backend("numpy"):
+        state = fc.update(body, x0, v, 0.0, fc.init_state(body, x0 + 0.5 * shift))
+    assert state.active.sum() >= 3
+    x1 = x0 + shift * np.array([1.0, -0.5, 0.2])
+    t1 = 1e-3
+    out = {}
+    for name in ("numba", "numpy"):
+        with kernels.use_backend(name):
+            f = fc.forces(body, x1, v, t1, state)
+            new = fc.update(body, x1, v, t1, state)
+            out[name] = (f, new, fc.forces(body, x1, v, t1, new), fc.update(body, x1, -v, t1, new))
+    fast, slow = out["numba"], out["numpy"]
+    for k in (0, 2):
+        assert _rel(fast[k], slow[k]) < TOL
+    for k in (1, 3):
+        _state_equal(fast[k], slow[k])
+    # The cases are what they claim: the reference slips (or not) and has new and continuing pairs.
+    ev = fc._evaluate(body, x1, v, t1, state, static=False)
+    cont = state.active[ev.pairs.finger, ev.pairs.facet]
+    assert cont.any()
+    if params.mu > 0:
+        assert ev.slipping.any() if shift > 1e-5 else (~ev.slipping).any()
+
+
+def test_fingertip_forces_agree_without_contact(contact_setup):
+    mesh, body, x, v = contact_setup
+    far = Fingertip(R_TIP, centre=x.max(axis=0) + 0.05)
+    fc = FingertipContact((far,))
+    state = fc.init_state(body, x)
+    for name in ("numba", "numpy"):
+        with kernels.use_backend(name):
+            assert not fc.forces(body, x, v, 0.0, state).any()
+            assert not fc.update(body, x, v, 0.0, state).active.any()
+
+
+@pytest.mark.parametrize("method", ["rk4", "semi-implicit"])
+def test_trajectories_agree(contact_setup, method):
+    """Two pipelines, one trajectory: 40 explicit steps of the sphere on the table with a fingertip
+    pressing on its top (contact, friction, dampers active), compiled versus reference."""
+    mesh, body, _, _ = contact_setup
+    x = np.asarray(mesh.points)
+    top = int(np.argmax(x[mesh.facets].mean(axis=1)[:, 2]))
+    a, b, c = x[mesh.facets[top]]
+    n = np.cross(b - a, c - a)
+    tip = Fingertip(
+        R_TIP, centre=(a + b + c) / 3 + (R_TIP - 0.002) * n / np.linalg.norm(n), velocity=[0, 0, -0.01]
+    )
+    table = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.5, name="table")
+    scene = Scene(body, (table, FingertipContact((tip,))))
+    s0 = scene.initial_state()
+    dt = stable_time_step(scene, method)
+    out = {}
+    for name in ("numba", "numpy"):
+        with kernels.use_backend(name):
+            out[name] = simulate(scene, s0, 40 * dt, method=method, dt=dt)
+    fast, slow = out["numba"], out["numpy"]
+    assert len(scene.interactions[1].pairs(body, slow.x, slow.t)) > 0
+    assert _rel(fast.x - s0.x, slow.x - s0.x) < TOL
+    assert _rel(fast.v, slow.v) < TOL
+    for a_state, b_state in zip(fast.contacts, slow.contacts, strict=True):
+        assert np.array_equal(a_state.active, b_state.active)
+
+
+# ------------------------------------------------------------------------------- the switch
+def test_default_backend_is_numba_when_installed(monkeypatch):
+    monkeypatch.delenv(kernels.ENV_VAR, raising=False)
+    monkeypatch.setattr(kernels, "_backend", None)
+    assert kernels.get_backend() == "numba"
+    assert kernels.compiled()
+
+
+def test_environment_variable_selects_the_backend(monkeypatch):
+    monkeypatch.setenv(kernels.ENV_VAR, "NumPy")
+    monkeypatch.setattr(kernels, "_backend", None)
+    assert kernels.get_backend() == "numpy"
+    assert not kernels.compiled()
+
+
+def test_unknown_environment_value_warns_and_uses_the_default(monkeypatch):
+    monkeypatch.setenv(kernels.ENV_VAR, "fortran")
+    monkeypatch.setattr(kernels, "_backend", None)
+    with pytest.warns(UserWarning, match="not a kernel backend"):
+        assert kernels.get_backend() == "numba"
+
+
+def test_missing_numba_falls_back_to_numpy(monkeypatch):
+    monkeypatch.setattr(kernels, "_numba_error", lambda: kernels._NOT_INSTALLED)
+    monkeypatch.setattr(kernels, "_backend", None)
+    monkeypatch.setenv(kernels.ENV_VAR, "numba")
+    assert kernels.available() == ("numpy",)
+    with pytest.warns(UserWarning, match="Numba is not installed"):
+        assert kernels.get_backend() == "numpy"
+    monkeypatch.setattr(kernels, "_backend", None)
+    monkeypatch.delenv(kernels.ENV_VAR)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the silent default
+        assert kernels.get_backend() == "numpy"
+    with pytest.raises(ConfigError, match="unavailable: Numba is not installed"):
+        kernels.set_backend("numba")
+
+
+def test_broken_numba_warns_and_falls_back_to_numpy(monkeypatch):
+    monkeypatch.setattr(kernels, "_numba_error", lambda: "Numba is installed but cannot be imported (x)")
+    monkeypatch.setattr(kernels, "_backend", None)
+    monkeypatch.delenv(kernels.ENV_VAR, raising=False)
+    with pytest.warns(UserWarning, match="cannot be imported"):
+        assert kernels.get_backend() == "numpy"
+
+
+def test_numba_error_is_none_when_numba_imports():
+    assert kernels._numba_error() is None
+    assert kernels.available() == ("numba", "numpy")
+
+
+def test_set_backend_rejects_unknown_names():
+    with pytest.raises(ConfigError, match="unknown kernel backend 'cuda'"):
+        kernels.set_backend("cuda")
+
+
+def test_use_backend_restores_the_previous_backend():
+    kernels.set_backend("numba")
+    with kernels.use_backend("numpy"):
+        assert kernels.get_backend() == "numpy"
+    assert kernels.get_backend() == "numba"
+    with pytest.raises(RuntimeError), kernels.use_backend("numpy"):
+        raise RuntimeError("boom")
+    assert kernels.get_backend() == "numba"
