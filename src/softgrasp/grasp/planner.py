@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import ConvexHull, QhullError
 
 from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
@@ -323,18 +324,34 @@ def _stable_pose(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
     return stable_facet_pose(x, _com(body, x))
 
 
+def _stands(x: NDArray[np.float64], com: NDArray[np.float64]) -> bool:
+    """Whether ``x`` stands on the table as it is: the centre of mass lies above the convex hull
+    of its lowest nodes (not balanced on a vertex or an edge, which only tips over)."""
+    L = float(np.ptp(x, axis=0).max())
+    low = x[x[:, 2] <= x[:, 2].min() + 1e-9 * L, :2]
+    if len(low) < 3:
+        return False
+    try:
+        hull = ConvexHull(low)
+    except QhullError:
+        return False  # collinear: an edge
+    return bool((hull.equations[:, :2] @ com[:2] + hull.equations[:, 2] <= 1e-12 * L).all())
+
+
 def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, PlaneContact, NDArray]:
-    """The object at rest on the table, and the table. First as the mesh stands; where that finds
-    no rest (a convex mesh balanced on one node tips over: Newton creeps along the nearly free
-    tipping mode), standing on its most stable hull facet, as a real object comes to rest.
+    """The object at rest on the table, and the table. As the mesh stands if its centre of mass is
+    above its lowest nodes' hull and a rest is found there; otherwise (a convex mesh balanced on
+    one node tips over: Newton creeps along the nearly free tipping mode), standing on its most
+    stable hull facet, as a real object comes to rest.
     Returns (the rest state, the table, the unloaded placement the rest was found from)."""
     x = np.asarray(body.mesh.points, dtype=np.float64)
-    table = _table(x, cfg.table_mu)
-    rest = Scene(body, (table,))
-    try:
-        return solve_static(rest, rest.initial_state(), cache=cache)[0], table, x
-    except NotConverged:
-        pass
+    if _stands(x, _com(body, x)):
+        table = _table(x, cfg.table_mu)
+        rest = Scene(body, (table,))
+        try:
+            return solve_static(rest, rest.initial_state(), cache=cache)[0], table, x
+        except NotConverged:
+            pass
     x = _stable_pose(body, x)
     table = _table(x, cfg.table_mu)
     rest = Scene(body, (table,))

@@ -46,6 +46,10 @@ PARDISO_MAX_DOF = 60_000
 STALE_RTOL = 1e-8
 #: GMRES iterations allowed with a fresh factorisation on the exact (non-symmetric) Newton matrix.
 EXACT_MAX_IT = 20
+#: First diagonal shift (relative) of an indefinite Newton matrix; grown tenfold until positive.
+INDEFINITE_SHIFT = 1e-6
+#: GMRES iterations allowed with a multigrid preconditioner on the exact Newton matrix.
+AMG_GMRES_MAX_IT = 80
 
 _SINGULAR = (
     "the stiffness matrix is singular, so the body is not held in place (it could slide, spin or "
@@ -247,6 +251,32 @@ def _gmres(
     return None
 
 
+def _amg_gmres(
+    A: sp.csr_matrix,
+    b: NDArray[np.float64],
+    x_nodes: NDArray[np.float64],
+    cache: SolverCache,
+    matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    rtol: float,
+) -> NDArray[np.float64] | None:
+    """GMRES on the exact Newton product preconditioned by a multigrid V-cycle of its symmetric
+    approximation A (the hierarchy kept in the cache and rebuilt once when it no longer
+    converges); None if it does not converge."""
+    import pyamg
+
+    for _attempt in range(2):
+        if cache._ml is None:
+            cache._ml = pyamg.smoothed_aggregation_solver(
+                A, B=_rigid_modes(x_nodes), symmetry="symmetric", max_coarse=300, coarse_solver="splu"
+            )
+        M = cache._ml.aspreconditioner(cycle="V")  # type: ignore[attr-defined]
+        x = _gmres(matvec, b, M.matvec, AMG_GMRES_MAX_IT, max(rtol, 1e-10))
+        if x is not None:
+            return x
+        cache._ml = None
+    return None
+
+
 def _pardiso(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
@@ -285,6 +315,23 @@ def _pardiso(
         cache.stats["analyses"] += 1
         cache.stats["factorisations"] += 1
     cache._try_stale = True
+    if f.negative_pivots > 0 and f.perturbed_pivots == 0:
+        # An indefinite stiffness (a body on the table about to tip, a compressed region
+        # buckling): the exact Newton step runs towards a saddle. Shift the diagonal until the
+        # factor is positive definite (Levenberg-Marquardt), a descent direction for the line
+        # search, as conjugate gradients give by stopping at negative curvature.
+        base = f.matrix()
+        diag = base.indptr[:-1]  # the diagonal leads each row of the sorted upper triangle
+        scale = np.abs(base.data[diag])
+        tau = INDEFINITE_SHIFT
+        while f.negative_pivots > 0 and tau <= 1.0:
+            shifted = base.copy()
+            shifted.data[diag] += tau * scale
+            f.refactor(shifted)
+            cache.stats["factorisations"] += 1
+            tau *= 10.0
+        cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1
+        return f.solve(b), np.zeros(0)
     if matvec is not None and f.perturbed_pivots == 0:
         x = _gmres(matvec, b, f.solve, EXACT_MAX_IT, rtol)
         if x is not None:
@@ -349,4 +396,8 @@ def solve_newton_system(
     if cache.method == "auto" and n <= DIRECT_MAX_DOF:
         return _direct(A, b, C)
     cache.stats["amg_solves"] += 1
+    if matvec is not None:
+        x = _amg_gmres(A.tocsr(), b, x_nodes, cache, matvec, STALE_RTOL if rtol is None else rtol)
+        if x is not None:
+            return x, np.zeros(0)
     return _pcg(A.tocsr(), b, C, x_nodes, cache)

@@ -117,6 +117,10 @@ def _within_body_pattern(body: Body, M: sp.spmatrix) -> sp.csr_matrix:
     return sp.csr_matrix((C.data[keep], (C.row[keep], C.col[keep])), shape=C.shape)
 
 
+def _static_forces_of(inter, body: Body, t: float, st, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    return inter.static_forces(body, x, t, st)
+
+
 def _newton_matrix(
     scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple, L: float
 ) -> tuple[sp.csr_matrix, Callable[[NDArray[np.float64]], NDArray[np.float64]] | None]:
@@ -134,7 +138,12 @@ def _newton_matrix(
             # Only a preconditioner now: kept inside the body's pattern, so that the factorisation's
             # analysis stays valid as contacts come and go.
             Ji = _within_body_pattern(body, Ji)
-            approx.append((inter, st, Ji))
+            pinned = getattr(inter, "pinned_static_forces", None)
+            if pinned is not None:
+                forces_at = pinned(body, x, t, st)
+            else:
+                forces_at = functools.partial(_static_forces_of, inter, body, t, st)
+            approx.append((forces_at, Ji))
         J = J + Ji
     A = -J.tocsr()
     if not approx:
@@ -147,10 +156,8 @@ def _newton_matrix(
         if vmax == 0:
             return out
         h = FD_STEP * L / vmax
-        for inter, st, Ji in approx:
-            fp = inter.static_forces(body, x + h * V, t, st)
-            fm = inter.static_forces(body, x - h * V, t, st)
-            out += Ji @ v - ((fp - fm) / (2.0 * h)).ravel()
+        for forces_at, Ji in approx:
+            out += Ji @ v - ((forces_at(x + h * V) - forces_at(x - h * V)) / (2.0 * h)).ravel()
         return out
 
     return A, exact
@@ -179,6 +186,7 @@ def _newton(
     grav = np.abs(body.mass[:, None] * body.gravity[None, :]).max()
     shift = 0.0
     creep, last_res = 0, np.inf
+    start = contacts
     for it in range(1, max_iter + 1):
         f = scene.static_forces(x, t, contacts)
         f_int = body.internal_forces(x)
@@ -242,9 +250,12 @@ def _newton(
         shift = shift / 10.0 if shift > 1e-4 else 0.0
         small = float(np.abs(xn - x).max()) <= 1e-13 * L
         x = xn
-        # Between Newton steps free nodes carry their friction anchors along (a node that touches
-        # sticks where it entered contact); limits stay lagged until the end of the pass.
-        contacts = scene.refresh_contacts(x, t, contacts)
+        # Between Newton steps the contacts are refreshed from the pass's starting state: pairs
+        # that touched then keep their anchors; pairs that touch only now are anchored where they
+        # are, carrying their anchors along until the pass converges (a contact made during a load
+        # step starts unloaded at the step's equilibrium, wherever the iterates first touched);
+        # limits stay lagged until the end of the pass.
+        contacts = scene.refresh_contacts(x, t, start)
         if small:
             return x, it, res, lam, contacts
     res = float(np.abs(_residual(scene, x, t, contacts, C, lam)).max())
