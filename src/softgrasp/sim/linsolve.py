@@ -342,8 +342,10 @@ def _pardiso(
         # analysis is kept for the next system).
         cache.stats["amg_solves"] += 1
         return _pcg(A, b, None, x_nodes, cache)
-    x = f.solve(b)
-    return x, np.zeros(0)
+    # The factor of A itself: one solve, refined by a few conjugate-gradient steps where rounding
+    # in the factor left more than the tolerance (the solves do no iterative refinement).
+    x = _stale_pcg(A, b, f, EXACT_MAX_IT, rtol)
+    return (f.solve(b) if x is None else x), np.zeros(0)
 
 
 def solve_newton_system(

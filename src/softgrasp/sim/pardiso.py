@@ -114,7 +114,7 @@ class PardisoFactor:
         self._iparm = np.zeros(64, dtype=np.int32)
         self._iparm[0] = 1  # iparm given below (not defaults)
         self._iparm[1] = 2  # nested-dissection ordering (METIS)
-        self._iparm[7] = 2  # up to two steps of iterative refinement
+        self._iparm[7] = 0  # no iterative refinement (the callers iterate on the true residual)
         self._iparm[9] = 8  # pivot perturbation 1e-8
         self._iparm[10] = 0  # no scaling (symmetric)
         self._iparm[12] = 0  # no weighted matching (symmetric)
