@@ -21,6 +21,7 @@ All of it lives in a :class:`SolverCache` that the callers keep across the solve
 from __future__ import annotations
 
 import os
+import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -76,8 +77,9 @@ class SolverCache:
     _ml: object | None = field(default=None, repr=False)
     _iterations: list[int] = field(default_factory=list, repr=False)
     _factor: pardiso.PardisoFactor | None = field(default=None, repr=False)
-    _stale_cap: int = field(default=4, repr=False)
     _try_stale: bool = field(default=True, repr=False)
+    _t_factor: float = field(default=0.0, repr=False)  # seconds of the last refactorisation
+    _t_solve: float = field(default=1.0, repr=False)  # seconds per preconditioned iteration
     stats: dict[str, int] = field(
         default_factory=lambda: {"analyses": 0, "factorisations": 0, "stale_solves": 0, "amg_solves": 0},
         repr=False,
@@ -296,22 +298,36 @@ def _pardiso(
         assert f is not None
         x = None
         if cache._try_stale:
+            # As many iterations with the old factor as half a refactorisation costs in solves.
+            cap = int(np.clip(0.5 * cache._t_factor / max(cache._t_solve, 1e-9), 4, 40))
+            t0 = time.perf_counter()
+            calls = [0]
+
+            def precondition(v: NDArray[np.float64]) -> NDArray[np.float64]:
+                calls[0] += 1
+                return f.solve(v)
+
             if matvec is not None:
-                x = _gmres(matvec, b, f.solve, cache._stale_cap + 2, rtol)
+                x = _gmres(matvec, b, precondition, cap, rtol)
             else:
-                x = _stale_pcg(A, b, f, cache._stale_cap, rtol)
+                x = _stale_pcg(A, b, f, cap, rtol)
+            cache._t_solve = (time.perf_counter() - t0) / max(calls[0], 1)
         # After a failed attempt the next system goes straight to a refactorisation.
         cache._try_stale = x is not None
         if x is not None:
             cache.stats["stale_solves"] += 1
             return x, np.zeros(0)
+        t0 = time.perf_counter()
         f.refactor(U)
+        cache._t_factor = time.perf_counter() - t0
         cache.stats["factorisations"] += 1
     else:
         # A new pattern (contacts couple nodes that no edge joins, or others than before): analyse
         # the union with the previous pattern, so that both kinds of system reuse it.
         P = A if f is None or f.n != A.shape[0] else pardiso.PardisoFactor.union(A, f.matrix())
+        t0 = time.perf_counter()
         cache._factor = f = pardiso.PardisoFactor(P)
+        cache._t_factor = 0.5 * (time.perf_counter() - t0)  # about half of it is the analysis
         cache.stats["analyses"] += 1
         cache.stats["factorisations"] += 1
     cache._try_stale = True
