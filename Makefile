@@ -26,7 +26,9 @@ test: install-test
 bench: install
 	$(BIN)/python benchmarks/bench_body.py
 	$(BIN)/python benchmarks/bench_contact.py
-	$(BIN)/python benchmarks/bench_plan.py
+	$(BIN)/python benchmarks/bench_plan.py --reference
+	$(BIN)/python benchmarks/bench_dynamic.py
+	$(BIN)/python benchmarks/bench_indent.py
 	$(BIN)/python benchmarks/bench_execute.py
 
 clean:
