@@ -103,6 +103,20 @@ Validation (MuJoCo 4.0.0, softgrasp's rubber sphere: R = 64 mm, 50 g, E = 79.3 k
   per step). Most of it is the ``qacc_smooth`` PCG and the constraint solve, both scaling with
   the flex size; the hand costs nothing noticeable.
 
+Indentation scene
+-----------------
+:func:`build_indent_mjcf` / :func:`load_indent_scene` write and compile the same table, object
+and options with one fingertip sphere instead of the hand, on three world-axis slides under stiff
+servos (:class:`IndentSpec`, :class:`IndentScene`): the MuJoCo peer of softgrasp's indentation
+experiment (``benchmarks/bench_indent.py``). :func:`contact_force` sums a geom's contact forces.
+On the 388-node sphere, 3 mm over its centre: 3.8 N, 2.0 x Hertz (the coarse mesh's stiffening
+above), and the fingertip's servo carries exactly that force (``tests/test_mujoco_indent.py``).
+Pressed deep (15 mm, R = 8 mm) the sphere wraps the fingertip and MuJoCo resolves the contact
+with one point per touching tet (6-9 points on 2196 nodes, up to 60 deg from vertical); friction
+on the fingertip's flanks then carries about a third of the force (13.3 N with mu = 0.8, 8.9 N
+with mu = 0, 549 nodes) and relaxes by creep once the fingertip stops (-4 % in 0.5 s at 549 nodes,
+-34 % at 2196; flat with mu = 0 at 549).
+
 Notes: after :meth:`MujocoScene.step` the derived quantities MuJoCo stores (body and vertex
 positions, contacts, contact forces) are those of the start of the last step, the ``mj_step``
 convention; ``mujoco.mj_forward`` refreshes them. ``mj_rnePostConstraint`` (``cfrc_ext``) ignores
@@ -114,7 +128,7 @@ from __future__ import annotations
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
@@ -144,6 +158,15 @@ __all__ = [
     "MujocoScene",
     "build_mjcf",
     "load_scene",
+    "INDENT_TIP",
+    "TIP_MASS",
+    "TIP_KP",
+    "TIP_DAMPING",
+    "IndentSpec",
+    "IndentScene",
+    "build_indent_mjcf",
+    "contact_force",
+    "load_indent_scene",
 ]
 
 #: Name of the arm body carrying the palm, and of its three world-axis slide joints.
@@ -890,3 +913,281 @@ def load_scene(spec: SceneSpec) -> MujocoScene:
     mujoco.mj_resetDataKeyframe(model, data, 0)
     mujoco.mj_forward(model, data)
     return MujocoScene(model, data, spec)
+
+
+# ---------------------------------------------------------------------- indentation scene
+#
+# One fingertip pressing the object on the table, without a hand: the MuJoCo peer of
+# softgrasp's indentation experiment (:mod:`softgrasp.experiments.indentation`), used by
+# ``benchmarks/bench_indent.py``. Table, object and solver options are written as in
+# :func:`build_mjcf` (same constants, same object builder).
+
+#: Name of the fingertip body and the prefix of its sphere geom (``<name>_sphere``), its world-axis
+#: slide joints (``<name>_x``, ``_y``, ``_z``) and their position servos (``<joint>_servo``).
+INDENT_TIP = "fingertip"
+#: Mass of the fingertip's carriage [kg] (gravity-compensated).
+TIP_MASS = 1.0
+#: Position-servo stiffness of each fingertip slide [N/m]: a 10 N load deflects it 10 um.
+TIP_KP = 1.0e6
+#: Damping of each fingertip slide [N s/m]: critical for :data:`TIP_MASS` (2 sqrt(kp m)); at
+#: 10 mm/s the servo lags its target by 20 um.
+TIP_DAMPING = 2.0e3
+_TIP_JOINTS = tuple(f"{INDENT_TIP}_{a}" for a in "xyz")
+
+
+@dataclass(frozen=True, eq=False)
+class IndentSpec:
+    """A one-fingertip indentation scene for :func:`build_indent_mjcf`; SI units, world z up.
+
+    Attributes
+    ----------
+    points, tets, mass, young, poisson, table_z, table_mu, timestep, damping:
+        The object and the table, as in :class:`SceneSpec` (and validated by it).
+    radius:
+        Fingertip radius [m].
+    tip_start:
+        ``(3,)`` fingertip centre at the start [m], clear of the object's nodes and above the
+        table. The fingertip rides on three world-axis slides, each a stiff position servo
+        (:data:`TIP_KP`), commanded by :meth:`IndentScene.command`.
+    mu:
+        Fingertip-object Coulomb friction coefficient.
+    """
+
+    points: NDArray[np.float64]
+    tets: NDArray[np.int64]
+    mass: float
+    young: float
+    poisson: float
+    radius: float
+    tip_start: NDArray[np.float64]
+    mu: float = 0.8
+    table_z: float = 0.0
+    table_mu: float = 0.5
+    timestep: float = DEFAULT_TIMESTEP
+    damping: float = DEFAULT_DAMPING
+    _object: SceneSpec = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # the object and table fields go through SceneSpec's checks; its hand is never written
+        obj = SceneSpec(
+            hand=HandModel.default(),
+            palm_pose=np.eye(4),
+            q0={},
+            points=self.points,
+            tets=self.tets,
+            mass=self.mass,
+            young=self.young,
+            poisson=self.poisson,
+            mu=self.mu,
+            table_z=self.table_z,
+            table_mu=self.table_mu,
+            timestep=self.timestep,
+            damping=self.damping,
+        )
+        set_ = object.__setattr__
+        for name in ("points", "tets", "mass", "young", "poisson", "mu", "table_z", "table_mu"):
+            set_(self, name, getattr(obj, name))
+        set_(self, "timestep", obj.timestep)
+        set_(self, "damping", obj.damping)
+        set_(self, "_object", obj)
+        set_(self, "radius", _positive(self.radius, "fingertip radius", "m"))
+        c = np.asarray(self.tip_start, dtype=np.float64)
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise ConfigError(f"tip_start must be 3 finite numbers [m], got {self.tip_start!r}")
+        gap = float(np.min(np.linalg.norm(self.points - c, axis=1))) - self.radius
+        if gap < 0.0:
+            raise ConfigError(f"the fingertip starts {-1e3 * gap:.3f} mm inside the object's nodes")
+        if c[2] - self.radius < self.table_z:
+            raise ConfigError("the fingertip starts below the table top")
+        c.setflags(write=False)
+        set_(self, "tip_start", c)
+
+
+def build_indent_mjcf(spec: IndentSpec) -> str:
+    """MJCF text of a one-fingertip indentation scene; needs no MuJoCo.
+
+    The options (discrete integrator, CG, elliptic cones, :data:`SOLVER_ITERATIONS`,
+    :data:`SOLVER_TOLERANCE`), the table (geom ``table``) and the object (flex
+    :data:`OBJECT_NAME`) are those of :func:`build_mjcf`. Instead of a hand: a sphere of
+    ``spec.radius`` (geom ``<INDENT_TIP>_sphere``, friction ``mu``, priority 1, colliding with the
+    object only) on a gravity-compensated body on three world-axis slides whose ``qpos`` is the
+    displacement from ``tip_start``, each driven by a position servo (:data:`TIP_KP`,
+    :data:`TIP_DAMPING`): a real motion with a velocity, like the arm of :func:`build_mjcf`.
+    """
+    if not isinstance(spec, IndentSpec):
+        raise ConfigError(f"build_indent_mjcf needs an IndentSpec, got {type(spec).__name__}")
+    pts = spec.points
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    reach = max(float(np.max(hi - lo)), 0.25)
+
+    root = ET.Element("mujoco", model="softgrasp_indentation")
+    _sub(root, "compiler", angle="radian", autolimits="true")
+    _sub(
+        root,
+        "option",
+        timestep=_num(spec.timestep),
+        gravity=_vec([0.0, 0.0, -STANDARD_GRAVITY]),
+        integrator="discrete",
+        solver=SOLVER,
+        cone="elliptic",
+        iterations=str(SOLVER_ITERATIONS),
+        tolerance=_num(SOLVER_TOLERANCE),
+    )
+    _sub(root, "statistic", center=_vec(centre), extent=_num(2.0 * reach))
+    world = _sub(root, "worldbody")
+    _sub(
+        world, "light", name="key", pos=_vec(centre + [0.3, -0.3, 1.0]), dir="-0.3 0.3 -1", directional="true"
+    )
+    thickness = 0.02
+    _sub(
+        world,
+        "geom",
+        name="table",
+        type="box",
+        size=_vec([reach, reach, 0.5 * thickness]),
+        pos=_vec([centre[0], centre[1], spec.table_z - 0.5 * thickness]),
+        contype=str(_TABLE_BIT),
+        conaffinity=str(_OBJECT_BIT),
+        rgba="0.45 0.42 0.38 1",
+        **_contact_attrs(spec.table_mu),
+    )
+    tip = _sub(world, "body", name=INDENT_TIP, pos=_vec(spec.tip_start), gravcomp="1")
+    _sub(tip, "inertial", pos="0 0 0", mass=_num(TIP_MASS), diaginertia=_vec([1e-3, 1e-3, 1e-3]))
+    for axis, name in zip(np.eye(3), _TIP_JOINTS, strict=True):
+        _sub(tip, "joint", name=name, type="slide", axis=_vec(axis), damping=_num(TIP_DAMPING))
+    _sub(
+        tip,
+        "geom",
+        name=_tip_geom_name(INDENT_TIP),
+        type="sphere",
+        size=_num(spec.radius),
+        contype=str(_TIP_BIT),
+        conaffinity=str(_OBJECT_BIT),
+        rgba="0.9 0.75 0.6 1",
+        **_contact_attrs(spec.mu),
+    )
+    _add_object(world, spec._object)
+    actuator = _sub(root, "actuator")
+    for name in _TIP_JOINTS:
+        _sub(actuator, "position", name=_actuator_name(name), joint=name, kp=_num(TIP_KP))
+    ET.indent(root, space="  ")
+    return ET.tostring(root, encoding="unicode") + "\n"
+
+
+def contact_force(model: Any, data: Any, geom: int) -> NDArray[np.float64]:
+    """Total contact force [N] that geom ``geom`` exerts on what it touches, world frame, ``(3,)``.
+
+    Sum over the active contacts of the geom (flex contacts included) of
+    :func:`mujoco.mj_contactForce`, the force of side 0 on side 1 in the contact frame (rows of
+    ``contact.frame``), negated where the geom is side 1. As of the last ``mj_forward``, or of the
+    start of the last ``mj_step``.
+    """
+    mujoco = _import_mujoco()
+    total = np.zeros(3)
+    f6 = np.zeros(6)
+    for i in range(int(data.ncon)):
+        c = data.contact[i]
+        if c.efc_address < 0:
+            continue
+        s = 1.0 if c.geom[0] == geom else -1.0 if c.geom[1] == geom else 0.0
+        if s == 0.0:
+            continue
+        mujoco.mj_contactForce(model, data, i, f6)
+        total += s * (c.frame.reshape(3, 3).T @ f6[:3])
+    return total
+
+
+class IndentScene:
+    """A compiled indentation scene (made by :func:`load_indent_scene`): ``model`` (``MjModel``),
+    ``data`` (``MjData``), ``spec`` and the fingertip's and the table's geom ids."""
+
+    def __init__(self, model: Any, data: Any, spec: IndentSpec) -> None:
+        mujoco = _import_mujoco()
+        self._mj = mujoco
+        self.model = model
+        self.data = data
+        self.spec = spec
+
+        def ident(kind: Any, name: str) -> int:
+            i = mujoco.mj_name2id(model, kind, name)
+            if i < 0:
+                raise ConfigError(f"the compiled indentation scene has no {kind.name[6:].lower()} {name!r}")
+            return int(i)
+
+        O = mujoco.mjtObj
+        self.tip_geom = ident(O.mjOBJ_GEOM, _tip_geom_name(INDENT_TIP))
+        self.table_geom = ident(O.mjOBJ_GEOM, "table")
+        self._act = np.array([ident(O.mjOBJ_ACTUATOR, _actuator_name(n)) for n in _TIP_JOINTS])
+        joints = [ident(O.mjOBJ_JOINT, n) for n in _TIP_JOINTS]
+        self._qpos = np.array(model.jnt_qposadr[joints], dtype=np.int64)
+        self._dof = np.array(model.jnt_dofadr[joints], dtype=np.int64)
+        flex = ident(O.mjOBJ_FLEX, OBJECT_NAME)
+        adr, num = int(model.flex_vertadr[flex]), int(model.flex_vertnum[flex])
+        if num != spec.points.shape[0]:
+            raise ConfigError(f"the compiled flex has {num} vertices, the spec {spec.points.shape[0]} points")
+        self._verts = slice(adr, adr + num)
+
+    @property
+    def time(self) -> float:
+        """Simulated time [s]."""
+        return float(self.data.time)
+
+    def tip_position(self) -> NDArray[np.float64]:
+        """Fingertip centre [m], ``(3,)`` (as of the last step or forward)."""
+        return np.array(self.data.geom_xpos[self.tip_geom], dtype=np.float64)
+
+    def _offset(self, centre: ArrayLike) -> NDArray[np.float64]:
+        c = np.asarray(centre, dtype=np.float64)
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise ConfigError(f"a fingertip centre must be 3 finite numbers [m], got {centre!r}")
+        return c - self.spec.tip_start
+
+    def command(self, centre: ArrayLike) -> None:
+        """Command the fingertip centre to ``centre`` [m]; the servos move it there."""
+        self.data.ctrl[self._act] = self._offset(centre)
+
+    def place(self, centre: ArrayLike) -> None:
+        """Put the fingertip at ``centre`` [m] at once, at rest, with its servos holding it there:
+        a teleport for setting up (nothing it touches is carried along), not a motion."""
+        d = self._offset(centre)
+        self.data.qpos[self._qpos] = d
+        self.data.qvel[self._dof] = 0.0
+        self.data.ctrl[self._act] = d
+        self._mj.mj_kinematics(self.model, self.data)
+
+    def fingertip_force(self) -> NDArray[np.float64]:
+        """Contact force [N] of the fingertip ON THE OBJECT, world frame, ``(3,)``."""
+        return contact_force(self.model, self.data, self.tip_geom)
+
+    def table_force(self) -> NDArray[np.float64]:
+        """Contact force [N] of the table on the object, world frame, ``(3,)``."""
+        return contact_force(self.model, self.data, self.table_geom)
+
+    def object_nodes(self) -> NDArray[np.float64]:
+        """``(N, 3)`` flex vertex positions [m] in the order of ``spec.points`` (as of the last
+        step or forward)."""
+        return np.array(self.data.flexvert_xpos[self._verts], dtype=np.float64)
+
+    def forward(self) -> None:
+        """Recompute positions, contacts and contact forces of the current state."""
+        self._mj.mj_forward(self.model, self.data)
+
+    def step(self, n: int = 1) -> None:
+        """Advance the simulation by ``n`` time steps."""
+        if isinstance(n, bool) or int(n) != n or n < 1:
+            raise ConfigError(f"n = {n} must be an integer >= 1")
+        self._mj.mj_step(self.model, self.data, nstep=int(n))
+
+
+def load_indent_scene(spec: IndentSpec) -> IndentScene:
+    """Compile :func:`build_indent_mjcf` of ``spec``: the scene at rest, the fingertip at
+    ``tip_start``. :class:`ConfigError` if MuJoCo is missing or rejects the model."""
+    mujoco = _import_mujoco()
+    try:
+        model = mujoco.MjModel.from_xml_string(build_indent_mjcf(spec))
+    except ValueError as exc:
+        raise ConfigError(f"MuJoCo rejected the indentation scene: {exc}") from None
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return IndentScene(model, data, spec)
