@@ -101,7 +101,8 @@ def main() -> None:
     for h in sizes:
         r = measure(h)
         print(_row(r, "quasi-static", None), flush=True)
-        fast.append((r["nodes"], r["plan_s"]))
+        if "error" not in r:
+            fast.append((r["nodes"], r["plan_s"]))
         if args.reference and r["nodes"] < 10_000:
             print(_row(measure(h, linsolve="reference"), "quasi-static, reference", r["plan_s"]), flush=True)
         if args.dynamic and h == SIZES[0]:
