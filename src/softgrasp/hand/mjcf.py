@@ -427,6 +427,25 @@ def _sub(parent: ET.Element, tag: str, **attrs: Any) -> ET.Element:
     return ET.SubElement(parent, tag, {k: str(v) for k, v in attrs.items() if v is not None})
 
 
+def _root(model: str, timestep: float) -> ET.Element:
+    """The ``<mujoco>`` element with softgrasp's compiler and solver options (discrete integrator,
+    elliptic friction cones)."""
+    root = ET.Element("mujoco", model=model)
+    _sub(root, "compiler", angle="radian", autolimits="true")
+    _sub(
+        root,
+        "option",
+        timestep=_num(timestep),
+        gravity=_vec([0.0, 0.0, -STANDARD_GRAVITY]),
+        integrator="discrete",
+        solver=SOLVER,
+        cone="elliptic",
+        iterations=str(SOLVER_ITERATIONS),
+        tolerance=_num(SOLVER_TOLERANCE),
+    )
+    return root
+
+
 def _contact_attrs(mu: float) -> dict[str, str]:
     return {
         "condim": "3",
@@ -601,19 +620,7 @@ def build_mjcf(spec: SceneSpec) -> str:
     palm_xyz = spec.palm_pose[:3, 3]
     reach = max(extent, float(np.linalg.norm(palm_xyz[:2] - centre[:2])) + 0.15, 0.25)
 
-    root = ET.Element("mujoco", model="softgrasp_scene")
-    _sub(root, "compiler", angle="radian", autolimits="true")
-    _sub(
-        root,
-        "option",
-        timestep=_num(spec.timestep),
-        gravity=_vec([0.0, 0.0, -STANDARD_GRAVITY]),
-        integrator="discrete",
-        solver=SOLVER,
-        cone="elliptic",
-        iterations=str(SOLVER_ITERATIONS),
-        tolerance=_num(SOLVER_TOLERANCE),
-    )
+    root = _root("softgrasp_scene", spec.timestep)
     visual = _sub(root, "visual")
     _sub(visual, "global", offwidth="1280", offheight="960", azimuth="135", elevation="-25")
     _sub(visual, "headlight", ambient="0.35 0.35 0.35", diffuse="0.5 0.5 0.5", specular="0.1 0.1 0.1")
@@ -1021,19 +1028,7 @@ def build_indent_mjcf(spec: IndentSpec) -> str:
     centre = 0.5 * (lo + hi)
     reach = max(float(np.max(hi - lo)), 0.25)
 
-    root = ET.Element("mujoco", model="softgrasp_indentation")
-    _sub(root, "compiler", angle="radian", autolimits="true")
-    _sub(
-        root,
-        "option",
-        timestep=_num(spec.timestep),
-        gravity=_vec([0.0, 0.0, -STANDARD_GRAVITY]),
-        integrator="discrete",
-        solver=SOLVER,
-        cone="elliptic",
-        iterations=str(SOLVER_ITERATIONS),
-        tolerance=_num(SOLVER_TOLERANCE),
-    )
+    root = _root("softgrasp_indentation", spec.timestep)
     _sub(root, "statistic", center=_vec(centre), extent=_num(2.0 * reach))
     world = _sub(root, "worldbody")
     _sub(
