@@ -427,6 +427,23 @@ def _sub(parent: ET.Element, tag: str, **attrs: Any) -> ET.Element:
     return ET.SubElement(parent, tag, {k: str(v) for k, v in attrs.items() if v is not None})
 
 
+def _add_table(world: ET.Element, centre, reach: float, table_z: float, table_mu: float) -> None:
+    """The table: a 20 mm box of half-width ``reach`` around ``centre`` with its top at ``table_z``."""
+    thickness = 0.02
+    _sub(
+        world,
+        "geom",
+        name="table",
+        type="box",
+        size=_vec([reach, reach, 0.5 * thickness]),
+        pos=_vec([centre[0], centre[1], table_z - 0.5 * thickness]),
+        contype=str(_TABLE_BIT),
+        conaffinity=str(_OBJECT_BIT),
+        rgba="0.45 0.42 0.38 1",
+        **_contact_attrs(table_mu),
+    )
+
+
 def _root(model: str, timestep: float) -> ET.Element:
     """The ``<mujoco>`` element with softgrasp's compiler and solver options (discrete integrator,
     elliptic friction cones)."""
@@ -672,19 +689,7 @@ def build_mjcf(spec: SceneSpec) -> str:
     y_axis = np.cross(x_axis, look)
     y_axis /= np.linalg.norm(y_axis)
     _sub(world, "camera", name="overview", pos=_vec(eye), xyaxes=_vec([*x_axis, *y_axis]), fovy="45")
-    thickness = 0.02
-    _sub(
-        world,
-        "geom",
-        name="table",
-        type="box",
-        size=_vec([reach, reach, 0.5 * thickness]),
-        pos=_vec([centre[0], centre[1], spec.table_z - 0.5 * thickness]),
-        contype=str(_TABLE_BIT),
-        conaffinity=str(_OBJECT_BIT),
-        rgba="0.45 0.42 0.38 1",
-        **_contact_attrs(spec.table_mu),
-    )
+    _add_table(world, centre, reach, spec.table_z, spec.table_mu)
 
     order = _add_hand(world, spec)
     _add_object(world, spec)
@@ -1034,19 +1039,7 @@ def build_indent_mjcf(spec: IndentSpec) -> str:
     _sub(
         world, "light", name="key", pos=_vec(centre + [0.3, -0.3, 1.0]), dir="-0.3 0.3 -1", directional="true"
     )
-    thickness = 0.02
-    _sub(
-        world,
-        "geom",
-        name="table",
-        type="box",
-        size=_vec([reach, reach, 0.5 * thickness]),
-        pos=_vec([centre[0], centre[1], spec.table_z - 0.5 * thickness]),
-        contype=str(_TABLE_BIT),
-        conaffinity=str(_OBJECT_BIT),
-        rgba="0.45 0.42 0.38 1",
-        **_contact_attrs(spec.table_mu),
-    )
+    _add_table(world, centre, reach, spec.table_z, spec.table_mu)
     tip = _sub(world, "body", name=INDENT_TIP, pos=_vec(spec.tip_start), gravcomp="1")
     _sub(tip, "inertial", pos="0 0 0", mass=_num(TIP_MASS), diaginertia=_vec([1e-3, 1e-3, 1e-3]))
     for axis, name in zip(np.eye(3), _TIP_JOINTS, strict=True):
