@@ -13,6 +13,7 @@ free) are enforced with Lagrange multipliers in a saddle-point system.
 from __future__ import annotations
 
 import functools
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -38,8 +39,9 @@ MAX_HALVINGS = 4
 CREEP_ITERATIONS = 6
 CREEP_ALPHA = 1.0 / 64
 #: Largest relative residual of a Newton step's linear solve (the inexact Newton forcing term is
-#: the relative unbalanced force, capped here). Looser solves change where contact pairs that start
-#: during a solve are anchored (friction's path dependence) and with it the friction state reached.
+#: the relative unbalanced force, capped here). With looser solves the iterates wander further and
+#: the friction problem, whose equilibria are not unique, was seen to settle in a neighbouring one
+#: (plans a few per cent apart).
 FORCING_MAX = 1e-4
 #: Largest nodal displacement of the central differences in the exact Newton product, as a
 #: fraction of the body's size.
@@ -97,13 +99,19 @@ def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:
     return r - C.T @ lam if C is not None else r
 
 
-@functools.lru_cache(maxsize=8)
+_PATTERN_KEYS: weakref.WeakKeyDictionary[Body, NDArray[np.int64]] = weakref.WeakKeyDictionary()
+
+
 def _pattern_keys(body: Body) -> NDArray[np.int64]:
-    """Sorted keys ``3N row + col`` of the scalar entries of the body's Jacobian pattern."""
-    J = body.internal_jacobian(np.asarray(body.mesh.points, dtype=np.float64))
-    n = J.shape[0]
-    rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(J.indptr))
-    return rows * n + J.indices.astype(np.int64)
+    """Sorted keys ``3N row + col`` of the scalar entries of the body's Jacobian pattern (kept
+    while the body lives)."""
+    keys = _PATTERN_KEYS.get(body)
+    if keys is None:
+        J = body.internal_jacobian(np.asarray(body.mesh.points, dtype=np.float64))
+        n = J.shape[0]
+        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(J.indptr))
+        keys = _PATTERN_KEYS[body] = rows * n + J.indices.astype(np.int64)
+    return keys
 
 
 def _within_body_pattern(body: Body, M: sp.spmatrix) -> sp.csr_matrix:
