@@ -57,6 +57,43 @@ MuJoCo's relaxation during the hold.
 A PNG of force vs travel and force vs time (both sides, every size) goes to ``--out`` (default a
 new temporary directory), with the figures as JSON.
 
+Measured (commit bbf2c37 with the speed work in progress, MuJoCo 4.0.0, 2 shared cores, one BLAS
+thread, ``--diagnose --repeat 2``, fastest of two; walls moved 20-40 % between runs of the day):
+
+| nodes | softgrasp | sg wall [s] | MuJoCo [s] | ratio | F(15 mm) sg / MJ [N] | diff | F(2 s) sg / MJ [N] |
+|---:|---|---:|---:|---:|---|---:|---|
+| 549 | quasi-static | 2.29 | 14.9 | 6.5 | 10.01 / 13.32 | -25 % | 10.01 / 12.80 |
+| 549 | implicit | 4.31 | 14.9 | 3.5 | 10.11 / 13.32 | -24 % | 10.11 / 12.80 |
+| 2 196 | quasi-static | 14.8 | 90.3 | 6.1 | 7.76 / 7.91 | -2 % | 7.76 / 5.20 |
+| 2 196 | implicit | 26.0 | 90.3 | 3.5 | 6.91 / 7.91 | -13 % | 6.91 / 5.20 |
+
+Hertz (for scale): 11.9 N. MuJoCo alone on 7 576 nodes (``--sizes 0.005``): 659 s for the 2 s
+(330 s of wall per simulated s, 123 contacts), 6.58 N at 15 mm; both softgrasp paths failed to
+converge there (quasi-static at 10 mm of travel after 528 s). The MuJoCo figures are 4-7x the
+issue's (1 / 16 / 106 s per simulated s): a deep press makes 35-120 contacts, and the cores were
+shared.
+
+Why the forces differ (``--diagnose`` on 549 nodes):
+
+* **Mesh convergence of the flex.** MuJoCo's force at 15 mm falls from 13.3 N (549 nodes) to
+  7.9 N (2 196) and 6.6 N (7 576): coarse linear tets lock at nu = 0.45 (see
+  :mod:`softgrasp.hand.mjcf`). softgrasp's falls less (10.0 -> 7.8 N). The -25 % at 549 nodes is
+  mostly MuJoCo's coarse-mesh stiffness; at 2 196 nodes the two agree within 2 % at 15 mm.
+* **Curve shape.** softgrasp follows Hertz's delta^1.5 at small travel (0.80 N at 2 mm on 549
+  nodes, Hertz 0.8 N); MuJoCo is nearly linear from the start (2.24 N at 2 mm; 1.34 N on 2 196
+  nodes): it resolves the contact by one point per touching tet, a punch of element size. Below
+  ~8 mm the curves differ by up to a factor 2-3 even where they meet at 15 mm.
+* **Where the travel goes.** softgrasp's contact law (K = 2 E* sqrt(R), Eq. 11) penetrates
+  6.2-7.0 mm of the 15 mm, its body deforms the rest; MuJoCo's contact is nearly rigid (0.3 mm).
+  With K x 10 softgrasp gives 17.6 N (+32 % over MuJoCo): the force depends on that choice.
+* **Friction and the hold.** At 15 mm the sphere wraps the 8 mm fingertip; MuJoCo's friction on
+  the fingertip's flanks carries a third of its force (13.3 N with mu 0.8, 8.9 N with mu 0) and
+  creeps once the fingertip stops: -4 % in the 0.5 s hold on 549 nodes, -34 % on 2 196 (flat with
+  mu 0). softgrasp's friction resultant is 0.3-1.1 N, and its hold keeps the force (elastic
+  stick), hence the +49 % at 2 s on 2 196 nodes. softgrasp without friction did not converge
+  (5.5 mm).
+* **Hertz** is only a scale: at 15 mm its contact radius would exceed the fingertip's radius.
+
 Run (2 cores shared: one BLAS thread, and repeat where it matters)::
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_indent.py [--fine] [--solver both]
