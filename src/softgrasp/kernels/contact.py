@@ -188,6 +188,22 @@ def _detect(
     return finger[:k].copy(), facet[:k].copy(), real[:k].copy()
 
 
+def _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii) -> tuple:
+    """The mesh, broad-phase index and fingertip arguments every compiled contact kernel takes
+    first, as the contiguous float64 / int64 arrays (and floats) the kernels are compiled for."""
+    f64, i64 = np.float64, np.int64
+    return (
+        np.ascontiguousarray(x, dtype=f64),
+        np.ascontiguousarray(facets, dtype=i64),
+        np.ascontiguousarray(boundary_nodes, dtype=i64),
+        np.ascontiguousarray(indptr, dtype=i64),
+        np.ascontiguousarray(indices, dtype=i64),
+        float(reach),
+        np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(radii, dtype=f64).ravel(),
+    )
+
+
 def detect_arrays(
     x: NDArray[np.float64],
     facets: NDArray[np.int64],
@@ -206,14 +222,7 @@ def detect_arrays(
     ``reach`` [m] is the broad phase's margin beyond each radius (a surface node farther than
     R + reach from a centre has no facet in contact)."""
     return _detect(
-        np.ascontiguousarray(x, dtype=np.float64),
-        np.ascontiguousarray(facets, dtype=np.int64),
-        np.ascontiguousarray(boundary_nodes, dtype=np.int64),
-        np.ascontiguousarray(indptr, dtype=np.int64),
-        np.ascontiguousarray(indices, dtype=np.int64),
-        float(reach),
-        np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3),
-        np.ascontiguousarray(radii, dtype=np.float64).ravel(),
+        *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
         float(fade),
         float(inside_tol),
     )
@@ -508,18 +517,12 @@ def fingertip_forces(
     anchor (n_f, F, 3), memory (n_f, 3)); parameters as in
     :class:`softgrasp.contact.fingertip.ContactParams` (``ratio`` = k_t / k_n)."""
     f64 = np.float64
-    x = np.ascontiguousarray(x, dtype=f64)
-    out = np.zeros_like(x)
+    geometry = _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii)
+    out = np.zeros_like(geometry[0])
     _fingertip_forces(
-        x,
+        geometry[0],
         np.ascontiguousarray(v, dtype=f64),
-        np.ascontiguousarray(facets, dtype=np.int64),
-        np.ascontiguousarray(boundary_nodes, dtype=np.int64),
-        np.ascontiguousarray(indptr, dtype=np.int64),
-        np.ascontiguousarray(indices, dtype=np.int64),
-        float(reach),
-        np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
-        np.ascontiguousarray(radii, dtype=f64).ravel(),
+        *geometry[1:],
         np.ascontiguousarray(velocities, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(omegas, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(K, dtype=f64).ravel(),
@@ -572,14 +575,7 @@ def fingertip_update(
     new_slip = np.zeros(slip.shape)
     new_memory = np.zeros(memory.shape)
     _fingertip_update(
-        np.ascontiguousarray(x, dtype=f64),
-        np.ascontiguousarray(facets, dtype=np.int64),
-        np.ascontiguousarray(boundary_nodes, dtype=np.int64),
-        np.ascontiguousarray(indptr, dtype=np.int64),
-        np.ascontiguousarray(indices, dtype=np.int64),
-        float(reach),
-        np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
-        np.ascontiguousarray(radii, dtype=f64).ravel(),
+        *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
         np.ascontiguousarray(K, dtype=f64).ravel(),
         float(fade),
         float(inside_tol),
