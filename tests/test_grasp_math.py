@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.grasp.closure import ferrari_canny, is_force_closure, primitive_wrenches
+from softgrasp.grasp.closure import ferrari_canny, ferrari_canny_bound, is_force_closure, primitive_wrenches
 from softgrasp.grasp.equilibrium import (
     friction_cone_edges,
     friction_feasibility,
@@ -112,6 +112,33 @@ def test_epsilon_under_general_rotation_within_linearisation_bounds() -> None:
     e_rot = ferrari_canny(TRIPOD[0] @ rot.T, TRIPOD[1] @ rot.T, mu, ORIGIN, m=m)
     assert ferrari_canny(*TRIPOD, mu * c, ORIGIN, m=m) <= e_rot * (1 + 1e-9)
     assert e_rot <= ferrari_canny(*TRIPOD, mu / c, ORIGIN, m=m) * (1 + 1e-9)
+
+
+@pytest.mark.parametrize("m_bound", [3, 4, 6])
+def test_bound_dominates_epsilon_of_random_grasps(m_bound: int) -> None:
+    """The circumscribed-polygon bound is >= the epsilon of every inscribed linearisation, for
+    random contact sets (force closure or not); and it is 0 only where epsilon is 0."""
+    rng = np.random.default_rng(7)
+    closures = 0
+    for _ in range(60):
+        k = int(rng.integers(2, 5))
+        n_out = rng.standard_normal((k, 3))
+        n_out /= np.linalg.norm(n_out, axis=1, keepdims=True)
+        points = 0.05 * n_out + 0.005 * rng.standard_normal((k, 3))
+        mu = float(rng.uniform(0.1, 1.0))
+        ub = ferrari_canny_bound(points, -n_out, mu, ORIGIN, m=m_bound)
+        for m in (4, 8, 12):
+            eps = ferrari_canny(points, -n_out, mu, ORIGIN, m=m)
+            assert eps <= ub * (1 + 1e-12)
+            closures += eps > 0
+    assert closures > 20  # the sample is not all trivial
+
+
+def test_bound_of_the_tripod_is_the_epsilon_of_its_circumscribed_cone() -> None:
+    mu = 0.5
+    want = ferrari_canny(*TRIPOD, mu / math.cos(math.pi / 3), ORIGIN, m=3)
+    assert ferrari_canny_bound(*TRIPOD, mu, ORIGIN) == pytest.approx(want, rel=1e-12)
+    assert ferrari_canny_bound(*TRIPOD, 0.0, ORIGIN) == 0.0
 
 
 # ---------------------------------------------------------------------- minimum normal forces

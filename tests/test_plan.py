@@ -41,6 +41,40 @@ def default_plan(sphere_body):
 # --------------------------------------------------------------------------- initial grasp
 
 
+def test_ranked_grasps_follow_the_exact_epsilon_order(sphere_body, monkeypatch):
+    """The best-first ranking (cheap bounds refined to exact qualities on demand) gives the same
+    grasps in the same order as ranking with no bound at all (every candidate's exact epsilon
+    computed, a stable sort), and taking the first grasp computes far fewer exact qualities."""
+    import math
+
+    import softgrasp.grasp.initial as initial_mod
+
+    x = np.asarray(sphere_body.mesh.points)
+    com = (sphere_body.mass @ x) / sphere_body.total_mass
+    facets = sphere_body.mesh.facets
+    exact = initial_mod.ferrari_canny
+    calls = [0]
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return exact(*a, **k)
+
+    monkeypatch.setattr(initial_mod, "ferrari_canny", counted)
+    pruned = initial_mod.initial_grasps(x, facets, com, 0.8)
+    calls[0] = 0
+    first = next(initial_mod.ranked_grasps(x, facets, com, 0.8))
+    n_first = calls[0]
+    monkeypatch.setattr(initial_mod, "ferrari_canny_bound", lambda *a, **k: math.inf)
+    calls[0] = 0
+    full = initial_mod.initial_grasps(x, facets, com, 0.8)
+    assert calls[0] >= len(full) > 100
+    assert n_first < 0.5 * calls[0]  # the bound prunes
+    assert len(pruned) == len(full)
+    for a, b in zip(pruned, full, strict=True):
+        assert (a.thumb_azimuth, a.spread, a.epsilon) == (b.thumb_azimuth, b.spread, b.epsilon)
+    assert (first.thumb_azimuth, first.spread) == (full[0].thumb_azimuth, full[0].spread)
+
+
 def test_initial_grasp_on_the_sphere_lies_on_a_great_circle_with_the_thumb_opposite(sphere_body):
     """Step 1 on the rubber sphere: three force-closure contacts in the horizontal plane through
     the centre of mass, all at the sphere's radius from it (a great circle), the first and middle

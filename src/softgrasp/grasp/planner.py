@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -39,7 +39,7 @@ from softgrasp.contact.fingertip import ContactParams, Fingertip
 from softgrasp.contact.model import FingerReport, FingertipContact
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged, SimulationUnstable
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
-from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, initial_grasps
+from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, ranked_grasps
 from softgrasp.hand.model import HandModel
 from softgrasp.hand.reach import HandPlacement, closing_paths, place_hand
 from softgrasp.mesh.placement import stable_facet_pose
@@ -392,14 +392,14 @@ def _hand_order(hand: HandModel, ig: InitialGrasp) -> InitialGrasp:
 
 
 def _reachable_grasp(
-    xs: NDArray[np.float64], candidates: list[InitialGrasp], cfg: PlanConfig
+    xs: NDArray[np.float64], candidates: Iterable[InitialGrasp], cfg: PlanConfig
 ) -> tuple[InitialGrasp, HandPlacement | None]:
     """The best initial grasp the hand reaches, and the hand's placement for it. Candidates come
     best first; a spread angle (the layout's shape parameter) that failed ``PER_SPREAD`` times is
     skipped (on a near-symmetric object its other azimuths fail alike), and at most
     ``MAX_PLACEMENTS`` placements are tried."""
     if cfg.hand is None:
-        return candidates[0], None
+        return next(iter(candidates)), None
     failures: dict[float, int] = {}
     first_error: InfeasibleGrasp | None = None
     tried = 0
@@ -512,7 +512,7 @@ def plan_grasp(
     com0 = _com(body, xs)
     facets = body.mesh.facets
 
-    ig, placement = _reachable_grasp(xs, initial_grasps(xs, facets, com0, mu, cfg.layout), cfg)
+    ig, placement = _reachable_grasp(xs, ranked_grasps(xs, facets, com0, mu, cfg.layout), cfg)
     R = cfg.fingertip_radius
     start, u, reach = _start_centres(ig, cfg)
     unit_tips = tuple(Fingertip(R, centre=start[j], velocity=u[j], name=FINGER_NAMES[j]) for j in range(3))
