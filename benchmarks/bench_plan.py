@@ -90,7 +90,7 @@ def main() -> None:
     args = ap.parse_args()
     print(
         f"softgrasp plan benchmark on {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-        f"SOFTGRASP_THREADS={os.environ.get('SOFTGRASP_THREADS', '1')}"
+        f"SOFTGRASP_THREADS={os.environ.get('SOFTGRASP_THREADS', 'auto')}"
     )
     print(
         f"{'nodes':>6} {'solver':>22} {'plan s':>8} {'ratio':>6} {'peak MB':>8} {'incr':>5} {'margin':>7}  "

@@ -33,6 +33,29 @@ def _stiffness(n: int = 4, shift: float = 1e-3) -> sp.csr_matrix:
 
 
 @needs_mkl
+def test_factors_with_different_thread_counts_interleave():
+    """Each factor keeps the thread count of its analysis (PARDISO crashes if it changes between
+    phases): a one-thread and a two-thread factor used alternately both solve exactly; the
+    automatic choice stays between 1 and the cores."""
+    K = _stiffness()
+    b = np.random.default_rng(2).standard_normal(K.shape[0])
+    want = spla.spsolve(K.tocsc(), b)
+    try:
+        pardiso.set_threads(1)
+        one = pardiso.PardisoFactor(K)
+        pardiso.set_threads(2)
+        two = pardiso.PardisoFactor(K)
+        for _ in range(3):
+            two.refactor(two.same_pattern(1.5 * K))
+            one.refactor(one.same_pattern(1.5 * K))
+            for f in (one, two):
+                np.testing.assert_allclose(f.solve(1.5 * b), want, rtol=1e-9, atol=0)
+    finally:
+        pardiso.set_threads(None)
+    assert 1 <= pardiso.idle_cores() <= len(__import__("os").sched_getaffinity(0))
+
+
+@needs_mkl
 def test_pardiso_solves_like_sparse_lu_and_refactorises_new_values():
     K = _stiffness()
     b = np.random.default_rng(1).standard_normal(K.shape[0])

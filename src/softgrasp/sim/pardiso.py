@@ -12,10 +12,15 @@ lose definiteness under compression).
 The library comes from the ``mkl`` wheel (x86_64); :func:`available` says whether it loaded, and
 :mod:`softgrasp.sim.linsolve` falls back to multigrid-preconditioned CG where it did not.
 
-Threads: one by default (``SOFTGRASP_THREADS`` or :func:`set_threads` change it). PARDISO's OpenMP
-threads wait for each other by spinning; on a machine whose cores are busy with other work (a
-test run, a sweep's other workers) two threads made a 6 588-unknown solve 40 times slower than
-one in a measurement here, while on an idle 2-core machine they gain well under 2x.
+Threads (``SOFTGRASP_THREADS``: a number, or ``auto``, the default): PARDISO's OpenMP threads wait
+for each other by spinning, so they pay only on cores nobody else is using. On this 2-core machine
+two threads made the default plan at 2 196 nodes 1.4x faster when it was idle and 2x slower with
+one other busy process (40x for a single solve in another measurement). ``auto`` therefore
+chooses, when a pattern is analysed (PARDISO keeps that count through every later phase of the
+pattern: changing it in between crashed MKL here), as many threads as there are cores not running
+another process at that moment (Linux's count of runnable tasks in ``/proc/loadavg``; one
+thread where that is not available), and lets idle threads sleep at once (``KMP_BLOCKTIME=0``
+unless set) so that they do not look busy to the next choice. :func:`set_threads` fixes a number.
 """
 
 from __future__ import annotations
@@ -31,7 +36,11 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-__all__ = ["PardisoError", "PardisoFactor", "available"]
+__all__ = ["PardisoError", "PardisoFactor", "available", "idle_cores", "set_threads"]
+
+# Idle OpenMP threads sleep at once instead of spinning for 200 ms (read by MKL's OpenMP runtime
+# when it loads; a value the user set is kept).
+os.environ.setdefault("KMP_BLOCKTIME", "0")
 
 #: PARDISO's matrix type for real symmetric indefinite matrices.
 SYMMETRIC_INDEFINITE = -2
@@ -55,6 +64,52 @@ class PardisoError(RuntimeError):
     """PARDISO reported an error (the message gives its code and meaning)."""
 
 
+def _configured_threads() -> int | None:
+    """The thread count ``SOFTGRASP_THREADS`` fixes, or None for ``auto``."""
+    value = os.environ.get("SOFTGRASP_THREADS", "auto").strip().lower()
+    if value in ("", "auto"):
+        return None
+    try:
+        return max(1, int(value))
+    except ValueError:
+        return None
+
+
+_fixed_threads: int | None = _configured_threads()
+_current_threads = 0
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def idle_cores() -> int:
+    """Cores available to this process that no other task is running on right now (>= 1): the
+    cores minus the runnable tasks other than the calling thread (``/proc/loadavg``); 1 where the
+    count cannot be read."""
+    try:
+        with open("/proc/loadavg", encoding="ascii") as fh:
+            runnable = int(fh.read().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return 1
+    return max(1, min(_cores(), _cores() - (runnable - 1)))
+
+
+def _choose_threads() -> int:
+    """Thread count for a new factor: fixed, or ``auto``: the idle cores."""
+    return _fixed_threads if _fixed_threads is not None else idle_cores()
+
+
+def _use_threads(lib: ctypes.CDLL, n: int) -> None:
+    global _current_threads
+    if n != _current_threads:
+        lib.MKL_Set_Num_Threads(ctypes.c_int(n))
+        _current_threads = n
+
+
 @cache
 def _library() -> ctypes.CDLL | None:
     """MKL's single dynamic library, or None where it is not installed."""
@@ -66,18 +121,17 @@ def _library() -> ctypes.CDLL | None:
         try:
             lib = ctypes.CDLL(name)
             lib.pardiso  # noqa: B018 - the symbol must exist
-            lib.MKL_Set_Num_Threads(ctypes.c_int(max(1, int(os.environ.get("SOFTGRASP_THREADS", "1")))))
             return lib
         except (OSError, AttributeError):
             continue
     return None
 
 
-def set_threads(n: int) -> None:
-    """Number of threads MKL may use (>= 1)."""
-    lib = _library()
-    if lib is not None:
-        lib.MKL_Set_Num_Threads(ctypes.c_int(max(1, int(n))))
+def set_threads(n: int | None) -> None:
+    """Number of threads of the factorisations analysed from now on (>= 1); None: as
+    ``SOFTGRASP_THREADS`` says (a number, or ``auto``)."""
+    global _fixed_threads
+    _fixed_threads = _configured_threads() if n is None else max(1, int(n))
 
 
 def available() -> bool:
@@ -125,6 +179,10 @@ class PardisoFactor:
         self._indptr = U.indptr.astype(np.int32)
         self._indices = U.indices.astype(np.int32)
         self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+        # PARDISO sizes its work per thread in the analysis: every phase of this factor must run
+        # with the same thread count (changing it in between crashed MKL here).
+        self._threads = _choose_threads()
+        self._lib = lib
         self._call(11, self._data)
         self._call(22, self._data)
 
@@ -152,6 +210,7 @@ class PardisoFactor:
         x = np.zeros(self.n) if b is not None else np.zeros(1)
         rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
         err = ctypes.c_int32(0)
+        _use_threads(self._lib, self._threads)
         self._fn(
             self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
             ctypes.byref(ctypes.c_int32(1)),  # maxfct
