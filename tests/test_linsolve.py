@@ -56,6 +56,31 @@ def test_factors_with_different_thread_counts_interleave():
 
 
 @needs_mkl
+def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
+    """With automatic threads, a factor analysed on two idle cores is analysed again with one
+    thread when a later solve or factorisation finds only one idle (another process started), and
+    keeps solving exactly."""
+    K = _stiffness()
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    want = spla.spsolve(K.tocsc(), b)
+    try:
+        pardiso.set_threads(None)
+        monkeypatch.setattr(pardiso, "_fixed_threads", None)
+        monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
+        f = pardiso.PardisoFactor(K)
+        assert f._threads == 2
+        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
+        monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)
+        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
+        assert f._threads == 1
+        f.refactor(f.same_pattern(2.0 * K))
+        np.testing.assert_allclose(f.solve(2.0 * b), want, rtol=1e-9, atol=0)
+    finally:
+        monkeypatch.undo()
+        pardiso.set_threads(None)
+
+
+@needs_mkl
 def test_pardiso_solves_like_sparse_lu_and_refactorises_new_values():
     K = _stiffness()
     b = np.random.default_rng(1).standard_normal(K.shape[0])

@@ -19,7 +19,9 @@ one other busy process (40x for a single solve in another measurement). ``auto``
 chooses, when a pattern is analysed (PARDISO keeps that count through every later phase of the
 pattern: changing it in between crashed MKL here), as many threads as there are cores not running
 another process at that moment (Linux's count of runnable tasks in ``/proc/loadavg``; one
-thread where that is not available), and lets idle threads sleep at once (``KMP_BLOCKTIME=0``
+thread where that is not available), and analyses again with fewer threads as soon as a solve or
+factorisation finds fewer cores idle (other work started: two threads then made each solve
+~10x slower here); and lets idle threads sleep at once (``KMP_BLOCKTIME=0``
 unless set) so that they do not look busy to the next choice. :func:`set_threads` fixes a number.
 """
 
@@ -274,11 +276,30 @@ class PardisoFactor:
     def refactor(self, U: sp.csr_matrix) -> None:
         """Numerical factorisation of new values ``U`` (from :meth:`same_pattern`)."""
         self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+        if self._fewer_threads():
+            return
         self._call(22, self._data)
 
     def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
         """``A^-1 b`` for the matrix last factorised."""
+        self._fewer_threads()
         return self._call(33, self._data, b)
+
+    def _fewer_threads(self) -> bool:
+        """With ``auto`` threads: if fewer cores are idle now than this factor's threads, analyse
+        and factorise again with as many as are (other work started on the machine: spinning
+        threads would make every solve many times slower). Returns whether it refactorised."""
+        if self._threads == 1 or _fixed_threads is not None:
+            return False
+        n = idle_cores()
+        if n >= self._threads:
+            return False
+        self._call(-1, self._data)  # release the memory of the old thread count
+        self._pt[:] = 0
+        self._threads = n
+        self._call(11, self._data)
+        self._call(22, self._data)
+        return True
 
     @property
     def factor_nonzeros(self) -> int:
