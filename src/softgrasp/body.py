@@ -175,7 +175,8 @@ class Body:
                 self.mesh.volumes,
                 self.kappa,
                 self.barrier,
-                pattern.positions,
+                pattern.block_base,
+                pattern.block_stride,
                 pattern.nnz,
             )
             return pattern.matrix(data)

@@ -68,30 +68,36 @@ class BlockPattern:
         start = np.concatenate([[0], np.cumsum(count)])  # first block of each block row
         # Scalar row 3r + a holds 3 * count[r] entries: the blocks of block row r by column, three
         # columns each. Entry (a, b) of unique block u sits at 9 start[r] + 3 a count[r] + 3 (u -
-        # start[r]) + b.
+        # start[r]) + b = base[u] + a stride[u] + b.
         u = np.arange(len(pairs))
-        r = brow
-        a = np.arange(3)[None, :, None]
-        b = np.arange(3)[None, None, :]
-        pos = (9 * start[r] - 3 * start[r] + 3 * u)[:, None, None] + 3 * a * count[r][:, None, None] + b
-        self._pos = pos[inv].ravel()  # CSR data position of each input entry
+        base = 6 * start[brow] + 3 * u
+        stride = 3 * count[brow]
+        self.block_base = base[inv]  # of each input block, (K,)
+        self.block_stride = stride[inv]
         self.nnz = 9 * len(pairs)
         self.indptr = np.concatenate([[0], np.cumsum(np.repeat(3 * count, 3))]).astype(np.int64)
+        a = np.arange(3)[None, :, None]
+        b = np.arange(3)[None, None, :]
         cols_per_row = np.empty(self.nnz, dtype=np.int64)
-        cols_per_row[pos.ravel()] = (3 * bcol[:, None, None] + b + 0 * a).ravel()
+        cols_per_row[(base[:, None, None] + a * stride[:, None, None] + b).ravel()] = (
+            3 * bcol[:, None, None] + b + 0 * a
+        ).ravel()
         self.indices = cols_per_row
 
     @property
     def positions(self) -> NDArray[np.int64]:
-        """CSR data position of entry (a, b) of input block k at index ``9 k + 3 a + b``, (9K,):
-        a compiled kernel may sum its blocks straight into the data array (see :meth:`matrix`)."""
-        return self._pos
+        """CSR data position of entry (a, b) of input block k at index ``9 k + 3 a + b``, (9K,)
+        (``block_base[k] + a block_stride[k] + b``; the compiled kernels use those two (K,) arrays,
+        two integers per block instead of nine: 50 MB instead of 230 MB at 28 000 nodes)."""
+        a = np.arange(3)[None, :, None]
+        b = np.arange(3)[None, None, :]
+        return (self.block_base[:, None, None] + a * self.block_stride[:, None, None] + b).ravel()
 
     def assemble(self, blocks: NDArray[np.float64]) -> sp.csr_matrix:
         """The matrix with ``blocks`` (K, 3, 3) at the pattern's node pairs, summed where repeated."""
         if blocks.shape != (self.n_blocks_in, 3, 3):
             raise ValueError(f"expected blocks of shape ({self.n_blocks_in}, 3, 3), got {blocks.shape}")
-        data = np.bincount(self._pos, weights=blocks.ravel(), minlength=self.nnz)
+        data = np.bincount(self.positions, weights=blocks.ravel(), minlength=self.nnz)
         return self.matrix(np.asarray(data, dtype=np.float64))
 
     def matrix(self, data: NDArray[np.float64]) -> sp.csr_matrix:

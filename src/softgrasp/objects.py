@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from softgrasp._memory import release_freed_memory
 from softgrasp.errors import MeshError
 from softgrasp.material import Material, preset
 from softgrasp.mesh.placement import rest_on_table
@@ -52,6 +53,14 @@ def make_object(
     its inverted tets instead of refusing them.
     The mesh rests on the table plane z = 0 in a stable pose (:func:`rest_on_table`).
     """
+    mesh, material, mass = _make_object(name_or_path, mesh_size, reorient)
+    release_freed_memory()
+    return mesh, material, mass
+
+
+def _make_object(
+    name_or_path: str, mesh_size: float | None, reorient: bool
+) -> tuple[TetMesh, Material, float | None]:
     from softgrasp.mesh import generate
 
     if mesh_size is not None and not mesh_size > 0:

@@ -127,10 +127,11 @@ def _springs_tension(x, v, edges, L, T, c, damped, out):  # pragma: no cover - c
 
 
 @_jit
-def _spring_blocks(x, edges, L, T, dT, psd, pos, use_pos, offset, out):  # pragma: no cover
+def _spring_blocks(x, edges, L, T, dT, psd, base, stride, use_pos, offset, out):  # pragma: no cover
     """Add the blocks ``[K, K, -K, -K]`` of each edge (K = d f0 / d x1) to ``out``: entry
-    (r, c) of block B = offset + (e, E + e, 2E + e, 3E + e) at ``pos[9 B + 3 r + c]`` (or at
-    ``9 B + 3 r + c`` itself when ``use_pos`` is false)."""
+    (r, c) of block B = offset + (e, E + e, 2E + e, 3E + e) at ``base[B] + r stride[B] + c``
+    (a :class:`softgrasp.forces.BlockPattern`'s CSR data), or at ``9 B + 3 r + c`` when
+    ``use_pos`` is false."""
     E = edges.shape[0]
     for e in range(E):
         i = edges[e, 0]
@@ -151,9 +152,11 @@ def _spring_blocks(x, edges, L, T, dT, psd, pos, use_pos, offset, out):  # pragm
                     val += geo
                 for q in range(4):
                     sign = 1.0 if q < 2 else -1.0
-                    idx = 9 * (offset + q * E + e) + 3 * r + s
+                    B = offset + q * E + e
                     if use_pos:
-                        idx = pos[idx]
+                        idx = base[B] + r * stride[B] + s
+                    else:
+                        idx = 9 * B + 3 * r + s
                     out[idx] += sign * val
 
 
@@ -217,7 +220,7 @@ def _volume(x, tets, rest, kappa, barrier, want_energy, out):  # pragma: no cove
 
 
 @_jit
-def _volume_blocks(x, tets, rest, kappa, barrier, pos, use_pos, offset, out):  # pragma: no cover
+def _volume_blocks(x, tets, rest, kappa, barrier, base, stride, use_pos, offset, out):  # pragma: no cover
     """Add the 16 blocks ``-d^2 (kappa V0 psi) / d x_a d x_b`` of every tet to ``out``: block
     B = offset + 16 t + 4 a + b (a, b local node indices), placed as in :func:`_spring_blocks`."""
     g = np.empty((4, 3))
@@ -267,7 +270,7 @@ def _volume_blocks(x, tets, rest, kappa, barrier, pos, use_pos, offset, out):  #
                 wy = w[a, b, 1]
                 wz = w[a, b, 2]
                 # skew(w) = [[0, -wz, wy], [wz, 0, -wx], [-wy, wx, 0]]
-                base = 9 * (offset + 16 * t + 4 * a + b)
+                B = offset + 16 * t + 4 * a + b
                 for r in range(3):
                     for s in range(3):
                         if r == s:
@@ -279,9 +282,10 @@ def _volume_blocks(x, tets, rest, kappa, barrier, pos, use_pos, offset, out):  #
                         else:
                             sk = -wy if s == 0 else wx
                         val = -(cg * g[a, r] * g[b, s] + ch * sk)
-                        idx = base + 3 * r + s
                         if use_pos:
-                            idx = pos[idx]
+                            idx = base[B] + r * stride[B] + s
+                        else:
+                            idx = 9 * B + 3 * r + s
                         out[idx] += val
 
 
@@ -382,7 +386,7 @@ def spring_jacobian_blocks(
     x, edges = _f64(x), _i64(edges)
     L, T, dT = _law_tensions(x, edges, _f64(rest_length), _f64(stiffness), law)
     out = np.zeros(36 * edges.shape[0])
-    _spring_blocks(x, edges, L, T, dT, bool(psd), _NO_POS, False, 0, out)
+    _spring_blocks(x, edges, L, T, dT, bool(psd), _NO_POS, _NO_POS, False, 0, out)
     return out.reshape(-1, 3, 3)
 
 
@@ -392,7 +396,7 @@ def volume_jacobian_blocks(
     """Compiled :func:`softgrasp.forces.volume_jacobian_blocks`, (16M, 3, 3)."""
     out = np.zeros(144 * tets.shape[0])
     _volume_blocks(
-        _f64(x), _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), _NO_POS, False, 0, out
+        _f64(x), _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), _NO_POS, _NO_POS, False, 0, out
     )
     return out.reshape(-1, 3, 3)
 
@@ -451,20 +455,31 @@ def internal_jacobian_data(
     rest_volume: Array,
     kappa: float,
     barrier: bool,
-    positions: IntArray,
+    block_base: IntArray,
+    block_stride: IntArray,
     nnz: int,
 ) -> Array:
     """CSR data (nnz,) of ``d f_internal / d x``: the spring blocks (then the volume term's, if
-    kappa != 0) summed straight into the entries ``positions`` of a
-    :class:`softgrasp.forces.BlockPattern` built on :func:`softgrasp.forces.spring_pairs` (then
-    :func:`softgrasp.forces.volume_pairs`), without forming the blocks."""
-    x, edges, positions = _f64(x), _i64(edges), _i64(positions)
+    kappa != 0) summed straight into the entries of a :class:`softgrasp.forces.BlockPattern`
+    built on :func:`softgrasp.forces.spring_pairs` (then :func:`softgrasp.forces.volume_pairs`)
+    (its ``block_base`` and ``block_stride``), without forming the blocks."""
+    x, edges = _f64(x), _i64(edges)
+    block_base, block_stride = _i64(block_base), _i64(block_stride)
     data = np.zeros(nnz)
     L, T, dT = _law_tensions(x, edges, _f64(rest_length), _f64(stiffness), law)
-    _spring_blocks(x, edges, L, T, dT, False, positions, True, 0, data)
+    _spring_blocks(x, edges, L, T, dT, False, block_base, block_stride, True, 0, data)
     if kappa != 0.0:
         offset = 4 * edges.shape[0]
         _volume_blocks(
-            x, _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), positions, True, offset, data
+            x,
+            _i64(tets),
+            _f64(rest_volume),
+            float(kappa),
+            bool(barrier),
+            block_base,
+            block_stride,
+            True,
+            offset,
+            data,
         )
     return data
