@@ -10,12 +10,13 @@ mesh size after the other.
 How each side simulates it
 --------------------------
 * **softgrasp, quasi-static:** :func:`softgrasp.experiments.indentation.indentation_test`, the
-  library's indentation experiment: a static solve settles the sphere on the table, first contact
-  is found by bisection on the settled shape, then the 15 mm are cut into increments
-  (``--increment``, default 0.5 mm = 50 ms of the motion), each a static Newton equilibrium with
-  stick/slip friction. Why it is a legitimate "2 s simulated": the motion is slow next to the
-  sphere's dynamics (fundamental mode ~1 000 rad/s; the press lasts 1.5 s), so inertia and the
-  body's damping do nothing measurable and the trajectory is a sequence of equilibria; and the
+  library's indentation experiment: a static solve settles the sphere on the table, first contact is
+  found by bisection on the settled shape, then the 15 mm are cut into increments (``--increment``,
+  default 1 mm = 0.1 s of the motion), each a static Newton equilibrium with stick/slip friction;
+  the same test with half the increment is run too, and the change of the force at 15 mm is printed
+  (the increment-convergence check). Why it is a legitimate "2 s simulated": the motion is slow next
+  to the sphere's dynamics (fundamental mode ~1 000 rad/s; the press lasts 1.5 s), so inertia and
+  the body's damping do nothing measurable and the trajectory is a sequence of equilibria; and the
   model has no rate effect once the fingertip stops (elastic springs, dampers acting on velocities
   only), so the 0.5 s hold is the last equilibrium and costs nothing. Its wall time includes the
   settling solve and the first-contact search.
@@ -154,6 +155,8 @@ MJ_RECORD = 5
 #: Travels [m] at which the details compare the force curves.
 CHECKPOINTS = (0.002, 0.005, 0.010, 0.015)
 CHECKPOINT_LABEL = " / ".join(f"{1e3 * d:g}" for d in CHECKPOINTS)
+#: Name of the quasi-static run at half the increment (the increment-convergence check).
+HALF_INCREMENT = "softgrasp quasi-static, half increment"
 #: Issue's tolerance on the force difference.
 TOLERANCE = 0.25
 
@@ -447,6 +450,10 @@ def bench_size(
         runs.append(_timed(repeat, "softgrasp implicit", softgrasp_implicit, body, dt))
     mj = _timed(repeat, "MuJoCo flex", mujoco_flex, mesh, material, mass)
     diag: list[Run] = []
+    if "static" in solvers:
+        # Is the quasi-static path converged in its increment? The same test at half of it.
+        name = HALF_INCREMENT
+        diag.append(_timed(1, name, softgrasp_static, body, 0.5 * increment, None, name))
     if diagnose:
         stiff = ContactParams(mu=MU, prefactor=10.0 * ContactParams().prefactor)
         name = "softgrasp quasi-static, K x10"
@@ -487,6 +494,22 @@ def _row(res: dict, sg: Run, mj: Run, hertz: float) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
+def _increment_check(res: dict) -> str | None:
+    """The relative change of the quasi-static F(15 mm) when the increment is halved."""
+    main = [r for r in res["softgrasp"] if r.name == "softgrasp quasi-static" and r.ok]
+    half = [r for r in res["diagnostic"] if r.name == HALF_INCREMENT]
+    if not main or not half:
+        return None
+    if not half[0].ok:
+        return f"    {HALF_INCREMENT}: failed ({half[0].error})"
+    f1 = main[0].at_time(DEPTH / SPEED)[1]
+    f2 = half[0].at_time(DEPTH / SPEED)[1]
+    return (
+        f"    increment convergence: F(15 mm) {f1:.4f} N, with half the increment {f2:.4f} N "
+        f"({(f1 - f2) / f2:+.2%}); wall {main[0].wall_s:.2f} s vs {half[0].wall_s:.2f} s"
+    )
+
+
 def report(results: list[dict]) -> None:
     print(
         "\n| nodes | softgrasp solver | softgrasp wall [s] | MuJoCo wall [s] | MuJoCo / softgrasp "
@@ -520,6 +543,9 @@ def report(results: list[dict]) -> None:
                 f"{np.interp(d, mj.travel_m[e_press], mj.force_N[e_press]):.2f}" for d in CHECKPOINTS
             )
             print(f"    MuJoCo at {CHECKPOINT_LABEL} mm: {curve} N; {mj.at_time(DURATION)[1]:.3f} N at 2 s")
+        check = _increment_check(res)
+        if check:
+            print(check)
         for sg in [*res["softgrasp"], *res["diagnostic"]]:
             if not sg.ok:
                 print(f"    {sg.name} failed: {sg.error}")
@@ -661,7 +687,9 @@ def main() -> None:
     ap.add_argument(
         "--solver", choices=("static", "implicit", "both"), default="both", help="softgrasp's path(s)"
     )
-    ap.add_argument("--increment", type=float, default=0.5e-3, help="quasi-static travel increment [m]")
+    ap.add_argument(
+        "--increment", type=float, default=1e-3, help="quasi-static travel increment [m] (default 1 mm)"
+    )
     ap.add_argument("--dt", type=float, default=0.05, help="implicit time step [s]")
     ap.add_argument(
         "--diagnose",
