@@ -12,7 +12,7 @@ How each side simulates it
 * **softgrasp, quasi-static:** :func:`softgrasp.experiments.indentation.indentation_test`, the
   library's indentation experiment: a static solve settles the sphere on the table, first contact is
   found by bisection on the settled shape, then the 15 mm are cut into increments (``--increment``,
-  default 1 mm = 0.1 s of the motion), each a static Newton equilibrium with stick/slip friction;
+  default 0.5 mm = 50 ms of the motion), each a static Newton equilibrium with stick/slip friction;
   the same test with half the increment is run too, and the change of the force at 15 mm is printed
   (the increment-convergence check). Why it is a legitimate "2 s simulated": the motion is slow next
   to the sphere's dynamics (fundamental mode ~1 000 rad/s; the press lasts 1.5 s), so inertia and
@@ -688,7 +688,7 @@ def main() -> None:
         "--solver", choices=("static", "implicit", "both"), default="both", help="softgrasp's path(s)"
     )
     ap.add_argument(
-        "--increment", type=float, default=1e-3, help="quasi-static travel increment [m] (default 1 mm)"
+        "--increment", type=float, default=0.5e-3, help="quasi-static travel increment [m] (default 0.5 mm)"
     )
     ap.add_argument("--dt", type=float, default=0.05, help="implicit time step [s]")
     ap.add_argument(
