@@ -1,23 +1,30 @@
-"""Benchmark of explicit dynamics with fingertip contact: steps per second, NumPy versus Numba kernels.
+"""Benchmark of explicit dynamics with fingertip contact: steps per second, NumPy vs Numba, per step vs fused.
 
 The scene: the default rubber sphere (radius 64 mm, 50 g, E = 79.3 kPa, nu = 0.45) meshed at 8 mm
 (~2 200 nodes) resting on the table (friction 0.5), one rigid fingertip (R = 8 mm) pressed 2 mm
 into its top and moving down at 5 mm/s, so that the fingertip-facet contact is active throughout.
-For each kernel backend (:mod:`softgrasp.kernels`: ``numpy`` is the reference, ``numba`` the
-compiled kernels), in the same run, it prints:
+In the same run it prints:
 
-* ``simulate(..., method=m)`` for RK4 and semi-implicit Euler at the stable time step: steps/s,
-  node-steps/s and force evaluations/s (``Scene.forces`` calls; the blow-up monitor's work is
-  included, as in every real run), best and median of a few repeats, and the numba/numpy ratio;
-* where one semi-implicit step goes: the wall time of each part, measured alone;
+* ``simulate(..., method=m)`` at the stable time step, steps/s (best and median of a few repeats),
+  node-steps/s, force evaluations/s and the ratios to NumPy and to the per-step Numba path, for
+  semi-implicit Euler and RK4 on the NumPy reference kernels, on the compiled kernels step by
+  step (``fused=False``) and fused (:mod:`softgrasp.kernels.step`: many steps per compiled call)
+  on one and on two threads. The blow-up monitor's work is included, as in every real run;
+* where a step goes: the parts of the per-step path (each measured alone, both backends), and the
+  compiled parts of a fused step (body forces on one and two threads, with and without the energy
+  of the monitor's check, the node pass, the fingertip update and forces);
 * an arithmetic bound: floating-point operations per force evaluation counted from the edges and
   tets, against two measured machine rates (a single-thread BLAS ``dgemm``, the best case for
   SIMD arithmetic, and a compiled scalar loop), and the steps/s each rate would allow;
-* ``--profile``: the top entries of a cProfile of semi-implicit steps for each backend;
+* ``--profile``: the top entries of a cProfile of per-step semi-implicit steps for each backend;
 * ``--kernels``: ``Body.internal_forces`` / ``internal_jacobian`` at ~500, ~2 200, ~7 500 and
   ~33 000 nodes for both backends;
 * ``--compile``: cold (empty cache) and warm (cached) time to import softgrasp and evaluate the
-  body's forces, energy and Jacobian once, each in a fresh interpreter.
+  body's forces, energy and Jacobian once, and to compile the fused stepper, each in a fresh
+  interpreter.
+
+The load of the machine (``/proc/loadavg``: runnable tasks besides this one) is printed with each
+timing: two threads only pay on two idle cores, and a timing taken while another job runs is slower.
 
 Run: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_dynamic.py [--profile] [--kernels]
 [--compile]``. Timings are wall-clock; on a shared machine repeat them.
@@ -48,7 +55,8 @@ from softgrasp.experiments.indentation import surface_height
 from softgrasp.mesh import box
 from softgrasp.objects import make_object
 from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim.integrators import make_integrator, simulate
+from softgrasp.sim import pardiso
+from softgrasp.sim.integrators import _FusedRun, make_integrator, simulate
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.stability import BlowupMonitor, stable_time_step
 
@@ -64,6 +72,17 @@ FLOPS_PER_EDGE = 30 + 11
 FLOPS_PER_TET = 79
 METHODS = ("semi-implicit", "rk4")
 EVALS_PER_STEP = {"semi-implicit": 1, "rk4": 4}
+#: The simulate() cases: (label, method, backend, fused, threads).
+CASES = (
+    ("NumPy", "semi-implicit", "numpy", False, 1),
+    ("Numba per step", "semi-implicit", "numba", False, 1),
+    ("Numba fused, 1 thread", "semi-implicit", "numba", True, 1),
+    ("Numba fused, 2 threads", "semi-implicit", "numba", True, 2),
+    ("NumPy", "rk4", "numpy", False, 1),
+    ("Numba per step", "rk4", "numba", False, 1),
+    ("Numba fused, 1 thread", "rk4", "numba", True, 1),
+    ("Numba fused, 2 threads", "rk4", "numba", True, 2),
+)
 #: Mesh sizes [m] of the sphere and the BCC box division of the --kernels table.
 KERNEL_SIZES = (("sphere", 0.014), ("sphere", 0.008), ("sphere", 0.005), ("box", 24))
 
@@ -91,6 +110,18 @@ def finger_pairs(scene: Scene, state: State) -> int:
 
 
 # ----------------------------------------------------------------------------- timing helpers
+def others_running(settle: float = 0.0) -> int:
+    """Runnable tasks on the machine besides the calling thread (``/proc/loadavg``), -1 if unknown;
+    after ``settle`` seconds of sleep (our own OpenMP thread spins a while after a parallel run and
+    counts as runnable meanwhile)."""
+    time.sleep(settle)
+    try:
+        with open("/proc/loadavg", encoding="ascii") as fh:
+            return int(fh.read().split()[3].split("/")[0]) - 1
+    except (OSError, ValueError, IndexError):
+        return -1
+
+
 def repeat(fn: Callable[[], object], n: int) -> list[float]:
     """Wall times [s] of n calls of fn (after one warm-up call)."""
     fn()
@@ -145,19 +176,32 @@ def machine_rates() -> tuple[float, float]:
 
 
 # ----------------------------------------------------------------------------- the sections
-def bench_simulate(scene: Scene, s0: State, steps: int, repeats: int) -> dict[tuple[str, str], list[float]]:
-    """steps/s of simulate() per (backend, method), one list entry per repeat."""
-    out: dict[tuple[str, str], list[float]] = {}
-    for method in METHODS:
+def bench_simulate(
+    scene: Scene, s0: State, steps: int, fused_steps: int, repeats: int
+) -> dict[tuple[str, str], tuple[list[float], int]]:
+    """steps/s of simulate() per case of :data:`CASES` (one list entry per repeat) and the most
+    other runnable tasks seen while it ran."""
+    out: dict[tuple[str, str], tuple[list[float], int]] = {}
+    for label, method, backend, fused, threads in CASES:
+        if backend not in kernels.available() or threads > (os.cpu_count() or 1):
+            continue
+        if threads > 1 and others_running(settle=0.5) > 0:
+            print(f"  {label} ({method}) skipped: another process is running (two threads would wait for it)")
+            continue
         dt = stable_time_step(scene, method)
-        for backend in kernels.available()[::-1]:  # numpy first
+        n = fused_steps if fused else steps
+        pardiso.set_threads(threads)
+        try:
             with kernels.use_backend(backend):
-                final = simulate(scene, s0, 5 * dt, method=method, dt=dt)  # warm-up (and compile)
+                kw = {"method": method, "dt": dt, "fused": fused}
+                final = simulate(scene, s0, 5 * dt, **kw)  # warm-up (and compile)
                 assert finger_pairs(scene, final) > 0
-                times = repeat(
-                    lambda dt=dt, m=method: simulate(scene, s0, steps * dt, method=m, dt=dt), repeats
-                )
-                out[(backend, method)] = [steps / t for t in times]
+                busy = others_running()
+                times = repeat(lambda kw=kw, n=n, dt=dt: simulate(scene, s0, n * dt, **kw), repeats)
+                busy = max(busy, others_running())
+        finally:
+            pardiso.set_threads(None)
+        out[(label, method)] = ([n / t for t in times], busy)
     return out
 
 
@@ -188,6 +232,71 @@ def step_breakdown(scene: Scene, s0: State) -> dict[str, dict[str, float]]:
     return res
 
 
+def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
+    """Wall time [s] of a fused semi-implicit step and of its compiled parts, each measured alone."""
+    import numba
+
+    from softgrasp.kernels import step as k
+
+    dt = stable_time_step(scene, "semi-implicit")
+    state = simulate(scene, s0, 20 * dt, method="semi-implicit", dt=dt)
+    two = (os.cpu_count() or 1) >= 2 and others_running(settle=0.5) == 0
+    res: dict[str, float] = {}
+    for threads in (1, 2) if two else (1,):
+        run = _FusedRun(scene, state, BlowupMonitor(scene, state, "semi-implicit"))
+        run.stepper.threads = threads
+        res[f"fused step, {threads} thread(s) (200 steps / 200)"] = (
+            per_call(lambda st=run.stepper: st.advance(200, dt)) / 200
+        )
+        assert run.stepper.failure is None
+    # the parts, on a stepper of their own (they overwrite its buffers)
+    st = _FusedRun(scene, state, None).stepper
+    st.advance(2, dt)
+    x, v, t = st.x, st.v, st.t
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = st._work
+    fg, fs = st._fg, st._fstate
+    res["body forces, 1 thread"] = per_call(
+        lambda: k._body_forces(False, x, v, st._body, False, False, fint, info)
+    )
+    res["  with the check's energy and volumes"] = per_call(
+        lambda: k._body_forces(False, x, v, st._body, True, True, fint, info)
+    )
+    node_args = (
+        0.0,
+        x.copy(),
+        v.copy(),
+        st._mass,
+        st._grav,
+        fint,
+        fplane,
+        ffinger,
+        x_ref,
+        st._pl,
+        p0,
+        st.pl_active,
+    )
+    res["node pass (step, table, sums), 1 thread"] = per_call(
+        lambda: [k._node_part(q, k.PARTS, *node_args, st.pl_anchor, sums[q]) for q in range(k.PARTS)]
+    )
+    reach = k._finger_reach(x, fg, x_ref, track)
+    res["fingertip state update"] = per_call(lambda: k._finger_update(x, t, fg, fs, 0, reach, centres))
+    res["fingertip forces"] = per_call(
+        lambda: k._finger_forces(x, v, t, fg, fs[0][0], fs[1][0], fs[3][0], reach, centres, ffinger)
+    )
+    if two:
+        numba.set_num_threads(2)
+        try:
+            res["body forces, 2 threads"] = per_call(
+                lambda: k._body_forces(True, x, v, st._body, False, False, fint, info)
+            )
+            res["node pass, 2 threads"] = per_call(
+                lambda: k._node_pass_parallel(*node_args, st.pl_anchor, sums)
+            )
+        finally:
+            numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    return res
+
+
 def body_only_steps(body: Body, dt: float, steps: int = 300) -> float:
     """Semi-implicit steps/s of the body alone (internal forces + gravity, no contact, no monitor,
     a minimal Python loop): the ceiling of today's per-step design."""
@@ -206,15 +315,15 @@ def body_only_steps(body: Body, dt: float, steps: int = 300) -> float:
 
 
 def profile(scene: Scene, s0: State, steps: int, top: int = 14) -> dict[str, str]:
-    """cProfile of ``steps`` semi-implicit steps per backend: the top entries by own time."""
+    """cProfile of ``steps`` per-step semi-implicit steps per backend: the top entries by own time."""
     dt = stable_time_step(scene, "semi-implicit")
     out = {}
     for backend in kernels.available()[::-1]:
         with kernels.use_backend(backend):
-            simulate(scene, s0, 5 * dt, method="semi-implicit", dt=dt)
+            simulate(scene, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
             pr = cProfile.Profile()
             pr.enable()
-            simulate(scene, s0, steps * dt, method="semi-implicit", dt=dt)
+            simulate(scene, s0, steps * dt, method="semi-implicit", dt=dt, fused=False)
             pr.disable()
             buf = io.StringIO()
             st = pstats.Stats(pr, stream=buf)
@@ -275,7 +384,12 @@ t3 = time.perf_counter()
 state = fc.init_state(body, x)
 fc.forces(body, x, x, 0.0, state)
 t4 = time.perf_counter()
-print(f"{t1 - t0:.3f} {t3 - t2:.3f} {t4 - t3:.3f}")
+from softgrasp.planes import Plane, PlaneContact
+from softgrasp.sim import Scene, simulate
+scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), name="table"), fc))
+simulate(scene, scene.initial_state(), 1e-6, method="semi-implicit", dt=1e-7, fused=True)
+t5 = time.perf_counter()
+print(f"{t1 - t0:.3f} {t3 - t2:.3f} {t4 - t3:.3f} {t5 - t4:.3f}")
 """
 
 
@@ -285,7 +399,7 @@ def bench_compile() -> None:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache, SOFTGRASP_KERNELS="numba")
         print(
             "\nfresh interpreter [s]: import (softgrasp, numba, kernel modules); first body forces, energy, "
-            "Jacobian; first fingertip update and forces"
+            "Jacobian; first fingertip update and forces; first fused simulate"
         )
         for label in ("cold (empty cache)", "warm (cached)", "warm (cached)"):
             t0 = time.perf_counter()
@@ -296,9 +410,10 @@ def bench_compile() -> None:
             if r.returncode:
                 print(r.stderr)
                 continue
-            imp, body, finger = r.stdout.split()
+            imp, body, finger, fused = r.stdout.split()
             print(
-                f"  {label:>18}: import {imp}, body {body}, fingertip {finger}; interpreter wall {wall:.2f}"
+                f"  {label:>18}: import {imp}, body {body}, fingertip {finger}, fused {fused}; "
+                f"interpreter wall {wall:.2f}"
             )
 
 
@@ -306,7 +421,8 @@ def bench_compile() -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh-size", type=float, default=0.008, help="sphere mesh size [m] (default 0.008)")
-    ap.add_argument("--steps", type=int, default=300, help="steps per timed run (default 300)")
+    ap.add_argument("--steps", type=int, default=300, help="steps per step-by-step run (default 300)")
+    ap.add_argument("--fused-steps", type=int, default=3000, help="steps per fused run (default 3000)")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per case (default 3)")
     ap.add_argument("--profile", action="store_true", help="cProfile semi-implicit steps per backend")
     ap.add_argument("--kernels", action="store_true", help="internal forces/Jacobian at four sizes")
@@ -328,29 +444,43 @@ def main() -> None:
         f"{len(body.mesh.facets)} facets; fingertip R = {RADIUS * 1e3:g} mm, {finger_pairs(scene, s0)} "
         f"touching facet(s) at t = 0"
     )
-    rates = bench_simulate(scene, s0, args.steps, args.repeats)
-    print(f"\nsimulate(), {args.steps} steps x {args.repeats} (best / median):")
+    rates = bench_simulate(scene, s0, args.steps, args.fused_steps, args.repeats)
     print(
-        f"{'method':>14} {'dt [s]':>9} {'backend':>7} {'steps/s':>15} {'node-steps/s':>13} "
-        f"{'force evals/s':>13} {'vs numpy':>8}"
+        f"\nsimulate(), {args.steps} steps per step-by-step run, {args.fused_steps} per fused run, "
+        f"x {args.repeats} (best / median); 'busy': most other runnable tasks seen"
+    )
+    print(
+        f"{'method':>14} {'dt [s]':>9} {'path':>23} {'steps/s':>15} {'node-steps/s':>13} "
+        f"{'evals/s':>8} {'x NumPy':>8} {'x per step':>10} {'busy':>5}"
     )
     for method in METHODS:
         dt = stable_time_step(scene, method)
-        base = max(rates[("numpy", method)])
-        for backend in kernels.available()[::-1]:
-            r = rates[(backend, method)]
+        base = max(rates[("NumPy", method)][0])
+        per_step = max(rates[("Numba per step", method)][0]) if ("Numba per step", method) in rates else base
+        for (label, m), (r, busy) in rates.items():
+            if m != method:
+                continue
             best, med = max(r), statistics.median(r)
             print(
-                f"{method:>14} {dt:>9.2e} {backend:>7} {best:>7.0f} / {med:>5.0f} {best * n:>13.3g} "
-                f"{best * EVALS_PER_STEP[method]:>13.0f} {best / base:>8.1f}"
+                f"{method:>14} {dt:>9.2e} {label:>23} {best:>7.0f} / {med:>5.0f} {best * n:>13.3g} "
+                f"{best * EVALS_PER_STEP[method]:>8.0f} {best / base:>8.1f} {best / per_step:>10.1f} "
+                f"{busy:>5}"
             )
 
-    print("\none semi-implicit step, its parts measured alone [us]:")
+    print("\none semi-implicit step, per-step path, its parts measured alone [us]:")
     parts = step_breakdown(scene, s0)
     names = list(next(iter(parts.values())))
     print(f"{'':>38} " + " ".join(f"{b:>8}" for b in parts))
     for name in names:
         print(f"{name:>38} " + " ".join(f"{parts[b][name] * 1e6:>8.1f}" for b in parts))
+    fused = fused_breakdown(scene, s0) if "numba" in kernels.available() else {}
+    if fused:
+        print(
+            "\none fused semi-implicit step, its compiled parts measured alone [us] "
+            f"(busy {others_running()}):"
+        )
+        for name, sec in fused.items():
+            print(f"{name:>46} {sec * 1e6:>8.1f}")
 
     flops = flops_per_eval(body)
     gemm, scalar = machine_rates()
@@ -363,6 +493,9 @@ def main() -> None:
         f"  measured rates: dgemm {gemm / 1e9:.1f} Gflop/s, compiled scalar loop {scalar / 1e9:.1f} Gflop/s"
     )
     print(f"  compiled internal forces run at {flops / t_body / 1e9:.2f} Gflop/s ({t_body * 1e6:.0f} us)")
+    for name in ("body forces, 1 thread", "body forces, 2 threads"):
+        if name in fused:
+            print(f"  fused {name}: {flops / fused[name] / 1e9:.2f} Gflop/s ({fused[name] * 1e6:.0f} us)")
     for method in METHODS:
         k = EVALS_PER_STEP[method]
         print(

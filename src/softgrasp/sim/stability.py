@@ -74,6 +74,7 @@ __all__ = [
     "DEFAULT_SAFETY",
     "STABILITY_LIMITS",
     "BlowupMonitor",
+    "EnergyBalance",
     "canonical_method",
     "half_disc_radius",
     "max_frequency",
@@ -213,8 +214,15 @@ def unstable_error(scene: Scene, method: str, t: float, dt: float, reason: str) 
 
 
 @dataclass
-class _Balance:
-    """Running energy bookkeeping of :class:`BlowupMonitor`."""
+class EnergyBalance:
+    """Running energy bookkeeping of :class:`BlowupMonitor`.
+
+    Attributes
+    ----------
+    t: time of the last accounted state [s].  power: interaction power there [W].
+    work: trapezoidal integral of the interaction power [J].  abs_work: the same of its magnitude [J].
+    gravity_work: largest ``|m g . (x_com(t) - x_com(0))|`` so far [J].
+    """
 
     t: float
     power: float
@@ -288,7 +296,7 @@ class BlowupMonitor:
         self._scale0 = max(
             abs(e_static), body.total_mass * g * extent, 1e-10 * body.material.E * body.mesh.volume
         )
-        self._balance = _Balance(t=state.t, power=self._power(state))
+        self._balance = EnergyBalance(t=state.t, power=self._power(state))
 
     # ------------------------------------------------------------------ pieces
     def _com(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -309,7 +317,43 @@ class BlowupMonitor:
         return p
 
     def _fail(self, state: State, dt: float, reason: str) -> SimulationUnstable:
-        return unstable_error(self.scene, self.method, state.t, dt, reason)
+        return self.error(state.t, dt, reason)
+
+    # ------------------------------------------------------------------ for compiled loops
+    @property
+    def balance(self) -> EnergyBalance:
+        """The running energy bookkeeping (a compiled stepper updates it in place)."""
+        return self._balance
+
+    @property
+    def energy0(self) -> float:
+        """Body energy ``E_b(0)`` [J] of the initial state."""
+        return self._energy0
+
+    @property
+    def scale0(self) -> float:
+        """The energy scale's floor [J] (initial energy, ``m g L``, ``1e-10 E V``)."""
+        return self._scale0
+
+    @property
+    def com0(self) -> NDArray[np.float64]:
+        """Initial centre of mass [m], (3,)."""
+        return self._com0
+
+    def error(self, t: float, dt: float, reason: str) -> SimulationUnstable:
+        """The :class:`SimulationUnstable` for a failed check at time ``t`` [s] after a step of
+        ``dt`` [s]."""
+        return unstable_error(self.scene, self.method, t, dt, reason)
+
+    @staticmethod
+    def inverted_reason(count: int, first: int) -> str:
+        """Reason text for ``count`` inverted tets, the first being ``first``."""
+        more = f" and {count - 1} more" if count > 1 else ""
+        return f"tet {first}{more} inverted"
+
+    def energy_reason(self, excess: float, scale: float) -> str:
+        """Reason text for an energy excess [J] above ``energy_factor`` times ``scale`` [J]."""
+        return f"energy grew by {excess:.3g} J, more than {self.energy_factor:g} x {scale:.3g} J"
 
     # ------------------------------------------------------------------ checks
     def check_finite(self, state: State, dt: float) -> None:
@@ -322,8 +366,7 @@ class BlowupMonitor:
         vol = signed_volumes(state.x, self.scene.body.mesh.tets)
         bad = np.flatnonzero(vol <= 0.0)
         if bad.size:
-            more = f" and {bad.size - 1} more" if bad.size > 1 else ""
-            raise self._fail(state, dt, f"tet {int(bad[0])}{more} inverted")
+            raise self._fail(state, dt, self.inverted_reason(int(bad.size), int(bad[0])))
 
     def energy_excess(self, state: State) -> tuple[float, float]:
         """``(E_b(t) - E_b(0) - W(t), S)`` [J] of the energy test (see the class docstring)."""
@@ -335,9 +378,7 @@ class BlowupMonitor:
         """Raise if the energy excess is above ``energy_factor`` times its scale."""
         excess, scale = self.energy_excess(state)
         if not (excess <= self.energy_factor * scale):
-            raise self._fail(
-                state, dt, f"energy grew by {excess:.3g} J, more than {self.energy_factor:g} x {scale:.3g} J"
-            )
+            raise self._fail(state, dt, self.energy_reason(excess, scale))
 
     def check(self, state: State, dt: float) -> None:
         """All checks now: finite, volumes, energy."""

@@ -1,0 +1,1138 @@
+"""Fused compiled time stepping: many explicit steps of a scene in one call, without Python between.
+
+One call of :meth:`FusedStepper.advance` runs K steps of semi-implicit Euler,
+
+    f = ((f_internal(x, v) + m g) + f_planes(x, v, t)) + f_fingers(x, v, t)
+    v <- v + dt f / m,   x <- x + dt v,   t <- t + dt,                                      (1)
+
+or of classical RK4 (four force evaluations per step, the friction states of the step's start),
+each step followed by the friction state updates of the planes (Algorithm 1 per node, as
+:meth:`softgrasp.planes.PlaneContact.update`) and of the fingertips
+(:func:`softgrasp.kernels.contact._fingertip_update`) and by the checks of
+:class:`softgrasp.sim.stability.BlowupMonitor`: the per-step path of
+:class:`~softgrasp.sim.integrators.SemiImplicitEuler` / :class:`~softgrasp.sim.integrators.RK4`
+driven by :func:`~softgrasp.sim.integrators.simulate`, to round-off (tested to 1e-8; measured
+1e-13). The pieces:
+
+* body forces: the spring law, edge dashpots and volume term of :mod:`softgrasp.kernels.elastic`
+  (polynomial laws only, :func:`softgrasp.kernels.elastic.polynomial_coefficients`), with the
+  reciprocals of the rest lengths and volumes precomputed and multiply-adds fused (round-off);
+* planes: :meth:`~softgrasp.planes.PlaneContact.forces` and ``update`` written out per node;
+* fingertips: the compiled kernels of :mod:`softgrasp.kernels.contact` themselves (detection,
+  forces, state update), the fingertips moving with their prescribed velocity. Their broad phase
+  gets a margin from the surface's current stretch instead of the worst case (the same pairs,
+  found scanning the facets near the fingertips only: :func:`_finger_reach`).
+
+The blow-up monitor reuses the step's own force evaluations: the interaction forces evaluated at a
+new state for the next step are the ones whose power the monitor integrates, and the elastic
+energy and inverted tets of its checks come out of the same force evaluation (every
+``check_every`` steps). A failed check stops the loop and is reported as a status code; the caller
+raises the same :class:`~softgrasp.errors.SimulationUnstable` as the per-step path.
+
+Threads: the body forces and the per-node work are computed in :data:`PARTS` parts, on as many
+threads when :attr:`FusedStepper.threads` asks for them (see
+:class:`softgrasp.sim.integrators.FusedThreads` for the choice), one part after the other
+otherwise; the trajectory does not depend on it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.kernels.contact import _fingertip_forces, _fingertip_update
+from softgrasp.kernels.elastic import polynomial_coefficients
+
+__all__ = [
+    "METHODS",
+    "PARTS",
+    "STATUS_ENERGY",
+    "STATUS_INVERTED",
+    "STATUS_NONFINITE",
+    "STATUS_OK",
+    "Failure",
+    "FusedStepper",
+    "supported",
+]
+
+Array = NDArray[np.float64]
+
+_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+_pjit = numba.njit(cache=True, fastmath=False, error_model="numpy", parallel=True)
+# The body-force kernels may fuse a * b + c into one FMA instruction ("contract": one rounding instead
+# of two, so the forces differ from the reference's at round-off, 1e-14 relative). It removes a
+# third of their floating-point instructions but only ~5 % of their time (measured): their scattered
+# loads and read-modify-write stores bound them more. No other fast-math flag: NaN and infinity keep
+# their meaning (the blow-up checks rely on them).
+_fjit = numba.njit(cache=True, fastmath={"contract"}, error_model="numpy")
+
+#: Barrier floor of J (as :mod:`softgrasp.kernels.elastic`).
+_J_FLOOR = 1e-12
+
+#: Methods the fused stepper runs (names of :func:`softgrasp.sim.stability.canonical_method`).
+METHODS = ("semi-implicit", "rk4")
+
+#: Status codes of :meth:`FusedStepper.advance`.
+STATUS_OK = 0
+STATUS_NONFINITE = 1
+STATUS_INVERTED = 2
+STATUS_ENERGY = 3
+
+#: The body forces are summed from this many parts (edges and tets split in halves), each into its
+#: own buffer, computed in parallel when threads are given (:attr:`FusedStepper.threads`) and one
+#: after the other otherwise: the result does not depend on the thread count.
+PARTS = 2
+
+# Slots of the monitor's float array (see FusedStepper._mon).
+_M_T, _M_POWER, _M_WORK, _M_ABS, _M_GRAV, _M_E0, _M_SCALE0, _M_FACTOR, _M_COM0 = 0, 1, 2, 3, 4, 5, 6, 7, 8
+_M_SIZE = 11
+# Slots of the failure report (see FusedStepper.failure).
+_F_T, _F_DT, _F_COUNT, _F_FIRST, _F_EXCESS, _F_SCALE = 0, 1, 2, 3, 4, 5
+
+
+# ---------------------------------------------------------------------------------- kernels
+@_jit
+def _plane_pass(
+    x, v, p, p0, normal, pvel, mu, k, c, kt, ct, active, anchor, update, lo, hi, out
+):  # pragma: no cover
+    """Plane p (through its point now ``p0[p]``) on nodes ``lo:hi``: when ``update``, first its friction
+    state after a step (:meth:`softgrasp.planes.PlaneContact.update`, in place), then its force
+    (:meth:`~softgrasp.planes.PlaneContact.forces`) added to ``out``; returns the force's power
+    [W]. One pass over the nodes, the per-node arithmetic written out here: a helper called per node
+    with array arguments costs atomic reference-count updates, hundreds of cycles per node."""
+    nx = normal[p, 0]
+    ny = normal[p, 1]
+    nz = normal[p, 2]
+    px = p0[p, 0]
+    py = p0[p, 1]
+    pz = p0[p, 2]
+    wx = pvel[p, 0]
+    wy = pvel[p, 1]
+    wz = pvel[p, 2]
+    m = mu[p]
+    power = 0.0
+    for i in range(lo, hi):
+        if update:
+            rx = x[i, 0] - px
+            ry = x[i, 1] - py
+            rz = x[i, 2] - pz
+            pen = -rx * nx + -ry * ny + -rz * nz
+            touching = pen > 0.0
+            rn = rx * nx + ry * ny + rz * nz
+            tx = rx - rn * nx
+            ty = ry - rn * ny
+            tz = rz - rn * nz
+            active[p, i] = touching
+            if not touching or not m > 0.0:  # the anchor follows a free node
+                anchor[p, i, 0] = tx
+                anchor[p, i, 1] = ty
+                anchor[p, i, 2] = tz
+            else:
+                sx = tx - anchor[p, i, 0]
+                sy = ty - anchor[p, i, 1]
+                sz = tz - anchor[p, i, 2]
+                s_norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+                limit = m * k[p, i] * max(pen, 0.0) / max(kt[p, i], 1e-300)
+                if s_norm > limit:  # slip: the anchor is dragged to the Coulomb limit
+                    r = limit / s_norm
+                    anchor[p, i, 0] = tx - sx * r
+                    anchor[p, i, 1] = ty - sy * r
+                    anchor[p, i, 2] = tz - sz * r
+        pen = -(x[i, 0] - px) * nx + -(x[i, 1] - py) * ny + -(x[i, 2] - pz) * nz
+        if not pen > 0.0:
+            continue
+        vrx = v[i, 0] - wx
+        vry = v[i, 1] - wy
+        vrz = v[i, 2] - wz
+        vn = vrx * nx + vry * ny + vrz * nz
+        fn = max(k[p, i] * pen - c[p, i] * vn, 0.0)
+        fx = fn * nx
+        fy = fn * ny
+        fz = fn * nz
+        if m > 0.0:
+            sx = x[i, 0] - (px + anchor[p, i, 0])
+            sy = x[i, 1] - (py + anchor[p, i, 1])
+            sz = x[i, 2] - (pz + anchor[p, i, 2])
+            sn = sx * nx + sy * ny + sz * nz
+            sx = sx - sn * nx
+            sy = sy - sn * ny
+            sz = sz - sn * nz
+            tx = -kt[p, i] * sx - ct[p, i] * (vrx - vn * nx)
+            ty = -kt[p, i] * sy - ct[p, i] * (vry - vn * ny)
+            tz = -kt[p, i] * sz - ct[p, i] * (vrz - vn * nz)
+            mag = math.sqrt(tx * tx + ty * ty + tz * tz)
+            cap = m * fn
+            if mag > cap:
+                r = cap / max(mag, 1e-300)
+                tx *= r
+                ty *= r
+                tz *= r
+            fx += tx
+            fy += ty
+            fz += tz
+        out[i, 0] += fx
+        out[i, 1] += fy
+        out[i, 2] += fz
+        power += fx * v[i, 0] + fy * v[i, 1] + fz * v[i, 2]
+    return power
+
+
+@_jit
+def _plane_points(t, pl_point, pl_vel, p0):  # pragma: no cover - compiled
+    """Each plane's point at time t, ``point + t velocity`` (Plane.point_at), into p0 (P, 3)."""
+    for p in range(pl_point.shape[0]):
+        for d in range(3):
+            p0[p, d] = pl_point[p, d] + t * pl_vel[p, d]
+
+
+@_fjit
+def _springs(
+    x, v, edges, rest, inv_rest, kl0, c, a2, a3, damped, want_energy, lo, hi, out
+):  # pragma: no cover
+    """Spring (+ dashpot) forces of edges ``lo:hi`` added to ``out`` (N, 3); returns their energy (0
+    unless ``want_energy``). The arithmetic of :func:`softgrasp.kernels.elastic._springs_polynomial`
+    with ``1 / L0`` and ``k L0`` precomputed (one division fewer per edge; the same to round-off)."""
+    energy = 0.0
+    a2_3 = a2 / 3.0
+    a3_4 = 0.25 * a3
+    for e in range(lo, hi):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        L = math.sqrt(dx * dx + dy * dy + dz * dz)
+        inv = 1.0 / L
+        eps = L * inv_rest[e] - 1.0
+        e2 = eps * eps
+        T = kl0[e] * (eps + a2 * e2 + a3 * e2 * eps)
+        if want_energy:
+            energy += kl0[e] * rest[e] * (0.5 * e2 + a2_3 * e2 * eps + a3_4 * e2 * e2)
+        if damped:
+            rate = ((v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz) * inv
+            T += c[e] * rate
+        s = T * inv
+        out[i, 0] += s * dx
+        out[i, 1] += s * dy
+        out[i, 2] += s * dz
+        out[j, 0] -= s * dx
+        out[j, 1] -= s * dy
+        out[j, 2] -= s * dz
+    return energy
+
+
+@_fjit
+def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, out):  # pragma: no cover
+    """Volume-term forces of tets ``lo:hi`` added to ``out`` (N, 3), as
+    :func:`softgrasp.kernels.elastic._volume` with ``1 / (6 V0)`` precomputed (one division per tet
+    instead of four; the same to round-off). Returns (energy (0 unless ``want_energy``), the number
+    of tets with non-positive signed volume and the first of them (0 and -1 unless ``check``))."""
+    energy = 0.0
+    count = 0
+    first = -1
+    ck = -kappa / 6.0
+    for t in range(lo, hi):
+        p0 = tets[t, 0]
+        p1 = tets[t, 1]
+        p2 = tets[t, 2]
+        p3 = tets[t, 3]
+        x0 = x[p0, 0]
+        y0 = x[p0, 1]
+        z0 = x[p0, 2]
+        ax = x[p1, 0] - x0
+        ay = x[p1, 1] - y0
+        az = x[p1, 2] - z0
+        bx = x[p2, 0] - x0
+        by = x[p2, 1] - y0
+        bz = x[p2, 2] - z0
+        cx = x[p3, 0] - x0
+        cy = x[p3, 1] - y0
+        cz = x[p3, 2] - z0
+        c1x = by * cz - bz * cy
+        c1y = bz * cx - bx * cz
+        c1z = bx * cy - by * cx
+        c2x = cy * az - cz * ay
+        c2y = cz * ax - cx * az
+        c2z = cx * ay - cy * ax
+        c3x = ay * bz - az * by
+        c3y = az * bx - ax * bz
+        c3z = ax * by - ay * bx
+        det = ax * c1x + ay * c1y + az * c1z
+        if check and not det / 6.0 > 0.0:  # signed_volumes(x, tets) <= 0
+            if first < 0:
+                first = t
+            count += 1
+        J = det * inv6v0[t]
+        if barrier:
+            Jc = J if J > _J_FLOOR else _J_FLOOR
+            dw = 1.0 - 1.0 / Jc
+            if want_energy:
+                energy += kappa * v0[t] * (J - 1.0 - math.log(Jc))
+        else:
+            dw = J - 1.0
+            if want_energy:
+                energy += kappa * v0[t] * (0.5 * dw * dw)
+        s = ck * dw
+        out[p1, 0] += s * c1x
+        out[p1, 1] += s * c1y
+        out[p1, 2] += s * c1z
+        out[p2, 0] += s * c2x
+        out[p2, 1] += s * c2y
+        out[p2, 2] += s * c2z
+        out[p3, 0] += s * c3x
+        out[p3, 1] += s * c3y
+        out[p3, 2] += s * c3z
+        out[p0, 0] -= s * (c1x + c2x + c3x)
+        out[p0, 1] -= s * (c1y + c2y + c3y)
+        out[p0, 2] -= s * (c1z + c2z + c3z)
+    return energy, count, first
+
+
+@_jit
+def _inverted(x, tets, lo, hi):  # pragma: no cover - compiled
+    """Tets ``lo:hi`` with non-positive signed volume (as :func:`softgrasp.mesh.tetmesh.signed_volumes`):
+    their number and the first of them (-1 if none); for bodies without the volume term."""
+    count = 0
+    first = -1
+    for t in range(lo, hi):
+        p0 = tets[t, 0]
+        ax = x[tets[t, 1], 0] - x[p0, 0]
+        ay = x[tets[t, 1], 1] - x[p0, 1]
+        az = x[tets[t, 1], 2] - x[p0, 2]
+        bx = x[tets[t, 2], 0] - x[p0, 0]
+        by = x[tets[t, 2], 1] - x[p0, 1]
+        bz = x[tets[t, 2], 2] - x[p0, 2]
+        cx = x[tets[t, 3], 0] - x[p0, 0]
+        cy = x[tets[t, 3], 1] - x[p0, 1]
+        cz = x[tets[t, 3], 2] - x[p0, 2]
+        det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        if not det / 6.0 > 0.0:
+            if first < 0:
+                first = t
+            count += 1
+    return count, first
+
+
+@_jit
+def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragma: no cover - compiled
+    """Part ``part`` of ``parts`` of the internal forces: its share of the edges and tets, into its
+    own buffer ``out`` (zeroed here); energy, inverted count and first inverted tet into ``info``."""
+    edges, rest, inv_rest, kl0, c, a2, a3, damped, tets, inv6v0, v0, kappa, barrier = body
+    for i in range(out.shape[0]):
+        out[i, 0] = 0.0
+        out[i, 1] = 0.0
+        out[i, 2] = 0.0
+    E = edges.shape[0]
+    M = tets.shape[0]
+    lo = part * E // parts
+    hi = (part + 1) * E // parts
+    e = _springs(x, v, edges, rest, inv_rest, kl0, c, a2, a3, damped, want_energy, lo, hi, out)
+    count = 0
+    first = -1
+    lo = part * M // parts
+    hi = (part + 1) * M // parts
+    if kappa != 0.0:
+        ev, count, first = _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, out)
+        e += ev
+    elif check:
+        count, first = _inverted(x, tets, lo, hi)
+    info[0] = e
+    info[1] = count
+    info[2] = first
+
+
+@_pjit
+def _body_forces_parallel(x, v, body, want_energy, check, fint, info):  # pragma: no cover - compiled
+    """:func:`_body_part` for every part, one thread each."""
+    parts = fint.shape[0]
+    for p in numba.prange(parts):
+        _body_part(p, parts, x, v, body, want_energy, check, fint[p], info[p])
+
+
+@_jit
+def _max_facet_edge(x, facets):  # pragma: no cover - compiled
+    """Longest edge of the boundary facets at positions x [m]."""
+    best = 0.0
+    for j in range(facets.shape[0]):
+        for r in range(3):
+            a = facets[j, r]
+            b = facets[j, (r + 1) % 3]
+            dx = x[a, 0] - x[b, 0]
+            dy = x[a, 1] - x[b, 1]
+            dz = x[a, 2] - x[b, 2]
+            best = max(best, dx * dx + dy * dy + dz * dz)
+    return math.sqrt(best)
+
+
+@_jit
+def _finger_reach(x, fingers, x_ref, track):  # pragma: no cover - compiled
+    """Broad-phase margin for the fingertip detection at x: the kernels' own ``reach`` (the rest
+    mesh's longest facet edge x (1 + 3 fade) x a stretch allowance), or less where the surface is
+    known to be less stretched.
+
+    A touching facet has a vertex within R + (1 + 3 max(fade, inside_tol)) L of the fingertip
+    centre, L its longest edge now; every facet edge is at most L_ref + 2 u, where L_ref is the
+    longest facet edge at the reference positions ``x_ref`` and u the largest node displacement
+    since (``track`` = [L_ref, u^2], u^2 kept up to date by the integration loop). So margin
+    ``(1 + 3 max(fade, inside_tol)) (L_ref + 2 u)`` finds exactly the same pairs as ``reach``,
+    scanning only facets near the fingertips. The reference is renewed when u exceeds L_ref / 4."""
+    facets = fingers[1]
+    reach = fingers[5]
+    grow = 1.0 + 3.0 * max(fingers[12], fingers[13])  # fade, inside_tol
+    u = math.sqrt(track[1])
+    if u > 0.25 * track[0]:
+        for i in range(x.shape[0]):
+            x_ref[i, 0] = x[i, 0]
+            x_ref[i, 1] = x[i, 1]
+            x_ref[i, 2] = x[i, 2]
+        track[0] = _max_facet_edge(x, facets)
+        track[1] = 0.0
+        u = 0.0
+    return min(reach, grow * (track[0] + 2.0 * u) * (1.0 + 1e-9))
+
+
+@_jit
+def _clear_finger(active, anchor, slip, memory):  # pragma: no cover - compiled
+    """Zero a finger state buffer that only holds entries where ``active`` is set."""
+    for f in range(active.shape[0]):
+        for j in range(active.shape[1]):
+            if active[f, j]:
+                active[f, j] = False
+                for d in range(3):
+                    anchor[f, j, d] = 0.0
+                    slip[f, j, d] = 0.0
+        for d in range(3):
+            memory[f, d] = 0.0
+
+
+@_jit
+def _body_forces(parallel, x, v, body, want_energy, check, fint, info):  # pragma: no cover - compiled
+    """Internal forces split in ``fint.shape[0]`` parts (summed by the caller), on as many threads
+    when ``parallel``; returns (energy, inverted count, first inverted tet or -1)."""
+    if parallel:
+        _body_forces_parallel(x, v, body, want_energy, check, fint, info)
+    else:
+        for p in range(fint.shape[0]):
+            _body_part(p, fint.shape[0], x, v, body, want_energy, check, fint[p], info[p])
+    e = 0.0
+    count = 0
+    first = -1
+    for p in range(info.shape[0]):
+        e += info[p, 0]
+        n = int(info[p, 1])
+        if n > 0:
+            count += n
+            if first < 0:
+                first = int(info[p, 2])
+    return e, count, first
+
+
+@_jit
+def _fingers_at(t, fingers, centres):  # pragma: no cover - compiled
+    """Fingertip centres at time t, ``centre + t velocity`` (Fingertip.centre_at), into centres."""
+    c0 = fingers[6]
+    vel = fingers[7]
+    for f in range(c0.shape[0]):
+        for d in range(3):
+            centres[f, d] = c0[f, d] + t * vel[f, d]
+
+
+@_jit
+def _finger_forces(x, v, t, fingers, active, anchor, memory, reach, centres, out):  # pragma: no cover
+    """Fingertip forces at time t added to ``out`` (:func:`softgrasp.kernels.contact._fingertip_forces`)."""
+    (_, facets, boundary, indptr, indices, _, _, vel, omega, radii, K, C, fade, inside_tol, mu, n_exp,
+     hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
+    _fingers_at(t, fingers, centres)
+    _fingertip_forces(
+        x, v, facets, boundary, indptr, indices, reach, centres, radii, vel, omega, K, C, fade, inside_tol,
+        mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, memory, out,
+    )  # fmt: skip
+
+
+@_jit
+def _finger_update(x, t, fingers, fstate, cur, reach, centres):  # pragma: no cover - compiled
+    """Fingertip friction states after a step: buffer ``cur`` of ``fstate`` updated into the other
+    one (:func:`softgrasp.kernels.contact._fingertip_update`); returns the new current buffer."""
+    (_, facets, boundary, indptr, indices, _, _, _, _, radii, K, _, fade, inside_tol, mu, n_exp, _, patch,
+     ratio, min_depth_ratio) = fingers  # fmt: skip
+    active, anchor, slip, memory = fstate
+    nxt = 1 - cur
+    _clear_finger(active[nxt], anchor[nxt], slip[nxt], memory[nxt])
+    _fingers_at(t, fingers, centres)
+    _fingertip_update(
+        x, facets, boundary, indptr, indices, reach, centres, radii, K, fade, inside_tol, mu, n_exp, patch,
+        ratio, min_depth_ratio, active[cur], anchor[cur], slip[cur], memory[cur], active[nxt], anchor[nxt],
+        slip[nxt], memory[nxt],
+    )  # fmt: skip
+    return nxt
+
+
+@_jit
+def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
+               pl_anchor, sums):  # pragma: no cover - compiled  # fmt: skip
+    """Nodes of part ``part`` of ``parts``: the step (v += dt f / m, x += dt v), then each plane's
+    friction state update and force at the new state (the contact force buffers are cleared for the
+    new state's forces first). Into ``sums``: whether a value became non-finite, the largest squared
+    displacement from ``x_ref`` (for the fingertip broad phase), sum m x (3) and the planes' power."""
+    point, normal, pvel, mu, k, c, kt, ct = planes
+    N = x.shape[0]
+    lo = part * N // parts
+    hi = (part + 1) * N // parts
+    n_parts = fint.shape[0]
+    bad = False
+    u2 = 0.0
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for i in range(lo, hi):
+        m = mass[i]
+        du2 = 0.0
+        for d in range(3):
+            fi = fint[0, i, d]
+            for q in range(1, n_parts):
+                fi += fint[q, i, d]
+            a = (((fi + grav[i, d]) + fplane[i, d]) + ffinger[i, d]) / m
+            fplane[i, d] = 0.0
+            ffinger[i, d] = 0.0
+            vi = v[i, d] + dt * a
+            xi = x[i, d] + dt * vi
+            v[i, d] = vi
+            x[i, d] = xi
+            bad |= not (abs(vi) < math.inf and abs(xi) < math.inf)
+            du = xi - x_ref[i, d]
+            du2 += du * du
+        u2 = max(u2, du2)
+        mx += m * x[i, 0]
+        my += m * x[i, 1]
+        mz += m * x[i, 2]
+    power = 0.0
+    for p in range(point.shape[0]):
+        power += _plane_pass(x, v, p, p0, normal, pvel, mu, k, c, kt, ct, pl_active, pl_anchor, True, lo, hi,
+                             fplane)  # fmt: skip
+    sums[0] = 1.0 if bad else 0.0
+    sums[1] = u2
+    sums[2] = mx
+    sums[3] = my
+    sums[4] = mz
+    sums[5] = power
+
+
+@_pjit
+def _node_pass_parallel(dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active, pl_anchor,
+                        sums):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`_node_part` for every part, one thread each."""
+    parts = sums.shape[0]
+    for q in numba.prange(parts):
+        _node_part(q, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
+                   pl_anchor, sums[q])  # fmt: skip
+
+
+@_jit
+def _initial_forces(
+    x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
+):  # pragma: no cover
+    """All forces at the current state, into the workspace (the loop keeps them up to date after)."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, _ = work
+    point, normal, pvel, mu, k, c, kt, ct = planes
+    _body_forces(parallel, x, v, body, False, False, fint, info)
+    _plane_points(t, point, pvel, p0)
+    for i in range(x.shape[0]):
+        for d in range(3):
+            fplane[i, d] = 0.0
+            ffinger[i, d] = 0.0
+    for p in range(point.shape[0]):
+        _plane_pass(
+            x, v, p, p0, normal, pvel, mu, k, c, kt, ct, pl_active, pl_anchor, False, 0, x.shape[0], fplane
+        )
+    if fingers[0]:
+        reach = _finger_reach(x, fingers, x_ref, track)
+        _finger_forces(
+            x, v, t, fingers, fstate[0][cur], fstate[1][cur], fstate[3][cur], reach, centres, ffinger
+        )
+
+
+@_jit
+def _after_step(x, v, t, t_prev, mass, total_mass, gvec, mon, fail, power, mx, my, mz, check, e_int, count,
+                first):  # pragma: no cover - compiled  # fmt: skip
+    """:meth:`softgrasp.sim.stability.BlowupMonitor.after_step` for the state (x, v, t) reached by a
+    step from ``t_prev``: ``power`` of the interactions there, ``sum m x`` = (mx, my, mz), and when
+    ``check``, the inverted tets (``count``, ``first``) and elastic energy ``e_int`` of the force
+    evaluation at that state. Returns a status; the failure's details go to ``fail``."""
+    hb = t - mon[_M_T]
+    mon[_M_WORK] += 0.5 * (mon[_M_POWER] + power) * hb
+    mon[_M_ABS] += 0.5 * (abs(mon[_M_POWER]) + abs(power)) * hb
+    mon[_M_POWER] = power
+    mon[_M_T] = t
+    dz = (
+        (mx / total_mass - mon[_M_COM0]) * gvec[0]
+        + (my / total_mass - mon[_M_COM0 + 1]) * gvec[1]
+        + (mz / total_mass - mon[_M_COM0 + 2]) * gvec[2]
+    ) * total_mass
+    mon[_M_GRAV] = max(mon[_M_GRAV], abs(dz))
+    if not check:
+        return STATUS_OK
+    if count > 0:
+        fail[_F_T] = t
+        fail[_F_DT] = t - t_prev
+        fail[_F_COUNT] = count
+        fail[_F_FIRST] = first
+        return STATUS_INVERTED
+    kin = 0.0
+    pot = 0.0
+    for i in range(x.shape[0]):
+        kin += mass[i] * (v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
+        pot += mass[i] * (x[i, 0] * gvec[0] + x[i, 1] * gvec[1] + x[i, 2] * gvec[2])
+    excess = (0.5 * kin + e_int - pot) - mon[_M_E0] - mon[_M_WORK]
+    scale = max(mon[_M_SCALE0], mon[_M_ABS], mon[_M_GRAV])
+    if not excess <= mon[_M_FACTOR] * scale:
+        fail[_F_T] = t
+        fail[_F_DT] = t - t_prev
+        fail[_F_EXCESS] = excess
+        fail[_F_SCALE] = scale
+        return STATUS_ENERGY
+    return STATUS_OK
+
+
+@_jit
+def _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on):  # pragma: no cover - compiled
+    """The fingertips after a step: friction states updated at (x, t), then their forces at the new
+    state into ``ffinger`` (cleared by the caller). Returns the new current buffer and the forces'
+    power (0 unless ``monitor_on``)."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
+    reach = _finger_reach(x, fingers, x_ref, track)
+    cur = _finger_update(x, t, fingers, fstate, cur, reach, centres)
+    _finger_forces(x, v, t, fingers, fstate[0][cur], fstate[1][cur], fstate[3][cur], reach, centres, ffinger)
+    power = 0.0
+    if monitor_on:
+        for i in range(x.shape[0]):
+            power += ffinger[i, 0] * v[i, 0] + ffinger[i, 1] * v[i, 1] + ffinger[i, 2] * v[i, 2]
+    return cur, power
+
+
+@_jit
+def _advance(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, planes, pl_active, pl_anchor,
+             fingers, fstate, cur, work, have_forces, parallel, monitor_on, mon, msteps, check_every, gvec,
+             fail):  # pragma: no cover - compiled  # fmt: skip
+    """Up to ``n_steps`` steps of Eq. (1); see :meth:`FusedStepper.advance`.
+
+    Returns (status, steps taken, t, current finger buffer, monitor step count)."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
+    point, normal, pvel, mu, k, c, kt, ct = planes
+    parts = fint.shape[0]
+    if not have_forces:
+        _initial_forces(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
+    for s in range(n_steps):
+        t_prev = t
+        dt = t_end - t if (land and s == n_steps - 1) else h
+        t = t + dt
+        _plane_points(t, point, pvel, p0)
+        # The nodes (in parts, on threads when parallel): the step, the planes' friction states and
+        # forces at the new state, the sums the monitor needs.
+        if parallel:
+            _node_pass_parallel(dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
+                                pl_anchor, sums)  # fmt: skip
+        else:
+            for q in range(parts):
+                _node_part(
+                    q, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
+                    pl_anchor, sums[q],
+                )  # fmt: skip
+        bad = False
+        u2 = track[1]
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
+        p_plane = 0.0
+        for q in range(parts):
+            bad |= sums[q, 0] != 0.0
+            u2 = max(u2, sums[q, 1])
+            mx += sums[q, 2]
+            my += sums[q, 3]
+            mz += sums[q, 4]
+            p_plane += sums[q, 5]
+        track[1] = u2
+        if bad:
+            fail[_F_T] = t
+            fail[_F_DT] = t - t_prev
+            return STATUS_NONFINITE, s + 1, t, cur, msteps + 1
+        # the fingertips' friction states after the step, then the forces at the new state: the next
+        # step's, and the monitor's power, volumes and energy
+        p_finger = 0.0
+        if fingers[0]:
+            cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
+        msteps += 1
+        check = monitor_on and msteps % check_every == 0
+        e_int, count, first = _body_forces(parallel, x, v, body, check, check, fint, info)
+        if monitor_on:
+            power = p_plane + p_finger
+            status = _after_step(
+                x, v, t, t_prev, mass, total_mass, gvec, mon, fail, power, mx, my, mz, check, e_int, count,
+                first,
+            )  # fmt: skip
+            if status != STATUS_OK:
+                return status, s + 1, t, cur, msteps
+    return STATUS_OK, n_steps, t, cur, msteps
+
+
+@_jit
+def _stage_forces(
+    xs, vs, ts, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
+):  # pragma: no cover
+    """All forces at an RK4 stage (xs, vs, ts) with the step's friction states frozen (as
+    :meth:`softgrasp.sim.scene.Scene.forces` on the state's contacts), into the workspace."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
+    point, normal, pvel, mu, k, c, kt, ct = planes
+    _body_forces(parallel, xs, vs, body, False, False, fint, info)
+    for i in range(xs.shape[0]):
+        for d in range(3):
+            fplane[i, d] = 0.0
+            ffinger[i, d] = 0.0
+    _plane_points(ts, point, pvel, p0)
+    for p in range(point.shape[0]):
+        _plane_pass(
+            xs, vs, p, p0, normal, pvel, mu, k, c, kt, ct, pl_active, pl_anchor, False, 0, xs.shape[0], fplane
+        )
+    if fingers[0]:
+        reach = _finger_reach(xs, fingers, x_ref, track)
+        _finger_forces(
+            xs, vs, ts, fingers, fstate[0][cur], fstate[1][cur], fstate[3][cur], reach, centres, ffinger
+        )
+
+
+@_jit
+def _rk4_stage(stage, x, v, xs, vs, ax, av, mass, grav, work, h):  # pragma: no cover - compiled
+    """Accumulate RK4 stage ``stage`` (1-4) from the forces in the workspace (a_k = F / m at the
+    stage state) and set the next stage state, as :meth:`softgrasp.sim.integrators.RK4.step`:
+    ``v2 = v + h/2 a1, x2 = x + h/2 v``; ``v3 = v + h/2 a2, x3 = x + h/2 v2``;
+    ``v4 = v + h a3, x4 = x + h v3``; sums ``a1 + 2 a2 + 2 a3 (+ a4)`` and
+    ``v + 2 v2 + 2 v3 (+ v4)`` in that order. Updates the largest squared displacement from
+    ``x_ref`` of the stage positions (the fingertip broad phase)."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
+    parts = fint.shape[0]
+    h2 = 0.5 * h
+    u2 = track[1]
+    for i in range(x.shape[0]):
+        m = mass[i]
+        du2 = 0.0
+        for d in range(3):
+            fi = fint[0, i, d]
+            for q in range(1, parts):
+                fi += fint[q, i, d]
+            a = (((fi + grav[i, d]) + fplane[i, d]) + ffinger[i, d]) / m
+            if stage == 1:
+                av[i, d] = a
+                ax[i, d] = v[i, d]
+                vs[i, d] = v[i, d] + h2 * a
+                xs[i, d] = x[i, d] + h2 * v[i, d]
+            elif stage == 2:
+                av[i, d] = av[i, d] + 2.0 * a
+                ax[i, d] = ax[i, d] + 2.0 * vs[i, d]
+                xs[i, d] = x[i, d] + h2 * vs[i, d]
+                vs[i, d] = v[i, d] + h2 * a
+            else:  # stage 3
+                av[i, d] = av[i, d] + 2.0 * a
+                ax[i, d] = ax[i, d] + 2.0 * vs[i, d]
+                xs[i, d] = x[i, d] + h * vs[i, d]
+                vs[i, d] = v[i, d] + h * a
+            du = xs[i, d] - x_ref[i, d]
+            du2 += du * du
+        u2 = max(u2, du2)
+    track[1] = u2
+
+
+@_jit
+def _advance_rk4(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, planes, pl_active,
+                 pl_anchor, fingers, fstate, cur, work, have_forces, parallel, monitor_on, mon, msteps,
+                 check_every, gvec, fail, rk):  # pragma: no cover - compiled  # fmt: skip
+    """Up to ``n_steps`` classical RK4 steps (:class:`softgrasp.sim.integrators.RK4`): four force
+    evaluations per step with the friction states of the step's start, then the state updates
+    and the forces at the new state (the next step's first stage and the monitor's). Returns as
+    :func:`_advance`."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
+    xs, vs, ax, av = rk
+    parts = fint.shape[0]
+    N = x.shape[0]
+    if not have_forces:
+        _initial_forces(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
+    for s in range(n_steps):
+        t_prev = t
+        dt = t_end - t if (land and s == n_steps - 1) else h
+        h2 = 0.5 * dt
+        _rk4_stage(1, x, v, xs, vs, ax, av, mass, grav, work, dt)
+        _stage_forces(
+            xs, vs, t + h2, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
+        )
+        _rk4_stage(2, x, v, xs, vs, ax, av, mass, grav, work, dt)
+        _stage_forces(
+            xs, vs, t + h2, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
+        )
+        _rk4_stage(3, x, v, xs, vs, ax, av, mass, grav, work, dt)
+        _stage_forces(
+            xs, vs, t + dt, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
+        )
+        # x += dt / 6 (v + 2 v2 + 2 v3 + v4), v += dt / 6 (a1 + 2 a2 + 2 a3 + a4)
+        w = dt / 6.0
+        bad = False
+        u2 = track[1]
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
+        for i in range(N):
+            m = mass[i]
+            du2 = 0.0
+            for d in range(3):
+                fi = fint[0, i, d]
+                for q in range(1, parts):
+                    fi += fint[q, i, d]
+                a = (((fi + grav[i, d]) + fplane[i, d]) + ffinger[i, d]) / m
+                fplane[i, d] = 0.0
+                ffinger[i, d] = 0.0
+                xi = x[i, d] + w * (ax[i, d] + vs[i, d])
+                vi = v[i, d] + w * (av[i, d] + a)
+                x[i, d] = xi
+                v[i, d] = vi
+                bad |= not (abs(vi) < math.inf and abs(xi) < math.inf)
+                du = xi - x_ref[i, d]
+                du2 += du * du
+            u2 = max(u2, du2)
+            mx += m * x[i, 0]
+            my += m * x[i, 1]
+            mz += m * x[i, 2]
+        track[1] = u2
+        t = t + dt
+        if bad:
+            fail[_F_T] = t
+            fail[_F_DT] = t - t_prev
+            return STATUS_NONFINITE, s + 1, t, cur, msteps + 1
+        # friction states after the step, then the forces at the new state (Scene.update_contacts, forces)
+        point, normal, pvel, mu, k, c, kt, ct = planes
+        _plane_points(t, point, pvel, p0)
+        p_plane = 0.0
+        for p in range(point.shape[0]):
+            p_plane += _plane_pass(
+                x, v, p, p0, normal, pvel, mu, k, c, kt, ct, pl_active, pl_anchor, True, 0, N, fplane
+            )
+        p_finger = 0.0
+        if fingers[0]:
+            cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
+        msteps += 1
+        check = monitor_on and msteps % check_every == 0
+        e_int, count, first = _body_forces(parallel, x, v, body, check, check, fint, info)
+        if monitor_on:
+            power = p_plane + p_finger
+            status = _after_step(
+                x, v, t, t_prev, mass, total_mass, gvec, mon, fail, power, mx, my, mz, check, e_int, count,
+                first,
+            )  # fmt: skip
+            if status != STATUS_OK:
+                return status, s + 1, t, cur, msteps
+    return STATUS_OK, n_steps, t, cur, msteps
+
+
+# ---------------------------------------------------------------------------------- Python side
+def supported(body: Any, planes: list[Any], fingers: list[Any]) -> str | None:
+    """Why the fused stepper cannot run this body and these interactions, or None when it can.
+
+    It needs a polynomial stress-strain law (:func:`softgrasp.kernels.elastic.polynomial_coefficients`)
+    and at most one fingertip interaction.
+    """
+    if polynomial_coefficients(body.material.law) is None:
+        return f"stress-strain law {type(body.material.law).__name__} is not a polynomial"
+    if len(fingers) > 1:
+        return "more than one fingertip interaction"
+    return None
+
+
+def _f64(a: Any, shape: tuple[int, ...] | None = None) -> Array:
+    """A fresh writeable C-contiguous float64 copy (one compiled signature whatever the input:
+    read-only mesh arrays would make another)."""
+    out = np.array(a, dtype=np.float64, order="C", copy=True)
+    return out.reshape(shape) if shape is not None else out
+
+
+def _i64(a: Any) -> NDArray[np.int64]:
+    """A fresh writeable C-contiguous int64 copy."""
+    return np.array(a, dtype=np.int64, order="C", copy=True)
+
+
+@dataclass
+class Failure:
+    """What stopped :meth:`FusedStepper.advance`.
+
+    Attributes
+    ----------
+    status: :data:`STATUS_NONFINITE`, :data:`STATUS_INVERTED` or :data:`STATUS_ENERGY`.
+    t: time of the failing state [s].  dt: length of the step that reached it [s].
+    count, first: inverted tets and the first of them (:data:`STATUS_INVERTED`).
+    excess, scale: the energy test's excess and scale [J] (:data:`STATUS_ENERGY`).
+    """
+
+    status: int
+    t: float
+    dt: float
+    count: int = 0
+    first: int = -1
+    excess: float = 0.0
+    scale: float = 0.0
+
+
+class FusedStepper:
+    """Explicit steps (semi-implicit Euler or RK4) of a body with plane and fingertip contacts in
+    compiled chunks.
+
+    The stepper owns copies of the positions, velocities and friction states; :meth:`advance` moves
+    them on; :meth:`arrays`, :meth:`plane_states` and :meth:`finger_state` read them out (copies).
+
+    Parameters
+    ----------
+    body:
+        The :class:`softgrasp.body.Body` (polynomial stress-strain law).
+    planes:
+        :class:`softgrasp.planes.PlaneContact` interactions, with their states ``plane_states``
+        (:class:`~softgrasp.planes.PlaneState`).
+    fingers:
+        A :class:`softgrasp.contact.model.FingertipContact` or None, with its state
+        ``finger_state`` (:class:`~softgrasp.contact.model.FingerState`).
+    x, v, t:
+        Initial positions [m] (N, 3), velocities [m/s] (N, 3) and time [s].
+    monitor:
+        A :class:`softgrasp.sim.stability.BlowupMonitor` whose checks run inside the loop and whose
+        bookkeeping (``steps``, ``balance``) is kept up to date after every :meth:`advance`; None for
+        no checks.
+    method:
+        ``"semi-implicit"`` or ``"rk4"``.
+    parts:
+        Parts the body forces and node updates are split in (:data:`PARTS`).
+
+    Attributes
+    ----------
+    threads: threads the next :meth:`advance` computes on (1: the parts one after the other).
+    failure: what stopped the last :meth:`advance` early (:class:`Failure`), or None.
+    """
+
+    def __init__(
+        self,
+        body: Any,
+        planes: list[Any],
+        plane_states: list[Any],
+        fingers: Any | None,
+        finger_state: Any | None,
+        x: Array,
+        v: Array,
+        t: float,
+        monitor: Any | None = None,
+        *,
+        method: str = "semi-implicit",
+        parts: int = PARTS,
+    ) -> None:
+        if method not in METHODS:
+            raise ValueError(f"the fused stepper runs {' or '.join(METHODS)}, not {method!r}")
+        self.method = method
+        reason = supported(body, planes, [] if fingers is None else [fingers])
+        if reason is not None:
+            raise ValueError(f"the fused stepper cannot run this scene: {reason}")
+        N = body.n_nodes
+        self.body = body
+        self.t = float(t)
+        self.x = _f64(x, (N, 3))
+        self.v = _f64(v, (N, 3))
+        a2, a3 = polynomial_coefficients(body.material.law)  # type: ignore[misc]
+        damped = body.damping_time > 0
+        rest = _f64(body.rest_length)
+        vol = _f64(body.mesh.volumes)
+        self._body = (
+            _i64(body.edges),
+            rest,
+            1.0 / rest,
+            _f64(body.stiffness) * rest,
+            _f64(body.damping) if damped else np.zeros_like(rest),
+            float(a2),
+            float(a3),
+            bool(damped),
+            _i64(body.mesh.tets),
+            1.0 / (6.0 * vol),
+            vol,
+            float(body.kappa),
+            bool(body.barrier),
+        )
+        self.parts = max(1, int(parts))
+        self.threads = 1
+        self._mass = _f64(body.mass)
+        self._grav = _f64(body.mass[:, None] * np.asarray(body.gravity, dtype=np.float64)[None, :])
+        self._gvec = _f64(body.gravity, (3,))
+        self._total_mass = float(body.mass.sum())
+        self._fint = np.zeros((self.parts, N, 3))
+        self._info = np.zeros((self.parts, 3))
+        self._fplane = np.zeros((N, 3))
+        self._ffinger = np.zeros((N, 3))
+        self._have_forces = False
+        # planes: (P, ...) parameter arrays and states
+        P = len(planes)
+        self._pl = [np.zeros((P, 3)), np.zeros((P, 3)), np.zeros((P, 3)), np.zeros(P)]
+        pk, pc, pkt, pct = (np.zeros((P, N)) for _ in range(4))
+        self.pl_active = np.zeros((P, N), np.bool_)
+        self.pl_anchor = np.zeros((P, N, 3))
+        for p, (inter, st) in enumerate(zip(planes, plane_states, strict=True)):
+            self._pl[0][p] = inter.plane.point
+            self._pl[1][p] = inter.plane.normal
+            self._pl[2][p] = inter.plane.velocity
+            self._pl[3][p] = inter.mu
+            # the same per-node coefficients as PlaneContact.forces / update
+            pk[p], pc[p], pkt[p], pct[p] = inter._coeffs(body)
+            self.pl_active[p] = st.active
+            self.pl_anchor[p] = st.anchor
+        self._pl = (*self._pl, pk, pc, pkt, pct)
+        # fingertips: constant geometry and parameters, double-buffered state
+        if fingers is not None:
+            kw = fingers._compiled_kwargs(body, 0.0)  # the arguments FingertipContact's kernels get
+            tips = fingers.fingertips
+            nf, F = len(tips), len(body.mesh.facets)
+            self._fg = (
+                True,
+                _i64(kw["facets"]),
+                _i64(kw["boundary_nodes"]),
+                _i64(kw["indptr"]),
+                _i64(kw["indices"]),
+                float(kw["reach"]),
+                _f64([f.centre for f in tips], (nf, 3)),
+                _f64([f.velocity for f in tips], (nf, 3)),
+                _f64([f.omega for f in tips], (nf, 3)),
+                _f64(kw["radii"], (nf,)),
+                _f64(kw["K"], (nf,)),
+                _f64(fingers.damping(), (nf,)),
+                float(kw["fade"]),
+                float(kw["inside_tol"]),
+                float(kw["mu"]),
+                float(kw["exponent"]),
+                fingers.params.damping == "hunt-crossley",
+                bool(kw["patch"]),
+                float(kw["ratio"]),
+                float(kw["min_depth_ratio"]),
+            )
+            st = finger_state
+            act = np.asarray(st.active, dtype=np.bool_)
+            self.f_active = np.zeros((2, nf, F), np.bool_)
+            self.f_anchor = np.zeros((2, nf, F, 3))
+            self.f_slip = np.zeros((2, nf, F, 3))
+            self.f_memory = np.zeros((2, nf, 3))
+            # buffer 0 holds the state; entries of inactive pairs are never read and kept zero so that
+            # a buffer can be cleared through its active flags
+            self.f_active[0] = act
+            self.f_anchor[0] = np.where(act[:, :, None], st.anchor, 0.0)
+            self.f_slip[0] = np.where(act[:, :, None], st.slip, 0.0)
+            self.f_memory[0] = st.memory
+        else:
+            z1, z2 = np.zeros(1), np.zeros((1, 3))
+            zi = np.zeros(1, np.int64)
+            self._fg = (
+                False, np.zeros((1, 3), np.int64), zi, zi, zi, 0.0, z2, z2, z2, z1, z1, z1,
+                0.0, 0.0, 0.0, 1.0, False, False, 0.0, 0.0,
+            )  # fmt: skip
+            nf, F = 1, 1
+            self.f_active = np.zeros((2, 1, 1), np.bool_)
+            self.f_anchor = np.zeros((2, 1, 1, 3))
+            self.f_slip = np.zeros((2, 1, 1, 3))
+            self.f_memory = np.zeros((2, 1, 3))
+        self._cur = 0
+        self._fstate = (self.f_active, self.f_anchor, self.f_slip, self.f_memory)
+        # RK4: stage positions and velocities, and the weighted sums of the stage velocities and
+        # accelerations
+        self._rk = tuple(np.zeros((N, 3) if method == "rk4" else (1, 3)) for _ in range(4))
+        # workspace: force buffers, fingertip centres, the fingertip broad phase's bookkeeping (see
+        # _finger_reach), the planes' points now
+        self._work = (
+            self._fint, self._info, self._fplane, self._ffinger, np.zeros((nf, 3)), self.x.copy(),
+            np.array([_max_facet_edge(self.x, _i64(body.mesh.facets)), 0.0]), np.zeros((P, 3)),
+            np.zeros((self.parts, 6)),
+        )  # fmt: skip
+        # monitor
+        self.monitor = monitor
+        self._mon = np.zeros(_M_SIZE)
+        self._fail = np.zeros(6)
+        if monitor is not None:
+            b = monitor.balance
+            self._mon[:] = (
+                b.t, b.power, b.work, b.abs_work, b.gravity_work,
+                monitor.energy0, monitor.scale0, monitor.energy_factor, *monitor.com0,
+            )  # fmt: skip
+        self.failure: Failure | None = None
+
+    # ------------------------------------------------------------------ stepping
+    def advance(self, n_steps: int, dt: float, t_end: float | None = None) -> int:
+        """Take ``n_steps`` steps of ``dt`` [s] (the last one ending exactly at ``t_end`` [s] when
+        given: ``t_end - t``, as :func:`softgrasp.sim.integrators.simulate` lands).
+
+        Returns
+        -------
+        int
+            The steps taken: ``n_steps``, or fewer when a blow-up check failed (then
+            :attr:`failure` says which, and the stepper's state is that of the failed step).
+        """
+        if n_steps <= 0:
+            return 0
+        mon = self.monitor
+        parallel = self.threads > 1 and self.parts > 1
+        previous = numba.get_num_threads()
+        if parallel:
+            numba.set_num_threads(min(self.threads, self.parts, numba.config.NUMBA_NUM_THREADS))
+        try:
+            status, steps, t, cur, msteps = self._call(n_steps, dt, t_end, parallel)
+        finally:
+            if parallel:
+                numba.set_num_threads(previous)
+        self.t = float(t)
+        self._cur = int(cur)
+        self._have_forces = status == STATUS_OK
+        if mon is not None:
+            mon.steps = int(msteps)
+            b = mon.balance
+            b.t, b.power, b.work, b.abs_work, b.gravity_work = (float(a) for a in self._mon[:5])
+        if status != STATUS_OK:
+            f = self._fail
+            self.failure = Failure(
+                int(status), float(f[_F_T]), float(f[_F_DT]), int(f[_F_COUNT]), int(f[_F_FIRST]),
+                float(f[_F_EXCESS]), float(f[_F_SCALE]),
+            )  # fmt: skip
+        return int(steps)
+
+    def _call(self, n_steps: int, dt: float, t_end: float | None, parallel: bool) -> tuple:
+        mon = self.monitor
+        args = (
+            int(n_steps), float(dt), t_end is not None, float(t_end if t_end is not None else 0.0), self.t,
+            self.x, self.v, self._mass, self._grav, self._total_mass, self._body, self._pl, self.pl_active,
+            self.pl_anchor, self._fg, self._fstate, self._cur, self._work, self._have_forces, parallel,
+            mon is not None, self._mon, int(mon.steps if mon is not None else 0),
+            int(mon.check_every if mon is not None else 1), self._gvec, self._fail,
+        )  # fmt: skip
+        if self.method == "rk4":
+            return _advance_rk4(*args, self._rk)
+        return _advance(*args)
+
+    # ------------------------------------------------------------------ reading out
+    def arrays(self) -> tuple[Array, Array, float]:
+        """Copies of the positions [m] and velocities [m/s] (N, 3), and the time [s]."""
+        return self.x.copy(), self.v.copy(), self.t
+
+    def plane_states(self, templates: list[Any]) -> list[Any]:
+        """The planes' friction states: ``templates`` (their states at the start) with ``active``
+        and ``anchor`` replaced by copies of the current ones."""
+        return [
+            replace(st, active=self.pl_active[p].copy(), anchor=self.pl_anchor[p].copy())
+            for p, st in enumerate(templates)
+        ]
+
+    def finger_state(self, template: Any) -> Any:
+        """The fingertips' contact state (``template`` with its arrays replaced by copies)."""
+        c = self._cur
+        return replace(
+            template,
+            active=self.f_active[c].copy(),
+            anchor=self.f_anchor[c].copy(),
+            slip=self.f_slip[c].copy(),
+            memory=self.f_memory[c].copy(),
+        )

@@ -1,0 +1,287 @@
+"""The fused compiled stepper (:mod:`softgrasp.kernels.step`) against the per-step path of
+``simulate`` (semi-implicit Euler and RK4) and the NumPy reference: same trajectory, contact states
+and contact forces (to 1e-8), same callbacks and progress reports, same blow-up errors, the same
+result on one thread or two; and free fall to round-off."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softgrasp import kernels
+from softgrasp.body import build_body
+from softgrasp.contact.fingertip import Fingertip
+from softgrasp.contact.model import FingertipContact
+from softgrasp.errors import SimulationUnstable
+from softgrasp.experiments.indentation import surface_height
+from softgrasp.material import Material, Tabulated
+from softgrasp.mesh import box
+from softgrasp.objects import make_object
+from softgrasp.planes import Plane, PlaneContact
+from softgrasp.sim import Scene, simulate, stable_time_step
+from softgrasp.sim.integrators import fused_unsupported, make_integrator
+
+pytest.importorskip("numba")
+from softgrasp.kernels import step  # noqa: E402 - needs numba
+
+TOL = 1e-8
+RUBBER = Material(0.0793e6, 0.45, 45.5)
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    scale = float(np.abs(b).max())
+    return float(np.abs(a - b).max()) / scale if scale > 0 else float(np.abs(a).max())
+
+
+@pytest.fixture(scope="module")
+def pressed():
+    """The bench_dynamic scene on a coarse mesh: the rubber sphere (549 nodes) on the table (mu 0.5),
+    a rigid R = 8 mm fingertip pressed 2 mm into its top and moving down at 5 mm/s; the sphere starts
+    sliding sideways so that the table's friction is loaded."""
+    mesh, mat, mass = make_object("sphere", 0.014)
+    body = build_body(mesh, mat, mass=mass)
+    x = np.asarray(mesh.points)
+    _, f = surface_height(x, mesh.facets, mesh.centroid[:2])
+    xy = x[mesh.facets[f]].mean(axis=0)[:2]
+    zs, _ = surface_height(x, mesh.facets, xy)
+    tip = Fingertip(0.008, centre=[xy[0], xy[1], zs + 0.006], velocity=[0.0, 0.0, -0.005])
+    table = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.5, name="table")
+    scene = Scene(body, (table, FingertipContact((tip,))))
+    v0 = np.tile([0.02, -0.01, 0.0], (body.n_nodes, 1))
+    return scene, scene.initial_state(v=v0)
+
+
+def _contact_forces(scene, state) -> list[np.ndarray]:
+    with kernels.use_backend("numpy"):
+        return [
+            inter.forces(scene.body, state.x, state.v, state.t, st)
+            for inter, st in zip(scene.interactions, state.contacts, strict=True)
+        ]
+
+
+def _assert_same(scene, s0, fast, slow) -> None:
+    assert fast.t == pytest.approx(slow.t, rel=1e-15)
+    assert _rel(fast.x - s0.x, slow.x - s0.x) < TOL
+    assert _rel(fast.v, slow.v) < TOL
+    for a, b in zip(fast.contacts, slow.contacts, strict=True):
+        assert type(a) is type(b)
+        assert np.array_equal(a.active, b.active)
+        for name in ("anchor", "slip", "memory"):
+            if hasattr(b, name):
+                assert np.abs(getattr(a, name) - getattr(b, name)).max() <= TOL * max(
+                    np.abs(getattr(b, name)).max(), 1e-6
+                ), name
+    for fa, fb in zip(_contact_forces(scene, fast), _contact_forces(scene, slow), strict=True):
+        assert _rel(fa, fb) < TOL
+
+
+def test_fused_path_is_chosen_only_when_supported(pressed):
+    scene, _ = pressed
+    semi = make_integrator("semi-implicit")
+    with kernels.use_backend("numba"):
+        assert fused_unsupported(scene, semi) is None
+        assert fused_unsupported(scene, make_integrator("rk4")) is None
+        assert "dopri" in fused_unsupported(scene, make_integrator("dopri"))
+        tabulated = build_body(
+            box(0.02, 1), Material(1e5, 0.45, 50.0, law=Tabulated([0.05, 0.1, 0.2], [5e3, 1e4, 2.1e4]))
+        )
+        assert "not a polynomial" in fused_unsupported(Scene(tabulated), semi)
+    with kernels.use_backend("numpy"):
+        assert "numpy" in fused_unsupported(scene, semi)
+        with pytest.raises(ValueError, match="fused stepper cannot run"):
+            simulate(scene, scene.initial_state(), 1e-5, method="semi-implicit", fused=True)
+
+
+@pytest.mark.parametrize("method", ["semi-implicit", "rk4"])
+def test_fused_agrees_with_per_step_and_reference(pressed, method):
+    """200 steps with the fingertip touching, the table's friction loaded and all dampers on: the
+    fused loop, the per-step loop on the compiled kernels and the NumPy reference agree."""
+    scene, s0 = pressed
+    dt = stable_time_step(scene, method)
+    T = 200 * dt
+    with kernels.use_backend("numba"):
+        fused = simulate(scene, s0, T, method=method, dt=dt)
+        per_step = simulate(scene, s0, T, method=method, dt=dt, fused=False)
+    with kernels.use_backend("numpy"):
+        reference = simulate(scene, s0, T, method=method, dt=dt)
+    fingers = scene.interactions[1]
+    assert len(fingers.pairs(scene.body, fused.x, fused.t)) > 0
+    table_state = fused.contacts[0]
+    assert table_state.active.sum() > 0
+    # friction is loaded: touching nodes pulled off their anchors, some up to the Coulomb limit
+    f_table = _contact_forces(scene, fused)[0]
+    assert np.abs(f_table[:, :2]).max() > 1e-3 * np.abs(f_table[:, 2]).max()
+    _assert_same(scene, s0, fused, per_step)
+    _assert_same(scene, s0, fused, reference)
+
+
+def test_callbacks_and_progress_match_per_step(pressed):
+    scene, s0 = pressed
+    dt = stable_time_step(scene, "semi-implicit")
+    runs = {}
+    for fused in (True, False):
+        calls, reports = [], []
+        with kernels.use_backend("numba"):
+            out = simulate(
+                scene, s0, 57 * dt, method="semi-implicit", dt=dt, callback=calls.append, every=10,
+                progress=reports.append, fused=fused,
+            )  # fmt: skip
+        runs[fused] = (out, calls, reports)
+    (a, ca, pa), (b, cb, pb) = runs[True], runs[False]
+    assert [s.t for s in ca] == pytest.approx([s.t for s in cb], rel=1e-14, abs=1e-18)
+    assert len(ca) == 7  # the initial state, steps 10, 20, ..., 50, and the final state
+    for sa, sb in zip(ca, cb, strict=True):
+        assert _rel(sa.v, sb.v) < TOL
+    # the callbacks received independent snapshots
+    assert not np.shares_memory(ca[1].x, ca[2].x)
+    assert ca[1].t < ca[2].t and not np.array_equal(ca[1].x, ca[2].x)
+    assert len(pa) == len(pb) and pa[-1] == 1.0
+    assert np.allclose(pa, pb, atol=2.0 / 57)
+    _assert_same(scene, s0, a, b)
+
+
+def test_free_fall_of_the_centroid_to_round_off():
+    """No contact: internal forces sum to zero, so the centroid falls exactly as the semi-implicit
+    Euler recursion of g: x_n = x_0 + v_0 t_n + g h^2 n (n + 1) / 2 (g t^2 / 2 plus the method's
+    O(h) term g h t / 2)."""
+    body = build_body(box(0.04, 2), RUBBER, damping_ratio=0.1)
+    scene = Scene(body)
+    rng = np.random.default_rng(3)
+    v0 = np.array([0.1, -0.2, 0.3])
+    s0 = scene.initial_state(
+        body.mesh.points + 1e-4 * rng.standard_normal(body.mesh.points.shape), np.tile(v0, (body.n_nodes, 1))
+    )
+    h = stable_time_step(scene, "semi-implicit")
+    n = 400
+    with kernels.use_backend("numba"):
+        assert fused_unsupported(scene, make_integrator("semi-implicit")) is None
+        out = simulate(scene, s0, n * h, method="semi-implicit", dt=h)
+    m = body.mass / body.total_mass
+    com0, com = m @ s0.x, m @ out.x
+    g = np.asarray(body.gravity)
+    expected = com0 + v0 * n * h + g * h * h * n * (n + 1) / 2
+    assert np.abs(com - expected).max() < 1e-12 * max(1.0, np.abs(com).max())
+    assert np.abs(m @ out.v - (v0 + g * n * h)).max() < 1e-12
+    t = n * h
+    assert np.abs(com - (com0 + v0 * t + 0.5 * g * t * t)).max() <= 0.5 * np.linalg.norm(g) * h * t * 1.001
+
+
+@pytest.mark.parametrize(
+    ("method", "nu", "factor", "check_every", "reason"),
+    [
+        ("semi-implicit", 0.45, 8, 10, "energy grew"),
+        ("semi-implicit", 0.45, 12, 3, "inverted"),
+        ("semi-implicit", 0.45, 30, 10**6, "non-finite"),
+        ("semi-implicit", 0.25, 12, 3, "inverted"),  # nu = 1/4: no volume term (kappa = 0)
+        ("rk4", 0.45, 10, 10, "energy grew"),
+        ("rk4", 0.45, 14, 10, "non-finite"),
+    ],
+    ids=[
+        "semi-implicit-energy",
+        "semi-implicit-inverted",
+        "semi-implicit-non-finite",
+        "no-volume-term-inverted",
+        "rk4-energy",
+        "rk4-non-finite",
+    ],
+)
+def test_blow_up_raises_the_same_error(method, nu, factor, check_every, reason):
+    """A step far beyond the stable bound (check_dt=False) blows up; the fused loop stops at the
+    same step with the same SimulationUnstable (reason, time, step, suggested step)."""
+    body = build_body(box(0.04, 2), Material(RUBBER.E, nu, RUBBER.density))
+    scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.5, name="table"),))
+    rng = np.random.default_rng(11)
+    s0 = scene.initial_state(body.mesh.points + 1e-4 * rng.standard_normal(body.mesh.points.shape))
+    dt = factor * stable_time_step(scene, method)
+    errors = {}
+    for fused in (True, False):
+        with kernels.use_backend("numba"), pytest.raises(SimulationUnstable, match=reason) as err:
+            simulate(
+                scene,
+                s0,
+                3000 * dt,
+                method=method,
+                dt=dt,
+                check_dt=False,
+                check_every=check_every,
+                fused=fused,
+            )
+        errors[fused] = err.value
+    assert str(errors[True]) == str(errors[False])
+    assert errors[True].suggested_dt == pytest.approx(0.5 * stable_time_step(scene, method))
+    assert "simulation unstable at t = " in str(errors[True])
+
+
+def test_energy_bookkeeping_with_plates_doing_work():
+    # Energy enters through a moving plate: the monitor's work integral (kept by the compiled loop)
+    # must absorb it, with the checks at every step.
+    body = build_body(box(0.05, 2), RUBBER)
+    plate = PlaneContact(Plane([0, 0, 0.05], [0, 0, -1], velocity=[0, 0, -1.0]), mu=0.5, name="top")
+    table = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.5, name="table")
+    scene = Scene(body, (table, plate))
+    s0 = scene.initial_state()
+    dt = stable_time_step(scene, "semi-implicit")
+    with kernels.use_backend("numba"):
+        fast = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1)
+        slow = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1, fused=False)
+    _assert_same(scene, s0, fast, slow)
+    assert fast.x[:, 2].max() < 0.05 - 0.003
+
+
+def test_fused_stepper_chunks_compose(pressed):
+    """Stepping in chunks of any length gives the same trajectory as one long chunk."""
+    scene, s0 = pressed
+    fingers = scene.interactions[1]
+    dt = stable_time_step(scene, "semi-implicit")
+
+    def make():
+        return step.FusedStepper(
+            scene.body, [scene.interactions[0]], [s0.contacts[0]], fingers, s0.contacts[1], s0.x, s0.v, s0.t
+        )
+
+    one, parts = make(), make()
+    assert one.advance(30, dt) == 30
+    for n in (1, 2, 7, 20):
+        parts.advance(n, dt)
+    assert parts.t == one.t
+    assert np.array_equal(parts.x, one.x) and np.array_equal(parts.v, one.v)
+    assert np.array_equal(parts.finger_state(s0.contacts[1]).anchor, one.finger_state(s0.contacts[1]).anchor)
+
+
+def test_threads_do_not_change_the_result(pressed):
+    """The body forces are summed from the same parts whether one thread or two compute them, so
+    the trajectory is bit-for-bit the same."""
+    scene, s0 = pressed
+    fingers = scene.interactions[1]
+    dt = stable_time_step(scene, "semi-implicit")
+    runs = []
+    for threads in (1, 2):
+        st = step.FusedStepper(
+            scene.body, [scene.interactions[0]], [s0.contacts[0]], fingers, s0.contacts[1], s0.x, s0.v, s0.t
+        )
+        st.threads = threads
+        assert st.advance(40, dt) == 40
+        runs.append(st)
+    assert np.array_equal(runs[0].x, runs[1].x) and np.array_equal(runs[0].v, runs[1].v)
+
+
+def test_auto_threads_fall_back_when_two_threads_slow_down(monkeypatch):
+    from softgrasp.sim import pardiso
+    from softgrasp.sim.integrators import FusedThreads
+
+    monkeypatch.setattr(pardiso, "_fixed_threads", None)
+    monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
+    th = FusedThreads()
+    assert th.choose() == 2 and th.chunk(2, 2000) == 32  # a short first chunk measures the speed
+    th.record(2, 32, 32 * 1e-4)
+    assert th.chunk(2, 2000) == round(th.chunk_seconds / 1e-4)
+    monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)  # our own waiting thread looks busy
+    assert th.choose() == 2
+    th.record(2, 200, 200 * 1e-2)  # 100x slower per step: another process holds a core
+    assert th.choose() == 1 and th.chunk(1, 2000) == 2000
+    monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
+    assert th.choose() == 1  # for the rest of the run
+    monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)
+    assert FusedThreads().choose() == 1
+    monkeypatch.setattr(pardiso, "_fixed_threads", 2)
+    assert FusedThreads().choose() == 2
