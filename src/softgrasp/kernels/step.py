@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.kernels.contact import _fingertip_forces, _fingertip_update
-from softgrasp.kernels.elastic import polynomial_coefficients
+from softgrasp.kernels.elastic import _springs, _volumes, polynomial_coefficients
 
 __all__ = [
     "METHODS",
@@ -64,16 +64,6 @@ Array = NDArray[np.float64]
 
 _jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
 _pjit = numba.njit(cache=True, fastmath=False, error_model="numpy", parallel=True)
-# The body-force kernels may fuse a * b + c into one FMA instruction ("contract": one rounding instead
-# of two, so the forces differ from the reference's at round-off, 1e-14 relative). It removes a
-# third of their floating-point instructions but only ~5 % of their time (measured): their scattered
-# loads and read-modify-write stores bound them more. No other fast-math flag: NaN and infinity keep
-# their meaning (the blow-up checks rely on them).
-_fjit = numba.njit(cache=True, fastmath={"contract"}, error_model="numpy")
-
-#: Barrier floor of J (as :mod:`softgrasp.kernels.elastic`).
-_J_FLOOR = 1e-12
-
 #: Methods the fused stepper runs (names of :func:`softgrasp.sim.stability.canonical_method`).
 METHODS = ("semi-implicit", "rk4")
 
@@ -188,109 +178,6 @@ def _plane_points(t, pl_point, pl_vel, p0):  # pragma: no cover - compiled
     for p in range(pl_point.shape[0]):
         for d in range(3):
             p0[p, d] = pl_point[p, d] + t * pl_vel[p, d]
-
-
-@_fjit
-def _springs(
-    x, v, edges, rest, inv_rest, kl0, c, a2, a3, damped, want_energy, lo, hi, out
-):  # pragma: no cover
-    """Spring (+ dashpot) forces of edges ``lo:hi`` added to ``out`` (N, 3); returns their energy (0
-    unless ``want_energy``). The arithmetic of :func:`softgrasp.kernels.elastic._springs_polynomial`
-    with ``1 / L0`` and ``k L0`` precomputed (one division fewer per edge; the same to round-off)."""
-    energy = 0.0
-    a2_3 = a2 / 3.0
-    a3_4 = 0.25 * a3
-    for e in range(lo, hi):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        dx = x[j, 0] - x[i, 0]
-        dy = x[j, 1] - x[i, 1]
-        dz = x[j, 2] - x[i, 2]
-        L = math.sqrt(dx * dx + dy * dy + dz * dz)
-        inv = 1.0 / L
-        eps = L * inv_rest[e] - 1.0
-        e2 = eps * eps
-        T = kl0[e] * (eps + a2 * e2 + a3 * e2 * eps)
-        if want_energy:
-            energy += kl0[e] * rest[e] * (0.5 * e2 + a2_3 * e2 * eps + a3_4 * e2 * e2)
-        if damped:
-            rate = ((v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz) * inv
-            T += c[e] * rate
-        s = T * inv
-        out[i, 0] += s * dx
-        out[i, 1] += s * dy
-        out[i, 2] += s * dz
-        out[j, 0] -= s * dx
-        out[j, 1] -= s * dy
-        out[j, 2] -= s * dz
-    return energy
-
-
-@_fjit
-def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, out):  # pragma: no cover
-    """Volume-term forces of tets ``lo:hi`` added to ``out`` (N, 3), as
-    :func:`softgrasp.kernels.elastic._volume` with ``1 / (6 V0)`` precomputed (one division per tet
-    instead of four; the same to round-off). Returns (energy (0 unless ``want_energy``), the number
-    of tets with non-positive signed volume and the first of them (0 and -1 unless ``check``))."""
-    energy = 0.0
-    count = 0
-    first = -1
-    ck = -kappa / 6.0
-    for t in range(lo, hi):
-        p0 = tets[t, 0]
-        p1 = tets[t, 1]
-        p2 = tets[t, 2]
-        p3 = tets[t, 3]
-        x0 = x[p0, 0]
-        y0 = x[p0, 1]
-        z0 = x[p0, 2]
-        ax = x[p1, 0] - x0
-        ay = x[p1, 1] - y0
-        az = x[p1, 2] - z0
-        bx = x[p2, 0] - x0
-        by = x[p2, 1] - y0
-        bz = x[p2, 2] - z0
-        cx = x[p3, 0] - x0
-        cy = x[p3, 1] - y0
-        cz = x[p3, 2] - z0
-        c1x = by * cz - bz * cy
-        c1y = bz * cx - bx * cz
-        c1z = bx * cy - by * cx
-        c2x = cy * az - cz * ay
-        c2y = cz * ax - cx * az
-        c2z = cx * ay - cy * ax
-        c3x = ay * bz - az * by
-        c3y = az * bx - ax * bz
-        c3z = ax * by - ay * bx
-        det = ax * c1x + ay * c1y + az * c1z
-        if check and not det / 6.0 > 0.0:  # signed_volumes(x, tets) <= 0
-            if first < 0:
-                first = t
-            count += 1
-        J = det * inv6v0[t]
-        if barrier:
-            Jc = J if J > _J_FLOOR else _J_FLOOR
-            dw = 1.0 - 1.0 / Jc
-            if want_energy:
-                energy += kappa * v0[t] * (J - 1.0 - math.log(Jc))
-        else:
-            dw = J - 1.0
-            if want_energy:
-                energy += kappa * v0[t] * (0.5 * dw * dw)
-        s = ck * dw
-        out[p1, 0] += s * c1x
-        out[p1, 1] += s * c1y
-        out[p1, 2] += s * c1z
-        out[p2, 0] += s * c2x
-        out[p2, 1] += s * c2y
-        out[p2, 2] += s * c2z
-        out[p3, 0] += s * c3x
-        out[p3, 1] += s * c3y
-        out[p3, 2] += s * c3z
-        out[p0, 0] -= s * (c1x + c2x + c3x)
-        out[p0, 1] -= s * (c1y + c2y + c3y)
-        out[p0, 2] -= s * (c1z + c2z + c3z)
-    return energy, count, first
 
 
 @_jit
