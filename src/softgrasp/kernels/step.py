@@ -502,6 +502,30 @@ def _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on):  # pragma: no
 
 
 @_jit
+def _end_step(
+    x, v, t, t_prev, fingers, fstate, cur, work, monitor_on, msteps, check_every, parallel, body, fint, info,
+    mass, total_mass, gvec, mon, fail, p_plane, mx, my, mz,
+):  # fmt: skip  # pragma: no cover - compiled
+    """The end of every step, for both methods: the fingertips' friction states and their forces at
+    the new state, the body forces there (the next step's), and the monitor's checks (power of the
+    planes ``p_plane`` and the fingertips, momentum ``mx, my, mz``). Returns (status, the fingertip
+    state cursor, monitored steps)."""
+    p_finger = 0.0
+    if fingers[0]:
+        cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
+    msteps += 1
+    check = monitor_on and msteps % check_every == 0
+    e_int, count, first = _body_forces(parallel, x, v, body, check, check, fint, info)
+    status = STATUS_OK
+    if monitor_on:
+        power = p_plane + p_finger
+        status = _after_step(
+            x, v, t, t_prev, mass, total_mass, gvec, mon, fail, power, mx, my, mz, check, e_int, count, first,
+        )  # fmt: skip
+    return status, cur, msteps
+
+
+@_jit
 def _advance(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, planes, pl_active, pl_anchor,
              fingers, fstate, cur, work, have_forces, parallel, monitor_on, mon, msteps, check_every, gvec,
              fail):  # pragma: no cover - compiled  # fmt: skip
@@ -549,20 +573,12 @@ def _advance(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, pla
             return STATUS_NONFINITE, s + 1, t, cur, msteps + 1
         # the fingertips' friction states after the step, then the forces at the new state: the next
         # step's, and the monitor's power, volumes and energy
-        p_finger = 0.0
-        if fingers[0]:
-            cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
-        msteps += 1
-        check = monitor_on and msteps % check_every == 0
-        e_int, count, first = _body_forces(parallel, x, v, body, check, check, fint, info)
-        if monitor_on:
-            power = p_plane + p_finger
-            status = _after_step(
-                x, v, t, t_prev, mass, total_mass, gvec, mon, fail, power, mx, my, mz, check, e_int, count,
-                first,
-            )  # fmt: skip
-            if status != STATUS_OK:
-                return status, s + 1, t, cur, msteps
+        status, cur, msteps = _end_step(
+            x, v, t, t_prev, fingers, fstate, cur, work, monitor_on, msteps, check_every, parallel, body,
+            fint, info, mass, total_mass, gvec, mon, fail, p_plane, mx, my, mz,
+        )  # fmt: skip
+        if status != STATUS_OK:
+            return status, s + 1, t, cur, msteps
     return STATUS_OK, n_steps, t, cur, msteps
 
 
@@ -704,20 +720,12 @@ def _advance_rk4(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body,
             p_plane += _plane_pass(
                 x, v, p, p0, normal, pvel, mu, k, c, kt, ct, pl_active, pl_anchor, True, 0, N, fplane
             )
-        p_finger = 0.0
-        if fingers[0]:
-            cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
-        msteps += 1
-        check = monitor_on and msteps % check_every == 0
-        e_int, count, first = _body_forces(parallel, x, v, body, check, check, fint, info)
-        if monitor_on:
-            power = p_plane + p_finger
-            status = _after_step(
-                x, v, t, t_prev, mass, total_mass, gvec, mon, fail, power, mx, my, mz, check, e_int, count,
-                first,
-            )  # fmt: skip
-            if status != STATUS_OK:
-                return status, s + 1, t, cur, msteps
+        status, cur, msteps = _end_step(
+            x, v, t, t_prev, fingers, fstate, cur, work, monitor_on, msteps, check_every, parallel, body,
+            fint, info, mass, total_mass, gvec, mon, fail, p_plane, mx, my, mz,
+        )  # fmt: skip
+        if status != STATUS_OK:
+            return status, s + 1, t, cur, msteps
     return STATUS_OK, n_steps, t, cur, msteps
 
 
