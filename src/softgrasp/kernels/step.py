@@ -420,10 +420,13 @@ def _node_pass_parallel(dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, plan
 
 
 @_jit
-def _initial_forces(
+def _forces_at(
     x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
 ):  # pragma: no cover
-    """All forces at the current state, into the workspace (the loop keeps them up to date after)."""
+    """All forces at the state (x, v, t) into the workspace, with the friction states as they are:
+    before the first step (the loops keep them up to date after), and at each RK4 stage (the
+    step's friction states frozen, as :meth:`softgrasp.sim.scene.Scene.forces` on the state's
+    contacts)."""
     fint, info, fplane, ffinger, centres, x_ref, track, p0, _ = work
     point, normal, pvel, mu, k, c, kt, ct = planes
     _body_forces(parallel, x, v, body, False, False, fint, info)
@@ -536,7 +539,7 @@ def _advance(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, pla
     point, normal, pvel, mu, k, c, kt, ct = planes
     parts = fint.shape[0]
     if not have_forces:
-        _initial_forces(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
+        _forces_at(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
     for s in range(n_steps):
         t_prev = t
         dt = t_end - t if (land and s == n_steps - 1) else h
@@ -580,31 +583,6 @@ def _advance(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, pla
         if status != STATUS_OK:
             return status, s + 1, t, cur, msteps
     return STATUS_OK, n_steps, t, cur, msteps
-
-
-@_jit
-def _stage_forces(
-    xs, vs, ts, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
-):  # pragma: no cover
-    """All forces at an RK4 stage (xs, vs, ts) with the step's friction states frozen (as
-    :meth:`softgrasp.sim.scene.Scene.forces` on the state's contacts), into the workspace."""
-    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
-    point, normal, pvel, mu, k, c, kt, ct = planes
-    _body_forces(parallel, xs, vs, body, False, False, fint, info)
-    for i in range(xs.shape[0]):
-        for d in range(3):
-            fplane[i, d] = 0.0
-            ffinger[i, d] = 0.0
-    _plane_points(ts, point, pvel, p0)
-    for p in range(point.shape[0]):
-        _plane_pass(
-            xs, vs, p, p0, normal, pvel, mu, k, c, kt, ct, pl_active, pl_anchor, False, 0, xs.shape[0], fplane
-        )
-    if fingers[0]:
-        reach = _finger_reach(xs, fingers, x_ref, track)
-        _finger_forces(
-            xs, vs, ts, fingers, fstate[0][cur], fstate[1][cur], fstate[3][cur], reach, centres, ffinger
-        )
 
 
 @_jit
@@ -661,23 +639,17 @@ def _advance_rk4(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body,
     parts = fint.shape[0]
     N = x.shape[0]
     if not have_forces:
-        _initial_forces(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
+        _forces_at(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
     for s in range(n_steps):
         t_prev = t
         dt = t_end - t if (land and s == n_steps - 1) else h
         h2 = 0.5 * dt
         _rk4_stage(1, x, v, xs, vs, ax, av, mass, grav, work, dt)
-        _stage_forces(
-            xs, vs, t + h2, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
-        )
+        _forces_at(xs, vs, t + h2, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
         _rk4_stage(2, x, v, xs, vs, ax, av, mass, grav, work, dt)
-        _stage_forces(
-            xs, vs, t + h2, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
-        )
+        _forces_at(xs, vs, t + h2, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
         _rk4_stage(3, x, v, xs, vs, ax, av, mass, grav, work, dt)
-        _stage_forces(
-            xs, vs, t + dt, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
-        )
+        _forces_at(xs, vs, t + dt, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
         # x += dt / 6 (v + 2 v2 + 2 v3 + v4), v += dt / 6 (a1 + 2 a2 + 2 a3 + a4)
         w = dt / 6.0
         bad = False
