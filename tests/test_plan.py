@@ -241,6 +241,9 @@ def test_plan_cli_with_a_config_file_writes_everything(tmp_path):
     }
     assert doc["equilibrium"]["satisfied"] is True
     assert doc["hold"]["duration_s"] == 0.2
+    checks = doc["hold"]["checks"]
+    assert checks and checks[-1]["result"] == "held"
+    assert all(c["travel_m"] > 0 for c in checks)
     rows = list(csv.DictReader((out / "history.csv").open()))
     assert len(rows) == 3 * doc["increments"]
     assert [r["finger"] for r in rows[:3]] == ["thumb", "first", "middle"]
@@ -375,3 +378,24 @@ def test_plan_hand_option_names_a_missing_urdf(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "nohand.urdf does not exist" in err and "Traceback" not in err
     assert not (tmp_path / "o" / "plan.json").exists()
+
+
+def test_hold_checks_record_why_the_fingers_closed_further(sphere_body, default_plan):
+    """Every hold verification is recorded with its outcome. The default plan holds at its first
+    check; with the centre-of-mass limit just below the default plan's own drift, the first checks
+    fail on that drift (each reason quoting a motion at or above the limit), the fingers close
+    further, and the plan finally holds within the limit, at more travel and more force."""
+    assert len(default_plan.hold_checks) == 1 and default_plan.hold_checks[0][1] == "held"
+    limit = 0.95 * default_plan.com_drift
+    plan = plan_grasp(sphere_body, PlanConfig(max_drift=limit))
+    checks = plan.hold_checks
+    assert len(checks) >= 2 and checks[-1][1] == "held"
+    travels = [t for t, _ in checks]
+    assert travels == sorted(travels) and len(set(travels)) == len(travels)
+    assert travels[0] == pytest.approx(default_plan.hold_checks[0][0])
+    for _, why in checks[:-1]:
+        assert why.startswith("the centre of mass moved")
+        moved_mm = float(why.split("moved ")[1].split(" mm")[0].removeprefix("at least "))
+        assert moved_mm >= round(limit * 1e3, 2) - 0.005
+    assert plan.com_drift < limit
+    assert sum(f.force_norm for f in plan.fingers) > sum(f.force_norm for f in default_plan.fingers)

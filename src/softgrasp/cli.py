@@ -401,6 +401,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
         f"{plan.com_drift * 1e3:.2f} mm in {plan.hold_time:g} s"
     )
+    for travel, result in plan.hold_checks[:-1]:
+        print(f"not held at {travel * 1e3:.2f} mm of travel: {result}; closed further")
     if eq["friction_margin"] < 0.05:
         print(
             f"note: held at the friction limit (margin {eq['friction_margin']:.1%}): the least squeeze "

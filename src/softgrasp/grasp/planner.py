@@ -215,6 +215,9 @@ class GraspPlan:
         the start to the final centre, one row per ``step`` of travel and the start,
         (ceil(travel / step) + 1, dof) (None without a hand model).
     config: the configuration used.  wall_time: seconds.
+    hold_checks: every hold verification, in order: (travel [m], "held" or why the object was not
+        held there: how far it moved during the release or the hold, which finger slid, or the
+        solve that failed), so that a user can see what made the fingers close further.
     """
 
     initial: InitialGrasp
@@ -244,6 +247,7 @@ class GraspPlan:
     joint_paths: dict[str, NDArray[np.float64]] | None
     config: PlanConfig
     wall_time: float
+    hold_checks: tuple[tuple[float, str], ...] = ()
 
 
 def _com(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -431,7 +435,7 @@ def _check_hold(
     t: float,
     cfg: PlanConfig,
     cache: SolverCache,
-) -> tuple[State, FingertipContact, float] | None:
+) -> tuple[State, FingertipContact, float] | str:
     """Remove the table and verify that the fingers hold the object. From the squeezed state at
     rest on the table, with the fingertips fixed: the table's forces on the object, applied as a
     dead load, ramp down to zero over ``RELEASE_STEPS`` static load steps (the weight passes to the
@@ -439,7 +443,7 @@ def _check_hold(
     ``hold_time`` seconds of implicit dynamics (:func:`_hold`) from that released state must keep
     the centre of mass within ``max_drift`` of where it was on the table; the held state is then
     brought to static equilibrium in the fingers alone. Returns (held state, fixed fingers, drift)
-    or None when the object is not held."""
+    or, when the object is not held, why not (a sentence)."""
     fixed = FingertipContact(
         tuple(replace(f, centre=f.centre_at(t), velocity=np.zeros(3)) for f in fc.fingertips),
         fc.params,
@@ -453,26 +457,35 @@ def _check_hold(
         st = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1], None))
         for k in range(1, RELEASE_STEPS + 1):
             st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache)
-            if np.linalg.norm(_com(body, st.x) - c0) >= cfg.max_drift:
-                return None
+            if (d := float(np.linalg.norm(_com(body, st.x) - c0))) >= cfg.max_drift:
+                return _moved(d, cfg, f"with the table's support down to {1 - k / RELEASE_STEPS:.0%}")
         released = float(np.linalg.norm(_com(body, st.x) - c0))
         start = State(st.x, np.zeros_like(st.x), 0.0, (st.contacts[0],))
         end = _hold(body, scene, start, cfg.hold_time, cache, cfg.max_drift, origin=c0)
         if end is None:
-            return None
+            return _moved(cfg.max_drift, cfg, f"during the {cfg.hold_time:g} s hold")
         moved = float(np.linalg.norm(_com(body, end.x) - c0))
         held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache)
-    except (NotConverged, SimulationUnstable):
-        return None
+    except (NotConverged, SimulationUnstable) as exc:
+        return f"the release or the hold found no equilibrium ({exc})"
     drift = max(released, moved, float(np.linalg.norm(_com(body, held.x) - c0)))
     if drift >= cfg.max_drift:
-        return None
+        return _moved(drift, cfg, "at the held equilibrium")
     rep = fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True)
     if rep.contacts.min() == 0:
-        return None
-    if _cone_usage(rep, cfg.contact.mu).max() >= 1.0 - STICK_TOLERANCE:
-        return None  # a finger slides: not held
+        return f"the {FINGER_NAMES[int(np.argmin(rep.contacts))]} finger lost contact"
+    usage = _cone_usage(rep, cfg.contact.mu)
+    if usage.max() >= 1.0 - STICK_TOLERANCE:  # a finger slides: not held
+        return f"the {FINGER_NAMES[int(np.argmax(usage))]} finger slides (its friction at the Coulomb limit)"
     return held, fixed, drift
+
+
+def _moved(drift: float, cfg: PlanConfig, when: str) -> str:
+    """Why a hold check failed on the centre of mass's motion."""
+    return (
+        f"the centre of mass moved {'at least ' if drift <= cfg.max_drift else ''}{drift * 1e3:.2f} mm "
+        f"{when} (limit {cfg.max_drift * 1e3:.2f} mm)"
+    )
 
 
 def _cone_usage(rep: FingerReport, mu: float) -> NDArray[np.float64]:
@@ -527,6 +540,7 @@ def plan_grasp(
     scene = Scene(body, (table, fc))
     state = State(xs, np.zeros_like(xs), 0.0, (settled.contacts[0], fc.init_state(body, xs, 0.0)))
     rows: list[tuple[float, NDArray, NDArray, NDArray, NDArray, bool]] = []
+    checks: list[tuple[float, str]] = []  # hold verifications: (travel, "held" or why not)
     k = 0
 
     def close(start: State, t: float) -> tuple[State, bool]:
@@ -561,8 +575,9 @@ def plan_grasp(
             raise InfeasibleGrasp(
                 f"no hold before the maximum squeeze ({(max_travel - first.max()) * 1e3:.1f} mm past "
                 f"first contact, {cfg.max_squeeze:.0%} of the fingers' reach): finger forces reached "
-                f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {mu:g}; raise the friction "
-                "coefficient, or grasp a lighter or stiffer object"
+                f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {mu:g}"
+                + (f" (last hold check at {checks[-1][0] * 1e3:.2f} mm: {checks[-1][1]})" if checks else "")
+                + "; raise the friction coefficient, or grasp a lighter or stiffer object"
             )
 
     # 1. Whole steps until the grasp test passes.
@@ -588,12 +603,14 @@ def plan_grasp(
     # Where the object is not held, the fingers close further, by the refined resolution at first
     # and by doubling amounts up to a whole step, until it is.
     t_final, extra = t_hi, cfg.step / 2**cfg.refine
-    while (held := _check_hold(body, table, fc, state, t_final * scale, cfg, cache)) is None:
+    while isinstance(held := _check_hold(body, table, fc, state, t_final * scale, cfg, cache), str):
+        checks.append((t_final, held))
         t_final += extra
         too_far(t_final)
         state, _ = close(state, t_final)
         extra = min(2.0 * extra, cfg.step)
 
+    checks.append((t_final, "held"))
     held_state, fixed, drift = held
     hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
     pts, push, fn = fixed.contact_frames(body, held_state.x, 0.0, held_state.contacts[0])
@@ -656,6 +673,7 @@ def plan_grasp(
         joint_paths=joint_paths,
         config=cfg,
         wall_time=time.perf_counter() - t0,
+        hold_checks=tuple(checks),
     )
 
 

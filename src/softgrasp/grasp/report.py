@@ -84,7 +84,11 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             "weight_N": weight,
             "tolerance": f"residuals <= {EQUILIBRIUM_TOL:.0%} of the weight (torque: x largest lever arm)",
         },
-        "hold": {"com_drift_m": plan.com_drift, "duration_s": plan.hold_time},
+        "hold": {
+            "com_drift_m": plan.com_drift,
+            "duration_s": plan.hold_time,
+            "checks": [{"travel_m": t, "result": r} for t, r in plan.hold_checks],
+        },
         "hand": _hand_section(plan),
         "increments": plan.increments,
         "wall_time_s": plan.wall_time,
