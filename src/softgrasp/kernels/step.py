@@ -360,6 +360,21 @@ def _finger_update(x, t, fingers, fstate, cur, reach, centres):  # pragma: no co
 
 
 @_jit
+def _acceleration(i, d, m, fint, grav, fplane, ffinger, clear):  # pragma: no cover - compiled
+    """Component d of node i's acceleration [m/s^2]: the parts of its internal force summed, plus
+    gravity, the planes' and the fingertips' forces, over its mass m; the interaction forces are
+    zeroed after reading when ``clear`` (they are summed afresh at the next state)."""
+    fi = fint[0, i, d]
+    for q in range(1, fint.shape[0]):
+        fi += fint[q, i, d]
+    a = (((fi + grav[i, d]) + fplane[i, d]) + ffinger[i, d]) / m
+    if clear:
+        fplane[i, d] = 0.0
+        ffinger[i, d] = 0.0
+    return a
+
+
+@_jit
 def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
                pl_anchor, sums):  # pragma: no cover - compiled  # fmt: skip
     """Nodes of part ``part`` of ``parts``: the step (v += dt f / m, x += dt v), then each plane's
@@ -370,7 +385,6 @@ def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, 
     N = x.shape[0]
     lo = part * N // parts
     hi = (part + 1) * N // parts
-    n_parts = fint.shape[0]
     bad = False
     u2 = 0.0
     mx = 0.0
@@ -380,12 +394,7 @@ def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, 
         m = mass[i]
         du2 = 0.0
         for d in range(3):
-            fi = fint[0, i, d]
-            for q in range(1, n_parts):
-                fi += fint[q, i, d]
-            a = (((fi + grav[i, d]) + fplane[i, d]) + ffinger[i, d]) / m
-            fplane[i, d] = 0.0
-            ffinger[i, d] = 0.0
+            a = _acceleration(i, d, m, fint, grav, fplane, ffinger, True)
             vi = v[i, d] + dt * a
             xi = x[i, d] + dt * vi
             v[i, d] = vi
@@ -594,17 +603,13 @@ def _rk4_stage(stage, x, v, xs, vs, ax, av, mass, grav, work, h):  # pragma: no 
     ``v + 2 v2 + 2 v3 (+ v4)`` in that order. Updates the largest squared displacement from
     ``x_ref`` of the stage positions (the fingertip broad phase)."""
     fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
-    parts = fint.shape[0]
     h2 = 0.5 * h
     u2 = track[1]
     for i in range(x.shape[0]):
         m = mass[i]
         du2 = 0.0
         for d in range(3):
-            fi = fint[0, i, d]
-            for q in range(1, parts):
-                fi += fint[q, i, d]
-            a = (((fi + grav[i, d]) + fplane[i, d]) + ffinger[i, d]) / m
+            a = _acceleration(i, d, m, fint, grav, fplane, ffinger, False)
             if stage == 1:
                 av[i, d] = a
                 ax[i, d] = v[i, d]
@@ -636,7 +641,6 @@ def _advance_rk4(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body,
     :func:`_advance`."""
     fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
     xs, vs, ax, av = rk
-    parts = fint.shape[0]
     N = x.shape[0]
     if not have_forces:
         _forces_at(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel)
@@ -661,12 +665,7 @@ def _advance_rk4(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body,
             m = mass[i]
             du2 = 0.0
             for d in range(3):
-                fi = fint[0, i, d]
-                for q in range(1, parts):
-                    fi += fint[q, i, d]
-                a = (((fi + grav[i, d]) + fplane[i, d]) + ffinger[i, d]) / m
-                fplane[i, d] = 0.0
-                ffinger[i, d] = 0.0
+                a = _acceleration(i, d, m, fint, grav, fplane, ffinger, True)
                 xi = x[i, d] + w * (ax[i, d] + vs[i, d])
                 vi = v[i, d] + w * (av[i, d] + a)
                 x[i, d] = xi
