@@ -301,9 +301,12 @@ def test_nodal_forces_balance_the_fingertip_forces_and_moments(seed, mu, rule, d
         fi = alone.forces(body, x, v, t1, st)
         assert fi.sum(axis=0) == pytest.approx(rep.force[i], abs=1e-12 * scale)
     if mu == 0.0:
-        # Normal forces act along the facet normal through the centre: no moment about the centre.
-        assert np.abs(rep.moment).max() < 1e-14 * scale
         assert rep.tangential.tolist() == [0.0, 0.0, 0.0]
+    if mu == 0.0 and rule == "facet":
+        # Normal forces act along the facet normal at the centre's projection, through the centre:
+        # no moment about it. (The patch rule's pairs on an edge push along their facet's normal
+        # at the closest point, off the centre line.)
+        assert np.abs(rep.moment).max() < 1e-14 * scale
     else:
         assert np.abs(rep.moment).max() > 1e-6 * scale
 
@@ -338,7 +341,9 @@ def test_rigid_flat_surface_force_is_exactly_K_delta_n(where):
             fc = FingertipContact((finger,), ContactParams(rule=rule))
             state = fc.init_state(body, x)
             rep = fc.report(body, x, np.zeros_like(x), 0.0, state, static=True)
-            assert rep.contacts.tolist() == [k]
+            # the literal rule touches the k facets around the point; the patch rule also the
+            # neighbours the sphere overlaps
+            assert rep.contacts[0] == k if rule == "facet" else rep.contacts[0] >= k
             for f in (
                 fc.static_forces(body, x, 0.0, state),
                 fc.forces(body, x, np.zeros_like(x), 0.0, state),
@@ -657,38 +662,45 @@ def _changes(forces) -> np.ndarray:
 
 
 def test_patch_rule_indentation_force_converges_under_refinement():
-    """Default rule, 3 mm into the foam cube over the top-centre node, n = 6, 8, 10: the force
-    changes by < 10 % between successive refinements, less each time (measured 57.2, 52.6, 50.9 N:
-    8.7 %, 3.2 %). (Over a facet, and at 1.5 mm, it does not yet: see the xfail below.)"""
-    runs = [_indentation(n, "patch", "node", 3e-3) for n in (6, 8, 10)]
-    forces = [f for f, _ in runs]
-    assert [k for _, k in runs] == [8, 8, 8]
-    ch = _changes(forces)
-    assert (ch < 0.10).all(), forces
-    assert ch[1] < ch[0]
-    assert forces[0] > forces[1] > forces[2]  # the discrete body softens towards its limit
+    """Default rule, 3 mm into the foam cube, n = 6, 8, 10. Over the top-centre node the force
+    changes by < 3 % between successive refinements while the patch grows from 8 to 32 facets
+    (measured 57.2, 56.7, 58.0 N: 0.9 %, 2.2 %); over a facet it converges from above, each change
+    less than half the previous (74.9, 65.2, 60.9 N: 14.9 %, 7.1 %), and the two landing points
+    draw together (31 % apart at n = 6, 5 % at n = 10). (At 1.5 mm over a facet it does not yet
+    converge in this range: see the xfail below.)"""
+    node = [_indentation(n, "patch", "node", 3e-3) for n in (6, 8, 10)]
+    facet = [_indentation(n, "patch", "facet", 3e-3) for n in (6, 8, 10)]
+    f_node = np.array([f for f, _ in node])
+    f_facet = np.array([f for f, _ in facet])
+    assert [k for _, k in node] == [8, 16, 32]  # the patch spreads over more, smaller facets
+    assert (_changes(f_node) < 0.03).all(), f_node
+    ch = _changes(f_facet)
+    assert ch[1] < 0.5 * ch[0], f_facet
+    assert (np.diff(f_facet) < 0).all(), f_facet
+    apart = f_facet / f_node - 1
+    assert (np.diff(apart) < 0).all() and apart[-1] < 0.1, apart
 
 
 @pytest.mark.slow
 def test_literal_facet_rule_under_the_same_refinement():
-    """Recorded behaviour of the paper's literal rule in the same refinement: it converges about as
-    fast (104.3, 98.8, 95.9 N: 5.5 %, 3.1 %) but to ~1.85 times the patch rule's force, because
-    all 8 facets around the node under the fingertip each carry a full K delta^n. Its mesh
-    dependence is on the number of facets meeting under the fingertip, which this refinement
-    keeps at 8 (see the next test for where the fingertip lands)."""
+    """Recorded behaviour of the paper's literal rule in the same refinement: it converges (104.3,
+    98.8, 95.9 N: 5.5 %, 3.1 %) to 1.65-1.85 times the patch rule's force, because all 8 facets
+    around the node under the fingertip each carry a full K delta^n. Its mesh dependence is on the
+    number of facets meeting under the fingertip, which this refinement keeps at 8 (see the next
+    test for where the fingertip lands)."""
     facet = [_indentation(n, "facet", "node", 3e-3) for n in (6, 8, 10)]
     patch = [_indentation(n, "patch", "node", 3e-3) for n in (6, 8, 10)]
     assert [k for _, k in facet] == [8, 8, 8]
     ff = np.array([f for f, _ in facet])
     fp = np.array([f for f, _ in patch])
     assert (_changes(ff) < 0.10).all(), ff
-    assert ((ff / fp > 1.7) & (ff / fp < 2.0)).all(), ff / fp
+    assert ((ff / fp > 1.6) & (ff / fp < 1.9)).all(), ff / fp
 
 
 def test_force_depends_on_where_the_fingertip_lands_on_a_coarse_mesh():
     """Recorded behaviour on the default cube mesh (n = 6, h = 8.3 mm), 1.5 mm of travel: over a
     facet interior both rules nearly coincide (the literal rule touches one facet, 31.1 N; the
-    patch rule also reaches two neighbours within its edge fade, 31.0 N). Over the node shared by 8
+    patch rule also the neighbours the sphere overlaps, 7 facets, 31.0 N). Over the node shared by 8
     facets the literal rule gives 1.42 times that (44.1 N): its total contact stiffness is 8 K.
     The patch rule removes that factor (exact on a rigid surface, see above), yet still gives
     0.77 times the facet-interior force there (23.9 N): the contact patch (radius ~4 mm) is
@@ -707,10 +719,10 @@ def test_force_depends_on_where_the_fingertip_lands_on_a_coarse_mesh():
 @pytest.mark.xfail(
     strict=True,
     reason=(
-        "not mesh-converged in this range: at 1.5 mm over a facet the force drops 10-17 % per "
-        "refinement (31.0, 26.4, 24.0 N for n = 6, 8, 10) because "
-        "the contact patch (radius ~3.8 mm) is smaller than the elements: the load sits on the 3 "
-        "nodes of one facet and the discrete body keeps softening under that near-point load"
+        "not mesh-converged in this range: at 1.5 mm over a facet the force drops 11-12 % per "
+        "refinement (31.0, 27.6, 24.9 N for n = 6, 8, 10; 23.1 N at n = 12, 7.5 %): the contact "
+        "patch (radius ~3.8 mm) is no larger than the elements, the load sits on a few nodes and "
+        "the discrete body keeps softening under that near-point load"
     ),
 )
 def test_patch_rule_force_over_a_facet_converges_at_small_indentation():
@@ -741,10 +753,12 @@ def test_fingertip_that_misses_gives_zero_force():
 def test_overlap_near_a_convex_edge():
     """A fingertip pressed 1 mm into the top of a box 0.5 mm beyond its edge (centre outside the
     side face's plane too): the paper's detection rule (Sec. 3.1: the centre's projection must fall
-    inside a facet) finds no facet and no force; the patch rule's edge fade finds the top facets,
-    whose true overlap with the sphere is R - |c - Q| to the edge point Q (0.98 mm, not the
-    plane's 1 mm), and pushes the object straight down with K overlap^n. 3 mm beyond the edge
-    (over half a facet) both miss: a sharp edge met that far out is recorded as a miss."""
+    inside a facet) finds no facet and no force; the patch rule finds the facets the sphere
+    overlaps, the deepest by R - |c - Q| to the edge point Q (0.98 mm, not the plane's 1 mm), and
+    the normal forces add up to K overlap^n. 3 mm beyond the edge the sphere still overlaps the
+    edge (by 0.38 mm): one top and one side facet share the closest point, and their forces,
+    weighted by the area each shows the centre, add up to a push along c - Q, as a sphere on a
+    sharp edge pushes."""
     mesh = box(0.02, 2)
     body = build_body(mesh, preset("foam"), mass=0.01)
     x = np.asarray(mesh.points)
@@ -759,14 +773,22 @@ def test_overlap_near_a_convex_edge():
     assert rep.contacts[0] >= 1
     assert rep.depth[0] == pytest.approx(overlap, rel=1e-12)
     assert rep.normal[0] == pytest.approx(K * overlap**1.5, rel=1e-12)
-    assert rep.force[0] == pytest.approx([0.0, 0.0, -K * overlap**1.5], abs=1e-12 * K * R**1.5)
-    assert (fc.pairs(body, x, 0.0).reach < 1).all()
+    assert rep.force[0, 2] < 0 and rep.force[0, 0] < 0  # down, and off the edge
+    assert (fc.pairs(body, x, 0.0).facing < 1).all()
     literal = FingertipContact((Fingertip(R, centre=centre),), ContactParams(rule="facet"))
     st = literal.init_state(body, x)
     assert literal.report(body, x, np.zeros_like(x), 0.0, st).contacts.tolist() == [0]
     assert not literal.static_forces(body, x, 0.0, st).any()
-    far = FingertipContact((Fingertip(R, centre=centre + [0.0025, 0, 0]),))
-    assert far.report(body, x, np.zeros_like(x), 0.0, far.init_state(body, x)).contacts.tolist() == [0]
+    c_far = centre + [0.0025, 0, 0]
+    far = FingertipContact((Fingertip(R, centre=c_far),))
+    rep = far.report(body, x, np.zeros_like(x), 0.0, far.init_state(body, x), static=True)
+    edge_point = np.array([0.01, 0.0025, 0.02])
+    overlap = R - np.linalg.norm(c_far - edge_point)
+    assert rep.contacts.tolist() == [2]
+    assert rep.depth[0] == pytest.approx(overlap, rel=1e-12)
+    assert rep.normal[0] == pytest.approx(K * overlap**1.5, rel=1e-12)
+    push = (edge_point - c_far) / np.linalg.norm(edge_point - c_far)
+    assert rep.force[0] / np.linalg.norm(rep.force[0]) == pytest.approx(push, abs=1e-12)
 
 
 def test_a_tangent_fingertip_on_a_convex_mesh_has_no_phantom_contact():
@@ -846,9 +868,11 @@ def test_invalid_contact_inputs_raise_clear_errors(make, match):
 # --------------------------------------------------------------------------- 8. broad phase
 
 
-def _brute_force_pairs(x, facets, centres, radii, fade=0.0, tol=1e-12):
-    """Every (finger, facet) pair by Sec. 3.1, checking all facets, with area coordinates from
-    signed sub-triangle areas. Returns {(finger, facet): (distance, bary)}."""
+def _brute_force_pairs(x, facets, centres, radii, closest=False, tol=1e-12):
+    """Every (finger, facet) pair, checking all facets, with area coordinates from signed
+    sub-triangle areas: by Sec. 3.1 (projection inside the facet), or with ``closest`` by the
+    sphere's overlap with the facet measured to its closest point. Returns
+    {(finger, facet): (distance to the contact point, its barycentric coordinates)}."""
     tri = x[facets]
     nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     twice_area = np.linalg.norm(nrm, axis=1)
@@ -865,29 +889,38 @@ def _brute_force_pairs(x, facets, centres, radii, fade=0.0, tol=1e-12):
             ],
             axis=1,
         )
-        if fade > 0:
+        if closest:
             # Closest point of each triangle: the projection inside, else the nearest edge point.
-            gap = np.where(lam.min(axis=1) >= 0, d, np.inf)
+            inside = lam.min(axis=1) >= 0
+            gap = np.where(inside, d, np.inf)
+            bary = np.where(inside[:, None], lam, 0.0)
             for k in range(3):
                 e0, e1 = tri[:, k], tri[:, (k + 1) % 3]
                 s_ = np.clip(
                     np.einsum("ij,ij->i", c - e0, e1 - e0) / np.einsum("ij,ij->i", e1 - e0, e1 - e0), 0, 1
                 )
-                gap = np.minimum(gap, np.linalg.norm(c - (e0 + s_[:, None] * (e1 - e0)), axis=1))
-            hit = (d > 0) & (d < R) & (lam.min(axis=1) > -fade) & (gap < R)
+                g = np.linalg.norm(c - (e0 + s_[:, None] * (e1 - e0)), axis=1)
+                better = ~inside & (g < gap)
+                gap = np.where(better, g, gap)
+                be = np.zeros_like(lam)
+                be[:, k], be[:, (k + 1) % 3] = 1 - s_, s_
+                bary = np.where(better[:, None], be, bary)
+            hit = (d > 0) & (gap < R)
         else:
+            gap, bary = d, lam
             hit = (d > 0) & (d < R) & (lam >= -tol).all(axis=1)
         for j in np.flatnonzero(hit):
-            out[(i, int(j))] = (d[j], lam[j])
+            out[(i, int(j))] = (gap[j], bary[j])
     return out
 
 
 @pytest.mark.parametrize("broad", ["tree", "nodes"])
-@pytest.mark.parametrize("fade", [0.0, 0.25])
-def test_broad_phase_finds_exactly_the_brute_force_pairs(fade, broad):
-    """The k-d tree broad phase of ``detect`` misses no pair and invents none: same pairs, distances
-    and area coordinates as a check of every facet, for fingertips near the surface of the sphere
-    mesh, undeformed (convex: at most one facet per fingertip) and dented (concave: several)."""
+@pytest.mark.parametrize("closest", [False, True], ids=["paper", "closest"])
+def test_broad_phase_finds_exactly_the_brute_force_pairs(closest, broad):
+    """The broad phases of ``detect`` miss no pair and invent none: same pairs, distances and area
+    coordinates of the contact points as a check of every facet, for fingertips near the surface
+    of the sphere mesh, undeformed (convex: at most one facet per fingertip with the paper's test)
+    and dented (concave: several)."""
     mesh, _, _ = make_object("sphere", 0.016)
     rng = np.random.default_rng(7)
     X = np.asarray(mesh.points)
@@ -918,8 +951,8 @@ def test_broad_phase_finds_exactly_the_brute_force_pairs(fade, broad):
         centres = P + rng.uniform(-0.1, 1.02, size=(k, 1)) * radii[:, None] * nrm
         centres += 0.001 * rng.standard_normal((k, 3))
         index = FacetIndex.of(mesh) if broad == "nodes" else None
-        pairs = detect(x, facets, centres, radii, fade=fade, index=index)
-        brute = _brute_force_pairs(x, facets, centres, radii, fade)
+        pairs = detect(x, facets, centres, radii, closest=closest, index=index)
+        brute = _brute_force_pairs(x, facets, centres, radii, closest)
         found = set(zip(pairs.finger.tolist(), pairs.facet.tolist(), strict=True))
         assert found == set(brute)
         assert len(found) == len(pairs)  # no duplicates

@@ -237,7 +237,7 @@ def contact_setup():
 def _pairs_equal(fast, slow) -> None:
     assert len(slow) > 0
     assert np.array_equal(fast.finger, slow.finger) and np.array_equal(fast.facet, slow.facet)
-    for name in ("bary", "point", "normal", "distance", "depth", "area", "reach", "overlap", "near"):
+    for name in ("bary", "point", "normal", "distance", "depth", "area", "facing", "projection"):
         assert _rel(getattr(fast, name), getattr(slow, name)) < TOL, name
 
 
@@ -248,13 +248,13 @@ def _state_equal(fast, slow) -> None:
         assert np.abs(a - b).max() <= TOL * max(np.abs(b).max(), 1e-300), name
 
 
-@pytest.mark.parametrize("fade", [0.0, 0.25])
+@pytest.mark.parametrize("closest", [False, True], ids=["paper", "closest"])
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_detect_agrees(contact_setup, fade, seed):
+def test_detect_agrees(contact_setup, closest, seed):
     mesh, _, x, _ = contact_setup
     tips = _tips_on(mesh, x, seed, 0.002)
     # and one whose centre projects just outside a facet (barycentric -0.004): for that facet the
-    # overlap is measured to the triangle's closest point
+    # contact point is the triangle's closest point, on an edge
     f = 7 * seed
     a, b, c = x[mesh.facets[f]]
     n = np.cross(b - a, c - a)
@@ -263,13 +263,15 @@ def test_detect_agrees(contact_setup, fade, seed):
     radii = np.full(len(centres), R_TIP)
     index = FacetIndex.of(mesh)
     with kernels.use_backend("numba"):
-        fast = detect(x, mesh.facets, centres, radii, fade=fade, index=index)
+        fast = detect(x, mesh.facets, centres, radii, closest=closest, index=index)
     with kernels.use_backend("numpy"):
-        slow = detect(x, mesh.facets, centres, radii, fade=fade, index=index)
+        slow = detect(x, mesh.facets, centres, radii, closest=closest, index=index)
     _pairs_equal(fast, slow)
     assert set(slow.finger.tolist()) >= {0, 1, 2}  # the fourth may sit in a convex edge's blind spot
-    if fade > 0:  # the edge fade and its closest-point overlap are exercised
-        assert ((slow.finger == 3) & (slow.facet == f) & (slow.reach < 1) & (slow.reach > 0.98)).any()
+    if closest:  # the closest point on an edge is exercised
+        mine = (slow.finger == 3) & (slow.facet == f)
+        assert mine.any() and (slow.bary[mine] >= 0).all() and (slow.bary[mine] == 0).any()
+        assert (slow.point[mine] != slow.projection[mine]).any()
 
 
 RULES = {

@@ -95,22 +95,19 @@ class ContactParams:
     damping: ``"linear"`` (paper: K delta^n + C delta_dot) or ``"hunt-crossley"``
         (K delta^n + C delta^n delta_dot, with C then read as lambda).
     rule: ``"patch"`` (default): a fingertip's elastic normal force is K delta_max^n, with
-        delta_max = R - dist(centre, surface) its overlap with the surface, shared among the
-        facets it touches by w_j = A_j delta_j / sum_k A_k delta_k (delta_j the overlap with
-        facet j), each part along its facet's normal at the centre's projection (so it passes
-        through the centre). Exactly K delta^n on a flat surface for any mesh, whatever the number
-        of facets sharing the contact point, and continuous as facets enter or leave: a facet
-        whose projection point lies just outside it (barycentric coordinates down to
-        ``-edge_fade``) still counts, its weight fading linearly to zero there, so no facet drops
-        out at finite weight when the projection crosses its edge (Sec. 3.1's test), and overlaps
-        just beyond convex edges are found, measured to the facet's closest point (no phantom
-        contact with a facet's plane extended past a convex edge). ``"facet"``: the paper's literal
-        rule, every touched facet gets the full K delta_j^n (the total grows with the number of
-        facets touched).
+        delta_max = R - dist(centre, surface) its overlap with the surface, shared among every
+        facet the sphere overlaps by weights w_j proportional to A_j cos_j delta_j (delta_j =
+        R - |c - Q_j|, Q_j the facet's point closest to the centre, cos_j the cosine between the
+        facet's normal and c - Q_j: its area seen from the centre), each part along its facet's
+        normal and applied at Q_j. Exactly K delta^n along the normal on a flat surface for any
+        mesh; the load spreads over the whole contact patch however fine the mesh; continuous as
+        facets enter or leave the patch (at zero overlap) or turn edge-on to the centre; at a
+        right-angled convex edge the parts add up to a push along c - Q.
+        ``"facet"``: the paper's literal rule, Sec. 3.1: a facet touches when the
+        centre's projection lies inside it, and each touched facet gets the full K delta_j^n (the
+        total grows with the number of facets touched).
     tangential_ratio: k_t / k_n; ``None`` for Mindlin's 2(1 - nu)/(2 - nu) of the object.
     min_depth_ratio: k_t is evaluated at a penetration of at least this fraction of R.
-    edge_fade: width of the patch rule's fade-out outside a facet, in barycentric units (0: the
-        paper's hard inside-the-triangle test).
     """
 
     mu: float = 0.8
@@ -121,7 +118,6 @@ class ContactParams:
     rule: str = "patch"
     tangential_ratio: float | None = None
     min_depth_ratio: float = 0.01
-    edge_fade: float = 0.25
 
     def __post_init__(self) -> None:
         checks = {
@@ -130,7 +126,6 @@ class ContactParams:
             "prefactor": self.prefactor > 0,
             "gamma": self.gamma >= 0,
             "min_depth_ratio": 0 < self.min_depth_ratio < 1,
-            "edge_fade": 0 <= self.edge_fade <= 1,
         }
         for k, ok in checks.items():
             v = getattr(self, k)
@@ -153,5 +148,4 @@ class ContactParams:
             "rule": self.rule,
             "tangential_ratio": self.tangential_ratio,
             "min_depth_ratio": self.min_depth_ratio,
-            "edge_fade": self.edge_fade,
         }

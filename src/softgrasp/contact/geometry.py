@@ -1,14 +1,19 @@
 """Fingertip-facet contact detection (paper Sec. 3.1) and contact-point kinematics (Eq. 1-8).
 
-A fingertip is a sphere of centre c and radius R. It touches boundary facet j when the projection
-P_j of c on the facet's plane lies inside the triangle and the distance d_j = (c - P_j)·n_j from
-the plane, measured along the facet's outward normal, satisfies 0 < d_j < R. Its penetration is
-delta_j = R - d_j (Eq. 14). With ``fade`` > 0, projections up to ``fade`` outside the triangle in
-barycentric units also count, each pair carrying a reach factor that falls linearly from 1 on the
-triangle's edge to 0 at that distance (the patch rule weights facets by it, so no facet leaves the
-contact at finite weight), and an *overlap* R - |c - Q_j| measured to the closest point Q_j of the
-triangle (equal to the depth when the projection falls inside): the true overlap of the sphere with
-the facet, so that a facet's plane extended past a convex edge adds no phantom contact.
+A fingertip is a sphere of centre c and radius R. With the paper's test (``closest=False``) it
+touches boundary facet j when the projection P_j of c on the facet's plane lies inside the triangle
+and the distance d_j = (c - P_j)·n_j from the plane, measured along the facet's outward normal,
+satisfies 0 < d_j < R; its penetration is delta_j = R - d_j (Eq. 14), its contact point P_j and its
+contact normal n_j.
+
+With ``closest=True`` (the patch rule) a pair is the sphere's true overlap with the triangle: its
+contact point is the triangle's closest point Q_j to c (P_j when the projection falls inside, else
+on an edge) and its penetration delta_j = R - |c - Q_j| > 0, so that no facet of the contact patch
+is left out however small the facets are next to the fingertip, and a pair enters or leaves at
+zero penetration. The facet must face the centre (d_j > 0); its *facing* cos(n_j, c - Q_j) =
+d_j / |c - Q_j| goes to 0 as it turns edge-on to the centre, and the patch rule weights it by that
+(its area seen from the centre). At a sharp convex edge the facets on both sides share the edge's
+closest point.
 
 Broad phase: the surface nodes near each fingertip and the facets around them (a node-to-facet
 index computed once per mesh, :class:`FacetIndex`), so the cost grows with the boundary nodes at a
@@ -44,15 +49,17 @@ class ContactPairs:
     finger: fingertip index of each pair, (k,).
     facet: boundary facet index of each pair, (k,).
     bary: barycentric (area) coordinates A_i / A_G of the contact point, (k, 3) (Eq. 4, 8).
-    point: contact point P_j, the projection of the centre on the facet [m], (k, 3).
-    normal: outward unit normal of the facet [m], (k, 3).
-    distance: d_j, centre-to-plane distance [m], (k,).
-    depth: delta_j = R - d_j [m], (k,) (Eq. 14).
+    point: contact point [m], (k, 3): the projection P_j of the centre on the facet (paper's test),
+        or the triangle's closest point Q_j to the centre (patch rule; P_j when inside).
+    normal: the facet's outward unit normal n_j, (k, 3).
+    projection: the projection P_j of the centre on the facet's plane [m], (k, 3): the point that
+        follows the fingertip over the facet, from which friction measures its stick displacement
+        (equal to ``point`` when it falls inside the triangle).
+    distance: |c - point| [m], (k,) (d_j, the centre-to-plane distance, with the paper's test).
+    depth: penetration delta_j = R - distance [m], (k,) (Eq. 14).
     area: current facet area [m^2], (k,).
-    reach: 1 when the projection falls inside the facet, fading to 0 at ``fade`` outside it, (k,).
-    overlap: R - distance from the centre to the closest point of the triangle [m], (k,); equals
-        ``depth`` when the projection falls inside; > 0 for every pair detected with ``fade`` > 0.
-    near: barycentric coordinates of that closest point, (k, 3).
+    facing: cosine between the facet's normal and the direction from the contact point to the
+        centre, d_j / distance, in (0, 1] (1 with the paper's test), (k,).
     """
 
     finger: NDArray[np.int64]
@@ -63,9 +70,8 @@ class ContactPairs:
     distance: NDArray[np.float64]
     depth: NDArray[np.float64]
     area: NDArray[np.float64]
-    reach: NDArray[np.float64]
-    overlap: NDArray[np.float64]
-    near: NDArray[np.float64]
+    facing: NDArray[np.float64]
+    projection: NDArray[np.float64]
 
     def __len__(self) -> int:
         return int(self.finger.size)
@@ -92,7 +98,8 @@ def closest_points(
     p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Points of the triangles (a, b, c) (k, 3 each) closest to the points p (k, 3) whose
-    projections fall outside them: the nearest of the three edges' closest points.
+    projections fall outside them: the nearest of the three edges' closest points (a later edge
+    wins only when strictly closer).
     Returns (points (k, 3), their barycentric coordinates (k, 3))."""
     verts = (a, b, c)
     best = np.full(len(p), np.inf)
@@ -139,21 +146,22 @@ class FacetIndex:
 MAX_STRETCH = 3.0
 
 
-def broad_phase_reach(index: FacetIndex, fade: float) -> float:
+def broad_phase_reach(index: FacetIndex) -> float:
     """Margin [m] beyond a fingertip's radius within which a surface node may carry a facet in
-    contact: (1 + 3 fade) x the longest rest facet edge x :data:`MAX_STRETCH`."""
-    return (1.0 + 3.0 * fade) * MAX_STRETCH * index.max_edge
+    contact: every point of a triangle lies within its longest edge of one of its nodes, and
+    surface edges are taken to stretch at most :data:`MAX_STRETCH` times their rest length."""
+    return (1.0 + 3.0 * INSIDE_TOL) * MAX_STRETCH * index.max_edge
 
 
 def _candidates_tree(
-    x: NDArray[np.float64], facets: NDArray[np.int64], centres, radii, fade: float
+    x: NDArray[np.float64], facets: NDArray[np.int64], centres, radii
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(finger, facet) candidates from a k-d tree of all facet centroids, O(F log F)."""
     tri = x[facets]
     cen = tri.mean(axis=1)
-    # Projections with barycentric coordinates >= -fade lie in the triangle scaled by 1 + 3 fade
-    # about its centroid.
-    extent = (1.0 + 3.0 * fade) * float(np.linalg.norm(tri - cen[:, None, :], axis=2).max())
+    # Every contact point (inside the triangle up to INSIDE_TOL) lies within that factor of the
+    # largest centroid-vertex distance of the centroid.
+    extent = (1.0 + 3.0 * INSIDE_TOL) * float(np.linalg.norm(tri - cen[:, None, :], axis=2).max())
     tree = cKDTree(cen)
     fi, fj = [], []
     for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
@@ -164,14 +172,12 @@ def _candidates_tree(
 
 
 def _candidates_nodes(
-    x: NDArray[np.float64], index: FacetIndex, centres, radii, fade: float
+    x: NDArray[np.float64], index: FacetIndex, centres, radii
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(finger, facet) candidates from the surface nodes near each fingertip, O(B) with a tiny
-    constant: every point of a facet's fade-extended triangle lies within
-    (1 + 3 fade) x its longest edge of one of its nodes, and edges are taken to stretch at most
-    MAX_STRETCH times their rest length."""
+    constant (see :func:`broad_phase_reach`)."""
     xb = x[index.boundary_nodes]
-    reach = broad_phase_reach(index, fade)
+    reach = broad_phase_reach(index)
     fi, fj = [], []
     for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
         d2 = np.einsum("ij,ij->i", xb - c, xb - c)
@@ -195,7 +201,7 @@ def detect(
     centres: NDArray[np.float64],
     radii: NDArray[np.float64],
     *,
-    fade: float = 0.0,
+    closest: bool = False,
     index: FacetIndex | None = None,
 ) -> ContactPairs:
     """All touching (fingertip, facet) pairs (Sec. 3.1).
@@ -204,21 +210,22 @@ def detect(
     ----------
     x: node positions [m], (N, 3).  facets: boundary facets (F, 3), outward ordering.
     centres: fingertip centres [m], (n_f, 3).  radii: fingertip radii [m], (n_f,).
-    fade: how far outside a triangle, in barycentric units, a projection still touches (with a
-        reach factor fading to 0 there); 0 is the paper's test.
+    closest: False for the paper's test (the centre's projection inside the triangle); True for
+        the sphere's overlap with each triangle, measured to its closest point (patch rule; see
+        the module notes).
     index: the mesh's :class:`FacetIndex`: the broad phase then looks at the surface nodes near
         each fingertip (cost ~ boundary nodes, a few microseconds per thousand) instead of
         building a k-d tree of all facet centroids (cost ~ F log F).
     """
     if index is not None and kernels.compiled():
-        return _detect_compiled(x, facets, centres, radii, fade, index)
+        return _detect_compiled(x, facets, centres, radii, closest, index)
     if index is None:
-        fi, fj = _candidates_tree(x, facets, centres, radii, fade)
+        fi, fj = _candidates_tree(x, facets, centres, radii)
     else:
-        fi, fj = _candidates_nodes(x, index, centres, radii, fade)
+        fi, fj = _candidates_nodes(x, index, centres, radii)
     if fj.size == 0:
         return _empty()
-    return _narrow_phase(x, facets, centres, radii, fi, fj, fade, keep_all=False)
+    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False)
 
 
 def pair_geometry(
@@ -229,7 +236,7 @@ def pair_geometry(
     finger: NDArray[np.int64],
     facet: NDArray[np.int64],
     *,
-    fade: float = 0.0,
+    closest: bool = False,
 ) -> ContactPairs:
     """The geometry of given (fingertip, facet) pairs at ``x``, whether they touch there or not
     (depths may be <= 0, projections outside the triangles): the pairs of an earlier
@@ -238,11 +245,11 @@ def pair_geometry(
     if len(facet) == 0:
         return _empty()
     return _narrow_phase(
-        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), fade, keep_all=True
+        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True
     )
 
 
-def _narrow_phase(x, facets, centres, radii, fi, fj, fade: float, keep_all: bool) -> ContactPairs:
+def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool) -> ContactPairs:
     """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``."""
     tri = x[facets[fj]]  # (k, 3, 3) candidates only
     a, b, c3 = tri[:, 0], tri[:, 1], tri[:, 2]
@@ -252,20 +259,20 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, fade: float, keep_all: bool
     ctr = centres[fi]
     d = np.einsum("ij,ij->i", ctr - a, n)
     R = radii[fi]
-    P = ctr - d[:, None] * n
-    bary = barycentric(P, a, b, c3)
+    proj = ctr - d[:, None] * n
+    point = proj.copy()
+    bary = barycentric(proj, a, b, c3)
     low = bary.min(axis=1)
-    near = bary.copy()
-    overlap = R - d
-    if fade > 0:
-        reach = np.clip(1.0 + low / fade, 0.0, 1.0)
-        out = np.flatnonzero((low < 0) & (reach > 0) & (d > 0) & (d < R))
+    if closest:
+        out = np.flatnonzero(low < 0)
         if out.size:
-            q, near[out] = closest_points(ctr[out], a[out], b[out], c3[out])
-            overlap[out] = R[out] - np.linalg.norm(ctr[out] - q, axis=1)
-        ok = (d > 0) & (d < R) & (reach > 0) & (overlap > 0)
+            point[out], bary[out] = closest_points(ctr[out], a[out], b[out], c3[out])
+        dist = np.linalg.norm(ctr - point, axis=1)
+        fac = np.clip(d / np.where(dist > 0, dist, 1.0), 0.0, 1.0)
+        ok = (d > 0) & (dist < R)
     else:
-        reach = np.ones(len(fj))
+        dist = d
+        fac = np.ones(len(fj))
         ok = (d > 0) & (d < R) & (low >= -INSIDE_TOL)
     if keep_all:
         ok = np.ones(len(fj), bool)
@@ -273,14 +280,13 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, fade: float, keep_all: bool
         finger=fi[ok],
         facet=fj[ok],
         bary=bary[ok],
-        point=P[ok],
+        point=point[ok],
         normal=n[ok],
-        distance=d[ok],
-        depth=R[ok] - d[ok],
+        distance=dist[ok],
+        depth=R[ok] - dist[ok],
         area=0.5 * twice_area[ok],
-        reach=reach[ok],
-        overlap=overlap[ok],
-        near=near[ok],
+        facing=fac[ok],
+        projection=proj[ok],
     )
 
 
@@ -289,17 +295,25 @@ def _detect_compiled(
     facets: NDArray[np.int64],
     centres: NDArray[np.float64],
     radii: NDArray[np.float64],
-    fade: float,
+    closest: bool,
     index: FacetIndex,
 ) -> ContactPairs:
     """:func:`detect` with the node-index broad phase, by the compiled kernel
     (:mod:`softgrasp.kernels.contact`): the same pairs in the same order, fields equal to
-    round-off. The float fields are read-only views of one (k, 17) array."""
+    round-off. The float fields are read-only views of one (k, 16) array."""
     from softgrasp.kernels.contact import detect_arrays
 
-    reach = broad_phase_reach(index, fade)
     fi, fj, val = detect_arrays(
-        x, facets, index.boundary_nodes, index.indptr, index.indices, reach, centres, radii, fade, INSIDE_TOL
+        x,
+        facets,
+        index.boundary_nodes,
+        index.indptr,
+        index.indices,
+        broad_phase_reach(index),
+        centres,
+        radii,
+        closest,
+        INSIDE_TOL,
     )
     val.flags.writeable = False
     return ContactPairs(
@@ -311,16 +325,15 @@ def _detect_compiled(
         distance=val[:, 9],
         depth=val[:, 10],
         area=val[:, 11],
-        reach=val[:, 12],
-        overlap=val[:, 13],
-        near=val[:, 14:17],
+        facing=val[:, 12],
+        projection=val[:, 13:16],
     )
 
 
 def _empty() -> ContactPairs:
     z3 = np.zeros((0, 3))
     z = np.zeros(0)
-    return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z, z, z3)
+    return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z, z3)
 
 
 def relative_velocity(

@@ -5,7 +5,8 @@ For every touching (fingertip, facet) pair j (Sec. 3.1, :func:`softgrasp.contact
 * normal force ``f_n = w_j max(0, K delta^n + C delta_dot)`` along the facet's inward normal
   (Eq. 9-14), with the rule's weight w_j (:class:`ContactParams`);
 * friction by an elastic slider per pair (Eq. 15-16, Algorithm 1): an anchor (a material point of the
-  facet, kept in barycentric coordinates) and the stick displacement v from it to the contact point;
+  facet, kept in barycentric coordinates) and the stick displacement v from it to the centre's
+  projection on the facet's plane (the point that follows the fingertip over the facet);
   stick force ``-w (k_t v + c_t V_t)`` while its norm <= mu f_n, otherwise Coulomb slip
   ``-mu f_n V_t / |V_t|`` and the anchor is dragged (slip displacement u). Both reset when the finger
   leaves the object. A pair that starts while its finger is already sliding on a neighbouring facet
@@ -115,18 +116,18 @@ def _pair_normal_forces(
     radius: NDArray[np.float64],
     coef: NDArray[np.float64],
     n_exp: float,
+    closest: bool,
 ) -> NDArray[np.float64]:
     """Static normal forces on the three nodes of each facet, (k, 3, 3): ``-coef delta^n b_l n``
-    for triangles ``tri`` (k, 3, 3) and fingertip centres (k, 3). Smooth in the node positions
-    (the projection may leave the triangle: barycentric coordinates extrapolate)."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    N = np.cross(b - a, c - a)
-    n = N / np.linalg.norm(N, axis=1, keepdims=True)
-    d = np.einsum("ij,ij->i", centre - a, n)
-    P = centre - d[:, None] * n
-    bary = barycentric(P, a, b, c)
-    mag = coef * np.where(radius > d, np.abs(radius - d) ** n_exp, 0.0)
-    return -(mag[:, None, None] * bary[:, :, None]) * n[:, None, :]
+    for triangles ``tri`` (k, 3, 3) and fingertip centres (k, 3), with each pair's contact point
+    (b), normal and penetration as :func:`~softgrasp.contact.geometry.pair_geometry` follows them
+    (``closest`` as in :func:`~softgrasp.contact.geometry.detect`)."""
+    k = tri.shape[0]
+    ids = np.arange(k)
+    pr = pair_geometry(tri.reshape(-1, 3), ids.repeat(3).reshape(k, 3) * 3 + np.arange(3), centre, radius,
+                       ids, ids, closest=closest)  # fmt: skip
+    mag = coef * np.where(pr.depth > 0, np.abs(pr.depth) ** n_exp, 0.0)
+    return -(mag[:, None, None] * pr.bary[:, :, None]) * pr.normal[:, None, :]
 
 
 def _normal_jacobian_blocks(
@@ -135,6 +136,7 @@ def _normal_jacobian_blocks(
     radius: NDArray[np.float64],
     coef: NDArray[np.float64],
     n_exp: float,
+    closest: bool,
 ) -> NDArray[np.float64]:
     """d(nodal normal forces)/d(node positions) per pair by central differences, symmetrised,
     (k, 3, 3, 3, 3) indexed [pair, node_l, node_m, axis_l, axis_m]."""
@@ -147,8 +149,8 @@ def _normal_jacobian_blocks(
             tm = tri.copy()
             tp[:, m, ax] += h
             tm[:, m, ax] -= h
-            dF = _pair_normal_forces(tp, centre, radius, coef, n_exp) - _pair_normal_forces(
-                tm, centre, radius, coef, n_exp
+            dF = _pair_normal_forces(tp, centre, radius, coef, n_exp, closest) - _pair_normal_forces(
+                tm, centre, radius, coef, n_exp, closest
             )
             J[:, :, m, :, ax] = dF / (2 * h)[:, None, None]
     return 0.5 * (J + J.transpose(0, 2, 1, 4, 3))
@@ -203,26 +205,31 @@ class FingertipContact:
         """Fingertip centres at time t [m], (n_f, 3)."""
         return np.array([f.centre_at(t) for f in self.fingertips])
 
+    def _closest(self) -> bool:
+        """Detection mode (:func:`~softgrasp.contact.geometry.detect`): the sphere's overlap with
+        each facet for the patch rule, the paper's projection test for the literal one."""
+        return self.params.rule == "patch"
+
     def pairs(self, body: Body, x: NDArray[np.float64], t: float) -> ContactPairs:
         """Touching pairs at positions x and time t."""
-        fade = self.params.edge_fade if self.params.rule == "patch" else 0.0
         index = FacetIndex.of(body.mesh)
-        return detect(x, body.mesh.facets, self.centres(t), self._radii(), fade=fade, index=index)
+        centres, radii = self.centres(t), self._radii()
+        return detect(x, body.mesh.facets, centres, radii, closest=self._closest(), index=index)
 
     # ------------------------------------------------------------------ core evaluation
     def _patch_weights(self, pairs: ContactPairs) -> NDArray[np.float64]:
         if self.params.rule == "facet" or len(pairs) == 0:
             return np.ones(len(pairs))
-        a = pairs.area * pairs.overlap * pairs.reach
-        tot = np.bincount(pairs.finger, weights=a, minlength=len(self.fingertips))
-        return a / tot[pairs.finger]
+        nf = len(self.fingertips)
+        a = pairs.area * pairs.depth * pairs.facing
+        return a / np.bincount(pairs.finger, weights=a, minlength=nf)[pairs.finger]
 
     def _deepest(self, pairs: ContactPairs) -> NDArray[np.int64]:
-        """Index of each pair's finger's deepest pair (largest overlap), (k,)."""
+        """Index of each pair's finger's deepest pair (largest depth), (k,)."""
         deep = np.zeros(len(pairs), np.int64)
         for i in np.unique(pairs.finger):
             idx = np.flatnonzero(pairs.finger == i)
-            deep[idx] = idx[np.argmax(pairs.overlap[idx])]
+            deep[idx] = idx[np.argmax(pairs.depth[idx])]
         return deep
 
     def _depths(self, pairs: ContactPairs) -> NDArray[np.float64]:
@@ -232,23 +239,23 @@ class FingertipContact:
         K delta_max^n, shared among its facets by the weights w_j)."""
         if self.params.rule == "facet" or len(pairs) == 0:
             return pairs.depth
-        return pairs.overlap[self._deepest(pairs)]
+        return pairs.depth[self._deepest(pairs)]
 
     def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState):
-        """Stick anchors in space: kept for continuing pairs; for new pairs the contact point minus
+        """Stick anchors in space: kept for continuing pairs; for new pairs the projection point minus
         the finger's remembered stick displacement (zero unless it slides on from a neighbour)."""
         fac = body.mesh.facets[pairs.facet]
         cont = state.active[pairs.finger, pairs.facet]
         b_anchor = state.anchor[pairs.finger, pairs.facet]
         kept = np.einsum("ki,kij->kj", b_anchor, x[fac])
-        fresh = pairs.point - state.memory[pairs.finger]
+        fresh = pairs.projection - state.memory[pairs.finger]
         return np.where(cont[:, None], kept, fresh), cont
 
     def _stick(self, body: Body, x, pairs: ContactPairs, state: FingerState):
         """Tangential stick displacement v of each pair [m], (k, 3) (Eq. 16), and the mask of
         pairs that continue from the last update."""
         Xa, cont = self._anchor_points(body, x, pairs, state)
-        s = pairs.point - Xa
+        s = pairs.projection - Xa
         return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, cont
 
     def _tangential_stiffness(self, body: Body, pairs: ContactPairs, K) -> NDArray[np.float64]:
@@ -307,12 +314,9 @@ class FingertipContact:
         return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping)
 
     def _nodal(self, body: Body, x, ev: _Eval) -> NDArray[np.float64]:
-        """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20), at the projection of the
-        fingertip centre on the facet's plane. For a facet reached through the patch rule's edge
-        fade that point lies just outside the triangle and one barycentric coordinate is negative
-        (down to -edge_fade): that node is pulled slightly towards the fingertip while the others
-        are pushed, so that the pair's force and moment stay exact (its line of action passes
-        through the fingertip centre)."""
+        """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20) at its contact point,
+        which lies in the triangle: the shape functions are >= 0, and the pair's force and moment
+        are exact."""
         f = np.zeros_like(x)
         if len(ev.pairs):
             F = -ev.fn[:, None] * ev.pairs.normal - ev.ft  # on the object
@@ -360,18 +364,17 @@ class FingertipContact:
         """Geometry and parameters shared by the compiled forces and update."""
         p = self.params
         patch = p.rule == "patch"
-        fade = p.edge_fade if patch else 0.0
         index = FacetIndex.of(body.mesh)
         return {
             "facets": body.mesh.facets,
             "boundary_nodes": index.boundary_nodes,
             "indptr": index.indptr,
             "indices": index.indices,
-            "reach": broad_phase_reach(index, fade),
+            "reach": broad_phase_reach(index),
             "centres": self.centres(t),
             "radii": self._radii(),
             "K": self.stiffness(body),
-            "fade": fade,
+            "closest": self._closest(),
             "inside_tol": INSIDE_TOL,
             "mu": p.mu,
             "exponent": p.exponent,
@@ -422,12 +425,12 @@ class FingertipContact:
         perturbation can cross a contact knife edge (a fingertip right over a vertex touches all
         the facets around it or none)."""
         ref = self.pairs(body, x_ref, t)
-        fade = self.params.edge_fade if self.params.rule == "patch" else 0.0
+        closest = self._closest()
         finger, facet = np.array(ref.finger), np.array(ref.facet)
         centres, radii = self.centres(t), self._radii()
 
         def forces(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            pairs = pair_geometry(x, body.mesh.facets, centres, radii, finger, facet, fade=fade)
+            pairs = pair_geometry(x, body.mesh.facets, centres, radii, finger, facet, closest=closest)
             return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True, pairs=pairs))
 
         return forces
@@ -462,17 +465,17 @@ class FingertipContact:
         n_exp = self.params.exponent
         patch = self.params.rule == "patch"
         if patch:
-            # Pair force w_j K delta_max^n along the facet normal at the centre's projection: the
-            # facet's rotation and the moving projection at fixed magnitude (central differences,
-            # exponent 0), plus the magnitude's dependence on the finger's deepest facet,
-            # d delta_max / d x_l = b_l (c - Q) / |c - Q| with Q its closest point (the closest
-            # point slides on the surface at no first-order cost); the weights are lagged.
+            # Pair force w_j K delta_max^n along its facet's normal at its contact point: their
+            # motion with the facet at fixed magnitude (central differences, exponent 0), plus the
+            # magnitude's dependence on the finger's deepest facet, d delta_max / d x_l =
+            # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
+            # slides on the surface at no first-order cost); the weights are lagged.
             deep = self._deepest(pr)
-            dmax = pr.overlap[deep]
-            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K * dmax**n_exp, 0.0)
+            dmax = pr.depth[deep]
+            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K * dmax**n_exp, 0.0, True)
         else:
             # Exact per-pair blocks (facet rotation and the moving contact point included).
-            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K, n_exp)
+            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K, n_exp, False)
         blk_t = np.zeros((len(pr), 3, 3))
         if self.params.mu > 0:
             nn = pr.normal[:, :, None] * pr.normal[:, None, :]
@@ -486,12 +489,10 @@ class FingertipContact:
         cols = np.tile(fac, (1, 3)).ravel()
         blocks = blocks.reshape(-1, 3, 3)
         if patch:
-            tri_d = x[fac[deep]]
-            q = np.einsum("ki,kij->kj", pr.near[deep], tri_d)
-            gap = centres - q
+            gap = centres - pr.point[deep]
             gdir = gap / np.maximum(np.linalg.norm(gap, axis=1), 1e-300)[:, None]
             g = ev.w * K * n_exp * dmax ** (n_exp - 1.0)
-            bd = pr.near[deep]
+            bd = pr.bary[deep]
             cpl = (
                 -(g[:, None, None] * pr.bary[:, :, None] * bd[:, None, :])[:, :, :, None, None]
                 * (pr.normal[:, :, None] * gdir[:, None, :])[:, None, None, :, :]
@@ -543,7 +544,7 @@ class FingertipContact:
                     s[over] = new_s
             else:
                 s = np.zeros_like(s)
-            Xa = pairs.point - s
+            Xa = pairs.projection - s
             xf = x[body.mesh.facets[j]]
             anchor[i, j] = barycentric(Xa, xf[:, 0], xf[:, 1], xf[:, 2])
             active[i, j] = True

@@ -2,8 +2,8 @@
 
 * :func:`detect_arrays`: the same broad phase (surface nodes near each fingertip, then the facets
   around them, through the mesh's :class:`~softgrasp.contact.geometry.FacetIndex`) and narrow phase
-  (projection, barycentric coordinates, edge fade, closest point, overlap) as the NumPy reference
-  :func:`softgrasp.contact.geometry.detect`, in one pass. Pairs come out in the reference's order
+  (contact point, barycentric coordinates, contact normal, facing factor) as the NumPy
+  reference :func:`softgrasp.contact.geometry.detect`, in one pass. Pairs come out in the reference's order
   (by fingertip, then by facet index).
 * :func:`fingertip_forces`: detection, relative velocity (Eq. 1-8), normal force (Eq. 9-14) with
   the patch or literal rule, elastic-slider friction with the Coulomb cap (Eq. 15-16, Algorithm 1)
@@ -58,7 +58,7 @@ def _closest_point(px, py, pz, tri, near):  # pragma: no cover - compiled
 
 @_jit
 def _detect(
-    x, facets, boundary, indptr, indices, reach, centres, radii, fade, inside_tol
+    x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
 ):  # pragma: no cover
     """Touching pairs (see :func:`detect_arrays`), per fingertip in increasing facet order."""
     n_fingers = centres.shape[0]
@@ -67,10 +67,10 @@ def _detect(
     cap = n_fingers * F  # at most every facet for every finger (np.empty: nothing is touched)
     finger = np.empty(cap, np.int64)
     facet = np.empty(cap, np.int64)
-    real = np.empty((cap, 17))  # bary 3, point 3, normal 3, distance, depth, area, reach, overlap, near 3
+    real = np.empty((cap, 16))  # bary 3, point 3, normal 3, distance, depth, area, facing, projection 3
     tri = np.empty((3, 3))
     near = np.empty(3)
-    grow = 1.0 + 3.0 * max(fade, inside_tol)
+    grow = 1.0 + 3.0 * inside_tol
     k = 0
     for f in range(n_fingers):
         cx = centres[f, 0]
@@ -97,9 +97,9 @@ def _detect(
                 tri[r, 0] = x[node, 0]
                 tri[r, 1] = x[node, 1]
                 tri[r, 2] = x[node, 2]
-            # Quick rejection, exact and conservative: every point of the triangle extended by
-            # the fade (barycentric coordinates >= -fade) lies within (1 + 3 fade) x its largest
-            # vertex distance of its centroid g, so a pair needs |c - g| < R + that.
+            # Quick rejection, exact and conservative: every contact point (inside the triangle,
+            # up to inside_tol) lies within (1 + 3 inside_tol) x its largest vertex distance of its
+            # centroid g, so a pair needs |c - g| < R + that.
             gx = (tri[0, 0] + tri[1, 0] + tri[2, 0]) / 3.0
             gy = (tri[0, 1] + tri[1, 1] + tri[2, 1]) / 3.0
             gz = (tri[0, 2] + tri[1, 2] + tri[2, 2]) / 3.0
@@ -129,7 +129,7 @@ def _detect(
             ny = Ny / twice_area
             nz = Nz / twice_area
             d = (cx - tri[0, 0]) * nx + (cy - tri[0, 1]) * ny + (cz - tri[0, 2]) * nz
-            if not (d > 0.0 and d < R):
+            if not (d > 0.0 and d < R):  # facing the centre, and within reach of the sphere
                 continue
             Px = cx - d * nx
             Py = cy - d * ny
@@ -151,39 +151,45 @@ def _detect(
             near[0] = wa
             near[1] = wb
             near[2] = wc
-            overlap = R - d
-            if fade > 0.0:
-                rch = min(max(1.0 + low / fade, 0.0), 1.0)
-                if not rch > 0.0:
-                    continue
-                if low < 0.0:
-                    overlap = R - math.sqrt(_closest_point(cx, cy, cz, tri, near))
-                if not overlap > 0.0:
-                    continue
-            else:
-                rch = 1.0
-                if not low >= -inside_tol:
-                    continue
+            dist = d
+            fac = 1.0
+            Qx = Px
+            Qy = Py
+            Qz = Pz
+            if closest:
+                if low < 0.0:  # the closest point lies on an edge
+                    _closest_point(cx, cy, cz, tri, near)
+                    Qx = near[0] * tri[0, 0] + near[1] * tri[1, 0] + near[2] * tri[2, 0]
+                    Qy = near[0] * tri[0, 1] + near[1] * tri[1, 1] + near[2] * tri[2, 1]
+                    Qz = near[0] * tri[0, 2] + near[1] * tri[1, 2] + near[2] * tri[2, 2]
+                    ex = cx - Qx
+                    ey = cy - Qy
+                    ez = cz - Qz
+                    dist = math.sqrt(ex * ex + ey * ey + ez * ez)
+                    if not dist < R:
+                        continue
+                fac = min(max(d / dist, 0.0), 1.0)
+            elif not low >= -inside_tol:
+                continue
             finger[k] = f
             facet[k] = j
             row = real[k]
-            row[0] = wa
-            row[1] = wb
-            row[2] = wc
-            row[3] = Px
-            row[4] = Py
-            row[5] = Pz
+            row[0] = near[0]
+            row[1] = near[1]
+            row[2] = near[2]
+            row[3] = Qx
+            row[4] = Qy
+            row[5] = Qz
             row[6] = nx
             row[7] = ny
             row[8] = nz
-            row[9] = d
-            row[10] = R - d
+            row[9] = dist
+            row[10] = R - dist
             row[11] = 0.5 * twice_area
-            row[12] = rch
-            row[13] = overlap
-            row[14] = near[0]
-            row[15] = near[1]
-            row[16] = near[2]
+            row[12] = fac
+            row[13] = Px
+            row[14] = Py
+            row[15] = Pz
             k += 1
     return finger[:k].copy(), facet[:k].copy(), real[:k].copy()
 
@@ -213,32 +219,33 @@ def detect_arrays(
     reach: float,
     centres: NDArray[np.float64],
     radii: NDArray[np.float64],
-    fade: float,
+    closest: bool,
     inside_tol: float,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
-    """Touching pairs: (finger (k,), facet (k,), values (k, 17)) with values' columns bary 0-2,
-    point 3-5, normal 6-8, distance 9, depth 10, area 11, reach 12, overlap 13, near 14-16.
+    """Touching pairs: (finger (k,), facet (k,), values (k, 13)) with values' columns bary 0-2,
+    point 3-5, normal 6-8, distance 9, depth 10, area 11, facing 12, projection 13-15 (the fields of
+    :class:`~softgrasp.contact.geometry.ContactPairs`).
 
     ``reach`` [m] is the broad phase's margin beyond each radius (a surface node farther than
     R + reach from a centre has no facet in contact)."""
     return _detect(
         *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
-        float(fade),
+        bool(closest),
         float(inside_tol),
     )
 
 
 @_jit
 def _patch(finger, val, nf):  # pragma: no cover - compiled
-    """Each finger's deepest pair (the first of largest overlap; -1 without pairs) and the sum of
-    its pairs' patch weights ``area x overlap x reach``."""
+    """Each finger's deepest pair (the first of largest depth; -1 without pairs) and the sum of
+    its pairs' patch weights ``area x depth x facing``."""
     deep = np.full(nf, -1, np.int64)
     total = np.zeros(nf)
     for p in range(finger.shape[0]):
         f = finger[p]
-        if deep[f] < 0 or val[p, 13] > val[deep[f], 13]:
+        if deep[f] < 0 or val[p, 10] > val[deep[f], 10]:
             deep[f] = p
-        total[f] += val[p, 11] * val[p, 13] * val[p, 12]
+        total[f] += val[p, 11] * val[p, 10] * val[p, 12]
     return deep, total
 
 
@@ -246,14 +253,14 @@ def _patch(finger, val, nf):  # pragma: no cover - compiled
 def _weight_depth(p, f, val, deep, total, patch):  # pragma: no cover - compiled
     """Pair p's weight w_j and the penetration its normal law is evaluated at."""
     if patch:
-        return val[p, 11] * val[p, 13] * val[p, 12] / total[f], val[deep[f], 13]
+        return val[p, 11] * val[p, 10] * val[p, 12] / total[f], val[deep[f], 10]
     return 1.0, val[p, 10]
 
 
 @_jit
 def _stick(p, f, j, val, x, facets, active, anchor, memory):  # pragma: no cover - compiled
     """Tangential stick displacement (Eq. 16) of pair p from its anchor: kept for a continuing
-    pair, else the contact point minus the finger's memory; and whether the pair continues."""
+    pair, else the projection point minus the finger's memory; and whether the pair continues."""
     cont = active[f, j]
     if cont:
         ax = 0.0
@@ -265,12 +272,12 @@ def _stick(p, f, j, val, x, facets, active, anchor, memory):  # pragma: no cover
             ay += anchor[f, j, m] * x[node, 1]
             az += anchor[f, j, m] * x[node, 2]
     else:
-        ax = val[p, 3] - memory[f, 0]
-        ay = val[p, 4] - memory[f, 1]
-        az = val[p, 5] - memory[f, 2]
-    sx = val[p, 3] - ax
-    sy = val[p, 4] - ay
-    sz = val[p, 5] - az
+        ax = val[p, 13] - memory[f, 0]
+        ay = val[p, 14] - memory[f, 1]
+        az = val[p, 15] - memory[f, 2]
+    sx = val[p, 13] - ax
+    sy = val[p, 14] - ay
+    sz = val[p, 15] - az
     sn = sx * val[p, 6] + sy * val[p, 7] + sz * val[p, 8]
     return sx - sn * val[p, 6], sy - sn * val[p, 7], sz - sn * val[p, 8], cont
 
@@ -297,7 +304,7 @@ def _fingertip_forces(
     omegas,
     K,
     C,
-    fade,
+    closest,
     inside_tol,
     mu,
     n_exp,
@@ -312,7 +319,7 @@ def _fingertip_forces(
 ):  # pragma: no cover - compiled
     """Dynamic contact forces added to ``out`` (N, 3); returns the number of touching pairs."""
     finger, facet, val = _detect(
-        x, facets, boundary, indptr, indices, reach, centres, radii, fade, inside_tol
+        x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
     deep, total = _patch(finger, val, centres.shape[0])
     for p in range(finger.shape[0]):
@@ -394,7 +401,7 @@ def _fingertip_update(
     centres,
     radii,
     K,
-    fade,
+    closest,
     inside_tol,
     mu,
     n_exp,
@@ -412,7 +419,7 @@ def _fingertip_update(
 ):  # pragma: no cover - compiled
     """Algorithm 1's state update into the zeroed ``new_*`` arrays; returns the pair count."""
     finger, facet, val = _detect(
-        x, facets, boundary, indptr, indices, reach, centres, radii, fade, inside_tol
+        x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
     nf = centres.shape[0]
     deep, total = _patch(finger, val, nf)
@@ -455,9 +462,9 @@ def _fingertip_update(
         wx0 = x[facets[j, 2], 0] - x[a0, 0]
         wy0 = x[facets[j, 2], 1] - x[a0, 1]
         wz0 = x[facets[j, 2], 2] - x[a0, 2]
-        qx = (val[p, 3] - sx) - x[a0, 0]
-        qy = (val[p, 4] - sy) - x[a0, 1]
-        qz = (val[p, 5] - sz) - x[a0, 2]
+        qx = (val[p, 13] - sx) - x[a0, 0]
+        qy = (val[p, 14] - sy) - x[a0, 1]
+        qz = (val[p, 15] - sz) - x[a0, 2]
         d00 = ux0 * ux0 + uy0 * uy0 + uz0 * uz0
         d01 = ux0 * wx0 + uy0 * wy0 + uz0 * wz0
         d11 = wx0 * wx0 + wy0 * wy0 + wz0 * wz0
@@ -500,7 +507,7 @@ def fingertip_forces(
     K: NDArray[np.float64],
     C: NDArray[np.float64],
     *,
-    fade: float,
+    closest: bool,
     inside_tol: float,
     mu: float,
     exponent: float,
@@ -527,7 +534,7 @@ def fingertip_forces(
         np.ascontiguousarray(omegas, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(K, dtype=f64).ravel(),
         np.ascontiguousarray(C, dtype=f64).ravel(),
-        float(fade),
+        bool(closest),
         float(inside_tol),
         float(mu),
         float(exponent),
@@ -554,7 +561,7 @@ def fingertip_update(
     radii: NDArray[np.float64],
     K: NDArray[np.float64],
     *,
-    fade: float,
+    closest: bool,
     inside_tol: float,
     mu: float,
     exponent: float,
@@ -577,7 +584,7 @@ def fingertip_update(
     _fingertip_update(
         *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
         np.ascontiguousarray(K, dtype=f64).ravel(),
-        float(fade),
+        bool(closest),
         float(inside_tol),
         float(mu),
         float(exponent),

@@ -259,18 +259,18 @@ def _max_facet_edge(x, facets):  # pragma: no cover - compiled
 @_jit
 def _finger_reach(x, fingers, x_ref, track):  # pragma: no cover - compiled
     """Broad-phase margin for the fingertip detection at x: the kernels' own ``reach`` (the rest
-    mesh's longest facet edge x (1 + 3 fade) x a stretch allowance), or less where the surface is
-    known to be less stretched.
+    mesh's longest facet edge x a stretch allowance), or less where the surface is known to be less
+    stretched.
 
-    A touching facet has a vertex within R + (1 + 3 max(fade, inside_tol)) L of the fingertip
+    A touching facet has a vertex within R + (1 + 3 inside_tol) L of the fingertip
     centre, L its longest edge now; every facet edge is at most L_ref + 2 u, where L_ref is the
     longest facet edge at the reference positions ``x_ref`` and u the largest node displacement
     since (``track`` = [L_ref, u^2], u^2 kept up to date by the integration loop). So margin
-    ``(1 + 3 max(fade, inside_tol)) (L_ref + 2 u)`` finds exactly the same pairs as ``reach``,
+    ``(1 + 3 inside_tol) (L_ref + 2 u)`` finds exactly the same pairs as ``reach``,
     scanning only facets near the fingertips. The reference is renewed when u exceeds L_ref / 4."""
     facets = fingers[1]
     reach = fingers[5]
-    grow = 1.0 + 3.0 * max(fingers[12], fingers[13])  # fade, inside_tol
+    grow = 1.0 + 3.0 * fingers[13]  # inside_tol
     u = math.sqrt(track[1])
     if u > 0.25 * track[0]:
         for i in range(x.shape[0]):
@@ -332,11 +332,11 @@ def _fingers_at(t, fingers, centres):  # pragma: no cover - compiled
 @_jit
 def _finger_forces(x, v, t, fingers, active, anchor, memory, reach, centres, out):  # pragma: no cover
     """Fingertip forces at time t added to ``out`` (:func:`softgrasp.kernels.contact._fingertip_forces`)."""
-    (_, facets, boundary, indptr, indices, _, _, vel, omega, radii, K, C, fade, inside_tol, mu, n_exp,
+    (_, facets, boundary, indptr, indices, _, _, vel, omega, radii, K, C, closest, inside_tol, mu, n_exp,
      hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
     _fingers_at(t, fingers, centres)
     _fingertip_forces(
-        x, v, facets, boundary, indptr, indices, reach, centres, radii, vel, omega, K, C, fade, inside_tol,
+        x, v, facets, boundary, indptr, indices, reach, centres, radii, vel, omega, K, C, closest, inside_tol,
         mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, memory, out,
     )  # fmt: skip
 
@@ -345,14 +345,14 @@ def _finger_forces(x, v, t, fingers, active, anchor, memory, reach, centres, out
 def _finger_update(x, t, fingers, fstate, cur, reach, centres):  # pragma: no cover - compiled
     """Fingertip friction states after a step: buffer ``cur`` of ``fstate`` updated into the other
     one (:func:`softgrasp.kernels.contact._fingertip_update`); returns the new current buffer."""
-    (_, facets, boundary, indptr, indices, _, _, _, _, radii, K, _, fade, inside_tol, mu, n_exp, _, patch,
+    (_, facets, boundary, indptr, indices, _, _, _, _, radii, K, _, closest, inside_tol, mu, n_exp, _, patch,
      ratio, min_depth_ratio) = fingers  # fmt: skip
     active, anchor, slip, memory = fstate
     nxt = 1 - cur
     _clear_finger(active[nxt], anchor[nxt], slip[nxt], memory[nxt])
     _fingers_at(t, fingers, centres)
     _fingertip_update(
-        x, facets, boundary, indptr, indices, reach, centres, radii, K, fade, inside_tol, mu, n_exp, patch,
+        x, facets, boundary, indptr, indices, reach, centres, radii, K, closest, inside_tol, mu, n_exp, patch,
         ratio, min_depth_ratio, active[cur], anchor[cur], slip[cur], memory[cur], active[nxt], anchor[nxt],
         slip[nxt], memory[nxt],
     )  # fmt: skip
@@ -871,7 +871,7 @@ class FusedStepper:
                 _f64(kw["radii"], (nf,)),
                 _f64(kw["K"], (nf,)),
                 _f64(fingers.damping(), (nf,)),
-                float(kw["fade"]),
+                bool(kw["closest"]),
                 float(kw["inside_tol"]),
                 float(kw["mu"]),
                 float(kw["exponent"]),
