@@ -21,14 +21,14 @@ penetration
     the sum of the contact-law depth (max delta_j of Eq. 14, reported separately) and the object's
     own deformation under the finger.
 
-First contact is found with the contact model's own detection (its rule and edge fade). The
-paper's detection (Sec. 3.1, ``rule="facet"``) needs the projection of the fingertip centre on a
-facet to fall inside the facet: above a mesh vertex or an edge where the surface is (even
-minutely) convex, every projection falls just outside its facet and the fingertip is never
-detected (the patch rule's edge fade removes most such blind spots). The press point is therefore
-checked before loading: if the fingertip touching the surface under it is not detected, it is moved
-towards the centroid of the facet under it (first by 1e-4 of the way, then further) until it is.
-The point used and the shift are reported.
+First contact is found with the contact model's own detection (its rule). The paper's detection
+(Sec. 3.1, ``rule="facet"``) needs the projection of the fingertip centre on a facet to fall
+inside the facet: above a mesh vertex or an edge where the surface is (even minutely) convex,
+every projection falls just outside its facet and the fingertip is never detected (the patch
+rule measures the overlap to each facet's closest point and has no such blind spot). The press
+point is therefore checked before loading: if the fingertip touching the surface under it is not
+detected, it is moved towards the centroid of the facet under it (first by 1e-4 of the way, then
+further) until it is. The point used and the shift are reported.
 """
 
 from __future__ import annotations
