@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -50,6 +52,21 @@ def test_sphere_rests_on_table_without_rolling():
     com0 = body.mass @ np.asarray(mesh.points) / body.total_mass
     com = body.mass @ state.x / body.total_mass
     assert np.hypot(*(com - com0)[:2]) < 1e-3  # leans on its tripod, does not roll away
+
+
+def test_newton_progress_is_logged_one_record_per_iteration(caplog):
+    """At DEBUG level the solver reports every Newton iteration and every friction pass: as many
+    records of each as StaticInfo counts."""
+    mesh, mat, mass = make_object("sphere", 0.016)
+    body = build_body(mesh, mat, mass=mass)
+    scene = Scene(body, (_table(),))
+    with caplog.at_level(logging.DEBUG, logger="softgrasp.sim.static"):
+        _, info = solve_static(scene, scene.initial_state())
+    its = [r.getMessage() for r in caplog.records if r.getMessage().startswith("newton it")]
+    passes = [r.getMessage() for r in caplog.records if r.getMessage().startswith("friction pass")]
+    assert len(its) == info.newton_iterations > 0
+    assert len(passes) == info.friction_passes
+    assert passes[-1].startswith(f"friction pass {info.friction_passes}: ")
 
 
 def test_static_and_dynamic_rest_states_agree():

@@ -13,6 +13,7 @@ free) are enforced with Lagrange multipliers in a saddle-point system.
 from __future__ import annotations
 
 import functools
+import logging
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,6 +27,9 @@ from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.mesh.tetmesh import signed_volumes
 from softgrasp.sim.linsolve import _SINGULAR, SolverCache, _rigid_modes, solve_newton_system
 from softgrasp.sim.scene import Scene, State
+
+#: Newton's progress at DEBUG level: each iteration's unbalanced force and accepted step, each friction pass.
+log = logging.getLogger(__name__)
 
 __all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints", "MAX_HALVINGS"]
 
@@ -261,6 +265,10 @@ def _newton(
                 f"static solve creeps (steps of {alpha:.1e} of Newton's for {creep} iterations, largest "
                 f"unbalanced force {res:.3g} N): the body is not held in this configuration"
             )
+        log.debug(
+            "newton it %d: unbalanced %.3e N (scale %.3e), step %.3g x %.3g, shift %.1e",
+            it, res, scale, alpha, cap, shift,
+        )  # fmt: skip
         lam = lam_new
         shift = shift / 10.0 if shift > 1e-4 else 0.0
         small = float(np.abs(xn - x).max()) <= 1e-13 * L
@@ -361,6 +369,8 @@ def solve_static(
         f_int = scene.body.internal_forces(x)
         scale = max(np.abs(f_int).max(), np.abs(scene.body.mass).max() * 9.81, 1e-300)
         contacts = new_contacts
+        log.debug("friction pass %d: %d Newton its, unbalanced after the slip return %.3e N", p, it,
+                  np.abs(f).max())  # fmt: skip
         if np.abs(f).max() <= max(10 * rtol * scale, 2 * res):
             return State(x, zeros, tt, contacts), StaticInfo(total_it, p, float(np.abs(f).max()), -lam)
     raise NotConverged(
