@@ -66,7 +66,7 @@ def _assert_same(scene, s0, fast, slow) -> None:
     for a, b in zip(fast.contacts, slow.contacts, strict=True):
         assert type(a) is type(b)
         assert np.array_equal(a.active, b.active)
-        for name in ("anchor", "slip", "memory"):
+        for name in ("anchor", "offset", "slip", "memory"):
             if hasattr(b, name):
                 assert np.abs(getattr(a, name) - getattr(b, name)).max() <= TOL * max(
                     np.abs(getattr(b, name)).max(), 1e-6

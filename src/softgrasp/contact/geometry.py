@@ -52,9 +52,6 @@ class ContactPairs:
     point: contact point [m], (k, 3): the projection P_j of the centre on the facet (paper's test),
         or the triangle's closest point Q_j to the centre (patch rule; P_j when inside).
     normal: the facet's outward unit normal n_j, (k, 3).
-    projection: the projection P_j of the centre on the facet's plane [m], (k, 3): the point that
-        follows the fingertip over the facet, from which friction measures its stick displacement
-        (equal to ``point`` when it falls inside the triangle).
     distance: |c - point| [m], (k,) (d_j, the centre-to-plane distance, with the paper's test).
     depth: penetration delta_j = R - distance [m], (k,) (Eq. 14).
     area: current facet area [m^2], (k,).
@@ -71,7 +68,6 @@ class ContactPairs:
     depth: NDArray[np.float64]
     area: NDArray[np.float64]
     facing: NDArray[np.float64]
-    projection: NDArray[np.float64]
 
     def __len__(self) -> int:
         return int(self.finger.size)
@@ -259,9 +255,8 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bo
     ctr = centres[fi]
     d = np.einsum("ij,ij->i", ctr - a, n)
     R = radii[fi]
-    proj = ctr - d[:, None] * n
-    point = proj.copy()
-    bary = barycentric(proj, a, b, c3)
+    point = ctr - d[:, None] * n
+    bary = barycentric(point, a, b, c3)
     low = bary.min(axis=1)
     if closest:
         out = np.flatnonzero(low < 0)
@@ -286,7 +281,6 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bo
         depth=R[ok] - dist[ok],
         area=0.5 * twice_area[ok],
         facing=fac[ok],
-        projection=proj[ok],
     )
 
 
@@ -300,7 +294,7 @@ def _detect_compiled(
 ) -> ContactPairs:
     """:func:`detect` with the node-index broad phase, by the compiled kernel
     (:mod:`softgrasp.kernels.contact`): the same pairs in the same order, fields equal to
-    round-off. The float fields are read-only views of one (k, 16) array."""
+    round-off. The float fields are read-only views of one (k, 13) array."""
     from softgrasp.kernels.contact import detect_arrays
 
     fi, fj, val = detect_arrays(
@@ -326,14 +320,13 @@ def _detect_compiled(
         depth=val[:, 10],
         area=val[:, 11],
         facing=val[:, 12],
-        projection=val[:, 13:16],
     )
 
 
 def _empty() -> ContactPairs:
     z3 = np.zeros((0, 3))
     z = np.zeros(0)
-    return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z, z3)
+    return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z)
 
 
 def relative_velocity(

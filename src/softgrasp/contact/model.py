@@ -5,8 +5,9 @@ For every touching (fingertip, facet) pair j (Sec. 3.1, :func:`softgrasp.contact
 * normal force ``f_n = w_j max(0, K delta^n + C delta_dot)`` along the facet's inward normal
   (Eq. 9-14), with the rule's weight w_j (:class:`ContactParams`);
 * friction by an elastic slider per pair (Eq. 15-16, Algorithm 1): an anchor (a material point of the
-  facet, kept in barycentric coordinates) and the stick displacement v from it to the centre's
-  projection on the facet's plane (the point that follows the fingertip over the facet);
+  facet, kept in barycentric coordinates, where the pair started) and the stick displacement v,
+  how far the fingertip centre has moved relative to it since (tangentially to the facet), so that
+  neither the facet's rotation nor the contact point's sliding along an edge counts as stick;
   stick force ``-w (k_t v + c_t V_t)`` while its norm <= mu f_n, otherwise Coulomb slip
   ``-mu f_n V_t / |V_t|`` and the anchor is dragged (slip displacement u). Both reset when the finger
   leaves the object. A pair that starts while its finger is already sliding on a neighbouring facet
@@ -36,7 +37,6 @@ from softgrasp.contact.geometry import (
     INSIDE_TOL,
     ContactPairs,
     FacetIndex,
-    barycentric,
     broad_phase_reach,
     detect,
     pair_geometry,
@@ -64,14 +64,19 @@ class FingerState:
     Attributes
     ----------
     active: pair in contact at the last update, bool.
-    anchor: barycentric coordinates of the stick anchor on the facet, (n_f, F, 3) (the stick
-        displacement v of Eq. 16 runs from this material point to the contact point).
+    anchor: barycentric coordinates of the stick anchor X_a on the facet, a material point (the
+        pair's contact point when it started), (n_f, F, 3).
+    offset: the fingertip centre's position relative to the anchor when the pair was last in
+        equilibrium with its stick (its start, or its last slip) [m], (n_f, F, 3): the stick
+        displacement v of Eq. 16 is the tangential part of (c - X_a) - offset, how far the
+        fingertip has moved over the material since.
     slip: accumulated slip displacement u [m], (n_f, F, 3).
     memory: each finger's weighted mean stick displacement at the last update [m], (n_f, 3).
     """
 
     active: NDArray[np.bool_]
     anchor: NDArray[np.float64]
+    offset: NDArray[np.float64]
     slip: NDArray[np.float64]
     memory: NDArray[np.float64]
 
@@ -241,22 +246,26 @@ class FingertipContact:
             return pairs.depth
         return pairs.depth[self._deepest(pairs)]
 
-    def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState):
-        """Stick anchors in space: kept for continuing pairs; for new pairs the projection point minus
-        the finger's remembered stick displacement (zero unless it slides on from a neighbour)."""
+    def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState, t: float):
+        """Stick anchors in space (k, 3), the centre's offsets from them (k, 3) and the mask of
+        continuing pairs: kept for continuing pairs; a new pair is anchored at its contact point,
+        its offset set so that its stick displacement is the finger's remembered one (zero
+        unless the finger slides on from a neighbouring facet)."""
         fac = body.mesh.facets[pairs.facet]
         cont = state.active[pairs.finger, pairs.facet]
-        b_anchor = state.anchor[pairs.finger, pairs.facet]
-        kept = np.einsum("ki,kij->kj", b_anchor, x[fac])
-        fresh = pairs.projection - state.memory[pairs.finger]
-        return np.where(cont[:, None], kept, fresh), cont
+        kept = np.einsum("ki,kij->kj", state.anchor[pairs.finger, pairs.facet], x[fac])
+        Xa = np.where(cont[:, None], kept, pairs.point)
+        c = self.centres(t)[pairs.finger]
+        fresh = c - pairs.point - state.memory[pairs.finger]
+        off = np.where(cont[:, None], state.offset[pairs.finger, pairs.facet], fresh)
+        return Xa, off, cont
 
-    def _stick(self, body: Body, x, pairs: ContactPairs, state: FingerState):
-        """Tangential stick displacement v of each pair [m], (k, 3) (Eq. 16), and the mask of
-        pairs that continue from the last update."""
-        Xa, cont = self._anchor_points(body, x, pairs, state)
-        s = pairs.projection - Xa
-        return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, cont
+    def _stick(self, body: Body, x, pairs: ContactPairs, state: FingerState, t: float):
+        """Tangential stick displacement v of each pair [m], (k, 3) (Eq. 16), the anchors in
+        space and the mask of pairs that continue from the last update."""
+        Xa, off, cont = self._anchor_points(body, x, pairs, state, t)
+        s = self.centres(t)[pairs.finger] - Xa - off
+        return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, Xa, cont
 
     def _tangential_stiffness(self, body: Body, pairs: ContactPairs, K) -> NDArray[np.float64]:
         """k_t of each pair [N/m]: Mindlin's ratio times dF_n/d delta at the pair's penetration
@@ -296,7 +305,7 @@ class FingertipContact:
         slipping = np.zeros(len(pairs), bool)
         kt = np.zeros(len(pairs))
         if p.mu > 0 and len(pairs):
-            s, _ = self._stick(body, x, pairs, state)
+            s, _, _ = self._stick(body, x, pairs, state, t)
             stick = s
             kt = self._tangential_stiffness(body, pairs, K)
             ct = self._ratio(body) * C
@@ -332,6 +341,7 @@ class FingertipContact:
         empty = FingerState(
             active=np.zeros((nf, F), bool),
             anchor=np.zeros((nf, F, 3)),
+            offset=np.zeros((nf, F, 3)),
             slip=np.zeros((nf, F, 3)),
             memory=np.zeros((nf, 3)),
         )
@@ -395,6 +405,7 @@ class FingertipContact:
             hunt_crossley=self.params.damping == "hunt-crossley",
             active=state.active,
             anchor=state.anchor,
+            offset=state.offset,
             memory=state.memory,
             **self._compiled_kwargs(body, t),
         )
@@ -402,15 +413,16 @@ class FingertipContact:
     def _update_compiled(self, body: Body, x, t: float, state: FingerState) -> FingerState:
         from softgrasp.kernels.contact import fingertip_update
 
-        active, anchor, slip, memory = fingertip_update(
+        active, anchor, offset, slip, memory = fingertip_update(
             x,
             active=state.active,
             anchor=state.anchor,
+            offset=state.offset,
             slip=state.slip,
             memory=state.memory,
             **self._compiled_kwargs(body, t),
         )
-        return replace(state, active=active, anchor=anchor, slip=slip, memory=memory)
+        return replace(state, active=active, anchor=anchor, offset=offset, slip=slip, memory=memory)
 
     def static_forces(self, body: Body, x, t: float, state: FingerState) -> NDArray[np.float64]:
         """Contact forces at rest with lagged weights, limits and k_t."""
@@ -523,6 +535,7 @@ class FingertipContact:
         nf, F = state.active.shape
         active = np.zeros((nf, F), bool)
         anchor = np.zeros((nf, F, 3))
+        offset = np.zeros((nf, F, 3))
         slip = np.zeros((nf, F, 3))
         memory = np.zeros((nf, 3))
         if len(pairs):
@@ -531,7 +544,7 @@ class FingertipContact:
             w = self._patch_weights(pairs)
             elastic = normal_force(self._depths(pairs), np.zeros(len(pairs)), K, 0.0, p.exponent)
             kt = self._tangential_stiffness(body, pairs, K)
-            s, cont = self._stick(body, x, pairs, state)
+            s, Xa, cont = self._stick(body, x, pairs, state, t)
             u = np.where(cont[:, None], state.slip[i, j], 0.0)
             if p.mu > 0:
                 lim = p.mu * w * elastic
@@ -540,19 +553,18 @@ class FingertipContact:
                 over = keff * s_norm > lim
                 if over.any():
                     new_s = s[over] * (lim[over] / (keff[over] * s_norm[over]))[:, None]
-                    u[over] += s[over] - new_s  # the anchor is dragged: slip displacement
+                    u[over] += s[over] - new_s  # the stick is cut back: slip displacement
                     s[over] = new_s
             else:
                 s = np.zeros_like(s)
-            Xa = pairs.projection - s
-            xf = x[body.mesh.facets[j]]
-            anchor[i, j] = barycentric(Xa, xf[:, 0], xf[:, 1], xf[:, 2])
+            anchor[i, j] = np.where(cont[:, None], state.anchor[i, j], pairs.bary)
+            offset[i, j] = self.centres(t)[i] - Xa - s
             active[i, j] = True
             slip[i, j] = u
             ws = np.bincount(i, weights=w, minlength=nf)
             for k in range(3):
                 memory[:, k] = np.bincount(i, weights=w * s[:, k], minlength=nf) / np.maximum(ws, 1e-300)
-        return replace(state, active=active, anchor=anchor, slip=slip, memory=memory)
+        return replace(state, active=active, anchor=anchor, offset=offset, slip=slip, memory=memory)
 
     def refresh(self, body: Body, x, t: float, state: FingerState) -> FingerState:
         """Light update between Newton steps of a static solve: continuing pairs keep their
@@ -562,15 +574,16 @@ class FingertipContact:
         nf, F = state.active.shape
         active = np.zeros((nf, F), bool)
         anchor = np.zeros((nf, F, 3))
+        offset = np.zeros((nf, F, 3))
         slip = np.zeros((nf, F, 3))
         if len(pairs):
             i, j = pairs.finger, pairs.facet
-            Xa, cont = self._anchor_points(body, x, pairs, state)
-            xf = x[body.mesh.facets[j]]
-            anchor[i, j] = barycentric(Xa, xf[:, 0], xf[:, 1], xf[:, 2])
+            _, off, cont = self._anchor_points(body, x, pairs, state, t)
+            anchor[i, j] = np.where(cont[:, None], state.anchor[i, j], pairs.bary)
+            offset[i, j] = off
             active[i, j] = True
             slip[i, j] = np.where(cont[:, None], state.slip[i, j], 0.0)
-        return replace(state, active=active, anchor=anchor, slip=slip)
+        return replace(state, active=active, anchor=anchor, offset=offset, slip=slip)
 
     def stiffness_bound(self, body: Body) -> NDArray[np.float64]:
         """Largest contact stiffness a node may see [N/m] (at a penetration of half the radius)."""

@@ -67,7 +67,7 @@ def _detect(
     cap = n_fingers * F  # at most every facet for every finger (np.empty: nothing is touched)
     finger = np.empty(cap, np.int64)
     facet = np.empty(cap, np.int64)
-    real = np.empty((cap, 16))  # bary 3, point 3, normal 3, distance, depth, area, facing, projection 3
+    real = np.empty((cap, 13))  # bary 3, point 3, normal 3, distance, depth, area, facing
     tri = np.empty((3, 3))
     near = np.empty(3)
     grow = 1.0 + 3.0 * inside_tol
@@ -187,9 +187,6 @@ def _detect(
             row[10] = R - dist
             row[11] = 0.5 * twice_area
             row[12] = fac
-            row[13] = Px
-            row[14] = Py
-            row[15] = Pz
             k += 1
     return finger[:k].copy(), facet[:k].copy(), real[:k].copy()
 
@@ -223,7 +220,7 @@ def detect_arrays(
     inside_tol: float,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
     """Touching pairs: (finger (k,), facet (k,), values (k, 13)) with values' columns bary 0-2,
-    point 3-5, normal 6-8, distance 9, depth 10, area 11, facing 12, projection 13-15 (the fields of
+    point 3-5, normal 6-8, distance 9, depth 10, area 11, facing 12 (the fields of
     :class:`~softgrasp.contact.geometry.ContactPairs`).
 
     ``reach`` [m] is the broad phase's margin beyond each radius (a surface node farther than
@@ -258,9 +255,11 @@ def _weight_depth(p, f, val, deep, total, patch):  # pragma: no cover - compiled
 
 
 @_jit
-def _stick(p, f, j, val, x, facets, active, anchor, memory):  # pragma: no cover - compiled
-    """Tangential stick displacement (Eq. 16) of pair p from its anchor: kept for a continuing
-    pair, else the projection point minus the finger's memory; and whether the pair continues."""
+def _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory):  # pragma: no cover
+    """Tangential stick displacement (Eq. 16) of pair p: (c - X_a) - o in the facet's plane, with
+    X_a the anchor (a material point of the facet) and o the centre's offset from it when it was
+    set; a new pair is anchored at its contact point with the finger's memory as its stick.
+    Returns (s_x, s_y, s_z, whether the pair continues, X_a's x, y, z)."""
     cont = active[f, j]
     if cont:
         ax = 0.0
@@ -271,15 +270,21 @@ def _stick(p, f, j, val, x, facets, active, anchor, memory):  # pragma: no cover
             ax += anchor[f, j, m] * x[node, 0]
             ay += anchor[f, j, m] * x[node, 1]
             az += anchor[f, j, m] * x[node, 2]
+        ox = offset[f, j, 0]
+        oy = offset[f, j, 1]
+        oz = offset[f, j, 2]
     else:
-        ax = val[p, 13] - memory[f, 0]
-        ay = val[p, 14] - memory[f, 1]
-        az = val[p, 15] - memory[f, 2]
-    sx = val[p, 13] - ax
-    sy = val[p, 14] - ay
-    sz = val[p, 15] - az
+        ax = val[p, 3]
+        ay = val[p, 4]
+        az = val[p, 5]
+        ox = centres[f, 0] - ax - memory[f, 0]
+        oy = centres[f, 1] - ay - memory[f, 1]
+        oz = centres[f, 2] - az - memory[f, 2]
+    sx = centres[f, 0] - ax - ox
+    sy = centres[f, 1] - ay - oy
+    sz = centres[f, 2] - az - oz
     sn = sx * val[p, 6] + sy * val[p, 7] + sz * val[p, 8]
-    return sx - sn * val[p, 6], sy - sn * val[p, 7], sz - sn * val[p, 8], cont
+    return sx - sn * val[p, 6], sy - sn * val[p, 7], sz - sn * val[p, 8], cont, ax, ay, az
 
 
 @_jit
@@ -314,6 +319,7 @@ def _fingertip_forces(
     min_depth_ratio,
     active,
     anchor,
+    offset,
     memory,
     out,
 ):  # pragma: no cover - compiled
@@ -358,7 +364,7 @@ def _fingertip_forces(
         fty = 0.0
         ftz = 0.0
         if mu > 0.0:
-            sx, sy, sz, _ = _stick(p, f, j, val, x, facets, active, anchor, memory)
+            sx, sy, sz, _, _, _, _ = _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory)
             kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
             a = -(w * kt)
             b = w * (ratio * C[f])
@@ -410,10 +416,12 @@ def _fingertip_update(
     min_depth_ratio,
     active,
     anchor,
+    offset,
     slip,
     memory,
     new_active,
     new_anchor,
+    new_offset,
     new_slip,
     new_memory,
 ):  # pragma: no cover - compiled
@@ -431,7 +439,9 @@ def _fingertip_update(
         elastic = K[f] * max(depth, 0.0) ** n_exp if depth > 0.0 else 0.0
         elastic = max(elastic, 0.0)
         kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
-        sx, sy, sz, cont = _stick(p, f, j, val, x, facets, active, anchor, memory)
+        sx, sy, sz, cont, ax, ay, az = _stick(
+            p, f, j, val, x, facets, centres, active, anchor, offset, memory
+        )
         ux = slip[f, j, 0] if cont else 0.0
         uy = slip[f, j, 1] if cont else 0.0
         uz = slip[f, j, 2] if cont else 0.0
@@ -439,7 +449,7 @@ def _fingertip_update(
             lim = mu * w * elastic
             s_norm = math.sqrt(sx * sx + sy * sy + sz * sz)
             keff = w * kt
-            if keff * s_norm > lim:  # slip: the anchor is dragged to the Coulomb limit
+            if keff * s_norm > lim:  # slip: the stick is cut back to the Coulomb limit
                 r = lim / (keff * s_norm)
                 nsx = sx * r
                 nsy = sy * r
@@ -454,28 +464,12 @@ def _fingertip_update(
             sx = 0.0
             sy = 0.0
             sz = 0.0
-        # the anchor Xa = P - s in barycentric coordinates of the facet
-        a0 = facets[j, 0]
-        ux0 = x[facets[j, 1], 0] - x[a0, 0]
-        uy0 = x[facets[j, 1], 1] - x[a0, 1]
-        uz0 = x[facets[j, 1], 2] - x[a0, 2]
-        wx0 = x[facets[j, 2], 0] - x[a0, 0]
-        wy0 = x[facets[j, 2], 1] - x[a0, 1]
-        wz0 = x[facets[j, 2], 2] - x[a0, 2]
-        qx = (val[p, 13] - sx) - x[a0, 0]
-        qy = (val[p, 14] - sy) - x[a0, 1]
-        qz = (val[p, 15] - sz) - x[a0, 2]
-        d00 = ux0 * ux0 + uy0 * uy0 + uz0 * uz0
-        d01 = ux0 * wx0 + uy0 * wy0 + uz0 * wz0
-        d11 = wx0 * wx0 + wy0 * wy0 + wz0 * wz0
-        d20 = qx * ux0 + qy * uy0 + qz * uz0
-        d21 = qx * wx0 + qy * wy0 + qz * wz0
-        den = d00 * d11 - d01 * d01
-        wb = (d11 * d20 - d01 * d21) / den
-        wc = (d00 * d21 - d01 * d20) / den
-        new_anchor[f, j, 0] = 1.0 - wb - wc
-        new_anchor[f, j, 1] = wb
-        new_anchor[f, j, 2] = wc
+        # the anchor stays (a new pair's at its contact point); the offset takes the slip
+        for m in range(3):
+            new_anchor[f, j, m] = anchor[f, j, m] if cont else val[p, m]
+        new_offset[f, j, 0] = centres[f, 0] - ax - sx
+        new_offset[f, j, 1] = centres[f, 1] - ay - sy
+        new_offset[f, j, 2] = centres[f, 2] - az - sz
         new_active[f, j] = True
         new_slip[f, j, 0] = ux
         new_slip[f, j, 1] = uy
@@ -517,11 +511,12 @@ def fingertip_forces(
     min_depth_ratio: float,
     active: NDArray[np.bool_],
     anchor: NDArray[np.float64],
+    offset: NDArray[np.float64],
     memory: NDArray[np.float64],
 ) -> NDArray[np.float64]:
     """Contact forces on the nodes [N], (N, 3), of fingertips (centres, radii, velocities, omegas,
     stiffness K [N/m^n] and damping C [N s/m] per fingertip) with friction state (active (n_f, F),
-    anchor (n_f, F, 3), memory (n_f, 3)); parameters as in
+    anchor (n_f, F, 3), offset (n_f, F, 3) [m], memory (n_f, 3) [m]); parameters as in
     :class:`softgrasp.contact.fingertip.ContactParams` (``ratio`` = k_t / k_n)."""
     f64 = np.float64
     geometry = _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii)
@@ -544,6 +539,7 @@ def fingertip_forces(
         float(min_depth_ratio),
         np.ascontiguousarray(active, dtype=np.bool_),
         np.ascontiguousarray(anchor, dtype=f64),
+        np.ascontiguousarray(offset, dtype=f64),
         np.ascontiguousarray(memory, dtype=f64),
         out,
     )
@@ -570,15 +566,19 @@ def fingertip_update(
     min_depth_ratio: float,
     active: NDArray[np.bool_],
     anchor: NDArray[np.float64],
+    offset: NDArray[np.float64],
     slip: NDArray[np.float64],
     memory: NDArray[np.float64],
-) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[
+    NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]
+]:
     """The friction state after an accepted step (Algorithm 1, as
     :meth:`softgrasp.contact.model.FingertipContact.update`): new (active (n_f, F), anchor
-    (n_f, F, 3), slip (n_f, F, 3) [m], memory (n_f, 3) [m])."""
+    (n_f, F, 3), offset (n_f, F, 3) [m], slip (n_f, F, 3) [m], memory (n_f, 3) [m])."""
     f64 = np.float64
     new_active = np.zeros(active.shape, np.bool_)
     new_anchor = np.zeros(anchor.shape)
+    new_offset = np.zeros(offset.shape)
     new_slip = np.zeros(slip.shape)
     new_memory = np.zeros(memory.shape)
     _fingertip_update(
@@ -593,11 +593,13 @@ def fingertip_update(
         float(min_depth_ratio),
         np.ascontiguousarray(active, dtype=np.bool_),
         np.ascontiguousarray(anchor, dtype=f64),
+        np.ascontiguousarray(offset, dtype=f64),
         np.ascontiguousarray(slip, dtype=f64),
         np.ascontiguousarray(memory, dtype=f64),
         new_active,
         new_anchor,
+        new_offset,
         new_slip,
         new_memory,
     )
-    return new_active, new_anchor, new_slip, new_memory
+    return new_active, new_anchor, new_offset, new_slip, new_memory

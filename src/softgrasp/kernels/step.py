@@ -284,7 +284,7 @@ def _finger_reach(x, fingers, x_ref, track):  # pragma: no cover - compiled
 
 
 @_jit
-def _clear_finger(active, anchor, slip, memory):  # pragma: no cover - compiled
+def _clear_finger(active, anchor, offset, slip, memory):  # pragma: no cover - compiled
     """Zero a finger state buffer that only holds entries where ``active`` is set."""
     for f in range(active.shape[0]):
         for j in range(active.shape[1]):
@@ -292,6 +292,7 @@ def _clear_finger(active, anchor, slip, memory):  # pragma: no cover - compiled
                 active[f, j] = False
                 for d in range(3):
                     anchor[f, j, d] = 0.0
+                    offset[f, j, d] = 0.0
                     slip[f, j, d] = 0.0
         for d in range(3):
             memory[f, d] = 0.0
@@ -330,14 +331,14 @@ def _fingers_at(t, fingers, centres):  # pragma: no cover - compiled
 
 
 @_jit
-def _finger_forces(x, v, t, fingers, active, anchor, memory, reach, centres, out):  # pragma: no cover
+def _finger_forces(x, v, t, fingers, active, anchor, offset, memory, reach, centres, out):  # pragma: no cover
     """Fingertip forces at time t added to ``out`` (:func:`softgrasp.kernels.contact._fingertip_forces`)."""
     (_, facets, boundary, indptr, indices, _, _, vel, omega, radii, K, C, closest, inside_tol, mu, n_exp,
      hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
     _fingers_at(t, fingers, centres)
     _fingertip_forces(
         x, v, facets, boundary, indptr, indices, reach, centres, radii, vel, omega, K, C, closest, inside_tol,
-        mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, memory, out,
+        mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, out,
     )  # fmt: skip
 
 
@@ -347,14 +348,14 @@ def _finger_update(x, t, fingers, fstate, cur, reach, centres):  # pragma: no co
     one (:func:`softgrasp.kernels.contact._fingertip_update`); returns the new current buffer."""
     (_, facets, boundary, indptr, indices, _, _, _, _, radii, K, _, closest, inside_tol, mu, n_exp, _, patch,
      ratio, min_depth_ratio) = fingers  # fmt: skip
-    active, anchor, slip, memory = fstate
+    active, anchor, slip, memory, offset = fstate
     nxt = 1 - cur
-    _clear_finger(active[nxt], anchor[nxt], slip[nxt], memory[nxt])
+    _clear_finger(active[nxt], anchor[nxt], offset[nxt], slip[nxt], memory[nxt])
     _fingers_at(t, fingers, centres)
     _fingertip_update(
         x, facets, boundary, indptr, indices, reach, centres, radii, K, closest, inside_tol, mu, n_exp, patch,
-        ratio, min_depth_ratio, active[cur], anchor[cur], slip[cur], memory[cur], active[nxt], anchor[nxt],
-        slip[nxt], memory[nxt],
+        ratio, min_depth_ratio, active[cur], anchor[cur], offset[cur], slip[cur], memory[cur], active[nxt],
+        anchor[nxt], offset[nxt], slip[nxt], memory[nxt],
     )  # fmt: skip
     return nxt
 
@@ -451,7 +452,17 @@ def _forces_at(
     if fingers[0]:
         reach = _finger_reach(x, fingers, x_ref, track)
         _finger_forces(
-            x, v, t, fingers, fstate[0][cur], fstate[1][cur], fstate[3][cur], reach, centres, ffinger
+            x,
+            v,
+            t,
+            fingers,
+            fstate[0][cur],
+            fstate[1][cur],
+            fstate[4][cur],
+            fstate[3][cur],
+            reach,
+            centres,
+            ffinger,
         )
 
 
@@ -505,7 +516,19 @@ def _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on):  # pragma: no
     fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
     reach = _finger_reach(x, fingers, x_ref, track)
     cur = _finger_update(x, t, fingers, fstate, cur, reach, centres)
-    _finger_forces(x, v, t, fingers, fstate[0][cur], fstate[1][cur], fstate[3][cur], reach, centres, ffinger)
+    _finger_forces(
+        x,
+        v,
+        t,
+        fingers,
+        fstate[0][cur],
+        fstate[1][cur],
+        fstate[4][cur],
+        fstate[3][cur],
+        reach,
+        centres,
+        ffinger,
+    )
     power = 0.0
     if monitor_on:
         for i in range(x.shape[0]):
@@ -884,12 +907,14 @@ class FusedStepper:
             act = np.asarray(st.active, dtype=np.bool_)
             self.f_active = np.zeros((2, nf, F), np.bool_)
             self.f_anchor = np.zeros((2, nf, F, 3))
+            self.f_offset = np.zeros((2, nf, F, 3))
             self.f_slip = np.zeros((2, nf, F, 3))
             self.f_memory = np.zeros((2, nf, 3))
             # buffer 0 holds the state; entries of inactive pairs are never read and kept zero so that
             # a buffer can be cleared through its active flags
             self.f_active[0] = act
             self.f_anchor[0] = np.where(act[:, :, None], st.anchor, 0.0)
+            self.f_offset[0] = np.where(act[:, :, None], st.offset, 0.0)
             self.f_slip[0] = np.where(act[:, :, None], st.slip, 0.0)
             self.f_memory[0] = st.memory
         else:
@@ -902,10 +927,11 @@ class FusedStepper:
             nf, F = 1, 1
             self.f_active = np.zeros((2, 1, 1), np.bool_)
             self.f_anchor = np.zeros((2, 1, 1, 3))
+            self.f_offset = np.zeros((2, 1, 1, 3))
             self.f_slip = np.zeros((2, 1, 1, 3))
             self.f_memory = np.zeros((2, 1, 3))
         self._cur = 0
-        self._fstate = (self.f_active, self.f_anchor, self.f_slip, self.f_memory)
+        self._fstate = (self.f_active, self.f_anchor, self.f_slip, self.f_memory, self.f_offset)
         # RK4: stage positions and velocities, and the weighted sums of the stage velocities and
         # accelerations
         self._rk = tuple(np.zeros((N, 3) if method == "rk4" else (1, 3)) for _ in range(4))
@@ -999,6 +1025,7 @@ class FusedStepper:
             template,
             active=self.f_active[c].copy(),
             anchor=self.f_anchor[c].copy(),
+            offset=self.f_offset[c].copy(),
             slip=self.f_slip[c].copy(),
             memory=self.f_memory[c].copy(),
         )
