@@ -15,7 +15,7 @@ from softgrasp.objects import make_object
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.integrators import settle
 from softgrasp.sim.scene import Scene
-from softgrasp.sim.static import solve_static
+from softgrasp.sim.static import _cycle, solve_static
 from softgrasp.supports import Tether
 
 G = 9.80665
@@ -67,6 +67,17 @@ def test_newton_progress_is_logged_one_record_per_iteration(caplog):
     assert len(its) == info.newton_iterations > 0
     assert len(passes) == info.friction_passes
     assert passes[-1].startswith(f"friction pass {info.friction_passes}: ")
+
+
+def test_cycling_newton_iterates_are_recognised():
+    """Newton's iterates that return to the same unbalanced forces with a period of 2-4, twice in
+    a row, cycle (and would to the iteration limit); converging or merely noisy ones do not."""
+    assert _cycle([5.0, 1e-3, 2e-3, 1e-3, 2e-3]) == 2
+    assert _cycle([9.4e-3, 9.36e-3, 3.2e-2, 9.4e-3, 9.36e-3, 3.2e-2]) == 3
+    assert _cycle([1.0, 0.5, 1.0, 0.5, 0.25]) == 0  # converging after one return
+    assert _cycle([1e-3, 2e-3, 1e-3]) == 0  # one return only
+    assert _cycle([1e-3 * 0.5**k for k in range(12)]) == 0
+    assert _cycle([1e-3, 2e-3, 1e-3 * (1 + 1e-6), 2e-3]) == 0  # close but not the same iterates
 
 
 def test_static_and_dynamic_rest_states_agree():

@@ -42,6 +42,10 @@ MAX_HALVINGS = 4
 #: the Newton step that reduced the largest unbalanced force by less than 1 %.
 CREEP_ITERATIONS = 6
 CREEP_ALPHA = 1.0 / 64
+#: Newton gives up when its iterates cycle: the unbalanced force repeats (to this relative
+#: tolerance) with a period of 2 to 4 iterations, twice in a row (a node or a contact pair
+#: switching in and out on every other step; it would cycle to the iteration limit).
+CYCLE_RTOL = 1e-9
 #: Largest relative residual of a Newton step's linear solve (the inexact Newton forcing term is
 #: the relative unbalanced force, capped here). With looser solves the iterates wander further and
 #: the friction problem, whose equilibria are not unique, was seen to settle in a neighbouring one
@@ -205,6 +209,7 @@ def _newton(
     grav = np.abs(body.mass[:, None] * body.gravity[None, :]).max()
     shift = 0.0
     creep, last_res = 0, np.inf
+    history: list[float] = []  # the unbalanced force [N] at the start of each iteration
     start = contacts
     for it in range(1, max_iter + 1):
         f = scene.static_forces(x, t, contacts)
@@ -265,6 +270,16 @@ def _newton(
                 f"static solve creeps (steps of {alpha:.1e} of Newton's for {creep} iterations, largest "
                 f"unbalanced force {res:.3g} N): the body is not held in this configuration"
             )
+        history.append(res)
+        if period := _cycle(history):
+            if res <= STALL_RTOL * scale:
+                return x, it, res, lam_new, contacts  # balanced to 1e-6 of the largest force: accept
+            if _free_rigid_motion(scene, x, t, contacts, C):
+                raise NotConverged(f"static solve did not converge: {_SINGULAR}")
+            raise NotConverged(
+                f"static solve cycles (the same {period} iterates over and over, largest unbalanced force "
+                f"{res:.3g} N); use smaller load steps"
+            )
         log.debug(
             "newton it %d: unbalanced %.3e N (scale %.3e), step %.3g x %.3g, shift %.1e",
             it, res, scale, alpha, cap, shift,
@@ -292,6 +307,17 @@ def _newton(
         f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
         f"{res:.3g} N); use smaller load steps"
     )
+
+
+def _cycle(history: list[float]) -> int:
+    """The period (2-4) with which the last values of ``history`` repeat, twice in a row, to
+    :data:`CYCLE_RTOL`; 0 if they do not."""
+    for p in (2, 3, 4):
+        if len(history) >= 2 * p and all(
+            abs(history[-1 - k] - history[-1 - k - p]) <= CYCLE_RTOL * history[-1 - k] for k in range(p)
+        ):
+            return p
+    return 0
 
 
 def _free_rigid_motion(scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple, C) -> bool:
