@@ -108,6 +108,29 @@ def test_pardiso_factorises_indefinite_matrices_and_counts_negative_pivots():
     assert np.abs(M @ f.solve(b) - b).max() <= 1e-8 * np.abs(b).max() * np.abs(M).max()
 
 
+def test_multigrid_cg_shifts_an_indefinite_stiffness_into_a_descent_step():
+    """The foam cube's stiffness with one strongly negative direction (a body about to tip): CG
+    meets negative curvature, so the multigrid path solves the diagonally shifted system instead
+    (Levenberg-Marquardt) to its tolerance; the step is a descent direction (b . x > 0) and, along
+    the stiff directions, close to the unshifted solution."""
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    K = _stiffness()
+    lam, vecs = np.linalg.eigh(K.toarray())
+    v = vecs[:, 0]  # the softest mode, turned unstable
+    A = (K - sp.csr_matrix(np.outer((lam[0] + lam[6]) * v, v))).tocsr()
+    assert float(v @ (A @ v)) < 0  # indefinite
+    b = v + 0.1 * (K @ np.random.default_rng(6).standard_normal(K.shape[0])) / lam[-1]
+    cache = SolverCache(method="amg")
+    x, _ = solve_newton_system(A, b, None, np.asarray(body.mesh.points), cache)
+    assert cache.stats.get("shifted", 0) == 1
+    assert float(b @ x) > 0
+    # it solves (A + tau D) x = b for one of the shifts tried, D = |diag A|
+    D = np.abs(A.diagonal())
+    taus = [1e-6 * 10.0**k for k in range(7)]
+    res = [np.linalg.norm(A @ x + tau * D * x - b) / np.linalg.norm(b) for tau in taus]
+    assert min(res) < 1e-8, res
+
+
 @needs_mkl
 def test_pattern_subsets_reuse_the_analysis_and_unions_take_both():
     K = _stiffness()

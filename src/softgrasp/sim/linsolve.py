@@ -25,6 +25,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -119,6 +120,43 @@ def _direct(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None):
     return sol[: A.shape[0]], sol[A.shape[0] :]
 
 
+def _cg(
+    A: sp.csr_matrix,
+    b: NDArray[np.float64],
+    M: Any,
+    proj: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    rtol: float,
+    max_it: int,
+) -> tuple[NDArray[np.float64], int, bool]:
+    """Preconditioned conjugate gradients on ``A x = b`` in the range of ``proj``. Returns (x, the
+    iterations, whether they met negative curvature: then x is the progress so far, or the first
+    direction, both descent directions)."""
+    x = np.zeros_like(b)
+    r = proj(b).copy()  # never modify the caller's vector
+    bnorm = float(np.linalg.norm(r))
+    if bnorm == 0:
+        return x, 0, False
+    z = proj(M @ r)
+    p = z.copy()
+    rz = float(r @ z)
+    it = 0
+    for it in range(1, max_it + 1):
+        Ap = A @ p
+        pAp = float(p @ Ap)
+        if pAp <= 0:
+            return (p.copy() if it == 1 else x), it, True
+        alpha = rz / pAp
+        x += alpha * p
+        r -= alpha * proj(Ap)
+        if float(np.linalg.norm(r)) <= rtol * bnorm:
+            break
+        z = proj(M @ r)
+        rz_new = float(r @ z)
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return x, it, False
+
+
 def _pcg(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
@@ -126,6 +164,10 @@ def _pcg(
     x_nodes: NDArray[np.float64],
     cache: SolverCache,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Multigrid-preconditioned CG (the hierarchy kept in ``cache`` while it stays effective).
+    Where the stiffness is indefinite (a body on the table about to tip, a compressed region
+    buckling) CG meets negative curvature: the diagonal is then shifted until it does not
+    (Levenberg-Marquardt, as the PARDISO path does), a descent direction close to Newton's."""
     import pyamg
 
     if C is not None:
@@ -139,43 +181,27 @@ def _pcg(
         def proj(v: NDArray[np.float64]) -> NDArray[np.float64]:
             return v
 
+    max_it = 400
     for _attempt in range(2):
         if cache._ml is None:
             cache._ml = pyamg.smoothed_aggregation_solver(
                 A, B=_rigid_modes(x_nodes), symmetry="symmetric", max_coarse=300, coarse_solver="splu"
             )
         M = cache._ml.aspreconditioner(cycle="V")  # type: ignore[attr-defined]
-        x = np.zeros_like(b)
-        r = proj(b).copy()  # never modify the caller's vector
-        bnorm = float(np.linalg.norm(r))
-        if bnorm == 0:
-            return x, np.zeros(0 if C is None else C.shape[0])
-        z = proj(M @ r)
-        p = z.copy()
-        rz = float(r @ z)
-        max_it = 400
-        it = 0
-        for it in range(1, max_it + 1):
-            Ap = A @ p
-            pAp = float(p @ Ap)
-            if pAp <= 0:
-                # Negative curvature (buckling): return the progress so far, or the direction itself,
-                # both descent directions for the Newton line search.
-                if it == 1:
-                    x = p.copy()
-                break
-            alpha = rz / pAp
-            x += alpha * p
-            r -= alpha * proj(Ap)
-            if float(np.linalg.norm(r)) <= cache.rtol * bnorm:
-                break
-            z = proj(M @ r)
-            rz_new = float(r @ z)
-            p = z + (rz_new / rz) * p
-            rz = rz_new
+        x, last, curved = _cg(A, b, M, proj, cache.rtol, max_it)
+        it = last
+        tau = INDEFINITE_SHIFT
+        while curved and tau <= 1.0:
+            shifted = (A + sp.diags(tau * np.abs(A.diagonal()))).tocsr()
+            xs, its, curved_s = _cg(shifted, b, M, proj, cache.rtol, max_it)
+            it += its
+            if not curved_s:
+                x, last, curved = xs, its, False
+                cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1
+            tau *= 10.0
         cache._iterations.append(it)
-        if it < max_it:
-            if it > 60:
+        if curved or last < max_it:
+            if last > 60:
                 cache._ml = None  # the hierarchy has gone stale: rebuild next time
             break
         cache._ml = None  # rebuild once with the current matrix, then give up
