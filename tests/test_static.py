@@ -77,7 +77,8 @@ def test_cycling_newton_iterates_are_recognised():
     assert _cycle([1.0, 0.5, 1.0, 0.5, 0.25]) == 0  # converging after one return
     assert _cycle([1e-3, 2e-3, 1e-3]) == 0  # one return only
     assert _cycle([1e-3 * 0.5**k for k in range(12)]) == 0
-    assert _cycle([1e-3, 2e-3, 1e-3 * (1 + 1e-6), 2e-3]) == 0  # close but not the same iterates
+    assert _cycle([4.196770e-02, 5.245263e-02, 4.196556e-02, 5.248980e-02, 4.196556e-02, 5.248980e-02]) == 2
+    assert _cycle([1e-3, 2e-3, 1e-3 * (1 + 1e-4), 2e-3, 1e-3 * (1 + 2e-4)]) == 0  # drifting: not a cycle
 
 
 def test_static_and_dynamic_rest_states_agree():
