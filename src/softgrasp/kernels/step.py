@@ -331,14 +331,17 @@ def _fingers_at(t, fingers, centres):  # pragma: no cover - compiled
 
 
 @_jit
-def _finger_forces(x, v, t, fingers, active, anchor, offset, memory, reach, centres, out):  # pragma: no cover
-    """Fingertip forces at time t added to ``out`` (:func:`softgrasp.kernels.contact._fingertip_forces`)."""
+def _finger_forces(x, v, t, fingers, fstate, cur, reach, centres, out):  # pragma: no cover - compiled
+    """Fingertip forces at time t, with buffer ``cur`` of the friction state ``fstate``, added to
+    ``out`` (:func:`softgrasp.kernels.contact._fingertip_forces`)."""
+    active, anchor, _, memory, offset = fstate
     (_, facets, boundary, indptr, indices, _, _, vel, omega, radii, K, C, closest, inside_tol, mu, n_exp,
      hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
     _fingers_at(t, fingers, centres)
     _fingertip_forces(
         x, v, facets, boundary, indptr, indices, reach, centres, radii, vel, omega, K, C, closest, inside_tol,
-        mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, out,
+        mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active[cur], anchor[cur], offset[cur],
+        memory[cur], out,
     )  # fmt: skip
 
 
@@ -451,19 +454,7 @@ def _forces_at(
         )
     if fingers[0]:
         reach = _finger_reach(x, fingers, x_ref, track)
-        _finger_forces(
-            x,
-            v,
-            t,
-            fingers,
-            fstate[0][cur],
-            fstate[1][cur],
-            fstate[4][cur],
-            fstate[3][cur],
-            reach,
-            centres,
-            ffinger,
-        )
+        _finger_forces(x, v, t, fingers, fstate, cur, reach, centres, ffinger)
 
 
 @_jit
@@ -516,19 +507,7 @@ def _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on):  # pragma: no
     fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
     reach = _finger_reach(x, fingers, x_ref, track)
     cur = _finger_update(x, t, fingers, fstate, cur, reach, centres)
-    _finger_forces(
-        x,
-        v,
-        t,
-        fingers,
-        fstate[0][cur],
-        fstate[1][cur],
-        fstate[4][cur],
-        fstate[3][cur],
-        reach,
-        centres,
-        ffinger,
-    )
+    _finger_forces(x, v, t, fingers, fstate, cur, reach, centres, ffinger)
     power = 0.0
     if monitor_on:
         for i in range(x.shape[0]):
