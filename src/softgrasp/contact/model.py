@@ -9,9 +9,10 @@ For every touching (fingertip, facet) pair j (Sec. 3.1, :func:`softgrasp.contact
   how far the fingertip centre has moved relative to it since (tangentially to the facet), so that
   neither the facet's rotation nor the contact point's sliding along an edge counts as stick;
   stick force ``-w (k_t v + c_t V_t)`` while its norm <= mu f_n, otherwise Coulomb slip
-  ``-mu f_n V_t / |V_t|`` and the anchor is dragged (slip displacement u). Both reset when the finger
-  leaves the object. A pair that starts while its finger is already sliding on a neighbouring facet
-  inherits the finger's stick displacement, so friction is continuous across facet edges;
+  ``-mu f_n V_t / |V_t|`` and the stick is cut back to the limit (slip displacement u). Both reset
+  when the finger leaves the object. A pair that starts while its finger is already sliding on a
+  neighbouring facet inherits the finger's stick displacement, so friction is continuous across
+  facet edges;
 * the pair's force on the object is spread on the facet's nodes by the shape functions H (Eq. 17-20),
   ``f_l = (A_l / A_G) f_pj``, so nodal forces balance the fingertip's force and moment exactly.
 
@@ -129,8 +130,8 @@ def _pair_normal_forces(
     (``closest`` as in :func:`~softgrasp.contact.geometry.detect`)."""
     k = tri.shape[0]
     ids = np.arange(k)
-    pr = pair_geometry(tri.reshape(-1, 3), ids.repeat(3).reshape(k, 3) * 3 + np.arange(3), centre, radius,
-                       ids, ids, closest=closest)  # fmt: skip
+    own = np.arange(3 * k).reshape(k, 3)  # each pair its own triangle
+    pr = pair_geometry(tri.reshape(-1, 3), own, centre, radius, ids, ids, closest=closest)
     mag = coef * np.where(pr.depth > 0, np.abs(pr.depth) ** n_exp, 0.0)
     return -(mag[:, None, None] * pr.bary[:, :, None]) * pr.normal[:, None, :]
 
