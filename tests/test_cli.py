@@ -76,6 +76,18 @@ def test_compress_bad_input_one_line_nonzero(tmp_path, args, needle):
     assert not out.exists() or not any(out.iterdir())  # nothing half-written
 
 
+def test_verbose_prints_the_solver_progress(tmp_path):
+    """``--verbose`` shows every Newton iteration and friction pass on stderr; without it the
+    solver is silent."""
+    args = ["compress", "--object", "cube", "--mesh-size", "0.025", "--strain", "0.02", "--steps", "2"]
+    loud = _run("--verbose", *args, "--out", str(tmp_path / "a"))
+    quiet = _run(*args, "--out", str(tmp_path / "b"))
+    assert loud.returncode == quiet.returncode == 0, loud.stderr
+    assert "softgrasp: newton it 1: unbalanced" in loud.stderr
+    assert "softgrasp: friction pass 1:" in loud.stderr
+    assert "newton it" not in quiet.stderr
+
+
 def test_default_compress_job_runs(tmp_path):
     """`softgrasp compress` with every default (rubber sphere to 30 %)."""
     out = tmp_path / "default"

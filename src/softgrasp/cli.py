@@ -588,6 +588,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="softgrasp", description="Grasp planning for soft objects (SI units; lengths in m).")
     p.add_argument("--version", action="version", version=f"softgrasp {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks of internal errors")
+    p.add_argument(
+        "--verbose",
+        action="store_true",
+        help="print the static solver's progress to stderr (every Newton iteration, friction pass "
+        "and split load increment)",
+    )
     sub = p.add_subparsers(dest="command", parser_class=_Parser)
     c = sub.add_parser("compress", help="compression test between rigid plates (paper Fig. 8-9)")
     _common(c)
@@ -708,6 +714,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _log_progress() -> None:
+    """The solvers' DEBUG records (:mod:`softgrasp.sim.static`) to stderr, one line each."""
+    import logging
+
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("softgrasp: %(message)s"))
+    log = logging.getLogger("softgrasp")
+    log.addHandler(handler)
+    log.setLevel(logging.DEBUG)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``softgrasp`` command."""
     parser = build_parser()
@@ -715,6 +732,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if getattr(args, "verbose", False):
+        _log_progress()
     try:
         if getattr(args, "plate_friction", 0.0) < 0:
             raise ConfigError(f"--plate-friction must be >= 0, got {args.plate_friction}")
