@@ -73,8 +73,8 @@ def bench_forces(h: float) -> dict[str, float]:
         "facets": len(facets),
         "touched": touched,
         "forces": _per_call(lambda: fc.forces(body, x, v, 0.0, state)),
-        "nodes_bp": _per_call(lambda: detect(x, facets, centres, radii, fade=0.25, index=index)),
-        "tree_bp": _per_call(lambda: detect(x, facets, centres, radii, fade=0.25)),
+        "nodes_bp": _per_call(lambda: detect(x, facets, centres, radii, closest=True, index=index)),
+        "tree_bp": _per_call(lambda: detect(x, facets, centres, radii, closest=True)),
     }
 
 
