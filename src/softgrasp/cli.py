@@ -330,6 +330,34 @@ def _hand_links(plan) -> list:
     return [palm, *fingers.values()]
 
 
+def _write_frames(path: Path, plan, facets) -> None:
+    """The closing increments and the held state, for ``softgrasp view`` (SI units)."""
+    import numpy as np
+
+    from softgrasp.output import atomic_write
+
+    fr = plan.frames
+    assert fr is not None
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                travel=fr.travel,
+                positions=fr.positions,
+                centres=fr.centres,
+                forces=fr.forces,
+                held_positions=plan.positions,
+                held_centres=plan.centres,
+                held_forces=np.array([f.force for f in plan.fingers]),
+                facets=np.asarray(facets, dtype=np.int64),
+                fingertip_radius=np.float64(plan.config.fingertip_radius),
+                finger_names=np.array([f.name for f in plan.fingers]),
+            )
+
+    atomic_write(path, write)
+
+
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -389,6 +417,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         links=_hand_links(plan),
     )
     write_text(out / "history.csv", buf.getvalue())
+    _write_frames(out / "frames.npz", plan, body.mesh.facets)
     # The unloaded object as the plan placed it on the table: what `execute` rebuilds.
     save_mesh(TetMesh(plan.placed, body.mesh.tets, name=body.mesh.name), out / "object.vtu")
     doc["object"]["mesh_file"] = "object.vtu"
@@ -410,7 +439,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             "or more"
         )
     print(
-        f"wrote {out}/plan.json, history.csv, object.vtu, forces.png, force_penetration.png, grasp.png "
+        f"wrote {out}/plan.json, history.csv, object.vtu, frames.npz, forces.png, force_penetration.png, "
+        "grasp.png "
         f"({plan.increments} increments, {time.perf_counter() - t0:.1f} s)"
     )
     return 0

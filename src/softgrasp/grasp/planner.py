@@ -51,7 +51,7 @@ from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_increment, solve_static
 
-__all__ = ["PlanConfig", "FingerResult", "GraspPlan", "plan_grasp"]
+__all__ = ["PlanConfig", "FingerResult", "GraspPlan", "PlanFrames", "plan_grasp"]
 
 SOLVERS = ("quasistatic", "dynamic")
 #: First time step of the implicit holding simulation [s].
@@ -218,6 +218,8 @@ class GraspPlan:
     hold_checks: every hold verification, in order: (travel [m], "held" or why the object was not
         held there: how far it moved during the release or the hold, which finger slid, or the
         solve that failed), so that a user can see what made the fingers close further.
+    frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
+        each closing increment, in the order of travel (what ``softgrasp view`` animates).
     """
 
     initial: InitialGrasp
@@ -248,6 +250,25 @@ class GraspPlan:
     config: PlanConfig
     wall_time: float
     hold_checks: tuple[tuple[float, str], ...] = ()
+    frames: PlanFrames | None = None
+
+
+@dataclass(frozen=True)
+class PlanFrames:
+    """The closing at rest: the start (travel 0) and each increment, sorted by travel.
+
+    Attributes
+    ----------
+    travel: fingertip travel [m], (K,).
+    positions: node positions [m], (K, N, 3).
+    centres: fingertip centres [m], (K, 3, 3).
+    forces: force of each fingertip on the object [N], (K, 3, 3).
+    """
+
+    travel: NDArray[np.float64]
+    positions: NDArray[np.float64]
+    centres: NDArray[np.float64]
+    forces: NDArray[np.float64]
 
 
 def _com(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -540,6 +561,10 @@ def plan_grasp(
     scene = Scene(body, (table, fc))
     state = State(xs, np.zeros_like(xs), 0.0, (settled.contacts[0], fc.init_state(body, xs, 0.0)))
     rows: list[tuple[float, NDArray, NDArray, NDArray, NDArray, bool]] = []
+    # (travel, x, centres, forces), from the settled object with the fingertips at their start
+    frames: list[tuple[float, NDArray, NDArray, NDArray]] = [
+        (0.0, xs.copy(), fc.centres(0.0), np.zeros((3, 3)))
+    ]
     checks: list[tuple[float, str]] = []  # hold verifications: (travel, "held" or why not)
     k = 0
 
@@ -565,6 +590,7 @@ def plan_grasp(
                 feasible,
             )
         )
+        frames.append((t, st.x.copy(), fc.centres(t * scale), rep.force.copy()))
         if progress is not None:
             progress(min(t / max_travel, 1.0))
         return st, feasible
@@ -645,6 +671,7 @@ def plan_grasp(
     if progress is not None:
         progress(1.0)
     rows.sort(key=lambda r: r[0])  # the bisection's increments among the others, by travel
+    frames.sort(key=lambda f: f[0])
     return GraspPlan(
         initial=ig,
         fingers=fingers,
@@ -674,6 +701,12 @@ def plan_grasp(
         config=cfg,
         wall_time=time.perf_counter() - t0,
         hold_checks=tuple(checks),
+        frames=PlanFrames(
+            travel=np.array([f[0] for f in frames]),
+            positions=np.array([f[1] for f in frames]),
+            centres=np.array([f[2] for f in frames]),
+            forces=np.array([f[3] for f in frames]),
+        ),
     )
 
 
