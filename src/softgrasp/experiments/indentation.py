@@ -33,7 +33,6 @@ further) until it is. The point used and the shift are reported.
 
 from __future__ import annotations
 
-import csv
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -47,6 +46,7 @@ from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
 from softgrasp.contact.model import FingerReport, FingertipContact
 from softgrasp.errors import ConfigError, ContactError, NotConverged
+from softgrasp.experiments.measured import read_table
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.scene import Scene, State
@@ -456,70 +456,28 @@ def read_force_curve(
         finite number (the message names the line), fewer than two rows, or a penetration outside
         the simulated range.
     """
-    p = Path(path)
-    name = str(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise ConfigError(f"measured data file {name!r} does not exist") from None
-    except IsADirectoryError:
-        raise ConfigError(f"measured data file {name!r} is a directory, not a CSV file") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"measured data file {name!r} is not a UTF-8 text (CSV) file") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read measured data file {name!r}: {exc.strerror or exc}") from None
-    lines = [
-        (i, ln)
-        for i, ln in enumerate(text.splitlines(), start=1)
-        if ln.strip() and not ln.lstrip().startswith("#")
-    ]
-    if not lines:
-        raise ConfigError(f"measured data file {name!r} is empty")
-    header_line, header = lines[0]
-    cols = [c.strip() for c in next(csv.reader([header]))]
-    pen_cols = [c for c in cols if c in _PENETRATION_UNITS]
-    if len(pen_cols) != 1 or "force_N" not in cols:
+    table = read_table(path)
+    found = table.unit_column(_PENETRATION_UNITS)
+    if found is None or not table.has("force_N"):
         raise ConfigError(
-            f"measured data file {name!r}: header (line {header_line}) must name the columns "
-            f"penetration_m (or penetration_mm) and force_N, got {','.join(cols)!r}"
+            f"measured data file {table.name!r}: header (line {table.header_line}) "
+            f"must name the columns penetration_m (or penetration_mm) and force_N, got "
+            f"{','.join(table.columns)!r}"
         )
-    ip, iF = cols.index(pen_cols[0]), cols.index("force_N")
-    scale = _PENETRATION_UNITS[pen_cols[0]]
-    pen: list[float] = []
-    force: list[float] = []
-    for lineno, ln in lines[1:]:
-        row = [c.strip() for c in next(csv.reader([ln]))]
-        if len(row) < len(cols):
-            raise ConfigError(
-                f"measured data file {name!r}, line {lineno}: expected {len(cols)} values, got {len(row)}"
-            )
-        vals = []
-        for col, j in ((pen_cols[0], ip), ("force_N", iF)):
-            try:
-                v = float(row[j])
-            except ValueError:
-                v = math.nan
-            if not math.isfinite(v):
-                raise ConfigError(
-                    f"measured data file {name!r}, line {lineno}: {col} = {row[j]!r} is not a finite number"
-                )
-            vals.append(v)
-        pen.append(vals[0] * scale)
-        force.append(vals[1])
-    if len(pen) < 2:
-        raise ConfigError(f"measured data file {name!r} has {len(pen)} data row(s); at least 2 are needed")
-    P = np.array(pen)
+    P = table.values(*found)
+    force = table.values("force_N")
+    name = table.name
     if max_penetration is not None:
         tol = 1e-9 * max(max_penetration, 1e-3)
         out = np.flatnonzero((P < -tol) | (P > max_penetration + tol))
         if out.size:
             k = int(out[0])
             raise ConfigError(
-                f"measured data file {name!r}, line {lines[k + 1][0]}: penetration {P[k] * 1e3:.4g} mm "
+                f"measured data file {name!r}, line {table.line_of(k)}: penetration {P[k] * 1e3:.4g} mm "
                 f"is outside the simulated range 0..{max_penetration * 1e3:.4g} mm; raise --depth or "
                 "trim the data"
             )
-    return P, np.array(force)
+    return P, force
 
 
 def mean_abs_force_error(

@@ -595,3 +595,55 @@ def plot_grasp_3d(
     out = atomic_write(path, lambda p: fig.savefig(p, format="png", bbox_inches=crop))
     plt.close(fig)
     return out
+
+
+# ---------------------------------------------------------------------- calibration figures
+__all__ += ["plot_calibration"]
+
+
+def plot_calibration(
+    path: str | Path,
+    x_m: NDArray[np.float64],
+    measured_N: NDArray[np.float64],
+    fitted_N: NDArray[np.float64],
+    *,
+    xlabel: str,
+    title: str,
+    summary: str,
+    lateral: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+) -> Path:
+    """Measured vs fitted force (N vs mm) of a calibration; with lateral strains (measured,
+    fitted) a second panel shows them (in %).
+
+    Parameters
+    ----------
+    path: PNG file to write.
+    x_m: displacement or penetration [m], (P,).
+    measured_N, fitted_N: forces [N], (P,).
+    xlabel: the abscissa's name (the unit [mm] is appended).
+    title: figure title.  summary: the fitted values, shown under the legend.
+    lateral: optional (measured, fitted) lateral strains, (P,) each.
+    """
+    plt = _figure()
+    ncols = 2 if lateral is not None else 1
+    fig, axes = plt.subplots(1, ncols, figsize=(6.4 * ncols, 4.6), dpi=120, squeeze=False)
+    ax = axes[0, 0]
+    ax.plot(1e3 * x_m, measured_N, "s", ms=4.0, mfc="none", mew=1.2, color="tab:red", label="measured")
+    ax.plot(1e3 * x_m, fitted_N, "-", lw=1.8, color="tab:blue", label="softgrasp, fitted")
+    ax.set_xlabel(f"{xlabel} [mm]")
+    ax.set_ylabel("force [N]")
+    ax.text(0.03, 0.72, summary, transform=ax.transAxes, fontsize=8.5, va="top", family="monospace")
+    ax.set_title(title)
+    if lateral is not None:
+        ax2 = axes[0, 1]
+        ax2.plot(
+            1e3 * x_m, 100 * lateral[0], "s", ms=4.0, mfc="none", mew=1.2, color="tab:red", label="measured"
+        )
+        ax2.plot(1e3 * x_m, 100 * lateral[1], "-", lw=1.8, color="tab:blue", label="softgrasp, fitted")
+        ax2.set_xlabel(f"{xlabel} [mm]")
+        ax2.set_ylabel("lateral strain [%]")
+        ax2.set_title("lateral strain (widening)")
+        ax2.grid(alpha=0.3)
+        ax2.set_xlim(left=0)
+        ax2.legend(frameon=False, loc="upper left")
+    return _save(plt, fig, ax, path, legend_loc="upper left")
