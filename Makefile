@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: run test install install-test bench clean
+.PHONY: run test install install-test browser bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -12,8 +12,18 @@ $(BIN)/python:
 install: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[execute]"
 
-install-test: $(BIN)/python
+install-test: $(BIN)/python browser
 	$(BIN)/python -m pip install --quiet -e ".[test,execute]"
+
+# Debian's Chromium and ChromeDriver for the browser test of `softgrasp view` (installed when
+# missing and apt-get can run; otherwise that test is skipped and says why).
+browser:
+	@if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then \
+	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null) \
+	      || echo "softgrasp: could not install chromium; the browser test will be skipped"; \
+	  else echo "softgrasp: no chromium and no root apt-get; the browser test will be skipped"; fi; \
+	fi
 
 # The main job on the built-in default object.
 run: install

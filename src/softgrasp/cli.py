@@ -60,13 +60,57 @@ def _progress(desc: str, total: int = 1000):
     return bar, update
 
 
+def _material_file(args: argparse.Namespace):
+    """The --material FILE.toml of a command, read once (None when --material is not a file)."""
+    from softgrasp.materialfile import is_material_file, read_material_file
+
+    spec = getattr(args, "material", None)
+    if spec is None or not is_material_file(spec):
+        return None
+    if getattr(args, "_material_file", None) is None:
+        args._material_file = read_material_file(spec)
+    return args._material_file
+
+
+def _contact(args: argparse.Namespace, mu: float | None, **kw):
+    """Contact parameters: the defaults, a material file's [contact] over them, then --mu if given."""
+    from softgrasp.contact.fingertip import ContactParams
+
+    params = ContactParams(**kw)
+    mf = _material_file(args)
+    if mf is not None:
+        params = mf.contact_params(params)
+    if mu is not None:
+        params = ContactParams(**{**params.__dict__, "mu": float(mu)})
+    return params
+
+
+def _plan_contact(args: argparse.Namespace, mu_given: float | None):
+    """The plan's contact parameters; mu from --mu, else the material file, else --config or 0.8."""
+    mf = _material_file(args)
+    from_file = mf is not None and "mu" in mf.contact
+    return _contact(args, mu_given if mu_given is not None or from_file else args.mu)
+
+
 def _load(args: argparse.Namespace):
     from softgrasp.body import build_body
     from softgrasp.material import parse_material
     from softgrasp.objects import make_object
 
     mesh, material, mass = make_object(args.object, args.mesh_size, reorient=args.reorient)
-    if args.material is not None:
+    mf = _material_file(args)
+    if mf is not None:
+        if mf.material is not None:
+            material = mf.material
+            # A density in the file decides the mass; without one the built-in object keeps its mass.
+            if material.density is not None:
+                mass = None
+            elif mass is None:
+                raise ConfigError(
+                    f"material file {mf.path} has no density_kg_m3; the object {args.object!r} needs one "
+                    "for its mass"
+                )
+    elif args.material is not None:
         material, spec_mass = parse_material(args.material)
         # A material given with its own density or mass decides the mass; a preset keeps the
         # built-in object's mass.
@@ -142,7 +186,6 @@ def _cmd_compress(args: argparse.Namespace) -> int:
 
 
 def _cmd_indent(args: argparse.Namespace) -> int:
-    from softgrasp.contact.fingertip import ContactParams
     from softgrasp.experiments.indentation import (
         default_steps,
         indentation_test,
@@ -153,11 +196,11 @@ def _cmd_indent(args: argparse.Namespace) -> int:
     from softgrasp.viz.plots import plot_force_penetration
 
     t0 = time.perf_counter()
-    if not args.mu >= 0:
+    if args.mu is not None and not args.mu >= 0:
         raise ConfigError(f"--mu must be >= 0, got {args.mu}")
     if args.steps is not None and not 1 <= args.steps <= 100_000:
         raise ConfigError(f"--steps must be an integer from 1 to 100000, got {args.steps}")
-    params = ContactParams(mu=args.mu, rule=args.rule)
+    params = _contact(args, args.mu, rule=args.rule)
     measured = read_force_curve(args.data, max_penetration=args.depth) if args.data else None
     body = _load(args)
     out = Path(args.out or "softgrasp-out/indent")
@@ -167,7 +210,7 @@ def _cmd_indent(args: argparse.Namespace) -> int:
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}, density = {m.density:.4g} kg/m^3")
     print(
         f"finger   R = {args.radius * 1e3:.3g} mm, depth {args.depth * 1e3:.3g} mm in {steps} increments, "
-        f"mu = {args.mu:g}, {args.rule} rule"
+        f"mu = {params.mu:g}, {args.rule} rule"
     )
     bar, update = _progress("indent")
     try:
@@ -330,6 +373,210 @@ def _hand_links(plan) -> list:
     return [palm, *fingers.values()]
 
 
+def _fit_summary(fit) -> str:
+    """The fitted values of a calibration, one per line, for the console and the figure."""
+    units = {"E_Pa": ("E", 1e-3, "kPa"), "gamma_N_s_m2": ("gamma", 1.0, "N s/m^2")}
+    rows = []
+    for name, p in fit.parameters.items():
+        label, scale, unit = units.get(name, (name, 1.0, ""))
+        sd = "" if p.stderr != p.stderr else f" +- {p.stderr * scale:.3g}"
+        rows.append(f"{label:<19} {p.value * scale:.5g}{sd} {unit} ({p.status})".replace("  (", " ("))
+    rows.append(f"rms residual        {fit.residual_rms_N:.3g} N ({fit.relative_rms:.2%} of the peak)")
+    rows.append(f"mean |error|        {fit.mean_abs_error_N:.3g} N")
+    return "\n".join(rows)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from softgrasp.body import build_body
+    from softgrasp.experiments.calibration import (
+        fit_compression,
+        fit_indentation,
+        read_compression_data,
+        read_indentation_data,
+        specimen_geometry,
+    )
+    from softgrasp.material import Material
+    from softgrasp.materialfile import write_material_file
+    from softgrasp.output import write_json
+    from softgrasp.viz.plots import plot_calibration
+
+    t0 = time.perf_counter()
+    if args.compression is None and args.indentation is None:
+        raise ConfigError("give measured data to fit: --compression DATA.csv and/or --indentation DATA.csv")
+    if args.nu is not None and not -1.0 < args.nu < 0.5:
+        raise ConfigError(f"--nu must lie in (-1, 0.5), got {args.nu}")
+    # Read (and check) the data before any meshing: a bad file fails at once.
+    ind_data = read_indentation_data(args.indentation) if args.indentation else None
+    body = _load(args)
+    mesh, material, mass = body.mesh, body.material, body.total_mass
+    out = Path(args.out or "softgrasp-out/calibrate")
+    comp_data = None
+    if args.compression:
+        H, A = specimen_geometry(mesh)
+        comp_data = read_compression_data(args.compression, H, A)
+    print(f"specimen {mesh.summary()}, mass {mass * 1e3:.1f} g")
+    doc: dict[str, object] = {
+        "schema": "softgrasp.calibration/1",
+        "specimen": {"name": args.object, **body.describe()},
+    }
+    fits = {}
+
+    def bar(desc: str):
+        b = tqdm(desc=desc, unit=" simulations", leave=False, disable=None, file=sys.stderr)
+
+        def update(k: int) -> None:
+            b.n = k
+            b.refresh()
+
+        return b, update
+
+    if comp_data is not None:
+        top = float(comp_data.displacement_m.max())
+        print(
+            f"compression: {len(comp_data.force_N)} points from {args.compression}, up to "
+            f"{top * 1e3:.3g} mm ({top / comp_data.height_m:.0%})"
+        )
+        b, update = bar("fit compression")
+        try:
+            fitted, fit = fit_compression(
+                mesh,
+                comp_data,
+                nu=args.nu if args.nu is not None else material.nu,
+                mass=mass,
+                law=args.law,
+                plate_friction=args.plate_friction,
+                steps=args.steps,
+                progress=update,
+            )
+        finally:
+            b.close()
+        material = Material(fitted.E, fitted.nu, material.density, fitted.law, name="calibrated")
+        fits["compression"] = fit
+        plot_calibration(
+            out / "compression_fit.png",
+            fit.x,
+            fit.measured,
+            fit.fitted,
+            xlabel="displacement",
+            title=f"Compression fit ({Path(args.compression).name})",
+            summary=_fit_summary(fit),
+            lateral=(fit.lateral_measured, fit.lateral_fitted) if fit.lateral_measured is not None else None,
+        )
+        print(_fit_summary(fit))
+    contact = None
+    if ind_data is not None:
+        print(f"indentation: {len(ind_data.force_N)} points from {args.indentation}")
+        ibody = build_body(mesh, material, mass=mass)
+        b, update = bar("fit indentation")
+        try:
+            contact, ifit = fit_indentation(
+                ibody,
+                ind_data,
+                params=_contact(args, args.mu),
+                radius=args.radius,
+                speed=args.speed,
+                progress=update,
+            )
+        finally:
+            b.close()
+        fits["indentation"] = ifit
+        plot_calibration(
+            out / "indentation_fit.png",
+            ifit.x,
+            ifit.measured,
+            ifit.fitted,
+            xlabel="penetration",
+            title=f"Indentation fit ({Path(args.indentation).name}), R = {args.radius * 1e3:.3g} mm",
+            summary=_fit_summary(ifit),
+        )
+        print(_fit_summary(ifit))
+    for fit in fits.values():
+        for note in fit.notes:
+            print(f"note: {note}")
+    law = material.law.describe()
+    doc.update(
+        {
+            "E_Pa": material.E,
+            "nu": material.nu,
+            "law": law,
+            "residual": {
+                k: {"rms_N": f.residual_rms_N, "relative_rms": f.relative_rms} for k, f in fits.items()
+            },
+        }
+    )
+    if "indentation" in fits:
+        doc["mean_abs_error_N"] = fits["indentation"].mean_abs_error_N
+        assert contact is not None
+        doc["contact"] = contact.describe()
+    doc["fits"] = {
+        k: {
+            "data": str(getattr(args, k)),
+            "points": len(f.x),
+            "parameters": {n: p.describe() for n, p in f.parameters.items()},
+            "residual_rms_N": f.residual_rms_N,
+            "mean_abs_error_N": f.mean_abs_error_N,
+            "relative_rms": f.relative_rms,
+            "simulations": f.simulations,
+            "wall_time_s": f.wall_time_s,
+            "notes": list(f.notes),
+        }
+        for k, f in fits.items()
+    }
+    if comp_data is not None:
+        doc["fits"]["compression"].update(
+            {
+                "plate_friction": args.plate_friction,
+                "height_m": comp_data.height_m,
+                "area_m2": comp_data.area_m2,
+            }
+        )
+    if ind_data is not None:
+        doc["fits"]["indentation"].update({"radius_m": args.radius, "speed_m_s": args.speed})
+    doc["wall_time_s"] = time.perf_counter() - t0
+    write_material_file(
+        out / "material.toml",
+        material,
+        contact,
+        comment=f"softgrasp calibrate: {', '.join(f'{k} {getattr(args, k)}' for k in fits)}\n"
+        "use with --material FILE in plan, indent, compress and execute",
+    )
+    write_json(out / "calibration.json", doc)
+    figs = ", ".join(f"{k}_fit.png" for k in fits)
+    print(f"wrote {out}/calibration.json, material.toml, {figs} ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from softgrasp.viz.view import write_view
+
+    path = write_view(args.run_dir, args.out)
+    print(f"wrote {path} (open it in a browser; it needs no network)")
+    return 0
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    from softgrasp.experiments.reproduce import reproduce
+
+    out = Path(args.out or "softgrasp-out/reproduce")
+    bar, update = _progress("reproduce")
+
+    def progress(fraction: float, step: str) -> None:
+        bar.set_description(f"reproduce: {step}")
+        update(fraction)
+
+    try:
+        res = reproduce(out, quick=args.quick, progress=progress)
+    finally:
+        bar.close()
+    for st in res.steps:
+        extra = f": {st.message}" if st.message and st.status != "ok" else ""
+        print(f"{st.status:>7}  {st.title} ({st.wall_time_s:.1f} s){extra}")
+    print(f"wrote {res.report_md}, {res.report_html.name}, {res.data_json.name} ({res.wall_time_s:.1f} s)")
+    return 1 if res.failed else 0
+
+
 def _write_frames(path: Path, plan, facets) -> None:
     """The closing increments and the held state, for ``softgrasp view`` (SI units)."""
     import numpy as np
@@ -361,7 +608,6 @@ def _write_frames(path: Path, plan, facets) -> None:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from softgrasp.contact.fingertip import ContactParams
     from softgrasp.grasp.planner import PlanConfig, plan_grasp
     from softgrasp.grasp.report import HISTORY_HEADER, history_rows, plan_document, plan_table
     from softgrasp.mesh.io import save_mesh
@@ -370,6 +616,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from softgrasp.viz.plots import plot_grasp_3d, plot_plan_force_penetration, plot_plan_forces
 
     t0 = time.perf_counter()
+    mu_given = args.mu
     args = _plan_options(args)
     body = _load(args)
     out = Path(str(args.out))
@@ -377,7 +624,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     print(f"object   {body.mesh.summary()}, mass {body.total_mass * 1e3:.1f} g")
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
     config = PlanConfig(
-        contact=ContactParams(mu=float(args.mu)),
+        contact=_plan_contact(args, mu_given),
         fingertip_radius=float(args.fingertip_radius),
         step=float(args.step),
         solver=str(args.solver),
@@ -662,7 +909,12 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument(
         "--steps", type=int, default=None, metavar="N", help="load increments (default: ~0.25 mm each, >= 10)"
     )
-    i.add_argument("--mu", type=float, default=0.8, help="fingertip friction coefficient (default 0.8)")
+    i.add_argument(
+        "--mu",
+        type=float,
+        default=None,
+        help="fingertip friction coefficient (default 0.8, or the material file's)",
+    )
     i.add_argument(
         "--rule",
         choices=("patch", "facet"),
@@ -730,6 +982,65 @@ def build_parser() -> argparse.ArgumentParser:
         "packaged) or 'none' (free fingertips, no reachability check)",
     )
     pl.add_argument("--config", default=None, metavar="FILE.toml", help="TOML file with any of these options")
+
+    ca = sub.add_parser(
+        "calibrate", help="fit the material (compression) and contact law (indentation) to measurements"
+    )
+    _common(ca)
+    ca.set_defaults(object="cube")
+    ca.add_argument(
+        "--compression",
+        default=None,
+        metavar="DATA.csv",
+        help="compression curve: displacement_m|displacement_mm,force_N or strain,stress_Pa|_kPa|_MPa; "
+        "optional lateral_strain (then nu is fitted too)",
+    )
+    ca.add_argument(
+        "--indentation",
+        default=None,
+        metavar="DATA.csv",
+        help="force-penetration curve: penetration_m|penetration_mm,force_N (optional tangential_force_N)",
+    )
+    ca.add_argument(
+        "--nu", type=float, default=None, help="Poisson's ratio when not fitted (default: the material's)"
+    )
+    ca.add_argument(
+        "--law",
+        choices=("polynomial", "linear"),
+        default="polynomial",
+        help="spring law to fit (default polynomial)",
+    )
+    ca.add_argument(
+        "--plate-friction", type=float, default=0.5, help="friction of the compression platens (default 0.5)"
+    )
+    ca.add_argument(
+        "--steps", type=int, default=16, help="increments of each simulated compression (default 16)"
+    )
+    ca.add_argument(
+        "--radius", type=_positive("--radius"), default=0.008, help="fingertip radius [m] (default 0.008)"
+    )
+    ca.add_argument(
+        "--speed", type=_positive("--speed"), default=0.005, help="indentation speed [m/s] (default 0.005)"
+    )
+    ca.add_argument(
+        "--mu", type=float, default=None, help="fingertip friction coefficient to keep (default 0.8)"
+    )
+    ca.set_defaults(func=_cmd_calibrate)
+
+    vw = sub.add_parser(
+        "view", help="write an interactive 3-D page of a plan run (closing increments, forces)"
+    )
+    vw.add_argument("run_dir", metavar="RUN_DIR", help="a folder written by softgrasp plan --out")
+    vw.add_argument("--out", default=None, metavar="FILE.html", help="the page (default RUN_DIR/view.html)")
+    vw.set_defaults(func=_cmd_view)
+    rp = sub.add_parser("reproduce", help="run the paper's experiments end to end and write a report")
+    rp.add_argument(
+        "--out", default=None, metavar="DIR", help="output folder (default softgrasp-out/reproduce)"
+    )
+    rp.add_argument(
+        "--quick", action="store_true", help="coarse meshes: the whole run in well under 2 minutes"
+    )
+    rp.set_defaults(func=_cmd_reproduce)
 
     ex = sub.add_parser("execute", help="execute a plan under force control on a simulated hand and lift")
     ex.add_argument("plan", metavar="PLAN.json", help="a plan written by softgrasp plan")
