@@ -272,3 +272,49 @@ def test_calibrate_command_bad_data_is_a_clear_error(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
     assert main(["calibrate", "--out", str(tmp_path / "o")]) == 2
     assert "--compression DATA.csv" in capsys.readouterr().err
+
+
+def test_material_file_feeds_plan_and_execute(tmp_path, capsys):
+    """plan takes the file's material and [contact] (mu 1.1 here); execute's --material swaps the
+    object it grasps; --mu on the command line still wins over the file."""
+    import argparse
+
+    from softgrasp.cli import _execute_material
+    from softgrasp.hand.planfile import load_plan_file
+
+    mf = write_material_file(
+        tmp_path / "m.toml", Material(9.0e4, 0.42, None, Polynomial(-0.5, 1.0)), ContactParams(mu=1.1)
+    )
+    out = tmp_path / "plan"
+    assert main(["plan", "--material", str(mf), "--out", str(out)]) == 0
+    doc = json.loads((out / "plan.json").read_text())
+    assert doc["object"]["material"]["E_Pa"] == 9.0e4
+    assert doc["object"]["material"]["law"] == {"kind": "polynomial", "a2": -0.5, "a3": 1.0}
+    assert doc["parameters"]["contact"]["mu"] == 1.1
+    assert doc["object"]["mass_kg"] == pytest.approx(0.05)  # no density in the file: the sphere's 50 g
+    assert main(["plan", "--material", str(mf), "--mu", "0.9", "--out", str(tmp_path / "p2")]) == 0
+    assert json.loads((tmp_path / "p2" / "plan.json").read_text())["parameters"]["contact"]["mu"] == 0.9
+    # execute: the object of another material
+    other = write_material_file(tmp_path / "o.toml", Material(2.0e5, 0.3, None), ContactParams(mu=0.5))
+    plan = load_plan_file(out / "plan.json")
+    swapped = _execute_material(argparse.Namespace(material=str(other)), plan)
+    assert (swapped.E, swapped.nu, swapped.mu, swapped.mass) == (2.0e5, 0.3, 0.5, plan.mass)
+    capsys.readouterr()
+    assert (
+        main(["execute", str(out / "plan.json"), "--material", "E=1e5,nu=0.3", "--out", str(tmp_path / "x")])
+        == 2
+    )
+    assert "takes a material file" in capsys.readouterr().err
+    # view of the same run
+    assert main(["view", str(out)]) == 0
+    assert (out / "view.html").stat().st_size > 10_000
+
+
+def test_reproduce_command_quick(tmp_path, capsys):
+    out = tmp_path / "rep"
+    rc = main(["reproduce", "--quick", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    for name in ("report.md", "report.html", "reproduce.json"):
+        assert (out / name).stat().st_size > 1000
+    assert text.count("ok  ") == 5

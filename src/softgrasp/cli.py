@@ -693,6 +693,28 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def _execute_material(args: argparse.Namespace, plan):
+    """The plan with the object's material and fingertip friction of --material FILE.toml over it
+    (the hand then grasps an object that differs from the one planned for; mass as planned)."""
+    from dataclasses import replace
+
+    from softgrasp.materialfile import is_material_file
+
+    if args.material is None:
+        return plan
+    if not is_material_file(args.material):
+        raise ConfigError(f"execute --material takes a material file (.toml), got {args.material!r}")
+    mf = _material_file(args)
+    changes: dict[str, float] = {}
+    if mf.material is not None:
+        changes.update(E=mf.material.E, nu=mf.material.nu)
+    if "mu" in mf.contact:
+        changes["mu"] = float(mf.contact["mu"])  # type: ignore[arg-type]
+    if changes:
+        print("object as in " + args.material + ": " + ", ".join(f"{k} = {v:g}" for k, v in changes.items()))
+    return replace(plan, **changes)
+
+
 def _cmd_execute(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -708,6 +730,7 @@ def _cmd_execute(args: argparse.Namespace) -> int:
     if not (np.isfinite(args.lift) and args.lift > 0):
         raise ConfigError(f"--lift must be a height > 0 m, got {args.lift}")
     plan = load_plan_file(args.plan)
+    plan = _execute_material(args, plan)
     out = Path(str(args.out))
     from softgrasp.hand.mujoco_hand import MujocoHand
 
@@ -1047,6 +1070,12 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--backend", choices=("mujoco",), default="mujoco", help="the hand (default: mujoco)")
     ex.add_argument("--lift", type=float, default=0.10, help="lift height [m] (default 0.10)")
     ex.add_argument("--scale", type=float, default=1.0, help="multiply the set-points (default 1)")
+    ex.add_argument(
+        "--material",
+        default=None,
+        metavar="FILE.toml",
+        help="grasp an object of this material (and fingertip mu) instead of the planned one",
+    )
     ex.add_argument(
         "--out", default="softgrasp-out/execute", help="output directory (default softgrasp-out/execute)"
     )

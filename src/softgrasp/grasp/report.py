@@ -48,7 +48,13 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             "mass_kg": body.total_mass,
             "nodes": int(body.n_nodes),
             "tets": int(len(body.mesh.tets)),
-            "material": {"name": m.name, "E_Pa": m.E, "nu": m.nu, "density_kg_m3": m.density},
+            "material": {
+                "name": m.name,
+                "E_Pa": m.E,
+                "nu": m.nu,
+                "density_kg_m3": m.density,
+                "law": m.law.describe(),
+            },
         },
         "parameters": plan.config.describe(),
         "initial_grasp": {
