@@ -318,3 +318,21 @@ def test_reproduce_command_quick(tmp_path, capsys):
     for name in ("report.md", "report.html", "reproduce.json"):
         assert (out / name).stat().st_size > 1000
     assert text.count("ok  ") == 5
+
+
+def test_specimen_of_given_shape_and_size():
+    """``--object box:WxDxH`` / ``cylinder:DxH`` / ``ball:R``: the specimen's height and nominal
+    area (what converts stress-strain data) are the given ones; a bad shape says the format."""
+    from softgrasp.errors import MeshError
+
+    H, A = specimen_geometry(make_object("box:0.04x0.03x0.02")[0])
+    assert H == pytest.approx(0.02, rel=1e-12) and A == pytest.approx(0.04 * 0.03, rel=1e-12)
+    H, A = specimen_geometry(make_object("cylinder:0.03x0.02", 0.004)[0])
+    assert H == pytest.approx(0.02, rel=1e-9)
+    assert A == pytest.approx(np.pi * 0.015**2, rel=0.02)  # a polygon inscribed in the circle
+    mesh = make_object("ball:0.02")[0]
+    assert np.ptp(mesh.points, axis=0) == pytest.approx([0.04] * 3, rel=0.03)
+    with pytest.raises(MeshError, match=r"give box:WxDxH .* in metres"):
+        make_object("box:0.04x0.03")
+    with pytest.raises(MeshError, match="cylinder:DxH"):
+        make_object("cylinder:-1x2")

@@ -355,24 +355,6 @@ def _hand(name: str):
     return HandModel.from_urdf(name)
 
 
-def _hand_links(plan) -> list:
-    """The hand in the held state as polylines (world, m): the palm from the wrist through the
-    knuckles, and each finger from its base joint to its fingertip."""
-    import numpy as np
-
-    from softgrasp.hand.reach import transform
-
-    hand, pl = plan.config.hand, plan.placement
-    if hand is None or pl is None or plan.joint_paths is None:
-        return []
-    fingers = {
-        f: transform(pl.palm_pose, hand.link_points(f, plan.joint_paths[f][-1])) for f in plan.joint_paths
-    }
-    wrist = pl.palm_pose[:3, 3]
-    palm = np.array([wrist] + [pts[0] for pts in fingers.values()] + [wrist])
-    return [palm, *fingers.values()]
-
-
 def _fit_summary(fit) -> str:
     """The fitted values of a calibration, one per line, for the console and the figure."""
     units = {"E_Pa": ("E", 1e-3, "kPa"), "gamma_N_s_m2": ("gamma", 1.0, "N s/m^2")}
@@ -609,7 +591,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
     from softgrasp.grasp.planner import PlanConfig, plan_grasp
-    from softgrasp.grasp.report import HISTORY_HEADER, history_rows, plan_document, plan_table
+    from softgrasp.grasp.report import HISTORY_HEADER, hand_polylines, history_rows, plan_document, plan_table
     from softgrasp.mesh.io import save_mesh
     from softgrasp.mesh.tetmesh import TetMesh
     from softgrasp.output import write_json, write_text
@@ -661,7 +643,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         out / "grasp.png",
         title=f"Held grasp of the {doc['object']['name']} ({m.name}), mu = {config.contact.mu:g}",
         weight=(plan.com, body.total_mass * float(abs(body.gravity[2]))),
-        links=_hand_links(plan),
+        links=hand_polylines(plan),
     )
     write_text(out / "history.csv", buf.getvalue())
     _write_frames(out / "frames.npz", plan, body.mesh.facets)
@@ -816,22 +798,7 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         "backend": args.backend,
         "scale": args.scale,
         "parameters": {**cfg.describe(), "mujoco_timestep_s": float(hand.scene.model.opt.timestep)},
-        "fingers": [
-            {
-                "name": n,
-                "setpoint_N": res.setpoints[n],
-                "measured_N": res.measured[n],
-                "error_N": res.measured[n] - res.setpoints[n],
-                "held_N": res.held[n],
-            }
-            for n in names
-        ],
-        "reached": res.reached,
-        "lifted": res.lifted,
-        "dropped": res.dropped,
-        "slip_m": res.slip,
-        "rise_m": res.rise,
-        "events_s": res.events,
+        **res.describe(),
         "simulated_time_s": sim,
         "wall_time_s": wall,
         "realtime_factor": sim / wall if wall > 0 else None,
@@ -863,7 +830,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--object",
         default="sphere",
-        help="built-in object (cube, sphere) or a mesh file (.msh .vtk .vtu .stl .obj ..., metres)",
+        help="built-in object (cube, sphere), a shape (box:WxDxH, cylinder:DxH, ball:R; metres) "
+        "or a mesh file (.msh .vtk .vtu .stl .obj ..., metres)",
     )
     p.add_argument(
         "--material",

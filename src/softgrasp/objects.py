@@ -74,6 +74,8 @@ def _make_object(
         else:
             mesh = rest_on_table(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
         return mesh, preset(spec.material), spec.mass
+    if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
+        return _shape(name_or_path, mesh_size), preset("rubber"), None
     path = Path(name_or_path)
     if not path.suffix:
         raise MeshError(
@@ -83,3 +85,36 @@ def _make_object(
 
     mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size, reorient=reorient))
     return mesh, preset("rubber"), None
+
+
+#: Parametric shapes ``--object KIND:DIMENSIONS`` (metres): what each needs.
+SHAPES = {
+    "box": "box:WxDxH (edge lengths; box:A for a cube)",
+    "cylinder": "cylinder:DxH (diameter x height, axis vertical)",
+    "ball": "ball:R (radius)",
+}
+
+
+def _shape(spec: str, mesh_size: float | None) -> TetMesh:
+    """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
+    ``ball:0.03``), meshed with about four elements across its smallest dimension by default."""
+    from softgrasp.mesh import generate
+
+    kind, _, dims = spec.partition(":")
+    try:
+        vals = [float(v) for v in dims.lower().split("x")]
+    except ValueError:
+        vals = []
+    want = {"box": (1, 3), "cylinder": (2,), "ball": (1,)}[kind]
+    if len(vals) not in want or not all(v > 0 and v < float("inf") for v in vals):
+        raise MeshError(f"cannot read the shape {spec!r}; give {SHAPES[kind]} in metres, every size > 0")
+    if kind == "box":
+        size = vals * 3 if len(vals) == 1 else vals
+        h = min(size) / 4 if mesh_size is None else mesh_size
+        return generate.box(size, [max(1, round(a / h)) for a in size], name=spec)
+    if kind == "cylinder":
+        D, H = vals
+        h = min(D, H) / 4 if mesh_size is None else mesh_size
+        return rest_on_table(generate.cylinder(D / 2, H, h, name=spec))
+    R = vals[0]
+    return rest_on_table(generate.sphere(R, R / 4 if mesh_size is None else mesh_size, name=spec))

@@ -443,21 +443,8 @@ def _exp_indentation(ctx: _Context, rec: dict[str, Any], progress: _Progress) ->
     progress(1.0)
 
 
-def _hand_polylines(plan) -> list[NDArray[np.float64]]:
-    """The hand in the held state as world polylines: the palm through the knuckles, each finger
-    from its base joint to its fingertip (as ``softgrasp plan`` draws it)."""
-    from softgrasp.hand.reach import transform
-
-    hand, pl = plan.config.hand, plan.placement
-    if hand is None or pl is None or plan.joint_paths is None:
-        return []
-    fingers = [transform(pl.palm_pose, hand.link_points(f, q[-1])) for f, q in plan.joint_paths.items()]
-    wrist = pl.palm_pose[:3, 3]
-    return [np.array([wrist, *(p[0] for p in fingers), wrist]), *fingers]
-
-
 def _exp_grasp(ctx: _Context, rec: dict[str, Any], progress: _Progress) -> None:
-    from softgrasp.grasp.report import plan_document
+    from softgrasp.grasp.report import hand_polylines, plan_document
     from softgrasp.mesh.io import save_mesh
     from softgrasp.mesh.tetmesh import TetMesh
     from softgrasp.viz.plots import plot_grasp_3d, plot_plan_force_penetration, plot_plan_forces
@@ -548,7 +535,7 @@ def _exp_grasp(ctx: _Context, rec: dict[str, Any], progress: _Progress) -> None:
         ctx.out / figs["grasp_3d"],
         title=f"Held grasp of the rubber sphere, mu = {config.contact.mu:g} (cf. paper Fig. 12)",
         weight=(plan.com, weight),
-        links=_hand_polylines(plan),
+        links=hand_polylines(plan),
     )
     rec["figures"] = figs
     progress(1.0)
@@ -612,25 +599,12 @@ def _exp_execution(ctx: _Context, rec: dict[str, Any], progress: _Progress) -> N
     sim_wall = time.perf_counter() - t0
     ser = res.series
     simulated = float(ser["t"][-1]) if len(ser["t"]) else 0.0
+    outcome = res.describe()
+    for f in outcome["fingers"]:
+        f["relative_error"] = _rel(f["measured_N"], f["setpoint_N"])
     rec["results"] = {
-        "fingers": [
-            {
-                "name": n,
-                "setpoint_N": res.setpoints[n],
-                "measured_N": res.measured[n],
-                "error_N": res.measured[n] - res.setpoints[n],
-                "relative_error": _rel(res.measured[n], res.setpoints[n]),
-                "held_N": res.held[n],
-            }
-            for n in names
-        ],
-        "reached": res.reached,
-        "lifted": res.lifted,
-        "dropped": res.dropped,
-        "rise_m": res.rise,
+        **outcome,
         "lift_m": cfg.lift,
-        "slip_m": res.slip,
-        "events_s": res.events,
         "simulated_time_s": simulated,
         "simulation_wall_time_s": sim_wall,
         "realtime_factor": simulated / sim_wall if sim_wall > 0 else None,

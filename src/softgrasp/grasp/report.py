@@ -6,12 +6,13 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from softgrasp.body import Body
 from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.planner import GraspPlan
 
-__all__ = ["SCHEMA", "plan_document", "history_rows", "HISTORY_HEADER", "plan_table"]
+__all__ = ["SCHEMA", "plan_document", "history_rows", "HISTORY_HEADER", "plan_table", "hand_polylines"]
 
 SCHEMA = "softgrasp.plan/1"
 #: Equilibrium is "satisfied" when the held state's residuals are below this fraction of the weight.
@@ -148,3 +149,17 @@ def plan_table(plan: GraspPlan) -> str:
             f"{f.tangential_force:>11.3f}"
         )
     return "\n".join(lines)
+
+
+def hand_polylines(plan: GraspPlan) -> list[NDArray[np.float64]]:
+    """The hand in the held state as world polylines [m]: the palm from the wrist through the
+    knuckles and back, and each finger from its base joint to its fingertip (empty without a hand
+    model)."""
+    from softgrasp.hand.reach import transform
+
+    hand, pl = plan.config.hand, plan.placement
+    if hand is None or pl is None or plan.joint_paths is None:
+        return []
+    fingers = [transform(pl.palm_pose, hand.link_points(f, q[-1])) for f, q in plan.joint_paths.items()]
+    wrist = pl.palm_pose[:3, 3]
+    return [np.array([wrist, *(f[0] for f in fingers), wrist]), *fingers]

@@ -177,6 +177,28 @@ class ExecutionResult:
     series: dict[str, NDArray[np.float64]]
     events: dict[str, float] = field(default_factory=dict)
 
+    def describe(self) -> dict[str, object]:
+        """JSON-ready outcome: per finger its set-point, the force reached and held [N]; whether
+        the set-points were reached and the object lifted; slip and rise [m]; event times [s]."""
+        return {
+            "fingers": [
+                {
+                    "name": n,
+                    "setpoint_N": self.setpoints[n],
+                    "measured_N": self.measured[n],
+                    "error_N": self.measured[n] - self.setpoints[n],
+                    "held_N": self.held[n],
+                }
+                for n in self.fingers
+            ],
+            "reached": self.reached,
+            "lifted": self.lifted,
+            "dropped": self.dropped,
+            "slip_m": self.slip,
+            "rise_m": self.rise,
+            "events_s": self.events,
+        }
+
 
 def execute_plan(
     hand: Hand,
