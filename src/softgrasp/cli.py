@@ -704,7 +704,7 @@ def _cmd_execute(args: argparse.Namespace) -> int:
     from softgrasp.hand.planfile import load_plan_file
     from softgrasp.mesh.io import load_mesh
     from softgrasp.output import write_json, write_text
-    from softgrasp.viz.plots import plot_execution_forces, plot_grasp_3d
+    from softgrasp.viz.plots import EXECUTION_FRAME_TITLES, plot_execution_forces, plot_execution_frame
 
     t0 = time.perf_counter()
     if not (np.isfinite(args.scale) and args.scale > 0):
@@ -729,10 +729,7 @@ def _cmd_execute(args: argparse.Namespace) -> int:
     frames: dict[str, tuple] = {}
 
     def snapshot(event: str) -> None:
-        hand.scene.forward()
-        tips = np.array([hand.scene.fingertip_position(n) for n in names])
-        forces = np.array([hand.scene.fingertip_force(n) for n in names])
-        frames[event] = (hand.scene.object_nodes(), tips, forces, hand.links(), hand.time)
+        frames[event] = hand.snapshot(names)
 
     bar, update = _progress("execute")
     try:
@@ -763,34 +760,11 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         tolerance=cfg.tolerance,
     )
     pictures = []
-    titles = {
-        "start": "initial pose",
-        "contact": "first contact",
-        "closed": "final deformation",
-        "end": "lifted",
-    }
-    for event, label in titles.items():
-        if event not in frames:
-            continue
-        nodes, tips, forces, links, t_ev = frames[event]
-        # The contact lies on the fingertip's side facing the object: along the force on the object.
-        contact = tips + plan.fingertip_radius * np.nan_to_num(
-            forces / np.maximum(np.linalg.norm(forces, axis=1, keepdims=True), 1e-12)
-        )
-        name = f"frame_{event}.png"
-        plot_grasp_3d(
-            nodes,
-            facets,
-            tips,
-            np.full(len(names), plan.fingertip_radius),
-            forces,
-            contact,
-            names,
-            out / name,
-            title=f"{label} (t = {t_ev:.2f} s, MuJoCo)",
-            links=links,
-        )
-        pictures.append(name)
+    for event in EXECUTION_FRAME_TITLES:
+        if event in frames:
+            name = f"frame_{event}.png"
+            plot_execution_frame(out / name, frames[event], facets, names, plan.fingertip_radius, event)
+            pictures.append(name)
     sim = float(ser["t"][-1]) if len(ser["t"]) else 0.0
     doc = {
         "schema": "softgrasp.execute/1",

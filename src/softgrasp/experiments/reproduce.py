@@ -560,7 +560,7 @@ def _exp_execution(ctx: _Context, rec: dict[str, Any], progress: _Progress) -> N
     from softgrasp.hand.mujoco_hand import MujocoHand
     from softgrasp.hand.planfile import load_plan_file
     from softgrasp.mesh.io import load_mesh
-    from softgrasp.viz.plots import plot_execution_forces, plot_grasp_3d
+    from softgrasp.viz.plots import EXECUTION_FRAME_TITLES, plot_execution_forces, plot_execution_frame
 
     plan = load_plan_file(ctx.plan_file)
     hand = MujocoHand.from_plan(plan)
@@ -581,11 +581,7 @@ def _exp_execution(ctx: _Context, rec: dict[str, Any], progress: _Progress) -> N
     frames: dict[str, tuple] = {}
 
     def snapshot(event: str) -> None:
-        sc = hand.scene
-        sc.forward()
-        tips = np.array([sc.fingertip_position(n) for n in names])
-        forces = np.array([sc.fingertip_force(n) for n in names])
-        frames[event] = (sc.object_nodes(), tips, forces, hand.links(), hand.time)
+        frames[event] = hand.snapshot(names)
 
     t0 = time.perf_counter()
     res = execute_plan(
@@ -621,34 +617,13 @@ def _exp_execution(ctx: _Context, rec: dict[str, Any], progress: _Progress) -> N
         phases=[(p, res.events[p]) for p in PHASES if p in res.events],
         tolerance=cfg.tolerance,
     )
-    labels = {
-        "start": "initial pose",
-        "contact": "first contact",
-        "closed": "final deformation",
-        "end": "lifted",
-    }
-    done = 0
-    for event, label in labels.items():
-        done += 1
-        if event not in frames:
-            continue
-        nodes, tips, forces, links, t_ev = frames[event]
-        unit = forces / np.maximum(np.linalg.norm(forces, axis=1, keepdims=True), 1e-12)
-        key = f"frame_{event}"
-        figs[key] = f"figures/execution_{key}.png"
-        plot_grasp_3d(
-            nodes,
-            facets,
-            tips,
-            np.full(len(names), plan.fingertip_radius),
-            forces,
-            tips + plan.fingertip_radius * unit,
-            names,
-            ctx.out / figs[key],
-            title=f"{label} (t = {t_ev:.2f} s, MuJoCo)",
-            links=links,
-        )
-        progress(0.75 + 0.25 * done / len(labels))
+    for done, event in enumerate(EXECUTION_FRAME_TITLES, start=1):
+        if event in frames:
+            key = f"frame_{event}"
+            figs[key] = f"figures/execution_{key}.png"
+            radius = plan.fingertip_radius
+            plot_execution_frame(ctx.out / figs[key], frames[event], facets, names, radius, event)
+        progress(0.75 + 0.25 * done / len(EXECUTION_FRAME_TITLES))
     rec["figures"] = figs
     progress(1.0)
 

@@ -128,6 +128,15 @@ class MujocoHand:
         """Palm-frame points to the world at the current base pose."""
         return transform(self.scene.palm_pose(), p)
 
+    def snapshot(self, names: list[str] | tuple[str, ...]) -> tuple:
+        """The scene now, for a picture: (object nodes (N, 3), fingertip centres (F, 3), fingertip
+        forces on the object (F, 3) [N], the hand's polylines, time [s])."""
+        sc = self.scene
+        sc.forward()
+        tips = np.array([sc.fingertip_position(n) for n in names])
+        forces = np.array([sc.fingertip_force(n) for n in names])
+        return sc.object_nodes(), tips, forces, self.links(), self.time
+
     def links(self) -> list[NDArray[np.float64]]:
         """The hand as world polylines at its current joint readings: palm, then each finger."""
         d = self.scene.data

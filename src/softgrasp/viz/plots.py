@@ -647,3 +647,41 @@ def plot_calibration(
         ax2.set_xlim(left=0)
         ax2.legend(frameon=False, loc="upper left")
     return _save(plt, fig, ax, path, legend_loc="upper left")
+
+
+__all__ += ["EXECUTION_FRAME_TITLES", "plot_execution_frame"]
+
+#: The execution's pictures: event -> title (paper Fig. 14: initial pose, contact, deformation).
+EXECUTION_FRAME_TITLES = {
+    "start": "initial pose",
+    "contact": "first contact",
+    "closed": "final deformation",
+    "end": "lifted",
+}
+
+
+def plot_execution_frame(
+    path: str | Path,
+    frame: tuple,
+    facets: NDArray[np.int64],
+    names: Sequence[str],
+    radius: float,
+    event: str,
+) -> Path:
+    """One picture of the executed grasp from a hand's snapshot (nodes, fingertip centres, forces
+    on the object, hand polylines, time); the contact drawn on each fingertip's side facing the
+    object (along its force on the object)."""
+    nodes, tips, forces, links, t_ev = frame
+    unit = np.nan_to_num(forces / np.maximum(np.linalg.norm(forces, axis=1, keepdims=True), 1e-12))
+    return plot_grasp_3d(
+        nodes,
+        facets,
+        tips,
+        np.full(len(names), radius),
+        forces,
+        tips + radius * unit,
+        names,
+        path,
+        title=f"{EXECUTION_FRAME_TITLES.get(event, event)} (t = {t_ev:.2f} s, MuJoCo)",
+        links=links,
+    )
