@@ -389,21 +389,24 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise ConfigError("give measured data to fit: --compression DATA.csv and/or --indentation DATA.csv")
     if args.nu is not None and not -1.0 < args.nu < 0.5:
         raise ConfigError(f"--nu must lie in (-1, 0.5), got {args.nu}")
-    # Read (and check) the data before any meshing: a bad file fails at once.
+    # The indentation file needs no specimen: it is checked before any meshing.
     ind_data = read_indentation_data(args.indentation) if args.indentation else None
     body = _load(args)
     mesh, material, mass = body.mesh, body.material, body.total_mass
+    # The density goes into material.toml only when the user gave one: otherwise a built-in
+    # object planned with the file keeps its own mass.
+    mf = _material_file(args)
+    given_density = (mf is not None and mf.material is not None and mf.material.density is not None) or (
+        mf is None and args.material is not None and "density" in args.material
+    )
+    density = material.density if given_density else None
     out = Path(args.out or "softgrasp-out/calibrate")
     comp_data = None
     if args.compression:
-        H, A = specimen_geometry(mesh)
-        comp_data = read_compression_data(args.compression, H, A)
+        comp_data = read_compression_data(args.compression, *specimen_geometry(mesh))
     print(f"specimen {mesh.summary()}, mass {mass * 1e3:.1f} g")
-    doc: dict[str, object] = {
-        "schema": "softgrasp.calibration/1",
-        "specimen": {"name": args.object, **body.describe()},
-    }
     fits = {}
+    figures: list[tuple[str, object, dict]] = []
 
     def bar(desc: str):
         b = tqdm(desc=desc, unit=" simulations", leave=False, disable=None, file=sys.stderr)
@@ -434,19 +437,19 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             )
         finally:
             b.close()
-        material = Material(fitted.E, fitted.nu, material.density, fitted.law, name="calibrated")
+        material = Material(fitted.E, fitted.nu, density, fitted.law, name="calibrated")
         fits["compression"] = fit
-        plot_calibration(
-            out / "compression_fit.png",
-            fit.x,
-            fit.measured,
-            fit.fitted,
-            xlabel="displacement",
-            title=f"Compression fit ({Path(args.compression).name})",
-            summary=_fit_summary(fit),
-            lateral=(fit.lateral_measured, fit.lateral_fitted) if fit.lateral_measured is not None else None,
+        lateral = (fit.lateral_measured, fit.lateral_fitted) if fit.lateral_measured is not None else None
+        figures.append(
+            (
+                "compression_fit.png",
+                fit,
+                dict(xlabel="displacement", lateral=lateral, title="Compression fit"),
+            )
         )
         print(_fit_summary(fit))
+    else:
+        material = Material(material.E, material.nu, density, material.law, name=material.name)
     contact = None
     if ind_data is not None:
         print(f"indentation: {len(ind_data.force_N)} points from {args.indentation}")
@@ -464,39 +467,31 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         finally:
             b.close()
         fits["indentation"] = ifit
-        plot_calibration(
-            out / "indentation_fit.png",
-            ifit.x,
-            ifit.measured,
-            ifit.fitted,
-            xlabel="penetration",
-            title=f"Indentation fit ({Path(args.indentation).name}), R = {args.radius * 1e3:.3g} mm",
-            summary=_fit_summary(ifit),
-        )
+        title = f"Indentation fit, R = {args.radius * 1e3:.3g} mm"
+        figures.append(("indentation_fit.png", ifit, dict(xlabel="penetration", title=title)))
         print(_fit_summary(ifit))
     for fit in fits.values():
         for note in fit.notes:
             print(f"note: {note}")
-    law = material.law.describe()
-    doc.update(
-        {
-            "E_Pa": material.E,
-            "nu": material.nu,
-            "law": law,
-            "residual": {
-                k: {"rms_N": f.residual_rms_N, "relative_rms": f.relative_rms} for k, f in fits.items()
-            },
-        }
-    )
+    doc: dict[str, object] = {
+        "schema": "softgrasp.calibration/1",
+        "specimen": {"name": args.object, **body.describe()},
+        "E_Pa": material.E,
+        "nu": material.nu,
+        "law": material.law.describe(),
+        "residual": {k: {"rms_N": f.residual_rms_N, "relative_rms": f.relative_rms} for k, f in fits.items()},
+    }
     if "indentation" in fits:
         doc["mean_abs_error_N"] = fits["indentation"].mean_abs_error_N
         assert contact is not None
         doc["contact"] = contact.describe()
-    doc["fits"] = {
+    details = {
         k: {
             "data": str(getattr(args, k)),
             "points": len(f.x),
+            "converged": f.converged,
             "parameters": {n: p.describe() for n, p in f.parameters.items()},
+            "correlation": f.correlation,
             "residual_rms_N": f.residual_rms_N,
             "mean_abs_error_N": f.mean_abs_error_N,
             "relative_rms": f.relative_rms,
@@ -507,7 +502,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         for k, f in fits.items()
     }
     if comp_data is not None:
-        doc["fits"]["compression"].update(
+        details["compression"].update(
             {
                 "plate_friction": args.plate_friction,
                 "height_m": comp_data.height_m,
@@ -515,8 +510,21 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             }
         )
     if ind_data is not None:
-        doc["fits"]["indentation"].update({"radius_m": args.radius, "speed_m_s": args.speed})
-    doc["wall_time_s"] = time.perf_counter() - t0
+        details["indentation"].update({"radius_m": args.radius, "speed_m_s": args.speed})
+    doc["fits"] = details
+    # Every output after every fit: a failed fit leaves the folder as it was.
+    for name, fit, kw in figures:
+        source = Path(str(getattr(args, fit.kind))).name
+        plot_calibration(
+            out / name,
+            fit.x,
+            fit.measured,
+            fit.fitted,
+            xlabel=kw["xlabel"],
+            title=f"{kw['title']} ({source})",
+            summary=_fit_summary(fit),
+            lateral=kw.get("lateral"),
+        )
     write_material_file(
         out / "material.toml",
         material,
@@ -524,8 +532,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         comment=f"softgrasp calibrate: {', '.join(f'{k} {getattr(args, k)}' for k in fits)}\n"
         "use with --material FILE in plan, indent, compress and execute",
     )
+    doc["wall_time_s"] = time.perf_counter() - t0
     write_json(out / "calibration.json", doc)
-    figs = ", ".join(f"{k}_fit.png" for k in fits)
+    figs = ", ".join(name for name, _, _ in figures)
     print(f"wrote {out}/calibration.json, material.toml, {figs} ({time.perf_counter() - t0:.1f} s)")
     return 0
 
@@ -771,6 +780,12 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         "plan": str(Path(args.plan).resolve()),
         "backend": args.backend,
         "scale": args.scale,
+        "object_material": {
+            "file": args.material,
+            "E_Pa": plan.E,
+            "nu": plan.nu,
+            "mu": plan.mu,
+        },
         "parameters": {**cfg.describe(), "mujoco_timestep_s": float(hand.scene.model.opt.timestep)},
         **res.describe(),
         "simulated_time_s": sim,
@@ -902,7 +917,13 @@ def build_parser() -> argparse.ArgumentParser:
             action.help = f"{action.help} (default: sphere, the paper's rubber sphere)"
         elif action.dest == "out":
             action.help = f"{action.help} (default: softgrasp-out/plan)"
-    pl.add_argument("--mu", type=float, default=None, help="fingertip friction coefficient (default 0.8)")
+    pl.add_argument(
+        "--mu",
+        type=float,
+        default=None,
+        help="fingertip friction coefficient (default 0.8); wins over a --material file's, which wins "
+        "over --config's",
+    )
     pl.add_argument(
         "--fingertip-radius",
         type=_positive("--fingertip-radius"),
@@ -988,7 +1009,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--speed", type=_positive("--speed"), default=0.005, help="indentation speed [m/s] (default 0.005)"
     )
     ca.add_argument(
-        "--mu", type=float, default=None, help="fingertip friction coefficient to keep (default 0.8)"
+        "--mu",
+        type=float,
+        default=None,
+        help="fingertip friction coefficient (default 0.8, or the material file's); fitted instead when "
+        "the indentation data have tangential_force_N",
     )
     ca.set_defaults(func=_cmd_calibrate)
 

@@ -83,6 +83,12 @@ def read_material_file(path: str | Path) -> MaterialFile:
         )
     if not doc:
         raise ConfigError(f"material file {name} is empty; it needs a [material] or [contact] table")
+    for table in ("material", "contact"):
+        if table in doc and not isinstance(doc[table], dict):
+            raise ConfigError(
+                f"material file {name}: {table} must be a table ([{table}] with key = value lines), "
+                f"got {doc[table]!r}"
+            )
     material = None
     m = doc.get("material")
     if m is not None:
@@ -97,6 +103,11 @@ def read_material_file(path: str | Path) -> MaterialFile:
         kind = m.get("law", "polynomial" if ("a2" in m or "a3" in m) else "linear")
         law: StressStrainLaw
         if kind == "linear":
+            if "a2" in m or "a3" in m:
+                raise ConfigError(
+                    f'material file {name}: [material] law = "linear" takes no a2/a3; '
+                    'use law = "polynomial" or remove them'
+                )
             law = Linear()
         elif kind == "polynomial":
             law = Polynomial(

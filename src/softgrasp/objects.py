@@ -87,6 +87,9 @@ def _make_object(
     return mesh, preset("rubber"), None
 
 
+#: Most cells of a parametric box (each 12 tets): beyond it, a coarser --mesh-size is needed.
+MAX_SHAPE_CELLS = 20_000
+
 #: Parametric shapes ``--object KIND:DIMENSIONS`` (metres): what each needs.
 SHAPES = {
     "box": "box:WxDxH (edge lengths; box:A for a cube)",
@@ -111,7 +114,13 @@ def _shape(spec: str, mesh_size: float | None) -> TetMesh:
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
         h = min(size) / 4 if mesh_size is None else mesh_size
-        return generate.box(size, [max(1, round(a / h)) for a in size], name=spec)
+        cells = [max(1, round(a / h)) for a in size]
+        if cells[0] * cells[1] * cells[2] > MAX_SHAPE_CELLS:
+            raise MeshError(
+                f"{spec} at {h * 1e3:.3g} mm elements needs {cells[0] * cells[1] * cells[2]} cells (at most "
+                f"{MAX_SHAPE_CELLS}); give a larger --mesh-size"
+            )
+        return generate.box(size, cells, name=spec)
     if kind == "cylinder":
         D, H = vals
         h = min(D, H) / 4 if mesh_size is None else mesh_size

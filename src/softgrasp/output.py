@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from collections.abc import Callable
@@ -48,6 +49,18 @@ def write_text(path: str | Path, text: str) -> Path:
     return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
 
 
+def _strict(data: Any) -> Any:
+    """``data`` with every non-finite float (NaN, infinities) as None: strict JSON (null), which
+    every JSON reader accepts (Python's writes NaN and Infinity, which most readers refuse)."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {k: _strict(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [_strict(v) for v in data]
+    return data
+
+
 def write_json(path: str | Path, data: Any) -> Path:
-    """Atomically write ``data`` as indented JSON to ``path``."""
-    return write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
+    """Atomically write ``data`` as indented, strict JSON to ``path`` (non-finite numbers as null)."""
+    return write_text(path, json.dumps(_strict(data), indent=2, sort_keys=False, allow_nan=False) + "\n")

@@ -10,9 +10,10 @@ bounded non-linear least squares over Young's modulus E, the polynomial law's a2
 pressed into the object is matched by softgrasp's indentation test
 (:func:`softgrasp.experiments.indentation.indentation_test`) over the contact law's stiffness
 prefactor c (K = c Psi sqrt(R), Eq. 11), exponent n (Eq. 9) and damping gamma (Eq. 13). The test
-is quasi-static: the damping force is added at the test speed (delta_dot = the fingertip speed,
-the surface under a slow fingertip being at rest), which makes gamma an offset of the loading
-curve, identifiable only when the data resolve it.
+is quasi-static: the damping force is added at the test speed, with delta_dot the rate of the
+contact-law penetration delta (which grows slower than the fingertip's travel: the body's own
+compliance is in series), a small offset of the loading curve, identifiable only when the data
+resolve it.
 
 Uncertainties are one standard deviation from the Gauss-Newton covariance s^2 (J^T J)^-1 at the
 optimum (s^2 the residual variance). A parameter the data do not depend on (its column of J is
@@ -120,6 +121,9 @@ class CalibrationFit:
     simulations: number of simulated tests the fit ran.
     wall_time_s: seconds.
     notes: remarks for the user (unidentified parameters and why).
+    converged: whether the least-squares solve converged.
+    correlation: correlation coefficients between the fitted parameters (E and the stiffness
+        prefactor in log space; b = a3 - a2^2 / 3 for the law), by name.
     """
 
     kind: str
@@ -135,6 +139,8 @@ class CalibrationFit:
     simulations: int
     wall_time_s: float
     notes: tuple[str, ...] = field(default=())
+    converged: bool = True
+    correlation: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def value(self, name: str) -> float:
         """The fitted or kept value of parameter ``name``."""
@@ -249,8 +255,8 @@ def read_compression_data(path: str | Path, height_m: float, area_m2: float) -> 
     if over.size:
         i = int(over[0])
         raise ConfigError(
-            f"measured data file {table.name!r}, line {table.line_of(i)}: displacement "
-            f"{x[i] * 1e3:.4g} mm is {x[i] / height_m:.0%} of the specimen height {height_m * 1e3:.4g} mm; "
+            f"measured data file {table.name!r}, line {table.line_of(i)}: a strain of "
+            f"{x[i] / height_m:.0%} ({x[i] * 1e3:.4g} mm of the specimen height {height_m * 1e3:.4g} mm); "
             f"the fit simulates up to {MAX_STRAIN:.0%} (check the specimen: --object, --mesh-size)"
         )
     return CompressionData(x, y, lateral, height_m, area_m2, table.name)
@@ -292,15 +298,42 @@ class _Spec:
         return math.exp(u) if self.log else u
 
 
+def _correlation(cov: dict[tuple[str, str], float]) -> dict[str, dict[str, float]]:
+    """Correlation coefficients from a covariance by name pairs (parameters with a finite variance)."""
+    names = [a for (a, b) in cov if a == b and math.isfinite(cov[(a, a)]) and cov[(a, a)] > 0]
+    return {a: {b: cov[(a, b)] / math.sqrt(cov[(a, a)] * cov[(b, b)]) for b in names} for a in names}
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """What the fitting engine found (see :func:`_least_squares`)."""
+
+    params: dict[str, Parameter]
+    residual: NDArray[np.float64]
+    evaluations: int
+    notes: list[str]
+    cov: dict[tuple[str, str], float]
+    converged: bool
+
+
 def _least_squares(
     residual: Callable[[dict[str, float]], NDArray[np.float64]],
     specs: Sequence[_Spec],
     fixed: dict[str, float],
     progress: Callable[[int], None] | None,
-) -> tuple[dict[str, Parameter], NDArray[np.float64], int, list[str], dict[tuple[str, str], float]]:
-    """Minimise |residual|^2 over ``specs`` (the rest in ``fixed``). Returns the parameters (with
-    uncertainties and status), the residual at the optimum, the number of evaluations, notes, and
-    the covariance of the fit vector by name pairs (log of the log-space parameters)."""
+    *,
+    blocks: Sequence[int] | None = None,
+    quiet: Sequence[str] = (),
+    max_evaluations: int = 60,
+) -> _Solution:
+    """Minimise |residual|^2 over ``specs`` (the rest in ``fixed``).
+
+    ``blocks``: sizes of consecutive residual blocks of different quantities (force, lateral
+    strain): each gets its own variance, estimated from its own residuals, and the covariance is
+    that of the weighted problem. ``quiet``: internal parameters whose status needs no note (they
+    are reported through a derived one). A solve that ran out of evaluations, or a parameter that
+    ends on a bound, is said so in the notes (and ``converged`` is False for the former).
+    """
     count = [0]
 
     def fun(u: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -320,8 +353,23 @@ def _least_squares(
             "the simulated test failed at the starting parameters; check the specimen mesh and the "
             "starting material (--material, --nu)"
         )
-    sol = least_squares(fun, u0, bounds=(lo, hi), method="trf", diff_step=1e-3, x_scale="jac", max_nfev=60)
+    try:
+        sol = least_squares(
+            fun, u0, bounds=(lo, hi), method="trf", diff_step=1e-3, x_scale="jac", max_nfev=max_evaluations
+        )
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        raise NotConverged(
+            f"the fit failed ({exc}); the simulated test fails near the start: try another --mesh-size "
+            "or a starting material closer to the data (--material)"
+        ) from None
     r = sol.fun
+    notes: list[str] = []
+    converged = bool(sol.status > 0)
+    if not converged:
+        notes.append(
+            f"the fit stopped after {max_evaluations} simulated tests without converging; its values "
+            "and deviations are not reliable (more or better-spread data would help)"
+        )
     # The covariance from a central-difference Jacobian at the optimum (the solver's own is a
     # one-sided estimate from its last iteration).
     J = np.empty((r.size, len(specs)))
@@ -335,43 +383,57 @@ def _least_squares(
     if not np.isfinite(J).all():
         J = sol.jac
     m, p = J.shape
-    dof = max(m - p, 1)
-    s2 = float(r @ r) / dof
-    notes: list[str] = []
-    params: dict[str, Parameter] = {}
     col = np.linalg.norm(J, axis=0)
     scale = max(float(col.max()), 1e-300)
     live = col > 1e-8 * scale
+    # Parameters on a bound count as fixed there: the covariance is that of the free ones.
+    free = live & (sol.active_mask == 0)
+    n_free = int(free.sum())
+    # Per-block variances: each block's residual variance (its share of the degrees of freedom).
+    sizes = list(blocks) if blocks else [m]
+    w = np.empty(m)
+    at = 0
+    for size in sizes:
+        rb = r[at : at + size]
+        dof_b = max(size - n_free * size / m, 1.0)
+        w[at : at + size] = 1.0 / max(float(rb @ rb) / dof_b, 1e-300)
+        at += size
+    Jw = J * np.sqrt(w)[:, None]
     cov = np.full((p, p), np.nan)
-    if live.any():
-        Jl = J[:, live]
-        try:
-            cov_l = s2 * np.linalg.pinv(Jl.T @ Jl)
-            idx = np.flatnonzero(live)
-            cov[np.ix_(idx, idx)] = cov_l
-        except np.linalg.LinAlgError:
-            pass
+    if free.any():
+        idx = np.flatnonzero(free)
+        cov[np.ix_(idx, idx)] = np.linalg.pinv(Jw[:, idx].T @ Jw[:, idx])
+    params: dict[str, Parameter] = {}
     for k, s in enumerate(specs):
         val = s.from_vec(float(sol.x[k]))
         if not live[k]:
-            notes.append(f"{s.name} not identified (the data do not depend on it); kept at {s.start:.6g}")
+            if s.name not in quiet:
+                notes.append(f"{s.name} not identified (the data do not depend on it); kept at {s.start:.6g}")
             params[s.name] = Parameter(s.name, s.start, math.nan, "not identified", s.start, s.lower, s.upper)
             continue
         sd_u = math.sqrt(cov[k, k]) if math.isfinite(cov[k, k]) and cov[k, k] >= 0 else math.nan
         sd = abs(val) * sd_u if s.log else sd_u  # first order: d exp(u) = exp(u) du
         status = "fitted"
-        if not (math.isfinite(sd) and sd <= UNIDENTIFIED * abs(val)):
+        if sol.active_mask[k] != 0:
+            status = "at bound"
+            if s.name not in quiet:
+                notes.append(
+                    f"{s.name} ended on its bound ({val:.4g}, bounds {s.lower:.4g}..{s.upper:.4g}); the "
+                    "data ask for a value outside what the fit allows"
+                )
+        elif not (math.isfinite(sd) and sd <= UNIDENTIFIED * abs(val)):
             status = "poorly determined"
-            notes.append(
-                f"{s.name} poorly determined: {val:.4g} +- {sd:.3g}; the data hardly constrain it (more "
-                "points, a larger strain range or lateral measurements would)"
-            )
+            if s.name not in quiet:
+                notes.append(
+                    f"{s.name} poorly determined: {val:.4g} +- {sd:.3g}; the data hardly constrain it "
+                    "(more points, a larger range or lateral measurements would)"
+                )
         params[s.name] = Parameter(s.name, val, sd, status, s.start, s.lower, s.upper)
     for name, v in fixed.items():
         params[name] = Parameter(name, v, math.nan, "fixed", v, v, v)
     names = [s.name for s in specs]
-    covd = {(m, n): float(cov[i, j]) for i, m in enumerate(names) for j, n in enumerate(names)}
-    return params, r, count[0], notes, covd
+    covd = {(a, b): float(cov[i, j]) for i, a in enumerate(names) for j, b in enumerate(names)}
+    return _Solution(params, r, count[0], notes, covd, converged)
 
 
 def _at(x: NDArray[np.float64], xs: NDArray[np.float64], ys: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -390,7 +452,7 @@ def _law(vals: dict[str, float]) -> Polynomial:
 
 def _with_a3(params: dict[str, Parameter], cov: dict[tuple[str, str], float]) -> dict[str, Parameter]:
     """Replace the fit's b by a3 = b + a2^2 / 3, its variance from the fit's covariance (first
-    order; b is fitted in log space)."""
+    order; b is fitted in log space), its status judged on its own deviation."""
     out = dict(params)
     b, a2 = out.pop("b"), out["a2"]
     a3 = b.value + a2.value**2 / 3.0
@@ -400,11 +462,14 @@ def _with_a3(params: dict[str, Parameter], cov: dict[tuple[str, str], float]) ->
     g = {"b": b.value, "a2": 2.0 * a2.value / 3.0}  # d a3 / d(log b), d a3 / d a2
     var = sum(g[m] * g[n] * cov.get((m, n), math.nan) for m in g for n in g)
     sd = math.sqrt(var) if math.isfinite(var) and var >= 0 else math.nan
-    status = b.status
-    if status == "fitted" and not sd <= UNIDENTIFIED * abs(a3):
-        status = "poorly determined"
+    if b.status == "not identified":
+        status = "not identified"
+    elif b.status == "at bound":
+        status = "at bound"  # b at its floor: a3 = a2^2 / 3, the least that keeps the law increasing
+    else:
+        status = "fitted" if sd <= UNIDENTIFIED * abs(a3) else "poorly determined"
     start = b.start + a2.start**2 / 3.0
-    out["a3"] = Parameter("a3", a3, sd, status, start, -math.inf, math.inf)
+    out["a3"] = Parameter("a3", a3, sd, status, start, math.nan, math.nan)
     return out
 
 
@@ -474,7 +539,7 @@ def fit_compression(
             )
             body = build_body(mesh, mat, mass=mass)
             return compression_test(body, strain=strain, steps=steps, plate_friction=plate_friction)
-        except (MaterialError, NotConverged):
+        except SoftgraspError:  # a trial point the model cannot take (law, solve): a failed step
             return None
 
     def residual(vals: dict[str, float]) -> NDArray[np.float64]:
@@ -518,9 +583,18 @@ def fit_compression(
         specs.append(_Spec("nu", min(max(nu, -0.9), 0.49), -0.9, 0.49))
     else:
         fixed["nu"] = nu
-    params, r, count, notes, cov = _least_squares(residual, specs, fixed, progress)
-    final = {k: p.value for k, p in params.items()}
-    params = _with_a3(params, cov)
+    n_force = len(data.force_N)
+    blocks = [n_force, n_force] if fit_nu else None
+    solution = _least_squares(residual, specs, fixed, progress, blocks=blocks, quiet=("b",))
+    count, notes = solution.evaluations, list(solution.notes)
+    final = {k: p.value for k, p in solution.params.items()}
+    params = _with_a3(solution.params, solution.cov)
+    for name in ("a3",):
+        p = params[name]
+        if p.status == "poorly determined":
+            notes.append(f"a3 poorly determined: {p.value:.4g} +- {p.stderr:.3g}")
+        elif p.status == "at bound":
+            notes.append(f"a3 = a2^2/3 = {p.value:.4g}: the law's least stiffening in tension allowed")
     final["a3"] = params["a3"].value
     res = simulate(final)
     if res is None:
@@ -549,6 +623,8 @@ def fit_compression(
         simulations=count + 2,
         wall_time_s=time.perf_counter() - t0,
         notes=tuple(notes),
+        converged=solution.converged,
+        correlation=_correlation(solution.cov),
     )
     return mat, fit
 
@@ -625,9 +701,11 @@ def fit_indentation(
             res = indentation_test(body, depth=depth, radius=radius, speed=speed, steps=steps, params=p)
         except (SoftgraspError, ValueError):
             return None, None
-        # The damping term of Eq. 12-14 at the test speed: delta_dot = speed against a surface at rest.
+        # The damping term of Eq. 12-14 at the test speed. The contact-law penetration delta is in
+        # series with the body's own compliance: delta_dot = (d delta / d travel) * speed.
         C = contact_damping(radius, p.gamma)
-        damp = C * speed * (res.contact_depth_m**p.exponent if p.damping == "hunt-crossley" else 1.0)
+        rate = np.gradient(res.contact_depth_m, res.penetration_m) * speed
+        damp = C * rate * (res.contact_depth_m**p.exponent if p.damping == "hunt-crossley" else 1.0)
         damp = np.where(res.penetration_m > 0, damp, 0.0)
         return res, res.force_N + damp
 
@@ -648,7 +726,10 @@ def fit_indentation(
         if n in names
     ]
     fixed = {n: start[n] for n in start if n not in names}
-    fitted, r, count, notes, _ = _least_squares(residual, specs, fixed, progress)
+    n_force = len(data.force_N)
+    blocks = [n_force, n_force] if data.tangential_force_N is not None else None
+    solution = _least_squares(residual, specs, fixed, progress, blocks=blocks)
+    fitted, count, notes = solution.params, solution.evaluations, solution.notes
     final = {k: p.value for k, p in fitted.items()}
     res, F = simulate(final)
     if res is None:
@@ -670,5 +751,7 @@ def fit_indentation(
         simulations=count + 1,
         wall_time_s=time.perf_counter() - t0,
         notes=tuple(notes),
+        converged=solution.converged,
+        correlation=_correlation(solution.cov),
     )
     return contact(final), fit_result

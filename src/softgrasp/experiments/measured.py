@@ -123,13 +123,19 @@ def read_table(path: str | Path, *, min_rows: int = 2) -> MeasuredTable:
     if not lines:
         raise ConfigError(f"measured data file {name!r} is empty")
     header = tuple(c.strip() for c in next(csv.reader([lines[0][1]])))
+    dup = sorted({c for c in header if c and header.count(c) > 1})
+    if dup:
+        raise ConfigError(f"measured data file {name!r}, line {lines[0][0]}: column(s) {dup} appear twice")
     rows: list[tuple[str, ...]] = []
     numbers: list[int] = []
     for lineno, ln in lines[1:]:
         row = tuple(c.strip() for c in next(csv.reader([ln])))
-        if len(row) < len(header):
+        while len(row) > len(header) and not row[-1]:
+            row = row[:-1]  # empty trailing cells (a trailing comma)
+        if len(row) != len(header):
             raise ConfigError(
-                f"measured data file {name!r}, line {lineno}: expected {len(header)} values, got {len(row)}"
+                f"measured data file {name!r}, line {lineno}: expected {len(header)} values (one per header "
+                f"column), got {len(row)}"
             )
         rows.append(row)
         numbers.append(lineno)
