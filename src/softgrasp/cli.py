@@ -18,6 +18,7 @@ from typing import NoReturn
 
 from softgrasp import __version__
 from softgrasp.errors import ConfigError, SoftgraspError
+from softgrasp.grasp.options import PLAN_DEFAULTS
 
 __all__ = ["main"]
 
@@ -74,15 +75,9 @@ def _material_file(args: argparse.Namespace):
 
 def _contact(args: argparse.Namespace, mu: float | None, **kw):
     """Contact parameters: the defaults, a material file's [contact] over them, then --mu if given."""
-    from softgrasp.contact.fingertip import ContactParams
+    from softgrasp.grasp.options import contact_params
 
-    params = ContactParams(**kw)
-    mf = _material_file(args)
-    if mf is not None:
-        params = mf.contact_params(params)
-    if mu is not None:
-        params = ContactParams(**{**params.__dict__, "mu": float(mu)})
-    return params
+    return contact_params(_material_file(args), mu, **kw)
 
 
 def _plan_contact(args: argparse.Namespace, mu_given: float | None):
@@ -93,33 +88,11 @@ def _plan_contact(args: argparse.Namespace, mu_given: float | None):
 
 
 def _load(args: argparse.Namespace):
-    from softgrasp.body import build_body
-    from softgrasp.material import parse_material
-    from softgrasp.objects import make_object
+    from softgrasp.grasp.options import load_body
 
-    mesh, material, mass = make_object(args.object, args.mesh_size, reorient=args.reorient)
-    mf = _material_file(args)
-    if mf is not None:
-        if mf.material is not None:
-            material = mf.material
-            # A density in the file decides the mass; without one the built-in object keeps its mass.
-            if material.density is not None:
-                mass = None
-            elif mass is None:
-                raise ConfigError(
-                    f"material file {mf.path} has no density_kg_m3; the object {args.object!r} needs one "
-                    "for its mass"
-                )
-    elif args.material is not None:
-        material, spec_mass = parse_material(args.material)
-        # A material given with its own density or mass decides the mass; a preset keeps the
-        # built-in object's mass.
-        if spec_mass is not None:
-            mass = spec_mass
-        elif "density" in args.material:
-            mass = None
-    body = build_body(mesh, material, mass=mass)
-    return body
+    return load_body(
+        args.object, args.mesh_size, args.material, reorient=args.reorient, mfile=_material_file(args)
+    )
 
 
 def _cmd_compress(args: argparse.Namespace) -> int:
@@ -290,25 +263,6 @@ def _cmd_indent(args: argparse.Namespace) -> int:
     return 0
 
 
-#: ``softgrasp plan`` options that a --config TOML file may set, with their defaults.
-PLAN_DEFAULTS: dict[str, object] = {
-    "object": "sphere",
-    "material": None,
-    "mesh_size": None,
-    "mu": 0.8,
-    "fingertip_radius": 0.008,
-    "step": 0.0005,
-    "solver": "quasistatic",
-    "safety_factor": 1.0,
-    "hold_time": 1.0,
-    "max_squeeze": 0.5,
-    "refine": 3,
-    "hand": "shadow_like",
-    "out": "softgrasp-out/plan",
-    "reorient": False,
-}
-
-
 def _plan_options(args: argparse.Namespace) -> argparse.Namespace:
     """Merge command-line options over a --config TOML file over the defaults."""
     conf: dict[str, object] = {}
@@ -342,17 +296,6 @@ def _plan_options(args: argparse.Namespace) -> argparse.Namespace:
     if merged["solver"] not in ("quasistatic", "dynamic"):
         raise ConfigError(f"solver must be quasistatic or dynamic, got {merged['solver']!r}")
     return argparse.Namespace(**{**vars(args), **merged})
-
-
-def _hand(name: str):
-    """The hand model named by --hand: the packaged Shadow-like hand, a URDF file, or none."""
-    from softgrasp.hand.model import HandModel
-
-    if name == "shadow_like":
-        return HandModel.default()
-    if name == "none":
-        return None
-    return HandModel.from_urdf(name)
 
 
 def _fit_summary(fit) -> str:
@@ -568,6 +511,54 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     return 1 if res.failed else 0
 
 
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from softgrasp.sweep.engine import run_sweep
+    from softgrasp.sweep.report import sweep_figures
+    from softgrasp.sweep.spec import read_sweep, sweep_cases
+
+    spec = read_sweep(args.sweep)
+    cases = sweep_cases(spec)
+    out = Path(args.out or "softgrasp-out/sweep")
+    where = args.scheduler or f"a local Dask cluster of {args.workers} worker process(es)"
+    print(
+        f"sweep {args.sweep}: {len(cases)} cases ({spec.mode} over {', '.join(spec.varied)}) on {where}"
+        + (", executing each plan" if spec.execute else "")
+    )
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(cases), desc="sweep", unit=" cases", leave=False, disable=None, file=sys.stderr)
+
+    def progress(done: int, total: int) -> None:
+        bar.n = done
+        bar.refresh()
+
+    try:
+        res = run_sweep(
+            spec,
+            cases,
+            out,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            resume=args.resume,
+            progress=progress,
+        )
+    finally:
+        bar.close()
+    figures = sweep_figures(spec, res.rows, out)
+    per_min = 60.0 * res.ran / res.wall_time_s if res.wall_time_s > 0 else float("nan")
+    print(
+        f"{len(res.rows)} cases: {len(res.rows) - res.failed} planned, {res.failed} failed"
+        + (f" ({res.resumed} from the earlier run)" if res.resumed else "")
+        + f"; {res.ran} run in {res.wall_time_s:.1f} s ({per_min:.1f} cases/min on {res.workers} workers)"
+    )
+    for r in res.rows:
+        if r["status"] == "failed":
+            print(f"  case {r['case']} failed: {r['error']}")
+    names = ", ".join(["results.csv", "results.parquet", "sweep.json", *(f.name for f in figures)])
+    print(f"wrote {out}/{names}")
+    return 0
+
+
 def _write_frames(path: Path, plan, facets) -> None:
     """The closing increments and the held state, for ``softgrasp view`` (SI units)."""
     import numpy as np
@@ -599,7 +590,8 @@ def _write_frames(path: Path, plan, facets) -> None:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from softgrasp.grasp.planner import PlanConfig, plan_grasp
+    from softgrasp.grasp.options import plan_config
+    from softgrasp.grasp.planner import plan_grasp
     from softgrasp.grasp.report import HISTORY_HEADER, hand_polylines, history_rows, plan_document, plan_table
     from softgrasp.mesh.io import save_mesh
     from softgrasp.mesh.tetmesh import TetMesh
@@ -614,17 +606,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     m = body.material
     print(f"object   {body.mesh.summary()}, mass {body.total_mass * 1e3:.1f} g")
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
-    config = PlanConfig(
-        contact=_plan_contact(args, mu_given),
-        fingertip_radius=float(args.fingertip_radius),
-        step=float(args.step),
-        solver=str(args.solver),
-        safety_factor=float(args.safety_factor),
-        hold_time=float(args.hold_time),
-        max_squeeze=float(args.max_squeeze),
-        refine=int(args.refine),
-        hand=_hand(str(args.hand)),
-    )
+    config = plan_config(vars(args), _plan_contact(args, mu_given))
     bar, update = _progress("plan")
     try:
         plan = plan_grasp(body, config, progress=update)
@@ -1031,6 +1013,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--quick", action="store_true", help="coarse meshes: the whole run in well under 2 minutes"
     )
     rp.set_defaults(func=_cmd_reproduce)
+
+    sw = sub.add_parser("sweep", help="plan many cases (grid or random over any plan option) on Dask")
+    sw.add_argument("sweep", metavar="SWEEP.toml", help="the sweep: [sweep], [base], [grid] or [random]")
+    sw.add_argument(
+        "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
+    )
+    sw.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    sw.add_argument("--out", default=None, metavar="DIR", help="output folder (default softgrasp-out/sweep)")
+    sw.add_argument("--resume", action="store_true", help="keep the finished rows in DIR, run the rest")
+    sw.set_defaults(func=_cmd_sweep)
 
     ex = sub.add_parser("execute", help="execute a plan under force control on a simulated hand and lift")
     ex.add_argument("plan", metavar="PLAN.json", help="a plan written by softgrasp plan")

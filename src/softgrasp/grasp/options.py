@@ -11,14 +11,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
-from softgrasp.body import Body, build_body
-from softgrasp.contact.fingertip import ContactParams
 from softgrasp.errors import ConfigError
-from softgrasp.grasp.planner import PlanConfig
-from softgrasp.material import Material, Polynomial, parse_material
 from softgrasp.materialfile import MaterialFile, is_material_file, read_material_file
-from softgrasp.objects import make_object
+
+if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help stays quick
+    from softgrasp.body import Body
+    from softgrasp.contact.fingertip import ContactParams
+    from softgrasp.grasp.planner import PlanConfig
 
 __all__ = [
     "PLAN_DEFAULTS",
@@ -74,6 +75,10 @@ def load_body(
     A material given with its own density or mass decides the mass; a preset, or a file without a
     density, keeps a built-in object's mass.
     """
+    from softgrasp.body import build_body
+    from softgrasp.material import Material, Polynomial, parse_material
+    from softgrasp.objects import make_object
+
     mesh, mat, mass = make_object(object_name, mesh_size, reorient=reorient)
     if material is not None and is_material_file(material):
         mf = mfile if mfile is not None else read_material_file(material)
@@ -126,6 +131,8 @@ def hand_model(name: str):
 def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -> ContactParams:
     """Contact parameters: the defaults (and ``kw``), a material file's [contact] over them, then
     ``mu`` when given."""
+    from softgrasp.contact.fingertip import ContactParams
+
     params = ContactParams(**kw)  # type: ignore[arg-type]
     if mfile is not None:
         params = mfile.contact_params(params)
@@ -136,6 +143,8 @@ def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -
 
 def plan_config(options: Mapping[str, object], contact: ContactParams) -> PlanConfig:
     """The planner configuration of merged plan ``options`` (every key of :data:`PLAN_DEFAULTS`)."""
+    from softgrasp.grasp.planner import PlanConfig
+
     return PlanConfig(
         contact=contact,
         fingertip_radius=float(options["fingertip_radius"]),  # type: ignore[arg-type]

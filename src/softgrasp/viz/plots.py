@@ -685,3 +685,100 @@ def plot_execution_frame(
         title=f"{EXECUTION_FRAME_TITLES.get(event, event)} (t = {t_ev:.2f} s, MuJoCo)",
         links=links,
     )
+
+
+# ---------------------------------------------------------------------- sweep figures
+__all__ += ["plot_sweep_forces", "plot_success_map"]
+
+_AXIS_LABELS = {
+    "mu": ("friction coefficient mu", 1.0),
+    "E": ("Young's modulus E [kPa]", 1e-3),
+    "nu": ("Poisson's ratio nu", 1.0),
+    "fingertip_radius": ("fingertip radius [mm]", 1e3),
+    "mesh_size": ("mesh size [mm]", 1e3),
+    "safety_factor": ("safety factor", 1.0),
+    "mass": ("mass [g]", 1e3),
+    "density": ("density [kg/m^3]", 1.0),
+}
+
+
+def _axis(name: str) -> tuple[str, float]:
+    return _AXIS_LABELS.get(name, (name, 1.0))
+
+
+def plot_sweep_forces(
+    path: str | Path,
+    values: NDArray[np.float64],
+    setpoints: NDArray[np.float64],
+    names: Sequence[str],
+    *,
+    parameter: str,
+    title: str,
+    failed: NDArray[np.float64] | None = None,
+) -> Path:
+    """Set-points of every finger against one swept parameter: each case a marker, the mean over
+    the cases at each value a line (other parameters vary within a value's cases).
+
+    Parameters
+    ----------
+    values: the parameter of each successful case (SI), (C,).
+    setpoints: the finger set-points [N] of those cases, (C, F).
+    names: finger names.  parameter: the swept option (sets the axis label and unit).
+    failed: the parameter's values of the failed cases, marked on the axis.
+    """
+    plt = _figure()
+    label, scale = _axis(parameter)
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    x = np.asarray(values, dtype=np.float64) * scale
+    for j, n in enumerate(names):
+        colour, marker = _finger_style(j)
+        ax.plot(x, setpoints[:, j], marker, ls="none", color=colour, ms=4.0, alpha=0.45)
+        ux = np.unique(x)
+        ax.plot(ux, [setpoints[x == u, j].mean() for u in ux], "-", color=colour, lw=1.8, label=n)
+    if failed is not None and len(failed):
+        ax.plot(
+            np.asarray(failed) * scale, np.zeros(len(failed)), "x", color="k", ms=7, label="no plan (failed)"
+        )
+    ax.set_xlabel(label)
+    ax.set_ylabel("set-point (normal force) [N]")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.set_ylim(bottom=0)
+    ax.legend(frameon=False)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+    return out
+
+
+def plot_success_map(
+    path: str | Path,
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    ok: NDArray[np.bool_],
+    total_N: NDArray[np.float64],
+    *,
+    x_name: str,
+    y_name: str,
+    title: str,
+) -> Path:
+    """Success map over two swept parameters: planned cases coloured by their total set-point
+    [N], cases without a plan (failed) as crosses."""
+    plt = _figure()
+    (xl, xs), (yl, ys) = _axis(x_name), _axis(y_name)
+    fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=120)
+    x, y, ok = np.asarray(x) * xs, np.asarray(y) * ys, np.asarray(ok, dtype=bool)
+    if ok.any():
+        sc = ax.scatter(x[ok], y[ok], c=np.asarray(total_N)[ok], cmap="viridis", s=70, edgecolors="k", lw=0.5)
+        fig.colorbar(sc, ax=ax, label="sum of the set-points [N]")
+    if (~ok).any():
+        ax.scatter(x[~ok], y[~ok], marker="x", c="tab:red", s=70, lw=2.0, label="no plan (failed)")
+        ax.legend(frameon=False, loc="best")
+    ax.set_xlabel(xl)
+    ax.set_ylabel(yl)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+    return out

@@ -1,0 +1,140 @@
+"""One case of a sweep: a plan (and optionally its execution) turned into one table row.
+
+:func:`run_case` never raises for a case's own failure (a bad material, an unreachable grasp, a
+solve that does not converge, a crash): the row says ``failed`` with the error message, so that
+one bad case never stops a sweep.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+import traceback
+from collections.abc import Mapping
+from pathlib import Path
+
+from softgrasp.errors import SoftgraspError
+
+__all__ = ["FINGERS", "OUTPUTS", "EXECUTE_OUTPUTS", "run_case", "output_columns"]
+
+#: Finger names of the rows (thumb, first, middle).
+FINGERS = ("thumb", "first", "middle")
+
+#: Output columns of every case (SI units in the names).
+OUTPUTS: tuple[str, ...] = (
+    "status",
+    "error",
+    "wall_time_s",
+    "nodes",
+    "mass_kg",
+    "travel_m",
+    "increments",
+    *(f"setpoint_{f}_N" for f in FINGERS),
+    *(f"force_{f}_N" for f in FINGERS),
+    *(f"penetration_{f}_m" for f in FINGERS),
+    "setpoint_sum_N",
+    "friction_margin",
+    "rigid_utilisation",
+    "force_residual_N",
+    "hold_drift_m",
+)
+
+#: Extra columns when the sweep executes each plan on the simulated hand.
+EXECUTE_OUTPUTS: tuple[str, ...] = ("reached", "lifted", "slip_m", "rise_m", "execute_wall_time_s")
+
+
+def output_columns(execute: bool) -> tuple[str, ...]:
+    """The output columns of a sweep's rows."""
+    return OUTPUTS + (EXECUTE_OUTPUTS if execute else ())
+
+
+def _failed(row: dict[str, object], exc: BaseException, t0: float) -> dict[str, object]:
+    msg = str(exc) if isinstance(exc, SoftgraspError) else f"{type(exc).__name__}: {exc}"
+    if not isinstance(exc, SoftgraspError):
+        tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
+        msg += " | " + tb[-2].strip().replace("\n", " ") if len(tb) > 1 else ""
+    row.update(status="failed", error=msg, wall_time_s=time.perf_counter() - t0)
+    return row
+
+
+def run_case(options: Mapping[str, object], execute: bool = False) -> dict[str, object]:
+    """Plan one case (and execute it when asked) and return its outputs as a row.
+
+    Parameters
+    ----------
+    options: the case's options (:mod:`softgrasp.sweep.spec`): plan options over the defaults and
+        material parameters over the object's material.
+    execute: also execute the plan on the simulated MuJoCo hand (lift and hold).
+
+    Returns
+    -------
+    The output columns (:func:`output_columns`): ``status`` ``ok`` or ``failed``, ``error`` (empty
+    or the message), and the figures (NaN where a failed case has none).
+    """
+    from softgrasp.grasp.options import contact_params, load_body, plan_config
+    from softgrasp.grasp.planner import plan_grasp
+    from softgrasp.sweep.spec import split_options
+
+    t0 = time.perf_counter()
+    row: dict[str, object] = {c: math.nan for c in output_columns(execute)}
+    row.update(status="ok", error="")
+    try:
+        plan_opts, material = split_options(options)
+        body = load_body(
+            str(plan_opts["object"]),
+            plan_opts["mesh_size"],  # type: ignore[arg-type]
+            plan_opts["material"],  # type: ignore[arg-type]
+            overrides=material,
+        )
+        from softgrasp.grasp.options import material_file
+
+        mf = material_file(plan_opts["material"])  # type: ignore[arg-type]
+        mu = plan_opts["mu"] if "mu" in options or mf is None or "mu" not in mf.contact else None
+        config = plan_config(plan_opts, contact_params(mf, mu))  # type: ignore[arg-type]
+        plan = plan_grasp(body, config)
+        row.update(
+            nodes=int(body.n_nodes),
+            mass_kg=float(body.total_mass),
+            travel_m=float(plan.travel[-1]) if len(plan.travel) else math.nan,
+            increments=int(plan.increments),
+            friction_margin=float(plan.friction_margin),
+            rigid_utilisation=float(plan.rigid_utilisation),
+            force_residual_N=float(plan.force_residual),
+            hold_drift_m=float(plan.com_drift),
+        )
+        for name, f in zip(FINGERS, plan.fingers, strict=True):
+            row[f"setpoint_{name}_N"] = float(f.normal_force)
+            row[f"force_{name}_N"] = float(math.sqrt(float(f.force @ f.force)))
+            row[f"penetration_{name}_m"] = float(f.penetration)
+        row["setpoint_sum_N"] = float(sum(f.normal_force for f in plan.fingers))
+        if execute:
+            te = time.perf_counter()
+            row.update(_execute(plan, body))
+            row["execute_wall_time_s"] = time.perf_counter() - te
+    except Exception as exc:  # noqa: BLE001 - a case's failure is data, never the sweep's end
+        return _failed(row, exc, t0)
+    row["wall_time_s"] = time.perf_counter() - t0
+    return row
+
+
+def _execute(plan, body) -> dict[str, object]:
+    """Execute a plan on the simulated hand: through a plan file, as ``softgrasp execute`` does."""
+    from softgrasp.grasp.report import plan_document
+    from softgrasp.hand.execute import ExecuteConfig, closing_lines, execute_plan
+    from softgrasp.hand.mujoco_hand import MujocoHand
+    from softgrasp.hand.planfile import load_plan_file
+    from softgrasp.mesh.io import save_mesh
+    from softgrasp.mesh.tetmesh import TetMesh
+    from softgrasp.output import write_json
+
+    with tempfile.TemporaryDirectory(prefix="softgrasp-case-") as tmp:
+        d = Path(tmp)
+        save_mesh(TetMesh(plan.placed, body.mesh.tets, name=body.mesh.name), d / "object.vtu")
+        doc = plan_document(plan, body, body.mesh.name)
+        doc["object"]["mesh_file"] = "object.vtu"
+        write_json(d / "plan.json", doc)
+        pf = load_plan_file(d / "plan.json")
+        hand = MujocoHand.from_plan(pf)
+        res = execute_plan(hand, closing_lines(pf), ExecuteConfig(), palm_to_world=hand.palm_to_world)
+    return {"reached": bool(res.reached), "lifted": bool(res.lifted), "slip_m": res.slip, "rise_m": res.rise}

@@ -1,0 +1,258 @@
+"""Running a sweep on Dask, streaming one row per finished case into a results table.
+
+The cases run on a ``dask.distributed`` cluster: a local one (worker processes on this machine,
+talking TCP on the loopback interface) by default, or an existing cluster at ``scheduler``
+(``tcp://host:port``), whose workers need softgrasp installed. Each finished case is appended at
+once to ``results.csv`` (flushed: a killed sweep keeps every row it finished), and
+``results.parquet`` is rewritten atomically as rows arrive and at the end, sorted by case.
+``resume=True`` reads the finished rows back and runs only the missing cases.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from softgrasp.errors import ConfigError
+from softgrasp.output import atomic_write, write_json
+from softgrasp.sweep.case import output_columns, run_case
+from softgrasp.sweep.spec import Case, SweepSpec, describe_spec
+
+__all__ = ["SweepResult", "run_sweep", "read_rows", "columns"]
+
+#: Seconds between rewrites of the Parquet table while rows stream in.
+PARQUET_EVERY = 10.0
+#: Thread counts of the numerical libraries in each worker (one case per core).
+_WORKER_ENV = {
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+    "NUMBA_NUM_THREADS": "1",
+    "SOFTGRASP_THREADS": "1",
+}
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """A finished sweep.
+
+    Attributes
+    ----------
+    rows: every case's row (inputs and outputs), sorted by case index.
+    ran: cases run by this call.  resumed: finished rows read back (``resume``).
+    failed: cases whose status is ``failed``.
+    csv_path, parquet_path: the results table.
+    wall_time_s: seconds.  workers: the cluster's workers.
+    """
+
+    rows: list[dict[str, object]]
+    ran: int
+    resumed: int
+    failed: int
+    csv_path: Path
+    parquet_path: Path
+    wall_time_s: float
+    workers: int
+
+
+def columns(spec: SweepSpec) -> list[str]:
+    """The results table's columns: case index and id, the inputs, then the outputs."""
+    return ["case", "case_id", *spec.inputs, *output_columns(spec.execute)]
+
+
+def _parse(value: str, column: str) -> object:
+    """A CSV cell back to a value: numbers as floats (ints for counts), booleans, text."""
+    if column in ("case", "nodes", "increments"):
+        return int(float(value)) if value not in ("", "nan") else math.nan
+    if value in ("True", "False"):
+        return value == "True"
+    try:
+        return float(value)
+    except ValueError:
+        return value
+
+
+def read_rows(path: Path, cols: Sequence[str]) -> list[dict[str, object]]:
+    """The complete rows of a results CSV (a row cut short by a killed sweep is dropped).
+
+    Raises ConfigError when the file's columns are not this sweep's (another sweep's results).
+    """
+    text = path.read_text(encoding="utf-8")
+    reader = csv.reader(io.StringIO(text))
+    header = next(reader, None)
+    if header is None:
+        return []
+    if list(header) != list(cols):
+        raise ConfigError(
+            f"{path} holds the results of another sweep (its columns differ); give another --out or remove it"
+        )
+    complete = text.endswith("\n")
+    lines = list(reader)
+    if lines and not complete:
+        lines = lines[:-1]  # the last row was being written when the sweep was killed
+    rows = []
+    for cells in lines:
+        if len(cells) != len(cols) or cells[cols.index("status")] not in ("ok", "failed"):
+            continue
+        rows.append({c: _parse(v, c) for c, v in zip(cols, cells, strict=True)})
+    return rows
+
+
+def _cell(v: object) -> str:
+    if isinstance(v, float):
+        return repr(v)
+    return "" if v is None else str(v)
+
+
+def _write_csv(path: Path, cols: Sequence[str], rows: Sequence[dict[str, object]]) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(cols)
+    for r in rows:
+        w.writerow([_cell(r.get(c)) for c in cols])
+    atomic_write(path, lambda p: p.write_text(buf.getvalue(), encoding="utf-8"))
+
+
+def _write_parquet(path: Path, cols: Sequence[str], rows: Sequence[dict[str, object]]) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    ordered = sorted(rows, key=lambda r: int(r["case"]))  # type: ignore[call-overload]
+    data = {}
+    for c in cols:
+        vals = [r.get(c) for r in ordered]
+        if all(isinstance(v, bool) or v is None or (isinstance(v, float) and math.isnan(v)) for v in vals):
+            data[c] = pa.array([v if isinstance(v, bool) else None for v in vals], type=pa.bool_())
+        elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals):
+            data[c] = pa.array([float(v) for v in vals], type=pa.float64())  # type: ignore[arg-type]
+        else:
+            data[c] = pa.array([None if v is None else str(v) for v in vals], type=pa.string())
+    table = pa.table(data)
+    atomic_write(path, lambda p: pq.write_table(table, p))
+
+
+def _client(scheduler: str | None, workers: int):
+    """A Dask client: of the cluster at ``scheduler``, or of a new local one (TCP on loopback)."""
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        try:
+            return Client(scheduler, timeout="20s"), None
+        except (OSError, TimeoutError) as exc:
+            raise ConfigError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+    os.environ.update(_WORKER_ENV)  # inherited by the worker processes
+    cluster = LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        protocol="tcp",
+        host="127.0.0.1",
+        dashboard_address=None,
+        silence_logs=logging.ERROR,
+    )
+    return Client(cluster), cluster
+
+
+def run_sweep(
+    spec: SweepSpec,
+    cases: Sequence[Case],
+    out: str | Path,
+    *,
+    scheduler: str | None = None,
+    workers: int = 2,
+    resume: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> SweepResult:
+    """Run ``cases`` of ``spec`` on Dask and write ``out/results.csv`` and ``results.parquet``.
+
+    Parameters
+    ----------
+    spec, cases: the sweep and its cases (:func:`softgrasp.sweep.spec.sweep_cases`).
+    out: the output folder.
+    scheduler: address of a running Dask scheduler (``tcp://host:port``); None: a local cluster.
+    workers: worker processes of the local cluster.
+    resume: keep the finished rows of ``out/results.csv`` and run only the missing cases;
+        without it, existing results are an error (never silently overwritten).
+    progress: called with (finished cases, all cases) as rows arrive.
+
+    Raises
+    ------
+    ConfigError: results exist without ``resume``, or belong to another sweep; no scheduler there.
+    """
+    if not 1 <= workers <= 256:
+        raise ConfigError(f"--workers must be from 1 to 256, got {workers}")
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cols = columns(spec)
+    csv_path, pq_path = out / "results.csv", out / "results.parquet"
+    done: list[dict[str, object]] = []
+    if csv_path.exists():
+        if not resume:
+            raise ConfigError(f"{csv_path} exists: add --resume to finish that sweep, or give another --out")
+        by_id = {c.id for c in cases}
+        done = [r for r in read_rows(csv_path, cols) if r["case_id"] in by_id]
+    _write_csv(csv_path, cols, done)  # the finished rows, clean, then appended to
+    write_json(
+        out / "sweep.json", {"schema": "softgrasp.sweep/1", **describe_spec(spec), "cases": len(cases)}
+    )
+    finished = {str(r["case_id"]) for r in done}
+    todo = [c for c in cases if c.id not in finished]
+    rows = list(done)
+    if progress is not None:
+        progress(len(rows), len(cases))
+    n_workers = 0
+    if todo:
+        from dask.distributed import as_completed
+
+        client, cluster = _client(scheduler, workers)
+        try:
+            n_workers = len(client.scheduler_info().get("workers", {}))
+            futures = {
+                client.submit(run_case, c.options, spec.execute, key=f"softgrasp-case-{c.id}", pure=False): c
+                for c in todo
+            }
+            last_pq = time.perf_counter()
+            with open(csv_path, "a", encoding="utf-8", newline="") as fh:
+                w = csv.writer(fh, lineterminator="\n")
+                for fut in as_completed(futures):
+                    case = futures[fut]
+                    try:
+                        result = fut.result()
+                    except Exception as exc:  # noqa: BLE001 - a lost worker: the case failed
+                        result = {c: math.nan for c in output_columns(spec.execute)}
+                        result.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+                    row = {"case": case.index, "case_id": case.id, **case.options, **result}
+                    for c in spec.inputs:
+                        row.setdefault(c, None)
+                    w.writerow([_cell(row.get(c)) for c in cols])
+                    fh.flush()
+                    rows.append(row)
+                    if progress is not None:
+                        progress(len(rows), len(cases))
+                    if time.perf_counter() - last_pq > PARQUET_EVERY:
+                        _write_parquet(pq_path, cols, rows)
+                        last_pq = time.perf_counter()
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    rows.sort(key=lambda r: int(r["case"]))  # type: ignore[call-overload]
+    _write_parquet(pq_path, cols, rows)
+    return SweepResult(
+        rows=rows,
+        ran=len(todo),
+        resumed=len(done),
+        failed=sum(r["status"] == "failed" for r in rows),
+        csv_path=csv_path,
+        parquet_path=pq_path,
+        wall_time_s=time.perf_counter() - t0,
+        workers=n_workers,
+    )

@@ -1,0 +1,270 @@
+"""Sweep files: which plan options vary, over what, and the cases they make.
+
+A sweep file is TOML::
+
+    [sweep]
+    mode = "grid"          # "grid": every combination of [grid]; "random": samples of [random]
+    samples = 32           # random: number of cases
+    seed = 1               # random: seed of the generator (the same file gives the same cases)
+    execute = false        # also execute each plan on the simulated hand (MuJoCo) and lift
+
+    [base]                 # options of every case: any plan option or material parameter
+    object = "sphere"
+    mesh_size = 0.024
+
+    [grid]                 # grid: a list of values per option
+    mu = [0.4, 0.6, 0.8]
+    E = [60e3, 80e3, 100e3]
+
+    [random]               # random: [low, high] uniform, or {low = .., high = .., log = true}
+    mu = [0.3, 0.9]
+    E = { low = 40e3, high = 160e3, log = true }
+
+Options are those of ``softgrasp plan`` (:data:`softgrasp.grasp.options.PLAN_DEFAULTS`: ``object``,
+``material``, ``mesh_size``, ``mu``, ``fingertip_radius``, ``step``, ``solver``, ``safety_factor``,
+``hold_time``, ``max_squeeze``, ``refine``, ``hand``) and the material parameters ``E`` [Pa], ``nu``,
+``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3`` set over the object's material. SI units.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from softgrasp.errors import ConfigError
+from softgrasp.grasp.options import MATERIAL_OVERRIDES, PLAN_DEFAULTS
+
+__all__ = [
+    "SweepSpec",
+    "Case",
+    "OPTIONS",
+    "read_sweep",
+    "sweep_cases",
+    "case_id",
+    "split_options",
+    "describe_spec",
+]
+
+#: Options a sweep may set (plan options and material parameters).
+OPTIONS: tuple[str, ...] = (
+    tuple(k for k in PLAN_DEFAULTS if k not in ("out", "reorient")) + MATERIAL_OVERRIDES
+)
+_TEXT = {"object", "material", "solver", "hand"}
+
+
+@dataclass(frozen=True)
+class Case:
+    """One case of a sweep: its index, a stable id (a hash of its options) and its options."""
+
+    index: int
+    id: str
+    options: dict[str, object]
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A parsed sweep file.
+
+    Attributes
+    ----------
+    mode: ``grid`` or ``random``.  samples, seed: of a random sweep.
+    execute: also execute each plan on the simulated hand.
+    base: options common to every case.
+    grid: per option, its values (grid mode).
+    random: per option, (low, high, log) (random mode).
+    source: the file.
+    """
+
+    mode: str
+    samples: int
+    seed: int
+    execute: bool
+    base: dict[str, object] = field(default_factory=dict)
+    grid: dict[str, list[object]] = field(default_factory=dict)
+    random: dict[str, tuple[float, float, bool]] = field(default_factory=dict)
+    source: str = "<sweep>"
+
+    @property
+    def varied(self) -> tuple[str, ...]:
+        """The options that vary between cases, in file order."""
+        return tuple(self.grid) if self.mode == "grid" else tuple(self.random)
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """Every option a case sets: the base ones, then the varied ones."""
+        return tuple(k for k in self.base if k not in self.varied) + self.varied
+
+
+def case_id(options: Mapping[str, object]) -> str:
+    """A stable id of a case's options (the key of ``--resume``): 12 hex digits of a SHA-256."""
+    text = json.dumps({k: options[k] for k in sorted(options)}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def _check_name(source: str, table: str, name: str) -> None:
+    if name not in OPTIONS:
+        raise ConfigError(
+            f"sweep file {source}: [{table}] {name!r} is not an option; options: {', '.join(OPTIONS)}"
+        )
+
+
+def _check_value(source: str, where: str, name: str, value: object) -> object:
+    if name in _TEXT:
+        if value is not None and not isinstance(value, str):
+            raise ConfigError(f"sweep file {source}: {where} {name} must be text, got {value!r}")
+        return value
+    if name == "refine":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"sweep file {source}: {where} refine must be an integer, got {value!r}")
+        return value
+    if value is None and name == "mesh_size":
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+        raise ConfigError(f"sweep file {source}: {where} {name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def read_sweep(path: str | Path) -> SweepSpec:
+    """Read and check a sweep file (module docstring). ConfigError says what is wrong and where."""
+    source = str(path)
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"sweep file {source} does not exist") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read sweep file {source}: {exc.strerror or exc}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"sweep file {source} is not valid TOML: {exc}") from None
+    unknown = sorted(set(doc) - {"sweep", "base", "grid", "random"})
+    if unknown:
+        raise ConfigError(
+            f"sweep file {source}: unknown table(s) {unknown}; use [sweep], [base], [grid], [random]"
+        )
+    for t in ("sweep", "base", "grid", "random"):
+        if t in doc and not isinstance(doc[t], dict):
+            raise ConfigError(f"sweep file {source}: {t} must be a table ([{t}])")
+    head = doc.get("sweep", {})
+    bad = sorted(set(head) - {"mode", "samples", "seed", "execute"})
+    if bad:
+        raise ConfigError(
+            f"sweep file {source}: unknown [sweep] key(s) {bad}; known: mode, samples, seed, execute"
+        )
+    mode = head.get("mode", "grid" if "grid" in doc else "random")
+    if mode not in ("grid", "random"):
+        raise ConfigError(f"sweep file {source}: [sweep] mode must be 'grid' or 'random', got {mode!r}")
+    samples, seed, execute = head.get("samples", 16), head.get("seed", 0), head.get("execute", False)
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 1_000_000:
+        raise ConfigError(f"sweep file {source}: [sweep] samples must be an integer from 1, got {samples!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ConfigError(f"sweep file {source}: [sweep] seed must be an integer, got {seed!r}")
+    if not isinstance(execute, bool):
+        raise ConfigError(f"sweep file {source}: [sweep] execute must be true or false, got {execute!r}")
+    base: dict[str, object] = {}
+    for k, v in doc.get("base", {}).items():
+        _check_name(source, "base", k)
+        base[k] = _check_value(source, "[base]", k, v)
+    grid: dict[str, list[object]] = {}
+    rand: dict[str, tuple[float, float, bool]] = {}
+    if mode == "grid":
+        if "random" in doc:
+            raise ConfigError(f"sweep file {source}: a grid sweep takes [grid], not [random]")
+        for k, vals in doc.get("grid", {}).items():
+            _check_name(source, "grid", k)
+            if not isinstance(vals, list) or not vals:
+                raise ConfigError(f"sweep file {source}: [grid] {k} must be a non-empty list of values")
+            grid[k] = [_check_value(source, "[grid]", k, v) for v in vals]
+        if not grid:
+            raise ConfigError(
+                f"sweep file {source}: a grid sweep needs a [grid] table with at least one option"
+            )
+    else:
+        if "grid" in doc:
+            raise ConfigError(f"sweep file {source}: a random sweep takes [random], not [grid]")
+        for k, v in doc.get("random", {}).items():
+            _check_name(source, "random", k)
+            if k in _TEXT or k == "refine":
+                raise ConfigError(f"sweep file {source}: [random] {k} is not a number to sample; use a grid")
+            if isinstance(v, list) and len(v) == 2:
+                lo, hi, log = v[0], v[1], False
+            elif isinstance(v, dict) and set(v) <= {"low", "high", "log"} and {"low", "high"} <= set(v):
+                lo, hi, log = v["low"], v["high"], v.get("log", False)
+            else:
+                raise ConfigError(
+                    f"sweep file {source}: [random] {k} must be [low, high] or "
+                    "{low = .., high = .., log = ..}"
+                )
+            lo = float(_check_value(source, "[random]", k, lo))  # type: ignore[arg-type]
+            hi = float(_check_value(source, "[random]", k, hi))  # type: ignore[arg-type]
+            if not lo < hi or (log and lo <= 0):
+                raise ConfigError(
+                    f"sweep file {source}: [random] {k} needs low < high"
+                    + (" and low > 0 (log)" if log else "")
+                )
+            rand[k] = (lo, hi, bool(log))
+        if not rand:
+            raise ConfigError(
+                f"sweep file {source}: a random sweep needs a [random] table with at least one option"
+            )
+    return SweepSpec(mode, samples, seed, execute, base, grid, rand, source)
+
+
+def sweep_cases(spec: SweepSpec) -> list[Case]:
+    """The cases of a sweep, in a fixed order (grid: the last option varies fastest; random: the
+    samples of a generator seeded with ``seed``)."""
+    rows: list[dict[str, object]] = []
+    if spec.mode == "grid":
+        names = list(spec.grid)
+        for combo in itertools.product(*(spec.grid[n] for n in names)):
+            rows.append(dict(zip(names, combo, strict=True)))
+    else:
+        rng = np.random.default_rng(spec.seed)
+        for _ in range(spec.samples):
+            row: dict[str, object] = {}
+            for n, (lo, hi, log) in spec.random.items():
+                u = float(rng.random())
+                row[n] = (
+                    float(math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
+                    if log
+                    else lo + u * (hi - lo)
+                )
+            rows.append(row)
+    cases = []
+    for i, row in enumerate(rows):
+        options = {**{k: v for k, v in spec.base.items() if k not in row}, **row}
+        cases.append(Case(i, case_id(options), options))
+    return cases
+
+
+def split_options(options: Mapping[str, object]) -> tuple[dict[str, object], dict[str, float]]:
+    """A case's plan options (over :data:`PLAN_DEFAULTS`) and its material parameters."""
+    plan = dict(PLAN_DEFAULTS)
+    material: dict[str, float] = {}
+    for k, v in options.items():
+        if k in MATERIAL_OVERRIDES:
+            material[k] = float(v)  # type: ignore[arg-type]
+        else:
+            plan[k] = v
+    return plan, material
+
+
+def describe_spec(spec: SweepSpec) -> dict[str, object]:
+    """JSON-ready description of a sweep."""
+    return {
+        "mode": spec.mode,
+        "samples": spec.samples if spec.mode == "random" else None,
+        "seed": spec.seed if spec.mode == "random" else None,
+        "execute": spec.execute,
+        "base": spec.base,
+        "grid": spec.grid,
+        "random": {k: {"low": lo, "high": hi, "log": log} for k, (lo, hi, log) in spec.random.items()},
+        "source": spec.source,
+    }
