@@ -50,6 +50,7 @@ class SweepResult:
     failed: cases whose status is ``failed``.
     csv_path, parquet_path: the results table.
     wall_time_s: seconds.  workers: the cluster's workers.
+    scheduler: the address of the Dask scheduler that ran the cases ("" when none was needed).
     """
 
     rows: list[dict[str, object]]
@@ -60,6 +61,7 @@ class SweepResult:
     parquet_path: Path
     wall_time_s: float
     workers: int
+    scheduler: str = ""
 
 
 def columns(spec: SweepSpec) -> list[str]:
@@ -208,13 +210,14 @@ def run_sweep(
     rows = list(done)
     if progress is not None:
         progress(len(rows), len(cases))
-    n_workers = 0
+    n_workers, address = 0, ""
     if todo:
         from dask.distributed import as_completed
 
         client, cluster = _client(scheduler, workers)
         try:
-            n_workers = len(client.scheduler_info().get("workers", {}))
+            info = client.scheduler_info()
+            n_workers, address = len(info.get("workers", {})), str(info.get("address", ""))
             futures = {
                 client.submit(run_case, c.options, spec.execute, key=f"softgrasp-case-{c.id}", pure=False): c
                 for c in todo
@@ -255,4 +258,5 @@ def run_sweep(
         parquet_path=pq_path,
         wall_time_s=time.perf_counter() - t0,
         workers=n_workers,
+        scheduler=address,
     )
