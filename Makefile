@@ -40,6 +40,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_dynamic.py
 	$(BIN)/python benchmarks/bench_indent.py
 	$(BIN)/python benchmarks/bench_execute.py
+	$(BIN)/python benchmarks/bench_sweep.py
 
 clean:
 	rm -rf $(VENV) softgrasp-out .pytest_cache

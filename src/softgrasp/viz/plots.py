@@ -716,8 +716,9 @@ def plot_sweep_forces(
     title: str,
     failed: NDArray[np.float64] | None = None,
 ) -> Path:
-    """Set-points of every finger against one swept parameter: each case a marker, the mean over
-    the cases at each value a line (other parameters vary within a value's cases).
+    """Set-points of every finger against one swept parameter: each case a marker; on a grid
+    (repeated values) the mean over the cases at each value as a line (other parameters vary within
+    a value's cases); a random sample has markers only (its spread is the other parameters').
 
     Parameters
     ----------
@@ -730,11 +731,22 @@ def plot_sweep_forces(
     label, scale = _axis(parameter)
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
     x = np.asarray(values, dtype=np.float64) * scale
+    ux = np.unique(x)
+    grid = len(ux) <= len(x) / 2  # repeated values (a grid): their mean as a line
     for j, n in enumerate(names):
         colour, marker = _finger_style(j)
-        ax.plot(x, setpoints[:, j], marker, ls="none", color=colour, ms=4.0, alpha=0.45)
-        ux = np.unique(x)
-        ax.plot(ux, [setpoints[x == u, j].mean() for u in ux], "-", color=colour, lw=1.8, label=n)
+        ax.plot(
+            x,
+            setpoints[:, j],
+            marker,
+            ls="none",
+            color=colour,
+            ms=4.0 if grid else 5.5,
+            alpha=0.45 if grid else 0.85,
+            label=None if grid else n,
+        )
+        if grid:
+            ax.plot(ux, [setpoints[x == u, j].mean() for u in ux], "-", color=colour, lw=1.8, label=n)
     if failed is not None and len(failed):
         ax.plot(
             np.asarray(failed) * scale, np.zeros(len(failed)), "x", color="k", ms=7, label="no plan (failed)"
