@@ -267,15 +267,9 @@ def _plan_options(args: argparse.Namespace) -> argparse.Namespace:
     """Merge command-line options over a --config TOML file over the defaults."""
     conf: dict[str, object] = {}
     if args.config is not None:
-        import tomllib
+        from softgrasp.tomlfile import read_toml
 
-        try:
-            with open(args.config, "rb") as fh:
-                raw = tomllib.load(fh)
-        except OSError as exc:
-            raise ConfigError(f"cannot read config file {args.config}: {exc.strerror}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"config file {args.config} is not valid TOML: {exc}") from None
+        raw = read_toml(args.config, "config file")
         conf = {k.replace("-", "_"): v for k, v in raw.items()}
         unknown = sorted(set(conf) - set(PLAN_DEFAULTS))
         if unknown:

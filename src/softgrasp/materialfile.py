@@ -9,7 +9,6 @@ calibrate`` writes one; ``plan``, ``indent``, ``compress`` and ``execute`` read 
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from softgrasp.contact.fingertip import ContactParams
 from softgrasp.errors import ConfigError, ContactError, MaterialError
 from softgrasp.material import Linear, Material, Polynomial, StressStrainLaw
 from softgrasp.output import write_text
+from softgrasp.tomlfile import read_toml
 
 __all__ = ["MaterialFile", "read_material_file", "write_material_file", "is_material_file"]
 
@@ -67,15 +67,7 @@ def _number(path: str, table: str, key: str, value: object) -> float:
 def read_material_file(path: str | Path) -> MaterialFile:
     """Read a material/contact file (module docstring). ConfigError says what is wrong and where."""
     name = str(path)
-    try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"material file {name} does not exist") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read material file {name}: {exc.strerror or exc}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"material file {name} is not valid TOML: {exc}") from None
+    doc = read_toml(path, "material file")
     extra = sorted(set(doc) - {"material", "contact"})
     if extra:
         raise ConfigError(

@@ -72,7 +72,7 @@ def run_case(options: Mapping[str, object], execute: bool = False) -> dict[str, 
     The output columns (:func:`output_columns`): ``status`` ``ok`` or ``failed``, ``error`` (empty
     or the message), and the figures (NaN where a failed case has none).
     """
-    from softgrasp.grasp.options import contact_params, load_body, plan_config
+    from softgrasp.grasp.options import contact_params, load_body, material_file, plan_config
     from softgrasp.grasp.planner import plan_grasp
     from softgrasp.sweep.spec import split_options
 
@@ -81,15 +81,14 @@ def run_case(options: Mapping[str, object], execute: bool = False) -> dict[str, 
     row.update(status="ok", error="")
     try:
         plan_opts, material = split_options(options)
+        mf = material_file(plan_opts["material"])  # type: ignore[arg-type]
         body = load_body(
             str(plan_opts["object"]),
             plan_opts["mesh_size"],  # type: ignore[arg-type]
             plan_opts["material"],  # type: ignore[arg-type]
+            mfile=mf,
             overrides=material,
         )
-        from softgrasp.grasp.options import material_file
-
-        mf = material_file(plan_opts["material"])  # type: ignore[arg-type]
         mu = plan_opts["mu"] if "mu" in options or mf is None or "mu" not in mf.contact else None
         config = plan_config(plan_opts, contact_params(mf, mu))  # type: ignore[arg-type]
         plan = plan_grasp(body, config)

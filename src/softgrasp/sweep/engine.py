@@ -14,7 +14,6 @@ import csv
 import io
 import logging
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -149,7 +148,6 @@ def _client(scheduler: str | None, workers: int):
             return Client(scheduler, timeout="20s"), None
         except (OSError, TimeoutError) as exc:
             raise ConfigError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
-    os.environ.update(_WORKER_ENV)  # inherited by the worker processes
     cluster = LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
@@ -158,6 +156,7 @@ def _client(scheduler: str | None, workers: int):
         host="127.0.0.1",
         dashboard_address=None,
         silence_logs=logging.ERROR,
+        env=_WORKER_ENV,  # the worker processes' environment (this process's stays as it is)
     )
     return Client(cluster), cluster
 

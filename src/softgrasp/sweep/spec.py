@@ -32,7 +32,6 @@ import hashlib
 import itertools
 import json
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +40,7 @@ import numpy as np
 
 from softgrasp.errors import ConfigError
 from softgrasp.grasp.options import MATERIAL_OVERRIDES, PLAN_DEFAULTS
+from softgrasp.tomlfile import read_toml
 
 __all__ = [
     "SweepSpec",
@@ -135,15 +135,7 @@ def _check_value(source: str, where: str, name: str, value: object) -> object:
 def read_sweep(path: str | Path) -> SweepSpec:
     """Read and check a sweep file (module docstring). ConfigError says what is wrong and where."""
     source = str(path)
-    try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"sweep file {source} does not exist") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read sweep file {source}: {exc.strerror or exc}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"sweep file {source} is not valid TOML: {exc}") from None
+    doc = read_toml(path, "sweep file")
     unknown = sorted(set(doc) - {"sweep", "base", "grid", "random"})
     if unknown:
         raise ConfigError(
