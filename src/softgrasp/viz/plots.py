@@ -21,12 +21,17 @@ def _figure():
     return plt
 
 
-def _save(plt, fig, ax, path: str | Path, legend_loc: str = "best") -> Path:
-    """Common finish of softgrasp's curves: grid, axes from the origin, legend, atomic PNG."""
+def _save(
+    plt, fig, ax, path: str | Path, legend_loc: str = "best", *, x_from_zero: bool = True, legend: bool = True
+) -> Path:
+    """Common finish of softgrasp's curves: grid, axes from the origin (x optionally not), legend,
+    atomic PNG."""
     ax.grid(alpha=0.3)
-    ax.set_xlim(left=0)
+    if x_from_zero:
+        ax.set_xlim(left=0)
     ax.set_ylim(bottom=0)
-    ax.legend(frameon=False, loc=legend_loc)
+    if legend:
+        ax.legend(frameon=False, loc=legend_loc)
     fig.tight_layout()
     out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
     plt.close(fig)
@@ -754,13 +759,7 @@ def plot_sweep_forces(
     ax.set_xlabel(label)
     ax.set_ylabel("set-point (normal force) [N]")
     ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.set_ylim(bottom=0)
-    ax.legend(frameon=False)
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
-    plt.close(fig)
-    return out
+    return _save(plt, fig, ax, path, x_from_zero=False)
 
 
 def plot_success_map(
