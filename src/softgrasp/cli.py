@@ -601,6 +601,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     print(f"object   {body.mesh.summary()}, mass {body.total_mass * 1e3:.1f} g")
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
     config = plan_config(vars(args), _plan_contact(args, mu_given))
+    uncertain = _uncertain(args, body, config.contact.mu)
     bar, update = _progress("plan")
     try:
         plan = plan_grasp(body, config, progress=update)
@@ -630,6 +631,10 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         weight=(plan.com, body.total_mass * float(abs(body.gravity[2]))),
         links=hand_polylines(plan),
     )
+    robust = None
+    if uncertain:
+        print(plan_table(plan))
+        robust = _robust(args, config, plan, doc, uncertain, out)
     write_text(out / "history.csv", buf.getvalue())
     _write_frames(out / "frames.npz", plan, body.mesh.facets)
     # The unloaded object as the plan placed it on the table: what `execute` rebuilds.
@@ -637,6 +642,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     doc["object"]["mesh_file"] = "object.vtu"
     doc["wall_time_s"] = time.perf_counter() - t0
     write_json(out / "plan.json", doc)
+    if robust is not None:
+        return _robust_summary(robust, out, time.perf_counter() - t0)
     print(plan_table(plan))
     eq = doc["equilibrium"]
     print(
@@ -657,6 +664,162 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         "grasp.png "
         f"({plan.increments} increments, {time.perf_counter() - t0:.1f} s)"
     )
+    return 0
+
+
+def _uncertain(args: argparse.Namespace, body, mu: float) -> list:
+    """The --uncertain parameters of ``plan`` (checked before the nominal plan runs)."""
+    if not args.uncertain:
+        for flag, given in (("--quantile", args.quantile is not None), ("--scheduler", args.scheduler)):
+            if given:
+                raise ConfigError(f"{flag} applies to robust set-points: give --uncertain NAME=RANGE too")
+        return []
+    from softgrasp.grasp.robust import nominal_values, parse_uncertain
+
+    nominal = nominal_values(body, mu)
+    found = [parse_uncertain(text, nominal) for text in args.uncertain]
+    names = [u.name for u in found]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--uncertain gives a parameter twice: {', '.join(names)}")
+    if not 2 <= args.samples <= 100_000:
+        raise ConfigError(f"--samples must be from 2 to 100000, got {args.samples}")
+    if args.quantile is not None and not 0 < args.quantile < 1:
+        raise ConfigError(f"--quantile must lie between 0 and 1 (e.g. 0.9), got {args.quantile}")
+    if not 1 <= args.workers <= 256:
+        raise ConfigError(f"--workers must be from 1 to 256, got {args.workers}")
+    return found
+
+
+def _robust(args: argparse.Namespace, config, plan, doc: dict, uncertain: list, out: Path):
+    """Robust set-points around the nominal ``plan`` (``--uncertain``): the stages' tables go to
+    ``out/robust`` (built aside and moved there whole); ``doc``'s set-points become the robust
+    ones, the nominal ones kept beside them."""
+    import shutil
+
+    from tqdm import tqdm
+
+    from softgrasp.grasp.options import PLAN_DEFAULTS
+    from softgrasp.grasp.robust import robust_setpoints
+    from softgrasp.output import write_json
+
+    options = {k: vars(args)[k] for k in PLAN_DEFAULTS if k not in ("out", "grasp")}
+    options["mu"] = config.contact.mu
+    for key in ("object", "material", "hand"):  # files named for the workers wherever they run
+        if isinstance(options[key], str) and Path(options[key]).is_file():
+            options[key] = str(Path(options[key]).resolve())
+    work = out / ".robust-partial"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    write_json(work / "grasp.json", doc)  # the nominal plan: its contacts for every sample
+    bars: dict[str, object] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stage not in bars:
+            for b in bars.values():
+                b.close()  # type: ignore[attr-defined]
+            bars[stage] = tqdm(
+                total=total, desc=stage, unit=" cases", leave=False, disable=None, file=sys.stderr
+            )
+        bar = bars[stage]
+        bar.n = done  # type: ignore[attr-defined]
+        bar.refresh()  # type: ignore[attr-defined]
+
+    uncertain_text = ", ".join(f"{u.name} {u.low:.4g}..{u.high:.4g}" for u in uncertain)
+    print(f"robust set-points over {args.samples} samples of {uncertain_text} on {args.workers} workers")
+    try:
+        res = robust_setpoints(
+            options,
+            work / "grasp.json",
+            [f.normal_force for f in plan.fingers],
+            uncertain,
+            work,
+            samples=args.samples,
+            seed=args.seed,
+            quantile=args.quantile,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            progress=progress,
+        )
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    finally:
+        for b in bars.values():
+            b.close()  # type: ignore[attr-defined]
+    final = out / "robust"
+    shutil.rmtree(final, ignore_errors=True)
+    (work / "grasp.json").unlink()
+    work.rename(final)
+    stages = {k: str(final / Path(v).name) for k, v in res.stages.items()}
+    from dataclasses import replace
+
+    res = replace(res, stages=stages)
+    summary = res.describe()
+    per_sample = summary.pop("per_sample")
+    for j, f in enumerate(doc["fingers"]):
+        f["nominal_normal_force_N"] = f["normal_force_N"]
+        f["normal_force_N"] = float(res.setpoints[j])
+    doc["setpoints"] = "robust" if res.achieved else "robust (goal not met)"
+    doc["robust"] = summary
+    write_json(out / "robust.json", {"schema": "softgrasp.robust/1", **summary, "per_sample": per_sample})
+    return res
+
+
+def _robust_summary(res, out: Path, wall: float) -> int:
+    """Print the robust set-points, their check and the drivers; write robust.png."""
+    import numpy as np
+
+    from softgrasp.viz.plots import plot_robust
+
+    fig = plot_robust(
+        out / "robust.png",
+        {u.name: np.array([s[u.name] for s in res.samples]) for u in res.uncertain},
+        res.required.sum(axis=1),
+        res.nominal_held,
+        robust_total=float(res.setpoints.sum()),
+        nominal_total=float(res.nominal.sum()),
+        title=f"Robust set-points over {len(res.samples)} samples"
+        + ("" if res.quantile is None else f" ({res.quantile:.0%} to hold)"),
+    )
+    print("finger    nominal N   robust N   samples need N (median..max)")
+    for j, name in enumerate(("thumb", "first", "middle")):
+        need = res.required[:, j][np.isfinite(res.required[:, j])]
+        print(
+            f"{name:<9} {res.nominal[j]:9.3f} {res.setpoints[j]:10.3f}   "
+            f"{np.median(need):.3f}..{need.max():.3f}"
+        )
+    d = res.describe()
+    goal = "every sample" if res.quantile is None else f"{res.quantile:.0%} of the samples"
+    print(
+        f"robust set-points held {res.held_fraction:.0%} of {len(res.samples)} samples (goal: {goal}); "
+        f"the nominal ones failed on {res.nominal_failure_fraction:.0%}"
+    )
+    if res.scale > 1:
+        print(
+            f"the samples' largest set-points were raised x{res.scale:.3g} ({res.rounds} checks) to hold them"
+        )
+    if d["smallest_friction_margin"] is not None:
+        print(
+            f"margin: friction {d['smallest_friction_margin']:.2f} (smallest over the held samples), "
+            f"centre of mass moved up to {d['largest_drift_m'] * 1e3:.2f} mm"
+        )
+    drivers = ", ".join(f"{n} (rho {r:+.2f})" if r == r else f"{n} (not ranked)" for n, r in res.drivers)
+    print(f"what drives the set-points (rank correlation with their total): {drivers}")
+    for i, (held, why) in enumerate(zip(res.held, res.reasons, strict=True)):
+        if not held:
+            vals = ", ".join(f"{k} = {v:.4g}" for k, v in res.samples[i].items())
+            print(f"  not held: sample {i} ({vals}): {why}")
+    print(
+        f"wrote {out}/plan.json (robust set-points), robust.json, {fig.name}, robust/ (each stage's table), "
+        f"history.csv, object.vtu, frames.npz, forces.png, force_penetration.png, grasp.png ({wall:.1f} s)"
+    )
+    if not res.achieved:
+        print(
+            f"softgrasp: error: no set-points found that hold {goal} within {res.rounds} checks; "
+            "narrow the ranges or give --quantile",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 
@@ -943,7 +1106,41 @@ def build_parser() -> argparse.ArgumentParser:
         help="the hand: a URDF file (fingertip links th_tip, ff_tip, mf_tip), 'shadow_like' (default, "
         "packaged) or 'none' (free fingertips, no reachability check)",
     )
+    pl.add_argument(
+        "--grasp",
+        default=None,
+        metavar="PLAN.json",
+        help="close from the initial grasp of an earlier plan (same object and mesh) instead of searching "
+        "for one: the same contacts and closing lines for another material or friction",
+    )
     pl.add_argument("--config", default=None, metavar="FILE.toml", help="TOML file with any of these options")
+    rb = pl.add_argument_group(
+        "robust set-points",
+        "plan for uncertain parameters: the set-points that hold the object for every sampled parameter set",
+    )
+    rb.add_argument(
+        "--uncertain",
+        action="append",
+        default=[],
+        metavar="NAME=RANGE",
+        help="an uncertain parameter (mu, E, nu, density, mass, a2, a3) and its range: LOW..HIGH (SI), "
+        "±P%% of the nominal value, or ±D; repeat for several "
+        "(e.g. --uncertain mu=0.4..0.8 --uncertain E=±20%%)",
+    )
+    rb.add_argument(
+        "--samples", type=int, default=64, help="parameter sets sampled over the ranges (default 64)"
+    )
+    rb.add_argument(
+        "--quantile",
+        type=float,
+        default=None,
+        help="hold this share of the samples (e.g. 0.9) instead of every one",
+    )
+    rb.add_argument("--seed", type=int, default=0, help="seed of the samples' draw (default 0)")
+    rb.add_argument("--workers", type=int, default=2, help="local Dask worker processes (default 2)")
+    rb.add_argument(
+        "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
+    )
 
     ca = sub.add_parser(
         "calibrate", help="fit the material (compression) and contact law (indentation) to measurements"

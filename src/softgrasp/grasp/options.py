@@ -3,7 +3,8 @@ configuration: one mapping shared by the command line, ``--config`` files and sw
 
 Options are plain values: ``object`` (built-in name, shape or mesh file), ``mesh_size`` [m],
 ``material`` (preset, ``key=value`` list or a ``.toml`` material file), the planner's settings
-(:data:`PLAN_DEFAULTS`), and optional material overrides (:data:`MATERIAL_OVERRIDES`: ``E`` [Pa],
+(:data:`PLAN_DEFAULTS`; ``grasp`` names a ``plan.json`` whose initial grasp is closed from instead
+of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDES`: ``E`` [Pa],
 ``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3``) applied over the object's material.
 """
 
@@ -45,6 +46,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "max_squeeze": 0.5,
     "refine": 3,
     "hand": "shadow_like",
+    "grasp": None,
     "out": "softgrasp-out/plan",
     "reorient": False,
 }
@@ -144,6 +146,7 @@ def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -
 def plan_config(options: Mapping[str, object], contact: ContactParams) -> PlanConfig:
     """The planner configuration of merged plan ``options`` (every key of :data:`PLAN_DEFAULTS`)."""
     from softgrasp.grasp.planner import PlanConfig
+    from softgrasp.hand.planfile import load_plan_grasp
 
     return PlanConfig(
         contact=contact,
@@ -155,4 +158,5 @@ def plan_config(options: Mapping[str, object], contact: ContactParams) -> PlanCo
         max_squeeze=float(options["max_squeeze"]),  # type: ignore[arg-type]
         refine=int(options["refine"]),  # type: ignore[call-overload]
         hand=hand_model(str(options["hand"])),
+        grasp=None if options.get("grasp") is None else load_plan_grasp(str(options["grasp"])),
     )

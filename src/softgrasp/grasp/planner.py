@@ -51,7 +51,15 @@ from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_increment, solve_static
 
-__all__ = ["PlanConfig", "FingerResult", "GraspPlan", "PlanFrames", "plan_grasp"]
+__all__ = [
+    "PlanConfig",
+    "FingerResult",
+    "GraspPlan",
+    "PlanFrames",
+    "ClosingSetup",
+    "closing_setup",
+    "plan_grasp",
+]
 
 SOLVERS = ("quasistatic", "dynamic")
 #: First time step of the implicit holding simulation [s].
@@ -94,6 +102,8 @@ class PlanConfig:
     hand: the hand's kinematic model (default: the packaged Shadow-like hand); the initial grasp
         must be reachable by it and its fingertips must follow the closing lines. ``None`` plans
         for free fingertips (the layout alone limits the grasp).
+    grasp: an initial grasp to close from instead of searching for one (the contacts of an
+        earlier plan: the same closing lines for another material or friction); ``None``: search.
     """
 
     contact: ContactParams = field(default_factory=ContactParams)
@@ -109,6 +119,7 @@ class PlanConfig:
     table_mu: float = 0.5
     layout: HandLayout = field(default_factory=HandLayout)
     hand: HandModel | None = field(default_factory=HandModel.default)
+    grasp: InitialGrasp | None = None
 
     def __post_init__(self) -> None:
         checks = {
@@ -158,6 +169,7 @@ class PlanConfig:
             "table_mu": self.table_mu,
             "hand_layout": self.layout.describe(),
             "hand": None if self.hand is None else self.hand.source,
+            "grasp": "given" if self.grasp is not None else "searched",
         }
 
 
@@ -448,6 +460,89 @@ def _reachable_grasp(
     )
 
 
+def _initial_grasp(
+    body: Body, xs: NDArray[np.float64], com: NDArray[np.float64], cfg: PlanConfig
+) -> tuple[InitialGrasp, HandPlacement | None]:
+    """The initial grasp (the best reachable force-closure grasp, or ``cfg.grasp``) and the
+    hand's placement for it."""
+    if cfg.grasp is None:
+        return _reachable_grasp(xs, ranked_grasps(xs, body.mesh.facets, com, cfg.contact.mu, cfg.layout), cfg)
+    ig = cfg.grasp
+    R = cfg.fingertip_radius  # a fingertip resting at each contact touches the surface near it
+    probe = FingertipContact(
+        tuple(Fingertip(R, centre=p + 0.5 * R * n) for p, n in zip(ig.points, ig.normals, strict=True)),
+        cfg.contact,
+    )
+    near = np.bincount(probe.pairs(body, xs, 0.0).finger, minlength=3)
+    if near.min() == 0:
+        j = int(np.argmin(near))
+        raise InfeasibleGrasp(
+            f"the given grasp's {FINGER_NAMES[j]} contact {np.round(ig.points[j] * 1e3, 2).tolist()} mm lies "
+            f"more than {cfg.fingertip_radius / 2 * 1e3:g} mm off this object's surface: that grasp was "
+            "planned for another object, mesh or placement"
+        )
+    return _reachable_grasp(xs, [ig], cfg)
+
+
+@dataclass(frozen=True)
+class ClosingSetup:
+    """Where a closing starts: the object at rest on the table, the initial grasp, the hand's
+    placement for it and the fingertips' closing lines.
+
+    Attributes
+    ----------
+    settled: the object at rest on the table (no fingers).  table: the table.
+    placed: the unloaded object as placed on the table [m], (N, 3).
+    grasp: the initial grasp.  placement: the hand's placement (None without a hand model).
+    start: fingertip centres where the closing starts [m], (3, 3).
+    directions: unit closing directions (towards the contact triangle's centroid), (3, 3).
+    reach: each contact's distance to that centroid [m], (3,).
+    first_touch: travel along its line at which each fingertip first touches the object [m], (3,).
+    max_squeeze: the configuration's ``max_squeeze``.
+    """
+
+    settled: State
+    table: PlaneContact
+    placed: NDArray[np.float64]
+    grasp: InitialGrasp
+    placement: HandPlacement | None
+    start: NDArray[np.float64]
+    directions: NDArray[np.float64]
+    reach: NDArray[np.float64]
+    first_touch: NDArray[np.float64]
+    max_squeeze: float
+
+    @property
+    def max_travel(self) -> float:
+        """Farthest travel of a fingertip along its line before the object counts as crushed [m]
+        (``max_squeeze`` of the shortest reach past the last finger's first contact)."""
+        return float(self.first_touch.max() + self.max_squeeze * self.reach.min())
+
+
+def closing_setup(body: Body, cfg: PlanConfig, cache: SolverCache | None = None) -> ClosingSetup:
+    """Settle ``body`` on the table, choose (or take ``cfg.grasp``) the initial grasp the hand
+    reaches, and lay the fingertips' closing lines (paper step 1)."""
+    cache = cache if cache is not None else SolverCache()
+    settled, table, placed = _settle(body, cfg, cache)
+    xs = settled.x
+    ig, placement = _initial_grasp(body, xs, _com(body, xs), cfg)
+    start, u, reach = _start_centres(ig, cfg)
+    R = cfg.fingertip_radius
+    first = np.array(
+        [
+            _first_touch(
+                body,
+                cfg.contact,
+                Fingertip(R, centre=start[j], velocity=u[j], name=FINGER_NAMES[j]),
+                xs,
+                4 * cfg.step + R,
+            )
+            for j in range(3)
+        ]
+    )
+    return ClosingSetup(settled, table, placed, ig, placement, start, u, reach, first, cfg.max_squeeze)
+
+
 def _check_hold(
     body: Body,
     table: PlaneContact,
@@ -541,22 +636,25 @@ def plan_grasp(
     cfg = config
     mu = cfg.contact.mu
     cache = SolverCache()
-    settled, table, placed = _settle(body, cfg, cache)
-    xs = settled.x
-    com0 = _com(body, xs)
-    facets = body.mesh.facets
-
-    ig, placement = _reachable_grasp(xs, ranked_grasps(xs, facets, com0, mu, cfg.layout), cfg)
-    R = cfg.fingertip_radius
-    start, u, reach = _start_centres(ig, cfg)
-    unit_tips = tuple(Fingertip(R, centre=start[j], velocity=u[j], name=FINGER_NAMES[j]) for j in range(3))
-    first = np.array([_first_touch(body, cfg.contact, tip, xs, 4 * cfg.step + R) for tip in unit_tips])
+    setup = closing_setup(body, cfg, cache)
+    settled, table, placed, xs = setup.settled, setup.table, setup.placed, setup.settled.x
+    ig, placement, start, u, first = (
+        setup.grasp,
+        setup.placement,
+        setup.start,
+        setup.directions,
+        setup.first_touch,
+    )
+    unit_tips = tuple(
+        Fingertip(cfg.fingertip_radius, centre=start[j], velocity=u[j], name=FINGER_NAMES[j])
+        for j in range(3)
+    )
     # The load parameter of the scene: travel [m] for the quasi-static solver, time [s] at the
     # closing speed for the dynamic one.
     scale = 1.0 if cfg.solver == "quasistatic" else 1.0 / cfg.closing_speed
     tips = tuple(replace(tip, velocity=tip.velocity / scale) for tip in unit_tips)
     fc = FingertipContact(tips, cfg.contact)
-    max_travel = float(first.max() + cfg.max_squeeze * reach.min())
+    max_travel = setup.max_travel
 
     scene = Scene(body, (table, fc))
     state = State(xs, np.zeros_like(xs), 0.0, (settled.contacts[0], fc.init_state(body, xs, 0.0)))

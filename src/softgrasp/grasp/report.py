@@ -65,6 +65,9 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             "thumb_azimuth_deg": float(np.degrees(ig.thumb_azimuth)),
             "finger_half_spread_deg": float(np.degrees(ig.spread)),
             "triangle_centroid_m": _v(ig.centroid),
+            "contacts_m": [_v(q) for q in ig.points],
+            "normals": [_v(n) for n in ig.normals],
+            "facets": [int(f) for f in ig.facets],
         },
         "fingers": [
             {

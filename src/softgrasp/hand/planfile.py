@@ -14,9 +14,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
+from softgrasp.grasp.initial import InitialGrasp
 from softgrasp.grasp.report import SCHEMA
 
-__all__ = ["PlanFinger", "PlanFile", "load_plan_file", "SCHEMA"]
+__all__ = ["PlanFinger", "PlanFile", "load_plan_file", "load_plan_grasp", "SCHEMA"]
 
 
 @dataclass(frozen=True)
@@ -86,9 +87,8 @@ def _vector(doc: Any, path: str, n: int = 3) -> NDArray[np.float64]:
     return a
 
 
-def load_plan_file(path: str | Path) -> PlanFile:
-    """Read and check ``path``; :class:`ConfigError` says what is wrong and where."""
-    p = Path(path)
+def _read_document(p: Path) -> dict[str, Any]:
+    """The JSON document of a plan file, its schema checked."""
     if not p.is_file():
         raise ConfigError(f"plan file {p} does not exist (write one with: softgrasp plan --out DIR)")
     try:
@@ -100,6 +100,43 @@ def load_plan_file(path: str | Path) -> PlanFile:
     schema = doc.get("schema")
     if schema != SCHEMA:
         raise ConfigError(f"plan file {p}: schema {schema!r} is not {SCHEMA!r}; re-plan with this softgrasp")
+    return doc
+
+
+def load_plan_grasp(path: str | Path) -> InitialGrasp:
+    """The initial grasp of a plan file (its three contacts, their normals and the triangle's
+    centroid), to plan another closing from the same contacts (``softgrasp plan --grasp``)."""
+    doc = _read_document(Path(path))
+    rows = {}
+    for key in ("contacts_m", "normals"):
+        v = _get(doc, f"initial_grasp.{key}")
+        a = np.asarray(v, dtype=np.float64) if isinstance(v, list) else np.zeros(0)
+        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            raise ConfigError(
+                f"plan file: field 'initial_grasp.{key}' must be 3 x 3 finite numbers, got {v!r}"
+            )
+        rows[key] = a
+    n = np.linalg.norm(rows["normals"], axis=1)
+    if np.abs(n - 1.0).max() > 1e-6:
+        raise ConfigError("plan file: field 'initial_grasp.normals' must hold unit vectors")
+    facets = _get(doc, "initial_grasp.facets")
+    if not (isinstance(facets, list) and len(facets) == 3 and all(type(f) is int and f >= 0 for f in facets)):
+        raise ConfigError(f"plan file: field 'initial_grasp.facets' must be 3 facet numbers, got {facets!r}")
+    return InitialGrasp(
+        points=rows["contacts_m"],
+        normals=rows["normals"],
+        facets=np.asarray(facets, dtype=np.int64),
+        centroid=_vector(doc, "initial_grasp.triangle_centroid_m"),
+        epsilon=_number(doc, "initial_grasp.epsilon", lo=0.0, open_lo=False),
+        thumb_azimuth=math.radians(_number(doc, "initial_grasp.thumb_azimuth_deg")),
+        spread=math.radians(_number(doc, "initial_grasp.finger_half_spread_deg")),
+    )
+
+
+def load_plan_file(path: str | Path) -> PlanFile:
+    """Read and check ``path``; :class:`ConfigError` says what is wrong and where."""
+    p = Path(path)
+    doc = _read_document(p)
     mesh_name = _get(doc, "object.mesh_file")
     if not isinstance(mesh_name, str) or not mesh_name:
         raise ConfigError("plan file: field 'object.mesh_file' must name the object's mesh file")

@@ -11,12 +11,12 @@ import math
 import tempfile
 import time
 import traceback
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from softgrasp.errors import SoftgraspError
 
-__all__ = ["FINGERS", "OUTPUTS", "EXECUTE_OUTPUTS", "run_case", "output_columns"]
+__all__ = ["FINGERS", "OUTPUTS", "EXECUTE_OUTPUTS", "HOLD_OUTPUTS", "run_case", "output_columns"]
 
 #: Finger names of the rows (thumb, first, middle).
 FINGERS = ("thumb", "first", "middle")
@@ -44,8 +44,28 @@ OUTPUTS: tuple[str, ...] = (
 EXECUTE_OUTPUTS: tuple[str, ...] = ("reached", "lifted", "slip_m", "rise_m", "execute_wall_time_s")
 
 
-def output_columns(execute: bool) -> tuple[str, ...]:
-    """The output columns of a sweep's rows."""
+#: Output columns of a case that checks given set-points (force-controlled closing and hold).
+HOLD_OUTPUTS: tuple[str, ...] = (
+    "status",
+    "error",
+    "wall_time_s",
+    "nodes",
+    "mass_kg",
+    "held",
+    "hold_reason",
+    "increments",
+    *(f"reached_{f}_N" for f in FINGERS),
+    *(f"travel_{f}_m" for f in FINGERS),
+    *(f"held_{f}_N" for f in FINGERS),
+    "friction_margin",
+    "hold_drift_m",
+)
+
+
+def output_columns(execute: bool, hold: bool = False) -> tuple[str, ...]:
+    """The output columns of a sweep's rows (a plan's, with its execution's; or a hold check's)."""
+    if hold:
+        return HOLD_OUTPUTS
     return OUTPUTS + (EXECUTE_OUTPUTS if execute else ())
 
 
@@ -58,14 +78,19 @@ def _failed(row: dict[str, object], exc: BaseException, t0: float) -> dict[str, 
     return row
 
 
-def run_case(options: Mapping[str, object], execute: bool = False) -> dict[str, object]:
-    """Plan one case (and execute it when asked) and return its outputs as a row.
+def run_case(
+    options: Mapping[str, object], execute: bool = False, hold: Sequence[float] | None = None
+) -> dict[str, object]:
+    """Plan one case (and execute it when asked), or check set-points on it, and return its
+    outputs as a row.
 
     Parameters
     ----------
     options: the case's options (:mod:`softgrasp.sweep.spec`): plan options over the defaults and
         material parameters over the object's material.
     execute: also execute the plan on the simulated MuJoCo hand (lift and hold).
+    hold: normal-force set-points [N]: instead of planning, close the fingers to them under force
+        control and check the hold (:func:`softgrasp.grasp.force_control.hold_setpoints`).
 
     Returns
     -------
@@ -77,7 +102,7 @@ def run_case(options: Mapping[str, object], execute: bool = False) -> dict[str, 
     from softgrasp.sweep.spec import split_options
 
     t0 = time.perf_counter()
-    row: dict[str, object] = {c: math.nan for c in output_columns(execute)}
+    row: dict[str, object] = {c: math.nan for c in output_columns(execute, hold is not None)}
     row.update(status="ok", error="")
     try:
         plan_opts, material = split_options(options)
@@ -86,11 +111,16 @@ def run_case(options: Mapping[str, object], execute: bool = False) -> dict[str, 
             str(plan_opts["object"]),
             plan_opts["mesh_size"],  # type: ignore[arg-type]
             plan_opts["material"],  # type: ignore[arg-type]
+            reorient=bool(plan_opts.get("reorient", False)),
             mfile=mf,
             overrides=material,
         )
         mu = plan_opts["mu"] if "mu" in options or mf is None or "mu" not in mf.contact else None
         config = plan_config(plan_opts, contact_params(mf, mu))  # type: ignore[arg-type]
+        if hold is not None:
+            row.update(_hold(body, config, hold))
+            row["wall_time_s"] = time.perf_counter() - t0
+            return row
         plan = plan_grasp(body, config)
         row.update(
             nodes=int(body.n_nodes),
@@ -114,6 +144,27 @@ def run_case(options: Mapping[str, object], execute: bool = False) -> dict[str, 
     except Exception as exc:  # noqa: BLE001 - a case's failure is data, never the sweep's end
         return _failed(row, exc, t0)
     row["wall_time_s"] = time.perf_counter() - t0
+    return row
+
+
+def _hold(body, config, setpoints: Sequence[float]) -> dict[str, object]:
+    """The hold check of ``setpoints`` as row values."""
+    from softgrasp.grasp.force_control import hold_setpoints
+
+    res = hold_setpoints(body, config, tuple(float(v) for v in setpoints))
+    row: dict[str, object] = {
+        "nodes": int(body.n_nodes),
+        "mass_kg": float(body.total_mass),
+        "held": bool(res.held),
+        "hold_reason": res.reason,
+        "increments": int(res.increments),
+        "friction_margin": float(res.friction_margin),
+        "hold_drift_m": float(res.drift),
+    }
+    for j, name in enumerate(FINGERS):
+        row[f"reached_{name}_N"] = float(res.reached[j])
+        row[f"travel_{name}_m"] = float(res.travel[j])
+        row[f"held_{name}_N"] = float(res.held_normal[j])
     return row
 
 

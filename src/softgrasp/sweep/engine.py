@@ -15,16 +15,19 @@ import io
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from softgrasp.errors import ConfigError
 from softgrasp.output import atomic_write, write_json
 from softgrasp.sweep.case import output_columns, run_case
 from softgrasp.sweep.spec import Case, SweepSpec, describe_spec
 
-__all__ = ["SweepResult", "run_sweep", "read_rows", "columns"]
+__all__ = ["SweepResult", "run_sweep", "dask_client", "read_rows", "columns"]
 
 #: Seconds between rewrites of the Parquet table while rows stream in.
 PARQUET_EVERY = 10.0
@@ -65,7 +68,7 @@ class SweepResult:
 
 def columns(spec: SweepSpec) -> list[str]:
     """The results table's columns: case index and id, the inputs, then the outputs."""
-    return ["case", "case_id", *spec.inputs, *output_columns(spec.execute)]
+    return ["case", "case_id", *spec.inputs, *output_columns(spec.execute, spec.hold is not None)]
 
 
 def _parse(value: str, column: str) -> object:
@@ -143,6 +146,8 @@ def _client(scheduler: str | None, workers: int):
     """A Dask client: of the cluster at ``scheduler``, or of a new local one (TCP on loopback)."""
     from dask.distributed import Client, LocalCluster
 
+    if not 1 <= workers <= 256:
+        raise ConfigError(f"--workers must be from 1 to 256, got {workers}")
     if scheduler is not None:
         try:
             return Client(scheduler, timeout="20s"), None
@@ -161,6 +166,19 @@ def _client(scheduler: str | None, workers: int):
     return Client(cluster), cluster
 
 
+@contextmanager
+def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]:
+    """A Dask client for several sweeps in a row (one cluster start): of the cluster at
+    ``scheduler``, or of a local cluster of ``workers`` processes, closed on exit."""
+    client, cluster = _client(scheduler, workers)
+    try:
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def run_sweep(
     spec: SweepSpec,
     cases: Sequence[Case],
@@ -170,6 +188,7 @@ def run_sweep(
     workers: int = 2,
     resume: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    client: Any = None,
 ) -> SweepResult:
     """Run ``cases`` of ``spec`` on Dask and write ``out/results.csv`` and ``results.parquet``.
 
@@ -182,12 +201,14 @@ def run_sweep(
     resume: keep the finished rows of ``out/results.csv`` and run only the missing cases;
         without it, existing results are an error (never silently overwritten).
     progress: called with (finished cases, all cases) as rows arrive.
+    client: a Dask client to run the cases on (:func:`dask_client`; ``scheduler`` and ``workers``
+        are then not used); None: one is made for this sweep and closed at its end.
 
     Raises
     ------
     ConfigError: results exist without ``resume``, or belong to another sweep; no scheduler there.
     """
-    if not 1 <= workers <= 256:
+    if client is None and not 1 <= workers <= 256:
         raise ConfigError(f"--workers must be from 1 to 256, got {workers}")
     t0 = time.perf_counter()
     out = Path(out)
@@ -213,12 +234,21 @@ def run_sweep(
     if todo:
         from dask.distributed import as_completed
 
-        client, cluster = _client(scheduler, workers)
+        own = client is None
+        client, cluster = _client(scheduler, workers) if own else (client, None)
         try:
             info = client.scheduler_info()
             n_workers, address = len(info.get("workers", {})), str(info.get("address", ""))
+            token = uuid.uuid4().hex[:8]  # keys unique on a client shared by several sweeps
             futures = {
-                client.submit(run_case, c.options, spec.execute, key=f"softgrasp-case-{c.id}", pure=False): c
+                client.submit(
+                    run_case,
+                    c.options,
+                    spec.execute,
+                    spec.hold,
+                    key=f"softgrasp-case-{c.id}-{token}",
+                    pure=False,
+                ): c
                 for c in todo
             }
             last_pq = time.perf_counter()
@@ -229,7 +259,7 @@ def run_sweep(
                     try:
                         result = fut.result()
                     except Exception as exc:  # noqa: BLE001 - a lost worker: the case failed
-                        result = {c: math.nan for c in output_columns(spec.execute)}
+                        result = {c: math.nan for c in output_columns(spec.execute, spec.hold is not None)}
                         result.update(status="failed", error=f"{type(exc).__name__}: {exc}")
                     row = {"case": case.index, "case_id": case.id, **case.options, **result}
                     for c in spec.inputs:
@@ -243,7 +273,8 @@ def run_sweep(
                         _write_parquet(pq_path, cols, rows)
                         last_pq = time.perf_counter()
         finally:
-            client.close()
+            if own:
+                client.close()
             if cluster is not None:
                 cluster.close()
     rows.sort(key=lambda r: int(r["case"]))  # type: ignore[call-overload]

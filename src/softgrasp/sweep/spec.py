@@ -22,8 +22,9 @@ A sweep file is TOML::
 
 Options are those of ``softgrasp plan`` (:data:`softgrasp.grasp.options.PLAN_DEFAULTS`: ``object``,
 ``material``, ``mesh_size``, ``mu``, ``fingertip_radius``, ``step``, ``solver``, ``safety_factor``,
-``hold_time``, ``max_squeeze``, ``refine``, ``hand``) and the material parameters ``E`` [Pa], ``nu``,
-``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3`` set over the object's material. SI units.
+``hold_time``, ``max_squeeze``, ``refine``, ``hand``, ``grasp``) and the material parameters ``E``
+[Pa], ``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3`` set over the object's material. SI
+units. ``grasp`` names a ``plan.json``: every case closes from its initial grasp.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ __all__ = [
 OPTIONS: tuple[str, ...] = (
     tuple(k for k in PLAN_DEFAULTS if k not in ("out", "reorient")) + MATERIAL_OVERRIDES
 )
-_TEXT = {"object", "material", "solver", "hand"}
+_TEXT = {"object", "material", "solver", "hand", "grasp"}
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,10 @@ class SweepSpec:
     grid: per option, its values (grid mode).
     random: per option, (low, high, log) (random mode).
     source: the file.
+    hold: normal-force set-points [N] (thumb, first, middle): each case then closes its fingers
+        to them under force control and checks the hold
+        (:func:`softgrasp.grasp.force_control.hold_setpoints`) instead of planning (robust
+        set-points are checked so).
     """
 
     mode: str
@@ -91,6 +96,7 @@ class SweepSpec:
     grid: dict[str, list[object]] = field(default_factory=dict)
     random: dict[str, tuple[float, float, bool]] = field(default_factory=dict)
     source: str = "<sweep>"
+    hold: tuple[float, float, float] | None = None
 
     @property
     def varied(self) -> tuple[str, ...]:
@@ -259,4 +265,5 @@ def describe_spec(spec: SweepSpec) -> dict[str, object]:
         "grid": spec.grid,
         "random": {k: {"low": lo, "high": hi, "log": log} for k, (lo, hi, log) in spec.random.items()},
         "source": spec.source,
+        "hold_setpoints_N": None if spec.hold is None else list(spec.hold),
     }

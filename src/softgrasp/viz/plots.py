@@ -793,3 +793,65 @@ def plot_success_map(
     out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
     plt.close(fig)
     return out
+
+
+def plot_robust(
+    path: str | Path,
+    parameters: dict[str, NDArray[np.float64]],
+    required_total: NDArray[np.float64],
+    nominal_held: NDArray[np.bool_],
+    *,
+    robust_total: float,
+    nominal_total: float,
+    title: str,
+) -> Path:
+    """Robust set-points against the uncertain parameters: one panel per parameter, each sample's
+    required total set-point (sum over the fingers) as a marker, filled where the nominal plan's
+    set-points held that sample and a cross where they did not, with the robust and the nominal
+    totals as lines.
+
+    Parameters
+    ----------
+    parameters: each uncertain parameter's sampled values (SI), (S,) each.
+    required_total: each sample's planned total set-point [N], (S,) (inf: cannot be held).
+    nominal_held: whether the nominal set-points held each sample, (S,).
+    robust_total, nominal_total: sums of the robust and nominal set-points [N].
+    """
+    plt = _figure()
+    names = list(parameters)
+    fig, axes = plt.subplots(1, len(names), figsize=(4.6 * len(names) + 0.6, 4.4), dpi=120, squeeze=False)
+    ok = np.isfinite(required_total)
+    held = np.asarray(nominal_held, dtype=bool)
+    for k, (ax, name) in enumerate(zip(axes[0], names, strict=True)):
+        label, scale = _axis(name)
+        x = np.asarray(parameters[name], dtype=np.float64) * scale
+        ax.plot(
+            x[ok & held],
+            required_total[ok & held],
+            "o",
+            color="#2a9d8f",
+            ms=5.5,
+            label="nominal set-points held",
+        )
+        ax.plot(
+            x[ok & ~held],
+            required_total[ok & ~held],
+            "x",
+            color="#d62828",
+            ms=6.5,
+            mew=1.6,
+            label="nominal set-points failed",
+        )
+        ax.axhline(robust_total, color="#264653", lw=1.8, label=f"robust: {robust_total:.3g} N")
+        ax.axhline(nominal_total, color="0.45", lw=1.3, ls="--", label=f"nominal: {nominal_total:.3g} N")
+        ax.set_xlabel(label)
+        if k == 0:
+            ax.set_ylabel("total set-point the sample needs [N]")
+        ax.grid(alpha=0.3)
+        ax.set_ylim(bottom=0, top=1.15 * max(robust_total, float(np.max(required_total[ok], initial=0.0))))
+    axes[0][0].legend(frameon=False, loc="lower left", fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+    return out

@@ -1,0 +1,205 @@
+"""Force-controlled closing to set-points, then the hold check: the execution of paper step 3
+(Sec. 4.3.3) simulated with softgrasp's own object model, quasi-statically.
+
+From the object at rest on the table and the fingertips at the start of their closing lines
+(:func:`softgrasp.grasp.planner.closing_setup`), each fingertip first moves to where it touches
+the object; then every increment moves each fingertip along its own line by the secant estimate
+of the travel that brings its normal force (the tactile sensor's reading) to its set-point,
+
+    d_j = clip((F_set,j - F_j) / k_j, -step, step),   k_j = dF_j / ds_j of the last increment,
+
+and the object comes to static equilibrium (the fingers push the object on the table and each
+other's forces change with it). The closing ends when every finger is within ``tolerance`` of
+its set-point. Then the table is taken away and the object held for ``hold_time`` seconds
+(:func:`softgrasp.grasp.planner` ``_check_hold``): the grasp holds when the centre of mass moves
+less than ``max_drift`` and no fingertip slides.
+
+This answers "do these set-points hold this object?" for any material and friction, which is what
+robust set-points (:mod:`softgrasp.grasp.robust`) are checked with.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.body import Body
+from softgrasp.contact.fingertip import Fingertip
+from softgrasp.contact.model import FingertipContact
+from softgrasp.errors import ConfigError, NotConverged
+from softgrasp.grasp.initial import FINGER_NAMES
+from softgrasp.grasp.planner import PlanConfig, _check_hold, _cone_usage, closing_setup
+from softgrasp.sim.linsolve import SolverCache
+from softgrasp.sim.scene import Scene, State
+from softgrasp.sim.static import solve_increment
+
+__all__ = ["SetpointHold", "hold_setpoints", "TOLERANCE", "MAX_INCREMENTS"]
+
+#: Relative force error within which a set-point counts as reached.
+TOLERANCE = 0.01
+#: Closing increments of the force controller before it gives up.
+MAX_INCREMENTS = 80
+
+
+@dataclass(frozen=True)
+class SetpointHold:
+    """A force-controlled closing and its hold check.
+
+    Attributes
+    ----------
+    setpoints: the normal forces asked for [N], (3,).
+    reached: each finger's normal force at the end of the closing, on the table [N], (3,).
+    travel: each fingertip's travel along its closing line from its start [m], (3,).
+    increments: closing increments the controller used.
+    held: whether the fingers held the object with the table taken away.
+    reason: ``"held"``, or why not (a set-point not reached before the crushing limit, the
+        controller not settling, the object moving or a finger sliding in the hold).
+    drift: centre-of-mass motion of the hold check [m] (nan when not held: ``reason`` says how far
+        it moved, or why the check did not run).
+    friction_margin: 1 - the largest |f_t| / (mu f_n) of the fingers in the held state (nan when
+        not held).
+    held_normal: normal forces in the held state [N], (3,) (nan when not held).
+    wall_time: seconds.
+    """
+
+    setpoints: NDArray[np.float64]
+    reached: NDArray[np.float64]
+    travel: NDArray[np.float64]
+    increments: int
+    held: bool
+    reason: str
+    drift: float
+    friction_margin: float
+    held_normal: NDArray[np.float64]
+    wall_time: float
+
+
+def _tips(cfg: PlanConfig, centres: NDArray[np.float64], moves: NDArray[np.float64]) -> FingertipContact:
+    """Fingertips at ``centres`` moving by ``moves`` (3, 3) over the load parameter 0 -> 1."""
+    return FingertipContact(
+        tuple(
+            Fingertip(cfg.fingertip_radius, centre=centres[j], velocity=moves[j], name=FINGER_NAMES[j])
+            for j in range(3)
+        ),
+        cfg.contact,
+    )
+
+
+def hold_setpoints(
+    body: Body,
+    config: PlanConfig,
+    setpoints: NDArray[np.float64] | tuple[float, float, float],
+    *,
+    tolerance: float = TOLERANCE,
+    max_increments: int = MAX_INCREMENTS,
+) -> SetpointHold:
+    """Close the three fingertips on ``body`` under force control to ``setpoints`` (normal forces
+    [N], thumb, first, middle), each along its own closing line, then check the hold with the
+    table taken away (module docstring).
+
+    The closing lines are the planner's: from ``config.grasp`` when given (the same contacts as an
+    earlier plan), else from the best reachable grasp. A set-point that the finger does not reach
+    before the crushing limit (``config.max_squeeze``), or a controller that does not settle in
+    ``max_increments`` increments, makes the grasp not held (``reason`` says which finger).
+
+    Raises
+    ------
+    ConfigError: set-points that are not three positive finite forces, or a bad tolerance.
+    InfeasibleGrasp: no reachable initial grasp (as :func:`~softgrasp.grasp.planner.plan_grasp`).
+    NotConverged: the object finds no rest on the table.
+    """
+    t0 = time.perf_counter()
+    target = np.asarray(setpoints, dtype=np.float64)
+    if target.shape != (3,) or not (np.isfinite(target).all() and (target > 0).all()):
+        raise ConfigError(
+            f"set-points must be three normal forces > 0 N, got {np.asarray(setpoints).tolist()}"
+        )
+    if not 0 < tolerance < 0.5:
+        raise ConfigError(f"the set-point tolerance must lie in (0, 0.5), got {tolerance}")
+    cfg = config
+    cache = SolverCache()
+    setup = closing_setup(body, cfg, cache)
+    u = setup.directions
+    limit = setup.max_travel
+    body_scene = setup.table
+
+    def result(s, forces, n, held, reason, drift=math.nan, margin=math.nan, normal=None) -> SetpointHold:
+        return SetpointHold(
+            target,
+            np.asarray(forces, dtype=np.float64).copy(),
+            s.copy(),
+            n,
+            held,
+            reason,
+            drift,
+            margin,
+            np.full(3, math.nan) if normal is None else normal,
+            time.perf_counter() - t0,
+        )
+
+    # Each fingertip to its first touch (no force yet: the object stays as it rests).
+    s = setup.first_touch.copy()
+    fc = _tips(cfg, setup.start, u * s[:, None])
+    state = State(
+        setup.settled.x,
+        np.zeros_like(setup.settled.x),
+        0.0,
+        (setup.settled.contacts[0], fc.init_state(body, setup.settled.x, 0.0)),
+    )
+    forces = np.zeros(3)
+    s_prev, f_prev = s.copy(), forces.copy()
+    gain = np.full(3, math.nan)  # dF/ds of each finger, from the last increment that moved it
+    for n in range(1, max_increments + 1):
+        err = target - forces
+        if (np.abs(err) <= tolerance * target).all():
+            break
+        ds = s - s_prev
+        dF = forces - f_prev
+        fresh = (np.abs(ds) > 1e-12) & (dF / np.where(ds == 0, 1.0, ds) > 0)
+        gain = np.where(fresh, dF / np.where(ds == 0, 1.0, ds), gain)
+        # A finger without a slope yet (no contact, or its force fell as it advanced) creeps on by a
+        # quarter step; otherwise the secant step, at most one closing step either way.
+        guess = np.where(np.isfinite(gain), err / np.where(np.isfinite(gain), gain, 1.0), 0.25 * cfg.step)
+        move = np.clip(guess, -cfg.step, cfg.step)
+        move = np.where(np.abs(err) <= tolerance * target, 0.0, move)
+        if (s + move > limit + 1e-12).any():
+            j = int(np.argmax(s + move - limit))
+            return result(
+                s,
+                forces,
+                n,
+                False,
+                f"the {FINGER_NAMES[j]} finger reached {forces[j]:.3f} N of its {target[j]:.3f} N set-point "
+                f"at the crushing limit ({limit * 1e3:.1f} mm of travel)",
+            )
+        centres = fc.centres(1.0)
+        fc = _tips(cfg, centres, u * move[:, None])
+        scene = Scene(body, (body_scene, fc))
+        try:
+            state, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache)
+        except NotConverged as exc:
+            return result(s, forces, n, False, f"a closing increment found no equilibrium ({exc})")
+        s_prev, f_prev = s, forces
+        s = s + move
+        forces = fc.report(body, state.x, None, 1.0, state.contacts[1], static=True).normal
+    else:
+        return result(
+            s,
+            forces,
+            max_increments,
+            False,
+            f"the force control did not settle within {max_increments} increments (forces "
+            f"{', '.join(f'{v:.3f}' for v in forces)} N for {', '.join(f'{v:.3f}' for v in target)} N)",
+        )
+    increments = n - 1
+    checked = _check_hold(body, setup.table, fc, state, 1.0, cfg, cache)
+    if isinstance(checked, str):
+        return result(s, forces, increments, False, checked)
+    held, fixed, drift = checked
+    rep = fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True)
+    margin = float(1.0 - _cone_usage(rep, cfg.contact.mu).max())
+    return result(s, forces, increments, True, "held", drift, margin, rep.normal.copy())
