@@ -13,12 +13,18 @@ import numpy as np
 import pytest
 
 from softgrasp.cli import main
-from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged
 from softgrasp.grasp.force_control import hold_setpoints
 from softgrasp.grasp.options import PLAN_DEFAULTS, contact_params, load_body, plan_config
 from softgrasp.grasp.planner import plan_grasp
 from softgrasp.grasp.report import plan_document
-from softgrasp.grasp.robust import nominal_values, parse_uncertain, robust_setpoints
+from softgrasp.grasp.robust import (
+    _unholdable,
+    nominal_values,
+    parse_uncertain,
+    robust_setpoints,
+    sample_requirements,
+)
 from softgrasp.hand.planfile import load_plan_grasp
 from softgrasp.output import write_json
 
@@ -80,8 +86,27 @@ def test_force_control_reaches_its_setpoints_and_holds_the_nominal_plan(sphere, 
     assert res.held, res.reason
     assert res.drift < 1e-3
     assert 0 < res.friction_margin < 1
-    # The held state's forces balance the weight (Eq. 21): their sum's vertical part is the weight.
-    assert res.held_normal.min() > 0
+    assert np.isfinite(res.held_normal).all() and res.held_normal.min() > 0
+    # The increment cap counts the increments: the same closing within exactly that many.
+    again = hold_setpoints(sphere, cfg, target, max_increments=res.increments)
+    assert again.held and again.increments == res.increments
+    short = hold_setpoints(sphere, cfg, target, max_increments=res.increments - 1)
+    assert not short.held and "did not settle" in short.reason
+
+
+def test_force_control_penetration_scales_with_stiffness_between_hertz_and_a_linear_body():
+    """Run as a sweep's hold case, so that the case's E reaches the body: the same set-points on
+    a sphere four times stiffer need less penetration, by a factor between 4^(2/3) = 2.52 (Hertz
+    contact alone, delta ~ E^(-2/3)) and 4 (the linear elastic body alone, delta ~ 1/E)."""
+    from softgrasp.sweep.case import run_case
+
+    setpoints = (0.34, 0.22, 0.23)
+    soft, stiff = (run_case({"E": E}, hold=setpoints) for E in (40e3, 160e3))
+    for row in (soft, stiff):
+        assert row["status"] == "ok" and row["held"] is True, row["error"] or row["hold_reason"]
+    for f in ("thumb", "first", "middle"):
+        ratio = soft[f"penetration_{f}_m"] / stiff[f"penetration_{f}_m"]
+        assert 4 ** (2 / 3) * 0.97 < ratio < 4.0, (f, ratio)
 
 
 def test_force_control_to_the_plans_table_forces_ends_where_the_plan_closed(sphere, nominal_plan):
@@ -99,6 +124,7 @@ def test_setpoints_beyond_the_crushing_limit_are_not_held_and_say_why(sphere, no
     cfg = replace(nominal_plan.config, grasp=nominal_plan.initial, max_squeeze=0.05)
     res = hold_setpoints(sphere, cfg, (30.0, 30.0, 30.0))
     assert not res.held and "crushing limit" in res.reason and math.isnan(res.drift)
+    assert res.travel.max() == pytest.approx(res.max_travel, abs=1e-12)  # it went all the way
     with pytest.raises(ConfigError, match="three normal forces > 0 N"):
         hold_setpoints(sphere, cfg, (1.0, -1.0, 1.0))
 
@@ -169,20 +195,49 @@ def test_plan_uncertain_command_writes_robust_setpoints(tmp_path, capsys):
     robust = json.loads((out / "robust.json").read_text())
     assert plan["setpoints"] == "robust" and robust["achieved"] and robust["held_fraction"] >= 0.5
     need = np.array([s["required_N"] for s in robust["per_sample"]])
+    median = np.quantile(need, 0.5, axis=0, method="higher") * robust["scale_over_samples"]
     for j, f in enumerate(plan["fingers"]):
-        assert f["normal_force_N"] == robust["setpoints_N"][f["name"]]
+        assert f["normal_force_N"] == pytest.approx(median[j], rel=1e-12)
         assert f["nominal_normal_force_N"] == robust["nominal_setpoints_N"][f["name"]]
-        assert f["normal_force_N"] <= need[:, j].max() * robust["scale_over_samples"] + 1e-12
+    # Every sample's friction is below the nominal 0.8: every one needs more squeeze.
+    assert need.sum(axis=1).min() > sum(f["nominal_normal_force_N"] for f in plan["fingers"])
     for stage in ("samples", "nominal", "robust-1"):
         assert (out / "robust" / stage / "results.parquet").is_file()
     assert (out / "robust.png").stat().st_size > 10_000
     assert not (out / ".robust-partial").exists()
+    # A plain plan into the same folder takes the robust outputs, which no longer belong, away.
+    assert main(["plan", "--out", str(out)]) == 0
+    assert not (out / "robust.json").exists() and not (out / "robust").exists()
+    assert "robust" not in json.loads((out / "plan.json").read_text())
+
+
+def test_sample_requirements_tell_an_unholdable_sample_from_a_failed_solve():
+    rows = [
+        {"status": "ok", "setpoint_thumb_N": 0.4, "setpoint_first_N": 0.3, "setpoint_middle_N": 0.3},
+        {"status": "failed", "error": "no hold before the maximum squeeze", "error_type": "InfeasibleGrasp"},
+    ] + [
+        {"status": "ok", "setpoint_thumb_N": 0.4 + k, "setpoint_first_N": 0.3, "setpoint_middle_N": 0.3}
+        for k in range(8)
+    ]
+    options = [{"mu": 0.1 * (i + 1)} for i in range(len(rows))]
+    required, errors = sample_requirements(rows, options, ["mu"])
+    assert np.isinf(required[1]).all() and np.isfinite(np.delete(required, 1, axis=0)).all()
+    assert errors[1].startswith("no hold") and errors[0] == ""
+    # The quantile the message offers is the largest that leaves the unholdable sample out.
+    text = _unholdable(required, errors, options, ["mu"], None)
+    q = float(text.rsplit("--quantile ", 1)[1].split()[0])
+    assert np.isfinite(np.quantile(required, q, axis=0, method="higher")).all()
+    assert not np.isfinite(np.quantile(required, q + 0.01, axis=0, method="higher")).all()
+    rows[2] = {"status": "failed", "error": "static solve cycles", "error_type": "NotConverged"}
+    with pytest.raises(NotConverged, match="sample 2 \\(mu = 0.3\\) could not be planned"):
+        sample_requirements(rows, options, ["mu"])
 
 
 @pytest.mark.parametrize(
     "extra, message",
     [
         (["--quantile", "0.9"], "--quantile applies to robust set-points"),
+        (["--samples", "8"], "--samples applies to robust set-points"),
         (["--uncertain", "nu=0.4..0.55"], "nu must stay"),
         (["--uncertain", "mu=0.4..0.8", "--uncertain", "mu=±0.1"], "gives a parameter twice"),
         (["--uncertain", "mu=0.4..0.8", "--samples", "1"], "--samples must be from 2"),

@@ -631,19 +631,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         weight=(plan.com, body.total_mass * float(abs(body.gravity[2]))),
         links=hand_polylines(plan),
     )
-    robust = None
-    if uncertain:
-        print(plan_table(plan))
-        robust = _robust(args, config, plan, doc, uncertain, out)
     write_text(out / "history.csv", buf.getvalue())
     _write_frames(out / "frames.npz", plan, body.mesh.facets)
     # The unloaded object as the plan placed it on the table: what `execute` rebuilds.
     save_mesh(TetMesh(plan.placed, body.mesh.tets, name=body.mesh.name), out / "object.vtu")
     doc["object"]["mesh_file"] = "object.vtu"
     doc["wall_time_s"] = time.perf_counter() - t0
+    _remove_robust_outputs(out)  # an earlier robust run's, which no longer belong to this plan
     write_json(out / "plan.json", doc)
-    if robust is not None:
-        return _robust_summary(robust, out, time.perf_counter() - t0)
     print(plan_table(plan))
     eq = doc["equilibrium"]
     print(
@@ -653,6 +648,9 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     )
     for travel, result in plan.hold_checks[:-1]:
         print(f"not held at {travel * 1e3:.2f} mm of travel: {result}; closed further")
+    if uncertain:
+        robust = _robust(args, config, plan, doc, uncertain, out)
+        return _robust_summary(robust, out, time.perf_counter() - t0)
     if eq["friction_margin"] < 0.05:
         print(
             f"note: held at the friction limit (margin {eq['friction_margin']:.1%}): the least squeeze "
@@ -667,13 +665,31 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+#: What ``plan --uncertain`` writes besides the plan.
+ROBUST_OUTPUTS = ("robust.json", "robust.png", "robust", ".robust-partial")
+
+
+def _remove_robust_outputs(out: Path) -> None:
+    import shutil
+
+    for name in ROBUST_OUTPUTS:
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists():
+            path.unlink()
+
+
 def _uncertain(args: argparse.Namespace, body, mu: float) -> list:
     """The --uncertain parameters of ``plan`` (checked before the nominal plan runs)."""
     if not args.uncertain:
-        for flag, given in (("--quantile", args.quantile is not None), ("--scheduler", args.scheduler)):
-            if given:
-                raise ConfigError(f"{flag} applies to robust set-points: give --uncertain NAME=RANGE too")
+        for flag in ("quantile", "scheduler", "samples", "seed", "workers"):
+            if getattr(args, flag) is not None:
+                raise ConfigError(f"--{flag} applies to robust set-points: give --uncertain NAME=RANGE too")
         return []
+    args.samples = 64 if args.samples is None else args.samples
+    args.seed = 0 if args.seed is None else args.seed
+    args.workers = 2 if args.workers is None else args.workers
     from softgrasp.grasp.robust import nominal_values, parse_uncertain
 
     nominal = nominal_values(body, mu)
@@ -691,10 +707,12 @@ def _uncertain(args: argparse.Namespace, body, mu: float) -> list:
 
 
 def _robust(args: argparse.Namespace, config, plan, doc: dict, uncertain: list, out: Path):
-    """Robust set-points around the nominal ``plan`` (``--uncertain``): the stages' tables go to
-    ``out/robust`` (built aside and moved there whole); ``doc``'s set-points become the robust
-    ones, the nominal ones kept beside them."""
+    """Robust set-points around the nominal ``plan`` (``--uncertain``), whose outputs are already
+    written: every sample closes from the contacts of ``out/plan.json``; the stages' tables go to
+    ``out/robust`` (built aside and moved there whole); then ``plan.json`` is written again with
+    the robust set-points, the nominal ones kept beside them."""
     import shutil
+    from dataclasses import replace
 
     from tqdm import tqdm
 
@@ -710,7 +728,6 @@ def _robust(args: argparse.Namespace, config, plan, doc: dict, uncertain: list, 
     work = out / ".robust-partial"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    write_json(work / "grasp.json", doc)  # the nominal plan: its contacts for every sample
     bars: dict[str, object] = {}
 
     def progress(stage: str, done: int, total: int) -> None:
@@ -729,7 +746,7 @@ def _robust(args: argparse.Namespace, config, plan, doc: dict, uncertain: list, 
     try:
         res = robust_setpoints(
             options,
-            work / "grasp.json",
+            (out / "plan.json").resolve(),
             [f.normal_force for f in plan.fingers],
             uncertain,
             work,
@@ -748,20 +765,21 @@ def _robust(args: argparse.Namespace, config, plan, doc: dict, uncertain: list, 
             b.close()  # type: ignore[attr-defined]
     final = out / "robust"
     shutil.rmtree(final, ignore_errors=True)
-    (work / "grasp.json").unlink()
     work.rename(final)
-    stages = {k: str(final / Path(v).name) for k, v in res.stages.items()}
-    from dataclasses import replace
-
-    res = replace(res, stages=stages)
+    res = replace(res, stages={k: str(final / Path(v).name) for k, v in res.stages.items()})
     summary = res.describe()
     per_sample = summary.pop("per_sample")
     for j, f in enumerate(doc["fingers"]):
         f["nominal_normal_force_N"] = f["normal_force_N"]
         f["normal_force_N"] = float(res.setpoints[j])
     doc["setpoints"] = "robust" if res.achieved else "robust (goal not met)"
-    doc["robust"] = summary
+    doc["robust"] = {
+        **summary,
+        "note": "each finger's normal_force_N is the robust set-point; its other fields (force, "
+        "penetration, final position) and the equilibrium are the nominal plan's held state",
+    }
     write_json(out / "robust.json", {"schema": "softgrasp.robust/1", **summary, "per_sample": per_sample})
+    write_json(out / "plan.json", doc)
     return res
 
 
@@ -1128,7 +1146,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(e.g. --uncertain mu=0.4..0.8 --uncertain E=±20%%)",
     )
     rb.add_argument(
-        "--samples", type=int, default=64, help="parameter sets sampled over the ranges (default 64)"
+        "--samples", type=int, default=None, help="parameter sets sampled over the ranges (default 64)"
     )
     rb.add_argument(
         "--quantile",
@@ -1136,8 +1154,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="hold this share of the samples (e.g. 0.9) instead of every one",
     )
-    rb.add_argument("--seed", type=int, default=0, help="seed of the samples' draw (default 0)")
-    rb.add_argument("--workers", type=int, default=2, help="local Dask worker processes (default 2)")
+    rb.add_argument("--seed", type=int, default=None, help="seed of the samples' draw (default 0)")
+    rb.add_argument("--workers", type=int, default=None, help="local Dask worker processes (default 2)")
     rb.add_argument(
         "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
     )

@@ -54,6 +54,7 @@ class SetpointHold:
     setpoints: the normal forces asked for [N], (3,).
     reached: each finger's normal force at the end of the closing, on the table [N], (3,).
     travel: each fingertip's travel along its closing line from its start [m], (3,).
+    penetration: each fingertip's travel past its first touch of the object [m], (3,).
     increments: closing increments the controller used.
     held: whether the fingers held the object with the table taken away.
     reason: ``"held"``, or why not (a set-point not reached before the crushing limit, the
@@ -63,18 +64,21 @@ class SetpointHold:
     friction_margin: 1 - the largest |f_t| / (mu f_n) of the fingers in the held state (nan when
         not held).
     held_normal: normal forces in the held state [N], (3,) (nan when not held).
+    max_travel: the crushing limit: the farthest travel along a closing line [m].
     wall_time: seconds.
     """
 
     setpoints: NDArray[np.float64]
     reached: NDArray[np.float64]
     travel: NDArray[np.float64]
+    penetration: NDArray[np.float64]
     increments: int
     held: bool
     reason: str
     drift: float
     friction_margin: float
     held_normal: NDArray[np.float64]
+    max_travel: float
     wall_time: float
 
 
@@ -120,6 +124,8 @@ def hold_setpoints(
         )
     if not 0 < tolerance < 0.5:
         raise ConfigError(f"the set-point tolerance must lie in (0, 0.5), got {tolerance}")
+    if max_increments < 1:
+        raise ConfigError(f"max_increments must be >= 1, got {max_increments}")
     cfg = config
     cache = SolverCache()
     setup = closing_setup(body, cfg, cache)
@@ -132,12 +138,14 @@ def hold_setpoints(
             target,
             np.asarray(forces, dtype=np.float64).copy(),
             s.copy(),
+            s - setup.first_touch,
             n,
             held,
             reason,
             drift,
             margin,
             np.full(3, math.nan) if normal is None else normal,
+            limit,
             time.perf_counter() - t0,
         )
 
@@ -153,49 +161,52 @@ def hold_setpoints(
     forces = np.zeros(3)
     s_prev, f_prev = s.copy(), forces.copy()
     gain = np.full(3, math.nan)  # dF/ds of each finger, from the last increment that moved it
-    for n in range(1, max_increments + 1):
+    increments = 0
+    while True:
         err = target - forces
-        if (np.abs(err) <= tolerance * target).all():
+        done = np.abs(err) <= tolerance * target
+        if done.all():
             break
-        ds = s - s_prev
-        dF = forces - f_prev
-        fresh = (np.abs(ds) > 1e-12) & (dF / np.where(ds == 0, 1.0, ds) > 0)
-        gain = np.where(fresh, dF / np.where(ds == 0, 1.0, ds), gain)
-        # A finger without a slope yet (no contact, or its force fell as it advanced) creeps on by a
-        # quarter step; otherwise the secant step, at most one closing step either way.
-        guess = np.where(np.isfinite(gain), err / np.where(np.isfinite(gain), gain, 1.0), 0.25 * cfg.step)
-        move = np.clip(guess, -cfg.step, cfg.step)
-        move = np.where(np.abs(err) <= tolerance * target, 0.0, move)
-        if (s + move > limit + 1e-12).any():
-            j = int(np.argmax(s + move - limit))
+        stuck = (s >= limit - 1e-12) & ~done & (err > 0)
+        if stuck.any():
+            j = int(np.argmax(stuck))
             return result(
                 s,
                 forces,
-                n,
+                increments,
                 False,
                 f"the {FINGER_NAMES[j]} finger reached {forces[j]:.3f} N of its {target[j]:.3f} N set-point "
                 f"at the crushing limit ({limit * 1e3:.1f} mm of travel)",
             )
-        centres = fc.centres(1.0)
-        fc = _tips(cfg, centres, u * move[:, None])
+        if increments == max_increments:
+            return result(
+                s,
+                forces,
+                increments,
+                False,
+                f"the force control did not settle within {max_increments} increments (forces "
+                f"{', '.join(f'{v:.3f}' for v in forces)} N for {', '.join(f'{v:.3f}' for v in target)} N)",
+            )
+        ds = s - s_prev
+        slope = (forces - f_prev) / np.where(ds == 0, 1.0, ds)
+        gain = np.where((np.abs(ds) > 1e-12) & (slope > 0), slope, gain)
+        # A finger without a slope yet (no contact, or its force fell as it advanced) creeps a
+        # quarter step towards its set-point; otherwise the secant step, at most one closing step
+        # either way, never past the crushing limit nor behind the start of its line.
+        known = np.isfinite(gain)
+        guess = np.where(known, err / np.where(known, gain, 1.0), np.sign(err) * 0.25 * cfg.step)
+        move = np.clip(guess, -cfg.step, cfg.step)
+        move = np.clip(np.where(done, 0.0, move), -s, limit - s)
+        fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
         scene = Scene(body, (body_scene, fc))
         try:
             state, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache)
         except NotConverged as exc:
-            return result(s, forces, n, False, f"a closing increment found no equilibrium ({exc})")
+            return result(s, forces, increments, False, f"a closing increment found no equilibrium ({exc})")
+        increments += 1
         s_prev, f_prev = s, forces
         s = s + move
         forces = fc.report(body, state.x, None, 1.0, state.contacts[1], static=True).normal
-    else:
-        return result(
-            s,
-            forces,
-            max_increments,
-            False,
-            f"the force control did not settle within {max_increments} increments (forces "
-            f"{', '.join(f'{v:.3f}' for v in forces)} N for {', '.join(f'{v:.3f}' for v in target)} N)",
-        )
-    increments = n - 1
     checked = _check_hold(body, setup.table, fc, state, 1.0, cfg, cache)
     if isinstance(checked, str):
         return result(s, forces, increments, False, checked)

@@ -455,6 +455,8 @@ def _reachable_grasp(
             failures[cand.spread] = failures.get(cand.spread, 0) + 1
             continue
         return ig, placement
+    if cfg.grasp is not None:
+        raise InfeasibleGrasp(f"the hand does not reach the given grasp: {first_error}")
     raise InfeasibleGrasp(
         f"the hand reaches none of the {tried} best force-closure grasps tried; the best one: {first_error}"
     )

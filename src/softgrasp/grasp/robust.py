@@ -7,12 +7,17 @@ Given the nominal plan (its contacts and closing lines) and the uncertain parame
    from the nominal plan's initial grasp (same contacts and closing lines): the set-points that
    sample needs (:func:`softgrasp.grasp.planner.plan_grasp`);
 2. **robust set-points**: per finger, the largest of the samples' set-points (or their
-   ``quantile``); a sample the fingers cannot hold at all (no hold before the crushing limit)
-   needs infinite force;
+   ``quantile``, taken as the next sample up: a value some sample needed, so that ``quantile``
+   0.9 of 10 samples is their largest); a sample the fingers cannot hold at all (no hold before
+   the crushing limit) needs infinite force;
 3. **check**: on every sample, the fingers close under force control to the robust set-points
-   and the table is taken away (:func:`softgrasp.grasp.force_control.hold_setpoints`); until the
+   and the table is taken away (:func:`softgrasp.grasp.force_control.hold_setpoints`). A plan's
+   set-points are the normal forces of its *held* state, while a force-controlled hand reaches
+   them on the table, where the same squeeze reads higher (on the default sphere 0.48 N on the
+   table for 0.34 N held): closing to the held-state forces stops short of the plan's travel.
+   That is how ``execute`` uses set-points too, and the check is what decides: until the
    object is held on every sample (or the quantile's share of them), the set-points are raised
-   by ``RAISE`` and checked again, at most ``MAX_ROUNDS`` times;
+   by ``RAISE`` and checked again: at most ``MAX_ROUNDS`` checks in all;
 4. the nominal plan's set-points are checked on every sample the same way (how often they fail);
 5. **drivers**: Spearman's rank correlation of each uncertain parameter with the samples' total
    set-point: which parameter the force depends on, and which way.
@@ -42,6 +47,7 @@ __all__ = [
     "parse_uncertain",
     "nominal_values",
     "robust_setpoints",
+    "sample_requirements",
     "MAX_ROUNDS",
     "RAISE",
 ]
@@ -50,7 +56,7 @@ __all__ = [
 UNCERTAIN = ("mu", "E", "nu", "density", "mass", "a2", "a3")
 #: Factor by which the set-points are raised after a check in which too few samples were held.
 RAISE = 1.25
-#: Checks of raised set-points before giving up.
+#: Checks of the set-points (the first and the raised ones) before giving up.
 MAX_ROUNDS = 4
 _FINGERS = ("thumb", "first", "middle")
 #: Physical bounds of each parameter's range: (lowest, highest, whether the lowest is allowed).
@@ -266,6 +272,60 @@ def _quantile(required: NDArray[np.float64], q: float | None) -> NDArray[np.floa
     return np.quantile(required, q, axis=0, method="higher")
 
 
+def sample_requirements(
+    rows: Sequence[Mapping[str, object]], options: Sequence[Mapping[str, object]], names: Sequence[str]
+) -> tuple[NDArray[np.float64], list[str]]:
+    """The set-points each sample needs, (S, 3) (inf for a sample the fingers cannot hold at all:
+    its plan failed with ``InfeasibleGrasp``), and each sample's error ("" when planned).
+
+    Raises NotConverged when a sample's plan failed for another reason (a solve that did not
+    converge, a lost worker, a missing file): that is no verdict on the grasp, and a robust
+    set-point cannot skip the sample."""
+    from softgrasp.errors import NotConverged
+
+    required = np.full((len(rows), 3), math.inf)
+    errors = []
+    for i, r in enumerate(rows):
+        if r["status"] == "ok":
+            required[i] = [float(r[f"setpoint_{f}_N"]) for f in _FINGERS]  # type: ignore[arg-type]
+            errors.append("")
+        elif r.get("error_type") == "InfeasibleGrasp":
+            errors.append(str(r["error"]))
+        else:
+            where = ", ".join(f"{n} = {float(options[i][n]):.4g}" for n in names)  # type: ignore[arg-type]
+            raise NotConverged(
+                f"sample {i} ({where}) could not be planned, for a reason other than grip: {r['error']}; "
+                "its set-points are unknown (a finer --step or --refine may let the solve converge)"
+            )
+    return required, errors
+
+
+def _unholdable(
+    required: NDArray[np.float64],
+    errors: Sequence[str],
+    options: Sequence[Mapping[str, object]],
+    names: Sequence[str],
+    quantile: float | None,
+) -> str:
+    """Why no robust set-points exist: the samples no set-point holds, and the largest quantile
+    that would leave them out."""
+    n = len(required)
+    bad = [i for i in range(n) if not np.isfinite(required[i]).all()]
+    where = "; ".join(
+        f"sample {i} ({', '.join(f'{k} = {float(options[i][k]):.4g}' for k in names)}): {errors[i]}"  # type: ignore[arg-type]
+        for i in bad[:3]
+    )
+    text = f"{len(bad)} of {n} samples cannot be held by any set-points on these contacts ({where}); "
+    ok = n - len(bad)
+    if ok == 0:
+        return text + "narrow the ranges of the uncertain parameters"
+    # np.quantile(..., method="higher") picks a finite value only up to the share (ok - 1) / (n - 1).
+    q_max = math.floor(1000 * (ok - 1) / (n - 1)) / 1000  # rounded down: printed, it must still do
+    if q_max <= 0:
+        return text + "narrow the ranges of the uncertain parameters"
+    return text + f"narrow the ranges, or hold a share of the samples with --quantile {q_max:g} or less"
+
+
 def robust_setpoints(
     options: Mapping[str, object],
     grasp_file: str | Path,
@@ -301,6 +361,8 @@ def robust_setpoints(
     ConfigError: no or repeated uncertain parameters, fewer than 2 samples, a bad quantile.
     InfeasibleGrasp: samples (more than the quantile allows) that no set-points can hold: the
         fingers reach the crushing limit before the object is held.
+    NotConverged: a sample that could not be planned for another reason
+        (:func:`sample_requirements`).
     """
     from softgrasp.sweep.engine import dask_client, run_sweep
     from softgrasp.sweep.spec import SweepSpec, sweep_cases
@@ -347,26 +409,11 @@ def robust_setpoints(
 
     with dask_client(scheduler, workers) as client:
         rows = stage(client, "samples", None)
-        required = np.array(
-            [
-                [float(r[f"setpoint_{f}_N"]) if r["status"] == "ok" else math.inf for f in _FINGERS]  # type: ignore[arg-type]
-                for r in rows
-            ]
-        )
-        errors = [str(r["error"]) if r["status"] != "ok" else "" for r in rows]
+        required, errors = sample_requirements(rows, [c.options for c in cases], names)
         goal = 1.0 if quantile is None else quantile
         base_points = _quantile(required, quantile)
         if not np.isfinite(base_points).all():
-            bad = [i for i, e in enumerate(errors) if e]
-            where = "; ".join(
-                f"sample {i} ({', '.join(f'{n} = {cases[i].options[n]:.4g}' for n in names)}): {errors[i]}"
-                for i in bad[:3]
-            )
-            raise InfeasibleGrasp(
-                f"{len(bad)} of {samples} samples cannot be held by any set-points on these contacts "
-                f"({where}); narrow the ranges, or hold a share of them with --quantile"
-                + (f" below {1 - len(bad) / samples:.2f}" if len(bad) < samples else "")
-            )
+            raise InfeasibleGrasp(_unholdable(required, errors, [c.options for c in cases], names, quantile))
         nominal_rows = stage(client, "nominal", nominal)
         nominal_held, nominal_reasons, _, _ = held_of(nominal_rows)
         scale = 1.0

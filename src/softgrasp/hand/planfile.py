@@ -107,6 +107,12 @@ def load_plan_grasp(path: str | Path) -> InitialGrasp:
     """The initial grasp of a plan file (its three contacts, their normals and the triangle's
     centroid), to plan another closing from the same contacts (``softgrasp plan --grasp``)."""
     doc = _read_document(Path(path))
+    ig = doc.get("initial_grasp")
+    if isinstance(ig, dict) and "contacts_m" not in ig:
+        raise ConfigError(
+            f"plan file {path} holds no contact points (written by an earlier softgrasp): "
+            "re-plan it to reuse its grasp"
+        )
     rows = {}
     for key in ("contacts_m", "normals"):
         v = _get(doc, f"initial_grasp.{key}")

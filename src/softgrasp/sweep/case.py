@@ -25,6 +25,7 @@ FINGERS = ("thumb", "first", "middle")
 OUTPUTS: tuple[str, ...] = (
     "status",
     "error",
+    "error_type",
     "wall_time_s",
     "nodes",
     "mass_kg",
@@ -48,6 +49,7 @@ EXECUTE_OUTPUTS: tuple[str, ...] = ("reached", "lifted", "slip_m", "rise_m", "ex
 HOLD_OUTPUTS: tuple[str, ...] = (
     "status",
     "error",
+    "error_type",
     "wall_time_s",
     "nodes",
     "mass_kg",
@@ -56,6 +58,7 @@ HOLD_OUTPUTS: tuple[str, ...] = (
     "increments",
     *(f"reached_{f}_N" for f in FINGERS),
     *(f"travel_{f}_m" for f in FINGERS),
+    *(f"penetration_{f}_m" for f in FINGERS),
     *(f"held_{f}_N" for f in FINGERS),
     "friction_margin",
     "hold_drift_m",
@@ -74,7 +77,8 @@ def _failed(row: dict[str, object], exc: BaseException, t0: float) -> dict[str, 
     if not isinstance(exc, SoftgraspError):
         tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
         msg += " | " + tb[-2].strip().replace("\n", " ") if len(tb) > 1 else ""
-    row.update(status="failed", error=msg, wall_time_s=time.perf_counter() - t0)
+    row.update(status="failed", error=msg, error_type=type(exc).__name__)
+    row["wall_time_s"] = time.perf_counter() - t0
     return row
 
 
@@ -95,7 +99,8 @@ def run_case(
     Returns
     -------
     The output columns (:func:`output_columns`): ``status`` ``ok`` or ``failed``, ``error`` (empty
-    or the message), and the figures (NaN where a failed case has none).
+    or the message), ``error_type`` (the exception's class: ``InfeasibleGrasp``, ``NotConverged``
+    ...), and the figures (NaN where a failed case has none).
     """
     from softgrasp.grasp.options import contact_params, load_body, material_file, plan_config
     from softgrasp.grasp.planner import plan_grasp
@@ -103,7 +108,7 @@ def run_case(
 
     t0 = time.perf_counter()
     row: dict[str, object] = {c: math.nan for c in output_columns(execute, hold is not None)}
-    row.update(status="ok", error="")
+    row.update(status="ok", error="", error_type="")
     try:
         plan_opts, material = split_options(options)
         mf = material_file(plan_opts["material"])  # type: ignore[arg-type]
@@ -164,6 +169,7 @@ def _hold(body, config, setpoints: Sequence[float]) -> dict[str, object]:
     for j, name in enumerate(FINGERS):
         row[f"reached_{name}_N"] = float(res.reached[j])
         row[f"travel_{name}_m"] = float(res.travel[j])
+        row[f"penetration_{name}_m"] = float(res.penetration[j])
         row[f"held_{name}_N"] = float(res.held_normal[j])
     return row
 

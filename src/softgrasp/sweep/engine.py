@@ -260,7 +260,8 @@ def run_sweep(
                         result = fut.result()
                     except Exception as exc:  # noqa: BLE001 - a lost worker: the case failed
                         result = {c: math.nan for c in output_columns(spec.execute, spec.hold is not None)}
-                        result.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+                        kind = type(exc).__name__
+                        result.update(status="failed", error=f"{kind}: {exc}", error_type=kind)
                     row = {"case": case.index, "case_id": case.id, **case.options, **result}
                     for c in spec.inputs:
                         row.setdefault(c, None)
