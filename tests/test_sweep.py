@@ -82,13 +82,13 @@ def test_cases_grid_and_random(tmp_path):
 def test_a_failing_case_is_a_row_not_an_exception():
     row = run_case({"object": "sphere", "mesh_size": 0.032, "nu": 0.6})
     assert row["status"] == "failed"
-    assert "Poisson's ratio nu = 0.6 is invalid" in str(row["error"])
+    assert "Poisson's ratio nu = 0.6 is invalid" in str(row["error"]) and row["error_type"] == "MaterialError"
     assert set(row) == set(output_columns(False)) and math.isnan(row["setpoint_thumb_N"])  # type: ignore[arg-type]
     row = run_case({"object": "no-such-object"})
     assert row["status"] == "failed" and "unknown object" in str(row["error"])
 
 
-_NUMERIC_OUT = [c for c in output_columns(False) if c not in ("status", "error", "wall_time_s")]
+_NUMERIC_OUT = [c for c in output_columns(False) if c not in ("status", "error", "error_type", "wall_time_s")]
 
 
 @pytest.mark.slow
@@ -133,7 +133,7 @@ def test_sweep_on_a_local_tcp_cluster_gives_the_rows_of_the_cases_run_one_by_one
     for case, row, alone in zip(cases, res.rows, one_by_one, strict=True):
         alone = {k: math.nan if v is None else v for k, v in alone.items()}
         assert row["status"] == alone["status"], case.options
-        assert row["error"] == alone["error"]
+        assert row["error"] == alone["error"] and row["error_type"] == alone["error_type"]
         if row["status"] == "failed":
             assert "nu = 0.6" in str(row["error"]) and case.options["nu"] == 0.6
             continue

@@ -175,6 +175,7 @@ class PardisoFactor:
         self._iparm[10] = 0  # no scaling (symmetric)
         self._iparm[12] = 0  # no weighted matching (symmetric)
         self._iparm[17] = -1  # report the factor's non-zeros in iparm[17]
+        self._iparm[18] = -1  # report the factorisation's Mflop count in iparm[18]
         self._iparm[34] = 1  # zero-based indices
         self.n = int(A.shape[0])
         U = self._upper(A)
@@ -300,6 +301,13 @@ class PardisoFactor:
         self._call(11, self._data)
         self._call(22, self._data)
         return True
+
+    @property
+    def solves_per_factorisation(self) -> float:
+        """The factorisation's floating-point operations over a solve's (4 per factor non-zero:
+        forward and backward substitution): how many solves one factorisation costs in
+        operations (not in time: see ``linsolve.SOLVE_SPEED_RATIO``)."""
+        return max(1e6 * float(self._iparm[18]), 1.0) / max(4.0 * self.factor_nonzeros, 1.0)
 
     @property
     def factor_nonzeros(self) -> int:
