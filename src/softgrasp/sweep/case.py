@@ -21,14 +21,12 @@ __all__ = ["FINGERS", "OUTPUTS", "EXECUTE_OUTPUTS", "HOLD_OUTPUTS", "run_case", 
 #: Finger names of the rows (thumb, first, middle).
 FINGERS = ("thumb", "first", "middle")
 
+#: The first output columns of every case: its outcome and its object.
+_CASE: tuple[str, ...] = ("status", "error", "error_type", "wall_time_s", "nodes", "mass_kg")
+
 #: Output columns of every case (SI units in the names).
 OUTPUTS: tuple[str, ...] = (
-    "status",
-    "error",
-    "error_type",
-    "wall_time_s",
-    "nodes",
-    "mass_kg",
+    *_CASE,
     "travel_m",
     "increments",
     *(f"setpoint_{f}_N" for f in FINGERS),
@@ -47,12 +45,7 @@ EXECUTE_OUTPUTS: tuple[str, ...] = ("reached", "lifted", "slip_m", "rise_m", "ex
 
 #: Output columns of a case that checks given set-points (force-controlled closing and hold).
 HOLD_OUTPUTS: tuple[str, ...] = (
-    "status",
-    "error",
-    "error_type",
-    "wall_time_s",
-    "nodes",
-    "mass_kg",
+    *_CASE,
     "held",
     "hold_reason",
     "increments",
