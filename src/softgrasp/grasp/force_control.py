@@ -131,7 +131,6 @@ def hold_setpoints(
     setup = closing_setup(body, cfg, cache)
     u = setup.directions
     limit = setup.max_travel
-    body_scene = setup.table
 
     def result(s, forces, n, held, reason, drift=math.nan, margin=math.nan, normal=None) -> SetpointHold:
         return SetpointHold(
@@ -198,7 +197,7 @@ def hold_setpoints(
         move = np.clip(guess, -cfg.step, cfg.step)
         move = np.clip(np.where(done, 0.0, move), -s, limit - s)
         fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
-        scene = Scene(body, (body_scene, fc))
+        scene = Scene(body, (setup.table, fc))
         try:
             state, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache)
         except NotConverged as exc:
