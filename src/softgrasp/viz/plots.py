@@ -21,6 +21,14 @@ def _figure():
     return plt
 
 
+def _write_png(plt, fig, path: str | Path) -> Path:
+    """Lay the figure out, write it as a PNG atomically (no half-written file) and close it."""
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
+    plt.close(fig)
+    return out
+
+
 def _save(
     plt, fig, ax, path: str | Path, legend_loc: str = "best", *, x_from_zero: bool = True, legend: bool = True
 ) -> Path:
@@ -32,10 +40,7 @@ def _save(
     ax.set_ylim(bottom=0)
     if legend:
         ax.legend(frameon=False, loc=legend_loc)
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
-    plt.close(fig)
-    return out
+    return _write_png(plt, fig, path)
 
 
 def plot_stress_strain(
@@ -789,10 +794,7 @@ def plot_success_map(
     ax.set_ylabel(yl)
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
-    plt.close(fig)
-    return out
+    return _write_png(plt, fig, path)
 
 
 def plot_robust(
@@ -851,7 +853,4 @@ def plot_robust(
         ax.set_ylim(bottom=0, top=1.15 * max(robust_total, float(np.max(required_total[ok], initial=0.0))))
     axes[0][0].legend(frameon=False, loc="lower left", fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, format="png"))
-    plt.close(fig)
-    return out
+    return _write_png(plt, fig, path)
