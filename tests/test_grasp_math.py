@@ -9,7 +9,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.grasp.closure import ferrari_canny, ferrari_canny_bound, is_force_closure, primitive_wrenches
+from softgrasp.grasp.closure import (
+    ferrari_canny,
+    ferrari_canny_bound,
+    ferrari_canny_bounds,
+    is_force_closure,
+    primitive_wrenches,
+    primitive_wrenches_many,
+    wrench_epsilon,
+)
 from softgrasp.grasp.equilibrium import (
     friction_cone_edges,
     friction_feasibility,
@@ -132,6 +140,29 @@ def test_bound_dominates_epsilon_of_random_grasps(m_bound: int) -> None:
             assert eps <= ub * (1 + 1e-12)
             closures += eps > 0
     assert closures > 20  # the sample is not all trivial
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.35, 0.8])
+def test_many_grasps_at_once_give_the_one_by_one_numbers(mu: float) -> None:
+    """The batched wrenches, bounds and epsilons (the initial-grasp ranking's) are the one-grasp
+    functions' to the last bit, grasp by grasp (each with its own torque scale)."""
+    rng = np.random.default_rng(11)
+    n_out = rng.standard_normal((25, 3, 3))
+    n_out /= np.linalg.norm(n_out, axis=2, keepdims=True)
+    points = 0.05 * n_out + 0.01 * rng.standard_normal((25, 3, 3))
+    centre = np.array([0.001, -0.002, 0.003])
+    w = primitive_wrenches_many(points, -n_out, mu, centre)
+    bounds = ferrari_canny_bounds(points, -n_out, mu, centre)
+    for i in range(25):
+        assert np.array_equal(w[i], primitive_wrenches(points[i], -n_out[i], mu, centre))
+        assert wrench_epsilon(w[i]) == ferrari_canny(points[i], -n_out[i], mu, centre)
+        assert bounds[i] == ferrari_canny_bound(points[i], -n_out[i], mu, centre)
+    if mu > 0:
+        assert (bounds > 0).sum() > 3  # some are force closure
+    else:
+        assert not bounds.any()  # three frictionless contacts never are
+    with pytest.raises(ConfigError, match="unit"):
+        primitive_wrenches_many(points, -2 * n_out, mu, centre)
 
 
 def test_bound_of_the_tripod_is_the_epsilon_of_its_circumscribed_cone() -> None:

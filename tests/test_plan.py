@@ -52,19 +52,19 @@ def test_ranked_grasps_follow_the_exact_epsilon_order(sphere_body, monkeypatch):
     x = np.asarray(sphere_body.mesh.points)
     com = (sphere_body.mass @ x) / sphere_body.total_mass
     facets = sphere_body.mesh.facets
-    exact = initial_mod.ferrari_canny
+    exact = initial_mod.wrench_epsilon
     calls = [0]
 
     def counted(*a, **k):
         calls[0] += 1
         return exact(*a, **k)
 
-    monkeypatch.setattr(initial_mod, "ferrari_canny", counted)
+    monkeypatch.setattr(initial_mod, "wrench_epsilon", counted)
     pruned = initial_mod.initial_grasps(x, facets, com, 0.8)
     calls[0] = 0
     first = next(initial_mod.ranked_grasps(x, facets, com, 0.8))
     n_first = calls[0]
-    monkeypatch.setattr(initial_mod, "ferrari_canny_bound", lambda *a, **k: math.inf)
+    monkeypatch.setattr(initial_mod, "ferrari_canny_bounds", lambda P, *a, **k: np.full(len(P), math.inf))
     calls[0] = 0
     full = initial_mod.initial_grasps(x, facets, com, 0.8)
     assert calls[0] >= len(full) > 100

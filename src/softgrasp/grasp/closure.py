@@ -31,7 +31,15 @@ from softgrasp.grasp.equilibrium import (
     friction_cone_edges,
 )
 
-__all__ = ["primitive_wrenches", "ferrari_canny", "ferrari_canny_bound", "is_force_closure"]
+__all__ = [
+    "primitive_wrenches",
+    "primitive_wrenches_many",
+    "ferrari_canny",
+    "ferrari_canny_bound",
+    "ferrari_canny_bounds",
+    "wrench_epsilon",
+    "is_force_closure",
+]
 
 #: Singular values below this fraction of the largest count as zero in the rank test.
 RANK_RTOL = 1e-10
@@ -90,6 +98,58 @@ def ferrari_canny(
     """
     eps = _signed_epsilon(primitive_wrenches(points, normals, mu, centre, m, torque_scale))
     return eps if eps is not None and eps > 0.0 else 0.0
+
+
+def primitive_wrenches_many(
+    points: ArrayLike, normals: ArrayLike, mu: float, centre: ArrayLike, m: int = 8
+) -> NDArray[np.float64]:
+    """:func:`primitive_wrenches` of ``K`` grasps of ``k`` contacts at once, shape ``(K, k*m, 6)``
+    (``(K, k, 6)`` with ``mu = 0``): ``points`` and ``normals`` are ``(K, k, 3)``, each grasp's
+    torque scale its own ``max_j |p_j - centre|``. Row for row the same numbers as the one-grasp
+    function (the same operations, vectorised over the grasps)."""
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 3 or p.shape[2] != 3 or not np.all(np.isfinite(p)):
+        raise ConfigError(f"points must be a finite (K, k, 3) array, got shape {p.shape}")
+    K, k, _ = p.shape
+    n = _unit_normals(np.asarray(normals, dtype=np.float64).reshape(-1, 3), K * k).reshape(K, k, 3)
+    mu = _mu(mu)
+    c = _point3(centre, "centre")
+    m = _edges_count(m)
+    r = p - c
+    L = np.max(np.linalg.norm(r, axis=2), axis=1)
+    L = np.where(L > 0.0, L, 1.0)
+    if mu == 0.0:
+        f, rr = n, r
+    else:
+        _, d = friction_cone_edges(n.reshape(-1, 3), m)
+        f = (n.reshape(-1, 3)[:, None, :] + mu * d).reshape(K, k * m, 3)
+        rr = np.repeat(r, m, axis=1)
+    return np.concatenate([f, np.cross(rr, f) / L[:, None, None]], axis=2)
+
+
+def wrench_epsilon(w: NDArray[np.float64]) -> float:
+    """Ferrari-Canny epsilon of a set of primitive wrenches ``(n, 6)`` (one grasp's rows of
+    :func:`primitive_wrenches_many`): as :func:`ferrari_canny` returns it, ``>= 0``."""
+    eps = _signed_epsilon(w)
+    return eps if eps is not None and eps > 0.0 else 0.0
+
+
+def ferrari_canny_bounds(
+    points: ArrayLike, normals: ArrayLike, mu: float, centre: ArrayLike, m: int = 3
+) -> NDArray[np.float64]:
+    """:func:`ferrari_canny_bound` of ``K`` grasps at once (points and normals ``(K, k, 3)``):
+    ``(K,)`` upper bounds of their epsilon for any number of cone edges (0: no linearisation is
+    force closure; ``inf``: degenerate, no bound known)."""
+    mu = _mu(mu)
+    if mu == 0.0:
+        w = primitive_wrenches_many(points, normals, 0.0, centre, m)
+        return np.array([wrench_epsilon(wi) for wi in w])
+    m = _edges_count(m)
+    out = np.empty(np.shape(points)[0])
+    for i, wi in enumerate(primitive_wrenches_many(points, normals, mu / math.cos(math.pi / m), centre, m)):
+        eps = _signed_epsilon(wi)
+        out[i] = math.inf if eps is None else max(eps, 0.0)
+    return out
 
 
 def _signed_epsilon(w: NDArray[np.float64]) -> float | None:

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.grasp.closure import ferrari_canny, ferrari_canny_bound
+from softgrasp.grasp.closure import ferrari_canny_bounds, primitive_wrenches_many, wrench_epsilon
 
 __all__ = [
     "HandLayout",
@@ -186,7 +186,8 @@ def ranked_grasps(
     """The force-closure triples (thumb, first, middle) in the grasp plane within the layout's
     reach, best (largest Ferrari-Canny epsilon) first, ties in the search order, computed lazily.
 
-    Every candidate first gets the cheap upper bound :func:`ferrari_canny_bound` of its quality;
+    Every candidate first gets the cheap upper bound :func:`~softgrasp.grasp.closure.ferrari_canny_bound` of
+    its quality (all candidates at once);
     the exact epsilon is computed only when a candidate's bound is the best left, and a candidate
     is yielded once its exact quality beats every other's bound (best-first search). Taking the
     first few grasps costs a fraction of ranking them all; the order is the same.
@@ -260,18 +261,18 @@ def _best_first(
     """Yield the force-closure candidates by decreasing epsilon (rounded to 12 digits; ties in
     list order): a heap keyed by each candidate's best-known upper bound, refined to the exact
     value when it comes to the top."""
-    heap = []
-    for i, (p, n_out, *_rest) in enumerate(found):
-        ub = ferrari_canny_bound(p, -n_out, mu, com)
-        if ub > 0.0:
-            heap.append((-round(ub, 12), i, False, ub))
+    P = np.array([c[0] for c in found])
+    N = -np.array([c[1] for c in found])  # inward normals
+    bounds = ferrari_canny_bounds(P, N, mu, com)
+    wrenches = primitive_wrenches_many(P, N, mu, com)
+    heap = [(-round(float(ub), 12), i, False, float(ub)) for i, ub in enumerate(bounds) if ub > 0.0]
     heapq.heapify(heap)
     yielded = 0
     while heap:
         _, i, exact, eps = heapq.heappop(heap)
         p, n_out, fac, theta, phi = found[i]
         if not exact:
-            eps = ferrari_canny(p, -n_out, mu, com)
+            eps = wrench_epsilon(wrenches[i])
             if eps > 0.0:
                 heapq.heappush(heap, (-round(eps, 12), i, True, eps))
             continue
