@@ -154,6 +154,21 @@ def test_volume_kernels_agree_on_an_inverted_tet(config):
     assert _rel(elastic.volume_jacobian_blocks(*args), ref.volume_jacobian_blocks(*args)) < TOL
 
 
+def test_inverted_tets_counted_as_the_signed_volumes_say(config):
+    """The static solver's compiled validity test counts exactly the tets whose NumPy signed
+    volume is not positive: none at rest, the reflected ones, and a NaN position's tets."""
+    mesh, x, _ = config
+    assert elastic.count_inverted(x, mesh.tets) == 0
+    x = x.copy()
+    for t in mesh.tets[:7:3]:
+        x[t[3]] = x[t[0]] + (x[t[0]] - x[t[3]])
+    want = int((~(signed_volumes(x, mesh.tets) > 0)).sum())
+    assert want >= 3
+    assert elastic.count_inverted(x, mesh.tets) == want
+    x[mesh.tets[-1, 2]] = np.nan
+    assert elastic.count_inverted(x, mesh.tets) == int((~(signed_volumes(x, mesh.tets) > 0)).sum()) > want
+
+
 # ------------------------------------------------------------------------------- the body
 @pytest.mark.parametrize("law", LAWS.values(), ids=LAWS.keys())
 @pytest.mark.parametrize("nu", [0.2, 0.45], ids=["quadratic", "barrier"])

@@ -157,6 +157,34 @@ def test_pattern_subsets_reuse_the_analysis_and_unions_take_both():
 
 
 @needs_mkl
+def test_a_pattern_seen_before_is_gathered_to_the_same_upper_triangle():
+    """Matrices of the pattern a factor last took (the Newton matrices of one solve) are mapped
+    into its upper triangle by a kept gather: the same values in the same places as the
+    extraction from scratch, for the factor's own pattern, a subset of it, after a change of
+    pattern and back; and a non-canonical matrix (duplicates) still goes the long way, summed."""
+    K = _stiffness()
+    f = pardiso.PardisoFactor(pardiso.PardisoFactor.union(K, sp.eye(K.shape[0], k=5, format="csr")))
+    D = sp.diags(K.diagonal()).tocsr()
+    rng = np.random.default_rng(3)
+    for M in (K, 1.7 * K, D, 2.0 * D, K + sp.diags(rng.random(K.shape[0])), K):
+        M = M.tocsr()
+        got = f.same_pattern(M)
+        want = f._same_pattern(M)
+        assert got is not None and want is not None
+        assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+        assert np.array_equal(got.data, want.data)
+    C = sp.coo_matrix(K)
+    dup = sp.csr_matrix(
+        (np.concatenate([C.data, C.data]), (np.concatenate([C.row, C.row]), np.concatenate([C.col, C.col]))),
+        shape=K.shape,
+    )
+    dup.has_canonical_format = False  # as built from triplets before summing
+    got = f.same_pattern(dup)
+    assert got is not None
+    assert np.allclose(got.data, f.same_pattern((2.0 * K).tocsr()).data, rtol=1e-15, atol=0)
+
+
+@needs_mkl
 def test_gmres_on_the_exact_product_solves_the_non_symmetric_system():
     """With ``matvec`` the solver answers the non-symmetric system it is the product of,
     preconditioned by the factorisation of the symmetric approximation it is given."""

@@ -37,6 +37,7 @@ __all__ = [
     "internal_forces",
     "internal_energy",
     "internal_jacobian_data",
+    "count_inverted",
 ]
 
 Array = NDArray[np.float64]
@@ -317,6 +318,32 @@ def _f64(a: Array) -> Array:
 
 def _i64(a: IntArray) -> IntArray:
     return np.ascontiguousarray(a, dtype=np.int64)
+
+
+@_jit
+def _count_inverted(x, tets):  # pragma: no cover - compiled
+    count = 0
+    for t in range(tets.shape[0]):
+        p0 = tets[t, 0]
+        ax = x[tets[t, 1], 0] - x[p0, 0]
+        ay = x[tets[t, 1], 1] - x[p0, 1]
+        az = x[tets[t, 1], 2] - x[p0, 2]
+        bx = x[tets[t, 2], 0] - x[p0, 0]
+        by = x[tets[t, 2], 1] - x[p0, 1]
+        bz = x[tets[t, 2], 2] - x[p0, 2]
+        cx = x[tets[t, 3], 0] - x[p0, 0]
+        cy = x[tets[t, 3], 1] - x[p0, 1]
+        cz = x[tets[t, 3], 2] - x[p0, 2]
+        det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        if not det / 6.0 > 0.0:
+            count += 1
+    return count
+
+
+def count_inverted(x: Array, tets: IntArray) -> int:
+    """Number of tets whose signed volume at ``x`` is not positive (as
+    :func:`softgrasp.mesh.tetmesh.signed_volumes` ``<= 0``, or NaN), without forming the volumes."""
+    return int(_count_inverted(_f64(x), _i64(tets)))
 
 
 def edge_lengths(x: Array, edges: IntArray) -> Array:

@@ -186,6 +186,9 @@ class PardisoFactor:
         # with the same thread count (changing it in between crashed MKL here).
         self._threads = _choose_threads()
         self._lib = lib
+        # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
+        # their positions in this factor's data.
+        self._gather: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
         self._call(11, self._data)
         self._call(22, self._data)
 
@@ -240,7 +243,32 @@ class PardisoFactor:
 
     def same_pattern(self, A: sp.spmatrix) -> sp.csr_matrix | None:
         """The upper triangle of ``A`` in this factor's pattern (entries it lacks stored as zeros)
-        if its non-zeros fit in that pattern, else None."""
+        if its non-zeros fit in that pattern, else None.
+
+        A Newton solve hands in matrices of one full (both triangles) pattern over and over: the
+        positions of that pattern's upper entries in this factor's are kept, and a matrix of the
+        same pattern is then a gather of its values (no triangle extraction or search)."""
+        if sp.issparse(A) and A.format == "csr" and A.has_canonical_format:
+            gather = self._gather
+            if (
+                gather is not None
+                and np.array_equal(A.indptr, gather[0])
+                and np.array_equal(A.indices, gather[1])
+            ):
+                data = np.zeros(self._indices.size)
+                data[gather[3]] = A.data[gather[2]]
+                return sp.csr_matrix((data, self._indices, self._indptr), shape=A.shape)
+            U = self._same_pattern(A)
+            if U is not None:
+                rows = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(A.indptr))
+                keep = np.flatnonzero(A.indices >= rows)
+                keys = rows[keep] * self.n + A.indices[keep].astype(np.int64)
+                pos = np.searchsorted(_keys(self._indptr, self._indices, self.n), keys)
+                self._gather = (A.indptr.copy(), A.indices.copy(), keep, pos)
+            return U
+        return self._same_pattern(A)
+
+    def _same_pattern(self, A: sp.spmatrix) -> sp.csr_matrix | None:
         U = self._upper(A)
         if np.array_equal(U.indptr, self._indptr) and np.array_equal(U.indices, self._indices):
             return U

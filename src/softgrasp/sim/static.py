@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp import kernels
 from softgrasp.body import Body
 from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.mesh.tetmesh import signed_volumes
@@ -105,6 +106,16 @@ def rigid_constraints(
             row /= max(float(np.sqrt((row**2).sum())), 1e-300)
         rows.append(row.ravel())
     return sp.csr_matrix(np.array(rows))
+
+
+def _valid(body: Body, x: NDArray[np.float64]) -> bool:
+    """Whether every tet of ``body`` has a positive signed volume at ``x`` (the compiled count
+    where the compiled kernels are in use: the line search asks at every trial step)."""
+    if kernels.compiled():
+        from softgrasp.kernels import elastic
+
+        return elastic.count_inverted(x, body.mesh.tets) == 0
+    return bool((signed_volumes(x, body.mesh.tets) > 0).all())
 
 
 def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:
@@ -241,7 +252,7 @@ def _newton(
             descent = float(f.ravel() @ dx) * cap
             for alpha in 0.5 ** np.arange(11):
                 xn = x + alpha * cap * d
-                if not (signed_volumes(xn, body.mesh.tets) > 0).all():
+                if not _valid(body, xn):
                     continue
                 rn = float(np.linalg.norm(_residual(scene, xn, t, contacts, C, lam_new)))
                 # Either merit certifies progress: the unbalanced force, or the potential energy
@@ -371,7 +382,7 @@ def solve_static(
     """
     tt = state.t if t is None else float(t)
     x = np.array(state.x, dtype=np.float64)
-    if not (signed_volumes(x, scene.body.mesh.tets) > 0).all():
+    if not _valid(scene.body, x):
         raise SimulationUnstable("static solve started from a configuration with inverted tets")
     C = constraints
     if C is not None:
