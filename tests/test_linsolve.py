@@ -71,6 +71,10 @@ def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
         assert f._threads == 2
         np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
         monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)
+        monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 3600.0)  # not looked at again yet
+        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
+        assert f._threads == 2
+        monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 0.0)
         np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
         assert f._threads == 1
         f.refactor(f.same_pattern(2.0 * K))

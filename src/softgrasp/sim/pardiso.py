@@ -31,6 +31,7 @@ import ctypes
 import glob
 import os
 import sys
+import time
 from ctypes.util import find_library
 from functools import cache
 
@@ -64,6 +65,11 @@ _ERRORS = {
 
 class PardisoError(RuntimeError):
     """PARDISO reported an error (the message gives its code and meaning)."""
+
+
+#: Seconds between two looks at the machine's load from one factor's solves (reading
+#: ``/proc/loadavg`` cost ~0.2 ms here, as much as a fifth of a solve at 2 000 nodes).
+LOAD_CHECK_INTERVAL = 0.02
 
 
 def _configured_threads() -> int | None:
@@ -185,6 +191,7 @@ class PardisoFactor:
         # PARDISO sizes its work per thread in the analysis: every phase of this factor must run
         # with the same thread count (changing it in between crashed MKL here).
         self._threads = _choose_threads()
+        self._load_checked = time.monotonic()
         self._lib = lib
         # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
         # their positions in this factor's data.
@@ -315,11 +322,16 @@ class PardisoFactor:
         return self._call(33, self._data, b)
 
     def _fewer_threads(self) -> bool:
-        """With ``auto`` threads: if fewer cores are idle now than this factor's threads, analyse
-        and factorise again with as many as are (other work started on the machine: spinning
-        threads would make every solve many times slower). Returns whether it refactorised."""
+        """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
+        fewer cores are idle now than this factor's threads, analyse and factorise again with as
+        many as are (other work started on the machine: spinning threads would make every solve
+        many times slower). Returns whether it refactorised."""
         if self._threads == 1 or _fixed_threads is not None:
             return False
+        now = time.monotonic()
+        if now - self._load_checked < LOAD_CHECK_INTERVAL:
+            return False
+        self._load_checked = now
         n = idle_cores()
         if n >= self._threads:
             return False
