@@ -321,9 +321,12 @@ def _i64(a: IntArray) -> IntArray:
 
 
 @_jit
-def _count_inverted(x, tets):  # pragma: no cover - compiled
+def _inverted(x, tets, lo, hi):  # pragma: no cover - compiled
+    """Tets ``lo:hi`` with non-positive signed volume (as :func:`softgrasp.mesh.tetmesh.signed_volumes`):
+    their number and the first of them (-1 if none); for bodies without the volume term."""
     count = 0
-    for t in range(tets.shape[0]):
+    first = -1
+    for t in range(lo, hi):
         p0 = tets[t, 0]
         ax = x[tets[t, 1], 0] - x[p0, 0]
         ay = x[tets[t, 1], 1] - x[p0, 1]
@@ -336,14 +339,17 @@ def _count_inverted(x, tets):  # pragma: no cover - compiled
         cz = x[tets[t, 3], 2] - x[p0, 2]
         det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
         if not det / 6.0 > 0.0:
+            if first < 0:
+                first = t
             count += 1
-    return count
+    return count, first
 
 
 def count_inverted(x: Array, tets: IntArray) -> int:
     """Number of tets whose signed volume at ``x`` is not positive (as
     :func:`softgrasp.mesh.tetmesh.signed_volumes` ``<= 0``, or NaN), without forming the volumes."""
-    return int(_count_inverted(_f64(x), _i64(tets)))
+    tets = _i64(tets)
+    return int(_inverted(_f64(x), tets, 0, tets.shape[0])[0])
 
 
 def edge_lengths(x: Array, edges: IntArray) -> Array:

@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.kernels.contact import _fingertip_forces, _fingertip_update
-from softgrasp.kernels.elastic import _springs, _volumes, polynomial_coefficients
+from softgrasp.kernels.elastic import _inverted, _springs, _volumes, polynomial_coefficients
 
 __all__ = [
     "METHODS",
@@ -178,31 +178,6 @@ def _plane_points(t, pl_point, pl_vel, p0):  # pragma: no cover - compiled
     for p in range(pl_point.shape[0]):
         for d in range(3):
             p0[p, d] = pl_point[p, d] + t * pl_vel[p, d]
-
-
-@_jit
-def _inverted(x, tets, lo, hi):  # pragma: no cover - compiled
-    """Tets ``lo:hi`` with non-positive signed volume (as :func:`softgrasp.mesh.tetmesh.signed_volumes`):
-    their number and the first of them (-1 if none); for bodies without the volume term."""
-    count = 0
-    first = -1
-    for t in range(lo, hi):
-        p0 = tets[t, 0]
-        ax = x[tets[t, 1], 0] - x[p0, 0]
-        ay = x[tets[t, 1], 1] - x[p0, 1]
-        az = x[tets[t, 1], 2] - x[p0, 2]
-        bx = x[tets[t, 2], 0] - x[p0, 0]
-        by = x[tets[t, 2], 1] - x[p0, 1]
-        bz = x[tets[t, 2], 2] - x[p0, 2]
-        cx = x[tets[t, 3], 0] - x[p0, 0]
-        cy = x[tets[t, 3], 1] - x[p0, 1]
-        cz = x[tets[t, 3], 2] - x[p0, 2]
-        det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-        if not det / 6.0 > 0.0:
-            if first < 0:
-                first = t
-            count += 1
-    return count, first
 
 
 @_jit
