@@ -237,9 +237,20 @@ def _newton(
         accepted = False
         while not accepted:
             As = A if shift == 0.0 else (A + sp.diags(shift * np.abs(A.diagonal()) + 1e-300)).tocsr()
-            dx, lam_new = solve_newton_system(
-                As, f.ravel(), C, x, cache, matvec=exact if shift == 0.0 else None, rtol=forcing
-            )
+            try:
+                dx, lam_new = solve_newton_system(
+                    As, f.ravel(), C, x, cache, matvec=exact if shift == 0.0 else None, rtol=forcing
+                )
+            except NotConverged:
+                if C is not None or shift >= 1e6:
+                    raise
+                # A singular Newton matrix whose system has no solution (a body standing on
+                # nodes that carry no force yet, about to tip): step along the solution of the
+                # diagonally shifted matrix instead, a descent direction (Levenberg-Marquardt, as
+                # when the line search below accepts no step).
+                shift = max(10.0 * shift, 1e-4)
+                log.debug("newton it %d: singular system, the diagonal shifted by %.1e", it, shift)
+                continue
             r0 = f.ravel() - (C.T @ lam_new if C is not None else 0.0)
             res = float(np.abs(r0).max())
             if res <= rtol * scale:
