@@ -16,7 +16,9 @@ from softgrasp.grasp.closure import (
     is_force_closure,
     primitive_wrenches,
     primitive_wrenches_many,
+    support_bounds,
     wrench_epsilon,
+    wrench_hull,
 )
 from softgrasp.grasp.equilibrium import (
     friction_cone_edges,
@@ -163,6 +165,32 @@ def test_many_grasps_at_once_give_the_one_by_one_numbers(mu: float) -> None:
         assert not bounds.any()  # three frictionless contacts never are
     with pytest.raises(ConfigError, match="unit"):
         primitive_wrenches_many(points, -2 * n_out, mu, centre)
+
+
+def test_support_bounds_lie_above_epsilon_and_the_nearest_facet_attains_it() -> None:
+    """The support function along any unit direction is at least the inscribed ball's radius
+    (random directions, and other grasps' nearest facet normals; below zero only where the
+    origin is outside the hull: epsilon 0), and along the hull's own nearest facet normal it
+    equals epsilon; ``wrench_hull`` gives ``wrench_epsilon``."""
+    rng = np.random.default_rng(5)
+    n_out = rng.standard_normal((40, 3, 3))
+    n_out /= np.linalg.norm(n_out, axis=2, keepdims=True)
+    points = 0.05 * n_out + 0.01 * rng.standard_normal((40, 3, 3))
+    w = primitive_wrenches_many(points, -n_out, 0.7, ORIGIN)
+    eps = np.array([wrench_epsilon(wi) for wi in w])
+    assert (eps > 0).sum() > 5
+    random_dirs = rng.standard_normal((40, 500, 6))
+    random_dirs /= np.linalg.norm(random_dirs, axis=2, keepdims=True)
+    assert (np.maximum(support_bounds(w, random_dirs), 0.0) >= eps - 1e-15).all()
+    for i in np.flatnonzero(eps > 0):
+        e, normals = wrench_hull(w[i], nearest=5)
+        assert e == eps[i] and normals.shape == (5, 6)
+        assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, rtol=0, atol=1e-12)
+        own = support_bounds(w[i][None], normals[None, :1])[0]
+        assert own == pytest.approx(e, rel=1e-12)
+        others = support_bounds(w, np.broadcast_to(normals, (40, 5, 6)))
+        assert (np.maximum(others, 0.0) >= eps - 1e-15).all()
+    assert np.isinf(support_bounds(w, np.zeros((40, 0, 6)))).all()
 
 
 def test_bound_of_the_tripod_is_the_epsilon_of_its_circumscribed_cone() -> None:

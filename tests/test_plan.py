@@ -52,14 +52,14 @@ def test_ranked_grasps_follow_the_exact_epsilon_order(sphere_body, monkeypatch):
     x = np.asarray(sphere_body.mesh.points)
     com = (sphere_body.mass @ x) / sphere_body.total_mass
     facets = sphere_body.mesh.facets
-    exact = initial_mod.wrench_epsilon
+    exact = initial_mod.wrench_hull
     calls = [0]
 
     def counted(*a, **k):
         calls[0] += 1
         return exact(*a, **k)
 
-    monkeypatch.setattr(initial_mod, "wrench_epsilon", counted)
+    monkeypatch.setattr(initial_mod, "wrench_hull", counted)
     pruned = initial_mod.initial_grasps(x, facets, com, 0.8)
     calls[0] = 0
     first = next(initial_mod.ranked_grasps(x, facets, com, 0.8))
@@ -73,6 +73,36 @@ def test_ranked_grasps_follow_the_exact_epsilon_order(sphere_body, monkeypatch):
     for a, b in zip(pruned, full, strict=True):
         assert (a.thumb_azimuth, a.spread, a.epsilon) == (b.thumb_azimuth, b.spread, b.epsilon)
     assert (first.thumb_azimuth, first.spread) == (full[0].thumb_azimuth, full[0].spread)
+
+
+def test_ranked_grasps_leave_out_what_the_caller_skips_and_keep_the_order(sphere_body):
+    """A ``skip`` that turns true for a spread angle after the first grasp of that spread came
+    (as the planner skips a spread the hand failed on) gives the full ranking without those
+    grasps, in the same order."""
+    import softgrasp.grasp.initial as initial_mod
+
+    x = np.asarray(sphere_body.mesh.points)
+    com = (sphere_body.mass @ x) / sphere_body.total_mass
+    full = initial_mod.initial_grasps(x, facets := sphere_body.mesh.facets, com, 0.8)
+    failed: set[float] = set()
+    taken = []
+    for g in initial_mod.ranked_grasps(x, facets, com, 0.8, skip=lambda theta, phi: phi in failed):
+        taken.append(g)
+        if len(taken) <= 3:
+            failed.add(g.spread)
+        if len(taken) == 6:
+            break
+    seen: set[float] = set()
+    want = []
+    for g in full:
+        if g.spread in seen and g.spread in {t.spread for t in taken[:3]}:
+            continue
+        seen.add(g.spread)
+        want.append(g)
+    assert len({g.spread for g in taken[:3]}) == 3
+    assert [(g.thumb_azimuth, g.spread, g.epsilon) for g in taken] == [
+        (g.thumb_azimuth, g.spread, g.epsilon) for g in want[:6]
+    ]
 
 
 def test_initial_grasp_on_the_sphere_lies_on_a_great_circle_with_the_thumb_opposite(sphere_body):

@@ -38,6 +38,8 @@ __all__ = [
     "ferrari_canny_bound",
     "ferrari_canny_bounds",
     "wrench_epsilon",
+    "wrench_hull",
+    "support_bounds",
     "is_force_closure",
 ]
 
@@ -130,8 +132,32 @@ def primitive_wrenches_many(
 def wrench_epsilon(w: NDArray[np.float64]) -> float:
     """Ferrari-Canny epsilon of a set of primitive wrenches ``(n, 6)`` (one grasp's rows of
     :func:`primitive_wrenches_many`): as :func:`ferrari_canny` returns it, ``>= 0``."""
-    eps = _signed_epsilon(w)
-    return eps if eps is not None and eps > 0.0 else 0.0
+    return wrench_hull(w)[0]
+
+
+def wrench_hull(w: NDArray[np.float64], nearest: int = 0) -> tuple[float, NDArray[np.float64]]:
+    """:func:`wrench_epsilon` of the wrenches ``w`` ``(n, 6)`` and the unit outward normals of
+    (up to) the ``nearest`` hull facets closest to the origin, nearest first, ``(<= nearest, 6)``
+    (none when the set is degenerate). A grasp much like this one has its own nearest facets in
+    about these directions: they make tight :func:`support_bounds` for it."""
+    hull = _hull(w)
+    if hull is None:
+        return 0.0, np.zeros((0, 6))
+    offsets = -hull.equations[:, -1]
+    eps = float(np.min(offsets))
+    order = np.argsort(offsets, kind="stable")[:nearest]
+    return (eps if eps > 0.0 else 0.0), hull.equations[order, :-1]
+
+
+def support_bounds(w: NDArray[np.float64], directions: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Upper bounds of the Ferrari-Canny epsilon of ``K`` wrench sets ``w`` ``(K, n, 6)`` from unit
+    directions ``(K, d, 6)`` (each set its own): ``min_d max_i w_i . d``, ``(K,)``. The support
+    function ``max_i w_i . d`` of the hull is its extent along d, and a ball of radius epsilon
+    about the origin inside the hull reaches as far along every unit d; so each direction bounds
+    epsilon from above, and a facet normal of the hull attains it. ``inf`` with no directions."""
+    if directions.shape[1] == 0:
+        return np.full(w.shape[0], math.inf)
+    return np.einsum("kin,kdn->kid", w, directions).max(axis=1).min(axis=1)
 
 
 def ferrari_canny_bounds(
@@ -152,21 +178,26 @@ def ferrari_canny_bounds(
     return out
 
 
-def _signed_epsilon(w: NDArray[np.float64]) -> float | None:
-    """Smallest offset of the hull facets of the wrenches ``w``: positive inside (the epsilon),
-    <= 0 when the origin is outside; None when the set is degenerate (fewer than 7 wrenches, rank
-    below 6, or Qhull fails)."""
+def _hull(w: NDArray[np.float64]) -> ConvexHull | None:
+    """Qhull's convex hull of the wrenches ``w``; None when the set is degenerate (fewer than 7
+    wrenches, rank below 6, or Qhull fails). Its facet equations are unit outward normals a and
+    offsets b with a.x + b <= 0 inside."""
     if w.shape[0] < 7:
         return None
     s = np.linalg.svd(w, compute_uv=False)
     if s[0] == 0.0 or np.count_nonzero(s > RANK_RTOL * s[0]) < 6:
         return None
     try:
-        hull = ConvexHull(w)
+        return ConvexHull(w)
     except (QhullError, ValueError):
         return None
-    # facet equations: unit outward normal a and offset b with a.x + b <= 0 inside
-    return float(np.min(-hull.equations[:, -1]))
+
+
+def _signed_epsilon(w: NDArray[np.float64]) -> float | None:
+    """Smallest offset of the hull facets of the wrenches ``w``: positive inside (the epsilon),
+    <= 0 when the origin is outside; None when the set is degenerate."""
+    hull = _hull(w)
+    return None if hull is None else float(np.min(-hull.equations[:, -1]))
 
 
 def ferrari_canny_bound(

@@ -21,14 +21,14 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.grasp.closure import ferrari_canny_bounds, primitive_wrenches_many, wrench_epsilon
+from softgrasp.grasp.closure import ferrari_canny_bounds, primitive_wrenches_many, support_bounds, wrench_hull
 
 __all__ = [
     "HandLayout",
@@ -42,6 +42,9 @@ __all__ = [
 
 #: Finger names in the order softgrasp uses everywhere.
 FINGER_NAMES = ("thumb", "first", "middle")
+#: Hull facets nearest the origin kept from each exact quality, as directions that bound the
+#: others' (:func:`_best_first`).
+NEAREST_FACETS = 8
 
 
 @dataclass(frozen=True)
@@ -182,6 +185,7 @@ def ranked_grasps(
     com: NDArray[np.float64],
     mu: float,
     layout: HandLayout = HandLayout(),  # noqa: B008 - frozen dataclass
+    skip: Callable[[float, float], bool] | None = None,
 ) -> Iterator[InitialGrasp]:
     """The force-closure triples (thumb, first, middle) in the grasp plane within the layout's
     reach, best (largest Ferrari-Canny epsilon) first, ties in the search order, computed lazily.
@@ -197,6 +201,10 @@ def ranked_grasps(
     x: node positions [m] (the object at rest on the table).  facets: boundary facets, outward.
     com: centre of mass [m].  mu: friction coefficient used for the closure test.
     layout: the hand's reach.
+    skip: ``skip(thumb_azimuth, spread)`` true for candidates the caller will not take (asked
+        when a candidate comes to the top, before its exact quality is computed; the answer may
+        change from false to true as the caller goes on, never back). Such candidates are left
+        out; the others come in the same order as without ``skip``.
 
     Raises
     ------
@@ -252,30 +260,65 @@ def ranked_grasps(
             f"thumb within {layout.max_aperture * 1e3:.0f} mm of them (the object is "
             f"{widest * 1e3:.0f} mm across); use a smaller object or a hand layout with a wider reach"
         )
-    return _best_first(found, com, mu)
+    return _best_first(found, com, mu, skip)
 
 
 def _best_first(
-    found: list[tuple[NDArray, NDArray, NDArray, float, float]], com: NDArray[np.float64], mu: float
+    found: list[tuple[NDArray, NDArray, NDArray, float, float]],
+    com: NDArray[np.float64],
+    mu: float,
+    skip: Callable[[float, float], bool] | None = None,
 ) -> Iterator[InitialGrasp]:
     """Yield the force-closure candidates by decreasing epsilon (rounded to 12 digits; ties in
     list order): a heap keyed by each candidate's best-known upper bound, refined to the exact
-    value when it comes to the top."""
+    value when it comes to the top. A candidate ``skip`` rejects when it comes to the top is
+    dropped there (the caller would pass over it when it came: ``skip`` only ever turns true).
+
+    The bounds: the circumscribed cones' quality (:func:`~softgrasp.grasp.closure.ferrari_canny_bounds`)
+    at first; then, after each exact quality, the hull's nearest facet normals turned about the
+    vertical by the difference of the thumb azimuths (a grasp a little further round the object
+    has its wrenches, and its nearest facets, turned about as much) bound every candidate still
+    inexact by its support function (:func:`~softgrasp.grasp.closure.support_bounds`)."""
     P = np.array([c[0] for c in found])
     N = -np.array([c[1] for c in found])  # inward normals
-    bounds = ferrari_canny_bounds(P, N, mu, com)
+    theta = np.array([c[3] for c in found])
+    ub = ferrari_canny_bounds(P, N, mu, com)
     wrenches = primitive_wrenches_many(P, N, mu, com)
-    heap = [(-round(float(ub), 12), i, False, float(ub)) for i, ub in enumerate(bounds) if ub > 0.0]
-    heapq.heapify(heap)
+    exact = np.full(len(found), np.nan)  # the exact qualities computed so far
+    alive = ub > 0.0  # not yet yielded, dropped or found not force closure
+
+    def heap_of() -> list[tuple[float, int, bool, float]]:
+        h = [
+            (-round(float(e), 12), i, True, float(e)) if not np.isnan(e := exact[i]) else
+            (-round(float(ub[i]), 12), i, False, float(ub[i]))
+            for i in np.flatnonzero(alive)
+        ]  # fmt: skip
+        heapq.heapify(h)
+        return h
+
+    heap = heap_of()
     yielded = 0
     while heap:
-        _, i, exact, eps = heapq.heappop(heap)
-        p, n_out, fac, theta, phi = found[i]
-        if not exact:
-            eps = wrench_epsilon(wrenches[i])
-            if eps > 0.0:
+        _, i, is_exact, eps = heapq.heappop(heap)
+        p, n_out, fac, th, phi = found[i]
+        if skip is not None and skip(th, phi):
+            alive[i] = False
+            continue
+        if not is_exact:
+            eps, normals = wrench_hull(wrenches[i], NEAREST_FACETS)
+            exact[i] = eps
+            if eps <= 0.0:
+                alive[i] = False
+                continue
+            rest = alive & np.isnan(exact)
+            if rest.any() and len(normals):
+                ub[rest] = np.minimum(ub[rest], _support_bound(wrenches[rest], normals, theta[rest] - th))
+                alive &= ub > 0.0
+                heap = heap_of()
+            else:
                 heapq.heappush(heap, (-round(eps, 12), i, True, eps))
             continue
+        alive[i] = False
         yielded += 1
         yield InitialGrasp(
             points=p,
@@ -283,7 +326,7 @@ def _best_first(
             facets=fac,
             centroid=p.mean(axis=0),
             epsilon=float(eps),
-            thumb_azimuth=theta,
+            thumb_azimuth=th,
             spread=phi,
         )
     if not yielded:
@@ -292,3 +335,21 @@ def _best_first(
             "for three fingertips to resist every load on this surface (with mu = 0 none can); "
             "raise the friction coefficient"
         )
+
+
+def _support_bound(
+    w: NDArray[np.float64], normals: NDArray[np.float64], turn: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Upper bounds of the qualities of the wrench sets ``w`` ``(K, n, 6)`` from the facet
+    normals ``(d, 6)`` of another grasp's hull, turned about the vertical by ``turn`` ``(K,)``
+    [rad] (force and torque parts alike), ``(K,)``. Each turned normal is a unit direction, so
+    the bound holds whatever the turn; a margin of 1e-9 relative (and 2e-12) keeps it above the
+    exact quality through rounding."""
+    c, s = np.cos(turn), np.sin(turn)
+    a = normals.reshape(-1, 2, 3)  # (d, force/torque, xyz)
+    d = np.empty((len(turn), len(normals), 2, 3))
+    d[..., 0] = c[:, None, None] * a[None, ..., 0] - s[:, None, None] * a[None, ..., 1]
+    d[..., 1] = s[:, None, None] * a[None, ..., 0] + c[:, None, None] * a[None, ..., 1]
+    d[..., 2] = a[None, ..., 2]
+    h = support_bounds(w, d.reshape(len(turn), len(normals), 6))
+    return h + 1e-9 * np.abs(h) + 2e-12

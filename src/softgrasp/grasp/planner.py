@@ -25,6 +25,7 @@ finger's first contact) the object would be crushed: :class:`InfeasibleGrasp`.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Iterable
@@ -429,19 +430,24 @@ def _hand_order(hand: HandModel, ig: InitialGrasp) -> InitialGrasp:
 
 
 def _reachable_grasp(
-    xs: NDArray[np.float64], candidates: Iterable[InitialGrasp], cfg: PlanConfig
+    xs: NDArray[np.float64],
+    candidates: Iterable[InitialGrasp],
+    cfg: PlanConfig,
+    failures: dict[float, int] | None = None,
 ) -> tuple[InitialGrasp, HandPlacement | None]:
     """The best initial grasp the hand reaches, and the hand's placement for it. Candidates come
     best first; a spread angle (the layout's shape parameter) that failed ``PER_SPREAD`` times is
     skipped (on a near-symmetric object its other azimuths fail alike), and at most
-    ``MAX_PLACEMENTS`` placements are tried."""
+    ``MAX_PLACEMENTS`` placements are tried. ``failures`` (failed placements per spread angle) is
+    filled in as it goes, so that the ranking can leave out what will be skipped
+    (:func:`_spread_failed`)."""
     if cfg.hand is None:
         return next(iter(candidates)), None
-    failures: dict[float, int] = {}
+    failures = {} if failures is None else failures
     first_error: InfeasibleGrasp | None = None
     tried = 0
     for cand in candidates:
-        if failures.get(cand.spread, 0) >= PER_SPREAD:
+        if _spread_failed(failures, cand.thumb_azimuth, cand.spread):
             continue
         if tried >= MAX_PLACEMENTS:
             break
@@ -462,13 +468,22 @@ def _reachable_grasp(
     )
 
 
+def _spread_failed(failures: dict[float, int], theta: float, spread: float) -> bool:
+    """Whether :func:`_reachable_grasp` skips grasps of this spread angle now (the ranking then
+    need not compute their quality)."""
+    return failures.get(spread, 0) >= PER_SPREAD
+
+
 def _initial_grasp(
     body: Body, xs: NDArray[np.float64], com: NDArray[np.float64], cfg: PlanConfig
 ) -> tuple[InitialGrasp, HandPlacement | None]:
     """The initial grasp (the best reachable force-closure grasp, or ``cfg.grasp``) and the
     hand's placement for it."""
     if cfg.grasp is None:
-        return _reachable_grasp(xs, ranked_grasps(xs, body.mesh.facets, com, cfg.contact.mu, cfg.layout), cfg)
+        failures: dict[float, int] = {}
+        skip = functools.partial(_spread_failed, failures)
+        ranked = ranked_grasps(xs, body.mesh.facets, com, cfg.contact.mu, cfg.layout, skip=skip)
+        return _reachable_grasp(xs, ranked, cfg, failures)
     ig = cfg.grasp
     R = cfg.fingertip_radius  # a fingertip resting at each contact touches the surface near it
     probe = FingertipContact(
