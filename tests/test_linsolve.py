@@ -58,8 +58,9 @@ def test_factors_with_different_thread_counts_interleave():
 @needs_mkl
 def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
     """With automatic threads, a factor analysed on two idle cores is analysed again with one
-    thread when a later solve or factorisation finds only one idle (another process started), and
-    keeps solving exactly."""
+    thread when later solves or factorisations find only one idle ``BUSY_LOOKS`` looks in a row
+    (another process started; not for a look or two, an instant's runnable task), and keeps
+    solving exactly."""
     K = _stiffness()
     b = np.random.default_rng(3).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
@@ -75,6 +76,11 @@ def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
         np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
         assert f._threads == 2
         monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 0.0)
+        looks = iter([1, 2] + [1] * pardiso.BUSY_LOOKS)
+        monkeypatch.setattr(pardiso, "idle_cores", lambda: next(looks))
+        for _ in range(2 + pardiso.BUSY_LOOKS - 1):  # a busy look, an idle one, then busy ones
+            np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
+            assert f._threads == 2
         np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
         assert f._threads == 1
         f.refactor(f.same_pattern(2.0 * K))
@@ -82,6 +88,45 @@ def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
     finally:
         monkeypatch.undo()
         pardiso.set_threads(None)
+
+
+def test_idle_cores_leave_out_this_process_own_busy_threads():
+    """A thread of this process that computes (NumPy releases the GIL) is counted as this
+    process's own runnable thread, not as another process's load: an OpenMP thread spinning
+    after a solve must not make the machine look busy."""
+    import threading
+
+    a = np.random.default_rng(0).standard_normal((400, 400))
+    stop = threading.Event()
+
+    def busy() -> None:
+        while not stop.is_set():
+            a @ a
+
+    seen = []
+    worker = threading.Thread(target=busy)
+    worker.start()
+    try:
+        for _ in range(200):
+            seen.append(pardiso._own_runnable())
+    finally:
+        stop.set()
+        worker.join()
+    assert max(seen) >= 2  # the caller and the busy thread
+    assert min(seen) >= 1
+
+
+@needs_mkl
+def test_mkl_runs_on_intel_openmp_even_after_gnu_openmp_was_loaded():
+    """gmsh loads GNU OpenMP before MKL; MKL must still take its Intel threading layer (whose
+    threads KMP_BLOCKTIME governs), not the GNU one."""
+    import gmsh  # noqa: F401 - loads GNU OpenMP first where gmsh links it
+
+    pardiso.PardisoFactor(_stiffness()).solve(np.ones(_stiffness().shape[0]))
+    with open("/proc/self/maps", encoding="ascii", errors="replace") as fh:
+        maps = fh.read()
+    assert "libmkl_intel_thread" in maps
+    assert "libmkl_gnu_thread" not in maps
 
 
 @needs_mkl

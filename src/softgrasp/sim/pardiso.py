@@ -18,11 +18,17 @@ two threads made the default plan at 2 196 nodes 1.4x faster when it was idle an
 one other busy process (40x for a single solve in another measurement). ``auto`` therefore
 chooses, when a pattern is analysed (PARDISO keeps that count through every later phase of the
 pattern: changing it in between crashed MKL here), as many threads as there are cores not running
-another process at that moment (Linux's count of runnable tasks in ``/proc/loadavg``; one
-thread where that is not available), and analyses again with fewer threads as soon as a solve or
-factorisation finds fewer cores idle (other work started: two threads then made each solve
-~10x slower here); and lets idle threads sleep at once (``KMP_BLOCKTIME=0``
-unless set) so that they do not look busy to the next choice. :func:`set_threads` fixes a number.
+another process at that moment (Linux's count of runnable tasks in ``/proc/loadavg`` less this
+process's own runnable threads; one thread where that is not available), and analyses again with
+fewer threads when solves or factorisations find fewer cores idle several looks in a row (other
+work started: two threads then made each solve ~10x slower here). MKL runs on Intel's OpenMP
+runtime, whose idle threads spin for ``KMP_BLOCKTIME`` (its default 200 ms) after a solve before
+they sleep: a Newton iteration's solves come faster than that, between other work, and each found
+the threads awake. Measured on the default plan at 2 196 nodes, idle machine: with the threads
+asleep at once (``KMP_BLOCKTIME=0``) a two-thread solve took 2.1 ms and a factorisation 32 ms,
+slower than one thread; after 1 ms of spinning 1.6 ms; after 50-200 ms, 0.85-0.95 ms and 25 ms.
+Their spinning is this process's own work, not another's: the looks leave it out.
+:func:`set_threads` fixes a number.
 """
 
 from __future__ import annotations
@@ -41,9 +47,9 @@ from numpy.typing import NDArray
 
 __all__ = ["PardisoError", "PardisoFactor", "available", "idle_cores", "set_threads"]
 
-# Idle OpenMP threads sleep at once instead of spinning for 200 ms (read by MKL's OpenMP runtime
-# when it loads; a value the user set is kept).
-os.environ.setdefault("KMP_BLOCKTIME", "0")
+
+#: MKL's code for its Intel OpenMP threading layer (``MKL_Set_Threading_Layer``).
+MKL_THREADING_INTEL = 0
 
 #: PARDISO's matrix type for real symmetric indefinite matrices.
 SYMMETRIC_INDEFINITE = -2
@@ -70,6 +76,11 @@ class PardisoError(RuntimeError):
 #: Seconds between two looks at the machine's load from one factor's solves (reading
 #: ``/proc/loadavg`` cost ~0.2 ms here, as much as a fifth of a solve at 2 000 nodes).
 LOAD_CHECK_INTERVAL = 0.02
+#: Consecutive looks that must find fewer idle cores before a factor drops threads, and looks
+#: taken when a pattern is analysed (the most idle cores seen counts). On the idle machine about
+#: 1 look in 100 sees a second runnable task for an instant (a system daemon): one look made
+#: most plans at 2 196 nodes drop to one thread for good within their first second.
+BUSY_LOOKS = 3
 
 
 def _configured_threads() -> int | None:
@@ -94,21 +105,39 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
+def _own_runnable() -> int:
+    """This process's threads that are running or runnable right now (>= 1: the caller's)."""
+    n = 0
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/stat", encoding="ascii") as fh:
+                stat = fh.read()
+        except OSError:  # the thread ended
+            continue
+        n += stat[stat.rindex(")") + 2] == "R"
+    return max(n, 1)
+
+
 def idle_cores() -> int:
-    """Cores available to this process that no other task is running on right now (>= 1): the
-    cores minus the runnable tasks other than the calling thread (``/proc/loadavg``); 1 where the
-    count cannot be read."""
+    """Cores available to this process that no other process is running on right now (>= 1):
+    the cores minus the runnable tasks (``/proc/loadavg``) that are not this process's threads
+    (its own OpenMP threads spinning after a solve are not someone else's work); 1 where the
+    counts cannot be read."""
     try:
         with open("/proc/loadavg", encoding="ascii") as fh:
             runnable = int(fh.read().split()[3].split("/")[0])
+        own = _own_runnable()
     except (OSError, ValueError, IndexError):
         return 1
-    return max(1, min(_cores(), _cores() - (runnable - 1)))
+    return max(1, min(_cores(), _cores() - max(runnable - own, 0)))
 
 
 def _choose_threads() -> int:
-    """Thread count for a new factor: fixed, or ``auto``: the idle cores."""
-    return _fixed_threads if _fixed_threads is not None else idle_cores()
+    """Thread count for a new factor: fixed, or ``auto``: the idle cores (the most of
+    :data:`BUSY_LOOKS` looks: another process that runs is seen in every look)."""
+    if _fixed_threads is not None:
+        return _fixed_threads
+    return max(idle_cores() for _ in range(BUSY_LOOKS))
 
 
 def _use_threads(lib: ctypes.CDLL, n: int) -> None:
@@ -129,6 +158,11 @@ def _library() -> ctypes.CDLL | None:
         try:
             lib = ctypes.CDLL(name)
             lib.pardiso  # noqa: B018 - the symbol must exist
+            if not os.environ.get("MKL_THREADING_LAYER"):
+                # Intel's OpenMP runtime (shipped with MKL) whatever was loaded before: MKL
+                # otherwise takes GNU OpenMP where another library (gmsh) loaded it, which
+                # KMP_BLOCKTIME does not reach. Before any other MKL call.
+                lib.MKL_Set_Threading_Layer(ctypes.c_int(MKL_THREADING_INTEL))
             return lib
         except (OSError, AttributeError):
             continue
@@ -192,6 +226,7 @@ class PardisoFactor:
         # with the same thread count (changing it in between crashed MKL here).
         self._threads = _choose_threads()
         self._load_checked = time.monotonic()
+        self._busy_looks = 0  # consecutive looks that found fewer idle cores than threads
         self._lib = lib
         # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
         # their positions in this factor's data.
@@ -323,9 +358,10 @@ class PardisoFactor:
 
     def _fewer_threads(self) -> bool:
         """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
-        fewer cores are idle now than this factor's threads, analyse and factorise again with as
-        many as are (other work started on the machine: spinning threads would make every solve
-        many times slower). Returns whether it refactorised."""
+        fewer cores are idle than this factor's threads in :data:`BUSY_LOOKS` looks in a row,
+        analyse and factorise again with as many as are (other work started on the machine:
+        spinning threads would make every solve many times slower). Returns whether it
+        refactorised."""
         if self._threads == 1 or _fixed_threads is not None:
             return False
         now = time.monotonic()
@@ -334,7 +370,12 @@ class PardisoFactor:
         self._load_checked = now
         n = idle_cores()
         if n >= self._threads:
+            self._busy_looks = 0
             return False
+        self._busy_looks += 1
+        if self._busy_looks < BUSY_LOOKS:
+            return False
+        self._busy_looks = 0
         self._call(-1, self._data)  # release the memory of the old thread count
         self._pt[:] = 0
         self._threads = n
