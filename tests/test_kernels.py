@@ -436,3 +436,40 @@ def test_use_backend_restores_the_previous_backend():
     with pytest.raises(RuntimeError), kernels.use_backend("numpy"):
         raise RuntimeError("boom")
     assert kernels.get_backend() == "numba"
+
+
+_WARM_SCRIPT = """
+import json, numba
+from numba.core.registry import CPUDispatcher
+from softgrasp.kernels import contact, elastic, warm
+from softgrasp.body import build_body
+from softgrasp.grasp.planner import PlanConfig, plan_grasp
+from softgrasp.objects import make_object
+
+def signatures():
+    return {f"{m.__name__}.{k}": sorted(map(str, v.signatures)) for m in (elastic, contact)
+            for k, v in vars(m).items() if isinstance(v, CPUDispatcher)}
+
+warm.warm_up()
+after_warm_up = signatures()
+mesh, material, mass = make_object("sphere")
+plan_grasp(build_body(mesh, material, mass=mass), PlanConfig(hand=None, hold_time=0.05))
+print(json.dumps({"warm": after_warm_up, "plan": signatures()}))
+"""
+
+
+def test_warm_up_loads_every_kernel_a_plan_calls():
+    """In a fresh interpreter, the warm-up's tiny solve loads every compiled kernel, with every
+    argument-type signature, that a whole plan of the default sphere then calls: the plan adds
+    no signature (it would otherwise load or compile one itself)."""
+    import json
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", _WARM_SCRIPT], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    used = {k: v for k, v in got["plan"].items() if v}
+    assert len(used) >= 6  # the springs, volumes, their blocks, inverted tets, detection, forces
+    missing = {k: sorted(set(v) - set(got["warm"].get(k, []))) for k, v in used.items()}
+    assert not any(missing.values()), missing

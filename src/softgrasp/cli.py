@@ -582,6 +582,9 @@ def _write_frames(path: Path, plan, facets) -> None:
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
+    from softgrasp.kernels.warm import warm_up_in_background
+
+    warm_up_in_background()  # the compiled kernels load while the object is meshed
     import numpy as np
 
     from softgrasp.grasp.options import plan_config
