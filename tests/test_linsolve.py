@@ -4,6 +4,8 @@ static solve with friction."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -58,9 +60,9 @@ def test_factors_with_different_thread_counts_interleave():
 @needs_mkl
 def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
     """With automatic threads, a factor analysed on two idle cores is analysed again with one
-    thread when later solves or factorisations find only one idle ``BUSY_LOOKS`` looks in a row
-    (another process started; not for a look or two, an instant's runnable task), and keeps
-    solving exactly."""
+    thread when later solves or factorisations find only one idle, and the solves slowed down,
+    ``BUSY_LOOKS`` looks in a row (another process started; not for a look or two, an instant's
+    runnable task, nor for a task that does not slow the solves), and keeps solving exactly."""
     K = _stiffness()
     b = np.random.default_rng(3).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
@@ -76,6 +78,11 @@ def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
         np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
         assert f._threads == 2
         monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 0.0)
+        monkeypatch.setattr(pardiso, "SLOW_SOLVE", math.inf)  # busy looks, but the solves stay fast
+        for _ in range(2 * pardiso.BUSY_LOOKS):
+            np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
+            assert f._threads == 2
+        monkeypatch.setattr(pardiso, "SLOW_SOLVE", 0.0)  # every solve counts as slowed down
         looks = iter([1, 2] + [1] * pardiso.BUSY_LOOKS)
         monkeypatch.setattr(pardiso, "idle_cores", lambda: next(looks))
         for _ in range(2 + pardiso.BUSY_LOOKS - 1):  # a busy look, an idle one, then busy ones

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import ctypes
 import glob
+import math
 import os
 import sys
 import time
@@ -81,6 +82,11 @@ LOAD_CHECK_INTERVAL = 0.02
 #: 1 look in 100 sees a second runnable task for an instant (a system daemon): one look made
 #: most plans at 2 196 nodes drop to one thread for good within their first second.
 BUSY_LOOKS = 3
+#: A look that finds fewer idle cores counts only when the last solve took more than this many
+#: times the fastest of the factor's thread count (a core another process holds made two-thread
+#: solves ~10x slower here; the default plan at 7 576 nodes, on the idle machine, dropped a thread
+#: half-way for a kernel thread's runnable moments without it).
+SLOW_SOLVE = 2.0
 
 
 def _configured_threads() -> int | None:
@@ -227,6 +233,7 @@ class PardisoFactor:
         self._threads = _choose_threads()
         self._load_checked = time.monotonic()
         self._busy_looks = 0  # consecutive looks that found fewer idle cores than threads
+        self._solve_times = [math.inf, math.inf]  # the fastest solve of this thread count, the last
         self._lib = lib
         # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
         # their positions in this factor's data.
@@ -354,14 +361,18 @@ class PardisoFactor:
     def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
         """``A^-1 b`` for the matrix last factorised."""
         self._fewer_threads()
-        return self._call(33, self._data, b)
+        t0 = time.perf_counter()
+        x = self._call(33, self._data, b)
+        dt = time.perf_counter() - t0
+        self._solve_times = [min(self._solve_times[0], dt), dt]
+        return x
 
     def _fewer_threads(self) -> bool:
         """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
-        fewer cores are idle than this factor's threads in :data:`BUSY_LOOKS` looks in a row,
-        analyse and factorise again with as many as are (other work started on the machine:
-        spinning threads would make every solve many times slower). Returns whether it
-        refactorised."""
+        fewer cores are idle than this factor's threads, with the last solve slower than
+        :data:`SLOW_SOLVE` times the fastest, in :data:`BUSY_LOOKS` looks in a row, analyse and
+        factorise again with as many as are (other work started on the machine: spinning threads
+        would make every solve many times slower). Returns whether it refactorised."""
         if self._threads == 1 or _fixed_threads is not None:
             return False
         now = time.monotonic()
@@ -369,13 +380,17 @@ class PardisoFactor:
             return False
         self._load_checked = now
         n = idle_cores()
-        if n >= self._threads:
+        fastest, last = self._solve_times
+        if n >= self._threads or last <= SLOW_SOLVE * fastest:
+            # Idle cores, or another task (a kernel thread: memory scanning) that did not slow
+            # the last solve down.
             self._busy_looks = 0
             return False
         self._busy_looks += 1
         if self._busy_looks < BUSY_LOOKS:
             return False
         self._busy_looks = 0
+        self._solve_times = [math.inf, math.inf]
         self._call(-1, self._data)  # release the memory of the old thread count
         self._pt[:] = 0
         self._threads = n
