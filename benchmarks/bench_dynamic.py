@@ -281,7 +281,7 @@ def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
     reach = k._finger_reach(x, fg, x_ref, track)
     res["fingertip state update"] = per_call(lambda: k._finger_update(x, t, fg, fs, 0, reach, centres))
     res["fingertip forces"] = per_call(
-        lambda: k._finger_forces(x, v, t, fg, fs[0][0], fs[1][0], fs[3][0], reach, centres, ffinger)
+        lambda: k._finger_forces(x, v, t, fg, fs, st._cur, reach, centres, ffinger)
     )
     if two:
         numba.set_num_threads(2)
