@@ -333,6 +333,43 @@ def test_fingertip_forces_and_update_agree(contact_setup, params, shift, moving)
         assert ev.slipping.any() if shift > 1e-5 else (~ev.slipping).any()
 
 
+@pytest.mark.parametrize("params", RULES.values(), ids=RULES.keys())
+@pytest.mark.parametrize("shift", [1e-6, 2e-3], ids=["stick", "slip"])
+def test_static_and_pinned_forces_agree(contact_setup, params, shift):
+    """The static solver's residual (the touching pairs at rest) and its exact Newton product (a
+    pinned pair set followed through a displacement, pairs out of contact there included) in one
+    compiled call each, against the NumPy reference; moving fingertips' velocities do not enter."""
+    mesh, body, x0, v = contact_setup
+    fc = FingertipContact(_tips_on(mesh, x0, 5, 0.002, moving=True), params)
+    with kernels.use_backend("numpy"):
+        state = fc.update(body, x0, v, 0.0, fc.init_state(body, x0 + 0.5 * shift))
+    x1 = x0 + shift * np.array([1.0, -0.5, 0.2])
+    t1 = 1e-3
+    # A displacement that moves part of the pinned set out of contact (and changes the rest).
+    rng = np.random.default_rng(3)
+    x2 = x1 + 3e-4 * rng.standard_normal(x1.shape)
+    out = {}
+    for name in ("numba", "numpy"):
+        with kernels.use_backend(name):
+            pinned = fc.pinned_static_forces(body, x1, t1, state)
+            out[name] = (fc.static_forces(body, x1, t1, state), pinned(x1), pinned(x2))
+    for fast, slow in zip(out["numba"], out["numpy"], strict=True):
+        assert np.abs(slow).max() > 0
+        assert _rel(fast, slow) < TOL
+    assert _rel(out["numpy"][1], out["numpy"][0]) < 1e-12  # pinned at the pairs' own state: the same
+    # The cases are what they claim: some pinned pairs leave contact at x2; friction slips (or not).
+    ref = fc.pairs(body, x1, t1)
+    with kernels.use_backend("numpy"):
+        from softgrasp.contact.geometry import pair_geometry
+
+        moved = pair_geometry(x2, mesh.facets, fc.centres(t1), fc._radii(), ref.finger, ref.facet, closest=True)
+        ev = fc._evaluate(body, x1, None, t1, state, static=True)
+    if params.rule == "patch":
+        assert (moved.depth <= 0).any() and (moved.depth > 0).any()
+    if params.mu > 0:
+        assert ev.slipping.any() if shift > 1e-5 else (~ev.slipping).any()
+
+
 def test_fingertip_forces_agree_without_contact(contact_setup):
     mesh, body, x, v = contact_setup
     far = Fingertip(R_TIP, centre=x.max(axis=0) + 0.05)

@@ -433,8 +433,32 @@ class FingertipContact:
         return replace(state, active=active, anchor=anchor, offset=offset, slip=slip, memory=memory)
 
     def static_forces(self, body: Body, x, t: float, state: FingerState) -> NDArray[np.float64]:
-        """Contact forces at rest with lagged weights, limits and k_t."""
+        """Contact forces at rest with lagged weights, limits and k_t (one compiled call with the
+        compiled kernels selected; :meth:`_evaluate` and :meth:`_nodal` are the reference)."""
+        if kernels.compiled():
+            return self._static_compiled(body, t, state)(x)
         return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True))
+
+    def _static_compiled(
+        self, body: Body, t: float, state: FingerState, pairs: ContactPairs | None = None
+    ) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+        """The compiled static forces as a function of the node positions (the state's arrays
+        prepared once): of the pairs touching there, or of ``pairs`` followed there."""
+        from softgrasp.kernels.contact import fingertip_static_forces
+
+        kwargs = self._compiled_kwargs(body, t)
+        fixed = None if pairs is None else (np.asarray(pairs.finger), np.asarray(pairs.facet))
+        arrays = {
+            "active": np.ascontiguousarray(state.active, dtype=np.bool_),
+            "anchor": np.ascontiguousarray(state.anchor, dtype=np.float64),
+            "offset": np.ascontiguousarray(state.offset, dtype=np.float64),
+            "memory": np.ascontiguousarray(state.memory, dtype=np.float64),
+        }
+
+        def forces(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            return fingertip_static_forces(x, pairs=fixed, **arrays, **kwargs)
+
+        return forces
 
     def pinned_static_forces(
         self, body: Body, x_ref: NDArray[np.float64], t: float, state: FingerState
@@ -445,6 +469,8 @@ class FingertipContact:
         perturbation can cross a contact knife edge (a fingertip right over a vertex touches all
         the facets around it or none)."""
         ref = self.pairs(body, x_ref, t)
+        if kernels.compiled():
+            return self._static_compiled(body, t, state, ref)
         closest = self._closest()
         finger, facet = np.array(ref.finger), np.array(ref.facet)
         centres, radii = self.centres(t), self._radii()

@@ -1,4 +1,4 @@
-"""Compiled (Numba) fingertip-facet contact: detection (paper Sec. 3.1) and dynamic forces.
+"""Compiled (Numba) fingertip-facet contact: detection (paper Sec. 3.1) and forces.
 
 * :func:`detect_arrays`: the same broad phase (surface nodes near each fingertip, then the facets
   around them, through the mesh's :class:`~softgrasp.contact.geometry.FacetIndex`) and narrow phase
@@ -10,7 +10,9 @@
   and the nodal distribution (Eq. 17-20) of
   :meth:`softgrasp.contact.model.FingertipContact.forces`, in one compiled call;
   :func:`fingertip_update` likewise for the friction state update (Algorithm 1) of
-  :meth:`~softgrasp.contact.model.FingertipContact.update`.
+  :meth:`~softgrasp.contact.model.FingertipContact.update`, and :func:`fingertip_static_forces`
+  for the forces at rest, of the touching pairs or of a pinned pair set (the static solver's
+  residual and its exact Newton product, one compiled call each).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["detect_arrays", "fingertip_forces", "fingertip_update"]
+__all__ = ["detect_arrays", "fingertip_forces", "fingertip_static_forces", "fingertip_update"]
 
 _jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
 
@@ -54,6 +56,87 @@ def _closest_point(px, py, pz, tri, near):  # pragma: no cover - compiled
             near[i] = 1.0 - t
             near[j] = t
     return best
+
+
+@_jit
+def _pair_values(tri, cx, cy, cz, R, closest, inside_tol, keep, near, row):  # pragma: no cover
+    """Narrow phase of the sphere (centre c, radius R) against triangle ``tri`` (3, 3): writes the
+    pair's values to ``row`` (13: bary 0-2, point 3-5, normal 6-8, distance 9, depth 10, area 11,
+    facing 12; ``near`` (3) is scratch) and returns whether it touches (as
+    :func:`softgrasp.contact.geometry.detect` with ``closest`` decides). With ``keep`` the values
+    are written whether it touches or not, and it returns True (a pinned pair followed through a
+    small displacement, as :func:`softgrasp.contact.geometry.pair_geometry`: depth may be <= 0)."""
+    ux = tri[1, 0] - tri[0, 0]
+    uy = tri[1, 1] - tri[0, 1]
+    uz = tri[1, 2] - tri[0, 2]
+    wx = tri[2, 0] - tri[0, 0]
+    wy = tri[2, 1] - tri[0, 1]
+    wz = tri[2, 2] - tri[0, 2]
+    Nx = uy * wz - uz * wy
+    Ny = uz * wx - ux * wz
+    Nz = ux * wy - uy * wx
+    twice_area = math.sqrt(Nx * Nx + Ny * Ny + Nz * Nz)
+    nx = Nx / twice_area
+    ny = Ny / twice_area
+    nz = Nz / twice_area
+    d = (cx - tri[0, 0]) * nx + (cy - tri[0, 1]) * ny + (cz - tri[0, 2]) * nz
+    if not keep and not (d > 0.0 and d < R):  # facing the centre, and within reach of the sphere
+        return False
+    Px = cx - d * nx
+    Py = cy - d * ny
+    Pz = cz - d * nz
+    # barycentric coordinates of P (as softgrasp.contact.geometry.barycentric)
+    vx = Px - tri[0, 0]
+    vy = Py - tri[0, 1]
+    vz = Pz - tri[0, 2]
+    d00 = ux * ux + uy * uy + uz * uz
+    d01 = ux * wx + uy * wy + uz * wz
+    d11 = wx * wx + wy * wy + wz * wz
+    d20 = vx * ux + vy * uy + vz * uz
+    d21 = vx * wx + vy * wy + vz * wz
+    den = d00 * d11 - d01 * d01
+    wb = (d11 * d20 - d01 * d21) / den
+    wc = (d00 * d21 - d01 * d20) / den
+    wa = 1.0 - wb - wc
+    low = min(wa, wb, wc)
+    near[0] = wa
+    near[1] = wb
+    near[2] = wc
+    dist = d
+    fac = 1.0
+    Qx = Px
+    Qy = Py
+    Qz = Pz
+    if closest:
+        dist = abs(d)  # |c - P| (d > 0 for a touching pair)
+        if low < 0.0:  # the closest point lies on an edge
+            _closest_point(cx, cy, cz, tri, near)
+            Qx = near[0] * tri[0, 0] + near[1] * tri[1, 0] + near[2] * tri[2, 0]
+            Qy = near[0] * tri[0, 1] + near[1] * tri[1, 1] + near[2] * tri[2, 1]
+            Qz = near[0] * tri[0, 2] + near[1] * tri[1, 2] + near[2] * tri[2, 2]
+            ex = cx - Qx
+            ey = cy - Qy
+            ez = cz - Qz
+            dist = math.sqrt(ex * ex + ey * ey + ez * ez)
+            if not keep and not dist < R:
+                return False
+        fac = min(max(d / (dist if dist > 0.0 else 1.0), 0.0), 1.0)
+    elif not keep and not low >= -inside_tol:
+        return False
+    row[0] = near[0]
+    row[1] = near[1]
+    row[2] = near[2]
+    row[3] = Qx
+    row[4] = Qy
+    row[5] = Qz
+    row[6] = nx
+    row[7] = ny
+    row[8] = nz
+    row[9] = dist
+    row[10] = R - dist
+    row[11] = 0.5 * twice_area
+    row[12] = fac
+    return True
 
 
 @_jit
@@ -115,78 +198,10 @@ def _detect(
             ez = cz - gz
             if ex * ex + ey * ey + ez * ez > lim * lim:
                 continue
-            ux = tri[1, 0] - tri[0, 0]
-            uy = tri[1, 1] - tri[0, 1]
-            uz = tri[1, 2] - tri[0, 2]
-            wx = tri[2, 0] - tri[0, 0]
-            wy = tri[2, 1] - tri[0, 1]
-            wz = tri[2, 2] - tri[0, 2]
-            Nx = uy * wz - uz * wy
-            Ny = uz * wx - ux * wz
-            Nz = ux * wy - uy * wx
-            twice_area = math.sqrt(Nx * Nx + Ny * Ny + Nz * Nz)
-            nx = Nx / twice_area
-            ny = Ny / twice_area
-            nz = Nz / twice_area
-            d = (cx - tri[0, 0]) * nx + (cy - tri[0, 1]) * ny + (cz - tri[0, 2]) * nz
-            if not (d > 0.0 and d < R):  # facing the centre, and within reach of the sphere
-                continue
-            Px = cx - d * nx
-            Py = cy - d * ny
-            Pz = cz - d * nz
-            # barycentric coordinates of P (as softgrasp.contact.geometry.barycentric)
-            vx = Px - tri[0, 0]
-            vy = Py - tri[0, 1]
-            vz = Pz - tri[0, 2]
-            d00 = ux * ux + uy * uy + uz * uz
-            d01 = ux * wx + uy * wy + uz * wz
-            d11 = wx * wx + wy * wy + wz * wz
-            d20 = vx * ux + vy * uy + vz * uz
-            d21 = vx * wx + vy * wy + vz * wz
-            den = d00 * d11 - d01 * d01
-            wb = (d11 * d20 - d01 * d21) / den
-            wc = (d00 * d21 - d01 * d20) / den
-            wa = 1.0 - wb - wc
-            low = min(wa, wb, wc)
-            near[0] = wa
-            near[1] = wb
-            near[2] = wc
-            dist = d
-            fac = 1.0
-            Qx = Px
-            Qy = Py
-            Qz = Pz
-            if closest:
-                if low < 0.0:  # the closest point lies on an edge
-                    _closest_point(cx, cy, cz, tri, near)
-                    Qx = near[0] * tri[0, 0] + near[1] * tri[1, 0] + near[2] * tri[2, 0]
-                    Qy = near[0] * tri[0, 1] + near[1] * tri[1, 1] + near[2] * tri[2, 1]
-                    Qz = near[0] * tri[0, 2] + near[1] * tri[1, 2] + near[2] * tri[2, 2]
-                    ex = cx - Qx
-                    ey = cy - Qy
-                    ez = cz - Qz
-                    dist = math.sqrt(ex * ex + ey * ey + ez * ez)
-                    if not dist < R:
-                        continue
-                fac = min(max(d / dist, 0.0), 1.0)
-            elif not low >= -inside_tol:
+            if not _pair_values(tri, cx, cy, cz, R, closest, inside_tol, False, near, real[k]):
                 continue
             finger[k] = f
             facet[k] = j
-            row = real[k]
-            row[0] = near[0]
-            row[1] = near[1]
-            row[2] = near[2]
-            row[3] = Qx
-            row[4] = Qy
-            row[5] = Qz
-            row[6] = nx
-            row[7] = ny
-            row[8] = nz
-            row[9] = dist
-            row[10] = R - dist
-            row[11] = 0.5 * twice_area
-            row[12] = fac
             k += 1
     return finger[:k].copy(), facet[:k].copy(), real[:k].copy()
 
@@ -295,38 +310,42 @@ def _tangential_stiffness(depth, radius, K, n_exp, ratio, min_depth_ratio):  # p
 
 
 @_jit
-def _fingertip_forces(
-    x,
-    v,
-    facets,
-    boundary,
-    indptr,
-    indices,
-    reach,
-    centres,
-    radii,
-    velocities,
-    omegas,
-    K,
-    C,
-    closest,
-    inside_tol,
-    mu,
-    n_exp,
-    hunt_crossley,
-    patch,
-    ratio,
-    min_depth_ratio,
-    active,
-    anchor,
-    offset,
-    memory,
-    out,
+def _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas):  # pragma: no cover
+    """Tangential relative velocity (3 floats) and the penetration rate d delta / dt of pair p
+    (Eq. 1-8)."""
+    nx = val[p, 6]
+    ny = val[p, 7]
+    nz = val[p, 8]
+    # relative velocity at the contact point: finger (Eq. 1) minus facet (Eq. 4)
+    rx = val[p, 3] - centres[f, 0]
+    ry = val[p, 4] - centres[f, 1]
+    rz = val[p, 5] - centres[f, 2]
+    vrx = velocities[f, 0] + (omegas[f, 1] * rz - omegas[f, 2] * ry)
+    vry = velocities[f, 1] + (omegas[f, 2] * rx - omegas[f, 0] * rz)
+    vrz = velocities[f, 2] + (omegas[f, 0] * ry - omegas[f, 1] * rx)
+    for m in range(3):
+        node = facets[j, m]
+        vrx -= val[p, m] * v[node, 0]
+        vry -= val[p, m] * v[node, 1]
+        vrz -= val[p, m] * v[node, 2]
+    vn = vrx * nx + vry * ny + vrz * nz
+    vtx = vrx - vn * nx
+    vty = vry - vn * ny
+    vtz = vrz - vn * nz
+    return vtx, vty, vtz, -vn
+
+
+@_jit
+def _pair_forces(
+    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley, patch,
+    ratio, min_depth_ratio, active, anchor, offset, memory, static, out,
 ):  # pragma: no cover - compiled
-    """Dynamic contact forces added to ``out`` (N, 3); returns the number of touching pairs."""
-    finger, facet, val = _detect(
-        x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
-    )
+    """Forces of the pairs (finger, facet, val) (as :func:`_detect` gives them) added to ``out``
+    (N, 3): normal force (Eq. 9-14, patch or literal rule), elastic-slider friction with the
+    Coulomb cap (Eq. 15-16, Algorithm 1), nodal distribution (Eq. 17-20). ``static``: at rest
+    (no relative velocity: no damping, a slipping pair capped along its stick), as
+    :meth:`softgrasp.contact.model.FingertipContact.static_forces`; ``v``, ``velocities`` and
+    ``omegas`` are then not read."""
     deep, total = _patch(finger, val, centres.shape[0])
     for p in range(finger.shape[0]):
         f = finger[p]
@@ -334,23 +353,12 @@ def _fingertip_forces(
         nx = val[p, 6]
         ny = val[p, 7]
         nz = val[p, 8]
-        # relative velocity at the contact point: finger (Eq. 1) minus facet (Eq. 4)
-        rx = val[p, 3] - centres[f, 0]
-        ry = val[p, 4] - centres[f, 1]
-        rz = val[p, 5] - centres[f, 2]
-        vrx = velocities[f, 0] + (omegas[f, 1] * rz - omegas[f, 2] * ry)
-        vry = velocities[f, 1] + (omegas[f, 2] * rx - omegas[f, 0] * rz)
-        vrz = velocities[f, 2] + (omegas[f, 0] * ry - omegas[f, 1] * rx)
-        for m in range(3):
-            node = facets[j, m]
-            vrx -= val[p, m] * v[node, 0]
-            vry -= val[p, m] * v[node, 1]
-            vrz -= val[p, m] * v[node, 2]
-        vn = vrx * nx + vry * ny + vrz * nz
-        vtx = vrx - vn * nx
-        vty = vry - vn * ny
-        vtz = vrz - vn * nz
-        rate = -vn
+        vtx = 0.0
+        vty = 0.0
+        vtz = 0.0
+        rate = 0.0
+        if not static:
+            vtx, vty, vtz, rate = _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas)
         w, depth = _weight_depth(p, f, val, deep, total, patch)
         # normal force (Eq. 9), zero unless delta > 0, never pulling
         dn = max(depth, 0.0) ** n_exp
@@ -393,7 +401,85 @@ def _fingertip_forces(
             out[node, 0] += val[p, m] * Fx
             out[node, 1] += val[p, m] * Fy
             out[node, 2] += val[p, m] * Fz
+
+
+@_jit
+def _fingertip_forces(
+    x,
+    v,
+    facets,
+    boundary,
+    indptr,
+    indices,
+    reach,
+    centres,
+    radii,
+    velocities,
+    omegas,
+    K,
+    C,
+    closest,
+    inside_tol,
+    mu,
+    n_exp,
+    hunt_crossley,
+    patch,
+    ratio,
+    min_depth_ratio,
+    active,
+    anchor,
+    offset,
+    memory,
+    out,
+):  # pragma: no cover - compiled
+    """Dynamic contact forces added to ``out`` (N, 3); returns the number of touching pairs."""
+    finger, facet, val = _detect(
+        x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
+    )
+    _pair_forces(
+        finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley,
+        patch, ratio, min_depth_ratio, active, anchor, offset, memory, False, out,
+    )  # fmt: skip
     return finger.shape[0]
+
+
+@_jit
+def _pinned_values(x, facets, centres, radii, finger, facet, closest):  # pragma: no cover - compiled
+    """The values (k, 13) of the given (finger, facet) pairs at ``x`` (:func:`_pair_values` with
+    ``keep``), whether they touch there or not."""
+    k = finger.shape[0]
+    val = np.empty((k, 13))
+    tri = np.empty((3, 3))
+    near = np.empty(3)
+    for p in range(k):
+        f = finger[p]
+        j = facet[p]
+        for r in range(3):
+            node = facets[j, r]
+            tri[r, 0] = x[node, 0]
+            tri[r, 1] = x[node, 1]
+            tri[r, 2] = x[node, 2]
+        _pair_values(tri, centres[f, 0], centres[f, 1], centres[f, 2], radii[f], closest, 0.0, True, near, val[p])
+    return val
+
+
+@_jit
+def _static_forces(
+    x, facets, boundary, indptr, indices, reach, centres, radii, K, closest, inside_tol, mu, n_exp, patch, ratio,
+    min_depth_ratio, active, anchor, offset, memory, pinned, finger, facet, out,
+):  # pragma: no cover - compiled
+    """Contact forces at rest added to ``out`` (N, 3), of the touching pairs (detected), or with
+    ``pinned`` of the given pairs (finger, facet) followed to ``x``."""
+    if pinned:
+        val = _pinned_values(x, facets, centres, radii, finger, facet, closest)
+    else:
+        finger, facet, val = _detect(
+            x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
+        )
+    _pair_forces(
+        finger, facet, val, x, x, facets, centres, radii, centres, centres, K, K, mu, n_exp, False, patch, ratio,
+        min_depth_ratio, active, anchor, offset, memory, True, out,
+    )  # fmt: skip
 
 
 @_jit
@@ -541,6 +627,62 @@ def fingertip_forces(
         np.ascontiguousarray(anchor, dtype=f64),
         np.ascontiguousarray(offset, dtype=f64),
         np.ascontiguousarray(memory, dtype=f64),
+        out,
+    )
+    return out
+
+
+def fingertip_static_forces(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    boundary_nodes: NDArray[np.int64],
+    indptr: NDArray[np.int64],
+    indices: NDArray[np.int64],
+    reach: float,
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    K: NDArray[np.float64],
+    *,
+    closest: bool,
+    inside_tol: float,
+    mu: float,
+    exponent: float,
+    patch: bool,
+    ratio: float,
+    min_depth_ratio: float,
+    active: NDArray[np.bool_],
+    anchor: NDArray[np.float64],
+    offset: NDArray[np.float64],
+    memory: NDArray[np.float64],
+    pairs: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
+) -> NDArray[np.float64]:
+    """Contact forces at rest on the nodes [N], (N, 3), as
+    :meth:`softgrasp.contact.model.FingertipContact.static_forces` (no relative velocity: no
+    damping; a slipping pair's stick force capped at mu f_n): of the touching pairs, or of the
+    given ``pairs`` (finger (k,), facet (k,)) followed to ``x`` whether they touch there or not
+    (:meth:`~softgrasp.contact.model.FingertipContact.pinned_static_forces`). Arguments as
+    :func:`fingertip_forces`."""
+    f64, i64 = np.float64, np.int64
+    geometry = _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii)
+    out = np.zeros_like(geometry[0])
+    finger, facet = (np.zeros(0, i64), np.zeros(0, i64)) if pairs is None else pairs
+    _static_forces(
+        *geometry,
+        np.ascontiguousarray(K, dtype=f64).ravel(),
+        bool(closest),
+        float(inside_tol),
+        float(mu),
+        float(exponent),
+        bool(patch),
+        float(ratio),
+        float(min_depth_ratio),
+        np.ascontiguousarray(active, dtype=np.bool_),
+        np.ascontiguousarray(anchor, dtype=f64),
+        np.ascontiguousarray(offset, dtype=f64),
+        np.ascontiguousarray(memory, dtype=f64),
+        pairs is not None,
+        np.ascontiguousarray(finger, dtype=i64),
+        np.ascontiguousarray(facet, dtype=i64),
         out,
     )
     return out
