@@ -362,7 +362,8 @@ def test_static_and_pinned_forces_agree(contact_setup, params, shift):
     with kernels.use_backend("numpy"):
         from softgrasp.contact.geometry import pair_geometry
 
-        moved = pair_geometry(x2, mesh.facets, fc.centres(t1), fc._radii(), ref.finger, ref.facet, closest=True)
+        tips = fc.centres(t1), fc._radii()
+        moved = pair_geometry(x2, mesh.facets, *tips, ref.finger, ref.facet, closest=True)
         ev = fc._evaluate(body, x1, None, t1, state, static=True)
     if params.rule == "patch":
         assert (moved.depth <= 0).any() and (moved.depth > 0).any()

@@ -337,8 +337,8 @@ def _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas):  #
 
 @_jit
 def _pair_forces(
-    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley, patch,
-    ratio, min_depth_ratio, active, anchor, offset, memory, static, out,
+    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley,
+    patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, out,
 ):  # pragma: no cover - compiled
     """Forces of the pairs (finger, facet, val) (as :func:`_detect` gives them) added to ``out``
     (N, 3): normal force (Eq. 9-14, patch or literal rule), elastic-slider friction with the
@@ -459,14 +459,15 @@ def _pinned_values(x, facets, centres, radii, finger, facet, closest):  # pragma
             tri[r, 0] = x[node, 0]
             tri[r, 1] = x[node, 1]
             tri[r, 2] = x[node, 2]
-        _pair_values(tri, centres[f, 0], centres[f, 1], centres[f, 2], radii[f], closest, 0.0, True, near, val[p])
+        cx, cy, cz = centres[f, 0], centres[f, 1], centres[f, 2]
+        _pair_values(tri, cx, cy, cz, radii[f], closest, 0.0, True, near, val[p])
     return val
 
 
 @_jit
 def _static_forces(
-    x, facets, boundary, indptr, indices, reach, centres, radii, K, closest, inside_tol, mu, n_exp, patch, ratio,
-    min_depth_ratio, active, anchor, offset, memory, pinned, finger, facet, out,
+    x, facets, boundary, indptr, indices, reach, centres, radii, K, closest, inside_tol, mu, n_exp, patch,
+    ratio, min_depth_ratio, active, anchor, offset, memory, pinned, finger, facet, out,
 ):  # pragma: no cover - compiled
     """Contact forces at rest added to ``out`` (N, 3), of the touching pairs (detected), or with
     ``pinned`` of the given pairs (finger, facet) followed to ``x``."""
@@ -477,8 +478,8 @@ def _static_forces(
             x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
         )
     _pair_forces(
-        finger, facet, val, x, x, facets, centres, radii, centres, centres, K, K, mu, n_exp, False, patch, ratio,
-        min_depth_ratio, active, anchor, offset, memory, True, out,
+        finger, facet, val, x, x, facets, centres, radii, centres, centres, K, K, mu, n_exp, False, patch,
+        ratio, min_depth_ratio, active, anchor, offset, memory, True, out,
     )  # fmt: skip
 
 
