@@ -37,6 +37,12 @@ __all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints",
 #: A Newton iteration that stalls (contact kinks) is accepted when the largest unbalanced force
 #: is below this fraction of the largest force present (the target is ``rtol``).
 STALL_RTOL = 1e-6
+#: An iterate balanced to ``STALL_RTOL`` is accepted when the linear solver had to shift an
+#: indefinite Newton matrix (the step is Levenberg-Marquardt's, not Newton's) and the previous step
+#: reduced the largest unbalanced force by less than this factor: the shifted steps crawl along a
+#: nearly neutral mode (a sphere rolling on its contact patch, its rolling stiffness ~1e-10 of the
+#: largest stiffness and of either sign) and would creep at ~1 % per iteration to the limit.
+INDEFINITE_STALL = 0.5
 #: How often :func:`solve_increment` halves a load increment that does not converge.
 MAX_HALVINGS = 4
 #: Newton gives up after this many consecutive accepted steps no longer than ``CREEP_ALPHA`` of
@@ -237,6 +243,7 @@ def _newton(
         accepted = False
         while not accepted:
             As = A if shift == 0.0 else (A + sp.diags(shift * np.abs(A.diagonal()) + 1e-300)).tocsr()
+            shifted_before = cache.stats.get("shifted", 0)
             try:
                 dx, lam_new = solve_newton_system(
                     As, f.ravel(), C, x, cache, matvec=exact if shift == 0.0 else None, rtol=forcing
@@ -254,6 +261,15 @@ def _newton(
             r0 = f.ravel() - (C.T @ lam_new if C is not None else 0.0)
             res = float(np.abs(r0).max())
             if res <= rtol * scale:
+                return x, it - 1, res, lam_new, contacts
+            if (
+                cache.stats.get("shifted", 0) > shifted_before
+                and res <= STALL_RTOL * scale
+                and res > INDEFINITE_STALL * last_res
+            ):
+                # Balanced to 1e-6 of the largest force on an indefinite (nearly neutral) matrix,
+                # the shifted steps no longer converging: accept.
+                log.debug("newton it %d: unbalanced %.6e N on an indefinite matrix, stalled: accepted", it, res)
                 return x, it - 1, res, lam_new, contacts
             n0 = float(np.linalg.norm(r0))
             d = dx.reshape(-1, 3)
