@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -135,3 +136,47 @@ def test_constraints_and_tethers_hold_a_frictionless_squeeze_alike():
     assert np.abs(a.x - b.x).max() < bias * np.abs(a.x - X).max()
     assert np.abs(info.constraint_forces_N).max() < 1e-9 * abs(f1)
     assert np.abs(tether.total_force(body, b.x)).max() < 1e-9 * abs(f1)
+
+
+def test_a_balanced_iterate_is_accepted_when_shifted_steps_stall(monkeypatch):
+    """The 27 749-node sphere's settle on the table: its rolling stiffness (~1e-10 of the largest,
+    of either sign) made the multigrid solves shift the diagonal (Levenberg-Marquardt), and the
+    shifted steps crept along the rolling mode, ~1 % per iteration, from a state already balanced
+    to 1e-6 of the largest force, until the limit. Reproduced on a small scene with a free mode (a
+    box on a frictionless table slides freely): from a state balanced to ~1e-7, with a linear
+    solver that must shift, gains 1 % per step and drifts 1 um along the free mode, Newton accepts
+    the balanced state at once (it ran to the iteration limit before); with solves that converge
+    it is not accepted early."""
+    import softgrasp.sim.static as static
+
+    mesh = box((0.03, 0.03, 0.03), (3, 3, 3))
+    body = build_body(mesh, Material(1e5, 0.3, 1000.0))
+    scene = Scene(body, (_table(0.0),))
+    rest, _ = solve_static(scene, scene.initial_state(), rtol=1e-12)
+    f_int = np.abs(body.internal_forces(rest.x)).max()
+    # The solver's scale (the largest force present) and a displacement that leaves ~1e-7 of it
+    # unbalanced: balanced to STALL_RTOL, far from the 1e-12 asked for.
+    f_ext = scene.static_forces(rest.x, 0.0, rest.contacts) - body.internal_forces(rest.x)
+    scale = max(f_int, np.abs(f_ext).max())
+    d = np.random.default_rng(0).standard_normal(rest.x.shape)
+    r1 = np.abs(scene.static_forces(rest.x + 1e-9 * d, 0.0, rest.contacts)).max()
+    start = replace(rest, x=rest.x + 1e-9 * (1e-7 * scale / r1) * d)
+    f0 = np.abs(scene.static_forces(start.x, 0.0, start.contacts)).max()
+    assert 1e-8 * scale < f0 < static.STALL_RTOL * scale
+    real = static.solve_newton_system
+
+    def crawling(A, b, C, x, cache, **kw):
+        dx, lam = real(A, b, C, x, cache, **kw)
+        cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1  # an indefinite matrix, shifted
+        drift = np.zeros_like(dx)
+        drift[0::3] = 1e-6  # a slide along the table: the free mode
+        return 0.01 * dx + drift, lam  # the shifted step: 1 % of the way, and drifting
+
+    monkeypatch.setattr(static, "solve_newton_system", crawling)
+    _, info = solve_static(scene, start, rtol=1e-12, max_iter=60)
+    assert info.newton_iterations <= 2
+    assert info.residual_N <= static.STALL_RTOL * scale
+    monkeypatch.setattr(static, "solve_newton_system", real)  # converging solves: no early stop
+    _, info = solve_static(scene, start, rtol=1e-12, max_iter=60)
+    assert info.residual_N < 1e-3 * f0
+
