@@ -222,6 +222,30 @@ def _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, r
     )
 
 
+def _law_args(K, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio) -> tuple:
+    """The contact law's arguments of the compiled kernels, as the types they are compiled for."""
+    return (
+        np.ascontiguousarray(K, dtype=np.float64).ravel(),
+        bool(closest),
+        float(inside_tol),
+        float(mu),
+        float(exponent),
+        bool(patch),
+        float(ratio),
+        float(min_depth_ratio),
+    )
+
+
+def _state_args(active, anchor, offset) -> tuple:
+    """The friction state's pair arrays (active, anchor, offset) as the compiled kernels take them."""
+    f64 = np.float64
+    return (
+        np.ascontiguousarray(active, dtype=np.bool_),
+        np.ascontiguousarray(anchor, dtype=f64),
+        np.ascontiguousarray(offset, dtype=f64),
+    )
+
+
 def detect_arrays(
     x: NDArray[np.float64],
     facets: NDArray[np.int64],
@@ -669,17 +693,8 @@ def fingertip_static_forces(
     finger, facet = (np.zeros(0, i64), np.zeros(0, i64)) if pairs is None else pairs
     _static_forces(
         *geometry,
-        np.ascontiguousarray(K, dtype=f64).ravel(),
-        bool(closest),
-        float(inside_tol),
-        float(mu),
-        float(exponent),
-        bool(patch),
-        float(ratio),
-        float(min_depth_ratio),
-        np.ascontiguousarray(active, dtype=np.bool_),
-        np.ascontiguousarray(anchor, dtype=f64),
-        np.ascontiguousarray(offset, dtype=f64),
+        *_law_args(K, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio),
+        *_state_args(active, anchor, offset),
         np.ascontiguousarray(memory, dtype=f64),
         pairs is not None,
         np.ascontiguousarray(finger, dtype=i64),
@@ -726,17 +741,8 @@ def fingertip_update(
     new_memory = np.zeros(memory.shape)
     _fingertip_update(
         *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
-        np.ascontiguousarray(K, dtype=f64).ravel(),
-        bool(closest),
-        float(inside_tol),
-        float(mu),
-        float(exponent),
-        bool(patch),
-        float(ratio),
-        float(min_depth_ratio),
-        np.ascontiguousarray(active, dtype=np.bool_),
-        np.ascontiguousarray(anchor, dtype=f64),
-        np.ascontiguousarray(offset, dtype=f64),
+        *_law_args(K, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio),
+        *_state_args(active, anchor, offset),
         np.ascontiguousarray(slip, dtype=f64),
         np.ascontiguousarray(memory, dtype=f64),
         new_active,
