@@ -6,9 +6,9 @@ Every plan runs in a fresh process (so that its peak resident memory is its own:
 included): ``plan s`` is that first plan's time, and so includes the process's one-time costs
 (importing Numba and loading the compiled kernels from its disk cache, about 0.5-0.8 s here); below
 10 000 nodes the same process then plans three more times (``warm s``, the best of them: what
-every later plan of a session or a sweep worker costs). Peers measured in the same run: the reference linear solver (SciPy's sparse LU of the
-symmetrised Newton matrix up to 1 500 unknowns, multigrid-preconditioned CG beyond, as softgrasp
-did before PARDISO; ``--reference``), and the dynamic solver (the paper's explicit RK4 through
+every later plan of a session or a sweep worker costs). Peers measured in the same run: the
+reference linear solver (SciPy's sparse LU of the symmetrised Newton matrix up to 1 500 unknowns,
+multigrid-preconditioned CG beyond, as softgrasp did before PARDISO; ``--reference``), and the dynamic solver (the paper's explicit RK4 through
 every increment at 50 mm/s, then a static rest; ``--dynamic``, the ~500-node mesh only: its cost
 grows as N^(4/3) per simulated second).
 

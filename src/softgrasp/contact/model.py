@@ -442,21 +442,16 @@ class FingertipContact:
     def _static_compiled(
         self, body: Body, t: float, state: FingerState, pairs: ContactPairs | None = None
     ) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-        """The compiled static forces as a function of the node positions (the state's arrays
-        prepared once): of the pairs touching there, or of ``pairs`` followed there."""
+        """The compiled static forces as a function of the node positions (the geometry and
+        parameters gathered once): of the pairs touching there, or of ``pairs`` followed there."""
         from softgrasp.kernels.contact import fingertip_static_forces
 
         kwargs = self._compiled_kwargs(body, t)
         fixed = None if pairs is None else (np.asarray(pairs.finger), np.asarray(pairs.facet))
-        arrays = {
-            "active": np.ascontiguousarray(state.active, dtype=np.bool_),
-            "anchor": np.ascontiguousarray(state.anchor, dtype=np.float64),
-            "offset": np.ascontiguousarray(state.offset, dtype=np.float64),
-            "memory": np.ascontiguousarray(state.memory, dtype=np.float64),
-        }
+        st = {"active": state.active, "anchor": state.anchor, "offset": state.offset, "memory": state.memory}
 
         def forces(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            return fingertip_static_forces(x, pairs=fixed, **arrays, **kwargs)
+            return fingertip_static_forces(x, pairs=fixed, **st, **kwargs)
 
         return forces
 

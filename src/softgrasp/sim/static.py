@@ -269,7 +269,7 @@ def _newton(
             ):
                 # Balanced to 1e-6 of the largest force on an indefinite (nearly neutral) matrix,
                 # the shifted steps no longer converging: accept.
-                log.debug("newton it %d: unbalanced %.6e N on an indefinite matrix, stalled: accepted", it, res)
+                log.debug("newton it %d: unbalanced %.6e N, indefinite matrix, stalled: accepted", it, res)
                 return x, it - 1, res, lam_new, contacts
             n0 = float(np.linalg.norm(r0))
             d = dx.reshape(-1, 3)
