@@ -501,6 +501,8 @@ def _static_forces(
         finger, facet, val = _detect(
             x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
         )
+    # At rest (static=True) the loop reads no velocities: x, centres and K stand in for v, the
+    # fingertips' velocities and spins, and C (which only multiplies the zero penetration rate).
     _pair_forces(
         finger, facet, val, x, x, facets, centres, radii, centres, centres, K, K, mu, n_exp, False, patch,
         ratio, min_depth_ratio, active, anchor, offset, memory, True, out,
