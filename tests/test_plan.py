@@ -105,6 +105,69 @@ def test_ranked_grasps_leave_out_what_the_caller_skips_and_keep_the_order(sphere
     ]
 
 
+def test_ranked_grasps_compute_no_more_exact_qualities_than_a_heap_rebuilt_after_every_bound(
+    sphere_body, monkeypatch
+):
+    """The ranking keeps one heap and replaces an entry whose bound fell when it comes to the top.
+    Against the plain best-first search written out here (every candidate's current bound or
+    exact quality re-sorted before each step), the first grasps come in the same order after the
+    same exact qualities, no more: an entry taken as current after its bound fell would have its
+    hull computed early."""
+    import softgrasp.grasp.initial as initial_mod
+    from softgrasp.grasp.closure import ferrari_canny_bounds, primitive_wrenches_many
+
+    x = np.asarray(sphere_body.mesh.points)
+    com = (sphere_body.mass @ x) / sphere_body.total_mass
+    captured = []
+    best_first = initial_mod._best_first
+    monkeypatch.setattr(
+        initial_mod, "_best_first", lambda found, *a: captured.append(found) or best_first(found, *a)
+    )
+    exact_hull = initial_mod.wrench_hull
+    calls = [0]
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return exact_hull(*a, **k)
+
+    monkeypatch.setattr(initial_mod, "wrench_hull", counted)
+    ranked = initial_mod.ranked_grasps(x, sphere_body.mesh.facets, com, 0.8)
+    got = []
+    for _ in range(5):  # not one step further: the next grasp would cost more hulls
+        g = next(ranked)
+        got.append((g.thumb_azimuth, g.spread))
+    found = captured[0]
+
+    P = np.array([c[0] for c in found])
+    N = -np.array([c[1] for c in found])
+    theta = np.array([c[3] for c in found])
+    ub = ferrari_canny_bounds(P, N, 0.8, com)
+    W = primitive_wrenches_many(P, N, 0.8, com)
+    exact = np.full(len(found), np.nan)
+    alive = ub > 0.0
+    hulls, order = 0, []
+    while len(order) < 5:
+        value = np.where(np.isnan(exact), ub, exact)
+        i = min(np.flatnonzero(alive), key=lambda j: (-round(float(value[j]), 12), j))
+        if np.isnan(exact[i]):
+            eps, normals = exact_hull(W[i], initial_mod.NEAREST_FACETS)
+            hulls += 1
+            exact[i] = eps
+            rest = alive & np.isnan(exact)
+            if eps <= 0.0:
+                alive[i] = False
+            elif rest.any() and len(normals):
+                ub[rest] = np.minimum(
+                    ub[rest], initial_mod._support_bound(W[rest], normals, theta[rest] - theta[i])
+                )
+                alive &= ub > 0.0
+            continue
+        alive[i] = False
+        order.append((found[i][3], found[i][4]))
+    assert got == order
+    assert calls[0] == hulls > 5
+
+
 def test_initial_grasp_on_the_sphere_lies_on_a_great_circle_with_the_thumb_opposite(sphere_body):
     """Step 1 on the rubber sphere: three force-closure contacts in the horizontal plane through
     the centre of mass, all at the sphere's radius from it (a great circle), the first and middle

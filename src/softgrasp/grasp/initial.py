@@ -287,19 +287,21 @@ def _best_first(
     exact = np.full(len(found), np.nan)  # the exact qualities computed so far
     alive = ub > 0.0  # not yet yielded, dropped or found not force closure
 
-    def heap_of() -> list[tuple[float, int, bool, float]]:
-        h = [
-            (-round(float(e), 12), i, True, float(e)) if not np.isnan(e := exact[i]) else
-            (-round(float(ub[i]), 12), i, False, float(ub[i]))
-            for i in np.flatnonzero(alive)
-        ]  # fmt: skip
-        heapq.heapify(h)
-        return h
-
-    heap = heap_of()
+    # Entries (-round(value, 12), index, exact?, value). The bounds only ever decrease, so an entry
+    # made before a bound fell sorts before its candidate's current one: when one comes to the top
+    # it is replaced by the current one (and ones of dropped or yielded candidates are passed
+    # over). The candidates come off in the order a heap rebuilt after every change would give.
+    heap = [(-round(float(ub[i]), 12), int(i), False, float(ub[i])) for i in np.flatnonzero(alive)]
+    heapq.heapify(heap)
     yielded = 0
     while heap:
-        _, i, is_exact, eps = heapq.heappop(heap)
+        entry = heapq.heappop(heap)
+        _, i, is_exact, eps = entry
+        if not alive[i] or (not is_exact and not np.isnan(exact[i])):
+            continue
+        if not is_exact and eps != ub[i]:
+            heapq.heappush(heap, (-round(float(ub[i]), 12), i, False, float(ub[i])))
+            continue
         p, n_out, fac, th, phi = found[i]
         if skip is not None and skip(th, phi):
             alive[i] = False
@@ -314,9 +316,7 @@ def _best_first(
             if rest.any() and len(normals):
                 ub[rest] = np.minimum(ub[rest], _support_bound(wrenches[rest], normals, theta[rest] - th))
                 alive &= ub > 0.0
-                heap = heap_of()
-            else:
-                heapq.heappush(heap, (-round(eps, 12), i, True, eps))
+            heapq.heappush(heap, (-round(eps, 12), i, True, eps))
             continue
         alive[i] = False
         yielded += 1
