@@ -3,20 +3,24 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
 
 from softgrasp.body import build_body
+from softgrasp.contact.fingertip import ContactParams, Fingertip
+from softgrasp.contact.model import FingertipContact
 from softgrasp.errors import NotConverged
-from softgrasp.material import Material
+from softgrasp.forces import assemble_blocks
+from softgrasp.material import Material, preset
 from softgrasp.mesh import box
 from softgrasp.objects import make_object
 from softgrasp.planes import Plane, PlaneContact
+from softgrasp.sim.implicit import Inertia
 from softgrasp.sim.integrators import settle
 from softgrasp.sim.scene import Scene
-from softgrasp.sim.static import _cycle, solve_static
+from softgrasp.sim.static import _cycle, _newton_matrix, solve_static
 from softgrasp.supports import Tether
 
 G = 9.80665
@@ -180,3 +184,77 @@ def test_a_balanced_iterate_is_accepted_when_shifted_steps_stall(monkeypatch):
     _, info = solve_static(scene, start, rtol=1e-12, max_iter=60)
     assert info.residual_N < 1e-3 * f0
 
+
+# ------------------------------------------------------------------ the Newton matrix's assembly
+
+
+@dataclass(frozen=True)
+class _Strut:
+    """A linear spring between two nodes that no edge joins (a rigid link of a fixture): its
+    Jacobian couples nodes outside the body's pattern."""
+
+    i: int
+    j: int
+    k: float
+    name: str = "strut"
+
+    def init_state(self, body, x, t=0.0):
+        return None
+
+    def static_forces(self, body, x, t, state):
+        f = np.zeros_like(x)
+        d = self.k * (x[self.j] - x[self.i] - (body.mesh.points[self.j] - body.mesh.points[self.i]))
+        f[self.i] += d
+        f[self.j] -= d
+        return f
+
+    def energy(self, body, x, t, state):
+        d = x[self.j] - x[self.i] - (body.mesh.points[self.j] - body.mesh.points[self.i])
+        return 0.5 * self.k * float(d @ d)
+
+    def jacobian(self, body, x, t, state):
+        k = -self.k * np.eye(3)
+        rows, cols = np.array([self.i, self.i, self.j, self.j]), np.array([self.i, self.j, self.i, self.j])
+        return assemble_blocks(body.n_nodes, rows, cols, np.array([k, -k, -k, k]))
+
+    def update(self, body, x, v, t, state):
+        return None
+
+    def static_update(self, body, x, t, state):
+        return None
+
+
+def _sparse_sum(scene, x, t, contacts):
+    """-(body + interactions) summed as sparse matrices, the approximate (non-symmetric)
+    interactions' entries outside the body's pattern left out."""
+    body = scene.body
+    J = body.internal_jacobian(x)
+    inside = J.copy()
+    inside.data[:] = 1.0
+    for inter, st in zip(scene.interactions, contacts, strict=True):
+        Ji = inter.jacobian(body, x, t, st)
+        if not getattr(inter, "symmetric_jacobian", True):
+            Ji = Ji.multiply(inside)
+        J = J + Ji
+    return -J.toarray()
+
+
+def test_newton_matrix_summed_into_the_body_pattern_is_the_sparse_sum_entry_for_entry():
+    """The Newton matrix is assembled in place in the body's fixed pattern (the table's and the
+    inertia's diagonal blocks and the fingertip's blocks added at their positions). With a rough
+    fingertip pressed into a cube on a rough table, during a backward Euler step, and with a strut
+    joining two far corners (outside the pattern), it is the sparse matrices' sum, bit for bit."""
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    tip = Fingertip(0.008, centre=[0.003, 0.002, 0.0565], velocity=[0.3, 0.0, -1.0])
+    fc = FingertipContact((tip,), ContactParams(mu=0.8))
+    X = np.asarray(body.mesh.points)
+    far = int(np.argmax(np.linalg.norm(X - X[0], axis=1)))
+    scene = Scene(body, (_table(1.0), fc, Inertia(X + 1e-4, 1e-3), _Strut(0, far, 50.0)))
+    pressed = Scene(body, (_table(1.0), fc))
+    state, _ = solve_static(pressed, pressed.initial_state(), t=0.5e-3)
+    x = state.x + 1e-5 * np.sin(np.arange(X.size)).reshape(-1, 3)
+    contacts = (state.contacts[0], state.contacts[1], None, None)
+    A, exact = _newton_matrix(scene, x, 0.5e-3, contacts, 0.05)
+    assert len(fc.pairs(body, x, 0.5e-3)) > 0 and exact is not None
+    assert np.array_equal(A.toarray(), _sparse_sum(scene, x, 0.5e-3, contacts))
+    assert A[3 * far, 0] == -50.0  # the strut's coupling is there: A = -J

@@ -196,19 +196,25 @@ class PlaneContact:
             f -= kt[:, None] * s
         return f
 
-    def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:
-        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N)."""
+    def jacobian_diagonal(
+        self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """:meth:`jacobian` by its non-zero diagonal 3x3 blocks (the plane couples no two nodes):
+        (the nodes on or beyond the plane (K,), their blocks (K, 3, 3)); every other block is zero."""
         k, kt, n, pen, touching, s = self._static_tangential(body, x, t, state)
         # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
         # body resting on the plane must not look unsupported to Newton's method (nor slide).
-        on = pen >= 0
+        on = np.flatnonzero(pen >= 0)
         nn = np.outer(n, n)
-        blocks = -k[:, None, None] * nn[None]
+        blocks = -k[on, None, None] * nn[None]
         if self.mu > 0:
-            blocks = blocks - np.where(on, kt, 0.0)[:, None, None] * (np.eye(3) - nn)[None]
-        blocks[~on] = 0.0
-        idx = np.arange(body.n_nodes)
-        return assemble_blocks(body.n_nodes, idx, idx, blocks)
+            blocks = blocks - kt[on, None, None] * (np.eye(3) - nn)[None]
+        return on, blocks
+
+    def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:
+        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N)."""
+        on, blocks = self.jacobian_diagonal(body, x, t, state)
+        return assemble_blocks(body.n_nodes, on, on, blocks)
 
     def update(
         self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState

@@ -53,9 +53,14 @@ class Inertia:
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: None) -> float:
         return 0.5 * float(np.sum(self._k(body)[:, None] * (x - self.x_pred) ** 2))
 
+    def jacobian_diagonal(
+        self, body: Body, x: NDArray[np.float64], t: float, state: None
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """:meth:`jacobian` by its diagonal 3x3 blocks: (every node, ``-m / dt^2`` times I)."""
+        return np.arange(body.n_nodes), -self._k(body)[:, None, None] * np.eye(3)[None]
+
     def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: None) -> sp.csr_matrix:
-        idx = np.arange(body.n_nodes)
-        blocks = -self._k(body)[:, None, None] * np.eye(3)[None]
+        idx, blocks = self.jacobian_diagonal(body, x, t, state)
         return assemble_blocks(body.n_nodes, idx, idx, blocks)
 
     def update(self, body: Body, x, v, t: float, state: None) -> None:

@@ -21,7 +21,15 @@ __all__ = ["Interaction", "Scene", "State"]
 
 
 class Interaction(Protocol):
-    """Something that pushes on the body's nodes and may carry friction state."""
+    """Something that pushes on the body's nodes and may carry friction state.
+
+    Optional members the static solver uses where an interaction has them:
+    ``jacobian_diagonal(body, x, t, state) -> (nodes (K,), blocks (K, 3, 3))``, its Jacobian when
+    it couples no two nodes (each node at most once), added to the Newton matrix without a sparse
+    matrix; ``symmetric_jacobian = False`` when :meth:`jacobian` is only a symmetric
+    approximation (the solver then also differentiates :meth:`static_forces`), and
+    ``pinned_static_forces`` to do that with the touching pairs held fixed.
+    """
 
     @property
     def name(self) -> str:

@@ -129,30 +129,62 @@ def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:
     return r - C.T @ lam if C is not None else r
 
 
-_PATTERN_KEYS: weakref.WeakKeyDictionary[Body, NDArray[np.int64]] = weakref.WeakKeyDictionary()
+@dataclass(frozen=True)
+class _BodyPattern:
+    """Where the entries of a body's Jacobian pattern sit in its CSR data.
+
+    Attributes
+    ----------
+    keys: sorted keys ``3N row + col`` of the scalar entries, in CSR data order, (nnz,).
+    diagonal: the data positions of each node's diagonal 3x3 block, row by row, (N, 9).
+    """
+
+    keys: NDArray[np.int64]
+    diagonal: NDArray[np.int64]
 
 
-def _pattern_keys(body: Body) -> NDArray[np.int64]:
-    """Sorted keys ``3N row + col`` of the scalar entries of the body's Jacobian pattern (kept
-    while the body lives)."""
-    keys = _PATTERN_KEYS.get(body)
-    if keys is None:
+_PATTERNS: weakref.WeakKeyDictionary[Body, _BodyPattern] = weakref.WeakKeyDictionary()
+
+
+def _body_pattern(body: Body) -> _BodyPattern:
+    """The :class:`_BodyPattern` of ``body``'s Jacobian (built once, kept while the body lives)."""
+    pat = _PATTERNS.get(body)
+    if pat is None:
         J = body.internal_jacobian(np.asarray(body.mesh.points, dtype=np.float64))
         n = J.shape[0]
         rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(J.indptr))
-        keys = _PATTERN_KEYS[body] = rows * n + J.indices.astype(np.int64)
-    return keys
+        keys = rows * n + J.indices.astype(np.int64)
+        i = 3 * np.arange(body.n_nodes, dtype=np.int64)
+        a = np.arange(3)
+        want = ((i[:, None, None] + a[None, :, None]) * n + i[:, None, None] + a[None, None, :]).reshape(
+            -1, 9
+        )
+        diagonal = np.searchsorted(keys, want)
+        if not np.array_equal(keys[np.minimum(diagonal, keys.size - 1)], want):
+            raise AssertionError("a node without its diagonal block in the body's Jacobian pattern")
+        pat = _PATTERNS[body] = _BodyPattern(keys, diagonal)
+    return pat
 
 
-def _within_body_pattern(body: Body, M: sp.spmatrix) -> sp.csr_matrix:
-    """``M`` without its entries outside the body's Jacobian pattern."""
-    C = sp.coo_matrix(M)
-    n = C.shape[0]
-    keys = _pattern_keys(body)
-    k = C.row.astype(np.int64) * n + C.col
-    pos = np.minimum(np.searchsorted(keys, k), keys.size - 1)
-    keep = keys[pos] == k
-    return sp.csr_matrix((C.data[keep], (C.row[keep], C.col[keep])), shape=C.shape)
+def _add_into_pattern(
+    pat: _BodyPattern, data: NDArray[np.float64], M: sp.spmatrix
+) -> tuple[sp.csr_matrix, sp.csr_matrix | None]:
+    """Add the entries of ``M`` that lie in the body's pattern to its CSR ``data`` (in place).
+    Returns (those entries, the others or None) as sparse matrices."""
+    M = sp.csr_matrix(M)
+    M.sum_duplicates()
+    n = M.shape[0]
+    rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(M.indptr))
+    cols = M.indices.astype(np.int64)
+    keys = rows * n + cols
+    pos = np.minimum(np.searchsorted(pat.keys, keys), pat.keys.size - 1)
+    inside = pat.keys[pos] == keys
+    data[pos[inside]] += M.data[inside]
+    kept = sp.csr_matrix((M.data[inside], (rows[inside], cols[inside])), shape=M.shape)
+    if inside.all():
+        return kept, None
+    out = ~inside
+    return kept, sp.csr_matrix((M.data[out], (rows[out], cols[out])), shape=M.shape)
 
 
 def _static_forces_of(inter, body: Body, t: float, st, x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -168,22 +200,41 @@ def _newton_matrix(
     forces along v. (A Newton iteration with the symmetrised matrix converges only linearly,
     about tenfold per iteration; with the exact product, quadratically.)"""
     body = scene.body
-    J = body.internal_jacobian(x)
+    J = body.internal_jacobian(x)  # in the body's fixed pattern, its data freshly computed
+    pat = _body_pattern(body)
+    data = J.data
     approx = []
+    outside: list[sp.csr_matrix] = []
+    # Each interaction's Jacobian is summed straight into the body pattern's data, in the
+    # interactions' order (the same sums, entry by entry, as adding the sparse matrices), so
+    # that every Newton matrix has one pattern: no sparse additions, and the factorisation's
+    # analysis and its gather of the upper triangle are reused as they are.
     for inter, st in zip(scene.interactions, contacts, strict=True):
+        diagonal = getattr(inter, "jacobian_diagonal", None)
+        if diagonal is not None:
+            nodes, blocks = diagonal(body, x, t, st)
+            data[pat.diagonal[nodes]] += blocks.reshape(-1, 9)
+            continue
         Ji = inter.jacobian(body, x, t, st)
-        if not getattr(inter, "symmetric_jacobian", True) and Ji.nnz:
+        if not Ji.nnz:
+            continue
+        kept, rest = _add_into_pattern(pat, data, Ji)
+        if not getattr(inter, "symmetric_jacobian", True):
             # Only a preconditioner now: kept inside the body's pattern, so that the factorisation's
             # analysis stays valid as contacts come and go.
-            Ji = _within_body_pattern(body, Ji)
             pinned = getattr(inter, "pinned_static_forces", None)
             if pinned is not None:
                 forces_at = pinned(body, x, t, st)
             else:
                 forces_at = functools.partial(_static_forces_of, inter, body, t, st)
-            approx.append((forces_at, Ji))
-        J = J + Ji
-    A = -J.tocsr()
+            approx.append((forces_at, kept))
+        elif rest is not None:
+            outside.append(rest)  # couples nodes that no edge or tet joins
+    np.negative(data, out=data)
+    A = J
+    for M in outside:
+        A = A - M
+    A = A.tocsr()
     if not approx:
         return A, None
 
