@@ -14,11 +14,14 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from softgrasp import __version__
 from softgrasp.errors import ConfigError, SoftgraspError
 from softgrasp.grasp.options import PLAN_DEFAULTS
+
+if TYPE_CHECKING:
+    from softgrasp.viz.worker import FigureWorker
 
 __all__ = ["main"]
 
@@ -582,6 +585,15 @@ def _write_frames(path: Path, plan, facets) -> None:
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
+    from softgrasp.viz.worker import FigureWorker
+
+    # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
+    # files are written.
+    with FigureWorker() as figures:
+        return _plan(args, figures)
+
+
+def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
     from softgrasp.kernels.warm import warm_up_in_background
 
     warm_up_in_background()  # the compiled kernels load while the object is meshed
@@ -593,7 +605,6 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from softgrasp.mesh.io import save_mesh
     from softgrasp.mesh.tetmesh import TetMesh
     from softgrasp.output import write_json, write_text
-    from softgrasp.viz.plots import plot_grasp_3d, plot_plan_force_penetration, plot_plan_forces
 
     t0 = time.perf_counter()
     mu_given = args.mu
@@ -619,9 +630,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     for row in history_rows(plan):
         w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
     names = [f.name for f in plan.fingers]
-    plot_plan_forces(np.arange(1.0, plan.increments + 1.0), plan.force_norm, names, out / "forces.png")
-    plot_plan_force_penetration(plan.penetration, plan.force_norm, names, out / "force_penetration.png")
-    plot_grasp_3d(
+    figures.draw(
+        "plot_plan_forces", np.arange(1.0, plan.increments + 1.0), plan.force_norm, names, out / "forces.png"
+    )
+    figures.draw(
+        "plot_plan_force_penetration", plan.penetration, plan.force_norm, names, out / "force_penetration.png"
+    )
+    figures.draw(
+        "plot_grasp_3d",
         plan.positions,
         body.mesh.facets,
         plan.centres,
@@ -642,6 +658,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     doc["wall_time_s"] = time.perf_counter() - t0
     _remove_robust_outputs(out)  # an earlier robust run's, which no longer belong to this plan
     write_json(out / "plan.json", doc)
+    figures.finish()
     print(plan_table(plan))
     eq = doc["equilibrium"]
     print(
