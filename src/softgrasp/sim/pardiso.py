@@ -262,8 +262,13 @@ class PardisoFactor:
         return full
 
     def _call(self, phase: int, data: NDArray[np.float64], b: NDArray[np.float64] | None = None):
-        x = np.zeros(self.n) if b is not None else np.zeros(1)
-        rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
+        nrhs = 1 if b is None or b.ndim == 1 else b.shape[1]
+        if b is None:
+            x, rhs = np.zeros(1), np.zeros(1)
+        elif b.ndim == 1:
+            x, rhs = np.zeros(self.n), np.ascontiguousarray(b, dtype=np.float64)
+        else:  # several right-hand sides, each contiguous
+            x, rhs = np.zeros(b.shape, order="F"), np.asfortranarray(b, dtype=np.float64)
         err = ctypes.c_int32(0)
         _use_threads(self._lib, self._threads)
         self._fn(
@@ -277,7 +282,7 @@ class PardisoFactor:
             self._indptr.ctypes.data_as(_INT),
             self._indices.ctypes.data_as(_INT),
             None,  # perm
-            ctypes.byref(ctypes.c_int32(1)),  # nrhs
+            ctypes.byref(ctypes.c_int32(nrhs)),
             self._iparm.ctypes.data_as(_INT),
             ctypes.byref(ctypes.c_int32(0)),  # msglvl
             rhs.ctypes.data_as(_DBL),
@@ -366,6 +371,16 @@ class PardisoFactor:
         dt = time.perf_counter() - t0
         self._solve_times = [min(self._solve_times[0], dt), dt]
         return x
+
+    @property
+    def values(self) -> NDArray[np.float64]:
+        """The upper triangle's values last factorised (in the factor's CSR pattern)."""
+        return self._data
+
+    def solve_many(self, B: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``A^-1 B`` for the matrix last factorised and the columns of ``B`` (n, k), in one call."""
+        self._fewer_threads()
+        return self._call(33, self._data, B)
 
     def _fewer_threads(self) -> bool:
         """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
