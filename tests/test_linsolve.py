@@ -346,3 +346,32 @@ def test_the_old_factor_is_not_corrected_where_stiffness_was_taken_away():
     b = np.random.default_rng(4).standard_normal(K.shape[0])
     assert pre.nodes == 0
     assert np.array_equal(pre.solve(b), f.solve(b))
+
+
+@needs_mkl
+@pytest.mark.parametrize("used", ["few", "many"])
+def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_system(monkeypatch, used):
+    """A system solved on the old factor with more than half the iteration cap (a quarter of a
+    refactorisation's cost) has the next system refactorise first; one solved in fewer keeps the
+    factor. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
+    import softgrasp.sim.linsolve as ls
+
+    K = _stiffness()
+    b = np.random.default_rng(5).standard_normal(K.shape[0])
+    cache = SolverCache(method="pardiso")
+    solve_newton_system(K, b, None, np.zeros((K.shape[0] // 3, 3)), cache)  # analyse + factorise
+    cap = int(np.clip(0.5 * ls.SOLVE_SPEED_RATIO * cache._factor.solves_per_factorisation, 4, 40))
+    n = int(ls.STALE_REFRESH * cap) + (1 if used == "many" else 0)
+
+    def stand_in(A, rhs, pre, max_it, rtol):
+        for _ in range(n):
+            pre.solve(rhs)
+        return spla.spsolve(A.tocsc(), rhs)
+
+    monkeypatch.setattr(ls, "_stale_pcg", stand_in)
+    K2 = (1.01 * K).tocsr()
+    before = cache.stats["factorisations"]
+    solve_newton_system(K2, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
+    assert cache.stats["factorisations"] == before  # solved on the old factor
+    solve_newton_system(K2, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
+    assert cache.stats["factorisations"] == before + (1 if used == "many" else 0)

@@ -338,28 +338,30 @@ class _Corrected:
     def __init__(self, f: pardiso.PardisoFactor, U: sp.csr_matrix, cache: SolverCache) -> None:
         self._f = f
         self._Z: NDArray[np.float64] | None = None
+        self.applications = 0  # solves with it so far
         n = f.n
         base = f.values
-        diff = U.data - base
-        rows = np.repeat(np.arange(n), np.diff(U.indptr))
-        cols = U.indices.astype(np.int64)
-        change = np.zeros(n)
-        np.maximum.at(change, rows, np.abs(diff))
-        np.maximum.at(change, cols, np.abs(diff))
-        ratio = (change / np.maximum(np.abs(base[U.indptr[:-1]]), 1e-300)).reshape(-1, 3).max(axis=1)
+        diag = U.indptr[:-1]  # the diagonal leads each row of the sorted upper triangle
+        # A contact adds to the diagonal blocks of its nodes: their change flags the nodes.
+        ratio = (np.abs(U.data[diag] - base[diag]) / np.maximum(np.abs(base[diag]), 1e-300)).reshape(-1, 3)
+        ratio = ratio.max(axis=1)
         nodes = np.flatnonzero(ratio > CORRECT_RTOL)
+        if not len(nodes):
+            return
         if len(nodes) > CORRECT_MAX_NODES:
             nodes = np.sort(nodes[np.argsort(-ratio[nodes], kind="stable")[:CORRECT_MAX_NODES]])
         S = (3 * nodes[:, None] + np.arange(3)).ravel()
-        if not len(S):
-            return
-        # C: the difference on S x S, both triangles.
+        # C: the difference on S x S, both triangles (from the rows of S in the upper triangle).
         where = np.full(n, -1)
         where[S] = np.arange(len(S))
-        inside = (where[rows] >= 0) & (where[cols] >= 0)
+        seg = np.concatenate([np.arange(U.indptr[r], U.indptr[r + 1]) for r in S])
+        rows = np.repeat(where[S], np.diff(U.indptr)[S])
+        cols = where[U.indices[seg]]
+        keep = cols >= 0
+        d = U.data[seg[keep]] - base[seg[keep]]
         C = np.zeros((len(S), len(S)))
-        C[where[rows[inside]], where[cols[inside]]] = diff[inside]
-        C[where[cols[inside]], where[rows[inside]]] = diff[inside]
+        C[rows[keep], cols[keep]] = d
+        C[cols[keep], rows[keep]] = d
         ev = np.linalg.eigvalsh(C)
         if ev[0] < -1e-9 * max(abs(ev[-1]), 1e-300):
             return  # stiffness taken away
@@ -387,12 +389,16 @@ class _Corrected:
 
     def solve(self, r: NDArray[np.float64]) -> NDArray[np.float64]:
         """``(A0 + E C E^T)^-1 r``."""
+        self.applications += 1
         y = self._f.solve(r)
         if self._Z is None:
             return y
         return y - self._Z @ (self._W @ y[self._S])
 
 
+#: A solve with an old factor that took more than this fraction of its iteration cap (the cap is
+#: half a refactorisation's cost in solves) has the next system refactorise first.
+STALE_REFRESH = 0.5
 #: A node counts as changed since the factorisation when an entry of its rows differs by more than
 #: this many times its factorised diagonal (a new table contact: ~50).
 CORRECT_RTOL = 0.5
@@ -427,6 +433,12 @@ def _pardiso(
                 x = _gmres(matvec, b, pre.solve, cap, rtol)
             else:
                 x = _stale_pcg(A, b, pre, cap, rtol)
+            if x is not None and pre.applications > STALE_REFRESH * cap:
+                # Converged, but at more than a quarter of a refactorisation's cost: the next
+                # systems would cost as much on this factor (it only ages), so they get a new one.
+                cache._try_stale = False
+                cache.stats["stale_solves"] += 1
+                return x, np.zeros(0)
         # After a failed attempt the next system goes straight to a refactorisation.
         cache._try_stale = x is not None
         if x is not None:
