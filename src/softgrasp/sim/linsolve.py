@@ -365,10 +365,10 @@ class _Corrected:
         ev = np.linalg.eigvalsh(C)
         if ev[0] < -1e-9 * max(abs(ev[-1]), 1e-300):
             return  # stiffness taken away
-        key = (id(f), cache.stats["factorisations"])
+        count = cache.stats["factorisations"]
         columns: dict[int, NDArray[np.float64]] = {}
-        if cache._correction is not None and cache._correction[0] == key:
-            columns = cache._correction[1]
+        if cache._correction is not None and cache._correction[0] is f and cache._correction[1] == count:
+            columns = cache._correction[2]
         new = [int(j) for j in S if int(j) not in columns]
         if new:
             E = np.zeros((n, len(new)))
@@ -376,7 +376,7 @@ class _Corrected:
             Znew = f.solve_many(E)
             columns.update((j, Znew[:, k].copy()) for k, j in enumerate(new))
             cache.stats["correction_columns"] = cache.stats.get("correction_columns", 0) + len(new)
-        cache._correction = (key, columns)
+        cache._correction = (f, count, columns)
         Z = np.column_stack([columns[int(j)] for j in S])
         self._S = S
         self._W = C @ np.linalg.inv(np.eye(len(S)) + Z[S, :] @ C)

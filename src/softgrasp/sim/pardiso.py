@@ -262,13 +262,8 @@ class PardisoFactor:
         return full
 
     def _call(self, phase: int, data: NDArray[np.float64], b: NDArray[np.float64] | None = None):
-        nrhs = 1 if b is None or b.ndim == 1 else b.shape[1]
-        if b is None:
-            x, rhs = np.zeros(1), np.zeros(1)
-        elif b.ndim == 1:
-            x, rhs = np.zeros(self.n), np.ascontiguousarray(b, dtype=np.float64)
-        else:  # several right-hand sides, each contiguous
-            x, rhs = np.zeros(b.shape, order="F"), np.asfortranarray(b, dtype=np.float64)
+        x = np.zeros(self.n) if b is not None else np.zeros(1)
+        rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
         err = ctypes.c_int32(0)
         _use_threads(self._lib, self._threads)
         self._fn(
@@ -282,7 +277,7 @@ class PardisoFactor:
             self._indptr.ctypes.data_as(_INT),
             self._indices.ctypes.data_as(_INT),
             None,  # perm
-            ctypes.byref(ctypes.c_int32(nrhs)),
+            ctypes.byref(ctypes.c_int32(1)),  # nrhs
             self._iparm.ctypes.data_as(_INT),
             ctypes.byref(ctypes.c_int32(0)),  # msglvl
             rhs.ctypes.data_as(_DBL),
@@ -378,9 +373,12 @@ class PardisoFactor:
         return self._data
 
     def solve_many(self, B: NDArray[np.float64]) -> NDArray[np.float64]:
-        """``A^-1 B`` for the matrix last factorised and the columns of ``B`` (n, k), in one call."""
-        self._fewer_threads()
-        return self._call(33, self._data, B)
+        """``A^-1 B`` for the matrix last factorised and the columns of ``B`` (n, k), one solve each
+        (the factor was analysed for one right-hand side a call)."""
+        out = np.empty(B.shape)
+        for k in range(B.shape[1]):
+            out[:, k] = self.solve(np.ascontiguousarray(B[:, k]))
+        return out
 
     def _fewer_threads(self) -> bool:
         """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
