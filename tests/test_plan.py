@@ -41,6 +41,22 @@ def default_plan(sphere_body):
 # --------------------------------------------------------------------------- initial grasp
 
 
+def _count_exact_hulls(monkeypatch):
+    """Count the exact Ferrari-Canny hulls the ranking computes: (a one-item counter list, the
+    uncounted function)."""
+    import softgrasp.grasp.initial as initial_mod
+
+    exact = initial_mod.wrench_hull
+    calls = [0]
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return exact(*a, **k)
+
+    monkeypatch.setattr(initial_mod, "wrench_hull", counted)
+    return calls, exact
+
+
 def test_ranked_grasps_follow_the_exact_epsilon_order(sphere_body, monkeypatch):
     """The best-first ranking (cheap bounds refined to exact qualities on demand) gives the same
     grasps in the same order as ranking with no bound at all (every candidate's exact epsilon
@@ -52,14 +68,7 @@ def test_ranked_grasps_follow_the_exact_epsilon_order(sphere_body, monkeypatch):
     x = np.asarray(sphere_body.mesh.points)
     com = (sphere_body.mass @ x) / sphere_body.total_mass
     facets = sphere_body.mesh.facets
-    exact = initial_mod.wrench_hull
-    calls = [0]
-
-    def counted(*a, **k):
-        calls[0] += 1
-        return exact(*a, **k)
-
-    monkeypatch.setattr(initial_mod, "wrench_hull", counted)
+    calls, _ = _count_exact_hulls(monkeypatch)
     pruned = initial_mod.initial_grasps(x, facets, com, 0.8)
     calls[0] = 0
     first = next(initial_mod.ranked_grasps(x, facets, com, 0.8))
@@ -123,14 +132,7 @@ def test_ranked_grasps_compute_no_more_exact_qualities_than_a_heap_rebuilt_after
     monkeypatch.setattr(
         initial_mod, "_best_first", lambda found, *a: captured.append(found) or best_first(found, *a)
     )
-    exact_hull = initial_mod.wrench_hull
-    calls = [0]
-
-    def counted(*a, **k):
-        calls[0] += 1
-        return exact_hull(*a, **k)
-
-    monkeypatch.setattr(initial_mod, "wrench_hull", counted)
+    calls, exact_hull = _count_exact_hulls(monkeypatch)
     ranked = initial_mod.ranked_grasps(x, sphere_body.mesh.facets, com, 0.8)
     got = []
     for _ in range(5):  # not one step further: the next grasp would cost more hulls
