@@ -206,4 +206,9 @@ class FigureWorker:
 
 
 if __name__ == "__main__":  # pragma: no cover - the child process
-    serve(sys.stdin.buffer, sys.stdout.buffer)
+    # The answers go to a copy of the socket; whatever else would write to standard output (a
+    # library's print, C code) goes to standard error instead and cannot corrupt them.
+    answers = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    sys.stdout.flush()
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    serve(sys.stdin.buffer, answers)
