@@ -12,8 +12,11 @@ multigrid-preconditioned CG beyond, as softgrasp did before PARDISO; ``--referen
 every increment at 50 mm/s, then a static rest; ``--dynamic``, the ~500-node mesh only: its cost
 grows as N^(4/3) per simulated second).
 
+``--cli N`` times the whole default ``softgrasp plan`` command instead, its figures drawn by a
+child process and, as the peer, in its own process (``SOFTGRASP_FIGURES=inline``).
+
 Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_plan.py [--quick] [--large]
-[--reference] [--dynamic]``.
+[--reference] [--dynamic] [--cli N]``.
 """
 
 from __future__ import annotations
@@ -96,13 +99,51 @@ def _row(r: dict, label: str, ref: float | None) -> str:
     )
 
 
+def cli(repeats: int) -> None:
+    """Wall time of the whole default ``softgrasp plan`` command (imports, meshing, plan, files and
+    its three figures), with the figures drawn by a child process (the default) and, as the peer in
+    the same run, in the command's own process."""
+    import shutil
+    import statistics
+    import subprocess
+    import sys
+    import tempfile
+
+    exe = shutil.which("softgrasp", path=os.path.dirname(sys.executable)) or "softgrasp"
+    times: dict[str, list[float]] = {"child": [], "inline": []}
+    out = tempfile.mkdtemp(prefix="bench_plan_cli_")
+    for _ in range(repeats):
+        for mode in times:
+            env = dict(os.environ, SOFTGRASP_FIGURES=mode)
+            t0 = time.perf_counter()
+            subprocess.run([exe, "plan", "--out", out], env=env, check=True, capture_output=True)
+            times[mode].append(time.perf_counter() - t0)
+    shutil.rmtree(out, ignore_errors=True)
+    med = {m: statistics.median(v) for m, v in times.items()}
+    print(f"softgrasp plan (default object), {repeats} runs each, alternating:")
+    for m, v in times.items():
+        print(f"  figures {m:>6}: median {med[m]:.2f} s, best {min(v):.2f} s")
+    print(f"  child / inline: {med['child'] / med['inline']:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="only the ~500 and ~2 000-node meshes")
     ap.add_argument("--large", action="store_true", help="also the ~32 000-node mesh")
     ap.add_argument("--reference", action="store_true", help="also the reference linear solver (slow)")
     ap.add_argument("--dynamic", action="store_true", help="also the dynamic solver on the ~500-node mesh")
+    ap.add_argument(
+        "--cli",
+        type=int,
+        default=0,
+        metavar="N",
+        help="only the whole `softgrasp plan` command on the default object, N times each with its "
+        "figures drawn by a child process and in its own process (SOFTGRASP_FIGURES=inline), alternating",
+    )
     args = ap.parse_args()
+    if args.cli:
+        cli(args.cli)
+        return
     print(
         f"softgrasp plan benchmark on {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
         f"SOFTGRASP_THREADS={os.environ.get('SOFTGRASP_THREADS', 'auto')}"

@@ -3,6 +3,7 @@ back, and a child that cannot start or dies leaves the figures to this process."
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -23,6 +24,12 @@ P = np.outer(1e-3 * K, [1.0, 0.9, 0.8])
 def _draw_all(figures: FigureWorker, out) -> None:
     figures.draw("plot_plan_forces", K, F, NAMES, out / "forces.png")
     figures.draw("plot_plan_force_penetration", P, F, NAMES, out / "force_penetration.png")
+
+
+@pytest.fixture(autouse=True)
+def _child(monkeypatch):
+    """A child whatever the machine's load (``auto`` would skip it on a busy machine)."""
+    monkeypatch.setenv("SOFTGRASP_FIGURES", "child")
 
 
 def test_the_child_draws_the_same_png_bytes_as_this_process(tmp_path):
@@ -53,11 +60,18 @@ def test_a_failing_figure_raises_in_the_caller_and_the_others_are_still_drawn(tm
     assert not list(tmp_path.glob(".*"))  # no temporary file left behind
 
 
-def test_figures_are_drawn_here_when_no_child_starts(tmp_path, monkeypatch):
+@pytest.mark.parametrize("why", ["refused", "inline"])
+def test_figures_are_drawn_here_when_no_child_starts(tmp_path, monkeypatch, why):
+    """No child where the system refuses one, or where SOFTGRASP_FIGURES=inline asks for none:
+    the same files, drawn in this process."""
+
     def refuse(*a, **k):
         raise OSError("no processes left")
 
-    monkeypatch.setattr(subprocess, "Popen", refuse)
+    if why == "refused":
+        monkeypatch.setattr(subprocess, "Popen", refuse)
+    else:
+        monkeypatch.setenv("SOFTGRASP_FIGURES", "inline")
     with FigureWorker() as figures:
         assert not figures.in_child
         _draw_all(figures, tmp_path)
@@ -109,7 +123,18 @@ with FigureWorker() as figures:
     figures.finish()
 print("done")
 """
-    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    env = dict(os.environ, SOFTGRASP_FIGURES="child")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "done"
     assert (tmp_path / "f.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize(("idle", "child"), [(1, False), (2, True)])
+def test_auto_starts_a_child_only_with_a_second_idle_core(monkeypatch, idle, child):
+    import softgrasp.sim.pardiso as pardiso
+
+    monkeypatch.setenv("SOFTGRASP_FIGURES", "auto")
+    monkeypatch.setattr(pardiso, "idle_cores", lambda: idle)
+    with FigureWorker() as figures:
+        assert figures.in_child == child

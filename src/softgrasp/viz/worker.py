@@ -15,6 +15,10 @@ end it (gmsh, which meshes the object first, sets SIGPIPE back to its default ac
 child can be started, or it dies, the figures not yet drawn are drawn here: the same files, only
 later. Each figure function writes its PNG atomically, so a failure or a stopped child leaves no
 half-written file.
+
+The environment variable ``SOFTGRASP_FIGURES`` chooses: ``auto`` (the default) starts the child
+only when a core besides the caller's is idle (on a busy machine the child's start-up costs more
+than it saves), ``child`` always, ``inline`` never (every figure drawn in the caller's process).
 """
 
 from __future__ import annotations
@@ -81,6 +85,16 @@ def serve(jobs: IO[bytes], answers: IO[bytes]) -> None:
         answers.flush()
 
 
+def _want_child() -> bool:
+    """Whether to start the child (``SOFTGRASP_FIGURES``: see the module's text)."""
+    mode = os.environ.get("SOFTGRASP_FIGURES", "auto").strip().lower()
+    if mode in ("child", "inline"):
+        return mode == "child"
+    from softgrasp.sim.pardiso import idle_cores
+
+    return max(idle_cores() for _ in range(3)) >= 2  # this process's core and another
+
+
 class FigureWorker:
     """A child process that draws :mod:`softgrasp.viz.plots` figures (see the module's text).
 
@@ -99,6 +113,8 @@ class FigureWorker:
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._answers: IO[bytes] | None = None
+        if not _want_child():
+            return  # finish() draws the figures here
         env = dict(os.environ)
         # The child imports this softgrasp, wherever it was imported from.
         root = str(Path(__file__).resolve().parents[2])
