@@ -375,3 +375,21 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
     assert cache.stats["factorisations"] == before  # solved on the old factor
     solve_newton_system(K2, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
     assert cache.stats["factorisations"] == before + (1 if used == "many" else 0)
+
+
+@needs_mkl
+def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
+    """Contacts that move over the surface on one factor (new nodes each system) do not pile up
+    columns: past six times the most corrected nodes' worth, only the current nodes' are kept."""
+    import softgrasp.sim.linsolve as ls
+
+    K = _stiffness()
+    f = pardiso.PardisoFactor(K)
+    cache = SolverCache()
+    n_nodes = K.shape[0] // 3
+    m = ls.CORRECT_MAX_NODES
+    for k in range(8):
+        nodes = [(k * m + i) % n_nodes for i in range(m)]
+        ls._Corrected(f, f.same_pattern((K + _table_blocks(K, nodes, 50.0)).tocsr()), cache)
+        # columns are kept per unknown: at most the threshold's plus the current nodes' three each
+        assert len(cache._correction[2]) <= 6 * m + 3 * m

@@ -369,6 +369,8 @@ class _Corrected:
         columns: dict[int, NDArray[np.float64]] = {}
         if cache._correction is not None and cache._correction[0] is f and cache._correction[1] == count:
             columns = cache._correction[2]
+            if len(columns) > 6 * CORRECT_MAX_NODES:  # two full sets of columns: keep the current ones
+                columns = {j: v for j, v in columns.items() if where[j] >= 0}
         new = [int(j) for j in S if int(j) not in columns]
         if new:
             E = np.zeros((n, len(new)))
