@@ -372,11 +372,12 @@ class _Corrected:
             if len(columns) > 6 * CORRECT_MAX_NODES:  # two full sets of columns: keep the current ones
                 columns = {j: v for j, v in columns.items() if where[j] >= 0}
         new = [int(j) for j in S if int(j) not in columns]
+        e = np.zeros(n)
+        for j in new:  # one right-hand side a solve: the factor was analysed for one
+            e[j] = 1.0
+            columns[j] = f.solve(e)
+            e[j] = 0.0
         if new:
-            E = np.zeros((n, len(new)))
-            E[new, np.arange(len(new))] = 1.0
-            Znew = f.solve_many(E)
-            columns.update((j, Znew[:, k].copy()) for k, j in enumerate(new))
             cache.stats["correction_columns"] = cache.stats.get("correction_columns", 0) + len(new)
         cache._correction = (f, count, columns)
         Z = np.column_stack([columns[int(j)] for j in S])
@@ -401,8 +402,8 @@ class _Corrected:
 #: A solve with an old factor that took more than this fraction of its iteration cap (the cap is
 #: half a refactorisation's cost in solves) has the next system refactorise first.
 STALE_REFRESH = 0.5
-#: A node counts as changed since the factorisation when an entry of its rows differs by more than
-#: this many times its factorised diagonal (a new table contact: ~50).
+#: A node counts as changed since the factorisation when one of its diagonal entries differs by more
+#: than this fraction of its factorised value (a new table contact: ~50 times).
 CORRECT_RTOL = 0.5
 #: At most this many changed nodes (the largest changes) are corrected for.
 CORRECT_MAX_NODES = 24
@@ -435,14 +436,9 @@ def _pardiso(
                 x = _gmres(matvec, b, pre.solve, cap, rtol)
             else:
                 x = _stale_pcg(A, b, pre, cap, rtol)
-            if x is not None and pre.applications > STALE_REFRESH * cap:
-                # Converged, but at more than a quarter of a refactorisation's cost: the next
-                # systems would cost as much on this factor (it only ages), so they get a new one.
-                cache._try_stale = False
-                cache.stats["stale_solves"] += 1
-                return x, np.zeros(0)
-        # After a failed attempt the next system goes straight to a refactorisation.
-        cache._try_stale = x is not None
+            # After a failed attempt, or one that converged at more than a quarter of a
+            # refactorisation's cost (the factor only ages), the next system refactorises first.
+            cache._try_stale = x is not None and pre.applications <= STALE_REFRESH * cap
         if x is not None:
             cache.stats["stale_solves"] += 1
             return x, np.zeros(0)

@@ -372,14 +372,6 @@ class PardisoFactor:
         """The upper triangle's values last factorised (in the factor's CSR pattern)."""
         return self._data
 
-    def solve_many(self, B: NDArray[np.float64]) -> NDArray[np.float64]:
-        """``A^-1 B`` for the matrix last factorised and the columns of ``B`` (n, k), one solve each
-        (the factor was analysed for one right-hand side a call)."""
-        out = np.empty(B.shape)
-        for k in range(B.shape[1]):
-            out[:, k] = self.solve(np.ascontiguousarray(B[:, k]))
-        return out
-
     def _fewer_threads(self) -> bool:
         """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
         fewer cores are idle than this factor's threads, with the last solve slower than

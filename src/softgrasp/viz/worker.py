@@ -45,6 +45,17 @@ def _portable(exc: BaseException) -> BaseException:
     return exc
 
 
+def _draw(plots: Any, job: tuple[str, tuple[Any, ...], dict[str, Any]]) -> BaseException | None:
+    """Draw one job ``(name, args, kwargs)`` with the figure functions ``plots``; its failure, or
+    None."""
+    name, args, kwargs = job
+    try:
+        getattr(plots, name)(*args, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - every failure goes back to the caller
+        return exc
+    return None
+
+
 def _warm_up(plots: Any) -> None:
     """Import pyplot and the 3-D axes and draw one text, so that the fonts are loaded before the
     first job comes."""
@@ -73,15 +84,8 @@ def serve(jobs: IO[bytes], answers: IO[bytes]) -> None:
             return
         if job is None:
             return
-        name, args, kwargs = job
-        try:
-            if broken is not None:
-                raise broken
-            getattr(plots, name)(*args, **kwargs)
-            answer: BaseException | None = None
-        except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
-            answer = _portable(exc)
-        pickle.dump(answer, answers)
+        answer = broken if broken is not None else _draw(plots, job)
+        pickle.dump(None if answer is None else _portable(answer), answers)
         answers.flush()
 
 
@@ -177,12 +181,7 @@ class FigureWorker:
     def _draw_here(self, index: int) -> BaseException | None:
         from softgrasp.viz import plots
 
-        name, args, kwargs = self._jobs[index]
-        try:
-            getattr(plots, name)(*args, **kwargs)
-        except Exception as exc:  # noqa: BLE001 - raised by finish() like the child's
-            return exc
-        return None
+        return _draw(plots, self._jobs[index])
 
     def _stop(self, kill: bool = False) -> None:
         """End the child: end its input (it exits by itself) or, with ``kill``, kill it."""
@@ -209,7 +208,7 @@ class FigureWorker:
 
     def close(self) -> None:
         """Stop the child (a failed command): at once when it has no figure to draw, else once the
-        figure it draws is written (no temporary file is left behind)."""
+        figures queued are written (no temporary file is left behind)."""
         self._stop(kill=self._done >= len(self._jobs))
 
     def __enter__(self) -> FigureWorker:
