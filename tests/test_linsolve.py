@@ -4,6 +4,7 @@ static solve with friction."""
 
 from __future__ import annotations
 
+import gc
 import math
 
 import numpy as np
@@ -55,6 +56,36 @@ def test_factors_with_different_thread_counts_interleave():
     finally:
         pardiso.set_threads(None)
     assert 1 <= pardiso.idle_cores() <= len(__import__("os").sched_getaffinity(0))
+
+
+@needs_mkl
+def test_collected_factor_leaves_the_thread_count_alone():
+    """A factor freed by the cycle collector (which runs wherever an allocation starts it: inside
+    another factor's call, after that call set its thread count) makes no MKL call then: MKL's
+    thread count stays the live factor's (a call with another count than its analysis crashes
+    MKL), and the release is made by the next call, which still solves exactly."""
+    K = _stiffness()
+    b = np.random.default_rng(4).standard_normal(K.shape[0])
+    want = spla.spsolve(K.tocsc(), b)
+    lib = pardiso._library()
+    gc.disable()
+    try:
+        pardiso.set_threads(1)
+        one = pardiso.PardisoFactor(K)
+        one.cycle = one  # only the cycle collector frees it
+        pardiso.set_threads(2)
+        two = pardiso.PardisoFactor(K)
+        np.testing.assert_allclose(two.solve(b), want, rtol=1e-9, atol=0)
+        assert lib.MKL_Get_Max_Threads() == 2
+        del one
+        gc.collect()
+        assert lib.MKL_Get_Max_Threads() == 2
+        assert len(pardiso._RELEASED) == 1
+        np.testing.assert_allclose(two.solve(b), want, rtol=1e-9, atol=0)
+        assert not pardiso._RELEASED
+    finally:
+        gc.enable()
+        pardiso.set_threads(None)
 
 
 @needs_mkl

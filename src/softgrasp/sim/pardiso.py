@@ -38,6 +38,7 @@ import glob
 import math
 import os
 import sys
+import threading
 import time
 from ctypes.util import find_library
 from functools import cache
@@ -153,6 +154,48 @@ def _use_threads(lib: ctypes.CDLL, n: int) -> None:
         _current_threads = n
 
 
+#: Every PARDISO call and thread-count change is made holding this lock, so that calls from
+#: several Python threads keep :data:`_current_threads` the count of the call being made (a
+#: factor called with another count than it was analysed with crashes MKL: a segmentation fault,
+#: measured here).
+_LOCK = threading.RLock()
+#: Handles of collected factors waiting to be released: (handle, thread count, the arrays the
+#: handle was made with). A finaliser only appends here; the next PARDISO call releases them.
+_RELEASED: list[tuple[NDArray[np.int64], int, tuple[NDArray, ...]]] = []
+
+
+def _release_pending(fn) -> None:
+    """Release the memory of collected factors (phase -1, each with its own thread count).
+    Called holding :data:`_LOCK`, before a call sets its own thread count."""
+    while _RELEASED:
+        pt, threads, (data, indptr, indices, iparm) = _RELEASED.pop()
+        lib = _library()
+        if lib is None:  # pragma: no cover - a factor exists only where MKL loaded
+            return
+        _use_threads(lib, threads)
+        err = ctypes.c_int32(0)
+        n = ctypes.c_int32(indptr.size - 1)
+        dummy = np.zeros(1)
+        fn(
+            pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+            ctypes.byref(ctypes.c_int32(1)),
+            ctypes.byref(ctypes.c_int32(1)),
+            ctypes.byref(ctypes.c_int32(SYMMETRIC_INDEFINITE)),
+            ctypes.byref(ctypes.c_int32(-1)),
+            ctypes.byref(n),
+            data.ctypes.data_as(_DBL),
+            indptr.ctypes.data_as(_INT),
+            indices.ctypes.data_as(_INT),
+            None,
+            ctypes.byref(ctypes.c_int32(1)),
+            iparm.ctypes.data_as(_INT),
+            ctypes.byref(ctypes.c_int32(0)),
+            dummy.ctypes.data_as(_DBL),
+            dummy.ctypes.data_as(_DBL),
+            ctypes.byref(err),
+        )
+
+
 @cache
 def _library() -> ctypes.CDLL | None:
     """MKL's single dynamic library, or None where it is not installed."""
@@ -265,8 +308,7 @@ class PardisoFactor:
         x = np.zeros(self.n) if b is not None else np.zeros(1)
         rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
         err = ctypes.c_int32(0)
-        _use_threads(self._lib, self._threads)
-        self._fn(
+        args = (
             self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
             ctypes.byref(ctypes.c_int32(1)),  # maxfct
             ctypes.byref(ctypes.c_int32(1)),  # mnum
@@ -284,6 +326,12 @@ class PardisoFactor:
             x.ctypes.data_as(_DBL),
             ctypes.byref(err),
         )
+        with _LOCK:
+            # A collector run in between (any allocation may start one) only queues releases:
+            # nothing changes the thread count between the next line and the call.
+            _release_pending(self._fn)
+            _use_threads(self._lib, self._threads)
+            self._fn(*args)
         if err.value != 0:
             raise PardisoError(
                 f"PARDISO phase {phase} failed: {_ERRORS.get(err.value, 'error')} ({err.value})"
@@ -421,8 +469,12 @@ class PardisoFactor:
         return int(self._iparm[13])
 
     def __del__(self) -> None:
+        # The release is queued for the next PARDISO call, never made here: a finaliser runs
+        # wherever the collector starts (inside another factor's call, after that call set its
+        # thread count; on another Python thread during a call) and would set this factor's
+        # thread count under the other's feet.
         try:
             if self._pt.any():
-                self._call(-1, self._data)
+                _RELEASED.append((self._pt, self._threads, (self._data, self._indptr, self._indices, self._iparm)))
         except Exception:  # noqa: BLE001 - never raise from a finaliser
             pass
