@@ -88,6 +88,56 @@ def test_collected_factor_leaves_the_thread_count_alone():
         pardiso.set_threads(None)
 
 
+_COLLECTED_DURING_REFACTORISATION = """
+import gc, random, sys
+import numpy as np, scipy.sparse as sp
+from softgrasp.body import build_body
+from softgrasp.material import preset
+from softgrasp.mesh.generate import box
+from softgrasp.sim import pardiso
+K = -build_body(box(0.05, 8), preset("foam"), mass=0.0125).rest_jacobian
+K = (K + 1e-3 * sp.diags(K.diagonal())).tocsr()
+b = np.ones(K.shape[0])
+pardiso.set_threads(2)
+two = pardiso.PardisoFactor(K)
+want = two.solve(b)
+rng = random.Random(1)
+for k in range(12):
+    gc.disable()
+    pardiso.set_threads(1)
+    one = pardiso.PardisoFactor(K)
+    one.cycle = one
+    holder = [one]
+    del one
+    gc.collect(0)
+    gc.collect(0)
+    holder.clear()  # unreachable now, in an older generation: the next collection frees it
+    gc.set_threshold(rng.randint(1, 12), 0, 0)  # ... somewhere inside the next calls
+    gc.enable()
+    two.refactor(two.same_pattern(K))
+    err = float(np.abs(two.solve(b) - want).max() / np.abs(want).max())
+    gc.set_threshold(700, 10, 10)
+    assert err < 1e-9, err
+print("ok")
+"""
+
+
+@needs_mkl
+def test_factor_collected_during_another_factorisation_does_not_crash():
+    """The crash itself, in a child process: one-thread factors freed by the cycle collector at
+    chance points inside a two-thread factor's refactorisations and solves (a factorisation run
+    with another thread count than its analysis was a segmentation fault here). Every solve stays
+    exact and the child exits normally."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", _COLLECTED_DURING_REFACTORISATION], capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
+    assert out.stdout.strip() == "ok"
+
+
 @needs_mkl
 def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
     """With automatic threads, a factor analysed on two idle cores is analysed again with one
