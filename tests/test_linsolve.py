@@ -370,3 +370,107 @@ def test_fast_and_reference_solvers_reach_the_same_rest_with_friction():
     assert np.abs(f_fast - f_ref).max() <= 1e-8 * np.linalg.norm(f_ref)
     assert np.abs(x_fast - x_ref).max() <= 1e-9
     assert it_fast < it_ref
+
+
+# ------------------------------------------------------------------ the corrected old factor
+
+
+def _table_blocks(K: sp.csr_matrix, nodes, scale: float) -> sp.csr_matrix:
+    """A table's penalty on ``nodes``: ``scale`` times each node's own diagonal, normal and
+    tangential (3x3 diagonal blocks)."""
+    d = np.zeros(K.shape[0])
+    for i in nodes:
+        d[3 * i : 3 * i + 3] = scale * K.diagonal()[3 * i : 3 * i + 3]
+    return sp.diags(d).tocsr()
+
+
+@needs_mkl
+def test_the_old_factor_corrected_for_new_contacts_is_the_new_matrix_inverse():
+    """A0 factorised, then six nodes touch a table (a penalty 50 times their stiffness): the
+    Woodbury-corrected old factor applied to b is A^-1 b, as fresh LU gives it, for A the new
+    matrix (the difference lies on those nodes only). The plain old factor is far from it."""
+    from softgrasp.sim.linsolve import _Corrected
+
+    K = _stiffness()
+    f = pardiso.PardisoFactor(K)
+    A = (K + _table_blocks(K, [0, 3, 7, 11, 20, 31], 50.0)).tocsr()
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    cache = SolverCache()
+    pre = _Corrected(f, f.same_pattern(A), cache)
+    assert pre.nodes == 6 and cache.stats["correction_columns"] == 18
+    exact = spla.spsolve(A.tocsc(), b)
+    assert np.abs(pre.solve(b) - exact).max() <= 1e-9 * np.abs(exact).max()
+    assert np.abs(f.solve(b) - exact).max() > 0.1 * np.abs(exact).max()
+    # Two more nodes touch: only their columns are new; after a refactorisation all are.
+    A2 = (A + _table_blocks(K, [40, 41], 50.0)).tocsr()
+    pre2 = _Corrected(f, f.same_pattern(A2), cache)
+    assert pre2.nodes == 8 and cache.stats["correction_columns"] == 24
+    exact2 = spla.spsolve(A2.tocsc(), b)
+    assert np.abs(pre2.solve(b) - exact2).max() <= 1e-9 * np.abs(exact2).max()
+    f.refactor(f.same_pattern(A))
+    cache.stats["factorisations"] += 1
+    pre3 = _Corrected(f, f.same_pattern(A2), cache)
+    assert pre3.nodes == 2 and cache.stats["correction_columns"] == 30
+    assert np.abs(pre3.solve(b) - exact2).max() <= 1e-9 * np.abs(exact2).max()
+
+
+@needs_mkl
+def test_the_old_factor_is_not_corrected_where_stiffness_was_taken_away():
+    """The table removed (the hold check's release): the factor of the matrix with the table is
+    used as it is (correcting it could give a nearly singular matrix)."""
+    from softgrasp.sim.linsolve import _Corrected
+
+    K = _stiffness()
+    A0 = (K + _table_blocks(K, [0, 3, 7], 50.0)).tocsr()
+    f = pardiso.PardisoFactor(A0)
+    pre = _Corrected(f, f.same_pattern(K), SolverCache())
+    b = np.random.default_rng(4).standard_normal(K.shape[0])
+    assert pre.nodes == 0
+    assert np.array_equal(pre.solve(b), f.solve(b))
+
+
+@needs_mkl
+@pytest.mark.parametrize("used", ["few", "many"])
+def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_system(monkeypatch, used):
+    """A system solved on the old factor with more than half the iteration cap (a quarter of a
+    refactorisation's cost) has the next system refactorise first; one solved in fewer keeps the
+    factor. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
+    import softgrasp.sim.linsolve as ls
+
+    K = _stiffness()
+    b = np.random.default_rng(5).standard_normal(K.shape[0])
+    cache = SolverCache(method="pardiso")
+    solve_newton_system(K, b, None, np.zeros((K.shape[0] // 3, 3)), cache)  # analyse + factorise
+    cap = int(np.clip(0.5 * ls.SOLVE_SPEED_RATIO * cache._factor.solves_per_factorisation, 4, 40))
+    n = int(ls.STALE_REFRESH * cap) + (1 if used == "many" else 0)
+
+    def stand_in(A, rhs, pre, max_it, rtol):
+        for _ in range(n):
+            pre.solve(rhs)
+        return spla.spsolve(A.tocsc(), rhs)
+
+    monkeypatch.setattr(ls, "_stale_pcg", stand_in)
+    K2 = (1.01 * K).tocsr()
+    before = cache.stats["factorisations"]
+    solve_newton_system(K2, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
+    assert cache.stats["factorisations"] == before  # solved on the old factor
+    solve_newton_system(K2, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
+    assert cache.stats["factorisations"] == before + (1 if used == "many" else 0)
+
+
+@needs_mkl
+def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
+    """Contacts that move over the surface on one factor (new nodes each system) do not pile up
+    columns: past six times the most corrected nodes' worth, only the current nodes' are kept."""
+    import softgrasp.sim.linsolve as ls
+
+    K = _stiffness()
+    f = pardiso.PardisoFactor(K)
+    cache = SolverCache()
+    n_nodes = K.shape[0] // 3
+    m = ls.CORRECT_MAX_NODES
+    for k in range(8):
+        nodes = [(k * m + i) % n_nodes for i in range(m)]
+        ls._Corrected(f, f.same_pattern((K + _table_blocks(K, nodes, 50.0)).tocsr()), cache)
+        # columns are kept per unknown: at most the threshold's plus the current nodes' three each
+        assert len(cache._correction[2]) <= 6 * m + 3 * m

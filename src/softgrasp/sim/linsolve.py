@@ -8,7 +8,8 @@ on the constraint null space. Three solvers, chosen by size and what is installe
   sparsity pattern (the body's pattern does not change between Newton iterations, load steps and
   holding steps); each system first tries a few conjugate-gradient iterations preconditioned by the
   factorisation it already has (a Newton matrix changes little from one iteration to the next),
-  and refactorises numerically only when they do not converge fast enough;
+  corrected by the Woodbury formula for the few nodes that have gained much stiffness since
+  (contacts made), and refactorises numerically only when they do not converge fast enough;
 * sparse LU of the saddle-point system for constrained systems (and small systems without MKL);
 * conjugate gradients preconditioned by smoothed-aggregation algebraic multigrid (pyamg) with the
   rigid-body modes as near-null space — the standard scalable solver for elasticity — for the
@@ -85,6 +86,7 @@ class SolverCache:
     _iterations: list[int] = field(default_factory=list, repr=False)
     _factor: pardiso.PardisoFactor | None = field(default=None, repr=False)
     _try_stale: bool = field(default=True, repr=False)
+    _correction: Any = field(default=None, repr=False)
     stats: dict[str, int] = field(
         default_factory=lambda: {"analyses": 0, "factorisations": 0, "stale_solves": 0, "amg_solves": 0},
         repr=False,
@@ -218,7 +220,11 @@ def _pcg(
 
 
 def _stale_pcg(
-    A: sp.csr_matrix, b: NDArray[np.float64], f: pardiso.PardisoFactor, max_it: int, rtol: float = STALE_RTOL
+    A: sp.csr_matrix,
+    b: NDArray[np.float64],
+    f: pardiso.PardisoFactor | _Corrected,
+    max_it: int,
+    rtol: float = STALE_RTOL,
 ) -> NDArray[np.float64] | None:
     """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
     matrix; None when they do not reach ``rtol`` in ``max_it`` iterations (or meet negative
@@ -309,6 +315,100 @@ def _amg_gmres(
     return None
 
 
+class _Corrected:
+    """The factorisation of an earlier Newton matrix A0, corrected for the nodes where the current
+    matrix A has gained stiffness since (contacts made: a table node touching down adds a penalty
+    stiffness ~50 times its own). With E selecting those nodes' unknowns and C the difference of
+    A and A0 on them (Woodbury),
+
+        (A0 + E C E^T)^-1 r = y - Z C (I + G C)^-1 y_S,   y = A0^-1 r,  Z = A0^-1 E,  G = E^T Z,
+
+    which is A^-1 r where A differs from A0 only there. Each changed node costs three solves with
+    the factor, once per factorisation (the columns of Z are kept in the cache); each application
+    one solve and a product with Z. Where stiffness was taken away (a contact lost, the table
+    removed) A0 + E C E^T may be nearly singular: the factor is used as it is, and a
+    refactorisation follows when it no longer converges.
+
+    Parameters
+    ----------
+    f: the factorisation of A0.  U: the upper triangle of A in the factor's pattern
+    (:meth:`~softgrasp.sim.pardiso.PardisoFactor.same_pattern`).  cache: where the columns are kept.
+    """
+
+    def __init__(self, f: pardiso.PardisoFactor, U: sp.csr_matrix, cache: SolverCache) -> None:
+        self._f = f
+        self._Z: NDArray[np.float64] | None = None
+        self.applications = 0  # solves with it so far
+        n = f.n
+        base = f.values
+        diag = U.indptr[:-1]  # the diagonal leads each row of the sorted upper triangle
+        # A contact adds to the diagonal blocks of its nodes: their change flags the nodes.
+        ratio = (np.abs(U.data[diag] - base[diag]) / np.maximum(np.abs(base[diag]), 1e-300)).reshape(-1, 3)
+        ratio = ratio.max(axis=1)
+        nodes = np.flatnonzero(ratio > CORRECT_RTOL)
+        if not len(nodes):
+            return
+        if len(nodes) > CORRECT_MAX_NODES:
+            nodes = np.sort(nodes[np.argsort(-ratio[nodes], kind="stable")[:CORRECT_MAX_NODES]])
+        S = (3 * nodes[:, None] + np.arange(3)).ravel()
+        # C: the difference on S x S, both triangles (from the rows of S in the upper triangle).
+        where = np.full(n, -1)
+        where[S] = np.arange(len(S))
+        seg = np.concatenate([np.arange(U.indptr[r], U.indptr[r + 1]) for r in S])
+        rows = np.repeat(where[S], np.diff(U.indptr)[S])
+        cols = where[U.indices[seg]]
+        keep = cols >= 0
+        d = U.data[seg[keep]] - base[seg[keep]]
+        C = np.zeros((len(S), len(S)))
+        C[rows[keep], cols[keep]] = d
+        C[cols[keep], rows[keep]] = d
+        ev = np.linalg.eigvalsh(C)
+        if ev[0] < -1e-9 * max(abs(ev[-1]), 1e-300):
+            return  # stiffness taken away
+        count = cache.stats["factorisations"]
+        columns: dict[int, NDArray[np.float64]] = {}
+        if cache._correction is not None and cache._correction[0] is f and cache._correction[1] == count:
+            columns = cache._correction[2]
+            if len(columns) > 6 * CORRECT_MAX_NODES:  # two full sets of columns: keep the current ones
+                columns = {j: v for j, v in columns.items() if where[j] >= 0}
+        new = [int(j) for j in S if int(j) not in columns]
+        e = np.zeros(n)
+        for j in new:  # one right-hand side a solve: the factor was analysed for one
+            e[j] = 1.0
+            columns[j] = f.solve(e)
+            e[j] = 0.0
+        if new:
+            cache.stats["correction_columns"] = cache.stats.get("correction_columns", 0) + len(new)
+        cache._correction = (f, count, columns)
+        Z = np.column_stack([columns[int(j)] for j in S])
+        self._S = S
+        self._W = C @ np.linalg.inv(np.eye(len(S)) + Z[S, :] @ C)
+        self._Z = Z
+
+    @property
+    def nodes(self) -> int:
+        """How many nodes it corrects for (0: the factor as it is)."""
+        return 0 if self._Z is None else len(self._S) // 3
+
+    def solve(self, r: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``(A0 + E C E^T)^-1 r``."""
+        self.applications += 1
+        y = self._f.solve(r)
+        if self._Z is None:
+            return y
+        return y - self._Z @ (self._W @ y[self._S])
+
+
+#: A solve with an old factor that took more than this fraction of its iteration cap (the cap is
+#: half a refactorisation's cost in solves) has the next system refactorise first.
+STALE_REFRESH = 0.5
+#: A node counts as changed since the factorisation when one of its diagonal entries differs by more
+#: than this fraction of its factorised value (a new table contact: ~50 times).
+CORRECT_RTOL = 0.5
+#: At most this many changed nodes (the largest changes) are corrected for.
+CORRECT_MAX_NODES = 24
+
+
 def _pardiso(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
@@ -330,12 +430,15 @@ def _pardiso(
         if cache._try_stale:
             # As many iterations with the old factor as half a refactorisation costs in solves.
             cap = int(np.clip(0.5 * SOLVE_SPEED_RATIO * f.solves_per_factorisation, 4, 40))
+            # The old factor, corrected for the nodes that gained stiffness since.
+            pre = _Corrected(f, U, cache)
             if matvec is not None:
-                x = _gmres(matvec, b, f.solve, cap, rtol)
+                x = _gmres(matvec, b, pre.solve, cap, rtol)
             else:
-                x = _stale_pcg(A, b, f, cap, rtol)
-        # After a failed attempt the next system goes straight to a refactorisation.
-        cache._try_stale = x is not None
+                x = _stale_pcg(A, b, pre, cap, rtol)
+            # After a failed attempt, or one that converged at more than a quarter of a
+            # refactorisation's cost (the factor only ages), the next system refactorises first.
+            cache._try_stale = x is not None and pre.applications <= STALE_REFRESH * cap
         if x is not None:
             cache.stats["stale_solves"] += 1
             return x, np.zeros(0)

@@ -415,6 +415,11 @@ class PardisoFactor:
         self._solve_times = [min(self._solve_times[0], dt), dt]
         return x
 
+    @property
+    def values(self) -> NDArray[np.float64]:
+        """The upper triangle's values last factorised (in the factor's CSR pattern)."""
+        return self._data
+
     def _fewer_threads(self) -> bool:
         """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
         fewer cores are idle than this factor's threads, with the last solve slower than
