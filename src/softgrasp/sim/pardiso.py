@@ -156,8 +156,8 @@ def _use_threads(lib: ctypes.CDLL, n: int) -> None:
 
 #: Every PARDISO call and thread-count change is made holding this lock, so that calls from
 #: several Python threads keep :data:`_current_threads` the count of the call being made (a
-#: factor called with another count than it was analysed with crashes MKL: a segmentation fault,
-#: measured here).
+#: numerical factorisation run with another count than its pattern's analysis crashes MKL: a
+#: segmentation fault, reproduced here; solves survived it).
 _LOCK = threading.RLock()
 #: Handles of collected factors waiting to be released: (handle, thread count, the arrays the
 #: handle was made with). A finaliser only appends here; the next PARDISO call releases them.
