@@ -441,3 +441,72 @@ def test_open_and_broken_surfaces(tmp_path, coarse_sphere: TetMesh) -> None:
     write_surface(tmp_path / "rp2.stl", rng.random((6, 3)) * 0.01, rp2)
     with pytest.raises(MeshError, match="not orientable"):
         load_mesh(tmp_path / "rp2.stl")
+
+
+# ---------------------------------------------------------------------------- numbering
+def _edge_spread(mesh: TetMesh) -> float:
+    """Mean difference of the two node numbers of an edge."""
+    e = mesh.edges
+    return float(np.abs(e[:, 1] - e[:, 0]).mean())
+
+
+def test_reordered_mesh_is_the_same_solid_numbered_locally() -> None:
+    """Renumbering moves no node and changes no tet: the same tets as coordinate quadruples (each
+    with its own node order, so its orientation), the same boundary, every tet's volume; the
+    neighbours' numbers come close (a random numbering of the same mesh as the peer), and tets
+    run by their lowest node."""
+    rng = np.random.default_rng(7)
+    base = box((0.03, 0.05, 0.07), (4, 5, 6))
+    perm = rng.permutation(base.n_nodes)  # a scattered numbering of the same solid
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(perm.size)
+    scattered = TetMesh(base.points[perm], inv[base.tets][rng.permutation(base.n_tets)])
+    local = scattered.reordered()
+
+    def solid(m: TetMesh) -> set[bytes]:
+        return {m.points[t].tobytes() for t in m.tets}
+
+    assert solid(local) == solid(scattered) == solid(base)
+    assert {local.points[f].tobytes() for f in local.facets} == {scattered.points[f].tobytes() for f in scattered.facets}
+    assert sorted(local.volumes) == sorted(scattered.volumes)
+    assert local.volume == pytest.approx(scattered.volume, rel=1e-14)
+    # RCM numbers the nodes by breadth-first levels, each a cross-section of the solid: an edge
+    # joins numbers less than about a cross-section's node count (~n^(2/3)) apart; a random
+    # numbering puts them ~n/3 apart
+    assert _edge_spread(scattered) > 0.3 * scattered.n_nodes
+    assert _edge_spread(local) < local.n_nodes ** (2 / 3)
+    assert (np.diff(local.tets.min(axis=1)) >= 0).all()
+
+
+def test_gmsh_meshes_come_numbered_locally(default_sphere: TetMesh) -> None:
+    """The gmsh sphere comes reordered: its edges join numbers less than a cross-section's node
+    count apart (gmsh's own numbering: ~n / 3.7, near a random one's n / 3)."""
+    assert _edge_spread(default_sphere) < default_sphere.n_nodes ** (2 / 3)
+    assert (np.diff(default_sphere.tets.min(axis=1)) >= 0).all()
+
+
+def test_body_forces_do_not_depend_on_the_numbering() -> None:
+    """The body built from the renumbered mesh has the same masses, internal forces and
+    Jacobian (permuted) at a deformed state: the numbering is bookkeeping, not physics."""
+    from softgrasp.body import build_body
+    from softgrasp.material import preset
+
+    mesh = sphere(R, 0.024, on_table=False)
+    rng = np.random.default_rng(3)
+    perm = rng.permutation(mesh.n_nodes)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(perm.size)
+    scattered = TetMesh(mesh.points[perm], inv[mesh.tets])
+    local = scattered.reordered()
+    # local.points = scattered.points[p]: find p from the coordinates
+    key = {scattered.points[i].tobytes(): i for i in range(scattered.n_nodes)}
+    p = np.array([key[q.tobytes()] for q in local.points])
+    a = build_body(scattered, preset("rubber"), mass=0.05)
+    b = build_body(local, preset("rubber"), mass=0.05)
+    x = scattered.points + 1e-3 * rng.standard_normal(scattered.points.shape)
+    np.testing.assert_allclose(b.mass, a.mass[p], rtol=1e-13, atol=0)
+    fa = a.internal_forces(x)
+    np.testing.assert_allclose(b.internal_forces(x[p]), fa[p], rtol=0, atol=1e-12 * np.abs(fa).max())
+    idx = (3 * p[:, None] + np.arange(3)).ravel()
+    Ja = a.internal_jacobian(x).toarray()[np.ix_(idx, idx)]
+    np.testing.assert_allclose(b.internal_jacobian(x[p]).toarray(), Ja, rtol=0, atol=1e-12 * np.abs(Ja).max())

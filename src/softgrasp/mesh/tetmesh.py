@@ -285,6 +285,32 @@ class TetMesh:
             raise MeshError(f"scale factor must be > 0, got {factor}")
         return TetMesh(self.points * factor, self.tets, name=self.name)
 
+    def reordered(self) -> TetMesh:
+        """The same solid numbered for memory locality: nodes in reverse Cuthill-McKee order of
+        the edge graph (the nodes of a tet get nearby numbers), tets sorted by their lowest node,
+        each tet's own node order (its orientation) kept.
+
+        The force and Jacobian kernels gather and scatter per edge and per tet, and the sparse
+        solvers sweep rows of the Jacobian; with gmsh's numbering (the nodes of one edge ~600
+        apart on average in a 2 196-node sphere, as far as random numbers) every element touches
+        far-apart memory. Measured on the 27 749-node sphere: the body's Jacobian 110-118 ->
+        42 ms, its forces 4.5 -> 3.3 ms."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        n = self.n_nodes
+        e = self.edges
+        graph = csr_matrix(
+            (np.ones(2 * len(e), dtype=np.int8), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))),
+            shape=(n, n),
+        )
+        perm = np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True), dtype=np.int64)
+        new = np.empty(n, dtype=np.int64)
+        new[perm] = np.arange(n, dtype=np.int64)
+        tets = new[self.tets]
+        tets = tets[np.lexsort((tets.max(axis=1), tets.min(axis=1)))]
+        return TetMesh(self.points[perm], tets, name=self.name)
+
     def on_table(self) -> TetMesh:
         """A copy translated so that its lowest point lies on the table plane z = 0 and its
         volume centroid is above the origin."""
