@@ -59,6 +59,30 @@ def test_factors_with_different_thread_counts_interleave():
 
 
 @needs_mkl
+def test_factor_uses_cholesky_while_positive_definite_and_ldlt_otherwise():
+    """A positive definite matrix is factorised by Cholesky; one with negative eigenvalues falls
+    back to LDL^T (which counts them: as many as the dense eigenvalues say) and the next
+    ``SPD_RETRY`` factorisations stay there before Cholesky is tried again. Every solve matches
+    SciPy's sparse LU to 1e-9. A singular stiffness (a free body) is refused by Cholesky too,
+    though PARDISO's Cholesky raises nothing on it: its pivots fall to ~1e-14 of the diagonal."""
+    K = _stiffness(shift=0.0)
+    b = np.random.default_rng(6).standard_normal(K.shape[0])
+    spd = (K + 1e-3 * sp.diags(K.diagonal())).tocsr()
+    ind = (K - 1e-2 * sp.diags(K.diagonal())).tocsr()
+    negative = int((np.linalg.eigvalsh(ind.toarray()) < 0).sum())
+    assert negative > 0
+    f = pardiso.PardisoFactor(spd)
+    seen = []
+    for M in [spd, ind] + [spd] * (pardiso.SPD_RETRY + 1):
+        f.refactor(f.same_pattern(M))
+        np.testing.assert_allclose(f.solve(b), spla.spsolve(M.tocsc(), b), rtol=1e-9, atol=0)
+        seen.append((f.positive_definite, f.negative_pivots))
+    assert seen == [(True, 0), (False, negative)] + [(False, 0)] * pardiso.SPD_RETRY + [(True, 0)]
+    f.refactor(f.same_pattern(K.tocsr()))  # rigid motions free: singular
+    assert not f.positive_definite
+
+
+@needs_mkl
 def test_collected_factor_leaves_the_thread_count_alone():
     """A factor freed by the cycle collector (which runs wherever an allocation starts it: inside
     another factor's call, after that call set its thread count) makes no MKL call then: MKL's
