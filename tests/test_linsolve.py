@@ -92,10 +92,12 @@ def test_collected_factor_leaves_the_thread_count_alone():
     b = np.random.default_rng(4).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
     lib = pardiso._library()
+    gc.collect()  # cycles left by earlier tests queue now; the next call releases them
     gc.disable()
     try:
         pardiso.set_threads(1)
         one = pardiso.PardisoFactor(K)
+        assert not pardiso._RELEASED
         one.cycle = one  # only the cycle collector frees it
         pardiso.set_threads(2)
         two = pardiso.PardisoFactor(K)

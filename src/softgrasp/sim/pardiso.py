@@ -67,8 +67,10 @@ SPD_RETRY = 4
 #: A Cholesky factorisation with a pivot below this fraction of its matrix's diagonal entry counts
 #: as not positive definite: PARDISO's Cholesky of a singular positive semi-definite stiffness
 #: (a body not held: rigid motions free) succeeds with pivots ~1e-14 of the diagonal, reports
-#: nothing, and its solves blow the free motions up; LDL^T perturbs such pivots (below 1e-8,
-#: ``iparm[9]``) and says so (:attr:`PardisoFactor.perturbed_pivots`).
+#: nothing, and its solves blow the free motions up. Such a matrix then gets the LDL^T factor it
+#: had before Cholesky was used. (LDL^T does not flag it either: its pivot perturbation does not
+#: scale with the matrix; a free foam cube's stiffness, diagonal ~1e5 N/m, gives
+#: :attr:`PardisoFactor.perturbed_pivots` 0, the same matrix times 1e-9 gives 6.)
 SPD_PIVOT_RTOL = 1e-8
 #: PARDISO's error code for a zero or negative pivot (a Cholesky of a matrix that is not positive
 #: definite).
@@ -345,7 +347,7 @@ class PardisoFactor:
                 if self._min_pivot_ratio() >= SPD_PIVOT_RTOL:
                     self._use(SYMMETRIC_POSITIVE_DEFINITE)
                     return
-                self._skip_spd = SPD_RETRY  # singular: LDL^T perturbs and reports the pivots
+                self._skip_spd = SPD_RETRY  # (nearly) singular: LDL^T, as before Cholesky
         self._analysed(SYMMETRIC_INDEFINITE)
         self._call(22, self._data, mtype=SYMMETRIC_INDEFINITE)
         self._use(SYMMETRIC_INDEFINITE)
