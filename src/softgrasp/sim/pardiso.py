@@ -190,36 +190,47 @@ _LOCK = threading.RLock()
 _RELEASED: list[tuple[NDArray[np.int64], int, int, tuple[NDArray, ...]]] = []
 
 
-def _release_pending(fn) -> None:
+def _arguments(
+    pt: NDArray[np.int64],
+    mtype: int,
+    phase: int,
+    data: NDArray[np.float64],
+    indptr: NDArray[np.int32],
+    indices: NDArray[np.int32],
+    iparm: NDArray[np.int32],
+    rhs: NDArray[np.float64],
+    x: NDArray[np.float64],
+    err: ctypes.c_int32,
+) -> tuple:
+    """The sixteen arguments of one ``pardiso`` call (one right-hand side, no messages)."""
+    return (
+        pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+        ctypes.byref(ctypes.c_int32(1)),  # maxfct
+        ctypes.byref(ctypes.c_int32(1)),  # mnum
+        ctypes.byref(ctypes.c_int32(mtype)),
+        ctypes.byref(ctypes.c_int32(phase)),
+        ctypes.byref(ctypes.c_int32(indptr.size - 1)),  # n
+        data.ctypes.data_as(_DBL),
+        indptr.ctypes.data_as(_INT),
+        indices.ctypes.data_as(_INT),
+        None,  # perm
+        ctypes.byref(ctypes.c_int32(1)),  # nrhs
+        iparm.ctypes.data_as(_INT),
+        ctypes.byref(ctypes.c_int32(0)),  # msglvl
+        rhs.ctypes.data_as(_DBL),
+        x.ctypes.data_as(_DBL),
+        ctypes.byref(err),
+    )
+
+
+def _release_pending(lib: ctypes.CDLL) -> None:
     """Release the memory of collected factors (phase -1, each with its own thread count).
     Called holding :data:`_LOCK`, before a call sets its own thread count."""
     while _RELEASED:
         pt, threads, mtype, (data, indptr, indices, iparm) = _RELEASED.pop()
-        lib = _library()
-        if lib is None:  # pragma: no cover - a factor exists only where MKL loaded
-            return
         _use_threads(lib, threads)
-        err = ctypes.c_int32(0)
-        n = ctypes.c_int32(indptr.size - 1)
         dummy = np.zeros(1)
-        fn(
-            pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-            ctypes.byref(ctypes.c_int32(1)),
-            ctypes.byref(ctypes.c_int32(1)),
-            ctypes.byref(ctypes.c_int32(mtype)),
-            ctypes.byref(ctypes.c_int32(-1)),
-            ctypes.byref(n),
-            data.ctypes.data_as(_DBL),
-            indptr.ctypes.data_as(_INT),
-            indices.ctypes.data_as(_INT),
-            None,
-            ctypes.byref(ctypes.c_int32(1)),
-            iparm.ctypes.data_as(_INT),
-            ctypes.byref(ctypes.c_int32(0)),
-            dummy.ctypes.data_as(_DBL),
-            dummy.ctypes.data_as(_DBL),
-            ctypes.byref(err),
-        )
+        lib.pardiso(*_arguments(pt, mtype, -1, data, indptr, indices, iparm, dummy, dummy, ctypes.c_int32(0)))
 
 
 @cache
@@ -414,28 +425,13 @@ class PardisoFactor:
         x = np.zeros(self.n) if b is not None else np.zeros(1)
         rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
         err = ctypes.c_int32(0)
-        args = (
-            self._pts[mtype].ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-            ctypes.byref(ctypes.c_int32(1)),  # maxfct
-            ctypes.byref(ctypes.c_int32(1)),  # mnum
-            ctypes.byref(ctypes.c_int32(mtype)),
-            ctypes.byref(ctypes.c_int32(phase)),
-            ctypes.byref(ctypes.c_int32(self.n)),
-            data.ctypes.data_as(_DBL),
-            self._indptr.ctypes.data_as(_INT),
-            self._indices.ctypes.data_as(_INT),
-            None,  # perm
-            ctypes.byref(ctypes.c_int32(1)),  # nrhs
-            self._iparms[mtype].ctypes.data_as(_INT),
-            ctypes.byref(ctypes.c_int32(0)),  # msglvl
-            rhs.ctypes.data_as(_DBL),
-            x.ctypes.data_as(_DBL),
-            ctypes.byref(err),
+        args = _arguments(
+            self._pts[mtype], mtype, phase, data, self._indptr, self._indices, self._iparms[mtype], rhs, x, err
         )
         with _LOCK:
             # A collector run in between (any allocation may start one) only queues releases:
             # nothing changes the thread count between the next line and the call.
-            _release_pending(self._fn)
+            _release_pending(self._lib)
             _use_threads(self._lib, self._threads)
             self._fn(*args)
         if err.value != 0:
