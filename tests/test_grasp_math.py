@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.grasp import closure
 from softgrasp.grasp.closure import (
     ferrari_canny,
     ferrari_canny_bound,
@@ -191,6 +192,74 @@ def test_support_bounds_lie_above_epsilon_and_the_nearest_facet_attains_it() -> 
         others = support_bounds(w, np.broadcast_to(normals, (40, 5, 6)))
         assert (np.maximum(others, 0.0) >= eps - 1e-15).all()
     assert np.isinf(support_bounds(w, np.zeros((40, 0, 6)))).all()
+
+
+def _epsilon_by_enumeration(w: np.ndarray) -> float:
+    """The smallest facet offset of the hull of ``w`` (n, 6) from every hyperplane through six
+    affinely independent wrenches that has all the others on one side (no Qhull)."""
+    import itertools
+
+    best = math.inf
+    scale = float(np.abs(w).max())
+    for subset in itertools.combinations(range(len(w)), 6):
+        M = np.hstack([w[list(subset)], -np.ones((6, 1))])
+        _, s, vt = np.linalg.svd(M)
+        if s[-1] <= 1e-9 * s[0]:
+            continue  # the six are affinely dependent: no unique hyperplane
+        a, b = vt[-1, :6], vt[-1, 6]
+        norm = np.linalg.norm(a)
+        a, b = a / norm, b / norm
+        side = w @ a - b
+        if side.max() <= 1e-12 * scale:
+            best = min(best, b)
+        elif side.min() >= -1e-12 * scale:
+            best = min(best, -b)
+    return best
+
+
+@pytest.mark.parametrize("m", [3, 4])
+def test_hull_epsilon_matches_facet_enumeration(m: int) -> None:
+    """The signed epsilon from Qhull's hull (computed without merging where that is exact) equals
+    the one found by enumerating every candidate facet, on grasps of a sphere, of a cube's faces
+    (many coplanar wrenches) and in a horizontal plane."""
+    rng = np.random.default_rng(11)
+    sets = []
+    for _ in range(6):
+        n_out = rng.standard_normal((3, 3))
+        n_out /= np.linalg.norm(n_out, axis=1, keepdims=True)
+        sets.append((R * n_out, -n_out))
+    cube = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0]])
+    for _ in range(4):
+        p = 0.03 * cube + 0.01 * rng.uniform(-1, 1, (3, 3)) * (1 - np.abs(cube))
+        sets.append((p, -cube))
+    sets.append(TRIPOD)
+    checked = 0
+    for points, normals in sets:
+        w = primitive_wrenches(points, normals, 0.6, ORIGIN, m)
+        hull = closure._hull(w)
+        if hull is None:
+            continue
+        got = float(np.min(-hull.equations[:, -1]))
+        assert got == pytest.approx(_epsilon_by_enumeration(w), rel=1e-9, abs=1e-12 * np.abs(w).max())
+        checked += 1
+    assert checked >= 8
+
+
+def test_hull_without_merging_is_checked_and_recomputed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A hull from Qhull's unmerged run that leaves a wrench outside one of its facets is not
+    used: the hull is computed again with merging, and the epsilon is the right one."""
+    w = primitive_wrenches(*TRIPOD, 0.5, ORIGIN, 8)
+    want = wrench_epsilon(w)
+    real = closure.ConvexHull
+    calls = []
+
+    def partial_hull(points, qhull_options=None):  # the unmerged run misses the last wrench
+        calls.append(qhull_options)
+        return real(points[:-1], qhull_options=qhull_options) if qhull_options == "Q0" else real(points)
+
+    monkeypatch.setattr(closure, "ConvexHull", partial_hull)
+    assert wrench_epsilon(w) == pytest.approx(want, rel=1e-12)
+    assert calls == ["Q0", None]
 
 
 def test_bound_of_the_tripod_is_the_epsilon_of_its_circumscribed_cone() -> None:
