@@ -59,6 +59,24 @@ def test_van_gelder_alone_is_anisotropic_on_a_structured_box():
     assert fixed.calibration.anisotropy_after < 1e-10
 
 
+def test_direction_sums_from_moments_equal_the_direct_sums():
+    """The calibration's sums over springs and probe directions, D(m) = sum_e w_e (n_e . m)^4 and
+    the re-weighted ones sum_e w_e (n_e . m)^4 n_e^alpha, taken from the directions' fourth and
+    eighth moments, equal the sums taken term by term."""
+    from softgrasp import network
+
+    rng = np.random.default_rng(3)
+    n = rng.standard_normal((5000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    w = rng.uniform(0.1, 2.0, len(n))
+    probe = network.sphere_directions(50)
+    direct = ((n @ probe.T) ** 4).T @ w
+    np.testing.assert_allclose(network.affine_tensor_quartic(w, n, probe), direct, rtol=1e-12, atol=0)
+    mono = np.stack([n[:, 0] ** a * n[:, 1] ** b * n[:, 2] ** (4 - a - b) for a in range(5) for b in range(5 - a)], 1)
+    direct = ((n @ probe.T) ** 4).T @ (w[:, None] * mono)
+    np.testing.assert_allclose(network._reweighting_matrix(w, n, probe), direct, rtol=1e-12, atol=1e-14 * np.abs(direct).max())
+
+
 @pytest.mark.parametrize("nu", [0.25, 0.39, 0.45])
 def test_uniaxial_compression_recovers_E_and_nu(nu):
     """Lubricated small-strain compression of a box: apparent E within 10 %, nu within 0.05."""

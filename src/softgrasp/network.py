@@ -20,6 +20,7 @@ edges. Two problems remain and are fixed here:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,8 +33,8 @@ __all__ = ["NetworkCalibration", "calibrate_network", "affine_tensor_quartic", "
 
 #: Smallest spring re-weighting factor accepted before the correction is damped.
 MIN_WEIGHT = 0.25
-#: Springs per block of the direction sums (bounds the (springs x directions) temporaries to
-#: ~40 MB whatever the mesh size).
+#: Springs per block of the moment sums (bounds the (springs x monomials) temporaries to ~10 MB
+#: whatever the mesh size).
 CHUNK = 20_000
 
 
@@ -46,14 +47,40 @@ def sphere_directions(n: int = 200) -> NDArray[np.float64]:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
+def _exponents(degree: int) -> list[tuple[int, int, int]]:
+    """Exponents (a, b, c), a + b + c = ``degree``, of the monomials x^a y^b z^c in a fixed order."""
+    return [(a, b, degree - a - b) for a in range(degree + 1) for b in range(degree + 1 - a)]
+
+
+_QUARTIC = _exponents(4)  # the 15 degree-4 monomials
+_OCTIC = _exponents(8)  # the 45 degree-8 monomials (products of two quartic ones)
+#: Multinomial coefficients 4! / (a! b! c!): (n . m)^4 = sum over the quartic monomials of
+#: coefficient * n^alpha * m^alpha.
+_MULTINOMIAL = np.array([24.0 / (math.factorial(a) * math.factorial(b) * math.factorial(c)) for a, b, c in _QUARTIC])
+#: Position in _OCTIC of the product of quartic monomials q and r, (15, 15).
+_PRODUCT = np.array([[_OCTIC.index(tuple(i + j for i, j in zip(q, r, strict=True))) for r in _QUARTIC] for q in _QUARTIC])
+
+
+def _monomials(n: NDArray[np.float64], exponents: list[tuple[int, int, int]]) -> NDArray[np.float64]:
+    """The monomials n_x^a n_y^b n_z^c of the rows of ``n`` (K, 3), shape ``(K, len(exponents))``."""
+    top = max(max(e) for e in exponents)
+    powers = np.ones((top + 1, len(n), 3))  # powers[k] = n**k by repeated products
+    for k in range(1, top + 1):
+        powers[k] = powers[k - 1] * n
+    return np.stack([powers[a, :, 0] * powers[b, :, 1] * powers[c, :, 2] for a, b, c in exponents], axis=1)
+
+
 def _quartic_monomials(n: NDArray[np.float64]) -> NDArray[np.float64]:
     """The 15 degree-4 monomials of unit vectors n, shape ``(len(n), 15)``."""
-    cols = []
-    for a in range(5):
-        for b in range(5 - a):
-            c = 4 - a - b
-            cols.append(n[:, 0] ** a * n[:, 1] ** b * n[:, 2] ** c)
-    return np.stack(cols, axis=1)
+    return _monomials(n, _QUARTIC)
+
+
+def _moments(weights: NDArray[np.float64], n: NDArray[np.float64], exponents) -> NDArray[np.float64]:
+    """sum_e w_e n_e^alpha for each exponent alpha, in blocks of CHUNK rows."""
+    out = np.zeros(len(exponents))
+    for lo in range(0, len(n), CHUNK):
+        out += weights[lo : lo + CHUNK] @ _monomials(n[lo : lo + CHUNK], exponents)
+    return out
 
 
 def affine_tensor_quartic(
@@ -62,11 +89,20 @@ def affine_tensor_quartic(
     """D(m) = sum_e w_e (n_e · m)^4 at probe directions m, shape ``(len(probe),)``.
 
     With ``w_e = k_e L_e^2 / V`` this is C:(m⊗m⊗m⊗m) of the affine elasticity tensor [Pa].
+    Computed exactly from the 15 fourth moments of the directions, sum_e w_e n_e^alpha, by the
+    multinomial expansion of (n · m)^4: O(springs + probes) instead of their product.
     """
-    out = np.zeros(len(probe))
-    for lo in range(0, len(directions), CHUNK):
-        out += ((directions[lo : lo + CHUNK] @ probe.T) ** 4).T @ weights[lo : lo + CHUNK]
-    return out
+    return _monomials(probe, _QUARTIC) @ (_MULTINOMIAL * _moments(weights, directions, _QUARTIC))
+
+
+def _reweighting_matrix(
+    weights: NDArray[np.float64], directions: NDArray[np.float64], probe: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """G (P, 15): the columns give D(m) at the probes for springs re-weighted by each quartic
+    monomial of their direction, G[p, q] = sum_e w_e (n_e · m_p)^4 n_e^q, from the 45 eighth
+    moments of the directions (the multinomial expansion again)."""
+    M8 = _moments(weights, directions, _OCTIC)
+    return (_monomials(probe, _QUARTIC) * _MULTINOMIAL) @ M8[_PRODUCT]
 
 
 @dataclass(frozen=True)
@@ -142,11 +178,8 @@ def calibrate_network(mesh: TetMesh, E: float, nu: float, *, isotropize: bool = 
     weight = np.ones_like(L)
     if isotropize:
         # D(m) with springs weighted by p(n_e) = sum_q c_q mono_q(n_e) is linear in c.
+        G = _reweighting_matrix(w0, n, probe)  # (P, 15)
         mono = _quartic_monomials(n)  # (E, 15)
-        G = np.zeros((len(probe), mono.shape[1]))  # (P, 15)
-        for lo in range(0, len(n), CHUNK):
-            sl = slice(lo, lo + CHUNK)
-            G += ((n[sl] @ probe.T) ** 4).T @ (w0[sl, None] * mono[sl])
         target = np.full(len(probe), D0.mean())
         c, *_ = np.linalg.lstsq(G, target, rcond=None)
         p = mono @ c
