@@ -510,3 +510,23 @@ def test_body_forces_do_not_depend_on_the_numbering() -> None:
     idx = (3 * p[:, None] + np.arange(3)).ravel()
     Ja = a.internal_jacobian(x).toarray()[np.ix_(idx, idx)]
     np.testing.assert_allclose(b.internal_jacobian(x[p]).toarray(), Ja, rtol=0, atol=1e-12 * np.abs(Ja).max())
+
+
+def test_generated_objects_are_meshed_once_and_stay_read_only() -> None:
+    """A built-in object or parametric shape asked for again (a sweep's next case) is the mesh
+    already generated: the same nodes and tets, arrays no caller can change; another mesh size
+    or shape is meshed anew."""
+    from softgrasp.objects import make_object
+
+    first = make_object("box:0.03x0.02x0.02", 0.01)[0]
+    again = make_object("box:0.03x0.02x0.02", 0.01)[0]
+    assert again is first
+    with pytest.raises(ValueError):
+        first.points[0, 0] = 1.0
+    with pytest.raises(ValueError):
+        first.tets[0, 0] = 0
+    finer = make_object("box:0.03x0.02x0.02", 0.005)[0]
+    assert finer is not first and len(finer.points) > len(first.points)
+    cube = make_object("cube", 0.025)[0]
+    assert make_object("cube", 0.025)[0] is cube
+    np.testing.assert_array_equal(cube.points, make_object("cube", 0.025)[0].points)
