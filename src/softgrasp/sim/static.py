@@ -436,6 +436,7 @@ def solve_static(
     max_iter: int = 60,
     max_friction_passes: int = 30,
     cache: SolverCache | None = None,
+    guess: NDArray[np.float64] | None = None,
 ) -> tuple[State, StaticInfo]:
     """Bring the scene to rest at time (load parameter) ``t``, starting from ``state``.
 
@@ -448,6 +449,10 @@ def solve_static(
     x_ref: reference positions for the constraints; default ``state.x``.
     rtol: convergence when the largest unbalanced force <= rtol x the largest force present.
     cache: linear-solver state to reuse across calls (e.g. the increments of one loading).
+    guess: positions [m] (N, 3) Newton starts from instead of ``state.x`` (a prediction, e.g.
+        the last increments extrapolated); ignored if it inverts a tet. The contact states are
+        still ``state``'s: the rest found is the same as from ``state.x`` wherever the friction
+        anchors are (pairs that start touching are anchored where the iterates first touch them).
 
     Returns
     -------
@@ -462,6 +467,8 @@ def solve_static(
     x = np.array(state.x, dtype=np.float64)
     if not _valid(scene.body, x):
         raise SimulationUnstable("static solve started from a configuration with inverted tets")
+    if guess is not None and _valid(scene.body, guess):
+        x = np.array(guess, dtype=np.float64)
     C = constraints
     if C is not None:
         ref = state.x if x_ref is None else x_ref
@@ -502,10 +509,12 @@ def solve_increment(
     *,
     cache: SolverCache | None = None,
     max_halvings: int = MAX_HALVINGS,
+    guess: NDArray[np.float64] | None = None,
 ) -> tuple[State, int, int]:
     """Static solve of one load increment from ``state`` (at ``state.t``) to load parameter ``t``;
     an increment that does not converge is split in halves from the last converged state, up to
-    ``max_halvings`` times (contact kinks can make Newton cycle on a large increment).
+    ``max_halvings`` times (contact kinks can make Newton cycle on a large increment). ``guess``
+    (see :func:`solve_static`) is used by the whole increment only, not by its halves.
 
     Returns
     -------
@@ -521,7 +530,9 @@ def solve_increment(
         try:
             s, iters = state, 0
             for k in range(1, n + 1):
-                s, info = solve_static(scene, s, t=t_prev + (t - t_prev) * k / n, cache=cache)
+                s, info = solve_static(
+                    scene, s, t=t_prev + (t - t_prev) * k / n, cache=cache, guess=guess if n == 1 else None
+                )
                 iters += info.newton_iterations
             return s, iters, level
         except NotConverged as exc:
