@@ -265,12 +265,13 @@ def _check(depth, radius, speed, steps, table_mu, fingertip_E, fingertip_nu, hei
 
 
 def _solve(
-    scene: Scene, state: State, t: float, cache: SolverCache, hint: str = ""
+    scene: Scene, state: State, t: float, cache: SolverCache, hint: str = "", guess: NDArray | None = None
 ) -> tuple[State, int, int]:
-    """Static solve at travel ``t`` from ``state``, split in halves when it fails
-    (:func:`softgrasp.sim.static.solve_increment`). Returns (state, Newton iterations, halvings)."""
+    """Static solve at travel ``t`` from ``state`` (Newton starting from ``guess`` where given),
+    split in halves when it fails (:func:`softgrasp.sim.static.solve_increment`). Returns (state,
+    Newton iterations, halvings)."""
     try:
-        return solve_increment(scene, state, t, cache=cache, max_halvings=MAX_HALVINGS)
+        return solve_increment(scene, state, t, cache=cache, max_halvings=MAX_HALVINGS, guess=guess)
     except NotConverged as exc:
         raise NotConverged(f"indentation increment to travel {t * 1e3:.4g} mm failed: {exc}{hint}") from exc
 
@@ -377,8 +378,12 @@ def indentation_test(
     record(state, info0.newton_iterations)
     if progress is not None:
         progress(1.0 / (steps + 1))
+    previous = state
     for k in range(1, steps + 1):
-        state, n_it, h = _solve(scene, state, t0 + k * inc, cache, hint)
+        # Equal increments: Newton starts from the last two rests extrapolated.
+        guess = 2.0 * state.x - previous.x if k > 1 else None
+        previous = state
+        state, n_it, h = _solve(scene, state, t0 + k * inc, cache, hint, guess)
         halvings += int(h > 0)
         rep = record(state, n_it)
         if rep.contacts[0] == 0:

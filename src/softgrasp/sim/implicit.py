@@ -83,7 +83,8 @@ def implicit_euler_step(scene: Scene, state: State, dt: float, *, cache: SolverC
     inertia = Inertia(x0 + dt * state.v, dt)
     step_scene = Scene(scene.body, (*scene.interactions, inertia))
     start = State(x0, state.v, state.t, (*state.contacts, None))
-    new, _ = solve_static(step_scene, start, t=state.t + dt, cache=cache)
+    # Newton starts from the explicit prediction x0 + dt v (the inertia's own target).
+    new, _ = solve_static(step_scene, start, t=state.t + dt, cache=cache, guess=x0 + dt * state.v)
     return State(new.x, (new.x - x0) / dt, state.t + dt, new.contacts[:-1])
 
 
