@@ -155,8 +155,14 @@ def compression_test(
     side_w, width = _side_weights(body.mesh)
     disp, force, lat, iters, fbot = [], [], [], [], []
     tether_force = 0.0
+    previous, e_prev, e_last = state, 0.0, 0.0
     for i, e in enumerate(levels):
-        state, its, _ = solve_increment(scene, state, e * H, cache=cache)
+        # Newton starts from the last two rests extrapolated to this strain.
+        guess = None
+        if i > 0 and e_last != e_prev:
+            guess = state.x + (state.x - previous.x) * ((e - e_last) / (e_last - e_prev))
+        previous, e_prev, e_last = state, e_last, e
+        state, its, _ = solve_increment(scene, state, e * H, cache=cache, guess=guess)
         f = top.static_forces(body, state.x, state.t, state.contacts[1]).sum(axis=0)
         disp.append(e * H)
         force.append(float(-f[2]))
