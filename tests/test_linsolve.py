@@ -492,6 +492,31 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
 
 
 @needs_mkl
+@pytest.mark.parametrize("told", [True, False])
+def test_a_changed_scene_refactorises_at_once(monkeypatch, told):
+    """After ``scene_changed`` (the hold check takes the table away) the next system is
+    factorised at once and solved with one or two solves of the new factor; untold, it is first
+    iterated on the old factor (at least four solves, in vain here). Either way it is solved
+    exactly."""
+    K = _stiffness()
+    b = np.random.default_rng(9).standard_normal(K.shape[0])
+    x_nodes = np.zeros((K.shape[0] // 3, 3))
+    cache = SolverCache(method="pardiso")
+    with_table = (K + _table_blocks(K, [0, 3, 7], 5e3)).tocsr()
+    solve_newton_system(with_table, b, None, x_nodes, cache)
+    solves = []
+    real = pardiso.PardisoFactor.solve
+    monkeypatch.setattr(pardiso.PardisoFactor, "solve", lambda f, rhs: solves.append(1) or real(f, rhs))
+    factorised = cache.stats["factorisations"]
+    if told:
+        cache.scene_changed()
+    x, _ = solve_newton_system(K, b, None, x_nodes, cache)
+    np.testing.assert_allclose(K @ x, b, rtol=0, atol=1e-8 * np.abs(b).max())
+    assert cache.stats["factorisations"] == factorised + 1
+    assert (len(solves) <= 2) if told else (len(solves) >= 4)
+
+
+@needs_mkl
 def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
     """Contacts that move over the surface on one factor (new nodes each system) do not pile up
     columns: past six times the most corrected nodes' worth, only the current nodes' are kept."""

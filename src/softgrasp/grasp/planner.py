@@ -588,6 +588,7 @@ def _check_hold(
     c0 = _com(body, state.x)
     try:
         st = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1], None))
+        cache.scene_changed()  # the table's stiffness is gone from the Newton matrices
         prev = None
         for k in range(1, RELEASE_STEPS + 1):
             # Newton starts from the last two steps' positions extrapolated (the support falls by

@@ -97,6 +97,13 @@ class SolverCache:
         """CG iterations of each iterative solve so far."""
         return self._iterations
 
+    def scene_changed(self) -> None:
+        """Say that the next systems come from another scene (an interaction taken away or put
+        in): the next one refactorises at once instead of first trying the last factorisation as
+        a preconditioner, which a removed table's or finger's stiffness makes a poor one (the
+        pattern's analysis is kept)."""
+        self._try_stale = False
+
 
 def _rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
     n = x.shape[0]
