@@ -201,7 +201,6 @@ def _arguments(
     rhs: NDArray[np.float64],
     x: NDArray[np.float64],
     err: ctypes.c_int32,
-    perm: NDArray[np.int32] | None = None,
 ) -> tuple:
     """The sixteen arguments of one ``pardiso`` call (one right-hand side, no messages)."""
     return (
@@ -214,7 +213,7 @@ def _arguments(
         data.ctypes.data_as(_DBL),
         indptr.ctypes.data_as(_INT),
         indices.ctypes.data_as(_INT),
-        None if perm is None else perm.ctypes.data_as(_INT),  # perm
+        None,  # perm
         ctypes.byref(ctypes.c_int32(1)),  # nrhs
         iparm.ctypes.data_as(_INT),
         ctypes.byref(ctypes.c_int32(0)),  # msglvl
@@ -301,7 +300,6 @@ class PardisoFactor:
         self._iparms: dict[int, NDArray[np.int32]] = {}
         self._mtype = SYMMETRIC_POSITIVE_DEFINITE  # of the factorisation in use
         self._skip_spd = 0  # factorisations left before Cholesky is tried again
-        self._perm: NDArray[np.int32] | None = None  # the ordering, once analysed (see _analysed)
         self.n = int(A.shape[0])
         U = self._upper(A)
         self._indptr = U.indptr.astype(np.int32)
@@ -340,13 +338,6 @@ class PardisoFactor:
             self._iparms[mtype] = self._new_iparm()
             if mtype == SYMMETRIC_POSITIVE_DEFINITE:
                 self._iparms[mtype][55] = 1  # the factor's diagonal available (pardiso_getdiag)
-            # One fill-reducing ordering for both types: the first analysis returns METIS's in
-            # ``_perm``, the second takes it (only its symbolic factorisation is done).
-            if self._perm is None:
-                self._perm = np.zeros(self.n, dtype=np.int32)
-                self._iparms[mtype][4] = 2
-            else:
-                self._iparms[mtype][4] = 1
             self._call(11, self._data, mtype=mtype)
 
     def _factorise(self) -> None:
@@ -435,8 +426,7 @@ class PardisoFactor:
         rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
         err = ctypes.c_int32(0)
         args = _arguments(
-            self._pts[mtype], mtype, phase, data, self._indptr, self._indices, self._iparms[mtype], rhs, x, err,
-            self._perm,
+            self._pts[mtype], mtype, phase, data, self._indptr, self._indices, self._iparms[mtype], rhs, x, err
         )
         with _LOCK:
             # A collector run in between (any allocation may start one) only queues releases:
