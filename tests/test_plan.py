@@ -494,3 +494,21 @@ def test_hold_checks_record_why_the_fingers_closed_further(sphere_body, default_
         assert moved_mm >= round(limit * 1e3, 2) - 0.005
     assert plan.com_drift < limit
     assert sum(f.force_norm for f in plan.fingers) > sum(f.force_norm for f in default_plan.fingers)
+
+
+def test_set_points_do_not_depend_on_round_off():
+    """The default plan twice, the second on the mesh with every coordinate changed by about
+    1e-13 of itself (the size of round-off in a sum taken in another order): the same set-points
+    to 1e-6. (With the fingertips starting exactly one step from tangency, whether a facet counted
+    as touching at the first step's end was round-off's choice, and the set-points took one of
+    several values 1-4 % apart.)"""
+    from softgrasp.mesh.tetmesh import TetMesh
+
+    mesh, mat, mass = make_object("sphere")
+    jitter = 1e-13 * np.random.default_rng(12).standard_normal(mesh.points.shape)
+    moved = TetMesh(np.asarray(mesh.points) * (1.0 + jitter), np.asarray(mesh.tets), name="sphere")
+    forces = []
+    for m in (mesh, moved):
+        plan = plan_grasp(build_body(m, mat, mass=mass), PlanConfig())
+        forces.append([f.force_norm for f in plan.fingers])
+    np.testing.assert_allclose(forces[1], forces[0], rtol=1e-6)

@@ -67,6 +67,12 @@ SOLVERS = ("quasistatic", "dynamic")
 HOLD_DT = 0.05
 #: Halvings of the holding simulation's step allowed when a step's Newton solve fails.
 MAX_HALVINGS = 6
+#: Closing steps the fingertips start back from tangency with the object: first contact falls
+#: in the middle of the second increment, never on an increment's end. (Backed off one whole step,
+#: every fingertip was tangent to the surface at the first increment's end, and whether its
+#: facets counted as touching there, to be anchored at the unloaded surface, was decided by
+#: round-off: the default plan's set-points took one of several values 1-4 % apart.)
+START_BACKOFF = 1.5
 #: Initial-grasp shapes the planner tries to reach with the hand before giving up.
 MAX_PLACEMENTS = 12
 #: Failed placements after which the planner stops trying a spread angle of the layout.
@@ -403,12 +409,12 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
 
 def _start_centres(ig: InitialGrasp, cfg: PlanConfig) -> tuple[NDArray, NDArray, NDArray]:
     """Fingertip centres where the closing starts: tangent to the surface at each contact point,
-    backed off one step along the closing line; the unit closing directions (towards the contact
-    triangle's centroid) and each contact's distance to that centroid."""
+    backed off ``START_BACKOFF`` steps along the closing line; the unit closing directions
+    (towards the contact triangle's centroid) and each contact's distance to that centroid."""
     u = ig.centroid[None, :] - ig.points
     reach = np.linalg.norm(u, axis=1)
     u = u / reach[:, None]
-    return ig.points + cfg.fingertip_radius * ig.normals - cfg.step * u, u, reach
+    return ig.points + cfg.fingertip_radius * ig.normals - START_BACKOFF * cfg.step * u, u, reach
 
 
 def _hand_order(hand: HandModel, ig: InitialGrasp) -> InitialGrasp:
