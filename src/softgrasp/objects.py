@@ -64,8 +64,6 @@ def make_object(
 def _make_object(
     name_or_path: str, mesh_size: float | None, reorient: bool
 ) -> tuple[TetMesh, Material, float | None]:
-    from softgrasp.mesh import generate
-
     if mesh_size is not None and not mesh_size > 0:
         raise MeshError(f"mesh size must be > 0 m, got {mesh_size}")
     if name_or_path in OBJECTS:

@@ -26,7 +26,7 @@ from softgrasp.errors import ConfigError
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.scene import Scene
-from softgrasp.sim.static import solve_increment, solve_static
+from softgrasp.sim.static import extrapolated, solve_increment, solve_static
 from softgrasp.supports import Tether
 
 __all__ = ["CompressionResult", "compression_test", "outline_area"]
@@ -160,7 +160,7 @@ def compression_test(
         # Newton starts from the last two rests extrapolated to this strain.
         guess = None
         if i > 0 and e_last != e_prev:
-            guess = state.x + (state.x - previous.x) * ((e - e_last) / (e_last - e_prev))
+            guess = extrapolated(state.x, previous.x, (e - e_last) / (e_last - e_prev))
         previous, e_prev, e_last = state, e_last, e
         state, its, _ = solve_increment(scene, state, e * H, cache=cache, guess=guess)
         f = top.static_forces(body, state.x, state.t, state.contacts[1]).sum(axis=0)

@@ -50,7 +50,7 @@ from softgrasp.experiments.measured import read_table
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.scene import Scene, State
-from softgrasp.sim.static import solve_increment, solve_static
+from softgrasp.sim.static import extrapolated, solve_increment, solve_static
 
 __all__ = [
     "DEFAULT_INCREMENT",
@@ -381,7 +381,7 @@ def indentation_test(
     previous = state
     for k in range(1, steps + 1):
         # Equal increments: Newton starts from the last two rests extrapolated.
-        guess = 2.0 * state.x - previous.x if k > 1 else None
+        guess = extrapolated(state.x, previous.x) if k > 1 else None
         previous = state
         state, n_it, h = _solve(scene, state, t0 + k * inc, cache, hint, guess)
         halvings += int(h > 0)

@@ -50,7 +50,7 @@ from softgrasp.sim.integrators import simulate
 from softgrasp.sim.linsolve import SolverCache
 from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
-from softgrasp.sim.static import solve_increment, solve_static
+from softgrasp.sim.static import extrapolated, solve_increment, solve_static
 
 __all__ = [
     "PlanConfig",
@@ -599,7 +599,7 @@ def _check_hold(
         for k in range(1, RELEASE_STEPS + 1):
             # Newton starts from the last two steps' positions extrapolated (the support falls by
             # equal parts: a nearly linear response), one iteration fewer than from the last.
-            guess = None if prev is None else 2.0 * st.x - prev
+            guess = None if prev is None else extrapolated(st.x, prev)
             prev = st.x
             st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache, guess=guess)
             if (d := float(np.linalg.norm(_com(body, st.x) - c0))) >= cfg.max_drift:
@@ -741,7 +741,7 @@ def plan_grasp(
         earlier, before = before, state
         # Newton starts from the last two increments' positions extrapolated (equal steps of
         # travel): about one iteration fewer per increment than from the last rest.
-        guess = None if k < 2 else 2.0 * before.x - earlier.x
+        guess = None if k < 2 else extrapolated(before.x, earlier.x)
         state, feasible = close(before, k * cfg.step, guess)
     # 2. Bisect the last step on the grasp test for the smallest travel that passes it (stiff
     # objects gain force fast within one step).

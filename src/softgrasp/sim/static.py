@@ -32,7 +32,7 @@ from softgrasp.sim.scene import Scene, State
 #: Newton's progress at DEBUG level: each iteration's unbalanced force and accepted step, each friction pass.
 log = logging.getLogger(__name__)
 
-__all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints", "MAX_HALVINGS"]
+__all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints", "extrapolated", "MAX_HALVINGS"]
 
 #: A Newton iteration that stalls (contact kinks) is accepted when the largest unbalanced force
 #: is below this fraction of the largest force present (the target is ``rtol``).
@@ -423,6 +423,15 @@ def _free_rigid_motion(scene: Scene, x: NDArray[np.float64], t: float, contacts:
     B /= np.linalg.norm(B, axis=0)
     scale = float(np.abs(A).sum(axis=1).max()) or 1.0  # the largest row sum bounds |A|
     return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * scale).any())
+
+
+def extrapolated(
+    last: NDArray[np.float64], before: NDArray[np.float64], ratio: float = 1.0
+) -> NDArray[np.float64]:
+    """A start for the next load step's Newton (``guess`` of :func:`solve_static`): the last two
+    rests ``before`` and ``last`` extrapolated linearly, ``ratio`` being the next step's length
+    over the last one's (1 for equal steps)."""
+    return last + ratio * (last - before)
 
 
 def solve_static(
