@@ -43,6 +43,9 @@ STALL_RTOL = 1e-6
 #: nearly neutral mode (a sphere rolling on its contact patch, its rolling stiffness ~1e-10 of the
 #: largest stiffness and of either sign) and would creep at ~1 % per iteration to the limit.
 INDEFINITE_STALL = 0.5
+#: Longest multiple of an indefinite matrix's shifted step that :func:`_follow_negative_curvature`
+#: tries (in doublings).
+NEGATIVE_CURVATURE_MAX_GROWTH = 1024.0
 #: How often :func:`solve_increment` halves a load increment that does not converge.
 MAX_HALVINGS = 4
 #: Newton gives up after this many consecutive accepted steps no longer than ``CREEP_ALPHA`` of
@@ -340,6 +343,20 @@ def _newton(
                 ):
                     accepted = True
                     break
+            if (
+                accepted
+                and alpha == 1.0
+                and cap == 1.0
+                and descent > 0
+                and exact is None
+                and C is None
+                and cache.stats.get("shifted", 0) > shifted_before
+            ):
+                # The step came from a shifted, indefinite matrix (a body tipping over on its few
+                # supporting nodes): follow it while the potential keeps falling.
+                xn, grown = _follow_negative_curvature(scene, x, d, t, contacts, xn, L)
+                if grown > 1.0:
+                    log.debug("newton it %d: indefinite matrix, the step followed %g times as far", it, grown)
             if not accepted:
                 if shift >= 1e6:
                     if res <= STALL_RTOL * scale:
@@ -398,6 +415,42 @@ def _newton(
         f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
         f"{res:.3g} N); use smaller load steps"
     )
+
+
+def _follow_negative_curvature(
+    scene: Scene,
+    x: NDArray[np.float64],
+    d: NDArray[np.float64],
+    t: float,
+    contacts: tuple,
+    xn: NDArray[np.float64],
+    L: float,
+) -> tuple[NDArray[np.float64], float]:
+    """The point ``x + g d`` (g = 1, 2, 4, ...) of lowest potential energy, the first rise ending
+    the search, for a full step ``d`` accepted at ``xn = x + d`` that was solved with a shifted,
+    indefinite Newton matrix. Returns (that point, g).
+
+    Along a direction of negative curvature (a body tipping over on the few nodes it stands on)
+    the shifted matrix allows only a step of about the unbalanced force over the shift, and the
+    tipping then grows by ~15 % per iteration: dozens of iterations before the body reaches the
+    node that stops it. The potential is exact for such conservative scenes, so following the
+    step while it falls is safe; steps stay within the line search's cap (a tenth of the body's
+    size) and :data:`NEGATIVE_CURVATURE_MAX_GROWTH`.
+    """
+    e_best = scene.energy(xn, t, contacts)
+    best, grown = xn, 1.0
+    g = 2.0
+    step_max = float(np.abs(d).max())
+    while g <= NEGATIVE_CURVATURE_MAX_GROWTH and g * step_max <= 0.1 * L:
+        xg = x + g * d
+        if not _valid(scene.body, xg):
+            break
+        e = scene.energy(xg, t, contacts)
+        if not e < e_best:
+            break
+        best, e_best, grown = xg, e, g
+        g *= 2.0
+    return best, grown
 
 
 def _cycle(history: list[float]) -> int:
