@@ -475,6 +475,9 @@ def _pardiso(
             cache.stats["factorisations"] += 1
             tau *= 10.0
         cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1
+        # Counted apart: the factorisation's inertia proves the matrix indefinite, which conjugate
+        # gradients meeting negative curvature (round-off on a nearly neutral mode) do not.
+        cache.stats["indefinite_factor"] = cache.stats.get("indefinite_factor", 0) + 1
         return f.solve(b), np.zeros(0)
     if matvec is not None and f.perturbed_pivots == 0:
         x = _gmres(matvec, b, f.solve, EXACT_MAX_IT, rtol)
