@@ -92,7 +92,7 @@ def affine_tensor_quartic(
     Computed exactly from the 15 fourth moments of the directions, sum_e w_e n_e^alpha, by the
     multinomial expansion of (n · m)^4: O(springs + probes) instead of their product.
     """
-    return _monomials(probe, _QUARTIC) @ (_MULTINOMIAL * _moments(weights, directions, _QUARTIC))
+    return _quartic_monomials(probe) @ (_MULTINOMIAL * _moments(weights, directions, _QUARTIC))
 
 
 def _reweighting_matrix(
@@ -102,7 +102,7 @@ def _reweighting_matrix(
     monomial of their direction, G[p, q] = sum_e w_e (n_e · m_p)^4 n_e^q, from the 45 eighth
     moments of the directions (the multinomial expansion again)."""
     M8 = _moments(weights, directions, _OCTIC)
-    return (_monomials(probe, _QUARTIC) * _MULTINOMIAL) @ M8[_PRODUCT]
+    return (_quartic_monomials(probe) * _MULTINOMIAL) @ M8[_PRODUCT]
 
 
 @dataclass(frozen=True)

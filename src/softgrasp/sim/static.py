@@ -358,7 +358,7 @@ def _newton(
                 # keeps falling. (Not where only conjugate gradients met negative curvature: on the
                 # 27 749-node ball, round-off on its nearly neutral rolling mode, followed, left
                 # Newton creeping at a constant unbalanced force.)
-                xn, grown = _follow_negative_curvature(scene, x, d, t, contacts, xn, L)
+                xn, grown = _follow_negative_curvature(scene, x, d, t, contacts, L)
                 if grown > 1.0:
                     log.debug("newton it %d: indefinite matrix, the step followed %g times as far", it, grown)
             if not accepted:
@@ -427,11 +427,10 @@ def _follow_negative_curvature(
     d: NDArray[np.float64],
     t: float,
     contacts: tuple,
-    xn: NDArray[np.float64],
     L: float,
 ) -> tuple[NDArray[np.float64], float]:
     """The point ``x + g d`` (g = 1, 2, 4, ...) of lowest potential energy, the first rise ending
-    the search, for a full step ``d`` accepted at ``xn = x + d`` that was solved with a shifted,
+    the search, for a full step ``d`` accepted at ``x + d`` that was solved with a shifted,
     indefinite Newton matrix. Returns (that point, g).
 
     Along a direction of negative curvature (a body tipping over on the few nodes it stands on)
@@ -441,8 +440,8 @@ def _follow_negative_curvature(
     step while it falls is safe; steps stay within the line search's cap (a tenth of the body's
     size) and :data:`NEGATIVE_CURVATURE_MAX_GROWTH`.
     """
-    e_best = scene.energy(xn, t, contacts)
-    best, grown = xn, 1.0
+    best, grown = x + d, 1.0
+    e_best = scene.energy(best, t, contacts)
     g = 2.0
     step_max = float(np.abs(d).max())
     while g <= NEGATIVE_CURVATURE_MAX_GROWTH and g * step_max <= 0.1 * L:
