@@ -594,6 +594,28 @@ def test_place_hand_keeps_the_palm_out_of_the_object() -> None:
         place_hand(MODEL, targets, obstacle=block)
 
 
+def test_the_obstacle_hull_kept_between_placements_is_the_current_obstacles() -> None:
+    """place_hand keeps the last obstacle's hull: two obstacles in turn each get their own (the
+    same facet planes as a fresh hull), and the block that refuses a placement still refuses it
+    after another obstacle's hull was kept."""
+    from scipy.spatial import ConvexHull
+
+    from softgrasp.hand.reach import _hull_equations, place_hand
+
+    rng = np.random.default_rng(3)
+    a, b = rng.standard_normal((40, 3)), 2.0 + rng.standard_normal((50, 3))
+    for pts in (a, b, a, a.copy(), b):
+        assert np.array_equal(_hull_equations(pts), ConvexHull(pts).equations)
+    targets = _known_targets()
+    centre = np.mean(list(targets.values()), axis=0)
+    block = centre + 0.4 * (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T)
+    far = block + 10.0
+    place_hand(MODEL, targets, obstacle=far)  # clear of the hand
+    with pytest.raises(InfeasibleGrasp, match="inside the object"):
+        place_hand(MODEL, targets, obstacle=block)
+    place_hand(MODEL, targets, obstacle=far)
+
+
 def _sphere_grasp() -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Fingertip centres touching a 40 mm sphere on the table (thumb opposite two fingers 1 rad
     apart) and 200 points of the sphere (the obstacle)."""

@@ -315,6 +315,11 @@ def test_pattern_subsets_reuse_the_analysis_and_unions_take_both():
     for M in (E, K):
         U = g.same_pattern(M)
         assert U is not None
+        # The second time a pattern comes, its values are gathered by the positions kept from
+        # the first (every entry of the factor's pattern for E, a subset for K): the same matrix.
+        again = g.same_pattern(M.copy())
+        assert again is not None and np.array_equal(again.indptr, U.indptr)
+        assert np.array_equal(again.indices, U.indices) and np.array_equal(again.data, U.data)
         g.refactor(U)
         assert np.abs(M @ g.solve(b) - b).max() <= 1e-9 * np.abs(b).max()
 

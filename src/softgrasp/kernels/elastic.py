@@ -284,28 +284,36 @@ def _volume_blocks(x, tets, rest, kappa, barrier, base, stride, use_pos, offset,
                 for b in range(a + 1, 4):
                     w[b, a, d] = -w[a, b, d]
         for a in range(4):
+            # entry (r, s) of block (a, b): -(cg g[a, r] g[b, s] + ch skew(w[a, b])[r, s]), with
+            # skew(w) = [[0, -wz, wy], [wz, 0, -wx], [-wy, wx, 0]]; the products in this order
+            ga0 = cg * g[a, 0]
+            ga1 = cg * g[a, 1]
+            ga2 = cg * g[a, 2]
             for b in range(4):
                 wx = w[a, b, 0]
                 wy = w[a, b, 1]
                 wz = w[a, b, 2]
-                # skew(w) = [[0, -wz, wy], [wz, 0, -wx], [-wy, wx, 0]]
+                gb0 = g[b, 0]
+                gb1 = g[b, 1]
+                gb2 = g[b, 2]
                 B = offset + 16 * t + 4 * a + b
-                for r in range(3):
-                    for s in range(3):
-                        if r == s:
-                            sk = 0.0
-                        elif r == 0:
-                            sk = -wz if s == 1 else wy
-                        elif r == 1:
-                            sk = wz if s == 0 else -wx
-                        else:
-                            sk = -wy if s == 0 else wx
-                        val = -(cg * g[a, r] * g[b, s] + ch * sk)
-                        if use_pos:
-                            idx = base[B] + r * stride[B] + s
-                        else:
-                            idx = 9 * B + 3 * r + s
-                        out[idx] += val
+                if use_pos:
+                    i0 = base[B]
+                    st = stride[B]
+                else:
+                    i0 = 9 * B
+                    st = 3
+                i1 = i0 + st
+                i2 = i1 + st
+                out[i0] += -(ga0 * gb0 + ch * 0.0)
+                out[i0 + 1] += -(ga0 * gb1 + ch * -wz)
+                out[i0 + 2] += -(ga0 * gb2 + ch * wy)
+                out[i1] += -(ga1 * gb0 + ch * wz)
+                out[i1 + 1] += -(ga1 * gb1 + ch * 0.0)
+                out[i1 + 2] += -(ga1 * gb2 + ch * -wx)
+                out[i2] += -(ga2 * gb0 + ch * -wy)
+                out[i2 + 1] += -(ga2 * gb1 + ch * wx)
+                out[i2 + 2] += -(ga2 * gb2 + ch * 0.0)
 
 
 # ---------------------------------------------------------------------------------- wrappers

@@ -313,8 +313,8 @@ class PardisoFactor:
         self._solve_times = [math.inf, math.inf]  # the fastest solve of this thread count, the last
         self._lib = lib
         # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
-        # their positions in this factor's data.
-        self._gather: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
+        # their positions in this factor's data (None: every entry, in order).
+        self._gather: tuple[NDArray, NDArray, NDArray, NDArray | None] | None = None
         self._factorise()
 
     @staticmethod
@@ -454,8 +454,11 @@ class PardisoFactor:
                 and np.array_equal(A.indptr, gather[0])
                 and np.array_equal(A.indices, gather[1])
             ):
-                data = np.zeros(self._indices.size)
-                data[gather[3]] = A.data[gather[2]]
+                if gather[3] is None:  # the factor's pattern is A's upper triangle: one gather
+                    data = A.data[gather[2]]
+                else:
+                    data = np.zeros(self._indices.size)
+                    data[gather[3]] = A.data[gather[2]]
                 return sp.csr_matrix((data, self._indices, self._indptr), shape=A.shape)
             U = self._same_pattern(A)
             if U is not None:
@@ -463,7 +466,8 @@ class PardisoFactor:
                 keep = np.flatnonzero(A.indices >= rows)
                 keys = rows[keep] * self.n + A.indices[keep].astype(np.int64)
                 pos = np.searchsorted(_keys(self._indptr, self._indices, self.n), keys)
-                self._gather = (A.indptr.copy(), A.indices.copy(), keep, pos)
+                whole = pos.size == self._indices.size and bool((pos == np.arange(pos.size)).all())
+                self._gather = (A.indptr.copy(), A.indices.copy(), keep, None if whole else pos)
             return U
         return self._same_pattern(A)
 

@@ -108,11 +108,16 @@ class Scene:
         return f
 
     def static_forces(
-        self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]
+        self,
+        x: NDArray[np.float64],
+        t: float,
+        contacts: tuple[Any, ...],
+        internal: NDArray[np.float64] | None = None,
     ) -> NDArray[np.float64]:
-        """Total force at rest with sticking friction: minus the gradient of :meth:`energy`."""
+        """Total force at rest with sticking friction: minus the gradient of :meth:`energy`.
+        ``internal``: the body's internal forces at ``x`` where the caller has them already."""
         b = self.body
-        f = b.internal_forces(x) + gravity_forces(b.mass, b.gravity)
+        f = (b.internal_forces(x) if internal is None else internal) + gravity_forces(b.mass, b.gravity)
         for inter, st in zip(self.interactions, contacts, strict=True):
             f += inter.static_forces(b, x, t, st)
         return f

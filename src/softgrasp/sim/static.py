@@ -285,8 +285,8 @@ def _newton(
     history: list[float] = []  # the unbalanced force [N] at the start of each iteration
     start = contacts
     for it in range(1, max_iter + 1):
-        f = scene.static_forces(x, t, contacts)
         f_int = body.internal_forces(x)
+        f = scene.static_forces(x, t, contacts, internal=f_int)
         scale = max(np.abs(f_int).max(), np.abs(f - f_int).max(), grav, 1e-300)
         if C is None and (res := float(np.abs(f).max())) <= rtol * scale:
             return x, it - 1, res, lam, contacts  # balanced already: no system to solve
@@ -330,7 +330,7 @@ def _newton(
             d = dx.reshape(-1, 3)
             step_max = float(np.abs(d).max())
             cap = min(1.0, 0.1 * L / step_max) if step_max > 0 else 1.0
-            e0 = scene.energy(x, t, contacts)
+            e0: float | None = None  # the energy at x, computed when the energy merit is first asked
             descent = float(f.ravel() @ dx) * cap
             for alpha in 0.5 ** np.arange(11):
                 xn = x + alpha * cap * d
@@ -339,11 +339,14 @@ def _newton(
                 rn = float(np.linalg.norm(_residual(scene, xn, t, contacts, C, lam_new)))
                 # Either merit certifies progress: the unbalanced force, or the potential energy
                 # (which is exact where every force is conservative, and gets past contact kinks).
-                if rn < (1.0 - 1e-4 * alpha) * n0 or (
-                    descent > 0 and scene.energy(xn, t, contacts) <= e0 - 1e-4 * alpha * descent
-                ):
+                if rn < (1.0 - 1e-4 * alpha) * n0:
                     accepted = True
                     break
+                if descent > 0:
+                    e0 = scene.energy(x, t, contacts) if e0 is None else e0
+                    if scene.energy(xn, t, contacts) <= e0 - 1e-4 * alpha * descent:
+                        accepted = True
+                        break
             if (
                 accepted
                 and alpha == 1.0
