@@ -201,6 +201,7 @@ def _arguments(
     rhs: NDArray[np.float64],
     x: NDArray[np.float64],
     err: ctypes.c_int32,
+    perm: NDArray[np.int32] | None = None,
 ) -> tuple:
     """The sixteen arguments of one ``pardiso`` call (one right-hand side, no messages)."""
     return (
@@ -213,7 +214,7 @@ def _arguments(
         data.ctypes.data_as(_DBL),
         indptr.ctypes.data_as(_INT),
         indices.ctypes.data_as(_INT),
-        None,  # perm
+        None if perm is None else perm.ctypes.data_as(_INT),  # fill-in reducing ordering
         ctypes.byref(ctypes.c_int32(1)),  # nrhs
         iparm.ctypes.data_as(_INT),
         ctypes.byref(ctypes.c_int32(0)),  # msglvl
@@ -315,6 +316,7 @@ class PardisoFactor:
         # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
         # their positions in this factor's data (None: every entry, in order).
         self._gather: tuple[NDArray, NDArray, NDArray, NDArray | None] | None = None
+        self._perm: NDArray[np.int32] | None = None  # the fill-in reducing ordering, once analysed
         self._factorise()
 
     @staticmethod
@@ -338,7 +340,13 @@ class PardisoFactor:
             self._iparms[mtype] = self._new_iparm()
             if mtype == SYMMETRIC_POSITIVE_DEFINITE:
                 self._iparms[mtype][55] = 1  # the factor's diagonal available (pardiso_getdiag)
-            self._call(11, self._data, mtype=mtype)
+            # The first analysis returns its nested-dissection ordering, and the other matrix
+            # type's takes it (the same graph: the same ordering, without running METIS again;
+            # 21 -> 4 ms at 2 196 nodes).
+            self._iparms[mtype][4] = 2 if self._perm is None else 1
+            perm = np.zeros(self.n, dtype=np.int32) if self._perm is None else self._perm
+            self._call(11, self._data, mtype=mtype, perm=perm)
+            self._perm = perm
 
     def _factorise(self) -> None:
         """Numerical factorisation of ``self._data``: Cholesky unless a recent matrix was not
@@ -420,13 +428,14 @@ class PardisoFactor:
         data: NDArray[np.float64],
         b: NDArray[np.float64] | None = None,
         mtype: int | None = None,
+        perm: NDArray[np.int32] | None = None,
     ):
         mtype = self._mtype if mtype is None else mtype
         x = np.zeros(self.n) if b is not None else np.zeros(1)
         rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
         err = ctypes.c_int32(0)
         args = _arguments(
-            self._pts[mtype], mtype, phase, data, self._indptr, self._indices, self._iparms[mtype], rhs, x, err
+            self._pts[mtype], mtype, phase, data, self._indptr, self._indices, self._iparms[mtype], rhs, x, err, perm
         )
         with _LOCK:
             # A collector run in between (any allocation may start one) only queues releases:
