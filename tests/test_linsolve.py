@@ -403,6 +403,28 @@ def test_fast_and_reference_solvers_reach_the_same_rest_with_friction():
     assert it_fast < it_ref
 
 
+def test_multigrid_newton_reaches_the_direct_rest_with_its_solves_stopped_at_the_forcing_term():
+    """The foam cube settling on a rough table under its weight (a symmetric Newton matrix: the
+    multigrid path solves it by conjugate gradients, stopped at each Newton step's forcing term,
+    not at the cache's 1e-10) rests where sparse LU's exact Newton steps bring it; and the
+    pressed and dragged fingertip (multigrid GMRES on the exact product) as well."""
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=1.0, name="table"),))
+    rests = {}
+    for method in ("amg", "direct"):
+        cache = SolverCache(method=method)
+        rests[method] = solve_static(scene, scene.initial_state(), cache=cache)[0].x
+        if method == "amg":
+            assert cache.stats["amg_solves"] > 0 and min(cache.iterations) > 0
+    sag = np.abs(rests["direct"] - body.mesh.points).max()
+    assert sag > 1e-8  # it did settle (0.24 um)
+    assert np.abs(rests["amg"] - rests["direct"]).max() <= 1e-6 * sag
+    x_amg, f_amg, _ = _pressed("amg")
+    x_ref, f_ref, _ = _pressed("direct")
+    assert np.abs(f_amg - f_ref).max() <= 1e-8 * np.linalg.norm(f_ref)
+    assert np.abs(x_amg - x_ref).max() <= 1e-9
+
+
 # ------------------------------------------------------------------ the corrected old factor
 
 

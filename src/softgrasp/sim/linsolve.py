@@ -77,7 +77,8 @@ class SolverCache:
         ``"direct"``, ``"amg"`` or ``"reference"`` (sparse LU up to :data:`DIRECT_MAX_DOF`, multigrid
         beyond, never the exact Newton product: the solver softgrasp had before PARDISO); default
         from the environment variable ``SOFTGRASP_LINSOLVE``.
-    rtol: relative tolerance of the multigrid-preconditioned solve.
+    rtol: relative tolerance of the multigrid-preconditioned solves (the tightest asked: a Newton
+        step asks only its forcing term, when that is looser).
     """
 
     method: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_LINSOLVE", "auto"))
@@ -176,11 +177,14 @@ def _pcg(
     C: sp.csr_matrix | None,
     x_nodes: NDArray[np.float64],
     cache: SolverCache,
+    rtol: float | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Multigrid-preconditioned CG (the hierarchy kept in ``cache`` while it stays effective).
+    """Multigrid-preconditioned CG (the hierarchy kept in ``cache`` while it stays effective) to
+    the relative residual ``rtol`` (default ``cache.rtol``).
     Where the stiffness is indefinite (a body on the table about to tip, a compressed region
     buckling) CG meets negative curvature: the diagonal is then shifted until it does not
     (Levenberg-Marquardt, as the PARDISO path does), a descent direction close to Newton's."""
+    rtol = cache.rtol if rtol is None else rtol
     import pyamg
 
     if C is not None:
@@ -201,12 +205,12 @@ def _pcg(
                 A, B=_rigid_modes(x_nodes), symmetry="symmetric", max_coarse=300, coarse_solver="splu"
             )
         M = cache._ml.aspreconditioner(cycle="V")  # type: ignore[attr-defined]
-        x, last, curved = _cg(A, b, M, proj, cache.rtol, max_it)
+        x, last, curved = _cg(A, b, M, proj, rtol, max_it)
         it = last
         tau = INDEFINITE_SHIFT
         while curved and tau <= 1.0:
             shifted = (A + sp.diags(tau * np.abs(A.diagonal()))).tocsr()
-            xs, its, curved_s = _cg(shifted, b, M, proj, cache.rtol, max_it)
+            xs, its, curved_s = _cg(shifted, b, M, proj, rtol, max_it)
             it += its
             if not curved_s:
                 x, last, curved = xs, its, False
@@ -549,4 +553,6 @@ def solve_newton_system(
         x = _amg_gmres(A.tocsr(), b, x_nodes, cache, matvec, STALE_RTOL if rtol is None else rtol)
         if x is not None:
             return x, np.zeros(0)
-    return _pcg(A.tocsr(), b, C, x_nodes, cache)
+    # Conjugate gradients to the Newton iteration's forcing term, as GMRES above (the body's
+    # settle at 27 749 nodes: 745 -> 581 V-cycles, 36 -> 30 s).
+    return _pcg(A.tocsr(), b, C, x_nodes, cache, None if rtol is None else max(rtol, cache.rtol))
