@@ -295,6 +295,36 @@ def test_multigrid_cg_shifts_an_indefinite_stiffness_into_a_descent_step():
 
 
 @needs_mkl
+def test_a_pattern_analysed_before_takes_its_kept_ordering_and_factorises_to_the_same_bits(monkeypatch):
+    """A second factor of a pattern seen before takes the nested-dissection ordering kept from the
+    first analysis (METIS does not run again) and solves to the same bits, in both matrix types;
+    another pattern gets an ordering of its own, and only the latest ``ORDERINGS_KEPT`` are kept."""
+    monkeypatch.setattr(pardiso, "_ORDERINGS", {})
+    K = _stiffness()
+    b = np.random.default_rng(8).standard_normal(K.shape[0])
+    ind = (K - 2.0 * float(np.median(K.diagonal())) * sp.eye(K.shape[0])).tocsr()
+    first = pardiso.PardisoFactor(K)
+    x1 = first.solve(b)
+    first.refactor(first.same_pattern(ind))  # the indefinite type's analysis takes the ordering
+    y1 = first.solve(b)
+    assert len(pardiso._ORDERINGS) == 1
+    kept = next(iter(pardiso._ORDERINGS.values()))
+    assert sorted(kept.tolist()) == list(range(K.shape[0]))  # a permutation
+    second = pardiso.PardisoFactor(K)
+    assert second._perm is kept and second._iparms[pardiso.SYMMETRIC_POSITIVE_DEFINITE][4] == 1
+    assert np.array_equal(second.solve(b), x1)
+    second.refactor(second.same_pattern(ind))
+    assert np.array_equal(second.solve(b), y1) and second.negative_pivots == first.negative_pivots
+    D = sp.diags(K.diagonal()).tocsr()  # another pattern
+    other = pardiso.PardisoFactor(D)
+    assert len(pardiso._ORDERINGS) == 2 and other._perm is not kept
+    assert np.allclose(other.solve(b), b / K.diagonal(), rtol=1e-12)
+    monkeypatch.setattr(pardiso, "ORDERINGS_KEPT", 1)
+    pardiso.PardisoFactor(K)
+    assert len(pardiso._ORDERINGS) == 1 and next(iter(pardiso._ORDERINGS.values())) is kept  # the latest only
+
+
+@needs_mkl
 def test_pattern_subsets_reuse_the_analysis_and_unions_take_both():
     K = _stiffness()
     n = K.shape[0]
