@@ -46,6 +46,42 @@ def test_column_shortens_under_its_own_weight_as_a_bar(nu):
     assert sag == pytest.approx(-rho * G * H**2 / (2 * E), rel=0.04)
 
 
+@pytest.mark.parametrize("normal", [(0.0, 0.0, 1.0), (0.3, -0.2, 0.9)])
+def test_the_table_at_rest_is_the_gradient_of_its_energy_on_the_nodes_it_touches(normal):
+    """A box pressed into a (level or tilted) rough table, its anchors displaced: the table's
+    static forces are minus the central-difference gradient of its energy, zero on every node
+    that does not touch, and its diagonal blocks are minus the derivative of those forces."""
+    body = build_body(box(0.04, 3), preset("foam"), mass=0.01)
+    n = np.asarray(normal) / np.linalg.norm(normal)
+    rng = np.random.default_rng(2)
+    x = np.asarray(body.mesh.points) + 2e-4 * rng.standard_normal((body.n_nodes, 3))
+    table = PlaneContact(Plane(np.array([0.0, 0.0, 0.0]) + 0.004 * n, n), mu=0.7, name="table")
+    state = table.init_state(body, x)
+    state = replace(state, anchor=state.anchor + 3e-4 * rng.standard_normal(state.anchor.shape))
+    f = table.static_forces(body, x, 0.0, state)
+    pen = -(x - table.plane.point) @ n
+    assert 0 < (pen > 0).sum() < body.n_nodes
+    assert not f[pen <= 0].any()
+    h = 1e-8
+    grad = np.zeros_like(x)
+    for i in range(body.n_nodes):
+        for a in range(3):
+            e = np.zeros_like(x)
+            e[i, a] = h
+            up, down = table.energy(body, x + e, 0.0, state), table.energy(body, x - e, 0.0, state)
+            grad[i, a] = (up - down) / (2 * h)
+    assert np.abs(f + grad).max() <= 1e-6 * np.abs(f).max()
+    on, blocks = table.jacobian_diagonal(body, x, 0.0, state)
+    assert set(on.tolist()) == set(np.flatnonzero(pen >= 0).tolist())
+    for i, B in zip(on, blocks, strict=True):
+        for a in range(3):
+            e = np.zeros_like(x)
+            e[i, a] = h
+            up = table.static_forces(body, x + e, 0.0, state)[i]
+            df = (up - table.static_forces(body, x - e, 0.0, state)[i]) / (2 * h)
+            np.testing.assert_allclose(B[:, a], df, rtol=1e-6, atol=1e-6 * np.abs(B).max())
+
+
 def test_sphere_rests_on_table_without_rolling():
     mesh, mat, mass = make_object("sphere", 0.016)
     body = build_body(mesh, mat, mass=mass)

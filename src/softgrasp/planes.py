@@ -162,27 +162,27 @@ class PlaneContact:
             f += ft
         return f
 
-    def _static_tangential(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
-        """Penalty and friction stiffnesses, normal, penetration, contact mask and tangential
-        stretch at rest.
+    def _static_touching(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
+        """The touching nodes (the few a body stands on, not all N: only they carry force), their
+        penalty and friction stiffnesses, the normal, their penetrations and tangential stretches.
 
         At rest the table holds every touching node where it touched (a rough table): sticking
         without a Coulomb limit keeps the static problem a potential, which Newton's method solves
         reliably. Sliding on the table is simulated by the dynamic solvers.
         """
-        k, _, kt, _ = self._coeffs(body)
         p0, n, pen = self._geometry(x, t)
-        touching = pen > 0
-        s = self._tangential_stretch(x, p0, n, state, touching)
-        return k, kt, n, pen, touching, s
+        on = np.flatnonzero(pen > 0)
+        k = self.penalty * body.node_stiffness[on]
+        s = x[on] - (p0 + state.anchor[on])
+        return on, k, self.tangential_ratio * k, n, pen[on], s - (s @ n)[:, None] * n
 
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
         """Potential [J] of the normal penalty springs and of the sticking friction springs
         ``k_t |s|^2 / 2``."""
-        k, kt, n, pen, touching, s = self._static_tangential(body, x, t, state)
-        e = 0.5 * float(np.sum(k[touching] * pen[touching] ** 2))
+        _, k, kt, _, pen, s = self._static_touching(body, x, t, state)
+        e = 0.5 * float(np.sum(k * pen**2))
         if self.mu > 0:
-            e += 0.5 * float(np.sum(kt[touching] * np.einsum("ij,ij->i", s, s)[touching]))
+            e += 0.5 * float(np.sum(kt * np.einsum("ij,ij->i", s, s)))
         return e
 
     def static_forces(
@@ -190,10 +190,11 @@ class PlaneContact:
     ) -> NDArray[np.float64]:
         """Forces at rest [N], (N, 3): penalty normal force and the sticking elastic-slider friction
         of touching nodes (minus the gradient of :meth:`energy`)."""
-        k, kt, n, pen, touching, s = self._static_tangential(body, x, t, state)
-        f = np.where(touching, k * pen, 0.0)[:, None] * n
+        on, k, kt, n, pen, s = self._static_touching(body, x, t, state)
+        f = np.zeros_like(x)
+        f[on] = (k * pen)[:, None] * n
         if self.mu > 0:
-            f -= kt[:, None] * s
+            f[on] -= kt[:, None] * s
         return f
 
     def jacobian_diagonal(
@@ -201,14 +202,15 @@ class PlaneContact:
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """:meth:`jacobian` by its non-zero diagonal 3x3 blocks (the plane couples no two nodes):
         (the nodes on or beyond the plane (K,), their blocks (K, 3, 3)); every other block is zero."""
-        k, kt, n, pen, touching, s = self._static_tangential(body, x, t, state)
+        _, n, pen = self._geometry(x, t)
         # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
         # body resting on the plane must not look unsupported to Newton's method (nor slide).
         on = np.flatnonzero(pen >= 0)
+        k = self.penalty * body.node_stiffness[on]
         nn = np.outer(n, n)
-        blocks = -k[on, None, None] * nn[None]
+        blocks = -k[:, None, None] * nn[None]
         if self.mu > 0:
-            blocks = blocks - kt[on, None, None] * (np.eye(3) - nn)[None]
+            blocks = blocks - (self.tangential_ratio * k)[:, None, None] * (np.eye(3) - nn)[None]
         return on, blocks
 
     def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:

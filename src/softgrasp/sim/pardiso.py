@@ -463,7 +463,17 @@ class PardisoFactor:
         rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
         err = ctypes.c_int32(0)
         args = _arguments(
-            self._pts[mtype], mtype, phase, data, self._indptr, self._indices, self._iparms[mtype], rhs, x, err, perm
+            self._pts[mtype],
+            mtype,
+            phase,
+            data,
+            self._indptr,
+            self._indices,
+            self._iparms[mtype],
+            rhs,
+            x,
+            err,
+            perm,
         )
         with _LOCK:
             # A collector run in between (any allocation may start one) only queues releases:
