@@ -191,7 +191,7 @@ class PlaneContact:
         """Forces at rest [N], (N, 3): penalty normal force and the sticking elastic-slider friction
         of touching nodes (minus the gradient of :meth:`energy`)."""
         on, k, kt, n, pen, s = self._static_touching(body, x, t, state)
-        f = np.zeros_like(x)
+        f = np.zeros(x.shape)
         f[on] = (k * pen)[:, None] * n
         if self.mu > 0:
             f[on] -= kt[:, None] * s

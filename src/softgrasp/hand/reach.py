@@ -201,8 +201,9 @@ def _hull_equations(points: NDArray[np.float64]) -> NDArray[np.float64]:
     key = hashlib.blake2b(np.ascontiguousarray(points).tobytes(), digest_size=16).digest() + repr(
         points.shape
     ).encode()
-    if _HULL and _HULL[0][0] == key:
-        return _HULL[0][1]
+    kept = _HULL[0] if _HULL else None  # read once: another thread may replace it
+    if kept is not None and kept[0] == key:
+        return kept[1]
     eq = ConvexHull(points).equations
     eq.setflags(write=False)
     _HULL[:] = [(key, eq)]

@@ -369,6 +369,7 @@ class PardisoFactor:
             self._iparms[mtype][4] = 2 if self._perm is None else 1
             perm = np.zeros(self.n, dtype=np.int32) if self._perm is None else self._perm
             self._call(11, self._data, mtype=mtype, perm=perm)
+            perm.setflags(write=False)  # PARDISO only reads it from now on (iparm[4] = 1)
             self._perm = perm
             with _LOCK:
                 _ORDERINGS.pop(key, None)
@@ -502,7 +503,7 @@ class PardisoFactor:
                 and np.array_equal(A.indices, gather[1])
             ):
                 if gather[3] is None:  # the factor's pattern is A's upper triangle: one gather
-                    data = A.data[gather[2]]
+                    data = A.data[gather[2]].astype(np.float64, copy=False)
                 else:
                     data = np.zeros(self._indices.size)
                     data[gather[3]] = A.data[gather[2]]
