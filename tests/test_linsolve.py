@@ -331,7 +331,8 @@ def _kept_ordering_cases(monkeypatch) -> None:
     assert np.allclose(other.solve(b), b / K.diagonal(), rtol=1e-12)
     monkeypatch.setattr(pardiso, "ORDERINGS_KEPT", 1)
     pardiso.PardisoFactor(K)
-    assert len(pardiso._ORDERINGS) == 1 and next(iter(pardiso._ORDERINGS.values())) is kept  # the latest only
+    # only the latest is kept
+    assert len(pardiso._ORDERINGS) == 1 and next(iter(pardiso._ORDERINGS.values())) is kept
 
 
 @needs_mkl

@@ -172,7 +172,7 @@ class PlaneContact:
         """
         p0, n, pen = self._geometry(x, t)
         on = np.flatnonzero(pen > 0)
-        k = self.penalty * body.node_stiffness[on]
+        k = self.stiffness(body)[on]
         s = x[on] - (p0 + state.anchor[on])
         return on, k, self.tangential_ratio * k, n, pen[on], s - (s @ n)[:, None] * n
 
@@ -206,7 +206,7 @@ class PlaneContact:
         # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
         # body resting on the plane must not look unsupported to Newton's method (nor slide).
         on = np.flatnonzero(pen >= 0)
-        k = self.penalty * body.node_stiffness[on]
+        k = self.stiffness(body)[on]
         nn = np.outer(n, n)
         blocks = -k[:, None, None] * nn[None]
         if self.mu > 0:
