@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
 
 from softgrasp.body import build_body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
@@ -294,6 +295,87 @@ def test_multigrid_cg_shifts_an_indefinite_stiffness_into_a_descent_step():
     assert min(res) < 1e-8, res
 
 
+def _tipping(K: sp.csr_matrix) -> tuple[sp.csr_matrix, NDArray, float]:
+    """K (in its own pattern) with its softest modes turned unstable (a body about to tip over on
+    its few supports), the softest mode, and the first of the Newton solver's diagonal shifts tau
+    (1e-6, 1e-5, ..., relative to |diag|) that makes it positive definite, from its dense
+    eigenvalues."""
+    lam, vecs = np.linalg.eigh(K.toarray())
+    A = (K - 2.0 * lam[0] * sp.eye(K.shape[0])).tocsr()
+    dense = A.toarray()
+    assert np.linalg.eigvalsh(dense)[0] < 0
+    D = np.diag(np.abs(A.diagonal()))
+    tau = next(t for t in (1e-6 * 10.0**k for k in range(7)) if np.linalg.eigvalsh(dense + t * D)[0] > 0)
+    return A, vecs[:, 0], tau
+
+
+@needs_mkl
+@pytest.mark.parametrize("stale", [True, False])
+def test_pardiso_shifts_an_indefinite_held_stiffness_by_cholesky_alone(stale):
+    """A held body's stiffness turned indefinite after a positive definite one: the PARDISO path
+    solves the diagonally shifted system (A + tau D) x = b for the first shift that is positive
+    definite (tau from the dense eigenvalues, x checked against SciPy's LU of that matrix) with
+    Cholesky factors only: either the old factor's conjugate gradients prove A indefinite (no
+    factorisation of A at all) or A's Cholesky fails (the scene changed: no old factor tried);
+    no LDL^T is computed to count negative pivots. The step is a descent direction."""
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    K = _stiffness()
+    A, v, tau = _tipping(K)
+    x_nodes = np.asarray(body.mesh.points)
+    b = v + 0.1 * (K @ np.random.default_rng(6).standard_normal(K.shape[0])) / np.abs(K).max()
+    cache = SolverCache(method="pardiso")
+    solve_newton_system(K, b, None, x_nodes, cache)
+    f = cache._factor
+    assert f.positive_definite and cache.stats["factorisations"] == 1
+    if not stale:
+        cache.scene_changed()
+    x, _ = solve_newton_system(A, b, None, x_nodes, cache)
+    want = spla.spsolve((A + tau * sp.diags(np.abs(A.diagonal()))).tocsc(), b)
+    assert np.abs(x - want).max() <= 1e-8 * np.abs(want).max()
+    assert float(b @ x) > 0
+    assert cache.stats["indefinite_factor"] == 1 and cache.stats["shifted"] == 1
+    assert pardiso.SYMMETRIC_INDEFINITE not in f._pts  # never analysed for LDL^T
+    shifts = round(math.log10(tau / linsolve.INDEFINITE_SHIFT)) + 1  # factorisations of A + tau D
+    assert cache.stats["factorisations"] == 1 + shifts + (0 if stale else 1)
+
+
+@needs_mkl
+def test_a_cholesky_stopped_at_a_negative_pivot_leaves_no_factor_to_solve_with():
+    """``refactor(..., stop_if_indefinite=True)`` on an indefinite matrix returns False and leaves no
+    factor in use (a solve says so instead of using a failed one); ``refactor_positive`` takes a
+    positive definite matrix (then solves like SciPy's LU) and refuses an indefinite one."""
+    K = _stiffness()
+    A, _, tau = _tipping(K)
+    b = np.random.default_rng(8).standard_normal(K.shape[0])
+    f = pardiso.PardisoFactor(K)
+    assert not f.refactor(f.same_pattern(A), stop_if_indefinite=True)
+    with pytest.raises(pardiso.PardisoError, match="no factorisation in use"):
+        f.solve(b)
+    assert not f.refactor_positive(f.same_pattern(A))
+    S = (A + tau * sp.diags(np.abs(A.diagonal()))).tocsr()
+    assert f.refactor_positive(f.same_pattern(S)) and f.positive_definite
+    np.testing.assert_allclose(f.solve(b), spla.spsolve(S.tocsc(), b), rtol=1e-9, atol=0)
+    assert f.refactor(f.same_pattern(A))  # without the flag: LDL^T, negative pivots counted
+    assert f.negative_pivots == int((np.linalg.eigvalsh(A.toarray()) < 0).sum()) > 0
+
+
+@needs_mkl
+def test_a_free_body_singular_stiffness_is_not_shifted():
+    """A free body's stiffness (rigid motions free, singular) after a held one: not shifted as an
+    indefinite one would be, but factorised by LDL^T as before, and solved (b chosen in its
+    range)."""
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    x_nodes = np.asarray(body.mesh.points)
+    K0 = _stiffness(shift=0.0)
+    b = K0 @ np.random.default_rng(9).standard_normal(K0.shape[0])
+    cache = SolverCache(method="pardiso")
+    solve_newton_system(_stiffness(), b, None, x_nodes, cache)
+    cache.scene_changed()
+    x, _ = solve_newton_system(K0, b, None, x_nodes, cache)
+    assert cache.stats.get("shifted", 0) == 0 and not cache._factor.positive_definite
+    assert np.linalg.norm(K0 @ x - b) <= 1e-8 * np.linalg.norm(b)
+
+
 @needs_mkl
 def test_a_pattern_analysed_before_takes_its_kept_ordering_and_factorises_to_the_same_bits(monkeypatch):
     """A second factor of a pattern seen before takes the nested-dissection ordering kept from the
@@ -552,7 +634,7 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
     def stand_in(A, rhs, pre, max_it, rtol):
         for _ in range(n):
             pre.solve(rhs)
-        return spla.spsolve(A.tocsc(), rhs)
+        return spla.spsolve(A.tocsc(), rhs), False
 
     monkeypatch.setattr(ls, "_stale_pcg", stand_in)
     K2 = (1.01 * K).tocsr()

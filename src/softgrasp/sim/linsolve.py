@@ -236,17 +236,18 @@ def _stale_pcg(
     f: pardiso.PardisoFactor | _Corrected,
     max_it: int,
     rtol: float = STALE_RTOL,
-) -> NDArray[np.float64] | None:
+) -> tuple[NDArray[np.float64] | None, bool]:
     """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
-    matrix; None when they do not reach ``rtol`` in ``max_it`` iterations (or meet negative
-    curvature)."""
+    matrix. Returns (x, or None when they do not reach ``rtol`` in ``max_it`` iterations or meet
+    negative curvature; whether they met a direction p of negative curvature beyond round-off,
+    ``p^T A p < -NEGATIVE_CURVATURE_RTOL max|A_ii| |p|^2``: a proof that A is indefinite)."""
     bnorm = float(np.linalg.norm(b))
     if bnorm == 0:
-        return np.zeros_like(b)
+        return np.zeros_like(b), False
     x = f.solve(b)
     r = b - A @ x
     if float(np.linalg.norm(r)) <= rtol * bnorm:
-        return x
+        return x, False
     z = f.solve(r)
     p = z.copy()
     rz = float(r @ z)
@@ -254,17 +255,18 @@ def _stale_pcg(
         Ap = A @ p
         pAp = float(p @ Ap)
         if not pAp > 0 or not rz > 0:
-            return None
+            bound = NEGATIVE_CURVATURE_RTOL * float(np.abs(A.diagonal()).max()) * float(p @ p)
+            return None, pAp < -bound
         alpha = rz / pAp
         x += alpha * p
         r -= alpha * Ap
         if float(np.linalg.norm(r)) <= rtol * bnorm:
-            return x
+            return x, False
         z = f.solve(r)
         rz_new = float(r @ z)
         p = z + (rz_new / rz) * p
         rz = rz_new
-    return None
+    return None, False
 
 
 def _gmres(
@@ -410,6 +412,11 @@ class _Corrected:
         return y - self._Z @ (self._W @ y[self._S])
 
 
+#: Conjugate gradients preconditioned by an old factor prove the matrix indefinite when they meet
+#: a direction p with ``p^T A p`` below minus this fraction of ``max|A_ii| |p|^2`` (round-off in
+#: that product is ~1e-16 times the unknowns: ~1e-12 at 2 000 nodes; a tipping body's lean gave
+#: -5e-10 at 2 196 nodes).
+NEGATIVE_CURVATURE_RTOL = 1e-11
 #: A solve with an old factor that took more than this fraction of its iteration cap (the cap is
 #: half a refactorisation's cost in solves) has the next system refactorise first.
 STALE_REFRESH = 0.5
@@ -418,6 +425,48 @@ STALE_REFRESH = 0.5
 CORRECT_RTOL = 0.5
 #: At most this many changed nodes (the largest changes) are corrected for.
 CORRECT_MAX_NODES = 24
+
+
+def _rigid_motion_free(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> bool:
+    """Whether a rigid translation or rotation of the nodes ``x_nodes`` meets (almost) no stiffness
+    in A: nothing holds the body in place (its stiffness is singular)."""
+    B = _rigid_modes(x_nodes)
+    B /= np.linalg.norm(B, axis=0)
+    scale = float(np.abs(A).sum(axis=1).max()) or 1.0  # the largest row sum bounds |A|
+    return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * scale).any())
+
+
+def _shifted_solve(
+    f: pardiso.PardisoFactor, U: sp.csr_matrix, b: NDArray[np.float64], cache: SolverCache
+) -> NDArray[np.float64]:
+    """``(A + tau D)^-1 b`` for an indefinite stiffness A (upper triangle ``U`` in the factor's
+    pattern; a body on the table about to tip, a compressed region buckling), D its diagonal's
+    magnitudes and tau the first of ``INDEFINITE_SHIFT``, ten times that, ... up to 1 that makes
+    it positive definite: the exact Newton step would run towards a saddle, the shifted one
+    (Levenberg-Marquardt) is a descent direction for the line search, as conjugate gradients give
+    by stopping at negative curvature. Each shift is factorised by Cholesky (which says whether it
+    is positive definite); if even tau = 1 is not, its LDL^T is used."""
+    diag = U.indptr[:-1]  # the diagonal leads each row of the sorted upper triangle
+    scale = np.abs(U.data[diag])
+    tau = INDEFINITE_SHIFT
+    while True:
+        shifted = U.copy()
+        shifted.data[diag] += tau * scale
+        cache.stats["factorisations"] += 1
+        if f.refactor_positive(shifted):
+            break
+        if tau * 10.0 > 1.0:
+            f.refactor(shifted)
+            cache.stats["factorisations"] += 1
+            break
+        tau *= 10.0
+    cache._try_stale = True
+    cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1
+    # Counted apart from multigrid's shifts: the factorisation's inertia, or conjugate gradients'
+    # curvature beyond round-off, proves the matrix indefinite, which multigrid-preconditioned
+    # conjugate gradients meeting negative curvature (round-off on a nearly neutral mode) do not.
+    cache.stats["indefinite_factor"] = cache.stats.get("indefinite_factor", 0) + 1
+    return f.solve(b)
 
 
 def _pardiso(
@@ -438,6 +487,7 @@ def _pardiso(
     if U is not None:
         assert f is not None
         x = None
+        indefinite = False  # whether the old factor's conjugate gradients proved A indefinite
         if cache._try_stale:
             # As many iterations with the old factor as half a refactorisation costs in solves.
             cap = int(np.clip(0.5 * SOLVE_SPEED_RATIO * f.solves_per_factorisation, 4, 40))
@@ -446,15 +496,28 @@ def _pardiso(
             if matvec is not None:
                 x = _gmres(matvec, b, pre.solve, cap, rtol)
             else:
-                x = _stale_pcg(A, b, pre, cap, rtol)
+                x, indefinite = _stale_pcg(A, b, pre, cap, rtol)
             # After a failed attempt, or one that converged at more than a quarter of a
             # refactorisation's cost (the factor only ages), the next system refactorises first.
             cache._try_stale = x is not None and pre.applications <= STALE_REFRESH * cap
         if x is not None:
             cache.stats["stale_solves"] += 1
             return x, np.zeros(0)
-        f.refactor(U)
+        if indefinite and not _rigid_motion_free(A, x_nodes):
+            # Conjugate gradients proved A indefinite (a body on the table about to tip): the
+            # shifted matrix is factorised at once, not A itself first.
+            return _shifted_solve(f, U, b, cache), np.zeros(0)
+        factored = f.refactor(U, stop_if_indefinite=True)
         cache.stats["factorisations"] += 1
+        if not factored:
+            # Cholesky met a non-positive pivot. A body that is held (no rigid motion free) is
+            # tipping or buckling: the shifted matrix next, without the LDL^T that would count the
+            # negative pivots. A free body's singular stiffness gets that LDL^T, as before (where
+            # it perturbed pivots, multigrid solves below).
+            if not _rigid_motion_free(A, x_nodes):
+                return _shifted_solve(f, U, b, cache), np.zeros(0)
+            f.refactor(U)
+            cache.stats["factorisations"] += 1
     else:
         # A new pattern (contacts couple nodes that no edge joins, or others than before): analyse
         # the union with the previous pattern, so that both kinds of system reuse it.
@@ -464,25 +527,7 @@ def _pardiso(
         cache.stats["factorisations"] += 1
     cache._try_stale = True
     if f.negative_pivots > 0 and f.perturbed_pivots == 0:
-        # An indefinite stiffness (a body on the table about to tip, a compressed region
-        # buckling): the exact Newton step runs towards a saddle. Shift the diagonal until the
-        # factor is positive definite (Levenberg-Marquardt), a descent direction for the line
-        # search, as conjugate gradients give by stopping at negative curvature.
-        base = f.matrix()
-        diag = base.indptr[:-1]  # the diagonal leads each row of the sorted upper triangle
-        scale = np.abs(base.data[diag])
-        tau = INDEFINITE_SHIFT
-        while f.negative_pivots > 0 and tau <= 1.0:
-            shifted = base.copy()
-            shifted.data[diag] += tau * scale
-            f.refactor(shifted)
-            cache.stats["factorisations"] += 1
-            tau *= 10.0
-        cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1
-        # Counted apart: the factorisation's inertia proves the matrix indefinite, which conjugate
-        # gradients meeting negative curvature (round-off on a nearly neutral mode) do not.
-        cache.stats["indefinite_factor"] = cache.stats.get("indefinite_factor", 0) + 1
-        return f.solve(b), np.zeros(0)
+        return _shifted_solve(f, f.matrix(), b, cache), np.zeros(0)
     if matvec is not None and f.perturbed_pivots == 0:
         x = _gmres(matvec, b, f.solve, EXACT_MAX_IT, rtol)
         if x is not None:
@@ -495,7 +540,7 @@ def _pardiso(
         return _pcg(A, b, None, x_nodes, cache)
     # The factor of A itself: one solve, refined by a few conjugate-gradient steps where rounding
     # in the factor left more than the tolerance (the solves do no iterative refinement).
-    x = _stale_pcg(A, b, f, EXACT_MAX_IT, rtol)
+    x, _ = _stale_pcg(A, b, f, EXACT_MAX_IT, rtol)
     return (f.solve(b) if x is None else x), np.zeros(0)
 
 

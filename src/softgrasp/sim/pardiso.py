@@ -10,7 +10,11 @@ new matrix of that pattern: as matrix type 2 (Cholesky) while the matrices are p
 as type -2 (real symmetric indefinite, Bunch-Kaufman pivoting) when one is not (a stiffness may
 lose definiteness under compression, or be singular while a body is not held). At 7 576 nodes
 the default plan took 10.1 s against 11.7 s with LDL^T throughout (alternating runs); at 2 196
-nodes, whose settle leans through indefinite matrices, the two were level.
+nodes, whose settle leans through indefinite matrices, the two were level. The Newton solver needs
+no inertia of an indefinite matrix, only a factor of its diagonally shifted, positive definite
+neighbour: it stops at Cholesky's failure (``refactor(..., stop_if_indefinite=True)``) and
+factorises the shift by :meth:`PardisoFactor.refactor_positive` (the default plan's settle at 2 196
+nodes: 8 -> 6 factorisations and no LDL^T analysis, 1.35-1.40 -> 1.20-1.25 s a plan on one thread).
 
 The library comes from the ``mkl`` wheel (x86_64); :func:`available` says whether it loaded, and
 :mod:`softgrasp.sim.linsolve` falls back to multigrid-preconditioned CG where it did not.
@@ -318,6 +322,7 @@ class PardisoFactor:
         self._pts: dict[int, NDArray[np.int64]] = {}
         self._iparms: dict[int, NDArray[np.int32]] = {}
         self._mtype = SYMMETRIC_POSITIVE_DEFINITE  # of the factorisation in use
+        self._ready = False  # whether a factorisation is in use (the last one succeeded)
         self._skip_spd = 0  # factorisations left before Cholesky is tried again
         self.n = int(A.shape[0])
         U = self._upper(A)
@@ -378,28 +383,45 @@ class PardisoFactor:
                 while len(_ORDERINGS) > ORDERINGS_KEPT:
                     del _ORDERINGS[next(iter(_ORDERINGS))]
 
-    def _factorise(self) -> None:
+    def _cholesky(self) -> str:
+        """Cholesky factorisation of ``self._data``: ``"positive"`` (positive definite: the factor
+        in use), ``"indefinite"`` (PARDISO met a non-positive pivot) or ``"singular"`` (a pivot
+        below :data:`SPD_PIVOT_RTOL` of its diagonal entry). Unless positive, no factor is in use
+        until the next factorisation."""
+        self._ready = False
+        self._analysed(SYMMETRIC_POSITIVE_DEFINITE)
+        try:
+            self._call(22, self._data, mtype=SYMMETRIC_POSITIVE_DEFINITE)
+        except PardisoError as exc:
+            if exc.code != _ZERO_PIVOT:
+                raise
+            return "indefinite"
+        if self._min_pivot_ratio() < SPD_PIVOT_RTOL:
+            return "singular"
+        self._use(SYMMETRIC_POSITIVE_DEFINITE)
+        return "positive"
+
+    def _factorise(self, stop_if_indefinite: bool = False) -> bool:
         """Numerical factorisation of ``self._data``: Cholesky unless a recent matrix was not
-        positive definite (then, or when Cholesky meets a non-positive pivot, LDL^T). The other
-        type's factor is released (its analysis kept)."""
+        positive definite (then, or when Cholesky meets a non-positive pivot or a nearly singular
+        matrix, LDL^T). The other type's factor is released (its analysis kept). With
+        ``stop_if_indefinite``, a Cholesky that meets a non-positive pivot ends it: returns False,
+        no factor in use (and Cholesky stays the first try: the caller factorises a shifted matrix
+        next, not this one by LDL^T); otherwise True."""
         if self._skip_spd > 0:
             self._skip_spd -= 1
         else:
-            self._analysed(SYMMETRIC_POSITIVE_DEFINITE)
-            try:
-                self._call(22, self._data, mtype=SYMMETRIC_POSITIVE_DEFINITE)
-            except PardisoError as exc:
-                if exc.code != _ZERO_PIVOT:
-                    raise
-                self._skip_spd = SPD_RETRY
-            else:
-                if self._min_pivot_ratio() >= SPD_PIVOT_RTOL:
-                    self._use(SYMMETRIC_POSITIVE_DEFINITE)
-                    return
-                self._skip_spd = SPD_RETRY  # (nearly) singular: LDL^T, as before Cholesky
+            verdict = self._cholesky()
+            if verdict == "positive":
+                return True
+            if verdict == "indefinite" and stop_if_indefinite:
+                return False
+            self._skip_spd = SPD_RETRY  # LDL^T for a while, as before Cholesky
+        self._ready = False
         self._analysed(SYMMETRIC_INDEFINITE)
         self._call(22, self._data, mtype=SYMMETRIC_INDEFINITE)
         self._use(SYMMETRIC_INDEFINITE)
+        return True
 
     def _min_pivot_ratio(self) -> float:
         """The smallest pivot of the Cholesky factor over its matrix's diagonal entry."""
@@ -422,6 +444,7 @@ class PardisoFactor:
         """Solve with the factor of ``mtype`` from now on; release the other one's (phase 0: its
         L and U, not its analysis)."""
         self._mtype = mtype
+        self._ready = True
         for other in self._pts:
             if other != mtype:
                 self._call(0, self._data, mtype=other)
@@ -554,15 +577,32 @@ class PardisoFactor:
             (self._data.copy(), self._indices.copy(), self._indptr.copy()), shape=(self.n, self.n)
         )
 
-    def refactor(self, U: sp.csr_matrix) -> None:
-        """Numerical factorisation of new values ``U`` (from :meth:`same_pattern`)."""
+    def refactor(self, U: sp.csr_matrix, *, stop_if_indefinite: bool = False) -> bool:
+        """Numerical factorisation of new values ``U`` (from :meth:`same_pattern`). Returns True
+        when their factor is in use; False only with ``stop_if_indefinite``, when Cholesky met a
+        non-positive pivot (the matrix is not positive semi-definite: no factor is in use, and the
+        caller factorises a shifted matrix by :meth:`refactor_positive`, or this one again, by
+        LDL^T, without the flag). The LDL^T that would otherwise follow, to count the negative
+        pivots, is spared."""
         self._data = np.ascontiguousarray(U.data, dtype=np.float64)
         if self._fewer_threads():
-            return
-        self._factorise()
+            return True
+        return self._factorise(stop_if_indefinite)
+
+    def refactor_positive(self, U: sp.csr_matrix) -> bool:
+        """Cholesky factorisation of new values ``U`` (a matrix shifted to be positive definite):
+        True when it is (the factor in use), else False (no factor in use). Whatever the recent
+        matrices were, Cholesky is tried: a shifted matrix is positive definite more often than
+        not, and then its Cholesky is cheaper than LDL^T."""
+        self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+        if self._fewer_threads() and self.positive_definite:
+            return True
+        return self._cholesky() == "positive"
 
     def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
         """``A^-1 b`` for the matrix last factorised."""
+        if not self._ready:
+            raise PardisoError("no factorisation in use: the last one found the matrix not positive definite")
         self._fewer_threads()
         t0 = time.perf_counter()
         x = self._call(33, self._data, b)

@@ -26,7 +26,7 @@ from softgrasp import kernels
 from softgrasp.body import Body
 from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.mesh.tetmesh import signed_volumes
-from softgrasp.sim.linsolve import _SINGULAR, SolverCache, _rigid_modes, solve_newton_system
+from softgrasp.sim.linsolve import _SINGULAR, SolverCache, _rigid_motion_free, solve_newton_system
 from softgrasp.sim.scene import Scene, State
 
 #: Newton's progress at DEBUG level: each iteration's unbalanced force and accepted step, each friction pass.
@@ -477,11 +477,7 @@ def _free_rigid_motion(scene: Scene, x: NDArray[np.float64], t: float, contacts:
     once Newton has failed.)"""
     if C is not None:
         return False
-    A = -scene.jacobian(x, t, contacts)
-    B = _rigid_modes(x)
-    B /= np.linalg.norm(B, axis=0)
-    scale = float(np.abs(A).sum(axis=1).max()) or 1.0  # the largest row sum bounds |A|
-    return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * scale).any())
+    return _rigid_motion_free((-scene.jacobian(x, t, contacts)).tocsr(), x)
 
 
 def extrapolated(
