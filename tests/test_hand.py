@@ -688,10 +688,11 @@ def test_place_hand_finds_the_pinned_placement(case: str) -> None:
 
 
 def test_each_start_of_the_batched_placement_iterates_on_its_own() -> None:
-    """The starting postures advance together only to share NumPy calls: solving them all at once
-    or one by one gives the same end postures (including the ones that stall or get stuck)."""
+    """The starting postures of the NumPy solve advance together only to share NumPy calls: solving
+    them all at once or one by one gives the same end postures (including the ones that stall or get
+    stuck)."""
     from softgrasp.hand.model import chain_stack
-    from softgrasp.hand.reach import _seeds, _solve
+    from softgrasp.hand.reach import _seeds, _solve_numpy
 
     targets, _ = _sphere_grasp()
     targets["middle"] = targets["middle"] + np.array([0.0, 0.0, 0.05])  # some starts cannot reach it
@@ -700,9 +701,9 @@ def test_each_start_of_the_batched_placement_iterates_on_its_own() -> None:
     seeds = _seeds(MODEL, FINGERS, T, np.array([0.0, 0.0, 1.0]))
     poses = np.array([pose for pose, _ in seeds])
     q0 = np.array([np.concatenate([q[f] for f in FINGERS]) for _, q in seeds])
-    together = _solve(stack, T, poses[:, :3, :3], poses[:, :3, 3], q0)
+    together = _solve_numpy(stack, T, poses[:, :3, :3], poses[:, :3, 3], q0)
     for s in range(len(seeds)):
-        alone = _solve(stack, T, poses[s : s + 1, :3, :3], poses[s : s + 1, :3, 3], q0[s : s + 1])
+        alone = _solve_numpy(stack, T, poses[s : s + 1, :3, :3], poses[s : s + 1, :3, 3], q0[s : s + 1])
         for a, b in zip(together, alone, strict=True):
             np.testing.assert_allclose(a[s], b[0], rtol=0, atol=1e-12)
 

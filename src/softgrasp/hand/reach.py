@@ -6,7 +6,8 @@ The palm is a free rigid body (the arm positions it): its pose is found together
 fingers' joints by WDLS on the stacked fingertip tasks, the palm's six coordinates (a translation
 and a small rotation about world axes) acting as extra joints without limits. Several starting
 postures are tried (Kabsch's best rigid fit of a nominal posture's fingertips onto the targets),
-each iterating on its own but all solved together, vectorised with NumPy; a solution must reach
+each iterating on its own (in one compiled call, :mod:`softgrasp.kernels.reach`, or all together
+vectorised with NumPy, depending on :func:`softgrasp.kernels.compiled`); a solution must reach
 every target, keep every joint inside its limits and keep the palm and all finger joints outside
 the object. The one with the most room to its joint limits wins (the first one on a tie).
 
@@ -25,9 +26,11 @@ from types import MappingProxyType
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from softgrasp import kernels
 from softgrasp.errors import ConfigError, InfeasibleGrasp
 from softgrasp.hand.model import (
     _LEVI_CIVITA,
+    LIMIT_EPS,
     ChainStack,
     HandModel,
     _axis_rotation,
@@ -255,6 +258,42 @@ def _solve(
     """Floating-palm WDLS towards the targets ``(C, 3)`` from each of ``S`` starting postures (palm
     rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)``, joints ``q`` ``(S, n)``); returns the last
     ``R``, ``p``, ``q`` and largest fingertip error ``(S,)`` of each.
+
+    The compiled kernel (:func:`softgrasp.kernels.reach.solve`) when :func:`softgrasp.kernels.compiled`
+    says so and the kernel supports the stack and :data:`DAMPING` (any stack, with damping > 0:
+    :func:`softgrasp.kernels.reach.supported`); the NumPy reference :func:`_solve_numpy` otherwise.
+    Their iterations agree to round-off; a whole solve compounds it (see :mod:`softgrasp.kernels.reach`).
+    """
+    if kernels.compiled():
+        from softgrasp.kernels import reach as kernel
+
+        if kernel.supported(stack, DAMPING):
+            return kernel.solve(
+                stack,
+                targets,
+                R,
+                p,
+                q,
+                reach_tol=REACH_TOL,
+                max_iter=MAX_ITER,
+                max_step=MAX_STEP,
+                damping=DAMPING,
+                stall_fraction=STALL_FRACTION,
+                stall_window=STALL_WINDOW,
+                max_halvings=MAX_HALVINGS,
+                limit_eps=LIMIT_EPS,
+            )[:4]
+    return _solve_numpy(stack, targets, R, p, q)
+
+
+def _solve_numpy(
+    stack: ChainStack,
+    targets: NDArray[np.float64],
+    R: NDArray[np.float64],
+    p: NDArray[np.float64],
+    q: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`_solve` in NumPy, all postures at once (the reference).
 
     Every posture iterates on its own (they advance in lockstep only to share NumPy calls): a
     limit-clamped WDLS step (:func:`~softgrasp.hand.model._limited_steps`) on the stacked fingertip

@@ -7,7 +7,8 @@ before it meshes the object. gmsh meshes in C with the interpreter released, so 
 overlaps the meshing instead of following it.
 
 The warm-up solves one tiny static problem: a 30 mm box on a table under gravity, pressed by one
-fingertip (sparse LU, not PARDISO, so that no solver threads start). It calls the kernels through
+fingertip (sparse LU, not PARDISO, so that no solver threads start), and places the default hand
+on its own fingertips. It calls the kernels through
 the same code path, with the same argument types, as a plan. It is only an optimisation: a failure
 is ignored, and the real call then meets the same problem and reports it.
 """
@@ -53,6 +54,13 @@ def warm_up() -> None:
     rest, _ = solve_static(scene, state, t=0.0002, cache=SolverCache(method="direct"))
     fingers.report(body, rest.x, None, 0.0002, rest.contacts[1], static=True)
     fingers.contact_frames(body, rest.x, 0.0002, rest.contacts[1])
+    # The hand's placement (its compiled WDLS): the default hand reaching its own fingertips.
+    from softgrasp.hand.model import HandModel
+    from softgrasp.hand.reach import place_hand
+
+    hand = HandModel.default()
+    mid = {f: hand.forward(f, 0.5 * np.add(*hand.limits(f))) for f in ("thumb", "first", "middle")}
+    place_hand(hand, mid)
 
 
 def _quietly() -> None:
