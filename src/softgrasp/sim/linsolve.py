@@ -21,6 +21,7 @@ All of it lives in a :class:`SolverCache` that the callers keep across the solve
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from collections.abc import Callable
@@ -283,22 +284,39 @@ def _gmres(
         return np.zeros_like(b)
     V = [b / bnorm]
     Z: list[NDArray[np.float64]] = []
-    H = np.zeros((max_it + 1, max_it))
-    e1 = np.zeros(max_it + 1)
-    e1[0] = bnorm
+    R = np.zeros((max_it + 1, max_it))  # the Hessenberg matrix, turned upper triangular
+    g = np.zeros(max_it + 1)  # the rotated right-hand side bnorm e1
+    g[0] = bnorm
+    cs = np.zeros(max_it)
+    sn = np.zeros(max_it)
     for k in range(max_it):
         z = precondition(V[k])
         Z.append(z)
         w = matvec(z)
+        h = R[:, k]
         for i in range(k + 1):  # modified Gram-Schmidt
-            H[i, k] = float(w @ V[i])
-            w = w - H[i, k] * V[i]
-        H[k + 1, k] = float(np.linalg.norm(w))
-        y, *_ = np.linalg.lstsq(H[: k + 2, : k + 1], e1[: k + 2], rcond=None)
-        res = float(np.linalg.norm(H[: k + 2, : k + 1] @ y - e1[: k + 2]))
-        if res <= rtol * bnorm or H[k + 1, k] <= 1e-14 * bnorm:
-            return np.sum([yi * zi for yi, zi in zip(y, Z, strict=True)], axis=0)
-        V.append(w / H[k + 1, k])
+            h[i] = float(w @ V[i])
+            w = w - h[i] * V[i]
+        h[k + 1] = float(np.linalg.norm(w))
+        breakdown = h[k + 1] <= 1e-14 * bnorm
+        # The earlier Givens rotations, then one that zeroes h[k + 1]: the least-squares residual
+        # min |H y - bnorm e1| is then |g[k + 1]| (Saad and Schultz).
+        for i in range(k):
+            h[i], h[i + 1] = cs[i] * h[i] + sn[i] * h[i + 1], cs[i] * h[i + 1] - sn[i] * h[i]
+        r = math.hypot(h[k], h[k + 1])
+        cs[k], sn[k] = (1.0, 0.0) if r == 0.0 else (h[k] / r, h[k + 1] / r)
+        vk = h[k + 1]
+        h[k], h[k + 1] = r, 0.0
+        g[k], g[k + 1] = cs[k] * g[k], -sn[k] * g[k]
+        if abs(g[k + 1]) <= rtol * bnorm or breakdown:
+            y = np.zeros(k + 1)  # back substitution R y = g
+            for i in range(k, -1, -1):
+                y[i] = (g[i] - R[i, i + 1 : k + 1] @ y[i + 1 :]) / R[i, i] if R[i, i] != 0.0 else 0.0
+            x = y[0] * Z[0]
+            for yi, zi in zip(y[1:], Z[1:], strict=True):
+                x += yi * zi
+            return x
+        V.append(w / vk)
     return None
 
 
