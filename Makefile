@@ -37,6 +37,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_body.py
 	$(BIN)/python benchmarks/bench_contact.py
 	$(BIN)/python benchmarks/bench_plan.py --reference
+	$(BIN)/python benchmarks/bench_reach.py
 	$(BIN)/python benchmarks/bench_settle.py
 	$(BIN)/python benchmarks/bench_dynamic.py
 	$(BIN)/python benchmarks/bench_indent.py
