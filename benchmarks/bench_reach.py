@@ -96,9 +96,10 @@ def main() -> None:
             for b in total:
                 total[b] += med[b]
             same = _same(results["numba"], results["numpy"])
+            ratio = med["numpy"] / med["numba"]
             print(
                 f"{n_nodes:6d}  {k + 1:4d}  {best['numba']:10.2f} / {med['numba']:6.2f}"
-                f"        {best['numpy']:9.2f} / {med['numpy']:6.2f}   {med['numpy'] / med['numba']:5.1f}x  {same}"
+                f"        {best['numpy']:9.2f} / {med['numpy']:6.2f}   {ratio:5.1f}x  {same}"
             )
         print(
             f"{n_nodes:6d}   all  {total['numba']:19.1f}        {total['numpy']:16.1f}   "
