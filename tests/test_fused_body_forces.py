@@ -1,0 +1,108 @@
+"""The fused stepper's body forces (:mod:`softgrasp.kernels.step` on the layout of its
+:func:`~softgrasp.kernels.step.pack_body`) against the NumPy reference (:mod:`softgrasp.forces`
+through ``Body.internal_forces`` / ``internal_energy`` with the NumPy backend) on perturbed
+states: forces, energy, inverted tets; with and without the volume term, the barrier and the
+quadratic volume law, damped and undamped, split in one to three parts."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from softgrasp import kernels
+from softgrasp.body import build_body
+from softgrasp.material import Material, Polynomial
+from softgrasp.mesh import box, signed_volumes
+from softgrasp.objects import make_object
+
+pytest.importorskip("numba")
+from softgrasp.kernels import step  # noqa: E402 - needs numba
+
+TOL = 1e-10
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a - b).max()) / float(np.abs(b).max())
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    mesh, mat, mass = make_object("sphere", 0.014)
+    return build_body(mesh, mat, mass=mass)
+
+
+@pytest.fixture(scope="module")
+def cube():
+    """A box of the cubic law (a2, a3 != 0)."""
+    return build_body(box(0.03, 3), Material(0.0793e6, 0.45, 45.5, law=Polynomial(0.4, 2.0)), mass=0.02)
+
+
+def _state(body, seed: int = 0, scale: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
+    """Positions moved by ``scale`` of the shortest edge at random, random velocities."""
+    rng = np.random.default_rng(seed)
+    x0 = np.asarray(body.mesh.points, dtype=np.float64)
+    h = float(body.rest_length.min())
+    return x0 + scale * h * rng.standard_normal(x0.shape), 0.05 * rng.standard_normal(x0.shape)
+
+
+def _fused(body, x, v, want_energy: bool, check: bool, parts: int = 2):
+    """Summed forces [N] (N, 3), energy [J], inverted count and first inverted tet."""
+    fint = np.zeros((parts, body.n_nodes, 3))
+    info = np.zeros((parts, 3))
+    packed = step.pack_body(body)
+    e, count, first = step._body_forces(
+        False, np.ascontiguousarray(x), np.ascontiguousarray(v), packed, want_energy, check, fint, info
+    )
+    return fint.sum(axis=0), e, count, first
+
+
+def _reference(body, x, v):
+    with kernels.use_backend("numpy"):
+        return body.internal_forces(x, v), body.internal_energy(x)
+
+
+@pytest.mark.parametrize("name", ["sphere", "cube"])
+@pytest.mark.parametrize("kappa", ["body", "zero", "quadratic"])
+@pytest.mark.parametrize("parts", [1, 2, 3])
+def test_forces_and_energy_match_the_reference(request, name, kappa, parts):
+    body = request.getfixturevalue(name)
+    if kappa == "zero":
+        body = dataclasses.replace(body, kappa=0.0)
+    elif kappa == "quadratic":  # kappa < 0: the quadratic volume law, no barrier
+        body = dataclasses.replace(body, kappa=-abs(body.kappa))
+    x, v = _state(body, seed=parts)
+    f_ref, e_ref = _reference(body, x, v)
+    for want_energy, check in ((False, False), (True, True), (True, False), (False, True)):
+        f, e, count, first = _fused(body, x, v, want_energy, check, parts)
+        assert _rel(f, f_ref) < TOL
+        assert (abs(e - e_ref) <= TOL * abs(e_ref)) if want_energy else e == 0.0
+        assert (count, first) == (0, -1)
+
+
+def test_undamped_forces_match_the_reference(sphere):
+    body = dataclasses.replace(sphere, damping_time=0.0)
+    x, v = _state(body, seed=3)
+    f, _, _, _ = _fused(body, x, v, False, False)
+    with kernels.use_backend("numpy"):
+        assert _rel(f, body.internal_forces(x)) < TOL
+
+
+@pytest.mark.parametrize("kappa", ["body", "zero"])
+def test_inverted_tets_are_counted_when_checked(sphere, kappa):
+    body = sphere if kappa == "body" else dataclasses.replace(sphere, kappa=0.0)
+    x, v = _state(body, seed=4, scale=0.05)
+    tets = np.asarray(body.mesh.tets)
+    for t in (len(tets) - 7, 11, len(tets) // 2):  # swap two nodes' positions: those tets invert
+        a, b = tets[t, 0], tets[t, 1]
+        x[[a, b]] = x[[b, a]]
+    bad = np.flatnonzero(~(signed_volumes(x, tets) > 0))
+    assert bad.size >= 3
+    f_ref, e_ref = _reference(body, x, v)
+    for parts in (1, 2):
+        f, e, count, first = _fused(body, x, v, True, True, parts)
+        assert (count, first) == (bad.size, bad[0])
+        assert _rel(f, f_ref) < TOL
+        assert abs(e - e_ref) <= TOL * abs(e_ref)
+        assert _fused(body, x, v, False, False, parts)[2:] == (0, -1)
