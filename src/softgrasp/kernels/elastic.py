@@ -88,8 +88,8 @@ def _springs(
     a2_3 = a2 / 3.0
     a3_4 = 0.25 * a3
     for e in range(lo, hi):
-        i = edges[e, 0]
-        j = edges[e, 1]
+        i = np.uint64(edges[e, 0])  # unsigned: no negative-index wrap-around per access
+        j = np.uint64(edges[e, 1])
         dx = x[j, 0] - x[i, 0]
         dy = x[j, 1] - x[i, 1]
         dz = x[j, 2] - x[i, 2]
@@ -161,11 +161,11 @@ def _spring_blocks(x, edges, L, T, dT, psd, base, stride, use_pos, offset, out):
                     val += geo
                 for q in range(4):
                     sign = 1.0 if q < 2 else -1.0
-                    B = offset + q * E + e
+                    B = np.uint64(offset + q * E + e)  # unsigned: see _volume_blocks
                     if use_pos:
-                        idx = base[B] + r * stride[B] + s
+                        idx = np.uint64(base[B]) + np.uint64(r) * np.uint64(stride[B]) + np.uint64(s)
                     else:
-                        idx = 9 * B + 3 * r + s
+                        idx = np.uint64(9) * B + np.uint64(3 * r + s)
                     out[idx] += sign * val
 
 
@@ -182,10 +182,10 @@ def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, ou
     first = -1
     ck = -kappa / 6.0
     for t in range(lo, hi):
-        p0 = tets[t, 0]
-        p1 = tets[t, 1]
-        p2 = tets[t, 2]
-        p3 = tets[t, 3]
+        p0 = np.uint64(tets[t, 0])  # unsigned: no negative-index wrap-around per access
+        p1 = np.uint64(tets[t, 1])
+        p2 = np.uint64(tets[t, 2])
+        p3 = np.uint64(tets[t, 3])
         x0 = x[p0, 0]
         y0 = x[p0, 1]
         z0 = x[p0, 2]
@@ -244,11 +244,15 @@ def _volume_blocks(x, tets, rest, kappa, barrier, base, stride, use_pos, offset,
     B = offset + 16 t + 4 a + b (a, b local node indices), placed as in :func:`_spring_blocks`."""
     g = np.empty((4, 3))
     w = np.empty((4, 4, 3))  # d^2 V / d x_a d x_b = skew(w[a, b]) / 6
+    one = np.uint64(1)
+    two = np.uint64(2)
     av = np.empty((4, 3))  # av[1..3] = a1..a3
     for t in range(tets.shape[0]):
+        n0 = np.uint64(tets[t, 0])
         for m in range(1, 4):
+            nm = np.uint64(tets[t, m])
             for d in range(3):
-                av[m, d] = x[tets[t, m], d] - x[tets[t, 0], d]
+                av[m, d] = x[nm, d] - x[n0, d]
         # g_k = (a_{k+1} x a_{k+2}) / 6 cyclically, g0 = -(g1 + g2 + g3)
         for m in range(1, 4):
             p = 1 + m % 3
@@ -296,24 +300,26 @@ def _volume_blocks(x, tets, rest, kappa, barrier, base, stride, use_pos, offset,
                 gb0 = g[b, 0]
                 gb1 = g[b, 1]
                 gb2 = g[b, 2]
-                B = offset + 16 * t + 4 * a + b
+                # Unsigned positions: Numba then adds no negative-index wrap-around to each
+                # access (0.25 of the kernel's time; the same sums).
+                B = np.uint64(offset + 16 * t + 4 * a + b)
                 if use_pos:
-                    i0 = base[B]
-                    st = stride[B]
+                    i0 = np.uint64(base[B])
+                    st = np.uint64(stride[B])
                 else:
-                    i0 = 9 * B
-                    st = 3
+                    i0 = np.uint64(9) * B
+                    st = np.uint64(3)
                 i1 = i0 + st
                 i2 = i1 + st
                 out[i0] += -(ga0 * gb0 + ch * 0.0)
-                out[i0 + 1] += -(ga0 * gb1 + ch * -wz)
-                out[i0 + 2] += -(ga0 * gb2 + ch * wy)
+                out[i0 + one] += -(ga0 * gb1 + ch * -wz)
+                out[i0 + two] += -(ga0 * gb2 + ch * wy)
                 out[i1] += -(ga1 * gb0 + ch * wz)
-                out[i1 + 1] += -(ga1 * gb1 + ch * 0.0)
-                out[i1 + 2] += -(ga1 * gb2 + ch * -wx)
+                out[i1 + one] += -(ga1 * gb1 + ch * 0.0)
+                out[i1 + two] += -(ga1 * gb2 + ch * -wx)
                 out[i2] += -(ga2 * gb0 + ch * -wy)
-                out[i2 + 1] += -(ga2 * gb1 + ch * wx)
-                out[i2 + 2] += -(ga2 * gb2 + ch * 0.0)
+                out[i2 + one] += -(ga2 * gb1 + ch * wx)
+                out[i2 + two] += -(ga2 * gb2 + ch * 0.0)
 
 
 # ---------------------------------------------------------------------------------- wrappers
