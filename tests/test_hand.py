@@ -616,19 +616,6 @@ def test_the_obstacle_hull_kept_between_placements_is_the_current_obstacles() ->
     place_hand(MODEL, targets, obstacle=far)
 
 
-def _sphere_grasp() -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Fingertip centres touching a 40 mm sphere on the table (thumb opposite two fingers 1 rad
-    apart) and 200 points of the sphere (the obstacle)."""
-    r, n = 0.04, 200
-    k = np.arange(n) + 0.5
-    z = 1 - 2 * k / n
-    phi = math.pi * (1 + 5**0.5) * k
-    pts = np.column_stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
-    normals = np.array([[math.cos(a), math.sin(a), 0.0] for a in (0.0, math.pi - 0.5, math.pi + 0.5)])
-    centre = np.array([0.0, 0.0, r])
-    return {f: centre + (r + 0.008) * v for f, v in zip(FINGERS, normals, strict=True)}, centre + r * pts
-
-
 # Placements found by the seed-by-seed implementation (softgrasp before the batched solver), rows 0-2
 # of the palm pose and the joint vectors: the batched solver must find the same ones.
 PINNED = {
@@ -672,13 +659,13 @@ PINNED = {
 
 
 @pytest.mark.parametrize("case", sorted(PINNED))
-def test_place_hand_finds_the_pinned_placement(case: str) -> None:
+def test_place_hand_finds_the_pinned_placement(case: str, sphere_grasp) -> None:
     from softgrasp.hand.reach import place_hand
 
     if case == "known":
         pl = place_hand(MODEL, _known_targets())
     else:
-        targets, points = _sphere_grasp()
+        targets, points = sphere_grasp
         pl = place_hand(MODEL, targets, obstacle=points)
     pose, q = PINNED[case]
     np.testing.assert_allclose(pl.palm_pose[:3], pose, atol=1e-9)
@@ -687,14 +674,14 @@ def test_place_hand_finds_the_pinned_placement(case: str) -> None:
         np.testing.assert_allclose(pl.q[f], q[f], atol=1e-9)
 
 
-def test_each_start_of_the_batched_placement_iterates_on_its_own() -> None:
+def test_each_start_of_the_batched_placement_iterates_on_its_own(sphere_grasp) -> None:
     """The starting postures of the NumPy solve advance together only to share NumPy calls: solving
     them all at once or one by one gives the same end postures (including the ones that stall or get
     stuck)."""
     from softgrasp.hand.model import chain_stack
     from softgrasp.hand.reach import _seeds, _solve_numpy
 
-    targets, _ = _sphere_grasp()
+    targets = dict(sphere_grasp[0])
     targets["middle"] = targets["middle"] + np.array([0.0, 0.0, 0.05])  # some starts cannot reach it
     T = np.array([targets[f] for f in FINGERS])
     stack = chain_stack(tuple(MODEL.chain(f) for f in FINGERS))

@@ -227,23 +227,10 @@ def test_every_iteration_equals_the_reference_along_its_path(
 # ---------------------------------------------------------------------- place_hand
 
 
-def _sphere_grasp() -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Fingertip centres touching a 40 mm sphere on the table (thumb opposite two fingers 1 rad
-    apart) and 200 points of the sphere (the obstacle)."""
-    r, n = 0.04, 200
-    k = np.arange(n) + 0.5
-    z = 1 - 2 * k / n
-    phi = np.pi * (1 + 5**0.5) * k
-    pts = np.column_stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
-    normals = np.array([[np.cos(a), np.sin(a), 0.0] for a in (0.0, np.pi - 0.5, np.pi + 0.5)])
-    centre = np.array([0.0, 0.0, r])
-    return {f: centre + (r + 0.008) * v for f, v in zip(FINGERS, normals, strict=True)}, centre + r * pts
-
-
 @pytest.mark.parametrize("case", ["known", "lower limits", "sphere"])
-def test_place_hand_places_the_hand_alike_under_both_backends(case: str) -> None:
+def test_place_hand_places_the_hand_alike_under_both_backends(case: str, sphere_grasp) -> None:
     if case == "sphere":
-        targets, obstacle = _sphere_grasp()
+        targets, obstacle = sphere_grasp
     else:
         targets, obstacle = TARGETS[case], None
     placements = {}

@@ -1,0 +1,23 @@
+"""Fixtures shared by several test modules."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture
+def sphere_grasp() -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Fingertip centres (thumb, first, middle) touching a 40 mm sphere on the table, the thumb
+    opposite two fingers 1 rad apart, and 200 points of the sphere (an obstacle for the hand)."""
+    r, n = 0.04, 200
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = math.pi * (1 + 5**0.5) * k
+    pts = np.column_stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
+    normals = np.array([[math.cos(a), math.sin(a), 0.0] for a in (0.0, math.pi - 0.5, math.pi + 0.5)])
+    centre = np.array([0.0, 0.0, r])
+    fingers = ("thumb", "first", "middle")
+    return {f: centre + (r + 0.008) * v for f, v in zip(fingers, normals, strict=True)}, centre + r * pts
