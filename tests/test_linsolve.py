@@ -377,6 +377,67 @@ def test_a_free_body_singular_stiffness_is_not_shifted():
 
 
 @needs_mkl
+@pytest.mark.parametrize("case", ["tau beyond 1", "a node nothing holds"])
+def test_every_numerical_factorisation_is_counted_and_none_is_repeated(monkeypatch, case):
+    """The factorisations the PARDISO path makes (PARDISO's numerical phase, spied on) are the
+    ones it counts, and no values are factorised twice in a row by the same method: a held
+    stiffness shifted by 3 |diag| into indefiniteness (no shift up to tau = 1 is positive
+    definite: Cholesky for each, then LDL^T of the last, not Cholesky again), and one with a node
+    that nothing holds (a zero row: singular, not indefinite, so not shifted but factorised by
+    LDL^T after Cholesky's failure, solved by multigrid where its pivots were perturbed)."""
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    x_nodes = np.asarray(body.mesh.points)
+    K = _stiffness()
+    n = K.shape[0]
+    rng = np.random.default_rng(11)
+    if case == "tau beyond 1":
+        A = (K - 3.0 * sp.diags(K.diagonal())).tocsr()
+        b = rng.standard_normal(n)
+    else:
+        keep = sp.diags(np.r_[np.zeros(3), np.ones(n - 3)])
+        A = (keep @ K @ keep).tocsr()
+        b = keep @ rng.standard_normal(n)
+    made: list[tuple[int, bytes]] = []
+    real = pardiso.PardisoFactor._call
+
+    def spy(self, phase, data, b=None, mtype=None, perm=None):
+        if phase == 22:
+            made.append((self._mtype if mtype is None else mtype, data.tobytes()))
+        return real(self, phase, data, b=b, mtype=mtype, perm=perm)
+
+    monkeypatch.setattr(pardiso.PardisoFactor, "_call", spy)
+    cache = SolverCache(method="pardiso")
+    solve_newton_system(K, b, None, x_nodes, cache)
+    cache.scene_changed()
+    before, first = cache.stats["factorisations"], len(made)
+    x, _ = solve_newton_system(A, b, None, x_nodes, cache)
+    assert cache.stats["factorisations"] - before == len(made) - first
+    assert all(made[i] != made[i + 1] for i in range(first, len(made) - 1))
+    if case == "tau beyond 1":
+        assert [m for m, _ in made[first:]] == [2] * 8 + [-2] and cache.stats["shifted"] == 1
+    else:
+        assert cache.stats.get("shifted", 0) == 0 and cache.stats.get("indefinite_factor", 0) == 0
+        assert [m for m, _ in made[first:]] == [2, -2]
+        assert np.linalg.norm(A @ x - b) <= 1e-8 * np.linalg.norm(b)
+
+
+def test_gmres_on_a_singular_operator_returns_a_least_squares_step_not_a_blown_up_one():
+    """GMRES that breaks down on a singular operator with b partly outside its range (a diagonal
+    with three zeros) returns a least-squares step: its residual is NumPy's lstsq residual for the
+    whole operator, and the step stays of the size of lstsq's minimum-norm solution (its Krylov
+    space holds b, so some of b's null-space part stays in it), not blown up along the null space
+    by dividing by a zero pivot (it was 5e15 times larger)."""
+    n = 60
+    A = np.diag(np.r_[np.zeros(3), np.linspace(1.0, 2.0, n - 3)])
+    b = np.random.default_rng(1).standard_normal(n)
+    x = linsolve._gmres(lambda v: A @ v, b, lambda v: v, 80, 1e-8)
+    want = np.linalg.lstsq(A, b, rcond=None)[0]
+    assert x is not None
+    assert np.linalg.norm(A @ x - b) == pytest.approx(np.linalg.norm(A @ want - b), rel=1e-8)
+    assert np.abs(x).max() <= 2.0 * np.abs(want).max()
+
+
+@needs_mkl
 def test_a_pattern_analysed_before_takes_its_kept_ordering_and_factorises_to_the_same_bits(monkeypatch):
     """A second factor of a pattern seen before takes the nested-dissection ordering kept from the
     first analysis (METIS does not run again) and solves to the same bits, in both matrix types;

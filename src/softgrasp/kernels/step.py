@@ -236,6 +236,14 @@ def _edge_pass(x, v, eq, ep, a2, a3, damped, want_energy, lo, hi, out):  # pragm
     return energy
 
 
+@_jit
+def _det_unfused(ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover - compiled
+    """The triple product a . (b x c) without fused multiply-adds, as
+    :func:`softgrasp.kernels.elastic._inverted` and :func:`softgrasp.mesh.tetmesh.signed_volumes`
+    compute it (a nearly flat tet's sign is the same)."""
+    return ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+
+
 @_fjit
 def _tet_pass(x, tq, tp, kappa, barrier, want_energy, check, lo, hi, out):  # pragma: no cover - compiled
     """Volume-term forces of tets ``lo:hi`` added to ``out`` (``kappa`` != 0), or only their
@@ -273,7 +281,7 @@ def _tet_pass(x, tq, tp, kappa, barrier, want_energy, check, lo, hi, out):  # pr
         c1z = bx * cy - by * cx
         if not vol:
             if check:
-                det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+                det = _det_unfused(ax, ay, az, bx, by, bz, cx, cy, cz)
                 if not det / 6.0 > 0.0:
                     if first < 0:
                         first = np.int64(t)

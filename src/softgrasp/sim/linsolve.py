@@ -241,7 +241,8 @@ def _stale_pcg(
     """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
     matrix. Returns (x, or None when they do not reach ``rtol`` in ``max_it`` iterations or meet
     negative curvature; whether they met a direction p of negative curvature beyond round-off,
-    ``p^T A p < -NEGATIVE_CURVATURE_RTOL max|A_ii| |p|^2``: a proof that A is indefinite)."""
+    ``p^T A p < -NEGATIVE_CURVATURE_ROUNDOFF n eps max_i sum_j |A_ij| |p|^2``: a proof that A is
+    indefinite)."""
     bnorm = float(np.linalg.norm(b))
     if bnorm == 0:
         return np.zeros_like(b), False
@@ -256,7 +257,9 @@ def _stale_pcg(
         Ap = A @ p
         pAp = float(p @ Ap)
         if not pAp > 0 or not rz > 0:
-            bound = NEGATIVE_CURVATURE_RTOL * float(np.abs(A.diagonal()).max()) * float(p @ p)
+            # Round-off in p^T A p is at most ~n eps |p|^T |A| |p| <= n eps max_i sum_j |A_ij| |p|^2.
+            row_sum = float(abs(A).sum(axis=1).max())
+            bound = NEGATIVE_CURVATURE_ROUNDOFF * A.shape[0] * np.finfo(float).eps * row_sum * float(p @ p)
             return None, pAp < -bound
         alpha = rz / pAp
         x += alpha * p
@@ -309,9 +312,9 @@ def _gmres(
         h[k], h[k + 1] = r, 0.0
         g[k], g[k + 1] = cs[k] * g[k], -sn[k] * g[k]
         if abs(g[k + 1]) <= rtol * bnorm or breakdown:
-            y = np.zeros(k + 1)  # back substitution R y = g
-            for i in range(k, -1, -1):
-                y[i] = (g[i] - R[i, i + 1 : k + 1] @ y[i + 1 :]) / R[i, i] if R[i, i] != 0.0 else 0.0
+            # The least-squares solution of the triangular system (minimum norm where it is
+            # singular: an exact Newton matrix losing its supports), as of the Hessenberg one.
+            y = np.linalg.lstsq(R[: k + 1, : k + 1], g[: k + 1], rcond=None)[0]
             x = y[0] * Z[0]
             for yi, zi in zip(y[1:], Z[1:], strict=True):
                 x += yi * zi
@@ -431,10 +434,10 @@ class _Corrected:
 
 
 #: Conjugate gradients preconditioned by an old factor prove the matrix indefinite when they meet
-#: a direction p with ``p^T A p`` below minus this fraction of ``max|A_ii| |p|^2`` (round-off in
-#: that product is ~1e-16 times the unknowns: ~1e-12 at 2 000 nodes; a tipping body's lean gave
-#: -5e-10 at 2 196 nodes).
-NEGATIVE_CURVATURE_RTOL = 1e-11
+#: a direction p with ``p^T A p`` below minus this multiple of its round-off bound, n eps times the
+#: largest absolute row sum times ``|p|^2`` (at 2 196 nodes 1.5e-12 of that row sum; a tipping
+#: body's lean gave -1.6e-10 of it).
+NEGATIVE_CURVATURE_ROUNDOFF = 10.0
 #: A solve with an old factor that took more than this fraction of its iteration cap (the cap is
 #: half a refactorisation's cost in solves) has the next system refactorise first.
 STALE_REFRESH = 0.5
@@ -474,7 +477,7 @@ def _shifted_solve(
         if f.refactor_positive(shifted):
             break
         if tau * 10.0 > 1.0:
-            f.refactor(shifted)
+            f.refactor(shifted, ldlt=True)
             cache.stats["factorisations"] += 1
             break
         tau *= 10.0
@@ -506,7 +509,7 @@ def _pardiso(
         assert f is not None
         x = None
         indefinite = False  # whether the old factor's conjugate gradients proved A indefinite
-        if cache._try_stale:
+        if cache._try_stale and f.ready:
             # As many iterations with the old factor as half a refactorisation costs in solves.
             cap = int(np.clip(0.5 * SOLVE_SPEED_RATIO * f.solves_per_factorisation, 4, 40))
             # The old factor, corrected for the nodes that gained stiffness since.
@@ -528,13 +531,14 @@ def _pardiso(
         factored = f.refactor(U, stop_if_indefinite=True)
         cache.stats["factorisations"] += 1
         if not factored:
-            # Cholesky met a non-positive pivot. A body that is held (no rigid motion free) is
-            # tipping or buckling: the shifted matrix next, without the LDL^T that would count the
-            # negative pivots. A free body's singular stiffness gets that LDL^T, as before (where
-            # it perturbed pivots, multigrid solves below).
-            if not _rigid_motion_free(A, x_nodes):
+            # Cholesky met a non-positive pivot. A body that is held (no rigid motion free, no
+            # unknown without stiffness) is tipping or buckling: the shifted matrix next, without
+            # the LDL^T that would count the negative pivots. A singular stiffness (a free body, a
+            # node that nothing holds) gets that LDL^T, as before (where it perturbed pivots,
+            # multigrid solves below).
+            if U.data[U.indptr[:-1]].all() and not _rigid_motion_free(A, x_nodes):
                 return _shifted_solve(f, U, b, cache), np.zeros(0)
-            f.refactor(U)
+            f.refactor(U, ldlt=True)
             cache.stats["factorisations"] += 1
     else:
         # A new pattern (contacts couple nodes that no edge joins, or others than before): analyse

@@ -323,7 +323,7 @@ class PardisoFactor:
         self._iparms: dict[int, NDArray[np.int32]] = {}
         self._mtype = SYMMETRIC_POSITIVE_DEFINITE  # of the factorisation in use
         self._ready = False  # whether a factorisation is in use (the last one succeeded)
-        self._skip_spd = 0  # factorisations left before Cholesky is tried again
+        self._skip_spd = 0  # factorisations by refactor() left before Cholesky is tried again
         self.n = int(A.shape[0])
         U = self._upper(A)
         self._indptr = U.indptr.astype(np.int32)
@@ -401,14 +401,17 @@ class PardisoFactor:
         self._use(SYMMETRIC_POSITIVE_DEFINITE)
         return "positive"
 
-    def _factorise(self, stop_if_indefinite: bool = False) -> bool:
+    def _factorise(self, stop_if_indefinite: bool = False, ldlt: bool = False) -> bool:
         """Numerical factorisation of ``self._data``: Cholesky unless a recent matrix was not
         positive definite (then, or when Cholesky meets a non-positive pivot or a nearly singular
         matrix, LDL^T). The other type's factor is released (its analysis kept). With
         ``stop_if_indefinite``, a Cholesky that meets a non-positive pivot ends it: returns False,
         no factor in use (and Cholesky stays the first try: the caller factorises a shifted matrix
-        next, not this one by LDL^T); otherwise True."""
-        if self._skip_spd > 0:
+        next, not this one by LDL^T); otherwise True. ``ldlt``: LDL^T at once (Cholesky just
+        failed on these values)."""
+        if ldlt:
+            self._skip_spd = SPD_RETRY
+        elif self._skip_spd > 0:
             self._skip_spd -= 1
         else:
             verdict = self._cholesky()
@@ -577,27 +580,42 @@ class PardisoFactor:
             (self._data.copy(), self._indices.copy(), self._indptr.copy()), shape=(self.n, self.n)
         )
 
-    def refactor(self, U: sp.csr_matrix, *, stop_if_indefinite: bool = False) -> bool:
+    def refactor(self, U: sp.csr_matrix, *, stop_if_indefinite: bool = False, ldlt: bool = False) -> bool:
         """Numerical factorisation of new values ``U`` (from :meth:`same_pattern`). Returns True
         when their factor is in use; False only with ``stop_if_indefinite``, when Cholesky met a
-        non-positive pivot (the matrix is not positive semi-definite: no factor is in use, and the
-        caller factorises a shifted matrix by :meth:`refactor_positive`, or this one again, by
-        LDL^T, without the flag). The LDL^T that would otherwise follow, to count the negative
-        pivots, is spared."""
-        self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+        non-positive pivot (the matrix is not positive definite, and most likely indefinite; a
+        singular one may also fail so: no factor is in use, and the caller factorises a shifted
+        matrix by :meth:`refactor_positive`, or these values by LDL^T with ``ldlt``). The LDL^T
+        that would otherwise follow, to count the negative pivots, is spared. ``ldlt``: LDL^T at
+        once, no Cholesky tried."""
+        self._set_values(U)
         if self._fewer_threads():
             return True
-        return self._factorise(stop_if_indefinite)
+        return self._factorise(stop_if_indefinite, ldlt)
 
     def refactor_positive(self, U: sp.csr_matrix) -> bool:
         """Cholesky factorisation of new values ``U`` (a matrix shifted to be positive definite):
         True when it is (the factor in use), else False (no factor in use). Whatever the recent
         matrices were, Cholesky is tried: a shifted matrix is positive definite more often than
         not, and then its Cholesky is cheaper than LDL^T."""
-        self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+        self._set_values(U)
         if self._fewer_threads() and self.positive_definite:
             return True
         return self._cholesky() == "positive"
+
+    def _set_values(self, U: sp.csr_matrix) -> None:
+        """Take the values of ``U``, which must be in this factor's pattern (:meth:`same_pattern`)."""
+        if U.data.size != self._indices.size:
+            raise PardisoError(
+                f"values of another pattern: {U.data.size} entries for a factor of {self._indices.size}"
+            )
+        self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+
+    @property
+    def ready(self) -> bool:
+        """Whether a factorisation is in use (False after a Cholesky stopped at a non-positive
+        pivot, until the next factorisation succeeds)."""
+        return self._ready
 
     def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
         """``A^-1 b`` for the matrix last factorised."""

@@ -32,7 +32,14 @@ from softgrasp.sim.scene import Scene, State
 #: Newton's progress at DEBUG level: each iteration's unbalanced force and accepted step, each friction pass.
 log = logging.getLogger(__name__)
 
-__all__ = ["StaticInfo", "solve_static", "solve_increment", "rigid_constraints", "extrapolated", "MAX_HALVINGS"]
+__all__ = [
+    "StaticInfo",
+    "solve_static",
+    "solve_increment",
+    "rigid_constraints",
+    "extrapolated",
+    "MAX_HALVINGS",
+]
 
 #: A Newton iteration that stalls (contact kinks) is accepted when the largest unbalanced force
 #: is below this fraction of the largest force present (the target is ``rtol``).
