@@ -351,10 +351,16 @@ def _solve(
     turn = np.empty((3, 3))
     history = np.empty(max_iter + 1)  # history[i]: the largest error after i iterations
     for s in range(S):
-        R[:, :] = R0[s]
-        p[:] = p0[s]
-        x[:6] = 0.0  # palm step coordinates, 0 at the current pose
-        x[6:] = q0[s]
+        # Element by element (array-to-array slice assignments would bring in Numba's shape check
+        # and its exception message, ~4 s of the kernel's compilation).
+        for i in range(3):
+            p[i] = p0[s, i]
+            for j in range(3):
+                R[i, j] = R0[s, i, j]
+        for k in range(6):
+            x[k] = 0.0  # palm step coordinates, 0 at the current pose
+        for k in range(n):
+            x[6 + k] = q0[s, k]
         _forward(basis, column, gain, offset, length, R, p, x[6:], T, M, frames, tips)
         for i in range(m):
             e[i] = goal[i] - tips[i // 3, i % 3]
@@ -406,17 +412,25 @@ def _solve(
             if not moved:
                 why = STOP_NO_DECREASE
                 break
-            R[:, :] = R_try
-            p[:] = p_try
-            x[:6] = 0.0
-            x[6:] = x_try[6:]
-            e[:] = e_try
+            for i in range(3):
+                p[i] = p_try[i]
+                for j in range(3):
+                    R[i, j] = R_try[i, j]
+            for k in range(6):
+                x[k] = 0.0
+            for k in range(6, N):
+                x[k] = x_try[k]
+            for i in range(m):
+                e[i] = e_try[i]
             _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J)  # frames of the step taken
             err = _largest(e)
             history[it + 1] = err
-        R_out[s] = R
-        p_out[s] = p
-        q_out[s] = x[6:]
+        for i in range(3):
+            p_out[s, i] = p[i]
+            for j in range(3):
+                R_out[s, i, j] = R[i, j]
+        for k in range(n):
+            q_out[s, k] = x[6 + k]
         err_out[s] = err
         iterations[s] = done
         stop[s] = why
