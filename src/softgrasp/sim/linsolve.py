@@ -435,8 +435,8 @@ class _Corrected:
 
 #: Conjugate gradients preconditioned by an old factor prove the matrix indefinite when they meet
 #: a direction p with ``p^T A p`` below minus this multiple of its round-off bound, n eps times the
-#: largest absolute row sum times ``|p|^2`` (at 2 196 nodes 1.5e-12 of that row sum; a tipping
-#: body's lean gave -1.6e-10 of it).
+#: largest absolute row sum times ``|p|^2`` (at 2 196 nodes the bound is 1.5e-11 of that row sum
+#: times ``|p|^2``; a tipping body's lean gave -5.4e-10 of it).
 NEGATIVE_CURVATURE_ROUNDOFF = 10.0
 #: A solve with an old factor that took more than this fraction of its iteration cap (the cap is
 #: half a refactorisation's cost in solves) has the next system refactorise first.
