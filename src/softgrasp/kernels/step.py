@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.kernels.contact import _fingertip_forces, _fingertip_update
-from softgrasp.kernels.elastic import polynomial_coefficients
+from softgrasp.kernels.elastic import _J_FLOOR, _triple_product, polynomial_coefficients
 
 __all__ = [
     "METHODS",
@@ -185,9 +185,6 @@ def _plane_points(t, pl_point, pl_vel, p0):  # pragma: no cover - compiled
             p0[p, d] = pl_point[p, d] + t * pl_vel[p, d]
 
 
-#: Barrier floor of J in psi (as :func:`softgrasp.forces.psi`).
-_J_FLOOR = 1e-12
-
 # The body-force kernels below compute what softgrasp.kernels.elastic's _springs, _volumes and
 # _inverted compute, operation for operation (so the same bits), on data laid out by pack_body:
 # positions, velocities and forces as flat (3N,) views, node indices stored times 3 and unsigned
@@ -236,14 +233,6 @@ def _edge_pass(x, v, eq, ep, a2, a3, damped, want_energy, lo, hi, out):  # pragm
     return energy
 
 
-@_jit
-def _det_unfused(ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover - compiled
-    """The triple product a . (b x c) without fused multiply-adds, as
-    :func:`softgrasp.kernels.elastic._inverted` and :func:`softgrasp.mesh.tetmesh.signed_volumes`
-    compute it (a nearly flat tet's sign is the same)."""
-    return ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-
-
 @_fjit
 def _tet_pass(x, tq, tp, kappa, barrier, want_energy, check, lo, hi, out):  # pragma: no cover - compiled
     """Volume-term forces of tets ``lo:hi`` added to ``out`` (``kappa`` != 0), or only their
@@ -281,7 +270,7 @@ def _tet_pass(x, tq, tp, kappa, barrier, want_energy, check, lo, hi, out):  # pr
         c1z = bx * cy - by * cx
         if not vol:
             if check:
-                det = _det_unfused(ax, ay, az, bx, by, bz, cx, cy, cz)
+                det = _triple_product(ax, ay, az, bx, by, bz, cx, cy, cz)
                 if not det / 6.0 > 0.0:
                     if first < 0:
                         first = np.int64(t)
