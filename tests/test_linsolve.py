@@ -262,6 +262,44 @@ def test_pardiso_solves_like_sparse_lu_and_refactorises_new_values():
 
 
 @needs_mkl
+def test_a_single_precision_factor_solves_to_single_precision_and_the_newton_solve_refines_it():
+    """``single=True`` factorises a well-conditioned stiffness in single precision: a solve's
+    relative residual is float32's (~1e-6-1e-3 here, against ~1e-13 for the double factor), and
+    the Newton solve (mixed precision) refines it against the double matrix to sparse LU's
+    solution."""
+    K = _stiffness(6)
+    b = np.random.default_rng(21).standard_normal(K.shape[0])
+    ref = spla.spsolve(K.tocsc(), b)
+    single, double = pardiso.PardisoFactor(K, single=True), pardiso.PardisoFactor(K)
+    assert single.single_precision and single.positive_definite and not double.single_precision
+    assert single.single_factorisations == 1 and double.single_factorisations == 0
+    rel = {f: np.linalg.norm(K @ f.solve(b) - b) / np.linalg.norm(b) for f in (single, double)}
+    assert 1e-9 < rel[single] < 1e-2 and rel[double] < 1e-11
+    cache = SolverCache(method="pardiso", precision="mixed")
+    x, _ = solve_newton_system(K, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
+    assert cache._factor.single_precision
+    assert np.linalg.norm(K @ x - b) <= linsolve.STALE_RTOL * np.linalg.norm(b)
+    assert np.abs(x - ref).max() <= 1e-6 * np.abs(ref).max()
+
+
+@needs_mkl
+@pytest.mark.parametrize("shift", [1e-7, 0.0])
+def test_a_matrix_too_ill_conditioned_for_single_precision_gets_the_double_factor_and_verdict(shift):
+    """A stiffness whose rigid motions are held only by a diagonal of 1e-7 of its own (Cholesky
+    pivots ~1e-7 of their diagonal: below ``SINGLE_PIVOT_FLOOR``, where float32 cannot resolve
+    them) is factorised in double precision and solves as the double factor does; a free body's
+    singular stiffness (no shift) gets the same verdict with and without single precision."""
+    K = _stiffness(4, shift=shift)
+    b = np.random.default_rng(22).standard_normal(K.shape[0])
+    single, double = pardiso.PardisoFactor(K, single=True), pardiso.PardisoFactor(K)
+    assert not single.single_precision and single.single_factorisations == 0
+    assert single.positive_definite == double.positive_definite == (shift > 0)
+    assert single.perturbed_pivots == double.perturbed_pivots
+    if shift > 0:
+        assert np.array_equal(single.solve(b), double.solve(b))
+
+
+@needs_mkl
 def test_pardiso_factorises_indefinite_matrices_and_counts_negative_pivots():
     K = _stiffness()
     n = K.shape[0]
@@ -310,23 +348,27 @@ def _tipping(K: sp.csr_matrix) -> tuple[sp.csr_matrix, NDArray, float]:
 
 
 @needs_mkl
+@pytest.mark.parametrize("precision", ["double", "mixed"])
 @pytest.mark.parametrize("stale", [True, False])
-def test_pardiso_shifts_an_indefinite_held_stiffness_by_cholesky_alone(stale):
+def test_pardiso_shifts_an_indefinite_held_stiffness_by_cholesky_alone(stale, precision):
     """A held body's stiffness turned indefinite after a positive definite one: the PARDISO path
     solves the diagonally shifted system (A + tau D) x = b for the first shift that is positive
     definite (tau from the dense eigenvalues, x checked against SciPy's LU of that matrix) with
     Cholesky factors only: either the old factor's conjugate gradients prove A indefinite (no
     factorisation of A at all) or A's Cholesky fails (the scene changed: no old factor tried);
-    no LDL^T is computed to count negative pivots. The step is a descent direction."""
+    no LDL^T is computed to count negative pivots. The step is a descent direction. With mixed
+    precision the same shift is found (a failed single-precision Cholesky is tried again in
+    double: two factorisations per failure) and the step refined to the same accuracy."""
     body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
     K = _stiffness()
     A, v, tau = _tipping(K)
     x_nodes = np.asarray(body.mesh.points)
     b = v + 0.1 * (K @ np.random.default_rng(6).standard_normal(K.shape[0])) / np.abs(K).max()
-    cache = SolverCache(method="pardiso")
+    cache = SolverCache(method="pardiso", precision=precision)
     solve_newton_system(K, b, None, x_nodes, cache)
     f = cache._factor
     assert f.positive_definite and cache.stats["factorisations"] == 1
+    assert f.single_precision == (precision == "mixed")
     if not stale:
         cache.scene_changed()
     x, _ = solve_newton_system(A, b, None, x_nodes, cache)
@@ -334,9 +376,12 @@ def test_pardiso_shifts_an_indefinite_held_stiffness_by_cholesky_alone(stale):
     assert np.abs(x - want).max() <= 1e-8 * np.abs(want).max()
     assert float(b @ x) > 0
     assert cache.stats["indefinite_factor"] == 1 and cache.stats["shifted"] == 1
-    assert pardiso.SYMMETRIC_INDEFINITE not in f._pts  # never analysed for LDL^T
+    assert all(mtype != pardiso.SYMMETRIC_INDEFINITE for mtype, _ in f._pts)  # never analysed for LDL^T
     shifts = round(math.log10(tau / linsolve.INDEFINITE_SHIFT)) + 1  # factorisations of A + tau D
-    assert cache.stats["factorisations"] == 1 + shifts + (0 if stale else 1)
+    per_failure = 2 if precision == "mixed" else 1
+    failures = shifts - 1 + (0 if stale else 1)  # the failed shifts, and A's own Cholesky
+    assert cache.stats["factorisations"] == 1 + 1 + per_failure * failures
+    assert f.single_precision == (precision == "mixed")
 
 
 @needs_mkl
@@ -377,14 +422,17 @@ def test_a_free_body_singular_stiffness_is_not_shifted():
 
 
 @needs_mkl
+@pytest.mark.parametrize("precision", ["double", "mixed"])
 @pytest.mark.parametrize("case", ["tau beyond 1", "a node nothing holds"])
-def test_every_numerical_factorisation_is_counted_and_none_is_repeated(monkeypatch, case):
+def test_every_numerical_factorisation_is_counted_and_none_is_repeated(monkeypatch, case, precision):
     """The factorisations the PARDISO path makes (PARDISO's numerical phase, spied on) are the
     ones it counts, and no values are factorised twice in a row by the same method: a held
     stiffness shifted by 3 |diag| into indefiniteness (no shift up to tau = 1 is positive
     definite: Cholesky for each, then LDL^T of the last, not Cholesky again), and one with a node
     that nothing holds (a zero row: singular, not indefinite, so not shifted but factorised by
-    LDL^T after Cholesky's failure, solved by multigrid where its pivots were perturbed)."""
+    LDL^T after Cholesky's failure, solved by multigrid where its pivots were perturbed). With
+    mixed precision every Cholesky is tried in single precision first and, failing, in double
+    (whose verdict counts); LDL^T is always double."""
     body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
     x_nodes = np.asarray(body.mesh.points)
     K = _stiffness()
@@ -397,27 +445,28 @@ def test_every_numerical_factorisation_is_counted_and_none_is_repeated(monkeypat
         keep = sp.diags(np.r_[np.zeros(3), np.ones(n - 3)])
         A = (keep @ K @ keep).tocsr()
         b = keep @ rng.standard_normal(n)
-    made: list[tuple[int, bytes]] = []
+    made: list[tuple[tuple[int, bool], bytes]] = []
     real = pardiso.PardisoFactor._call
 
-    def spy(self, phase, data, b=None, mtype=None, perm=None):
+    def spy(self, phase, b=None, key=None, perm=None):
         if phase == 22:
-            made.append((self._mtype if mtype is None else mtype, data.tobytes()))
-        return real(self, phase, data, b=b, mtype=mtype, perm=perm)
+            made.append((self._key if key is None else key, self._data.tobytes()))
+        return real(self, phase, b=b, key=key, perm=perm)
 
     monkeypatch.setattr(pardiso.PardisoFactor, "_call", spy)
-    cache = SolverCache(method="pardiso")
+    cache = SolverCache(method="pardiso", precision=precision)
     solve_newton_system(K, b, None, x_nodes, cache)
     cache.scene_changed()
     before, first = cache.stats["factorisations"], len(made)
     x, _ = solve_newton_system(A, b, None, x_nodes, cache)
     assert cache.stats["factorisations"] - before == len(made) - first
-    assert all(made[i] != made[i + 1] for i in range(first, len(made) - 1))
+    assert all(made[i] != made[i + 1] for i in range(first, len(made) - 1))  # (method, values)
+    cholesky = [(2, True), (2, False)] if precision == "mixed" else [(2, False)]
     if case == "tau beyond 1":
-        assert [m for m, _ in made[first:]] == [2] * 8 + [-2] and cache.stats["shifted"] == 1
+        assert [k for k, _ in made[first:]] == cholesky * 8 + [(-2, False)] and cache.stats["shifted"] == 1
     else:
         assert cache.stats.get("shifted", 0) == 0 and cache.stats.get("indefinite_factor", 0) == 0
-        assert [m for m, _ in made[first:]] == [2, -2]
+        assert [k for k, _ in made[first:]] == cholesky + [(-2, False)]
         assert np.linalg.norm(A @ x - b) <= 1e-8 * np.linalg.norm(b)
 
 
@@ -464,7 +513,7 @@ def _kept_ordering_cases(monkeypatch) -> None:
     kept = next(iter(pardiso._ORDERINGS.values()))
     assert sorted(kept.tolist()) == list(range(K.shape[0]))  # a permutation
     second = pardiso.PardisoFactor(K)
-    assert second._perm is kept and second._iparms[pardiso.SYMMETRIC_POSITIVE_DEFINITE][4] == 1
+    assert second._perm is kept and second._iparms[(pardiso.SYMMETRIC_POSITIVE_DEFINITE, False)][4] == 1
     assert np.array_equal(second.solve(b), x1)
     second.refactor(second.same_pattern(ind))
     assert np.array_equal(second.solve(b), y1) and second.negative_pivots == first.negative_pivots
@@ -555,13 +604,14 @@ def test_gmres_on_the_exact_product_solves_the_non_symmetric_system():
     assert np.abs(N @ x2 - b).max() > 1e-4 * np.abs(b).max()
 
 
-def _pressed(method: str):
+def _pressed(method: str, precision: str = "mixed", stats: dict | None = None):
     """The foam cube on a rough table, a rough fingertip pressed 1 mm and dragged 0.3 mm sideways
-    in static increments, with the given linear solver."""
+    in static increments, with the given linear solver (and factor precision; the solver's
+    counts copied into ``stats``)."""
     body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
     table = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=1.0, name="table")
     params = ContactParams(mu=0.8)
-    cache = SolverCache(method=method)
+    cache = SolverCache(method=method, precision=precision)
     fc = FingertipContact(
         (Fingertip(0.008, centre=[0.003, 0.002, 0.058], velocity=[0.3, 0.0, -1.0]),), params
     )
@@ -572,6 +622,8 @@ def _pressed(method: str):
         state, info = solve_static(scene, state, t=t, cache=cache)
         iterations += info.newton_iterations
     rep = fc.report(body, state.x, None, state.t, state.contacts[1], static=True)
+    if stats is not None:
+        stats.update(cache.stats, single=cache._factor.single_factorisations if cache._factor else 0)
     return state.x, rep.force[0], iterations
 
 
@@ -585,6 +637,19 @@ def test_fast_and_reference_solvers_reach_the_same_rest_with_friction():
     assert np.abs(f_fast - f_ref).max() <= 1e-8 * np.linalg.norm(f_ref)
     assert np.abs(x_fast - x_ref).max() <= 1e-9
     assert it_fast < it_ref
+
+
+@needs_mkl
+def test_mixed_and_double_precision_factors_reach_the_same_rest_with_friction():
+    """The pressed and dragged fingertip on the foam cube with single-precision factors refined in
+    double (mixed) and with double factors: the same rest and contact force to the Newton
+    tolerance, the mixed path's factors single."""
+    stats: dict = {}
+    x_mixed, f_mixed, _ = _pressed("pardiso", "mixed", stats)
+    x_double, f_double, _ = _pressed("pardiso", "double")
+    assert stats["single"] > 0
+    assert np.abs(f_mixed - f_double).max() <= 1e-8 * np.linalg.norm(f_double)
+    assert np.abs(x_mixed - x_double).max() <= 1e-9
 
 
 def test_multigrid_newton_reaches_the_direct_rest_with_its_solves_stopped_at_the_forcing_term(monkeypatch):
@@ -692,7 +757,7 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
     cap = int(np.clip(0.5 * ls.SOLVE_SPEED_RATIO * cache._factor.solves_per_factorisation, 4, 40))
     n = int(ls.STALE_REFRESH * cap) + (1 if used == "many" else 0)
 
-    def stand_in(A, rhs, pre, max_it, rtol):
+    def stand_in(A, rhs, pre, max_it, rtol, keep_last=False):
         for _ in range(n):
             pre.solve(rhs)
         return spla.spsolve(A.tocsc(), rhs), False
@@ -707,16 +772,54 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
 
 
 @needs_mkl
+def test_an_old_factor_is_renewed_once_its_extra_solves_add_up_to_a_refactorisation(monkeypatch):
+    """Systems each solved on the old factor in fewer than half the iteration cap keep it, until
+    the solves they took beyond what the factor's own system took add up to a refactorisation's
+    time (``SOLVE_SPEED_RATIO`` x its operation count in solves): then the next system
+    refactorises. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
+    import softgrasp.sim.linsolve as ls
+
+    K = _stiffness()
+    b = np.random.default_rng(12).standard_normal(K.shape[0])
+    x_nodes = np.zeros((K.shape[0] // 3, 3))
+    cache = SolverCache(method="pardiso", precision="double")
+    solve_newton_system(K, b, None, x_nodes, cache)  # analyse + factorise: its own system
+    f = cache._factor
+    fresh = cache._fresh
+    assert fresh == f.solves >= 1
+    cap = int(np.clip(0.5 * ls.SOLVE_SPEED_RATIO * f.solves_per_factorisation, 4, 40))
+    n = int(ls.STALE_REFRESH * cap)  # the most a stale system may take and keep the factor
+    budget = ls.SOLVE_SPEED_RATIO * f.solves_per_factorisation
+    kept = int(budget // (n - fresh))  # stale systems whose extra solves stay within it
+
+    def stand_in(A, rhs, pre, max_it, rtol, keep_last=False):
+        for _ in range(n):
+            pre.solve(rhs)
+        return spla.spsolve(A.tocsc(), rhs), False
+
+    monkeypatch.setattr(ls, "_stale_pcg", stand_in)
+    before = cache.stats["factorisations"]
+    K2 = (1.01 * K).tocsr()
+    for _ in range(kept + 1):
+        solve_newton_system(K2, b, None, x_nodes, cache)
+        assert cache.stats["factorisations"] == before  # solved on the old factor
+    assert cache._excess == (kept + 1) * (n - fresh) > budget
+    solve_newton_system(K2, b, None, x_nodes, cache)
+    assert cache.stats["factorisations"] == before + 1 and cache._excess == 0
+
+
+@needs_mkl
+@pytest.mark.parametrize("precision", ["double", "mixed"])
 @pytest.mark.parametrize("told", [True, False])
-def test_a_changed_scene_refactorises_at_once(monkeypatch, told):
+def test_a_changed_scene_refactorises_at_once(monkeypatch, told, precision):
     """After ``scene_changed`` (the hold check takes the table away) the next system is
-    factorised at once and solved with one or two solves of the new factor; untold, it is first
-    iterated on the old factor (at least four solves, in vain here). Either way it is solved
-    exactly."""
+    factorised at once and solved with one or two solves of the new factor (a single-precision
+    one: two more, refining float32's ~1e-4 residual to 1e-11); untold, it is first iterated on
+    the old factor (at least four solves, in vain here). Either way it is solved exactly."""
     K = _stiffness()
     b = np.random.default_rng(9).standard_normal(K.shape[0])
     x_nodes = np.zeros((K.shape[0] // 3, 3))
-    cache = SolverCache(method="pardiso")
+    cache = SolverCache(method="pardiso", precision=precision)
     with_table = (K + _table_blocks(K, [0, 3, 7], 5e3)).tocsr()
     solve_newton_system(with_table, b, None, x_nodes, cache)
     solves = []
@@ -728,7 +831,8 @@ def test_a_changed_scene_refactorises_at_once(monkeypatch, told):
     x, _ = solve_newton_system(K, b, None, x_nodes, cache)
     np.testing.assert_allclose(K @ x, b, rtol=0, atol=1e-8 * np.abs(b).max())
     assert cache.stats["factorisations"] == factorised + 1
-    assert (len(solves) <= 2) if told else (len(solves) >= 4)
+    assert cache._factor.single_precision == (precision == "mixed")
+    assert (len(solves) <= (2 if precision == "double" else 4)) if told else (len(solves) >= 4)
 
 
 @needs_mkl

@@ -49,6 +49,11 @@ PARDISO_MAX_DOF = 60_000
 STALE_RTOL = 1e-8
 #: GMRES iterations allowed with a fresh factorisation on the exact (non-symmetric) Newton matrix.
 EXACT_MAX_IT = 20
+#: Relative residual to which a single-precision factor's solves of its own matrix are refined
+#: (conjugate gradients against the double-precision matrix): a double factor's direct solve
+#: leaves ~1e-13-1e-12 at 2 196 nodes, and what is solved "directly" must stay as exact whatever
+#: the Newton iteration's forcing term (the calibration's fits difference simulated forces).
+REFINED_RTOL = 1e-11
 #: First diagonal shift (relative) of an indefinite Newton matrix; grown tenfold until positive.
 INDEFINITE_SHIFT = 1e-6
 #: GMRES iterations allowed with a multigrid preconditioner on the exact Newton matrix.
@@ -80,14 +85,30 @@ class SolverCache:
         from the environment variable ``SOFTGRASP_LINSOLVE``.
     rtol: relative tolerance of the multigrid-preconditioned solves (the tightest asked: a Newton
         step asks only its forcing term, when that is looser).
+    precision: of PARDISO's Cholesky factors: ``"mixed"`` (single-precision factors, every solve
+        refined against the double-precision matrix by conjugate gradients or GMRES to the
+        tolerance asked, as solves with an older factor always were; the verdicts positive
+        definite / indefinite / singular the double factor's: see
+        :class:`~softgrasp.sim.pardiso.PardisoFactor`) or ``"double"``; default from the
+        environment variable ``SOFTGRASP_FACTOR_PRECISION``, else ``"mixed"``. The two reach the
+        same rests to the Newton tolerance (the default plan's set-points to 1e-12 from 388 to
+        2 998 nodes), but where the rest is a branch choice (a Newton iterate within rounding of
+        the tolerance on an indefinite matrix: a compressed softening cube about to buckle) float32
+        rounding makes that choice noisy; the material tests, whose curves the calibration fits
+        difference, use ``"double"``.
     """
 
     method: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_LINSOLVE", "auto"))
     rtol: float = 1e-10
+    precision: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_FACTOR_PRECISION", "mixed"))
     _ml: object | None = field(default=None, repr=False)
     _iterations: list[int] = field(default_factory=list, repr=False)
     _factor: pardiso.PardisoFactor | None = field(default=None, repr=False)
     _try_stale: bool = field(default=True, repr=False)
+    # Solves with the factor in use beyond what its first system needed, summed over the systems
+    # solved on it since (the price of its ageing), and that first system's solves (-1: unknown).
+    _excess: int = field(default=0, repr=False)
+    _fresh: int = field(default=-1, repr=False)
     _correction: Any = field(default=None, repr=False)
     stats: dict[str, int] = field(
         default_factory=lambda: {"analyses": 0, "factorisations": 0, "stale_solves": 0, "amg_solves": 0},
@@ -237,10 +258,12 @@ def _stale_pcg(
     f: pardiso.PardisoFactor | _Corrected,
     max_it: int,
     rtol: float = STALE_RTOL,
+    keep_last: bool = False,
 ) -> tuple[NDArray[np.float64] | None, bool]:
     """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
-    matrix. Returns (x, or None when they do not reach ``rtol`` in ``max_it`` iterations or meet
-    negative curvature; whether they met a direction p of negative curvature beyond round-off,
+    matrix. Returns (x, or None when they do not reach ``rtol`` in ``max_it`` iterations (with
+    ``keep_last``: the last iterate then) or meet negative curvature; whether they met a
+    direction p of negative curvature beyond round-off,
     ``p^T A p < -NEGATIVE_CURVATURE_ROUNDOFF n eps max_i sum_j |A_ij| |p|^2``: a proof that A is
     indefinite)."""
     bnorm = float(np.linalg.norm(b))
@@ -270,7 +293,7 @@ def _stale_pcg(
         rz_new = float(r @ z)
         p = z + (rz_new / rz) * p
         rz = rz_new
-    return None, False
+    return (x if keep_last else None), False
 
 
 def _gmres(
@@ -458,7 +481,12 @@ def _rigid_motion_free(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> bool:
 
 
 def _shifted_solve(
-    f: pardiso.PardisoFactor, U: sp.csr_matrix, b: NDArray[np.float64], cache: SolverCache
+    f: pardiso.PardisoFactor,
+    A: sp.csr_matrix,
+    U: sp.csr_matrix,
+    b: NDArray[np.float64],
+    cache: SolverCache,
+    rtol: float = STALE_RTOL,
 ) -> NDArray[np.float64]:
     """``(A + tau D)^-1 b`` for an indefinite stiffness A (upper triangle ``U`` in the factor's
     pattern; a body on the table about to tip, a compressed region buckling), D its diagonal's
@@ -466,28 +494,44 @@ def _shifted_solve(
     it positive definite: the exact Newton step would run towards a saddle, the shifted one
     (Levenberg-Marquardt) is a descent direction for the line search, as conjugate gradients give
     by stopping at negative curvature. Each shift is factorised by Cholesky (which says whether it
-    is positive definite); if even tau = 1 is not, its LDL^T is used."""
+    is positive definite); if even tau = 1 is not, its LDL^T is used. A single-precision factor's
+    solve is refined by conjugate gradients on the shifted matrix (``A`` both triangles) to
+    ``rtol``."""
     diag = U.indptr[:-1]  # the diagonal leads each row of the sorted upper triangle
     scale = np.abs(U.data[diag])
     tau = INDEFINITE_SHIFT
+    before = f.factorisations
     while True:
         shifted = U.copy()
         shifted.data[diag] += tau * scale
-        cache.stats["factorisations"] += 1
         if f.refactor_positive(shifted):
             break
         if tau * 10.0 > 1.0:
             f.refactor(shifted, ldlt=True)
-            cache.stats["factorisations"] += 1
             break
         tau *= 10.0
+    cache.stats["factorisations"] += f.factorisations - before
     cache._try_stale = True
+    cache._excess, cache._fresh = 0, -1  # a shifted matrix's solves say little of the next ones'
     cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1
     # Counted apart from multigrid's shifts: the factorisation's inertia, or conjugate gradients'
     # curvature beyond round-off, proves the matrix indefinite, which multigrid-preconditioned
     # conjugate gradients meeting negative curvature (round-off on a nearly neutral mode) do not.
     cache.stats["indefinite_factor"] = cache.stats.get("indefinite_factor", 0) + 1
+    if f.single_precision:
+        return _refined((A + sp.diags(tau * scale)).tocsr(), b, f, rtol)
     return f.solve(b)
+
+
+def _refined(
+    A: sp.csr_matrix, b: NDArray[np.float64], f: pardiso.PardisoFactor, rtol: float
+) -> NDArray[np.float64]:
+    """``A^-1 b`` by the fresh factorisation ``f`` of A itself: a double factor's solve, refined by
+    conjugate gradients only where rounding left more than ``rtol``; a single-precision factor's
+    solve refined to :data:`REFINED_RTOL` (its last iterate where round-off stops it short)."""
+    tol = min(rtol, REFINED_RTOL) if f.single_precision else rtol
+    x, _ = _stale_pcg(A, b, f, EXACT_MAX_IT, tol, keep_last=f.single_precision)
+    return f.solve(b) if x is None else x
 
 
 def _pardiso(
@@ -507,29 +551,38 @@ def _pardiso(
     U = f.same_pattern(A) if f is not None and f.n == A.shape[0] else None
     if U is not None:
         assert f is not None
+        before = f.factorisations
         x = None
         indefinite = False  # whether the old factor's conjugate gradients proved A indefinite
         if cache._try_stale and f.ready:
             # As many iterations with the old factor as half a refactorisation costs in solves.
             cap = int(np.clip(0.5 * SOLVE_SPEED_RATIO * f.solves_per_factorisation, 4, 40))
             # The old factor, corrected for the nodes that gained stiffness since.
+            solves = f.solves
             pre = _Corrected(f, U, cache)
             if matvec is not None:
                 x = _gmres(matvec, b, pre.solve, cap, rtol)
             else:
                 x, indefinite = _stale_pcg(A, b, pre, cap, rtol)
+            if cache._fresh >= 0:
+                cache._excess += max(f.solves - solves - cache._fresh, 0)
             # After a failed attempt, or one that converged at more than a quarter of a
-            # refactorisation's cost (the factor only ages), the next system refactorises first.
-            cache._try_stale = x is not None and pre.applications <= STALE_REFRESH * cap
+            # refactorisation's cost (the factor only ages), or once the solves the factor's age
+            # has cost since it was made add up to a refactorisation's time, the next system
+            # refactorises first.
+            cache._try_stale = (
+                x is not None
+                and pre.applications <= STALE_REFRESH * cap
+                and cache._excess <= SOLVE_SPEED_RATIO * f.solves_per_factorisation
+            )
         if x is not None:
             cache.stats["stale_solves"] += 1
             return x, np.zeros(0)
         if indefinite and not _rigid_motion_free(A, x_nodes):
             # Conjugate gradients proved A indefinite (a body on the table about to tip): the
             # shifted matrix is factorised at once, not A itself first.
-            return _shifted_solve(f, U, b, cache), np.zeros(0)
+            return _shifted_solve(f, A, U, b, cache, rtol), np.zeros(0)
         factored = f.refactor(U, stop_if_indefinite=True)
-        cache.stats["factorisations"] += 1
         if not factored:
             # Cholesky met a non-positive pivot. A body that is held (no rigid motion free, no
             # unknown without stiffness) is tipping or buckling: the shifted matrix next, without
@@ -537,33 +590,51 @@ def _pardiso(
             # node that nothing holds) gets that LDL^T, as before (where it perturbed pivots,
             # multigrid solves below).
             if U.data[U.indptr[:-1]].all() and not _rigid_motion_free(A, x_nodes):
-                return _shifted_solve(f, U, b, cache), np.zeros(0)
+                cache.stats["factorisations"] += f.factorisations - before
+                return _shifted_solve(f, A, U, b, cache, rtol), np.zeros(0)
             f.refactor(U, ldlt=True)
-            cache.stats["factorisations"] += 1
+        cache.stats["factorisations"] += f.factorisations - before
     else:
         # A new pattern (contacts couple nodes that no edge joins, or others than before): analyse
         # the union with the previous pattern, so that both kinds of system reuse it.
         P = A if f is None or f.n != A.shape[0] else pardiso.PardisoFactor.union(A, f.matrix())
-        cache._factor = f = pardiso.PardisoFactor(P)
+        cache._factor = f = pardiso.PardisoFactor(P, single=cache.precision == "mixed")
         cache.stats["analyses"] += 1
-        cache.stats["factorisations"] += 1
+        cache.stats["factorisations"] += f.factorisations
     cache._try_stale = True
     if f.negative_pivots > 0 and f.perturbed_pivots == 0:
-        return _shifted_solve(f, f.matrix(), b, cache), np.zeros(0)
+        return _shifted_solve(f, A, f.matrix(), b, cache, rtol), np.zeros(0)
+    solves = f.solves
+    x = _fresh_solve(A, b, x_nodes, cache, f, matvec, rtol)
+    cache._excess, cache._fresh = 0, f.solves - solves
+    return x, np.zeros(0)
+
+
+def _fresh_solve(
+    A: sp.csr_matrix,
+    b: NDArray[np.float64],
+    x_nodes: NDArray[np.float64],
+    cache: SolverCache,
+    f: pardiso.PardisoFactor,
+    matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None,
+    rtol: float,
+) -> NDArray[np.float64]:
+    """``A x = b`` with ``f`` the factorisation of A itself (just made): GMRES on the exact
+    product ``matvec`` where given, else the factor's solve refined (:func:`_refined`); a singular
+    stiffness by multigrid-preconditioned CG."""
     if matvec is not None and f.perturbed_pivots == 0:
         x = _gmres(matvec, b, f.solve, EXACT_MAX_IT, rtol)
         if x is not None:
-            return x, np.zeros(0)
+            return x
     if f.perturbed_pivots > 0:
         # A singular stiffness (a body not yet held may slide or spin): the factor would blow the
         # free motions up; multigrid-CG finds the solution orthogonal to them (the factor's
         # analysis is kept for the next system).
         cache.stats["amg_solves"] += 1
-        return _pcg(A, b, None, x_nodes, cache)
+        return _pcg(A, b, None, x_nodes, cache)[0]
     # The factor of A itself: one solve, refined by a few conjugate-gradient steps where rounding
     # in the factor left more than the tolerance (the solves do no iterative refinement).
-    x, _ = _stale_pcg(A, b, f, EXACT_MAX_IT, rtol)
-    return (f.solve(b) if x is None else x), np.zeros(0)
+    return _refined(A, b, f, rtol)
 
 
 def solve_newton_system(
@@ -597,6 +668,8 @@ def solve_newton_system(
     n = A.shape[0]
     if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
         raise ValueError(f"unknown linear solver {cache.method!r}")
+    if cache.precision not in ("mixed", "double"):
+        raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
     if cache.method == "reference":
         # softgrasp's first solver, kept as the reference of the benchmarks and tests: the
         # symmetrised Newton matrix, sparse LU up to DIRECT_MAX_DOF unknowns, multigrid-CG beyond.

@@ -16,6 +16,17 @@ neighbour: it stops at Cholesky's failure (``refactor(..., stop_if_indefinite=Tr
 factorises the shift by :meth:`PardisoFactor.refactor_positive` (the default plan's settle at 2 196
 nodes: 8 -> 6 factorisations and no LDL^T analysis, 1.35-1.40 -> 1.20-1.25 s a plan on one thread).
 
+Mixed precision (``PardisoFactor(A, single=True)``, softgrasp's Newton solves by default): the
+Cholesky factor is computed and applied in single precision (PARDISO's ``iparm[27]``), and the
+caller refines every solve against the double-precision matrix (conjugate gradients or GMRES, as
+it always did with an older factor used as a preconditioner). A factorisation takes ~0.63 of the
+time, a solve ~0.67, the factor half the memory (2 196 nodes, one thread: 21 vs 33 ms and 0.54 vs
+0.80 ms); the default plan there needed 12 more solves (214 vs 202) and ran 0.93-0.96 s against
+1.07-1.14 s with double factors, the same set-points to nine digits. Where float32 cannot resolve
+a matrix's pivots (the smallest below :data:`SINGLE_PIVOT_FLOOR` of its diagonal entry) or its
+Cholesky fails, the double factorisation is made and decides, so that whether a matrix counts as
+positive definite, indefinite or singular does not depend on the precision.
+
 The library comes from the ``mkl`` wheel (x86_64); :func:`available` says whether it loaded, and
 :mod:`softgrasp.sim.linsolve` falls back to multigrid-preconditioned CG where it did not.
 
@@ -77,6 +88,15 @@ SPD_RETRY = 4
 #: scale with the matrix; a free foam cube's stiffness, diagonal ~1e5 N/m, gives
 #: :attr:`PardisoFactor.perturbed_pivots` 0, the same matrix times 1e-9 gives 6.)
 SPD_PIVOT_RTOL = 1e-8
+#: A single-precision Cholesky factor (``PardisoFactor(..., single=True)``) is kept only when its
+#: smallest pivot is at least this fraction of its matrix's diagonal entry; otherwise the matrix is
+#: factorised in double precision, which gives the verdict (positive definite, indefinite or
+#: singular) exactly as without single precision. A pivot d_k = a_kk - sum_j l_kj^2 d_j carries a
+#: rounding error of about (a few) x float32's eps (6e-8) x a_kk, i.e. a relative error of
+#: ~1e-7 / (d_k / a_kk): above this floor the single pivots are known to within a few percent, so
+#: the single factor's verdict cannot differ from the double one's. The default plan's Cholesky
+#: factors have ratios of 1e-2-2e-1 (2 196 nodes).
+SINGLE_PIVOT_FLOOR = 1e-4
 #: PARDISO's error code for a zero or negative pivot (a Cholesky of a matrix that is not positive
 #: definite).
 _ZERO_PIVOT = -4
@@ -199,16 +219,17 @@ def _arguments(
     pt: NDArray[np.int64],
     mtype: int,
     phase: int,
-    data: NDArray[np.float64],
+    data: NDArray,
     indptr: NDArray[np.int32],
     indices: NDArray[np.int32],
     iparm: NDArray[np.int32],
-    rhs: NDArray[np.float64],
-    x: NDArray[np.float64],
+    rhs: NDArray,
+    x: NDArray,
     err: ctypes.c_int32,
     perm: NDArray[np.int32] | None = None,
 ) -> tuple:
-    """The sixteen arguments of one ``pardiso`` call (one right-hand side, no messages)."""
+    """The sixteen arguments of one ``pardiso`` call (one right-hand side, no messages; ``data``,
+    ``rhs`` and ``x`` in float32 where ``iparm[27]`` = 1, else float64)."""
     return (
         pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
         ctypes.byref(ctypes.c_int32(1)),  # maxfct
@@ -307,9 +328,17 @@ class PardisoFactor:
     Parameters
     ----------
     A: (n, n) sparse symmetric matrix; only its upper triangle is read.
+    single: factorise positive definite matrices in single precision (mixed precision: for
+        callers that refine every solve against the double-precision matrix, as softgrasp's
+        Newton solves do by conjugate gradients or GMRES; a solve's relative residual is then
+        ~1e-4 instead of ~1e-12). At 2 196 nodes a factorisation took 21 instead of 33 ms and a
+        solve 0.54 instead of 0.80 ms (one thread), half the factor's memory. A single factor is
+        kept only when its smallest pivot is at least :data:`SINGLE_PIVOT_FLOOR` of its diagonal
+        entry; otherwise (and always for LDL^T) the matrix is factorised in double precision, so
+        the verdicts (positive definite, indefinite, singular) are the double factor's.
     """
 
-    def __init__(self, A: sp.spmatrix) -> None:
+    def __init__(self, A: sp.spmatrix, *, single: bool = False) -> None:
         lib = _library()
         if lib is None:
             raise PardisoError("MKL PARDISO is not installed (pip install mkl)")
@@ -319,9 +348,15 @@ class PardisoFactor:
         # matrix is factorised by Cholesky while it is positive definite (factorisation 1.2x
         # and solve 1.25x faster than LDL^T on two threads at 2 196 nodes), by LDL^T with
         # Bunch-Kaufman pivoting when it is not (a body about to tip, a singular stiffness).
-        self._pts: dict[int, NDArray[np.int64]] = {}
-        self._iparms: dict[int, NDArray[np.int32]] = {}
-        self._mtype = SYMMETRIC_POSITIVE_DEFINITE  # of the factorisation in use
+        # Handles are keyed by (matrix type, single precision).
+        self._pts: dict[tuple[int, bool], NDArray[np.int64]] = {}
+        self._iparms: dict[tuple[int, bool], NDArray[np.int32]] = {}
+        self._key = (SYMMETRIC_POSITIVE_DEFINITE, False)  # of the factorisation in use
+        self._single = bool(single)
+        self._data32: NDArray[np.float32] | None = None  # self._data in single precision
+        self.factorisations = 0  # numerical factorisations made (both precisions)
+        self.single_factorisations = 0  # of them in single precision and kept
+        self.solves = 0  # solves made
         self._ready = False  # whether a factorisation is in use (the last one succeeded)
         self._skip_spd = 0  # factorisations by refactor() left before Cholesky is tried again
         self.n = int(A.shape[0])
@@ -357,29 +392,31 @@ class PardisoFactor:
         iparm[34] = 1  # zero-based indices
         return iparm
 
-    def _analysed(self, mtype: int) -> None:
-        """Analyse the pattern for matrix type ``mtype`` (once per handle)."""
-        if mtype not in self._pts:
-            self._pts[mtype] = np.zeros(64, dtype=np.int64)  # PARDISO's internal handle
-            self._iparms[mtype] = self._new_iparm()
+    def _analysed(self, key: tuple[int, bool]) -> None:
+        """Analyse the pattern for handle ``key`` (matrix type, single precision), once."""
+        if key not in self._pts:
+            mtype, single = key
+            self._pts[key] = np.zeros(64, dtype=np.int64)  # PARDISO's internal handle
+            self._iparms[key] = iparm = self._new_iparm()
             if mtype == SYMMETRIC_POSITIVE_DEFINITE:
-                self._iparms[mtype][55] = 1  # the factor's diagonal available (pardiso_getdiag)
+                iparm[55] = 1  # the factor's diagonal available (pardiso_getdiag)
+            iparm[27] = 1 if single else 0  # matrix, right-hand side and solution in float32
             # The first analysis of a pattern returns its nested-dissection ordering; every
             # later one (the other matrix type's, the same pattern's in a later solve) takes it:
             # the same graph, the same ordering, without running METIS again (21 -> 9 ms an
             # analysis at 2 196 nodes).
-            key = self._pattern
+            pattern = self._pattern
             if self._perm is None:
                 with _LOCK:
-                    self._perm = _ORDERINGS.get(key)
-            self._iparms[mtype][4] = 2 if self._perm is None else 1
+                    self._perm = _ORDERINGS.get(pattern)
+            iparm[4] = 2 if self._perm is None else 1
             perm = np.zeros(self.n, dtype=np.int32) if self._perm is None else self._perm
-            self._call(11, self._data, mtype=mtype, perm=perm)
+            self._call(11, key=key, perm=perm)
             perm.setflags(write=False)  # PARDISO only reads it from now on (iparm[4] = 1)
             self._perm = perm
             with _LOCK:
-                _ORDERINGS.pop(key, None)
-                _ORDERINGS[key] = perm  # the most recent last
+                _ORDERINGS.pop(pattern, None)
+                _ORDERINGS[pattern] = perm  # the most recent last
                 while len(_ORDERINGS) > ORDERINGS_KEPT:
                     del _ORDERINGS[next(iter(_ORDERINGS))]
 
@@ -387,19 +424,37 @@ class PardisoFactor:
         """Cholesky factorisation of ``self._data``: ``"positive"`` (positive definite: the factor
         in use), ``"indefinite"`` (PARDISO met a non-positive pivot) or ``"singular"`` (a pivot
         below :data:`SPD_PIVOT_RTOL` of its diagonal entry). Unless positive, no factor is in use
-        until the next factorisation."""
+        until the next factorisation. A single-precision factor is tried first where asked, and
+        kept when its smallest pivot ratio is at least :data:`SINGLE_PIVOT_FLOOR`; otherwise the
+        double one decides."""
         self._ready = False
-        self._analysed(SYMMETRIC_POSITIVE_DEFINITE)
+        if self._single:
+            key = (SYMMETRIC_POSITIVE_DEFINITE, True)
+            if self._factorise_as(key) and self._min_pivot_ratio(key) >= SINGLE_PIVOT_FLOOR:
+                self.single_factorisations += 1
+                self._use(key)
+                return "positive"
+        key = (SYMMETRIC_POSITIVE_DEFINITE, False)
+        if not self._factorise_as(key):
+            return "indefinite"
+        if self._min_pivot_ratio(key) < SPD_PIVOT_RTOL:
+            return "singular"
+        self._use(key)
+        return "positive"
+
+    def _factorise_as(self, key: tuple[int, bool]) -> bool:
+        """Numerical factorisation of ``self._data`` by handle ``key``: False where PARDISO met a
+        zero or negative pivot (no factor in use), True otherwise (not yet in use)."""
+        self._ready = False
+        self._analysed(key)
+        self.factorisations += 1
         try:
-            self._call(22, self._data, mtype=SYMMETRIC_POSITIVE_DEFINITE)
+            self._call(22, key=key)
         except PardisoError as exc:
             if exc.code != _ZERO_PIVOT:
                 raise
-            return "indefinite"
-        if self._min_pivot_ratio() < SPD_PIVOT_RTOL:
-            return "singular"
-        self._use(SYMMETRIC_POSITIVE_DEFINITE)
-        return "positive"
+            return False
+        return True
 
     def _factorise(self, stop_if_indefinite: bool = False, ldlt: bool = False) -> bool:
         """Numerical factorisation of ``self._data``: Cholesky unless a recent matrix was not
@@ -420,20 +475,24 @@ class PardisoFactor:
             if verdict == "indefinite" and stop_if_indefinite:
                 return False
             self._skip_spd = SPD_RETRY  # LDL^T for a while, as before Cholesky
+        key = (SYMMETRIC_INDEFINITE, False)
         self._ready = False
-        self._analysed(SYMMETRIC_INDEFINITE)
-        self._call(22, self._data, mtype=SYMMETRIC_INDEFINITE)
-        self._use(SYMMETRIC_INDEFINITE)
+        self._analysed(key)
+        self.factorisations += 1
+        self._call(22, key=key)
+        self._use(key)
         return True
 
-    def _min_pivot_ratio(self) -> float:
-        """The smallest pivot of the Cholesky factor over its matrix's diagonal entry."""
-        df = np.zeros(self.n)
-        da = np.zeros(self.n)
+    def _min_pivot_ratio(self, key: tuple[int, bool]) -> float:
+        """The smallest pivot of the Cholesky factor of handle ``key`` over its matrix's diagonal
+        entry."""
+        dtype = np.float32 if key[1] else np.float64
+        df = np.zeros(self.n, dtype=dtype)
+        da = np.zeros(self.n, dtype=dtype)
         err = ctypes.c_int32(0)
         with _LOCK:
             self._lib.pardiso_getdiag(
-                self._pts[SYMMETRIC_POSITIVE_DEFINITE].ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+                self._pts[key].ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
                 df.ctypes.data_as(_DBL),
                 da.ctypes.data_as(_DBL),
                 ctypes.byref(ctypes.c_int32(1)),
@@ -441,22 +500,27 @@ class PardisoFactor:
             )
         if err.value != 0:
             return 0.0  # no diagonal: take the factorisation that reports its pivots
-        return float(np.min(df / np.where(da > 0.0, da, np.inf)))
+        return float(np.min(df.astype(np.float64) / np.where(da > 0.0, da, np.inf)))
 
-    def _use(self, mtype: int) -> None:
-        """Solve with the factor of ``mtype`` from now on; release the other one's (phase 0: its
-        L and U, not its analysis)."""
-        self._mtype = mtype
+    def _use(self, key: tuple[int, bool]) -> None:
+        """Solve with the factor of handle ``key`` from now on; release the others' (phase 0:
+        their L and U, not their analyses)."""
+        self._key = key
         self._ready = True
         for other in self._pts:
-            if other != mtype:
-                self._call(0, self._data, mtype=other)
+            if other != key:
+                self._call(0, key=other)
 
     @property
     def positive_definite(self) -> bool:
         """Whether the matrix last factorised was factorised by Cholesky (it was positive
         definite)."""
-        return self._mtype == SYMMETRIC_POSITIVE_DEFINITE
+        return self._key[0] == SYMMETRIC_POSITIVE_DEFINITE
+
+    @property
+    def single_precision(self) -> bool:
+        """Whether the factor in use is single precision (its solves ~1e-4 relative)."""
+        return self._key[1]
 
     @staticmethod
     def _upper(A: sp.spmatrix) -> sp.csr_matrix:
@@ -481,23 +545,33 @@ class PardisoFactor:
     def _call(
         self,
         phase: int,
-        data: NDArray[np.float64],
         b: NDArray[np.float64] | None = None,
-        mtype: int | None = None,
+        key: tuple[int, bool] | None = None,
         perm: NDArray[np.int32] | None = None,
-    ):
-        mtype = self._mtype if mtype is None else mtype
-        x = np.zeros(self.n) if b is not None else np.zeros(1)
-        rhs = np.ascontiguousarray(b, dtype=np.float64) if b is not None else np.zeros(1)
+    ) -> NDArray[np.float64]:
+        """One PARDISO call of ``phase`` on handle ``key`` (default: the factor in use) with the
+        current values; ``b``: the right-hand side of a solve. Returns the solution (in double
+        precision) of a solve."""
+        key = self._key if key is None else key
+        mtype, single = key
+        dtype = np.float32 if single else np.float64
+        if single:
+            if self._data32 is None or self._data32.size != self._data.size:
+                self._data32 = self._data.astype(np.float32)
+            data: NDArray = self._data32
+        else:
+            data = self._data
+        x = np.zeros(self.n if b is not None else 1, dtype=dtype)
+        rhs = np.ascontiguousarray(b, dtype=dtype) if b is not None else np.zeros(1, dtype=dtype)
         err = ctypes.c_int32(0)
         args = _arguments(
-            self._pts[mtype],
+            self._pts[key],
             mtype,
             phase,
             data,
             self._indptr,
             self._indices,
-            self._iparms[mtype],
+            self._iparms[key],
             rhs,
             x,
             err,
@@ -513,7 +587,7 @@ class PardisoFactor:
             raise PardisoError(
                 f"PARDISO phase {phase} failed: {_ERRORS.get(err.value, 'error')} ({err.value})", err.value
             )
-        return x
+        return x.astype(np.float64, copy=False)
 
     def same_pattern(self, A: sp.spmatrix) -> sp.csr_matrix | None:
         """The upper triangle of ``A`` in this factor's pattern (entries it lacks stored as zeros)
@@ -610,6 +684,7 @@ class PardisoFactor:
                 f"values of another pattern: {U.data.size} entries for a factor of {self._indices.size}"
             )
         self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+        self._data32 = None
 
     @property
     def ready(self) -> bool:
@@ -622,8 +697,9 @@ class PardisoFactor:
         if not self._ready:
             raise PardisoError("no factorisation in use: the last one found the matrix not positive definite")
         self._fewer_threads()
+        self.solves += 1
         t0 = time.perf_counter()
-        x = self._call(33, self._data, b)
+        x = self._call(33, b)
         dt = time.perf_counter() - t0
         self._solve_times = [min(self._solve_times[0], dt), dt]
         return x
@@ -657,8 +733,8 @@ class PardisoFactor:
             return False
         self._busy_looks = 0
         self._solve_times = [math.inf, math.inf]
-        for mtype in self._pts:
-            self._call(-1, self._data, mtype=mtype)  # release the memory of the old thread count
+        for key in self._pts:
+            self._call(-1, key=key)  # release the memory of the old thread count
         self._pts, self._iparms = {}, {}
         self._threads = n
         self._factorise()
@@ -669,26 +745,26 @@ class PardisoFactor:
         """The factorisation's floating-point operations over a solve's (4 per factor non-zero:
         forward and backward substitution): how many solves one factorisation costs in
         operations (not in time: see ``linsolve.SOLVE_SPEED_RATIO``)."""
-        return max(1e6 * float(self._iparms[self._mtype][18]), 1.0) / max(4.0 * self.factor_nonzeros, 1.0)
+        return max(1e6 * float(self._iparms[self._key][18]), 1.0) / max(4.0 * self.factor_nonzeros, 1.0)
 
     @property
     def factor_nonzeros(self) -> int:
         """Non-zeros of the factor (memory: about 8 bytes each)."""
-        return int(self._iparms[self._mtype][17])
+        return int(self._iparms[self._key][17])
 
     @property
     def negative_pivots(self) -> int:
         """Negative eigenvalues seen in the factorisation (0: positive definite)."""
-        if self._mtype == SYMMETRIC_POSITIVE_DEFINITE:
+        if self.positive_definite:
             return 0
-        return int(self._iparms[self._mtype][22])
+        return int(self._iparms[self._key][22])
 
     @property
     def perturbed_pivots(self) -> int:
         """Pivots perturbed because they were (nearly) zero: a singular matrix."""
-        if self._mtype == SYMMETRIC_POSITIVE_DEFINITE:
+        if self.positive_definite:
             return 0
-        return int(self._iparms[self._mtype][13])
+        return int(self._iparms[self._key][13])
 
     def __del__(self) -> None:
         # The release is queued for the next PARDISO call, never made here: a finaliser runs
@@ -696,9 +772,9 @@ class PardisoFactor:
         # thread count; on another Python thread during a call) and would set this factor's
         # thread count under the other's feet.
         try:
-            for mtype, pt in self._pts.items():
+            for key, pt in self._pts.items():
                 if pt.any():
-                    arrays = (self._data, self._indptr, self._indices, self._iparms[mtype])
-                    _RELEASED.append((pt, self._threads, mtype, arrays))
+                    arrays = (self._data, self._indptr, self._indices, self._iparms[key])
+                    _RELEASED.append((pt, self._threads, key[0], arrays))
         except Exception:  # noqa: BLE001 - never raise from a finaliser
             pass
