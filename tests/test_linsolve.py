@@ -851,3 +851,34 @@ def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
         ls._Corrected(f, f.same_pattern((K + _table_blocks(K, nodes, 50.0)).tocsr()), cache)
         # columns are kept per unknown: at most the threshold's plus the current nodes' three each
         assert len(cache._correction[2]) <= 6 * m + 3 * m
+
+
+@needs_mkl
+def test_numpy_blas_runs_on_one_thread_while_pardiso_may_run_on_two():
+    """Inside ``blas_one_thread`` NumPy's OpenBLAS is limited to one thread (its idle threads and
+    PARDISO's spin against each other on two cores) and MKL's count, which PARDISO's phases must
+    keep, is left alone; outside it, and where PARDISO runs on one thread, nothing changes."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+
+    def counts() -> dict[str, int]:
+        return {i["internal_api"]: i["num_threads"] for i in threadpoolctl.threadpool_info()}
+
+    if pardiso._openblas() is None or pardiso._cores() < 2:
+        pytest.skip("needs NumPy on OpenBLAS and two cores")
+    K = _stiffness()
+    pardiso.set_threads(2)
+    try:
+        f = pardiso.PardisoFactor(K)  # loads MKL and sets its thread count
+        before = counts()
+        assert before["openblas"] > 1
+        with pardiso.blas_one_thread():
+            inside = counts()
+            x = f.solve(np.ones(K.shape[0]))
+        assert inside["openblas"] == 1 and inside["mkl"] == before["mkl"]
+        assert counts() == before
+        np.testing.assert_allclose(K @ x, np.ones(K.shape[0]), rtol=0, atol=1e-9)
+        pardiso.set_threads(1)
+        with pardiso.blas_one_thread():
+            assert counts()["openblas"] == before["openblas"]
+    finally:
+        pardiso.set_threads(None)

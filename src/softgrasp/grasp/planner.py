@@ -45,6 +45,7 @@ from softgrasp.hand.model import HandModel
 from softgrasp.hand.reach import HandPlacement, closing_paths, place_hand
 from softgrasp.mesh.placement import stable_facet_pose
 from softgrasp.planes import Plane, PlaneContact
+from softgrasp.sim import pardiso
 from softgrasp.sim.implicit import implicit_euler_step
 from softgrasp.sim.integrators import simulate
 from softgrasp.sim.linsolve import SolverCache
@@ -661,6 +662,11 @@ def plan_grasp(
     InfeasibleGrasp: no reachable force-closure grasp, or no hold before the maximum squeeze.
     NotConverged: an increment found no static equilibrium even when split.
     """
+    with pardiso.blas_one_thread():
+        return _plan_grasp(body, config, progress)
+
+
+def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None] | None) -> GraspPlan:
     t0 = time.perf_counter()
     cfg = config
     mu = cfg.contact.mu

@@ -664,6 +664,19 @@ def solve_newton_system(
     -------
     (dx (n,), lam (k,))
     """
+    with pardiso.blas_one_thread():
+        return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol)
+
+
+def _solve_newton_system(
+    A: sp.csr_matrix,
+    b: NDArray[np.float64],
+    C: sp.csr_matrix | None,
+    x_nodes: NDArray[np.float64],
+    cache: SolverCache | None,
+    matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None,
+    rtol: float | None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     cache = cache if cache is not None else SolverCache()
     n = A.shape[0]
     if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):

@@ -51,6 +51,7 @@ Their spinning is this process's own work, not another's: the looks leave it out
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import glob
 import hashlib
@@ -66,7 +67,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-__all__ = ["PardisoError", "PardisoFactor", "available", "idle_cores", "set_threads"]
+__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread", "idle_cores", "set_threads"]
 
 
 #: MKL's code for its Intel OpenMP threading layer (``MKL_Set_Threading_Layer``).
@@ -292,6 +293,35 @@ def set_threads(n: int | None) -> None:
 def available() -> bool:
     """Whether MKL PARDISO could be loaded."""
     return _library() is not None
+
+
+@cache
+def _openblas():  # -> threadpoolctl.ThreadpoolController | None
+    """threadpoolctl's controller of the OpenBLAS (or BLIS) that NumPy and SciPy call, or None."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # pragma: no cover - a dependency
+        return None
+    controller = ThreadpoolController().select(internal_api=["openblas", "blis"])
+    return controller if controller.lib_controllers else None
+
+
+def blas_one_thread() -> contextlib.AbstractContextManager:
+    """A context in which NumPy's own BLAS (OpenBLAS, not MKL) runs on one thread, while PARDISO
+    runs on more than one: each runtime's idle threads spin for a while after a call, and on two
+    cores OpenBLAS's second thread then waits for the core an MKL thread spins on (and the other
+    way round). The Newton solves' vector products (GMRES, conjugate gradients) gain nothing from
+    a second BLAS thread at these sizes. Measured on the default plan at 7 576 nodes, two PARDISO
+    threads: 7.4-7.7 s with OpenBLAS's two threads, 4.6-4.7 s with one (one PARDISO thread:
+    5.1-5.4 s); at 2 196 nodes within the machine's noise. The limit must hold between the solves
+    too (the line search's norms woke OpenBLAS's thread: 6.8-7.3 s with it on the solves alone),
+    so the planner holds it for the whole plan. Does nothing where PARDISO runs on one thread (a
+    fixed count of 1, one core, or no MKL)."""
+    threads = _fixed_threads if _fixed_threads is not None else _cores()
+    controller = _openblas() if threads > 1 and available() else None
+    if controller is None:
+        return contextlib.nullcontext()
+    return controller.limit(limits=1)
 
 
 #: Nested-dissection orderings of the patterns analysed lately, by a digest of the pattern: a
