@@ -855,13 +855,18 @@ def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
 
 @needs_mkl
 def test_numpy_blas_runs_on_one_thread_while_pardiso_may_run_on_two():
-    """Inside ``blas_one_thread`` NumPy's OpenBLAS is limited to one thread (its idle threads and
-    PARDISO's spin against each other on two cores) and MKL's count, which PARDISO's phases must
-    keep, is left alone; outside it, and where PARDISO runs on one thread, nothing changes."""
+    """Inside ``blas_one_thread`` NumPy's and SciPy's OpenBLAS libraries are limited to one thread
+    (their idle threads and PARDISO's spin against each other on two cores) and MKL's count, which
+    PARDISO's phases must keep, is left alone; holders overlapping from two threads (the CLI's
+    warm-up solving while the plan starts) keep the limit until the last one leaves, then the
+    counts found first come back; where PARDISO runs on one thread nothing changes."""
     threadpoolctl = pytest.importorskip("threadpoolctl")
 
     def counts() -> dict[str, int]:
-        return {i["internal_api"]: i["num_threads"] for i in threadpoolctl.threadpool_info()}
+        return {i["filepath"]: i["num_threads"] for i in threadpoolctl.threadpool_info()}
+
+    def apis() -> dict[str, str]:
+        return {i["filepath"]: i["internal_api"] for i in threadpoolctl.threadpool_info()}
 
     if pardiso._openblas() is None or pardiso._cores() < 2:
         pytest.skip("needs NumPy on OpenBLAS and two cores")
@@ -870,15 +875,68 @@ def test_numpy_blas_runs_on_one_thread_while_pardiso_may_run_on_two():
     try:
         f = pardiso.PardisoFactor(K)  # loads MKL and sets its thread count
         before = counts()
-        assert before["openblas"] > 1
+        blas = [p for p, api in apis().items() if api in ("openblas", "blis")]
+        mkl = [p for p, api in apis().items() if api == "mkl"]
+        if max(before[p] for p in blas) < 2:
+            pytest.skip("OpenBLAS already runs on one thread here")
         with pardiso.blas_one_thread():
             inside = counts()
             x = f.solve(np.ones(K.shape[0]))
-        assert inside["openblas"] == 1 and inside["mkl"] == before["mkl"]
+        assert all(inside[p] == 1 for p in blas) and all(inside[p] == before[p] for p in mkl)
         assert counts() == before
         np.testing.assert_allclose(K @ x, np.ones(K.shape[0]), rtol=0, atol=1e-9)
+        first, second = pardiso.blas_one_thread(), pardiso.blas_one_thread()
+        first.__enter__()
+        second.__enter__()
+        first.__exit__(None, None, None)
+        assert all(counts()[p] == 1 for p in blas)  # the second holder still holds it
+        second.__exit__(None, None, None)
+        assert counts() == before
         pardiso.set_threads(1)
         with pardiso.blas_one_thread():
-            assert counts()["openblas"] == before["openblas"]
+            assert counts() == before
     finally:
         pardiso.set_threads(None)
+
+
+@needs_mkl
+def test_a_single_precision_solve_of_a_tiny_right_hand_side_is_not_flushed_to_zero():
+    """float32 holds nothing below ~1e-45: a right-hand side of 1e-40 N would vanish, and its
+    refined solve would stop at the raw single solve. Scaled by a power of two before the float32
+    solve, it solves like any other (and the same bits as unscaled where float32 holds it)."""
+    K = _stiffness()
+    b = np.random.default_rng(31).standard_normal(K.shape[0])
+    f = pardiso.PardisoFactor(K, single=True)
+    assert f.single_precision
+    x = f.solve(b)
+    assert np.array_equal(f.solve(b * 2.0**-20) * 2.0**20, x)
+    for tiny in (1e-30, 1e-40):
+        xt = f.solve(b * tiny)
+        assert np.linalg.norm(K @ xt - b * tiny) <= 1e-2 * tiny * np.linalg.norm(b)
+    cache = SolverCache(method="pardiso", precision="mixed")
+    x, _ = solve_newton_system(K, b * 1e-40, None, np.zeros((K.shape[0] // 3, 3)), cache)
+    assert np.linalg.norm(K @ x - b * 1e-40) <= linsolve.STALE_RTOL * 1e-40 * np.linalg.norm(b)
+
+
+@needs_mkl
+def test_a_failed_first_solve_of_a_new_factor_leaves_no_stale_renewal_count(monkeypatch):
+    """The count of solves an old factor's age has cost is reset when a factor is made, before its
+    own system is solved: a solve that raises there (multigrid on a singular stiffness) leaves no
+    count of the previous factor behind."""
+    from softgrasp.errors import NotConverged
+
+    K = _stiffness()
+    b = np.random.default_rng(13).standard_normal(K.shape[0])
+    x_nodes = np.zeros((K.shape[0] // 3, 3))
+    cache = SolverCache(method="pardiso")
+    solve_newton_system(K, b, None, x_nodes, cache)
+    cache._excess, cache._fresh = 57, 3  # as if the old factor had aged
+
+    def fail(*args, **kwargs):
+        raise NotConverged("stand-in")
+
+    monkeypatch.setattr(linsolve, "_fresh_solve", fail)
+    cache.scene_changed()  # the next system refactorises
+    with pytest.raises(NotConverged):
+        solve_newton_system((1.1 * K).tocsr(), b, None, x_nodes, cache)
+    assert cache._excess == 0 and cache._fresh == -1

@@ -261,8 +261,8 @@ def _stale_pcg(
     keep_last: bool = False,
 ) -> tuple[NDArray[np.float64] | None, bool]:
     """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
-    matrix. Returns (x, or None when they do not reach ``rtol`` in ``max_it`` iterations (with
-    ``keep_last``: the last iterate then) or meet negative curvature; whether they met a
+    matrix. Returns (x, or None when they do not reach ``rtol`` in ``max_it`` iterations or meet
+    negative curvature (with ``keep_last``: the last iterate then); whether they met a
     direction p of negative curvature beyond round-off,
     ``p^T A p < -NEGATIVE_CURVATURE_ROUNDOFF n eps max_i sum_j |A_ij| |p|^2``: a proof that A is
     indefinite)."""
@@ -283,7 +283,7 @@ def _stale_pcg(
             # Round-off in p^T A p is at most ~n eps |p|^T |A| |p| <= n eps max_i sum_j |A_ij| |p|^2.
             row_sum = float(abs(A).sum(axis=1).max())
             bound = NEGATIVE_CURVATURE_ROUNDOFF * A.shape[0] * np.finfo(float).eps * row_sum * float(p @ p)
-            return None, pAp < -bound
+            return (x if keep_last else None), pAp < -bound
         alpha = rz / pAp
         x += alpha * p
         r -= alpha * Ap
@@ -495,8 +495,8 @@ def _shifted_solve(
     (Levenberg-Marquardt) is a descent direction for the line search, as conjugate gradients give
     by stopping at negative curvature. Each shift is factorised by Cholesky (which says whether it
     is positive definite); if even tau = 1 is not, its LDL^T is used. A single-precision factor's
-    solve is refined by conjugate gradients on the shifted matrix (``A`` both triangles) to
-    ``rtol``."""
+    solve is refined by conjugate gradients on the shifted matrix (``A`` both triangles) as
+    :func:`_refined` does."""
     diag = U.indptr[:-1]  # the diagonal leads each row of the sorted upper triangle
     scale = np.abs(U.data[diag])
     tau = INDEFINITE_SHIFT
@@ -605,8 +605,9 @@ def _pardiso(
     if f.negative_pivots > 0 and f.perturbed_pivots == 0:
         return _shifted_solve(f, A, f.matrix(), b, cache, rtol), np.zeros(0)
     solves = f.solves
+    cache._excess, cache._fresh = 0, -1  # until this factor's own system is solved
     x = _fresh_solve(A, b, x_nodes, cache, f, matvec, rtol)
-    cache._excess, cache._fresh = 0, f.solves - solves
+    cache._fresh = f.solves - solves
     return x, np.zeros(0)
 
 
@@ -664,6 +665,14 @@ def solve_newton_system(
     -------
     (dx (n,), lam (k,))
     """
+    cache = cache if cache is not None else SolverCache()
+    n = A.shape[0]
+    on_pardiso = C is None and (
+        cache.method == "pardiso"
+        or (cache.method == "auto" and n <= PARDISO_MAX_DOF and pardiso.available())
+    )
+    if not on_pardiso:
+        return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol)
     with pardiso.blas_one_thread():
         return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol)
 

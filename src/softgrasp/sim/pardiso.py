@@ -60,6 +60,7 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from ctypes.util import find_library
 from functools import cache
 
@@ -306,7 +307,14 @@ def _openblas():  # -> threadpoolctl.ThreadpoolController | None
     return controller if controller.lib_controllers else None
 
 
-def blas_one_thread() -> contextlib.AbstractContextManager:
+#: Holders of :func:`blas_one_thread` (threads of this process), the limit set while any holds it.
+_blas_holders = 0
+_blas_limiter = None  # threadpoolctl's limiter while held (it restores the counts it found)
+_BLAS_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def blas_one_thread() -> Iterator[None]:
     """A context in which NumPy's own BLAS (OpenBLAS, not MKL) runs on one thread, while PARDISO
     runs on more than one: each runtime's idle threads spin for a while after a call, and on two
     cores OpenBLAS's second thread then waits for the core an MKL thread spins on (and the other
@@ -316,12 +324,27 @@ def blas_one_thread() -> contextlib.AbstractContextManager:
     5.1-5.4 s); at 2 196 nodes within the machine's noise. The limit must hold between the solves
     too (the line search's norms woke OpenBLAS's thread: 6.8-7.3 s with it on the solves alone),
     so the planner holds it for the whole plan. Does nothing where PARDISO runs on one thread (a
-    fixed count of 1, one core, or no MKL)."""
+    fixed count of 1, one core, or no MKL). Reference-counted across threads: the counts found
+    when the first holder entered are restored when the last one leaves (the CLI's warm-up solves
+    on a background thread while the plan starts)."""
+    global _blas_holders, _blas_limiter
     threads = _fixed_threads if _fixed_threads is not None else _cores()
     controller = _openblas() if threads > 1 and available() else None
     if controller is None:
-        return contextlib.nullcontext()
-    return controller.limit(limits=1)
+        yield
+        return
+    with _BLAS_LOCK:
+        if _blas_holders == 0:
+            _blas_limiter = controller.limit(limits=1)
+        _blas_holders += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _blas_holders -= 1
+            if _blas_holders == 0 and _blas_limiter is not None:
+                _blas_limiter.restore_original_limits()
+                _blas_limiter = None
 
 
 #: Nested-dissection orderings of the patterns analysed lately, by a digest of the pattern: a
@@ -729,7 +752,15 @@ class PardisoFactor:
         self._fewer_threads()
         self.solves += 1
         t0 = time.perf_counter()
-        x = self._call(33, b)
+        if self.single_precision:
+            # Scaled by a power of two (exact) to a largest entry in [1, 2): float32 would flush a
+            # tiny right-hand side (a nearly balanced Newton step's) to zero or lose it to
+            # subnormals.
+            big = float(np.abs(b).max()) if b.size else 0.0
+            scale = 2.0 ** math.floor(math.log2(big)) if big > 0.0 and math.isfinite(big) else 1.0
+            x = self._call(33, b / scale) * scale
+        else:
+            x = self._call(33, b)
         dt = time.perf_counter() - t0
         self._solve_times = [min(self._solve_times[0], dt), dt]
         return x
