@@ -140,10 +140,7 @@ def compression_test(
     # Rigid motions the plates may leave free (sliding, spinning, tilting on single-node contacts)
     # are held by weak lateral tethers; under the symmetric load their net force vanishes.
     tether = Tether("xy")
-    # Double-precision factors: the calibration fits difference these curves, and near a
-    # bifurcation (a softening law compressed 30 %: an indefinite stiffness) the rounding noise of
-    # single-precision preconditioners decided which branch Newton ended on (5 of 14 perturbed
-    # moduli against 0 of 14 with double factors).
+    # Double-precision factors: the calibration differences these curves (see SolverCache.precision).
     cache = SolverCache(precision="double")
     # The object first settles under its own weight; like a rig zeroed at first contact, the top
     # plate then starts on the settled top.

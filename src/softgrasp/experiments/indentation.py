@@ -328,10 +328,7 @@ def indentation_test(
         raise ConfigError(f"indentation point must be two finite numbers (x, y) in m, got {point!r}")
     inc = depth / steps
 
-    # Double-precision factors: the calibration fits difference these curves, and near a
-    # bifurcation (a softening law compressed 30 %: an indefinite stiffness) the rounding noise of
-    # single-precision preconditioners decided which branch Newton ended on (5 of 14 perturbed
-    # moduli against 0 of 14 with double factors).
+    # Double-precision factors: the calibration differences these curves (see SolverCache.precision).
     cache = SolverCache(precision="double")
     table = PlaneContact(
         Plane(np.array([0.0, 0.0, zmin]), np.array([0.0, 0.0, 1.0])), mu=table_mu, name="table"

@@ -21,6 +21,7 @@ All of it lives in a :class:`SolverCache` that the callers keep across the solve
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import warnings
@@ -666,15 +667,18 @@ def solve_newton_system(
     (dx (n,), lam (k,))
     """
     cache = cache if cache is not None else SolverCache()
-    n = A.shape[0]
-    on_pardiso = C is None and (
+    if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
+        raise ValueError(f"unknown linear solver {cache.method!r}")
+    if cache.precision not in ("mixed", "double"):
+        raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
+    # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
+    # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
+    use_pardiso = C is None and (
         cache.method == "pardiso"
-        or (cache.method == "auto" and n <= PARDISO_MAX_DOF and pardiso.available())
+        or (cache.method == "auto" and A.shape[0] <= PARDISO_MAX_DOF and pardiso.available())
     )
-    if not on_pardiso:
-        return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol)
-    with pardiso.blas_one_thread():
-        return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol)
+    with pardiso.blas_one_thread() if use_pardiso else contextlib.nullcontext():
+        return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol, use_pardiso)
 
 
 def _solve_newton_system(
@@ -682,16 +686,12 @@ def _solve_newton_system(
     b: NDArray[np.float64],
     C: sp.csr_matrix | None,
     x_nodes: NDArray[np.float64],
-    cache: SolverCache | None,
+    cache: SolverCache,
     matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None,
     rtol: float | None,
+    use_pardiso: bool,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    cache = cache if cache is not None else SolverCache()
     n = A.shape[0]
-    if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
-        raise ValueError(f"unknown linear solver {cache.method!r}")
-    if cache.precision not in ("mixed", "double"):
-        raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
     if cache.method == "reference":
         # softgrasp's first solver, kept as the reference of the benchmarks and tests: the
         # symmetrised Newton matrix, sparse LU up to DIRECT_MAX_DOF unknowns, multigrid-CG beyond.
@@ -699,13 +699,8 @@ def _solve_newton_system(
             return _direct(A, b, C)
         cache.stats["amg_solves"] += 1
         return _pcg(A.tocsr(), b, C, x_nodes, cache)
-    # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
-    # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
     if C is not None or cache.method == "direct":
         return _direct(A, b, C)
-    use_pardiso = cache.method == "pardiso" or (
-        cache.method == "auto" and n <= PARDISO_MAX_DOF and pardiso.available()
-    )
     if use_pardiso:
         return _pardiso(A.tocsr(), b, x_nodes, cache, matvec, STALE_RTOL if rtol is None else min(rtol, 1e-2))
     if cache.method == "auto" and n <= DIRECT_MAX_DOF:

@@ -21,8 +21,9 @@ Cholesky factor is computed and applied in single precision (PARDISO's ``iparm[2
 caller refines every solve against the double-precision matrix (conjugate gradients or GMRES, as
 it always did with an older factor used as a preconditioner). A factorisation takes ~0.63 of the
 time, a solve ~0.67, the factor half the memory (2 196 nodes, one thread: 21 vs 33 ms and 0.54 vs
-0.80 ms); the default plan there needed 12 more solves (214 vs 202) and ran 0.93-0.96 s against
-1.07-1.14 s with double factors, the same set-points to nine digits. Where float32 cannot resolve
+0.80 ms); the default plan there needed 30 more solves (232 vs 202: a fresh factor's own system is
+refined to 1e-11) and ran 0.87-0.88 s against 0.99-1.04 s with double factors on two threads, the
+same set-points to 1e-12. Where float32 cannot resolve
 a matrix's pivots (the smallest below :data:`SINGLE_PIVOT_FLOOR` of its diagonal entry) or its
 Cholesky fails, the double factorisation is made and decides, so that whether a matrix counts as
 positive definite, indefinite or singular does not depend on the precision.
@@ -609,7 +610,7 @@ class PardisoFactor:
         mtype, single = key
         dtype = np.float32 if single else np.float64
         if single:
-            if self._data32 is None or self._data32.size != self._data.size:
+            if self._data32 is None:  # reset whenever _data is set
                 self._data32 = self._data.astype(np.float32)
             data: NDArray = self._data32
         else:
