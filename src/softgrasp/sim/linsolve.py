@@ -141,6 +141,41 @@ def _rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
     return B
 
 
+#: The multigrid V-cycle's smoothing: one forward Gauss-Seidel sweep before the coarse correction,
+#: one backward after (a symmetric preconditioner, as conjugate gradients need). pyamg's default,
+#: a symmetric sweep on each side, costs half as much again a cycle for about one iteration fewer
+#: (83 247 unknowns: 23-25 against 33-38 ms a cycle, 9 against 8 iterations to 1e-4).
+_PRESMOOTHER = ("block_gauss_seidel", {"sweep": "forward"})
+_POSTSMOOTHER = ("block_gauss_seidel", {"sweep": "backward"})
+
+
+def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCache) -> Any:
+    """The smoothed-aggregation V-cycle preconditioner for ``A``: the hierarchy kept in ``cache``
+    (built on the first matrix, rebuilt when the callers drop it), its finest level always the
+    current matrix. The coarse levels (a second of set-up at 83 247 unknowns) stay those of the
+    matrix the hierarchy was built on; the smoothing sweeps, which take the matrix as they run,
+    and the fine residual see the current one. Measured on the settle of the 27 749-node sphere
+    (eleven Newton matrices against a hierarchy built on the first): 16-26 iterations to 1e-4
+    where the whole hierarchy kept from the first matrix took 25-105, and a fresh one 7-11."""
+    import pyamg
+
+    A = A.tocsr()
+    ml: Any = cache._ml
+    if ml is not None and ml.levels[0].A.shape == A.shape:
+        ml.levels[0].A = A
+    else:
+        cache._ml = pyamg.smoothed_aggregation_solver(
+            A,
+            B=_rigid_modes(x_nodes),
+            symmetry="symmetric",
+            max_coarse=300,
+            coarse_solver="splu",
+            presmoother=_PRESMOOTHER,
+            postsmoother=_POSTSMOOTHER,
+        )
+    return cache._ml.aspreconditioner(cycle="V")  # type: ignore[attr-defined]
+
+
 def _direct(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None):
     with warnings.catch_warnings():
         warnings.simplefilter("error", spla.MatrixRankWarning)
@@ -208,8 +243,6 @@ def _pcg(
     buckling) CG meets negative curvature: the diagonal is then shifted until it does not
     (Levenberg-Marquardt, as the PARDISO path does), a descent direction close to Newton's."""
     rtol = cache.rtol if rtol is None else rtol
-    import pyamg
-
     if C is not None:
         Cd = C.toarray()
         G = np.linalg.inv(Cd @ Cd.T)
@@ -223,11 +256,7 @@ def _pcg(
 
     max_it = 400
     for _attempt in range(2):
-        if cache._ml is None:
-            cache._ml = pyamg.smoothed_aggregation_solver(
-                A, B=_rigid_modes(x_nodes), symmetry="symmetric", max_coarse=300, coarse_solver="splu"
-            )
-        M = cache._ml.aspreconditioner(cycle="V")  # type: ignore[attr-defined]
+        M = _multigrid(A, x_nodes, cache)
         x, last, curved = _cg(A, b, M, proj, rtol, max_it)
         it = last
         tau = INDEFINITE_SHIFT
@@ -358,14 +387,8 @@ def _amg_gmres(
     """GMRES on the exact Newton product preconditioned by a multigrid V-cycle of its symmetric
     approximation A (the hierarchy kept in the cache and rebuilt once when it no longer
     converges); None if it does not converge."""
-    import pyamg
-
     for _attempt in range(2):
-        if cache._ml is None:
-            cache._ml = pyamg.smoothed_aggregation_solver(
-                A, B=_rigid_modes(x_nodes), symmetry="symmetric", max_coarse=300, coarse_solver="splu"
-            )
-        M = cache._ml.aspreconditioner(cycle="V")  # type: ignore[attr-defined]
+        M = _multigrid(A, x_nodes, cache)
         x = _gmres(matvec, b, M.matvec, AMG_GMRES_MAX_IT, max(rtol, 1e-10))
         if x is not None:
             return x
