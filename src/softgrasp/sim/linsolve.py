@@ -146,35 +146,144 @@ def _rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
 #: a symmetric sweep on each side, costs half as much again a cycle for about one iteration fewer
 #: (83 247 unknowns: 23-25 against 33-38 ms a cycle, 9 against 8 iterations to 1e-4).
 _PRESMOOTHER = ("block_gauss_seidel", {"sweep": "forward"})
+#: Seed of the random start from which pyamg estimates a spectral radius while it builds a
+#: hierarchy.
+AMG_SEED = 20_240_901
 _POSTSMOOTHER = ("block_gauss_seidel", {"sweep": "backward"})
 
 
-def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCache) -> Any:
-    """The smoothed-aggregation V-cycle preconditioner for ``A``: the hierarchy kept in ``cache``
-    (built on the first matrix, rebuilt when the callers drop it), its finest level always the
-    current matrix. The coarse levels (a second of set-up at 83 247 unknowns) stay those of the
-    matrix the hierarchy was built on; the smoothing sweeps, which take the matrix as they run,
-    and the fine residual see the current one. Measured on the settle of the 27 749-node sphere
-    (eleven Newton matrices against a hierarchy built on the first): 16-26 iterations to 1e-4
-    where the whole hierarchy kept from the first matrix took 25-105, and a fresh one 7-11."""
-    import pyamg
+class _Multigrid:
+    """The smoothed-aggregation V-cycle preconditioner kept in a :class:`SolverCache` across the
+    Newton systems of one loading (pyamg builds the hierarchy; this applies it).
 
+    The hierarchy is built on the first matrix; :meth:`use` makes each new one its finest level
+    (the smoothing sweeps, which take the matrix as they run, and the fine residual see it), the
+    coarse levels staying those of the matrix it was built on. Measured on the settle of the
+    27 749-node sphere (eleven Newton matrices against a hierarchy built on the first): 16-26
+    iterations to 1e-4 where the whole hierarchy kept from the first matrix took 25-105, and a
+    fresh one 7-11.
+
+    A cycle is applied here rather than by pyamg's driver, which takes the residual's norm before
+    and after each cycle (two products with the finest matrix, a fifth of a cycle's time), with
+    the residuals and the transfers between levels on the compiled products
+    (:class:`~softgrasp.kernels.sparse.CsrProduct`, both cores where they are idle): the same
+    cycle to the rounding of the products' sums. 83 247 unknowns: 23 ms a cycle through pyamg's
+    driver, 18 ms here on one thread."""
+
+    def __init__(self, A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> None:
+        import pyamg
+
+        # pyamg estimates the spectral radius that smooths the prolongator from a random start
+        # (NumPy's global generator): seeded, so that the same matrix gives the same hierarchy and
+        # a plan the same numbers run after run; the caller's generator state is put back.
+        state = np.random.get_state()
+        np.random.seed(AMG_SEED)
+        try:
+            self.ml: Any = pyamg.smoothed_aggregation_solver(
+                A,
+                B=_rigid_modes(x_nodes),
+                symmetry="symmetric",
+                max_coarse=300,
+                coarse_solver="splu",
+                presmoother=_PRESMOOTHER,
+                postsmoother=_POSTSMOOTHER,
+            )
+        finally:
+            np.random.set_state(state)
+        levels = self.ml.levels
+        product = _product_type()
+        self._A = [product(level.A) for level in levels[:-1]]
+        self._R = [product(level.R) for level in levels[:-1]]
+        self._P = [product(level.P) for level in levels[:-1]]
+        self._smoother: Any = None  # the finest level's sweeps (compiled kernels only)
+
+    def fits(self, A: sp.csr_matrix) -> bool:
+        return bool(self.ml.levels[0].A.shape == A.shape)
+
+    def use(self, A: sp.csr_matrix, threads: int) -> None:
+        """Make ``A`` (CSR) the finest level's matrix, the products and sweeps run on ``threads``
+        threads."""
+        self.ml.levels[0].A = A
+        self._A[0] = _product_type()(A)
+        for op in (*self._A, *self._R, *self._P):
+            op.threads = threads
+        from softgrasp.kernels import compiled
+
+        if compiled():
+            from softgrasp.kernels.sparse import HybridGaussSeidel
+
+            self._smoother = HybridGaussSeidel(A, threads)
+
+    @property
+    def fine(self) -> Any:
+        """The finest level's matrix, as a product (``fine @ x``)."""
+        return self._A[0]
+
+    def product(self, A: sp.csr_matrix) -> Any:
+        """``A`` as a product on the threads of this one's."""
+        op = _product_type()(A)
+        op.threads = self._A[0].threads
+        return op
+
+    def _cycle(self, lvl: int, b: NDArray[np.float64]) -> NDArray[np.float64]:
+        level = self.ml.levels[lvl]
+        x = np.zeros_like(b)
+        fine = lvl == 0 and self._smoother is not None
+        if fine:
+            self._smoother.sweep(x, b, forward=True)
+        else:
+            level.presmoother(level.A, x, b)
+        coarse_b = self._R[lvl] @ (b - self._A[lvl] @ x)
+        if lvl == len(self.ml.levels) - 2:
+            coarse_x = self.ml.coarse_solver(self.ml.levels[-1].A, coarse_b)
+        else:
+            coarse_x = self._cycle(lvl + 1, coarse_b)
+        x += self._P[lvl] @ coarse_x
+        if fine:
+            self._smoother.sweep(x, b, forward=False)
+        else:
+            level.postsmoother(level.A, x, b)
+        return x
+
+    def matvec(self, r: NDArray[np.float64]) -> NDArray[np.float64]:
+        """One V-cycle from zero on ``r``."""
+        return self._cycle(0, np.asarray(r, dtype=np.float64))
+
+    __matmul__ = matvec
+
+
+class _ScipyProduct:
+    """SciPy's product, where the compiled kernels are not in use (the same interface as
+    :class:`~softgrasp.kernels.sparse.CsrProduct`)."""
+
+    def __init__(self, A: Any, threads: int = 1) -> None:
+        self.A = A.tocsr()
+        self.shape = self.A.shape
+        self.threads = 1
+
+    def __matmul__(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(self.A @ x)
+
+
+def _product_type() -> Any:
+    from softgrasp.kernels import compiled
+
+    if compiled():
+        from softgrasp.kernels.sparse import CsrProduct
+
+        return CsrProduct
+    return _ScipyProduct
+
+
+def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCache) -> _Multigrid:
+    """The multigrid preconditioner kept in ``cache`` (built there when there is none or it was
+    dropped), its finest level made ``A``, its products on the cores idle now."""
     A = A.tocsr()
-    ml: Any = cache._ml
-    if ml is not None and ml.levels[0].A.shape == A.shape:
-        ml.levels[0].A = A
-    else:
-        cache._ml = pyamg.smoothed_aggregation_solver(
-            A,
-            B=_rigid_modes(x_nodes),
-            symmetry="symmetric",
-            max_coarse=300,
-            coarse_solver="splu",
-            presmoother=_PRESMOOTHER,
-            postsmoother=_POSTSMOOTHER,
-        )
-    return cache._ml.aspreconditioner(cycle="V")  # type: ignore[attr-defined]
-
+    ml = cache._ml
+    if not (isinstance(ml, _Multigrid) and ml.fits(A)):
+        ml = cache._ml = _Multigrid(A, x_nodes)
+    ml.use(A, pardiso.choose_threads())
+    return ml
 
 def _direct(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None):
     with warnings.catch_warnings():
@@ -193,14 +302,15 @@ def _direct(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None):
 
 
 def _cg(
-    A: sp.csr_matrix,
+    A: Any,
     b: NDArray[np.float64],
     M: Any,
     proj: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     rtol: float,
     max_it: int,
 ) -> tuple[NDArray[np.float64], int, bool]:
-    """Preconditioned conjugate gradients on ``A x = b`` in the range of ``proj``. Returns (x, the
+    """Preconditioned conjugate gradients on ``A x = b`` (``A`` a matrix or a product) in the range
+    of ``proj``. Returns (x, the
     iterations, whether they met negative curvature: then x is the progress so far, or the first
     direction, both descent directions)."""
     x = np.zeros_like(b)
@@ -257,12 +367,12 @@ def _pcg(
     max_it = 400
     for _attempt in range(2):
         M = _multigrid(A, x_nodes, cache)
-        x, last, curved = _cg(A, b, M, proj, rtol, max_it)
+        x, last, curved = _cg(M.fine, b, M, proj, rtol, max_it)
         it = last
         tau = INDEFINITE_SHIFT
         while curved and tau <= 1.0:
             shifted = (A + sp.diags(tau * np.abs(A.diagonal()))).tocsr()
-            xs, its, curved_s = _cg(shifted, b, M, proj, rtol, max_it)
+            xs, its, curved_s = _cg(M.product(shifted), b, M, proj, rtol, max_it)
             it += its
             if not curved_s:
                 x, last, curved = xs, its, False

@@ -192,9 +192,10 @@ def idle_cores() -> int:
     return max(1, min(_cores(), _cores() - max(runnable - own, 0)))
 
 
-def _choose_threads() -> int:
-    """Thread count for a new factor: fixed, or ``auto``: the idle cores (the most of
-    :data:`BUSY_LOOKS` looks: another process that runs is seen in every look)."""
+def choose_threads() -> int:
+    """Thread count for a new factor (and for the multigrid path's compiled products): fixed, or
+    ``auto``: the idle cores (the most of :data:`BUSY_LOOKS` looks: another process that runs is
+    seen in every look)."""
     if _fixed_threads is not None:
         return _fixed_threads
     return max(idle_cores() for _ in range(BUSY_LOOKS))
@@ -420,7 +421,7 @@ class PardisoFactor:
         self._data = np.ascontiguousarray(U.data, dtype=np.float64)
         # PARDISO sizes its work per thread in the analysis: every phase of this factor must run
         # with the same thread count (changing it in between crashed MKL here).
-        self._threads = _choose_threads()
+        self._threads = choose_threads()
         self._load_checked = time.monotonic()
         self._busy_looks = 0  # consecutive looks that found fewer idle cores than threads
         self._solve_times = [math.inf, math.inf]  # the fastest solve of this thread count, the last

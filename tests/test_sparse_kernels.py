@@ -1,0 +1,153 @@
+"""The multigrid path's compiled sparse kernels (products, l1 hybrid Gauss-Seidel sweeps) and the
+V-cycle softgrasp applies with them, against SciPy, pyamg and the properties conjugate gradients
+need."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from softgrasp import kernels
+from softgrasp.body import build_body
+from softgrasp.material import preset
+from softgrasp.mesh.generate import box
+from softgrasp.sim import linsolve
+from softgrasp.sim.linsolve import SolverCache
+
+pytestmark = pytest.mark.skipif("numba" not in kernels.available(), reason="Numba is not installed")
+
+
+def _cube_system(n: int = 6):
+    """The foam cube's rest stiffness, held on a table (its bottom nodes' penalty) and slightly
+    shifted: a symmetric positive definite Newton matrix; the node positions."""
+    body = build_body(box(0.05, n), preset("foam"), mass=0.0125)
+    K = (-body.rest_jacobian).tocsr()
+    x = np.asarray(body.mesh.points)
+    d = np.zeros(K.shape[0])
+    bottom = np.flatnonzero(x[:, 2] < x[:, 2].min() + 1e-9)
+    for i in bottom:
+        d[3 * i : 3 * i + 3] = 0.5 * K.diagonal()[3 * i : 3 * i + 3]
+    A = (K + 1e-6 * sp.diags(K.diagonal()) + sp.diags(d)).tocsr()
+    return A, x
+
+
+def test_the_compiled_product_is_scipys_and_the_same_bits_on_one_thread_or_two():
+    from softgrasp.kernels.sparse import CsrProduct
+
+    A, _ = _cube_system()
+    v = np.random.default_rng(0).standard_normal(A.shape[0])
+    want = A @ v
+    op = CsrProduct(A, threads=1)
+    one = op @ v
+    op.threads = 2
+    two = op @ v
+    np.testing.assert_allclose(one, want, rtol=0, atol=1e-13 * np.abs(want).max())
+    assert np.array_equal(one, two)
+    assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS  # put back
+
+
+def test_a_hybrid_sweep_on_a_matrix_without_couplings_between_blocks_is_gauss_seidel():
+    """With no coupling between the row blocks the l1 term vanishes and the hybrid sweep is
+    Gauss-Seidel itself: pyamg's forward and backward sweeps, to rounding."""
+    from pyamg.relaxation.relaxation import gauss_seidel
+
+    from softgrasp.kernels.sparse import SWEEP_PARTS, HybridGaussSeidel
+
+    A, _ = _cube_system(4)
+    n = A.shape[0]
+    # row i's block p: p n // parts <= i < (p + 1) n // parts
+    part = np.searchsorted([p * n // SWEEP_PARTS for p in range(1, SWEEP_PARTS)], np.arange(n), side="right")
+    coo = A.tocoo()
+    keep = part[coo.row] == part[coo.col]
+    B = sp.csr_matrix((coo.data[keep], (coo.row[keep], coo.col[keep])), shape=A.shape)
+    assert (A - B).nnz > 0  # the cube's matrix did couple the blocks
+    b = np.random.default_rng(1).standard_normal(n)
+    for forward, sweep in ((True, "forward"), (False, "backward")):
+        x0 = np.random.default_rng(2).standard_normal(n)
+        want = x0.copy()
+        gauss_seidel(B, want, b, iterations=1, sweep=sweep)
+        got = x0.copy()
+        HybridGaussSeidel(B, threads=2).sweep(got, b, forward=forward)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+
+
+def _forward_hybrid_matrix(A: np.ndarray, parts: int, l1: bool) -> np.ndarray:
+    """M of the forward hybrid sweep x <- x + M^-1 (b - A x), from its definition: the lower
+    triangle (diagonal included) within each row block, plus the l1 term on the diagonal."""
+    n = len(A)
+    block = np.searchsorted([p * n // parts for p in range(1, parts)], np.arange(n), side="right")
+    same = block[:, None] == block[None, :]
+    M = np.tril(np.where(same, A, 0.0))
+    if l1:
+        M += np.diag(np.where(same, 0.0, np.abs(A)).sum(axis=1))
+    return M
+
+
+def test_l1_hybrid_sweeps_converge_where_plain_hybrid_ones_diverge():
+    """A symmetric positive definite 6 x 6 matrix (rank two plus 0.05 I) on which Gauss-Seidel
+    within two row blocks and Jacobi across them diverges (the iteration matrix's spectral radius
+    1.085); with each row's couplings to the other block added to its diagonal (the l1 term),
+    M + M^T - A is positive definite and the compiled sweeps converge to A^-1 b, the error's
+    energy norm falling at every sweep, forward and backward."""
+    from softgrasp.kernels.sparse import SWEEP_PARTS, HybridGaussSeidel
+
+    B = np.array([[-0.7, -0.1], [0.8, 1.5], [-1.3, 1.5], [1.3, 0.8], [0.3, -0.3], [1.5, 2.0]])
+    A = B @ B.T + 0.05 * np.eye(6)
+    assert np.linalg.eigvalsh(A).min() > 0
+    plain = _forward_hybrid_matrix(A, SWEEP_PARTS, l1=False)
+    l1 = _forward_hybrid_matrix(A, SWEEP_PARTS, l1=True)
+    assert np.abs(np.linalg.eigvals(np.eye(6) - np.linalg.solve(plain, A))).max() > 1.05
+    assert np.linalg.eigvalsh(l1 + l1.T - A).min() > 0
+
+    b = np.random.default_rng(3).standard_normal(6)
+    exact = np.linalg.solve(A, b)
+    gs = HybridGaussSeidel(sp.csr_matrix(A), threads=2)
+    np.testing.assert_allclose(gs.inverse_diagonal, 1.0 / np.diag(l1), rtol=1e-14)
+    x = np.zeros(6)
+    errors = [float((x - exact) @ A @ (x - exact))]
+    for k in range(3000):
+        gs.sweep(x, b, forward=k % 2 == 0)
+        errors.append(float((x - exact) @ A @ (x - exact)))
+    assert all(e1 < e0 for e0, e1 in zip(errors[:1000], errors[1:1001], strict=True)), errors[:10]
+    assert errors[-1] <= 1e-10 * errors[0]  # slowly: the l1 iteration's spectral radius is 0.995
+    # One forward sweep is x + M^-1 (b - A x) with M as defined above.
+    x0 = np.random.default_rng(4).standard_normal(6)
+    got = x0.copy()
+    gs.sweep(got, b, forward=True)
+    np.testing.assert_allclose(got, x0 + np.linalg.solve(l1, b - A @ x0), rtol=1e-12)
+
+
+def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
+    """Conjugate gradients need a symmetric preconditioner: u . M v = v . M u for the V-cycle
+    (l1 hybrid sweeps forward before the coarse correction, backward after); and the same
+    hierarchy and cycle, to the bit, whatever the thread count and from one build to the next
+    (pyamg's random start seeded, the caller's generator left as it was)."""
+    A, x_nodes = _cube_system(8)
+    rng = np.random.default_rng(5)
+    u, v = rng.standard_normal((2, A.shape[0]))
+    state = np.random.get_state()
+    M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+    assert np.random.get_state()[1].tolist() == state[1].tolist()
+    assert len(M.ml.levels) >= 2
+    Mu, Mv = M @ u, M @ v
+    assert abs(u @ Mv - v @ Mu) <= 1e-12 * np.linalg.norm(u) * np.linalg.norm(Mv)
+    results = []
+    for threads in (1, 2):
+        other = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+        other.use(A, threads)
+        results.append(other @ u)
+    assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], Mu)
+
+
+def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
+    """With the NumPy kernels the cycle keeps pyamg's Gauss-Seidel and SciPy's products: it is
+    then pyamg's own V-cycle (its preconditioner), to rounding."""
+    A, x_nodes = _cube_system(8)
+    r = np.random.default_rng(6).standard_normal(A.shape[0])
+    with kernels.use_backend("numpy"):
+        M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+        got = M @ r
+    want = M.ml.aspreconditioner(cycle="V").matvec(r)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
