@@ -19,10 +19,12 @@ from softgrasp.sim.linsolve import SolverCache
 pytestmark = pytest.mark.skipif("numba" not in kernels.available(), reason="Numba is not installed")
 
 
-def _cube_system(n: int = 6):
+def _cube_system(n: int = 6, local: bool = False):
     """The foam cube's rest stiffness, held on a table (its bottom nodes' penalty) and slightly
-    shifted: a symmetric positive definite Newton matrix; the node positions."""
-    body = build_body(box(0.05, n), preset("foam"), mass=0.0125)
+    shifted: a symmetric positive definite Newton matrix; the node positions. ``local``: the
+    mesh renumbered for locality (as softgrasp's gmsh meshes are)."""
+    mesh = box(0.05, n)
+    body = build_body(mesh.reordered() if local else mesh, preset("foam"), mass=0.0125)
     K = (-body.rest_jacobian).tocsr()
     x = np.asarray(body.mesh.points)
     d = np.zeros(K.shape[0])
@@ -39,13 +41,16 @@ def test_the_compiled_product_is_scipys_and_the_same_bits_on_one_thread_or_two()
     A, _ = _cube_system()
     v = np.random.default_rng(0).standard_normal(A.shape[0])
     want = A @ v
+    before = numba.get_num_threads()
     op = CsrProduct(A, threads=1)
     one = op @ v
     op.threads = 2
     two = op @ v
     np.testing.assert_allclose(one, want, rtol=0, atol=1e-13 * np.abs(want).max())
     assert np.array_equal(one, two)
-    assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS  # put back
+    assert numba.get_num_threads() == before  # put back
+    with pytest.raises(ValueError, match="times a vector"):
+        op @ v[:-1]
 
 
 def test_a_hybrid_sweep_on_a_matrix_without_couplings_between_blocks_is_gauss_seidel():
@@ -103,7 +108,7 @@ def test_l1_hybrid_sweeps_converge_where_plain_hybrid_ones_diverge():
 
     b = np.random.default_rng(3).standard_normal(6)
     exact = np.linalg.solve(A, b)
-    gs = HybridGaussSeidel(sp.csr_matrix(A), threads=2)
+    gs = HybridGaussSeidel(sp.csr_matrix(A), threads=2, parts=SWEEP_PARTS)
     np.testing.assert_allclose(gs.inverse_diagonal, 1.0 / np.diag(l1), rtol=1e-14)
     x = np.zeros(6)
     errors = [float((x - exact) @ A @ (x - exact))]
@@ -124,13 +129,16 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     (l1 hybrid sweeps forward before the coarse correction, backward after); and the same
     hierarchy and cycle, to the bit, whatever the thread count and from one build to the next
     (pyamg's random start seeded, the caller's generator left as it was)."""
-    A, x_nodes = _cube_system(8)
+    A, x_nodes = _cube_system(12, local=True)
     rng = np.random.default_rng(5)
     u, v = rng.standard_normal((2, A.shape[0]))
+    np.random.seed(7)
+    np.random.random(3)
     state = np.random.get_state()
     M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
-    assert np.random.get_state()[1].tolist() == state[1].tolist()
-    assert len(M.ml.levels) >= 2
+    after = np.random.get_state()
+    assert np.array_equal(after[1], state[1]) and after[2:] == state[2:]
+    assert len(M.ml.levels) == 3 and M._smoother.parts == 2  # the coarse recursion, two blocks
     Mu, Mv = M @ u, M @ v
     assert abs(u @ Mv - v @ Mu) <= 1e-12 * np.linalg.norm(u) * np.linalg.norm(Mv)
     results = []
@@ -143,11 +151,38 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
 
 def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
     """With the NumPy kernels the cycle keeps pyamg's Gauss-Seidel and SciPy's products: it is
-    then pyamg's own V-cycle (its preconditioner), to rounding."""
-    A, x_nodes = _cube_system(8)
+    then pyamg's own V-cycle (its preconditioner), to rounding, on a three-level hierarchy; also
+    for a hierarchy built while the compiled kernels were in use and kept for the next matrix
+    (no compiled sweep of the earlier matrix left behind)."""
+    A, x_nodes = _cube_system(12, local=True)
+    A2 = (A + 0.5 * sp.diags(A.diagonal())).tocsr()
     r = np.random.default_rng(6).standard_normal(A.shape[0])
+    cache = SolverCache(method="amg")
+    linsolve._multigrid(A, x_nodes, cache)
     with kernels.use_backend("numpy"):
-        M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+        M = linsolve._multigrid(A2, x_nodes, cache)
         got = M @ r
+    assert len(M.ml.levels) == 3 and M.ml.levels[0].A is A2
     want = M.ml.aspreconditioner(cycle="V").matvec(r)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+
+
+def test_a_matrix_not_numbered_for_locality_is_swept_as_one_block():
+    """The box as meshed (its BCC lattice's corner nodes first, then the centres: most entries
+    couple the two halves) is swept as one block: Gauss-Seidel, pyamg's sweep to rounding; the
+    same box renumbered for locality is swept in two."""
+    from pyamg.relaxation.relaxation import gauss_seidel
+
+    from softgrasp.kernels.sparse import SWEEP_PARTS, HybridGaussSeidel
+
+    A, _ = _cube_system(8)
+    sweeps = HybridGaussSeidel(A, threads=2)
+    assert sweeps.parts == 1
+    b = np.random.default_rng(8).standard_normal(A.shape[0])
+    x0 = np.random.default_rng(9).standard_normal(A.shape[0])
+    want = x0.copy()
+    gauss_seidel(A, want, b, iterations=1, sweep="forward")
+    got = x0.copy()
+    sweeps.sweep(got, b, forward=True)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    assert HybridGaussSeidel(_cube_system(8, local=True)[0]).parts == SWEEP_PARTS

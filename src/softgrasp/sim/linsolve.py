@@ -125,8 +125,11 @@ class SolverCache:
         """Say that the next systems come from another scene (an interaction taken away or put
         in): the next one refactorises at once instead of first trying the last factorisation as
         a preconditioner, which a removed table's or finger's stiffness makes a poor one (the
-        pattern's analysis is kept)."""
+        pattern's analysis is kept), and the multigrid hierarchy is built anew (its coarse levels
+        would keep the removed stiffness: the 27 749-node hold check's solves took 27-49 V-cycles
+        on the hierarchy built with the table, where the closing's took 16-33)."""
         self._try_stale = False
+        self._ml = None
 
 
 def _rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -141,15 +144,23 @@ def _rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
     return B
 
 
-#: The multigrid V-cycle's smoothing: one forward Gauss-Seidel sweep before the coarse correction,
-#: one backward after (a symmetric preconditioner, as conjugate gradients need). pyamg's default,
-#: a symmetric sweep on each side, costs half as much again a cycle for about one iteration fewer
+#: The multigrid V-cycle's smoothing on every level pyamg sweeps: one forward (block) Gauss-Seidel
+#: sweep before the coarse correction, one backward after (a symmetric preconditioner, as
+#: conjugate gradients need; the finest level's sweeps are softgrasp's own where the compiled
+#: kernels are in use, :class:`~softgrasp.kernels.sparse.HybridGaussSeidel`). A symmetric sweep
+#: on each side (pyamg's default) cost half as much again a cycle for about one iteration fewer
 #: (83 247 unknowns: 23-25 against 33-38 ms a cycle, 9 against 8 iterations to 1e-4).
 _PRESMOOTHER = ("block_gauss_seidel", {"sweep": "forward"})
-#: Seed of the random start from which pyamg estimates a spectral radius while it builds a
-#: hierarchy.
-AMG_SEED = 20_240_901
 _POSTSMOOTHER = ("block_gauss_seidel", {"sweep": "backward"})
+#: Seed of the random start from which pyamg estimates a spectral radius while it builds a
+#: hierarchy (NumPy's global generator, seeded and put back: a hierarchy should not be built
+#: while another Python thread draws from it).
+AMG_SEED = 20_240_901
+#: Systems with fewer unknowns run the multigrid products and sweeps on one thread: a second
+#: gains nothing there (the 2 196-node plan on the multigrid path, 6 588 unknowns: 2.85 s on one
+#: thread and on two) and would compete with PARDISO's spinning threads where a singular system
+#: falls back to multigrid.
+MULTIGRID_THREADS_MIN_DOF = 20_000
 
 
 class _Multigrid:
@@ -204,7 +215,16 @@ class _Multigrid:
         """Make ``A`` (CSR) the finest level's matrix, the products and sweeps run on ``threads``
         threads."""
         self.ml.levels[0].A = A
-        self._A[0] = _product_type()(A)
+        self._fine = _product_type()(A)
+        self._fine.threads = threads
+        if len(self.ml.levels) == 1:
+            # A matrix no larger than the coarsest level's limit is its own coarsest level: its
+            # factorisation (made at the first solve) must be the new matrix's.
+            from pyamg.multilevel import coarse_grid_solver
+
+            self.ml.coarse_solver = coarse_grid_solver("splu")
+            return
+        self._A[0] = self._fine
         for op in (*self._A, *self._R, *self._P):
             op.threads = threads
         from softgrasp.kernels import compiled
@@ -213,19 +233,23 @@ class _Multigrid:
             from softgrasp.kernels.sparse import HybridGaussSeidel
 
             self._smoother = HybridGaussSeidel(A, threads)
+        else:
+            self._smoother = None
 
     @property
     def fine(self) -> Any:
         """The finest level's matrix, as a product (``fine @ x``)."""
-        return self._A[0]
+        return self._fine
 
     def product(self, A: sp.csr_matrix) -> Any:
         """``A`` as a product on the threads of this one's."""
         op = _product_type()(A)
-        op.threads = self._A[0].threads
+        op.threads = self._fine.threads
         return op
 
     def _cycle(self, lvl: int, b: NDArray[np.float64]) -> NDArray[np.float64]:
+        if len(self.ml.levels) == 1:
+            return np.asarray(self.ml.coarse_solver(self.ml.levels[0].A, b), dtype=np.float64)
         level = self.ml.levels[lvl]
         x = np.zeros_like(b)
         fine = lvl == 0 and self._smoother is not None
@@ -282,8 +306,9 @@ def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCach
     ml = cache._ml
     if not (isinstance(ml, _Multigrid) and ml.fits(A)):
         ml = cache._ml = _Multigrid(A, x_nodes)
-    ml.use(A, pardiso.choose_threads())
+    ml.use(A, pardiso.choose_threads() if A.shape[0] >= MULTIGRID_THREADS_MIN_DOF else 1)
     return ml
+
 
 def _direct(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None):
     with warnings.catch_warnings():
