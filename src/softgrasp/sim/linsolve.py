@@ -22,6 +22,7 @@ All of it lives in a :class:`SolverCache` that the callers keep across the solve
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import warnings
@@ -511,6 +512,13 @@ def _gmres(
     return None
 
 
+def _fast_exact(
+    fine: Any, correction: Callable[[NDArray[np.float64]], NDArray[np.float64]], v: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The exact Newton product with its matrix part on the multigrid's compiled product."""
+    return np.asarray(fine @ v + correction(v))
+
+
 def _amg_gmres(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
@@ -524,7 +532,10 @@ def _amg_gmres(
     converges); None if it does not converge."""
     for _attempt in range(2):
         M = _multigrid(A, x_nodes, cache)
-        x = _gmres(matvec, b, M.matvec, AMG_GMRES_MAX_IT, max(rtol, 1e-10))
+        product = matvec
+        if getattr(matvec, "matrix", None) is A:  # the exact product A v + correction(v)
+            product = functools.partial(_fast_exact, M.fine, matvec.correction)  # type: ignore[attr-defined]
+        x = _gmres(product, b, M.matvec, AMG_GMRES_MAX_IT, max(rtol, 1e-10))
         if x is not None:
             return x
         cache._ml = None

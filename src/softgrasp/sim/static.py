@@ -247,23 +247,37 @@ def _newton_matrix(
     A = A.tocsr()
     if not approx:
         return A, None
+    return A, _ExactProduct(A, approx, x, L)
 
-    base: list[NDArray[np.float64]] = []
 
-    def exact(v: NDArray[np.float64]) -> NDArray[np.float64]:
-        out = A @ v
+class _ExactProduct:
+    """The product with the exact Newton matrix: ``matrix @ v`` with the approximated
+    interactions' part of it replaced by a forward difference of their forces along v, i.e.
+    ``matrix @ v + correction(v)`` (a solver with a faster product of ``matrix`` applies that and
+    adds :meth:`correction`)."""
+
+    def __init__(self, A: sp.csr_matrix, approx: list, x: NDArray[np.float64], L: float) -> None:
+        self.matrix = A
+        self._approx = approx
+        self._x = x
+        self._L = L
+        self._base: list[NDArray[np.float64]] = []
+
+    def correction(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = np.zeros(v.shape[0])
         V = v.reshape(-1, 3)
         vmax = float(np.abs(V).max())
         if vmax == 0:
             return out
-        h = FD_STEP * L / vmax
-        if not base:
-            base.extend(forces_at(x) for forces_at, _ in approx)
-        for (forces_at, Ji), f0 in zip(approx, base, strict=True):
-            out += Ji @ v - ((forces_at(x + h * V) - f0) / h).ravel()
+        h = FD_STEP * self._L / vmax
+        if not self._base:
+            self._base.extend(forces_at(self._x) for forces_at, _ in self._approx)
+        for (forces_at, Ji), f0 in zip(self._approx, self._base, strict=True):
+            out += Ji @ v - ((forces_at(self._x + h * V) - f0) / h).ravel()
         return out
 
-    return A, exact
+    def __call__(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
+        return self.matrix @ v + self.correction(v)
 
 
 def _newton(
