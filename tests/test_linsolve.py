@@ -986,3 +986,22 @@ def test_a_kept_single_level_hierarchy_solves_each_new_matrix_exactly():
     assert len(cache._ml.ml.levels) == 1
     assert cache.iterations == [1, 1]
     assert np.linalg.norm(A1 @ dx - b) <= 1e-10 * np.linalg.norm(b)
+
+
+def test_multigrid_gmres_applies_the_exact_product_with_the_compiled_matrix_product(monkeypatch):
+    """The pressed and dragged fingertip on the multigrid path: GMRES's exact Newton product is
+    the multigrid's product of the assembled matrix plus the exact product's finite-difference
+    correction, equal to the exact product itself to rounding, at every application."""
+    calls = []
+    fast = linsolve._fast_exact
+
+    def checked(fine, correction, v):
+        got = fast(fine, correction, v)
+        want = correction.__self__(v)  # the static solver's own exact product
+        calls.append(float(np.abs(got - want).max() / np.abs(want).max()))
+        return got
+
+    monkeypatch.setattr(linsolve, "_fast_exact", checked)
+    _pressed("amg")
+    assert len(calls) > 5
+    assert max(calls) <= 1e-12, max(calls)
