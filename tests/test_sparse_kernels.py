@@ -135,30 +135,33 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     np.random.seed(7)
     np.random.random(3)
     state = np.random.get_state()
-    M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+    with kernels.use_backend("numba"):
+        M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
     after = np.random.get_state()
     assert np.array_equal(after[1], state[1]) and after[2:] == state[2:]
     assert len(M.ml.levels) == 3 and M._smoother.parts == 2  # the coarse recursion, two blocks
     Mu, Mv = M @ u, M @ v
     assert abs(u @ Mv - v @ Mu) <= 1e-12 * np.linalg.norm(u) * np.linalg.norm(Mv)
     results = []
-    for threads in (1, 2):
-        other = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
-        other.use(A, threads)
-        results.append(other @ u)
+    with kernels.use_backend("numba"):
+        for threads in (1, 2):
+            other = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+            other.use(A, threads)
+            results.append(other @ u)
     assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], Mu)
 
 
 def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
-    """With the NumPy kernels the cycle keeps pyamg's Gauss-Seidel and SciPy's products: it is
-    then pyamg's own V-cycle (its preconditioner), to rounding, on a three-level hierarchy; also
-    for a hierarchy built while the compiled kernels were in use and kept for the next matrix
-    (no compiled sweep of the earlier matrix left behind)."""
+    """With the NumPy kernels the cycle keeps pyamg's Gauss-Seidel on every level: it is then
+    pyamg's own V-cycle (its preconditioner), to the rounding of the products, on a three-level
+    hierarchy built while the compiled kernels were in use and kept for the next matrix (no
+    compiled sweep of the earlier matrix left behind)."""
     A, x_nodes = _cube_system(12, local=True)
     A2 = (A + 0.5 * sp.diags(A.diagonal())).tocsr()
     r = np.random.default_rng(6).standard_normal(A.shape[0])
     cache = SolverCache(method="amg")
-    linsolve._multigrid(A, x_nodes, cache)
+    with kernels.use_backend("numba"):
+        linsolve._multigrid(A, x_nodes, cache)
     with kernels.use_backend("numpy"):
         M = linsolve._multigrid(A2, x_nodes, cache)
         got = M @ r

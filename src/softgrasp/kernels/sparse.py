@@ -192,6 +192,8 @@ class HybridGaussSeidel:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""
         if x.shape != (self.A.shape[0],) or np.shape(b) != x.shape:
             raise ValueError(f"a sweep on {self.A.shape} needs x and b of length {self.A.shape[0]}")
+        if x.dtype != np.float64 or not x.flags.c_contiguous:
+            raise ValueError("a sweep updates x in place: it must be a contiguous float64 array")
         b = np.ascontiguousarray(b, dtype=np.float64)
         if np.shares_memory(b, x):
             b = b.copy()
@@ -203,7 +205,7 @@ class HybridGaussSeidel:
                 self.inverse_diagonal,
                 x,
                 b,
-                x.copy(),
+                x.copy() if self.parts > 1 else x,  # one block reads no other block's values
                 self.parts,
                 forward,
             )

@@ -178,7 +178,8 @@ class _Multigrid:
     A cycle is applied here rather than by pyamg's driver, which takes the residual's norm before
     and after each cycle (two products with the finest matrix, a fifth of a cycle's time), with
     the residuals and the transfers between levels on the compiled products
-    (:class:`~softgrasp.kernels.sparse.CsrProduct`, both cores where they are idle): the same
+    (:class:`~softgrasp.kernels.sparse.CsrProduct`, both cores where they are idle and the system
+    has at least :data:`MULTIGRID_THREADS_MIN_DOF` unknowns): the same
     cycle to the rounding of the products' sums. 83 247 unknowns: 23 ms a cycle through pyamg's
     driver, 18 ms here on one thread."""
 
@@ -302,7 +303,8 @@ def _product_type() -> Any:
 
 def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCache) -> _Multigrid:
     """The multigrid preconditioner kept in ``cache`` (built there when there is none or it was
-    dropped), its finest level made ``A``, its products on the cores idle now."""
+    dropped), its finest level made ``A``, its products on the cores idle now (one thread below
+    :data:`MULTIGRID_THREADS_MIN_DOF` unknowns)."""
     A = A.tocsr()
     ml = cache._ml
     if not (isinstance(ml, _Multigrid) and ml.fits(A)):
@@ -513,10 +515,11 @@ def _gmres(
 
 
 def _fast_exact(
-    fine: Any, correction: Callable[[NDArray[np.float64]], NDArray[np.float64]], v: NDArray[np.float64]
+    fine: Any, correction: Callable[..., NDArray[np.float64]], v: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """The exact Newton product with its matrix part on the multigrid's compiled product."""
-    return np.asarray(fine @ v + correction(v))
+    """The exact Newton product with its matrix part on the multigrid's product of the same
+    matrix (compiled, on the threads it was given, where the compiled kernels are in use)."""
+    return correction(v, np.asarray(fine @ v))
 
 
 def _amg_gmres(
@@ -826,8 +829,10 @@ def solve_newton_system(
     C: optional (k, n) constraint rows.  x_nodes: (n/3, 3) node positions (rigid modes for AMG).
     cache: reusable solver state; a fresh one if None.
     matvec: the product with the exact Newton matrix where A is only its symmetric
-        approximation (used by the PARDISO path without constraints: GMRES on the exact system,
-        preconditioned by the factorisation of A).
+        approximation (without constraints: GMRES on the exact system, preconditioned by the
+        factorisation of A or a multigrid V-cycle of it). Where it has ``matrix`` (A itself) and
+        ``correction(v, out)`` (adding to ``out = A v`` the rest of the exact product), the
+        multigrid path applies A with its own product.
     rtol: relative residual the iterative parts must reach (an inexact Newton iteration's forcing
         term); default :data:`STALE_RTOL`. Direct solves are exact regardless.
 

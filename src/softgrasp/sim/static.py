@@ -253,8 +253,8 @@ def _newton_matrix(
 class _ExactProduct:
     """The product with the exact Newton matrix: ``matrix @ v`` with the approximated
     interactions' part of it replaced by a forward difference of their forces along v, i.e.
-    ``matrix @ v + correction(v)`` (a solver with a faster product of ``matrix`` applies that and
-    adds :meth:`correction`)."""
+    ``correction(v, matrix @ v)`` (a solver with a faster product of ``matrix`` applies that and
+    passes it to :meth:`correction`)."""
 
     def __init__(self, A: sp.csr_matrix, approx: list, x: NDArray[np.float64], L: float) -> None:
         self.matrix = A
@@ -263,8 +263,10 @@ class _ExactProduct:
         self._L = L
         self._base: list[NDArray[np.float64]] = []
 
-    def correction(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
-        out = np.zeros(v.shape[0])
+    def correction(self, v: NDArray[np.float64], out: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Add to ``out`` (``matrix @ v``) what turns it into the exact product: for each
+        approximated interaction, its matrix part taken back out and the forward difference of its
+        forces along v put in. Returns ``out``."""
         V = v.reshape(-1, 3)
         vmax = float(np.abs(V).max())
         if vmax == 0:
@@ -277,7 +279,7 @@ class _ExactProduct:
         return out
 
     def __call__(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
-        return self.matrix @ v + self.correction(v)
+        return self.correction(v, self.matrix @ v)
 
 
 def _newton(
