@@ -942,6 +942,35 @@ def test_a_failed_first_solve_of_a_new_factor_leaves_no_stale_renewal_count(monk
     assert cache._excess == 0 and cache._fresh == -1
 
 
+def _table_then_plate(n: int):
+    """The foam cube's rest stiffness (``box(0.05, n)``) resting on a table (its bottom nodes
+    held by half their own stiffness, a 1e-6 diagonal shift), then with its top face pressed by a
+    stiff plate (a penalty 50 times the nodes' own stiffness): the two Newton matrices and the
+    node positions."""
+    body = build_body(box(0.05, n), preset("foam"), mass=0.0125)
+    K = (-body.rest_jacobian).tocsr()
+    x = np.asarray(body.mesh.points)
+    bottom = np.flatnonzero(x[:, 2] < x[:, 2].min() + 1e-9)
+    top = np.flatnonzero(x[:, 2] > x[:, 2].max() - 1e-9)
+    A0 = (K + 1e-6 * sp.diags(K.diagonal()) + _table_blocks(K, bottom, 0.5)).tocsr()
+    A1 = (A0 + _table_blocks(K, top, 50.0)).tocsr()
+    return A0, A1, x
+
+
+def _both_on_one_hierarchy(n: int, rtol: float, seed: int):
+    """:func:`_table_then_plate`'s two systems solved in turn on the multigrid path to ``rtol``,
+    one right-hand side: (the cache, the second matrix, b, the node positions, its solution),
+    the hierarchy built for the first kept for the second."""
+    A0, A1, x = _table_then_plate(n)
+    b = np.random.default_rng(seed).standard_normal(A0.shape[0])
+    cache = SolverCache(method="amg", rtol=rtol)
+    solve_newton_system(A0, b, None, x, cache)
+    hierarchy = cache._ml
+    dx, _ = solve_newton_system(A1, b, None, x, cache)
+    assert cache._ml is hierarchy  # kept, not rebuilt
+    return cache, A1, b, x, dx
+
+
 def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
     """The foam cube resting on a table (its bottom nodes held), then its top face pressed by a
     stiff plate (a penalty 50 times the nodes' own stiffness): the multigrid hierarchy kept from
@@ -949,19 +978,7 @@ def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
     tolerance within three times the iterations a fresh hierarchy needs (41 against 15 here; a
     hierarchy kept whole, smoothing with the first matrix, needed 175 against a fresh one's 11
     with pyamg's symmetric sweeps)."""
-    body = build_body(box(0.05, 8), preset("foam"), mass=0.0125)
-    K = (-body.rest_jacobian).tocsr()
-    x = np.asarray(body.mesh.points)
-    bottom = np.flatnonzero(x[:, 2] < x[:, 2].min() + 1e-9)
-    top = np.flatnonzero(x[:, 2] > x[:, 2].max() - 1e-9)
-    A0 = (K + 1e-6 * sp.diags(K.diagonal()) + _table_blocks(K, bottom, 0.5)).tocsr()
-    A1 = (A0 + _table_blocks(K, top, 50.0)).tocsr()
-    b = np.random.default_rng(1).standard_normal(K.shape[0])
-    kept = SolverCache(method="amg", rtol=1e-8)
-    solve_newton_system(A0, b, None, x, kept)
-    hierarchy = kept._ml
-    dx, _ = solve_newton_system(A1, b, None, x, kept)
-    assert kept._ml is hierarchy  # kept, not rebuilt
+    kept, A1, b, x, dx = _both_on_one_hierarchy(8, 1e-8, seed=1)
     fresh = SolverCache(method="amg", rtol=1e-8)
     solve_newton_system(A1, b, None, x, fresh)
     assert kept.stats["amg_solves"] == 2 and len(kept.iterations) == 2
@@ -973,19 +990,8 @@ def test_a_kept_single_level_hierarchy_solves_each_new_matrix_exactly():
     """A system no larger than the multigrid's coarsest level (the coarsest foam cube, 59 nodes,
     177 unknowns) is its own coarsest level: the kept hierarchy's direct solve must be the new
     matrix's, so that conjugate gradients stop after one iteration on the second matrix too."""
-    body = build_body(box(0.05, 2), preset("foam"), mass=0.0125)
-    K = (-body.rest_jacobian).tocsr()
-    x = np.asarray(body.mesh.points)
-    bottom = np.flatnonzero(x[:, 2] < x[:, 2].min() + 1e-9)
-    top = np.flatnonzero(x[:, 2] > x[:, 2].max() - 1e-9)
-    A0 = (K + 1e-6 * sp.diags(K.diagonal()) + _table_blocks(K, bottom, 0.5)).tocsr()
-    A1 = (A0 + _table_blocks(K, top, 50.0)).tocsr()
-    b = np.random.default_rng(2).standard_normal(K.shape[0])
-    cache = SolverCache(method="amg", rtol=1e-10)
-    solve_newton_system(A0, b, None, x, cache)
-    hierarchy = cache._ml
-    dx, _ = solve_newton_system(A1, b, None, x, cache)
-    assert cache._ml is hierarchy and len(hierarchy.ml.levels) == 1
+    cache, A1, b, x, dx = _both_on_one_hierarchy(2, 1e-10, seed=2)
+    assert len(cache._ml.ml.levels) == 1
     assert cache.iterations == [1, 1]
     assert np.linalg.norm(A1 @ dx - b) <= 1e-10 * np.linalg.norm(b)
 
