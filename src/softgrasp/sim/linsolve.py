@@ -164,6 +164,30 @@ AMG_SEED = 20_240_901
 MULTIGRID_THREADS_MIN_DOF = 20_000
 
 
+def _hierarchy(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> Any:
+    """pyamg's smoothed-aggregation hierarchy of ``A``, the rigid-body modes of the nodes
+    ``x_nodes`` as near-null space. pyamg estimates the spectral radius that smooths the
+    prolongator from a random start (NumPy's global generator): seeded with :data:`AMG_SEED`, so
+    that the same matrix gives the same hierarchy and a plan the same numbers run after run; the
+    caller's generator state is put back."""
+    import pyamg
+
+    state = np.random.get_state()
+    np.random.seed(AMG_SEED)
+    try:
+        return pyamg.smoothed_aggregation_solver(
+            A,
+            B=_rigid_modes(x_nodes),
+            symmetry="symmetric",
+            max_coarse=300,
+            coarse_solver="splu",
+            presmoother=_PRESMOOTHER,
+            postsmoother=_POSTSMOOTHER,
+        )
+    finally:
+        np.random.set_state(state)
+
+
 class _Multigrid:
     """The smoothed-aggregation V-cycle preconditioner kept in a :class:`SolverCache` across the
     Newton systems of one loading (pyamg builds the hierarchy; this applies it).
@@ -184,30 +208,15 @@ class _Multigrid:
     driver, 18 ms here on one thread."""
 
     def __init__(self, A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> None:
-        import pyamg
-
-        # pyamg estimates the spectral radius that smooths the prolongator from a random start
-        # (NumPy's global generator): seeded, so that the same matrix gives the same hierarchy and
-        # a plan the same numbers run after run; the caller's generator state is put back.
-        state = np.random.get_state()
-        np.random.seed(AMG_SEED)
-        try:
-            self.ml: Any = pyamg.smoothed_aggregation_solver(
-                A,
-                B=_rigid_modes(x_nodes),
-                symmetry="symmetric",
-                max_coarse=300,
-                coarse_solver="splu",
-                presmoother=_PRESMOOTHER,
-                postsmoother=_POSTSMOOTHER,
-            )
-        finally:
-            np.random.set_state(state)
+        self.ml: Any = _hierarchy(A, x_nodes)
         levels = self.ml.levels
         product = _product_type()
         self._A = [product(level.A) for level in levels[:-1]]
         self._R = [product(level.R) for level in levels[:-1]]
         self._P = [product(level.P) for level in levels[:-1]]
+        for level in levels[:-1]:
+            # The products above hold the transfers (as CSR); pyamg's own cycle is not used.
+            level.R = level.P = None
         self._smoother: Any = None  # the finest level's sweeps (compiled kernels only)
 
     def fits(self, A: sp.csr_matrix) -> bool:
