@@ -146,8 +146,9 @@ def _hybrid_sweep(indptr, indices, data, dinv, x, b, x_old, parts, forward):  # 
                 i -= one
 
 
-class HybridGaussSeidel:
-    """l1 hybrid Gauss-Seidel sweeps on a CSR matrix A (Baker, Falgout, Kolev and Yang, "Multigrid
+class HybridGaussSeidel(CsrProduct):
+    """l1 hybrid Gauss-Seidel sweeps on a CSR matrix A (and, as a :class:`CsrProduct`, its
+    products) (Baker, Falgout, Kolev and Yang, "Multigrid
     smoothers for ultraparallel computing", SIAM J. Sci. Comput. 33, 2011): the rows split in
     :data:`SWEEP_PARTS` blocks swept side by side, each block's own unknowns updated as
     Gauss-Seidel does, the others' taken as they were before the sweep, and each row's diagonal
@@ -169,12 +170,8 @@ class HybridGaussSeidel:
     def __init__(self, A: sp.spmatrix | sp.sparray, threads: int = 1, parts: int | None = None) -> None:
         """``parts``: the row blocks; None: :data:`SWEEP_PARTS`, or 1 where more than
         :data:`MAX_CROSS_FRACTION` of the entries would couple them."""
-        A = A.tocsr()
-        self.A = A
-        self.threads = threads
-        self._indptr = _unsigned(A.indptr)
-        self._indices = _unsigned(A.indices)
-        self._data = np.ascontiguousarray(A.data, dtype=np.float64)
+        super().__init__(A, threads)
+        A = self.A
         self.inverse_diagonal = np.empty(A.shape[0])
         self.parts = SWEEP_PARTS if parts is None else max(1, int(parts))
         cross = np.zeros(self.parts, dtype=np.int64)

@@ -226,8 +226,15 @@ class _Multigrid:
         """Make ``A`` (CSR) the finest level's matrix, the products and sweeps run on ``threads``
         threads."""
         self.ml.levels[0].A = A
-        self._fine = _product_type()(A)
-        self._fine.threads = threads
+        from softgrasp.kernels import compiled
+
+        if compiled():
+            from softgrasp.kernels.sparse import HybridGaussSeidel
+
+            # The finest level's sweeps, and its products.
+            self._smoother = self._fine = HybridGaussSeidel(A, threads)
+        else:
+            self._smoother, self._fine = None, _ScipyProduct(A)
         if len(self.ml.levels) == 1:
             # A matrix no larger than the coarsest level's limit is its own coarsest level: its
             # factorisation (made at the first solve) must be the new matrix's.
@@ -238,14 +245,6 @@ class _Multigrid:
         self._A[0] = self._fine
         for op in (*self._A, *self._R, *self._P):
             op.threads = threads
-        from softgrasp.kernels import compiled
-
-        if compiled():
-            from softgrasp.kernels.sparse import HybridGaussSeidel
-
-            self._smoother = HybridGaussSeidel(A, threads)
-        else:
-            self._smoother = None
 
     @property
     def fine(self) -> Any:
@@ -291,7 +290,7 @@ class _ScipyProduct:
     """SciPy's product, where the compiled kernels are not in use (the same interface as
     :class:`~softgrasp.kernels.sparse.CsrProduct`)."""
 
-    def __init__(self, A: Any, threads: int = 1) -> None:
+    def __init__(self, A: Any) -> None:
         self.A = A.tocsr()
         self.shape = self.A.shape
         self.threads = 1
@@ -347,9 +346,8 @@ def _cg(
     max_it: int,
 ) -> tuple[NDArray[np.float64], int, bool]:
     """Preconditioned conjugate gradients on ``A x = b`` (``A`` a matrix or a product) in the range
-    of ``proj``. Returns (x, the
-    iterations, whether they met negative curvature: then x is the progress so far, or the first
-    direction, both descent directions)."""
+    of ``proj``. Returns (x, the iterations, whether they met negative curvature: then x is the
+    progress so far, or the first direction, both descent directions)."""
     x = np.zeros_like(b)
     r = proj(b).copy()  # never modify the caller's vector
     bnorm = float(np.linalg.norm(r))
