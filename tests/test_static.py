@@ -336,3 +336,51 @@ def test_newton_matrix_summed_into_the_body_pattern_is_the_sparse_sum_entry_for_
     assert len(fc.pairs(body, x, 0.5e-3)) > 0 and exact is not None
     assert np.array_equal(A.toarray(), _sparse_sum(scene, x, 0.5e-3, contacts))
     assert A[3 * far, 0] == -50.0  # the strut's coupling is there: A = -J
+
+
+def test_a_shifted_step_balanced_to_the_stall_tolerance_ends_the_solve_and_sets_the_floor(monkeypatch):
+    """The 27 749-node sphere's settle: a step from a shifted (indefinite) matrix lands within
+    STALL_RTOL of balance, and the next shifted step only stalled there (and the closing's first
+    increment, the fingertips not yet touching, stalled again from the same state: two more
+    systems). Newton now accepts such a step's result at once and remembers the residual in the
+    cache; a later solve starting no further from balance is accepted without a system, until the
+    scene changes. With unshifted solves the same start converges to the tolerance asked."""
+    import softgrasp.sim.static as static
+
+    mesh = box((0.03, 0.03, 0.03), (3, 3, 3))
+    body = build_body(mesh, Material(1e5, 0.3, 1000.0))
+    scene = Scene(body, (_table(0.5),))  # held: no free mode
+    rest, _ = solve_static(scene, scene.initial_state(), rtol=1e-12)
+    f_int = np.abs(body.internal_forces(rest.x)).max()
+    f_ext = scene.static_forces(rest.x, 0.0, rest.contacts) - body.internal_forces(rest.x)
+    scale = max(f_int, np.abs(f_ext).max())
+    d = np.random.default_rng(1).standard_normal(rest.x.shape)
+    r1 = np.abs(scene.static_forces(rest.x + 1e-9 * d, 0.0, rest.contacts)).max()
+    start = replace(rest, x=rest.x + 1e-9 * (0.3 * scale / r1) * d)  # ~0.3 of the scale off
+    f0 = np.abs(scene.static_forces(start.x, 0.0, start.contacts)).max()
+    assert f0 > 100 * static.STALL_RTOL * scale
+    real = static.solve_newton_system
+    calls = []
+
+    def shifted(A, b, C, x, cache, **kw):
+        calls.append(1)
+        cache.stats["shifted"] = cache.stats.get("shifted", 0) + 1  # said to be indefinite
+        return real(A, b, C, x, cache, **kw)
+
+    monkeypatch.setattr(static, "solve_newton_system", shifted)
+    cache = SolverCache()
+    first, info = solve_static(scene, start, rtol=1e-12, cache=cache)
+    # Newton's first step brings it within the stall tolerance (not to 1e-12 x scale): accepted.
+    assert 1e-12 * scale < info.residual_N <= static.STALL_RTOL * scale
+    assert info.newton_iterations == len(calls)
+    assert cache.stall_floor == pytest.approx(info.residual_N, rel=1e-12)
+    n = len(calls)
+    again, info2 = solve_static(scene, first, rtol=1e-12, cache=cache)
+    assert len(calls) == n and info2.newton_iterations == 0 and np.array_equal(again.x, first.x)
+    cache.scene_changed()  # another scene: the floor is forgotten, the solve runs
+    assert cache.stall_floor == -np.inf
+    solve_static(scene, first, rtol=1e-12, cache=cache)
+    assert len(calls) > n
+    monkeypatch.setattr(static, "solve_newton_system", real)  # not shifted: to the tolerance asked
+    _, info = solve_static(scene, start, rtol=1e-12, cache=SolverCache())
+    assert info.residual_N <= 10 * 1e-12 * scale  # solve_static's test after the slip return
