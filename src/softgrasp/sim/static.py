@@ -613,11 +613,13 @@ def solve_increment(
     cache: SolverCache | None = None,
     max_halvings: int = MAX_HALVINGS,
     guess: NDArray[np.float64] | None = None,
+    rtol: float = 1e-9,
 ) -> tuple[State, int, int]:
     """Static solve of one load increment from ``state`` (at ``state.t``) to load parameter ``t``;
     an increment that does not converge is split in halves from the last converged state, up to
     ``max_halvings`` times (contact kinks can make Newton cycle on a large increment). ``guess``
-    (see :func:`solve_static`) is used by the whole increment only, not by its halves.
+    (see :func:`solve_static`) is used by the whole increment only, not by its halves; ``rtol`` is
+    :func:`solve_static`'s.
 
     Returns
     -------
@@ -634,7 +636,12 @@ def solve_increment(
             s, iters = state, 0
             for k in range(1, n + 1):
                 s, info = solve_static(
-                    scene, s, t=t_prev + (t - t_prev) * k / n, cache=cache, guess=guess if n == 1 else None
+                    scene,
+                    s,
+                    t=t_prev + (t - t_prev) * k / n,
+                    cache=cache,
+                    guess=guess if n == 1 else None,
+                    rtol=rtol,
                 )
                 iters += info.newton_iterations
             return s, iters, level
