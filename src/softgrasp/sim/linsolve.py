@@ -98,16 +98,11 @@ class SolverCache:
         the tolerance on an indefinite matrix: a compressed softening cube about to buckle) float32
         rounding makes that choice noisy; the material tests, whose curves the calibration fits
         difference, use ``"double"``.
-    stall_floor: the largest unbalanced force [N] at which a static solve of the current scene
-        stopped on an indefinite matrix whose shifted steps no longer converge (``-inf``: none
-        yet; :meth:`scene_changed` forgets it). A later solve starting no further from balance
-        (and within :data:`~softgrasp.sim.static.STALL_RTOL`) is accepted as it starts.
     """
 
     method: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_LINSOLVE", "auto"))
     rtol: float = 1e-10
     precision: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_FACTOR_PRECISION", "mixed"))
-    stall_floor: float = -math.inf
     _ml: object | None = field(default=None, repr=False)
     _iterations: list[int] = field(default_factory=list, repr=False)
     _factor: pardiso.PardisoFactor | None = field(default=None, repr=False)
@@ -136,7 +131,6 @@ class SolverCache:
         on the hierarchy built with the table, where the closing's took 16-33)."""
         self._try_stale = False
         self._ml = None
-        self.stall_floor = -math.inf
 
 
 def _rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:

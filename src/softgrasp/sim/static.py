@@ -306,26 +306,13 @@ def _newton(
     shift = 0.0
     creep, last_res = 0, np.inf
     history: list[float] = []  # the unbalanced force [N] at the start of each iteration
-    shifted_step = False  # whether the last step's linear solve shifted an indefinite matrix
     start = contacts
     for it in range(1, max_iter + 1):
         f_int = body.internal_forces(x)
         f = scene.static_forces(x, t, contacts, internal=f_int)
         scale = max(np.abs(f_int).max(), np.abs(f - f_int).max(), grav, 1e-300)
-        res = float(np.abs(f).max())
-        if C is None and res <= rtol * scale:
+        if C is None and (res := float(np.abs(f).max())) <= rtol * scale:
             return x, it - 1, res, lam, contacts  # balanced already: no system to solve
-        at_floor = it == 1 and res <= cache.stall_floor
-        if C is None and res <= STALL_RTOL * scale and (shifted_step or at_floor):
-            # Balanced to 1e-6 of the largest force by a step the linear solver had to shift (an
-            # indefinite, nearly neutral matrix: the next shifted step would crawl along that mode
-            # and stall), or from the start as balanced as an earlier solve of this scene got
-            # before its shifted steps stalled (the settled ball with the fingertips not yet
-            # touching): accepted without the systems that would only stall.
-            log.debug("newton it %d: unbalanced %.6e N, indefinite matrix, balanced to the stall tolerance: "
-                      "accepted", it, res)  # fmt: skip
-            cache.stall_floor = max(cache.stall_floor, res)
-            return x, it - 1, res, lam, contacts
         A, exact = _newton_matrix(scene, x, t, contacts, L)
         # Inexact Newton: the linear solve need only be as accurate as the step is far from
         # convergence (the forcing term; quadratic convergence is kept).
@@ -361,7 +348,6 @@ def _newton(
                 # Balanced to 1e-6 of the largest force on an indefinite (nearly neutral) matrix,
                 # the shifted steps no longer converging: accept.
                 log.debug("newton it %d: unbalanced %.6e N, indefinite matrix, stalled: accepted", it, res)
-                cache.stall_floor = max(cache.stall_floor, res)
                 return x, it - 1, res, lam_new, contacts
             n0 = float(np.linalg.norm(r0))
             d = dx.reshape(-1, 3)
@@ -437,7 +423,6 @@ def _newton(
             it, res, scale, alpha, cap, shift,
         )  # fmt: skip
         lam = lam_new
-        shifted_step = cache.stats.get("shifted", 0) > shifted_before
         shift = shift / 10.0 if shift > 1e-4 else 0.0
         small = float(np.abs(xn - x).max()) <= 1e-13 * L
         x = xn
