@@ -84,14 +84,15 @@ SETTLED = 1e-6
 RELEASE_STEPS = 4
 #: A fingertip counts as sliding when its resultant friction uses this close to all of its cone.
 STICK_TOLERANCE = 1e-3
-#: Relative tolerance of the closing increments' rests (the largest unbalanced nodal force over
-#: the largest force present): the static solver's stall tolerance
-#: (:data:`~softgrasp.sim.static.STALL_RTOL`), which a rest on a nearly neutral mode may end at
-#: anyway. The held state the set-points come from is solved to 1e-9. Against 1e-9 here: the
-#: default plan's set-points the same to nine digits from 2 196 to 27 749 nodes, and the
-#: 27 749-node plan's last Newton iteration of most increments, the one with the tightest linear
-#: solve, saved (46 -> 41 systems, 1 025 -> 852 V-cycles).
-CLOSING_RTOL = 1e-6
+#: Relative tolerance of the rests on the way to the held state, the settle on the table and the
+#: closing increments (the largest unbalanced nodal force over the largest force present): the
+#: static solver's stall tolerance (:data:`~softgrasp.sim.static.STALL_RTOL`), which a rest on a
+#: nearly neutral mode may end at anyway. The held state the set-points come from is solved to
+#: 1e-9. Against 1e-9 here: the default plan's set-points the same to eight digits or more from
+#: 2 196 to 33 969 nodes (0.2 % on one finger at 27 749 nodes, where the settled ball was solved
+#: again along its nearly neutral rolling mode); each increment's last Newton iteration, the one
+#: with the tightest linear solve, saved.
+PATH_RTOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -402,14 +403,14 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
         table = _table(x, cfg.table_mu)
         rest = Scene(body, (table,))
         try:
-            return solve_static(rest, rest.initial_state(), cache=cache)[0], table, x
+            return solve_static(rest, rest.initial_state(), cache=cache, rtol=PATH_RTOL)[0], table, x
         except NotConverged:
             pass
     x = _stable_pose(body, x)
     table = _table(x, cfg.table_mu)
     rest = Scene(body, (table,))
     try:
-        return solve_static(rest, rest.initial_state(x), cache=cache)[0], table, x
+        return solve_static(rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL)[0], table, x
     except NotConverged as exc:
         raise NotConverged(
             f"the object found no rest on the table, neither as meshed nor on its most stable facet: {exc}"
@@ -868,7 +869,7 @@ def _advance(
             state = State(state.x, np.zeros_like(state.v), state.t, state.contacts)
         if cfg.solver != "quasistatic":
             guess = None  # the dynamics brought the object somewhere else
-        state, _, _ = solve_increment(scene, state, t, cache=cache, guess=guess, rtol=CLOSING_RTOL)
+        state, _, _ = solve_increment(scene, state, t, cache=cache, guess=guess, rtol=PATH_RTOL)
     except NotConverged as exc:
         what = f"{t * 1e3:.3g} mm of travel" if cfg.solver == "quasistatic" else f"t = {t:.4g} s"
         raise NotConverged(f"closing increment to {what} failed: {exc}") from exc
