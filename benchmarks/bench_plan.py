@@ -6,11 +6,13 @@ Every plan runs in a fresh process (so that its peak resident memory is its own:
 included): ``plan s`` is that first plan's time, and so includes the process's one-time costs
 (importing Numba and loading the compiled kernels from its disk cache, about 0.5-0.8 s here); below
 10 000 nodes the same process then plans three more times (``warm s``, the best of them: what
-every later plan of a session or a sweep worker costs). Peers measured in the same run: the
+every later plan of a session or a sweep worker costs). Each row also gives the plan's Newton
+systems and, beyond PARDISO's size, its multigrid V-cycles (``GraspPlan.solver_stats``): counts
+that do not drift with the machine's throughput. Peers measured in the same run: the
 reference linear solver (SciPy's sparse LU of the symmetrised Newton matrix up to 1 500 unknowns,
-multigrid-preconditioned CG beyond, as softgrasp did before PARDISO; ``--reference``), and the dynamic solver (the paper's explicit RK4 through
-every increment at 50 mm/s, then a static rest; ``--dynamic``, the ~500-node mesh only: its cost
-grows as N^(4/3) per simulated second).
+multigrid-preconditioned CG beyond, as softgrasp did before PARDISO; ``--reference``), and the
+dynamic solver (the paper's explicit RK4 through every increment at 50 mm/s, then a static rest;
+``--dynamic``, the ~500-node mesh only: its cost grows as N^(4/3) per simulated second).
 
 ``--cli N`` times the whole default ``softgrasp plan`` command instead, its figures drawn by a
 child process and, as the peer, in its own process (``SOFTGRASP_FIGURES=inline``).
@@ -56,6 +58,8 @@ def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover
             "forces": [f.force_norm for f in plan.fingers],
             "increments": plan.increments,
             "margin": plan.friction_margin,
+            "systems": plan.solver_stats.get("systems", 0),
+            "cycles": plan.solver_stats.get("multigrid_cycles", 0),
         }
     except Exception as exc:  # noqa: BLE001 - reported, not hidden
         result = {"error": f"{type(exc).__name__}: {exc}"}
@@ -95,7 +99,8 @@ def _row(r: dict, label: str, ref: float | None) -> str:
     f = " / ".join(f"{v:.3f}" for v in r["forces"])
     return (
         f"{r['nodes']:>6} {label:>22} {r['plan_s']:>8.2f} {warm} {ratio} {r['peak_MB']:>8.0f} "
-        f"{r['increments']:>5} {r['margin']:>7.1%}  {f}   (mesh+body {r['build_s']:.1f} s)"
+        f"{r['increments']:>5} {r['margin']:>7.1%}  {f}   (mesh+body {r['build_s']:.1f} s; "
+        f"{r['systems']} Newton systems" + (f", {r['cycles']} V-cycles)" if r["cycles"] else ")")
     )
 
 

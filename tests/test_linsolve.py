@@ -986,6 +986,27 @@ def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
     assert kept.iterations[1] <= 3 * fresh.iterations[0], (kept.iterations, fresh.iterations)
 
 
+def test_the_cache_counts_systems_set_ups_and_v_cycles_as_conjugate_gradients_apply_them(monkeypatch):
+    """``SolverCache.stats`` (what ``GraspPlan.solver_stats`` reports): two systems on one kept
+    hierarchy are two systems and one set-up, and the V-cycles counted are the preconditioner
+    applications conjugate gradients made, one per iteration (the first before the loop, none
+    after the last), counted independently by a wrapper around the V-cycle."""
+    from softgrasp.sim import linsolve
+
+    applied = []
+    real = linsolve._Multigrid._cycle
+
+    def cycle(self, lvl, b):
+        if lvl == 0:
+            applied.append(1)
+        return real(self, lvl, b)
+
+    monkeypatch.setattr(linsolve._Multigrid, "_cycle", cycle)
+    cache, *_ = _both_on_one_hierarchy(8, 1e-8, seed=3)
+    assert cache.stats["systems"] == 2 and cache.stats["multigrid_setups"] == 1
+    assert cache.stats["multigrid_cycles"] == len(applied) == sum(cache.iterations) > 2
+
+
 def test_a_kept_single_level_hierarchy_solves_each_new_matrix_exactly():
     """A system no larger than the multigrid's coarsest level (the coarsest foam cube, 59 nodes,
     177 unknowns) is its own coarsest level: the kept hierarchy's direct solve must be the new

@@ -289,6 +289,25 @@ def test_quasistatic_and_dynamic_closing_agree(sphere_body, default_plan):
         assert a.force_norm == pytest.approx(b.force_norm, rel=0.10)
 
 
+def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_plan, monkeypatch):
+    """``GraspPlan.solver_stats`` counts the Newton systems of the whole plan (the settle, the
+    closing, the hold check), as a wrapper around the static solver's linear solve counts them;
+    the default plan's repeat solves the same number."""
+    from softgrasp.sim import static
+
+    calls = []
+    real = static.solve_newton_system
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(static, "solve_newton_system", counted)
+    plan = plan_grasp(sphere_body, PlanConfig())
+    assert plan.solver_stats["systems"] == len(calls) > 0
+    assert plan.solver_stats["systems"] == default_plan.solver_stats["systems"]
+
+
 # --------------------------------------------------------------------------- implicit holding
 
 

@@ -249,6 +249,9 @@ class GraspPlan:
         solve that failed), so that a user can see what made the fingers close further.
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
+    solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
+        <softgrasp.sim.linsolve.SolverCache>`): Newton systems, factorisations, multigrid V-cycles
+        ... (machine-independent measures of its cost).
     """
 
     initial: InitialGrasp
@@ -280,6 +283,7 @@ class GraspPlan:
     wall_time: float
     hold_checks: tuple[tuple[float, str], ...] = ()
     frames: PlanFrames | None = None
+    solver_stats: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -852,6 +856,7 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None
             centres=np.array([f[2] for f in frames]),
             forces=np.array([f[3] for f in frames]),
         ),
+        solver_stats=dict(cache.stats),
     )
 
 

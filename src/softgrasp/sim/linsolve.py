@@ -98,6 +98,10 @@ class SolverCache:
         the tolerance on an indefinite matrix: a compressed softening cube about to buckle) float32
         rounding makes that choice noisy; the material tests, whose curves the calibration fits
         difference, use ``"double"``.
+    stats: counts of what the solves did: Newton ``systems`` solved, PARDISO ``analyses``,
+        ``factorisations`` and solves with an older factor (``stale_solves``), multigrid solves
+        (``amg_solves``), hierarchy set-ups and V-cycles (``multigrid_setups``,
+        ``multigrid_cycles``), and the shifts of indefinite matrices where there were any.
     """
 
     method: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_LINSOLVE", "auto"))
@@ -113,7 +117,15 @@ class SolverCache:
     _fresh: int = field(default=-1, repr=False)
     _correction: Any = field(default=None, repr=False)
     stats: dict[str, int] = field(
-        default_factory=lambda: {"analyses": 0, "factorisations": 0, "stale_solves": 0, "amg_solves": 0},
+        default_factory=lambda: {
+            "systems": 0,
+            "analyses": 0,
+            "factorisations": 0,
+            "stale_solves": 0,
+            "amg_solves": 0,
+            "multigrid_setups": 0,
+            "multigrid_cycles": 0,
+        },
         repr=False,
     )
 
@@ -218,6 +230,7 @@ class _Multigrid:
             # The products above hold the transfers (as CSR); pyamg's own cycle is not used.
             level.R = level.P = None
         self._smoother: Any = None  # the finest level's sweeps (compiled kernels only)
+        self.stats: dict[str, int] | None = None  # where the cycles are counted (a cache's stats)
 
     def fits(self, A: sp.csr_matrix) -> bool:
         return bool(self.ml.levels[0].A.shape == A.shape)
@@ -281,6 +294,8 @@ class _Multigrid:
 
     def matvec(self, r: NDArray[np.float64]) -> NDArray[np.float64]:
         """One V-cycle from zero on ``r``."""
+        if self.stats is not None:
+            self.stats["multigrid_cycles"] = self.stats.get("multigrid_cycles", 0) + 1
         return self._cycle(0, np.asarray(r, dtype=np.float64))
 
     __matmul__ = matvec
@@ -317,6 +332,8 @@ def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCach
     ml = cache._ml
     if not (isinstance(ml, _Multigrid) and ml.fits(A)):
         ml = cache._ml = _Multigrid(A, x_nodes)
+        cache.stats["multigrid_setups"] = cache.stats.get("multigrid_setups", 0) + 1
+    ml.stats = cache.stats
     ml.use(A, pardiso.choose_threads() if A.shape[0] >= MULTIGRID_THREADS_MIN_DOF else 1)
     return ml
 
@@ -850,6 +867,7 @@ def solve_newton_system(
     cache = cache if cache is not None else SolverCache()
     if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
         raise ValueError(f"unknown linear solver {cache.method!r}")
+    cache.stats["systems"] = cache.stats.get("systems", 0) + 1
     if cache.precision not in ("mixed", "double"):
         raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
     # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
