@@ -244,22 +244,6 @@ def test_constraints_and_tethers_hold_a_frictionless_squeeze_alike():
     assert np.abs(tether.total_force(body, b.x)).max() < 1e-9 * abs(f1)
 
 
-def _box_off_balance(mu: float, fraction: float, seed: int):
-    """A 3 x 3 x 3 box at rest on a table of friction ``mu``, then displaced at random so that
-    about ``fraction`` of the solver's scale (the largest force present) is unbalanced.
-    Returns (scene, the displaced state, the scale [N], its largest unbalanced force [N])."""
-    body = build_body(box((0.03, 0.03, 0.03), (3, 3, 3)), Material(1e5, 0.3, 1000.0))
-    scene = Scene(body, (_table(mu),))
-    rest, _ = solve_static(scene, scene.initial_state(), rtol=1e-12)
-    f_int = np.abs(body.internal_forces(rest.x)).max()
-    f_ext = scene.static_forces(rest.x, 0.0, rest.contacts) - body.internal_forces(rest.x)
-    scale = max(f_int, np.abs(f_ext).max())
-    d = np.random.default_rng(seed).standard_normal(rest.x.shape)
-    r1 = np.abs(scene.static_forces(rest.x + 1e-9 * d, 0.0, rest.contacts)).max()
-    start = replace(rest, x=rest.x + 1e-9 * (fraction * scale / r1) * d)
-    return scene, start, scale, float(np.abs(scene.static_forces(start.x, 0.0, start.contacts)).max())
-
-
 def test_a_balanced_iterate_is_accepted_when_shifted_steps_stall(monkeypatch):
     """The 27 749-node sphere's settle on the table: its rolling stiffness (~1e-10 of the largest,
     of either sign) made the multigrid solves shift the diagonal (Levenberg-Marquardt), and the
@@ -271,8 +255,19 @@ def test_a_balanced_iterate_is_accepted_when_shifted_steps_stall(monkeypatch):
     it is not accepted early."""
     import softgrasp.sim.static as static
 
-    # ~1e-7 of the largest force unbalanced: balanced to STALL_RTOL, far from the 1e-12 asked for.
-    scene, start, scale, f0 = _box_off_balance(0.0, 1e-7, seed=0)
+    mesh = box((0.03, 0.03, 0.03), (3, 3, 3))
+    body = build_body(mesh, Material(1e5, 0.3, 1000.0))
+    scene = Scene(body, (_table(0.0),))
+    rest, _ = solve_static(scene, scene.initial_state(), rtol=1e-12)
+    f_int = np.abs(body.internal_forces(rest.x)).max()
+    # The solver's scale (the largest force present) and a displacement that leaves ~1e-7 of it
+    # unbalanced: balanced to STALL_RTOL, far from the 1e-12 asked for.
+    f_ext = scene.static_forces(rest.x, 0.0, rest.contacts) - body.internal_forces(rest.x)
+    scale = max(f_int, np.abs(f_ext).max())
+    d = np.random.default_rng(0).standard_normal(rest.x.shape)
+    r1 = np.abs(scene.static_forces(rest.x + 1e-9 * d, 0.0, rest.contacts)).max()
+    start = replace(rest, x=rest.x + 1e-9 * (1e-7 * scale / r1) * d)
+    f0 = np.abs(scene.static_forces(start.x, 0.0, start.contacts)).max()
     assert 1e-8 * scale < f0 < static.STALL_RTOL * scale
     real = static.solve_newton_system
 

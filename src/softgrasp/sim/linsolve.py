@@ -867,9 +867,9 @@ def solve_newton_system(
     cache = cache if cache is not None else SolverCache()
     if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
         raise ValueError(f"unknown linear solver {cache.method!r}")
-    cache.stats["systems"] = cache.stats.get("systems", 0) + 1
     if cache.precision not in ("mixed", "double"):
         raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
+    cache.stats["systems"] = cache.stats.get("systems", 0) + 1
     # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
     # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
     use_pardiso = C is None and (
