@@ -58,6 +58,8 @@ def test_compress_writes_csv_json_png(tmp_path):
         (["--object", "teapot"], "unknown object 'teapot'"),
         (["--strain", "0.95"], "strain = 0.95 is invalid"),
         (["--mesh-size", "-1"], "--mesh-size must be > 0"),
+        (["--mesh-size", "0.03"], "coarser than the object itself (50 mm across"),
+        (["--object", "ball:0.03", "--mesh-size", "5"], "for 5 mm write 0.005"),
         (["--plate-friction", "-0.2"], "--plate-friction must be >= 0"),
     ],
 )

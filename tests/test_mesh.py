@@ -145,6 +145,8 @@ def test_cylinder_on_table() -> None:
         (lambda: sphere(R, 0.0), "sphere mesh_size must be positive"),
         (lambda: sphere(R, -0.01), "sphere mesh_size must be positive"),
         (lambda: sphere(R, 1e-4), r"too small: about .* tetrahedra"),
+        (lambda: sphere(R, 0.07), r"coarser than the object itself \(128 mm across.*<= 0.064 m"),
+        (lambda: cylinder(0.02, 0.1, 0.03), r"coarser than the object itself \(40 mm across.*<= 0.02 m"),
         (lambda: cylinder(0.02, 0.0), "cylinder height must be positive"),
         (lambda: cylinder(-0.02, 0.1), "cylinder radius must be positive"),
         (lambda: cylinder(0.02, 0.1, float("inf")), "cylinder mesh_size must be positive"),

@@ -90,11 +90,13 @@ def _generated(name: str, mesh_size: float | None) -> TetMesh:
     friction coefficient, material or hand) then skips gmsh (0.3 s for the default sphere, 0.8 s
     at 2 196 nodes)."""
     from softgrasp.mesh import generate
+    from softgrasp.mesh._gmsh import check_mesh_size
 
     if name in OBJECTS:
         spec = OBJECTS[name]
         h = spec.mesh_size if mesh_size is None else mesh_size
         if spec.name == "cube":
+            h = check_mesh_size(h, CUBE_SIZE**3, "cube", extent=CUBE_SIZE)
             return generate.box(CUBE_SIZE, max(1, round(CUBE_SIZE / h)), name="cube")
         return rest_on_table(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
     return _shape(name, mesh_size)
@@ -115,6 +117,7 @@ def _shape(spec: str, mesh_size: float | None) -> TetMesh:
     """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
     ``ball:0.03``), meshed with about four elements across its smallest dimension by default."""
     from softgrasp.mesh import generate
+    from softgrasp.mesh._gmsh import check_mesh_size
 
     kind, _, dims = spec.partition(":")
     try:
@@ -127,6 +130,7 @@ def _shape(spec: str, mesh_size: float | None) -> TetMesh:
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
         h = min(size) / 4 if mesh_size is None else mesh_size
+        h = check_mesh_size(h, size[0] * size[1] * size[2], spec, extent=min(size))
         cells = [max(1, round(a / h)) for a in size]
         if cells[0] * cells[1] * cells[2] > MAX_SHAPE_CELLS:
             raise MeshError(

@@ -176,8 +176,10 @@ def tet_mesh_from_model(gmsh: ModuleType, name: str) -> TetMesh:
     return TetMesh(points, tets, reorient=True, name=name).reordered()
 
 
-def check_mesh_size(mesh_size: float, volume: float, what: str) -> float:
-    """Validate a mesh size [m] against the tet budget for a solid of ``volume`` [m^3].
+def check_mesh_size(mesh_size: float, volume: float, what: str, extent: float | None = None) -> float:
+    """Validate a mesh size [m] against the tet budget for a solid of ``volume`` [m^3] and, given
+    the solid's smallest ``extent`` [m] (its thinnest dimension), against the coarsest mesh that
+    still represents it: at least two elements across that extent.
 
     Returns
     -------
@@ -187,8 +189,9 @@ def check_mesh_size(mesh_size: float, volume: float, what: str) -> float:
     Raises
     ------
     MeshError
-        ``mesh_size`` is not a positive finite number, or about more than :data:`MAX_TETS`
-        tetrahedra would be needed.
+        ``mesh_size`` is not a positive finite number, about more than :data:`MAX_TETS`
+        tetrahedra would be needed, or it exceeds half of ``extent`` (a mesh of a few nodes, whose
+        forces mean nothing: most often a size meant in millimetres given as metres).
     """
     try:
         h = float(mesh_size)
@@ -196,6 +199,13 @@ def check_mesh_size(mesh_size: float, volume: float, what: str) -> float:
         raise MeshError(f"{what} mesh_size must be a number in metres, got {mesh_size!r}") from exc
     if not (np.isfinite(h) and h > 0):
         raise MeshError(f"{what} mesh_size must be positive and finite, got {mesh_size!r}")
+    if extent is not None and h > 0.5 * extent:
+        raise MeshError(
+            f"{what} mesh_size {h:.4g} m is coarser than the object itself ({extent * 1e3:.3g} mm across "
+            f"at its thinnest): the mesh would have a handful of nodes and meaningless forces; "
+            + (f"the size is in metres (for {h:g} mm write {h * 1e-3:g}); " if h >= 1.0 else "")
+            + f"use mesh_size <= {0.5 * extent:.3g} m"
+        )
     expected = _TETS_PER_H3 * volume / h**3
     if expected > MAX_TETS:
         h_min = (_TETS_PER_H3 * volume / MAX_TETS) ** (1.0 / 3.0)

@@ -178,7 +178,7 @@ def sphere(
     """
     r = _positive("sphere radius", radius)
     h = default_mesh_size((2.0 * r) ** 3) if mesh_size is None else mesh_size
-    h = check_mesh_size(h, 4.0 / 3.0 * np.pi * r**3, "sphere")
+    h = check_mesh_size(h, 4.0 / 3.0 * np.pi * r**3, "sphere", extent=2.0 * r)
     with gmsh_session(h) as gmsh:
         gmsh.model.occ.addSphere(0.0, 0.0, 0.0, r)
         gmsh.model.occ.synchronize()
@@ -231,7 +231,7 @@ def cylinder(
     r = _positive("cylinder radius", radius)
     length = _positive("cylinder height", height)
     h = default_mesh_size(4.0 * r**2 * length) if mesh_size is None else mesh_size
-    h = check_mesh_size(h, np.pi * r**2 * length, "cylinder")
+    h = check_mesh_size(h, np.pi * r**2 * length, "cylinder", extent=min(2.0 * r, length))
     with gmsh_session(h) as gmsh:
         gmsh.model.occ.addCylinder(0.0, 0.0, -0.5 * length, 0.0, 0.0, length, r)
         gmsh.model.occ.synchronize()
