@@ -469,7 +469,9 @@ def test_reordered_mesh_is_the_same_solid_numbered_locally() -> None:
         return {m.points[t].tobytes() for t in m.tets}
 
     assert solid(local) == solid(scattered) == solid(base)
-    assert {local.points[f].tobytes() for f in local.facets} == {scattered.points[f].tobytes() for f in scattered.facets}
+    assert {local.points[f].tobytes() for f in local.facets} == {
+        scattered.points[f].tobytes() for f in scattered.facets
+    }
     assert sorted(local.volumes) == sorted(scattered.volumes)
     assert local.volume == pytest.approx(scattered.volume, rel=1e-14)
     # RCM numbers the nodes by breadth-first levels, each a cross-section of the solid: an edge

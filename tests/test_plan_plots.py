@@ -67,6 +67,21 @@ def test_plot_plan_forces_writes_png(tmp_path):
     _check_png(out)
 
 
+def test_plot_plan_forces_draws_the_held_set_points_and_checks_them(tmp_path):
+    """The held state's set-points are drawn after the closing (the closing ends on the table,
+    so its last forces are not the set-points): a different picture, and a wrong count or a NaN
+    is refused before anything is written."""
+    inc, norms, _ = _curves()
+    plain = plot_plan_forces(inc, norms, NAMES, tmp_path / "plain.png").read_bytes()
+    held = plot_plan_forces(inc, norms, NAMES, tmp_path / "held.png", setpoints=[2.4, 1.2, 1.0])
+    _check_png(held)
+    assert held.read_bytes() != plain
+    for bad, match in (([1.0, 2.0], r"setpoints must have shape \(3,\)"), ([1.0, np.nan, 1.0], "NaN")):
+        with pytest.raises(ValueError, match=match):
+            plot_plan_forces(inc, norms, NAMES, tmp_path / "bad.png", setpoints=bad)
+        assert not (tmp_path / "bad.png").exists()
+
+
 def test_plot_plan_force_penetration_writes_png(tmp_path):
     _, norms, pens = _curves()
     out = plot_plan_force_penetration(pens, norms, NAMES, tmp_path / "fp.png")

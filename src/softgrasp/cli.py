@@ -631,7 +631,12 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
         w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
     names = [f.name for f in plan.fingers]
     figures.draw(
-        "plot_plan_forces", np.arange(1.0, plan.increments + 1.0), plan.force_norm, names, out / "forces.png"
+        "plot_plan_forces",
+        np.arange(1.0, plan.increments + 1.0),
+        plan.force_norm,
+        names,
+        out / "forces.png",
+        setpoints=[f.force_norm for f in plan.fingers],
     )
     figures.draw(
         "plot_plan_force_penetration", plan.penetration, plan.force_norm, names, out / "force_penetration.png"

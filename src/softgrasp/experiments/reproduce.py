@@ -513,6 +513,7 @@ def _exp_grasp(ctx: _Context, rec: dict[str, Any], progress: _Progress) -> None:
         plan.force_norm,
         names,
         ctx.out / figs["forces"],
+        setpoints=[f.force_norm for f in plan.fingers],
         title="Grasping forces per closing increment (cf. paper Fig. 13)",
     )
     progress(0.85)

@@ -301,7 +301,10 @@ class TetMesh:
         n = self.n_nodes
         e = self.edges
         graph = csr_matrix(
-            (np.ones(2 * len(e), dtype=np.int8), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))),
+            (
+                np.ones(2 * len(e), dtype=np.int8),
+                (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])),
+            ),
             shape=(n, n),
         )
         perm = np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True), dtype=np.int64)

@@ -225,6 +225,7 @@ def plot_plan_forces(
     names: Sequence[str],
     path: str | Path,
     *,
+    setpoints: Sequence[float] | None = None,
     title: str = "Grasping forces applied by the fingers",
 ) -> Path:
     """Force norm on each finger against the closing increment (paper Fig. 13 style).
@@ -235,6 +236,9 @@ def plot_plan_forces(
     force_norms: norm [N] of the contact force on each finger at each increment, shape (K, n_f).
     names: one label per finger (``thumb``, ``first``, ``middle`` ...).
     path: PNG file to write.
+    setpoints: each finger's force [N] in the held state (the table removed, the fingers carrying
+        the weight), drawn one step after the last increment and named in the legend: the closing
+        ends on the table, so its last forces are not the set-points.
     title: figure title.
 
     Raises
@@ -244,16 +248,32 @@ def plot_plan_forces(
     x = _as_array("increments", increments, (None,))
     f = _as_array("force_norms", force_norms, (x.shape[0], None))
     names = _check_names(names, f.shape[1])
+    held = None if setpoints is None else _as_array("setpoints", setpoints, (f.shape[1],))
+    x_held = float(x[-1] + (x[-1] - x[-2] if len(x) > 1 else 1.0)) if len(x) else 1.0
     plt = _figure()
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
     for i, name in enumerate(names):
         colour, marker = _finger_style(i)
-        ax.plot(x, f[:, i], marker=marker, ms=4.0, lw=1.6, color=colour, label=name)
+        label = name if held is None else f"{name} (set-point {held[i]:.3g} N)"
+        ax.plot(x, f[:, i], marker=marker, ms=4.0, lw=1.6, color=colour, label=label)
+        if held is not None and len(x):
+            ax.plot([x[-1], x_held], [f[-1, i], held[i]], lw=1.0, ls=":", color=colour)
+        if held is not None:
+            ax.plot([x_held], [held[i]], marker="*", ms=11.0, color=colour, ls="none")
     if np.all(x == np.round(x)):
         from matplotlib.ticker import MaxNLocator
 
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("closing increment")
+    if held is not None:
+        # The held state gets its own tick: it is no closing increment.
+        lo, hi = ax.get_xlim()
+        ticks = [float(v) for v in ax.get_xticks() if lo <= v <= (x[-1] if len(x) else lo)]
+        ax.set_xticks([*ticks, x_held], [f"{v:g}" for v in ticks] + ["held"])
+        ax.set_xlim(lo, hi)
+        ax.set_ylim(top=1.15 * float(max(f.max(initial=0.0), held.max())))
+    ax.set_xlabel(
+        "closing increment" if held is None else "closing increment, then held with the table removed (★)"
+    )
     ax.set_ylabel("force [N]")
     ax.set_title(title)
     out = _save(plt, fig, ax, path, legend_loc="upper left")
