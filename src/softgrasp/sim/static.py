@@ -390,9 +390,9 @@ def _newton(
             ):
                 # The step came from a shifted matrix whose factorisation found it indefinite (a
                 # body tipping over on its few supporting nodes, still far from balanced): follow
-                # it while the potential keeps falling. (Not where only conjugate gradients met negative curvature: on the
-                # 27 749-node ball, round-off on its nearly neutral rolling mode, followed, left
-                # Newton creeping at a constant unbalanced force.)
+                # it while the potential keeps falling. (Not where only conjugate gradients met
+                # negative curvature: on the 27 749-node ball, round-off on its nearly neutral
+                # rolling mode, followed, left Newton creeping at a constant unbalanced force.)
                 xn, grown = _follow_negative_curvature(scene, x, d, t, contacts, L)
                 if grown > 1.0:
                     log.debug("newton it %d: indefinite matrix, the step followed %g times as far", it, grown)
