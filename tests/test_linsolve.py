@@ -971,6 +971,25 @@ def _both_on_one_hierarchy(n: int, rtol: float, seed: int):
     return cache, A1, b, x, dx
 
 
+def test_hierarchies_built_by_threads_at_once_are_those_built_alone():
+    """The multigrid hierarchy is built from NumPy's seeded global generator (pyamg's spectral
+    radius estimate): threads building at once (a script planning on a thread pool) get the
+    same prolongators, to the bit, as one built alone; without softgrasp holding the generator
+    for each build they drew from each other's sequence."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from softgrasp.sim import linsolve
+
+    A0, A1, x = _table_then_plate(5)
+    alone = [linsolve._hierarchy(A, x) for A in (A0, A1)]
+    with ThreadPoolExecutor(4) as pool:
+        built = list(pool.map(lambda k: linsolve._hierarchy((A0, A1)[k % 2], x), range(16)))
+    for k, ml in enumerate(built):
+        want = alone[k % 2]
+        for a, b in zip(ml.levels[:-1], want.levels[:-1], strict=True):
+            assert np.array_equal(a.P.toarray(), b.P.toarray())
+
+
 def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
     """The foam cube resting on a table (its bottom nodes held), then its top face pressed by a
     stiff plate (a penalty 50 times the nodes' own stiffness): the multigrid hierarchy kept from

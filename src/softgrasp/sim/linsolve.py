@@ -25,6 +25,7 @@ import contextlib
 import functools
 import math
 import os
+import threading
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -167,8 +168,13 @@ _PRESMOOTHER = ("block_gauss_seidel", {"sweep": "forward"})
 _POSTSMOOTHER = ("block_gauss_seidel", {"sweep": "backward"})
 #: Seed of the random start from which pyamg estimates a spectral radius while it builds a
 #: hierarchy (NumPy's global generator, seeded and put back: a hierarchy should not be built
-#: while another Python thread draws from it).
+#: while another Python thread draws from it; softgrasp's own threads build theirs one at a time,
+#: :data:`_GLOBAL_RNG`).
 AMG_SEED = 20_240_901
+#: Held while a hierarchy is built from NumPy's seeded global generator: two threads planning at
+#: once (a script's thread pool) would otherwise draw from each other's seeded sequence, and each
+#: plan's numbers would depend on how the threads interleaved.
+_GLOBAL_RNG = threading.Lock()
 #: Systems with fewer unknowns run the multigrid products and sweeps on one thread: a second
 #: gains nothing there (the 2 196-node plan on the multigrid path, 6 588 unknowns: 2.85 s on one
 #: thread and on two) and would compete with PARDISO's spinning threads where a singular system
@@ -184,20 +190,21 @@ def _hierarchy(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> Any:
     caller's generator state is put back."""
     import pyamg
 
-    state = np.random.get_state()
-    np.random.seed(AMG_SEED)
-    try:
-        return pyamg.smoothed_aggregation_solver(
-            A,
-            B=_rigid_modes(x_nodes),
-            symmetry="symmetric",
-            max_coarse=300,
-            coarse_solver="splu",
-            presmoother=_PRESMOOTHER,
-            postsmoother=_POSTSMOOTHER,
-        )
-    finally:
-        np.random.set_state(state)
+    with _GLOBAL_RNG:
+        state = np.random.get_state()
+        np.random.seed(AMG_SEED)
+        try:
+            return pyamg.smoothed_aggregation_solver(
+                A,
+                B=_rigid_modes(x_nodes),
+                symmetry="symmetric",
+                max_coarse=300,
+                coarse_solver="splu",
+                presmoother=_PRESMOOTHER,
+                postsmoother=_POSTSMOOTHER,
+            )
+        finally:
+            np.random.set_state(state)
 
 
 class _Multigrid:
