@@ -60,6 +60,10 @@ def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover
             "margin": plan.friction_margin,
             "systems": plan.solver_stats.get("systems", 0),
             "cycles": plan.solver_stats.get("multigrid_cycles", 0),
+            "phases": tuple(
+                plan.solver_stats.get(k, 0)
+                for k in ("settle_systems", "closing_systems", "hold_check_systems")
+            ),
         }
     except Exception as exc:  # noqa: BLE001 - reported, not hidden
         result = {"error": f"{type(exc).__name__}: {exc}"}
@@ -100,7 +104,8 @@ def _row(r: dict, label: str, ref: float | None) -> str:
     return (
         f"{r['nodes']:>6} {label:>22} {r['plan_s']:>8.2f} {warm} {ratio} {r['peak_MB']:>8.0f} "
         f"{r['increments']:>5} {r['margin']:>7.1%}  {f}   (mesh+body {r['build_s']:.1f} s; "
-        f"{r['systems']} Newton systems" + (f", {r['cycles']} V-cycles)" if r["cycles"] else ")")
+        f"{r['systems']} Newton systems: settle {r['phases'][0]}, closing {r['phases'][1]}, hold checks "
+        f"{r['phases'][2]}" + (f"; {r['cycles']} V-cycles)" if r["cycles"] else ")")
     )
 
 

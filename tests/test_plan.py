@@ -306,6 +306,16 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     plan = plan_grasp(sphere_body, PlanConfig())
     assert plan.solver_stats["systems"] == len(calls) > 0
     assert plan.solver_stats["systems"] == default_plan.solver_stats["systems"]
+    # By phase: the settle alone, counted by the same wrapper, and the hold checks; the three add up.
+    from softgrasp.grasp.planner import _settle
+    from softgrasp.sim import pardiso
+
+    phases = [plan.solver_stats[k] for k in ("settle_systems", "closing_systems", "hold_check_systems")]
+    assert sum(phases) == plan.solver_stats["systems"] and min(phases) > 0
+    calls.clear()
+    with pardiso.blas_one_thread():
+        _settle(sphere_body, PlanConfig(), SolverCache())
+    assert plan.solver_stats["settle_systems"] == len(calls)
 
 
 # --------------------------------------------------------------------------- implicit holding

@@ -251,7 +251,10 @@ class GraspPlan:
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
     solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
         <softgrasp.sim.linsolve.SolverCache>`): Newton systems, factorisations, multigrid V-cycles
-        ... (machine-independent measures of its cost).
+        ... (machine-independent measures of its cost); the Newton systems also by phase:
+        ``settle_systems`` (the object coming to rest on the table), ``closing_systems`` (the
+        closing increments and their refinement) and ``hold_check_systems`` (the table removed,
+        the release, the holding simulation and the held equilibrium).
     """
 
     initial: InitialGrasp
@@ -560,7 +563,9 @@ def closing_setup(body: Body, cfg: PlanConfig, cache: SolverCache | None = None)
     """Settle ``body`` on the table, choose (or take ``cfg.grasp``) the initial grasp the hand
     reaches, and lay the fingertips' closing lines (paper step 1)."""
     cache = cache if cache is not None else SolverCache()
+    before = cache.stats.get("systems", 0)
     settled, table, placed = _settle(body, cfg, cache)
+    cache.stats["settle_systems"] = cache.stats.get("systems", 0) - before
     xs = settled.x
     ig, placement = _initial_grasp(body, xs, _com(body, xs), cfg)
     start, u, reach = _start_centres(ig, cfg)
@@ -778,7 +783,15 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None
     # Where the object is not held, the fingers close further, by the refined resolution at first
     # and by doubling amounts up to a whole step, until it is.
     t_final, extra = t_hi, cfg.step / 2**cfg.refine
-    while isinstance(held := _check_hold(body, table, fc, state, t_final * scale, cfg, cache), str):
+
+    def check_hold(t: float) -> tuple[State, FingertipContact, float] | str:
+        before = cache.stats.get("systems", 0)
+        out = _check_hold(body, table, fc, state, t, cfg, cache)
+        cache.stats["hold_check_systems"] += cache.stats.get("systems", 0) - before
+        return out
+
+    cache.stats["hold_check_systems"] = 0
+    while isinstance(held := check_hold(t_final * scale), str):
         checks.append((t_final, held))
         t_final += extra
         too_far(t_final)
@@ -856,7 +869,12 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None
             centres=np.array([f[2] for f in frames]),
             forces=np.array([f[3] for f in frames]),
         ),
-        solver_stats=dict(cache.stats),
+        solver_stats=dict(
+            cache.stats,
+            closing_systems=cache.stats.get("systems", 0)
+            - cache.stats["settle_systems"]
+            - cache.stats["hold_check_systems"],
+        ),
     )
 
 
