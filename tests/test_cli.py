@@ -58,8 +58,10 @@ def test_compress_writes_csv_json_png(tmp_path):
         (["--object", "teapot"], "unknown object 'teapot'"),
         (["--strain", "0.95"], "strain = 0.95 is invalid"),
         (["--mesh-size", "-1"], "--mesh-size must be > 0"),
-        (["--mesh-size", "0.03"], "coarser than the object itself (50 mm across"),
+        (["--mesh-size", "0.04"], "fewer than two cells across its thinnest edge (50 mm)"),
+        (["--object", "box:0.04x0.04x0.02", "--mesh-size", "8"], "for 8 mm write 0.008"),
         (["--object", "ball:0.03", "--mesh-size", "5"], "for 5 mm write 0.005"),
+        (["--object", "ball:0.003", "--mesh-size", "5"], "use mesh_size <= 0.003 m"),
         (["--plate-friction", "-0.2"], "--plate-friction must be >= 0"),
     ],
 )

@@ -145,8 +145,11 @@ def test_cylinder_on_table() -> None:
         (lambda: sphere(R, 0.0), "sphere mesh_size must be positive"),
         (lambda: sphere(R, -0.01), "sphere mesh_size must be positive"),
         (lambda: sphere(R, 1e-4), r"too small: about .* tetrahedra"),
-        (lambda: sphere(R, 0.07), r"coarser than the object itself \(128 mm across.*<= 0.064 m"),
-        (lambda: cylinder(0.02, 0.1, 0.03), r"coarser than the object itself \(40 mm across.*<= 0.02 m"),
+        (
+            lambda: sphere(R, 0.07),
+            r"coarser than half the object's thinnest dimension \(128 mm\).*<= 0.064 m",
+        ),
+        (lambda: cylinder(0.02, 0.1, 0.03), r"thinnest dimension \(40 mm\).*<= 0.02 m"),
         (lambda: cylinder(0.02, 0.0), "cylinder height must be positive"),
         (lambda: cylinder(-0.02, 0.1), "cylinder radius must be positive"),
         (lambda: cylinder(0.02, 0.1, float("inf")), "cylinder mesh_size must be positive"),
@@ -155,6 +158,23 @@ def test_cylinder_on_table() -> None:
 def test_generator_argument_errors(call, match: str) -> None:
     with pytest.raises(MeshError, match=match):
         call()
+
+
+def test_a_thin_disc_meshes_at_its_default_size_and_a_refused_size_names_one_that_is_accepted() -> None:
+    """The default element size of a thin object is capped below its thinnest dimension (a disc
+    of radius 50 mm, 5 mm thick, meshes with elements across its thickness and its volume); a
+    size refused as too coarse names the largest size accepted, and that one meshes."""
+    import re
+
+    disc = cylinder(0.05, 0.005, on_table=False)
+    assert np.ptp(disc.points[:, 2]) == pytest.approx(0.005)
+    assert len(np.unique(np.round(disc.points[:, 2], 7))) >= 3  # nodes inside the thickness
+    assert disc.volume == pytest.approx(np.pi * 0.05**2 * 0.005, rel=0.02)
+    with pytest.raises(MeshError) as err:
+        cylinder(0.05, 0.005, 0.004, on_table=False)
+    largest = float(re.search(r"use mesh_size <= ([0-9.e-]+) m", str(err.value)).group(1))
+    assert "write" not in str(err.value)  # 0.004 is no size meant in millimetres
+    assert cylinder(0.05, 0.005, largest, on_table=False).n_nodes > 0
 
 
 def test_core_imports_without_gmsh_or_meshio() -> None:

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -90,16 +91,30 @@ def _generated(name: str, mesh_size: float | None) -> TetMesh:
     friction coefficient, material or hand) then skips gmsh (0.3 s for the default sphere, 0.8 s
     at 2 196 nodes)."""
     from softgrasp.mesh import generate
-    from softgrasp.mesh._gmsh import check_mesh_size
 
     if name in OBJECTS:
         spec = OBJECTS[name]
         h = spec.mesh_size if mesh_size is None else mesh_size
         if spec.name == "cube":
-            h = check_mesh_size(h, CUBE_SIZE**3, "cube", extent=CUBE_SIZE)
-            return generate.box(CUBE_SIZE, max(1, round(CUBE_SIZE / h)), name="cube")
+            return generate.box(CUBE_SIZE, _box_cells("cube", (CUBE_SIZE,) * 3, h), name="cube")
         return rest_on_table(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
     return _shape(name, mesh_size)
+
+
+def _box_cells(what: str, size: Sequence[float], h: float) -> list[int]:
+    """Cells of a box meshed at about ``h`` along each edge (``size``); at least two across its
+    thinnest edge, else MeshError (a box one cell thick has no interior node and forces that mean
+    nothing: most often a size meant in millimetres given as metres)."""
+    cells = [max(1, round(a / h)) for a in size]
+    if min(cells) < 2:
+        thin = min(size)
+        mm = h >= 1.0 and h * 1e-3 <= thin / 1.5
+        hint = f"the size is in metres (for {h:g} mm write {h * 1e-3:g}); " if mm else ""
+        raise MeshError(
+            f"{what} mesh_size {h:.4g} m leaves fewer than two cells across its thinnest edge "
+            f"({thin * 1e3:.3g} mm); {hint}use mesh_size <= {thin / 1.5:.3g} m"
+        )
+    return cells
 
 
 #: Most cells of a parametric box (each 12 tets): beyond it, a coarser --mesh-size is needed.
@@ -117,7 +132,6 @@ def _shape(spec: str, mesh_size: float | None) -> TetMesh:
     """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
     ``ball:0.03``), meshed with about four elements across its smallest dimension by default."""
     from softgrasp.mesh import generate
-    from softgrasp.mesh._gmsh import check_mesh_size
 
     kind, _, dims = spec.partition(":")
     try:
@@ -130,8 +144,7 @@ def _shape(spec: str, mesh_size: float | None) -> TetMesh:
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
         h = min(size) / 4 if mesh_size is None else mesh_size
-        h = check_mesh_size(h, size[0] * size[1] * size[2], spec, extent=min(size))
-        cells = [max(1, round(a / h)) for a in size]
+        cells = _box_cells(spec, size, h)
         if cells[0] * cells[1] * cells[2] > MAX_SHAPE_CELLS:
             raise MeshError(
                 f"{spec} at {h * 1e3:.3g} mm elements needs {cells[0] * cells[1] * cells[2]} cells (at most "

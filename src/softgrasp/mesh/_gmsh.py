@@ -190,8 +190,9 @@ def check_mesh_size(mesh_size: float, volume: float, what: str, extent: float | 
     ------
     MeshError
         ``mesh_size`` is not a positive finite number, about more than :data:`MAX_TETS`
-        tetrahedra would be needed, or it exceeds half of ``extent`` (a mesh of a few nodes, whose
-        forces mean nothing: most often a size meant in millimetres given as metres).
+        tetrahedra would be needed, or it exceeds half of ``extent`` (fewer than two elements
+        across the object, forces that mean nothing: most often a size meant in millimetres given
+        as metres). A default size is the caller's to cap at a quarter of ``extent``.
     """
     try:
         h = float(mesh_size)
@@ -201,9 +202,13 @@ def check_mesh_size(mesh_size: float, volume: float, what: str, extent: float | 
         raise MeshError(f"{what} mesh_size must be positive and finite, got {mesh_size!r}")
     if extent is not None and h > 0.5 * extent:
         raise MeshError(
-            f"{what} mesh_size {h:.4g} m is coarser than the object itself ({extent * 1e3:.3g} mm across "
-            f"at its thinnest): the mesh would have a handful of nodes and meaningless forces; "
-            + (f"the size is in metres (for {h:g} mm write {h * 1e-3:g}); " if h >= 1.0 else "")
+            f"{what} mesh_size {h:.4g} m is coarser than half the object's thinnest dimension "
+            f"({extent * 1e3:.3g} mm): fewer than two elements across it, forces that mean nothing; "
+            + (
+                f"the size is in metres (for {h:g} mm write {h * 1e-3:g}); "
+                if h >= 1.0 and h * 1e-3 <= 0.5 * extent
+                else ""
+            )
             + f"use mesh_size <= {0.5 * extent:.3g} m"
         )
     expected = _TETS_PER_H3 * volume / h**3

@@ -230,7 +230,11 @@ def cylinder(
     """
     r = _positive("cylinder radius", radius)
     length = _positive("cylinder height", height)
-    h = default_mesh_size(4.0 * r**2 * length) if mesh_size is None else mesh_size
+    h = (
+        min(default_mesh_size(4.0 * r**2 * length), 0.25 * min(2.0 * r, length))
+        if mesh_size is None
+        else mesh_size
+    )
     h = check_mesh_size(h, np.pi * r**2 * length, "cylinder", extent=min(2.0 * r, length))
     with gmsh_session(h) as gmsh:
         gmsh.model.occ.addCylinder(0.0, 0.0, -0.5 * length, 0.0, 0.0, length, r)

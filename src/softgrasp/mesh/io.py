@@ -320,7 +320,7 @@ def _mesh_surface_file(path: Path, fmt: str, mesh_size: float | None, factor: fl
     box_volume = float(np.prod(extent))
     if box_volume <= 0.0:
         raise MeshError(f"{path}: the surface is flat (extent {extent.tolist()} m) and encloses nothing")
-    h = default_mesh_size(box_volume) if mesh_size is None else mesh_size
+    h = min(default_mesh_size(box_volume), 0.25 * float(extent.min())) if mesh_size is None else mesh_size
     h = check_mesh_size(h, box_volume, f"{path}:", extent=float(extent.min()))
     try:
         with gmsh_session(h) as gmsh:

@@ -268,9 +268,13 @@ def plot_plan_forces(
         # The held state gets its own tick: it is no closing increment.
         lo, hi = ax.get_xlim()
         ticks = [float(v) for v in ax.get_xticks() if lo <= v <= (x[-1] if len(x) else lo)]
+        spacing = float(np.median(np.diff(ticks))) if len(ticks) > 1 else 1.0
+        ticks = [v for v in ticks if x_held - v >= 0.5 * spacing]  # no label run into "held"
         ax.set_xticks([*ticks, x_held], [f"{v:g}" for v in ticks] + ["held"])
         ax.set_xlim(lo, hi)
-        ax.set_ylim(top=1.15 * float(max(f.max(initial=0.0), held.max())))
+        top = 1.15 * float(max(f.max(initial=0.0), held.max()))
+        if top > 0:
+            ax.set_ylim(top=top)
     ax.set_xlabel(
         "closing increment" if held is None else "closing increment, then held with the table removed (★)"
     )
