@@ -175,6 +175,17 @@ AMG_SEED = 20_240_901
 #: once (a script's thread pool) would otherwise draw from each other's seeded sequence, and each
 #: plan's numbers would depend on how the threads interleaved.
 _GLOBAL_RNG = threading.Lock()
+
+
+def _fresh_rng_lock() -> None:
+    """A forked child gets a lock of its own: one held by another thread at the fork would never
+    be released there."""
+    global _GLOBAL_RNG
+    _GLOBAL_RNG = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_fresh_rng_lock)
 #: Systems with fewer unknowns run the multigrid products and sweeps on one thread: a second
 #: gains nothing there (the 2 196-node plan on the multigrid path, 6 588 unknowns: 2.85 s on one
 #: thread and on two) and would compete with PARDISO's spinning threads where a singular system
