@@ -447,9 +447,11 @@ def test_the_fine_sphere_settles_on_the_table_without_being_kicked_along_its_rol
     from softgrasp.grasp.planner import _settle
     from softgrasp.sim import pardiso
 
+    if not pardiso.available():
+        pytest.skip("the failure was on PARDISO's path (MKL not installed)")
     mesh, material, mass = make_object("sphere", 0.0036)
     body = build_body(mesh, material, mass=mass)
-    cache = SolverCache()
+    cache = SolverCache(method="pardiso")  # where it failed (beyond PARDISO_MAX_DOF by default now)
     with pardiso.blas_one_thread():
         state, table, _ = _settle(body, PlanConfig(), cache)
     assert cache.stats["systems"] <= 12
