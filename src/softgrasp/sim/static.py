@@ -26,6 +26,7 @@ from softgrasp import kernels
 from softgrasp.body import Body
 from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.mesh.tetmesh import signed_volumes
+from softgrasp.sim import pardiso
 from softgrasp.sim.linsolve import _SINGULAR, SolverCache, _rigid_motion_free, solve_newton_system
 from softgrasp.sim.scene import Scene, State
 
@@ -559,7 +560,29 @@ def solve_static(
     ------
     NotConverged: Newton stalled, or the body is not held (singular stiffness).
     SimulationUnstable: the configuration is invalid (inverted tets) at the start.
+
+    NumPy's BLAS runs on one thread meanwhile (:func:`~softgrasp.sim.pardiso.blas_one_thread`, as
+    the planner holds it for a whole plan): the 27 749-node settle called alone took 18.2 s with
+    OpenBLAS's threads competing with the multigrid products' and PARDISO's.
     """
+    with pardiso.blas_one_thread():
+        return _solve_static(
+            scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, guess
+        )
+
+
+def _solve_static(
+    scene: Scene,
+    state: State,
+    t: float | None,
+    constraints: sp.csr_matrix | None,
+    x_ref: NDArray[np.float64] | None,
+    rtol: float,
+    max_iter: int,
+    max_friction_passes: int,
+    cache: SolverCache | None,
+    guess: NDArray[np.float64] | None,
+) -> tuple[State, StaticInfo]:
     tt = state.t if t is None else float(t)
     x = np.array(state.x, dtype=np.float64)
     if not _valid(scene.body, x):
