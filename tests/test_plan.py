@@ -306,8 +306,8 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     from softgrasp.grasp.planner import _settle
     from softgrasp.sim import pardiso
 
-    in_hold_checks = []
-    real_check = planner._check_hold
+    in_hold_checks, in_increments = [], []
+    real_check, real_advance = planner._check_hold, planner._advance
 
     def check_counted(*args, **kw):
         before = len(calls)
@@ -315,15 +315,24 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
         in_hold_checks.append(len(calls) - before)
         return out
 
+    def advance_counted(*args, **kw):
+        before = len(calls)
+        out = real_advance(*args, **kw)
+        in_increments.append(len(calls) - before)
+        return out
+
     monkeypatch.setattr(static, "solve_newton_system", counted)
     monkeypatch.setattr(planner, "_check_hold", check_counted)
+    monkeypatch.setattr(planner, "_advance", advance_counted)
     plan = plan_grasp(sphere_body, PlanConfig())
     assert plan.solver_stats["systems"] == len(calls) > 0
     assert plan.solver_stats["systems"] == default_plan.solver_stats["systems"]
-    # By phase: the hold checks as counted inside them, the settle as counted for a settle alone.
+    # By phase: the closing and the hold checks as counted inside them, the settle as counted for
+    # a settle alone.
     phases = [plan.solver_stats[k] for k in ("settle_systems", "closing_systems", "hold_check_systems")]
     assert sum(phases) == plan.solver_stats["systems"] and min(phases) > 0
     assert plan.solver_stats["hold_check_systems"] == sum(in_hold_checks) > 0
+    assert plan.solver_stats["closing_systems"] == sum(in_increments) > 0
     calls.clear()
     with pardiso.blas_one_thread():
         _settle(sphere_body, PlanConfig(), SolverCache())

@@ -107,12 +107,12 @@ def _box_cells(what: str, size: Sequence[float], h: float) -> list[int]:
     nothing: most often a size meant in millimetres given as metres)."""
     cells = [max(1, round(a / h)) for a in size]
     if min(cells) < 2:
+        from softgrasp.mesh._gmsh import millimetre_hint
+
         thin = min(size)
-        mm = h >= 1.0 and h * 1e-3 <= thin / 1.5
-        hint = f"the size is in metres (for {h:g} mm write {h * 1e-3:g}); " if mm else ""
         raise MeshError(
             f"{what} mesh_size {h:.4g} m leaves fewer than two cells across its thinnest edge "
-            f"({thin * 1e3:.3g} mm); {hint}use mesh_size <= {thin / 1.5:.3g} m"
+            f"({thin * 1e3:.3g} mm); {millimetre_hint(h, thin / 1.5)}use mesh_size <= {thin / 1.5:.3g} m"
         )
     return cells
 

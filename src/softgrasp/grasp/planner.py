@@ -563,9 +563,9 @@ def closing_setup(body: Body, cfg: PlanConfig, cache: SolverCache | None = None)
     """Settle ``body`` on the table, choose (or take ``cfg.grasp``) the initial grasp the hand
     reaches, and lay the fingertips' closing lines (paper step 1)."""
     cache = cache if cache is not None else SolverCache()
-    before = cache.stats.get("systems", 0)
+    before = cache.stats["systems"]
     settled, table, placed = _settle(body, cfg, cache)
-    cache.stats["settle_systems"] = cache.stats.get("systems", 0) - before
+    cache.stats["settle_systems"] = cache.stats["systems"] - before
     xs = settled.x
     ig, placement = _initial_grasp(body, xs, _com(body, xs), cfg)
     start, u, reach = _start_centres(ig, cfg)
@@ -785,9 +785,9 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None
     t_final, extra = t_hi, cfg.step / 2**cfg.refine
 
     def check_hold(t: float) -> tuple[State, FingertipContact, float] | str:
-        before = cache.stats.get("systems", 0)
+        before = cache.stats["systems"]
         out = _check_hold(body, table, fc, state, t, cfg, cache)
-        cache.stats["hold_check_systems"] += cache.stats.get("systems", 0) - before
+        cache.stats["hold_check_systems"] += cache.stats["systems"] - before
         return out
 
     cache.stats["hold_check_systems"] = 0
@@ -871,7 +871,7 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None
         ),
         solver_stats=dict(
             cache.stats,
-            closing_systems=cache.stats.get("systems", 0)
+            closing_systems=cache.stats["systems"]
             - cache.stats["settle_systems"]
             - cache.stats["hold_check_systems"],
         ),

@@ -176,6 +176,14 @@ def tet_mesh_from_model(gmsh: ModuleType, name: str) -> TetMesh:
     return TetMesh(points, tets, reorient=True, name=name).reordered()
 
 
+def millimetre_hint(h: float, largest: float) -> str:
+    """The clause pointing out that a refused mesh size ``h`` [m] reads as millimetres, where that
+    reading (``h`` / 1000) would be accepted (at most ``largest`` [m]); empty otherwise."""
+    if h >= 1.0 and h * 1e-3 <= largest:
+        return f"the size is in metres (for {h:g} mm write {h * 1e-3:g}); "
+    return ""
+
+
 def check_mesh_size(mesh_size: float, volume: float, what: str, extent: float | None = None) -> float:
     """Validate a mesh size [m] against the tet budget for a solid of ``volume`` [m^3] and, given
     the solid's smallest ``extent`` [m] (its thinnest dimension), against the coarsest mesh that
@@ -204,11 +212,7 @@ def check_mesh_size(mesh_size: float, volume: float, what: str, extent: float | 
         raise MeshError(
             f"{what} mesh_size {h:.4g} m is coarser than half the object's thinnest dimension "
             f"({extent * 1e3:.3g} mm): fewer than two elements across it, forces that mean nothing; "
-            + (
-                f"the size is in metres (for {h:g} mm write {h * 1e-3:g}); "
-                if h >= 1.0 and h * 1e-3 <= 0.5 * extent
-                else ""
-            )
+            + millimetre_hint(h, 0.5 * extent)
             + f"use mesh_size <= {0.5 * extent:.3g} m"
         )
     expected = _TETS_PER_H3 * volume / h**3

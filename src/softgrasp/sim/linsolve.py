@@ -316,7 +316,7 @@ class _Multigrid:
     def matvec(self, r: NDArray[np.float64]) -> NDArray[np.float64]:
         """One V-cycle from zero on ``r``."""
         if self.stats is not None:
-            self.stats["multigrid_cycles"] = self.stats.get("multigrid_cycles", 0) + 1
+            self.stats["multigrid_cycles"] += 1
         return self._cycle(0, np.asarray(r, dtype=np.float64))
 
     __matmul__ = matvec
@@ -353,7 +353,7 @@ def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCach
     ml = cache._ml
     if not (isinstance(ml, _Multigrid) and ml.fits(A)):
         ml = cache._ml = _Multigrid(A, x_nodes)
-        cache.stats["multigrid_setups"] = cache.stats.get("multigrid_setups", 0) + 1
+        cache.stats["multigrid_setups"] += 1
     ml.stats = cache.stats
     ml.use(A, pardiso.choose_threads() if A.shape[0] >= MULTIGRID_THREADS_MIN_DOF else 1)
     return ml
@@ -890,7 +890,7 @@ def solve_newton_system(
         raise ValueError(f"unknown linear solver {cache.method!r}")
     if cache.precision not in ("mixed", "double"):
         raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
-    cache.stats["systems"] = cache.stats.get("systems", 0) + 1
+    cache.stats["systems"] += 1
     # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
     # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
     use_pardiso = C is None and (

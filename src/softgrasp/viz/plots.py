@@ -256,9 +256,9 @@ def plot_plan_forces(
         colour, marker = _finger_style(i)
         label = name if held is None else f"{name} (set-point {held[i]:.3g} N)"
         ax.plot(x, f[:, i], marker=marker, ms=4.0, lw=1.6, color=colour, label=label)
-        if held is not None and len(x):
-            ax.plot([x[-1], x_held], [f[-1, i], held[i]], lw=1.0, ls=":", color=colour)
         if held is not None:
+            if len(x):
+                ax.plot([x[-1], x_held], [f[-1, i], held[i]], lw=1.0, ls=":", color=colour)
             ax.plot([x_held], [held[i]], marker="*", ms=11.0, color=colour, ls="none")
     if np.all(x == np.round(x)):
         from matplotlib.ticker import MaxNLocator
