@@ -129,6 +129,8 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     (l1 hybrid sweeps forward before the coarse correction, backward after); and the same
     hierarchy and cycle, to the bit, whatever the thread count and from one build to the next
     (pyamg's random start seeded, the caller's generator left as it was)."""
+    from softgrasp.kernels.sparse import BlockGaussSeidel
+
     A, x_nodes = _cube_system(12, local=True)
     rng = np.random.default_rng(5)
     u, v = rng.standard_normal((2, A.shape[0]))
@@ -139,7 +141,8 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
         M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
     after = np.random.get_state()
     assert np.array_equal(after[1], state[1]) and after[2:] == state[2:]
-    assert len(M.ml.levels) == 3 and M._smoother.parts == 2  # the coarse recursion, two blocks
+    assert len(M.ml.levels) == 3 and M._sweeps[0].parts == 2  # the coarse recursion, two blocks
+    assert isinstance(M._sweeps[1], BlockGaussSeidel)  # the second level's 6 x 6 block sweeps
     Mu, Mv = M @ u, M @ v
     assert abs(u @ Mv - v @ Mu) <= 1e-12 * np.linalg.norm(u) * np.linalg.norm(Mv)
     results = []
@@ -192,3 +195,146 @@ def test_a_matrix_not_numbered_for_locality_is_swept_as_one_block():
     sweeps.sweep(got, b, forward=True)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
     assert HybridGaussSeidel(_cube_system(8, local=True)[0]).parts == SWEEP_PARTS
+
+
+def _random_bsr(rows: int, cols: int, blocksize: tuple[int, int], seed: int) -> sp.bsr_matrix:
+    """A random BSR matrix of ``rows`` x ``cols`` blocks (about a fifth of them present)."""
+    rng = np.random.default_rng(seed)
+    r, c = blocksize
+    pattern = sp.random(rows, cols, density=0.2, random_state=seed, format="csr")
+    pattern.data[:] = 1.0
+    blocks = sp.kron(pattern, np.ones((r, c)), format="csr")
+    blocks.data = rng.standard_normal(blocks.nnz)
+    return blocks.tobsr(blocksize=blocksize)
+
+
+@pytest.mark.parametrize("blocksize", [(6, 6), (6, 1), (1, 6)])
+def test_the_block_products_are_scipys_and_the_same_bits_on_one_thread_or_two(blocksize):
+    """The BSR products of the multigrid hierarchy's block shapes against SciPy's product, and
+    the same to the bit on one thread or two; other shapes and formats get the CSR product."""
+    from softgrasp.kernels.sparse import BsrProduct, CsrProduct, product
+
+    A = _random_bsr(40, 30, blocksize, seed=sum(blocksize))
+    x = np.random.default_rng(11).standard_normal(A.shape[1])
+    op = product(A)
+    assert isinstance(op, BsrProduct)
+    want = A @ x
+    got = []
+    for threads in (1, 2):
+        op.threads = threads
+        got.append(op @ x)
+    np.testing.assert_allclose(got[0], want, rtol=0, atol=1e-13 * np.abs(want).max())
+    assert np.array_equal(got[0], got[1])
+    assert isinstance(product(A.tocsr()), CsrProduct)
+    assert isinstance(product(_random_bsr(10, 10, (3, 3), seed=1)), CsrProduct)
+    with pytest.raises(ValueError, match="a block product needs"):
+        BsrProduct(_random_bsr(10, 10, (3, 3), seed=1))
+    with pytest.raises(ValueError, match="times a vector of shape"):
+        op @ np.ones(A.shape[1] + 1)
+
+
+def test_the_block_sweeps_are_pyamgs_block_gauss_seidel_and_converge():
+    """A forward and a backward sweep of the 6 x 6 block Gauss-Seidel against pyamg's
+    ``block_gauss_seidel`` (to round-off); repeated symmetric sweeps on a symmetric positive
+    definite matrix reduce the error's energy norm every time (block Gauss-Seidel converges for
+    such matrices) to the solution of the system solved directly."""
+    from pyamg.relaxation.relaxation import block_gauss_seidel
+
+    from softgrasp.kernels.sparse import BlockGaussSeidel
+
+    rng = np.random.default_rng(12)
+    G = _random_bsr(25, 25, (6, 6), seed=3).tocsr()
+    A = (G @ G.T + 5.0 * sp.eye(G.shape[0])).tobsr(blocksize=(6, 6))
+    b = rng.standard_normal(A.shape[0])
+    x0 = rng.standard_normal(A.shape[0])
+    sweeps = BlockGaussSeidel(A)
+    for forward in (True, False):
+        want = x0.copy()
+        block_gauss_seidel(A, want, b, iterations=1, sweep="forward" if forward else "backward", blocksize=6)
+        got = x0.copy()
+        sweeps.sweep(got, b, forward=forward)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    exact = sp.linalg.spsolve(A.tocsc(), b)
+    x = np.zeros_like(b)
+    errors = [float((x - exact) @ (A @ (x - exact)))]
+    for k in range(400):
+        sweeps.sweep(x, b, forward=k % 2 == 0)
+        errors.append(float((x - exact) @ (A @ (x - exact))))
+    assert all(e1 < e0 for e0, e1 in zip(errors[:100], errors[1:101], strict=True)), errors[:5]
+    assert errors[-1] <= 1e-20 * errors[0]
+    with pytest.raises(ValueError, match="6 x 6 blocks"):
+        BlockGaussSeidel(A.tocsr())
+    with pytest.raises(ValueError, match="contiguous float64"):
+        sweeps.sweep(np.zeros(A.shape[0], dtype=np.float32), b, forward=True)
+
+
+def _block_hybrid_matrix(A: np.ndarray, parts: int, forward: bool) -> np.ndarray:
+    """M of one node-block hybrid sweep x <- x + M^-1 (b - A x), from its definition: the 3 x 3
+    block lower (forward) or upper (backward) triangle, diagonal blocks included, within each part
+    of the block rows, plus each row's l1 term (its entries' |a| in the other parts' blocks) on the
+    diagonal."""
+    n = len(A)
+    nb = n // 3
+    part = np.searchsorted([p * nb // parts for p in range(1, parts)], np.arange(nb), side="right")
+    node = np.arange(n) // 3
+    same = part[node][:, None] == part[node][None, :]
+    order = node[:, None] >= node[None, :] if forward else node[:, None] <= node[None, :]
+    M = np.where(same & order, A, 0.0)
+    return M + np.diag(np.where(same, 0.0, np.abs(A)).sum(axis=1))
+
+
+def test_node_block_sweeps_and_products_are_their_definition_and_the_same_bits_on_one_thread_or_two():
+    """A body's Newton matrix (the foam cube on its table, numbered for locality; SciPy's sums
+    dropped the exact zeros of its axis-aligned springs) is read as 3 x 3 node blocks: the blocks
+    are SciPy's own BSR conversion, the product is SciPy's, and a forward
+    or backward sweep is x + M^-1 (b - A x) with M the block hybrid splitting plus the l1 term,
+    solved densely; the same bits on one thread or two; repeated symmetric sweeps converge (the
+    l1 term keeps M + M^T - A positive definite). A matrix that is not made of full node blocks
+    keeps the row-wise sweeps."""
+    from softgrasp.kernels.sparse import (
+        SWEEP_PARTS,
+        HybridBlockGaussSeidel,
+        HybridGaussSeidel,
+        fine_smoother,
+        node_blocks,
+    )
+
+    A, _ = _cube_system(5, local=True)
+    blocks = node_blocks(A)
+    assert blocks is not None
+    want = A.tobsr(blocksize=(3, 3))
+    want.sort_indices()
+    assert np.array_equal(blocks[0], want.indptr) and np.array_equal(blocks[1], want.indices)
+    assert np.array_equal(blocks[2], want.data)
+    assert isinstance(fine_smoother(A, threads=2), HybridBlockGaussSeidel)
+    gs = HybridBlockGaussSeidel(A, blocks, threads=2, parts=SWEEP_PARTS)  # this small cube: 1 by default
+    rng = np.random.default_rng(13)
+    b, x0 = rng.standard_normal((2, A.shape[0]))
+    np.testing.assert_allclose(gs @ x0, A @ x0, rtol=0, atol=1e-13 * np.abs(A @ x0).max())
+    dense = A.toarray()
+    for forward in (True, False):
+        want = x0 + np.linalg.solve(_block_hybrid_matrix(dense, SWEEP_PARTS, forward), b - dense @ x0)
+        got = []
+        for threads in (1, 2):
+            gs.threads = threads
+            x = x0.copy()
+            gs.sweep(x, b, forward=forward)
+            got.append(x)
+        np.testing.assert_allclose(got[0], want, rtol=0, atol=1e-11 * np.abs(want).max())
+        assert np.array_equal(got[0], got[1])
+    M = _block_hybrid_matrix(dense, SWEEP_PARTS, True)
+    assert np.linalg.eigvalsh(M + M.T - dense).min() > 0
+    exact = np.linalg.solve(dense, b)
+    x = np.zeros_like(b)
+    errors = [float((x - exact) @ dense @ (x - exact))]
+    for k in range(60):
+        gs.sweep(x, b, forward=k % 2 == 0)
+        errors.append(float((x - exact) @ dense @ (x - exact)))
+    assert all(e1 < e0 for e0, e1 in zip(errors[:-1], errors[1:], strict=True)), errors[:5]
+    # A matrix of unknowns not in threes, or storing a sparse part of its node blocks (a
+    # diagonal), keeps the row-wise sweeps.
+    assert node_blocks(sp.eye(10, format="csr")) is None
+    assert node_blocks(sp.eye(9, format="csr")) is not None
+    assert type(fine_smoother(sp.eye(9, format="csr"))) is HybridGaussSeidel
+    with pytest.raises(ValueError, match="contiguous float64"):
+        gs.sweep(np.zeros(A.shape[0], dtype=np.float32), b, forward=True)

@@ -243,14 +243,24 @@ class _Multigrid:
     def __init__(self, A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> None:
         self.ml: Any = _hierarchy(A, x_nodes)
         levels = self.ml.levels
-        product = _product_type()
-        self._A = [product(level.A) for level in levels[:-1]]
-        self._R = [product(level.R) for level in levels[:-1]]
-        self._P = [product(level.P) for level in levels[:-1]]
+        self._A = [_product(level.A) for level in levels[:-1]]
+        self._R = [_product(level.R) for level in levels[:-1]]
+        self._P = [_product(level.P) for level in levels[:-1]]
         for level in levels[:-1]:
-            # The products above hold the transfers (as CSR); pyamg's own cycle is not used.
+            # The products above hold the transfers; pyamg's own cycle is not used.
             level.R = level.P = None
-        self._smoother: Any = None  # the finest level's sweeps (compiled kernels only)
+        # Each level's sweeps where softgrasp's compiled kernels make them (None: pyamg's), set by
+        # use(): the finest level's l1 hybrid Gauss-Seidel, the coarse levels' block Gauss-Seidel
+        # (6 x 6 blocks), made here.
+        self._sweeps: list[Any] = [None] * (len(levels) - 1)
+        self._coarse_sweeps: list[Any] = [None] * (len(levels) - 1)
+        if _compiled():
+            from softgrasp.kernels.sparse import BLOCK, BlockGaussSeidel
+
+            for lvl in range(1, len(levels) - 1):
+                Ak = levels[lvl].A
+                if sp.issparse(Ak) and Ak.format == "bsr" and tuple(Ak.blocksize) == (BLOCK, BLOCK):
+                    self._coarse_sweeps[lvl] = self._A[lvl] = BlockGaussSeidel(Ak)
         self.stats: dict[str, int] | None = None  # where the cycles are counted (a cache's stats)
 
     def fits(self, A: sp.csr_matrix) -> bool:
@@ -263,12 +273,12 @@ class _Multigrid:
         from softgrasp.kernels import compiled
 
         if compiled():
-            from softgrasp.kernels.sparse import HybridGaussSeidel
+            from softgrasp.kernels.sparse import fine_smoother
 
             # The finest level's sweeps, and its products.
-            self._smoother = self._fine = HybridGaussSeidel(A, threads)
+            self._fine = fine_smoother(A, threads)
         else:
-            self._smoother, self._fine = None, _ScipyProduct(A)
+            self._fine = _ScipyProduct(A)
         if len(self.ml.levels) == 1:
             # A matrix no larger than the coarsest level's limit is its own coarsest level: its
             # factorisation (made at the first solve) must be the new matrix's.
@@ -277,6 +287,7 @@ class _Multigrid:
             self.ml.coarse_solver = coarse_grid_solver("splu")
             return
         self._A[0] = self._fine
+        self._sweeps = [self._fine, *self._coarse_sweeps[1:]] if compiled() else [None] * len(self._sweeps)
         for op in (*self._A, *self._R, *self._P):
             op.threads = threads
 
@@ -287,7 +298,7 @@ class _Multigrid:
 
     def product(self, A: sp.csr_matrix) -> Any:
         """``A`` as a product on the threads of this one's."""
-        op = _product_type()(A)
+        op = _product(A)
         op.threads = self._fine.threads
         return op
 
@@ -296,9 +307,9 @@ class _Multigrid:
             return np.asarray(self.ml.coarse_solver(self.ml.levels[0].A, b), dtype=np.float64)
         level = self.ml.levels[lvl]
         x = np.zeros_like(b)
-        fine = lvl == 0 and self._smoother is not None
-        if fine:
-            self._smoother.sweep(x, b, forward=True)
+        sweeps = self._sweeps[lvl]
+        if sweeps is not None:
+            sweeps.sweep(x, b, forward=True)
         else:
             level.presmoother(level.A, x, b)
         coarse_b = self._R[lvl] @ (b - self._A[lvl] @ x)
@@ -307,8 +318,8 @@ class _Multigrid:
         else:
             coarse_x = self._cycle(lvl + 1, coarse_b)
         x += self._P[lvl] @ coarse_x
-        if fine:
-            self._smoother.sweep(x, b, forward=False)
+        if sweeps is not None:
+            sweeps.sweep(x, b, forward=False)
         else:
             level.postsmoother(level.A, x, b)
         return x
@@ -335,14 +346,21 @@ class _ScipyProduct:
         return np.asarray(self.A @ x)
 
 
-def _product_type() -> Any:
+def _compiled() -> bool:
     from softgrasp.kernels import compiled
 
-    if compiled():
-        from softgrasp.kernels.sparse import CsrProduct
+    return bool(compiled())
 
-        return CsrProduct
-    return _ScipyProduct
+
+def _product(A: Any) -> Any:
+    """``A`` as a product: softgrasp's compiled one (by blocks where it has 6 x 6, 6 x 1 or 1 x 6
+    blocks, :func:`softgrasp.kernels.sparse.product`) where the compiled kernels are in use,
+    SciPy's otherwise."""
+    if _compiled():
+        from softgrasp.kernels.sparse import product
+
+        return product(A)
+    return _ScipyProduct(A)
 
 
 def _multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCache) -> _Multigrid:
