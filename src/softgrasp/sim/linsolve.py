@@ -45,10 +45,12 @@ __all__ = ["SolverCache", "solve_newton_system", "DIRECT_MAX_DOF", "PARDISO_MAX_
 DIRECT_MAX_DOF = 1500
 #: Systems with at most this many unknowns are factorised by PARDISO where MKL is installed
 #: (beyond, the factor's memory and time grow faster than multigrid's). Default plans measured
-#: alternately: 15 662 nodes (46 986 unknowns) 14.8 s and 600 MB on PARDISO, 14.7-15.4 s and
-#: 490 MB on multigrid; 18 233 nodes (54 699) 13.6-15.0 s and 997 MB against 11.4-11.5 s and
-#: 545 MB; 11 874 nodes: PARDISO faster (13.1-14.1 against 17.0-18.6 s).
-PARDISO_MAX_DOF = 50_000
+#: alternately on the V-cycle by blocks (`softgrasp.kernels.sparse`): 7 576 nodes (22 728
+#: unknowns) 4.6-5.2 s on PARDISO, 4.6-4.8 s on multigrid (the same 41 systems); 11 874 nodes
+#: 15.6-16.0 s and 520 MB against 12.5-12.7 s and 445 MB; 15 662 nodes 12.5-13.5 s and 624 MB
+#: against 8.5-9.3 s and 519 MB. Below, PARDISO: 4 498 nodes 3.0 against 8.0 s (the multigrid
+#: path's settle took 41 Newton systems instead of 18).
+PARDISO_MAX_DOF = 30_000
 #: Relative residual of the conjugate-gradient iterations preconditioned by an earlier
 #: factorisation (the Newton iteration checks the true unbalanced forces; this only has to be
 #: well below its contraction).
