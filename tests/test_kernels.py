@@ -205,6 +205,39 @@ def test_body_backends_agree_without_damping_or_volume_term(config):
         assert _rel(a, b) < TOL
 
 
+def test_the_jacobian_assembly_groups_write_no_entry_in_common_and_any_thread_count_gives_the_same_bits(
+    config,
+):
+    """The compiled assembly's first two element groups (all nodes in the first half of the
+    numbers, all in the second) are summed side by side: every element is in exactly one group,
+    no CSR entry is written by both, and one thread or two give the same bits, equal to the
+    NumPy reference's Jacobian to round-off."""
+    mesh, x, _ = config
+    body = build_body(mesh.reordered(), Material(1e5, 0.45, 50.0, LAWS["polynomial"]))
+    x = np.asarray(body.mesh.points) * 1.01 + 1e-4 * np.sin(np.arange(3 * body.n_nodes)).reshape(-1, 3)
+    eo, eb, to, tb = elastic.assembly_partition(body.edges, body.mesh.tets, body.n_nodes)
+    assert np.array_equal(np.sort(eo), np.arange(len(body.edges)))
+    assert np.array_equal(np.sort(to), np.arange(len(body.mesh.tets)))
+    assert eb[1] > 0 and eb[2] > eb[1] and tb[1] > 0 and tb[2] > tb[1]  # both groups hold elements
+    pattern = body._jacobian_pattern
+    E = len(body.edges)
+    written = []
+    for g in (0, 1):
+        edges = eo[eb[g] : eb[g + 1]]
+        tets = to[tb[g] : tb[g + 1]]
+        blocks = np.concatenate(
+            [edges + q * E for q in range(4)] + [4 * E + 16 * tets + k for k in range(16)]
+        )
+        written.append(set(pattern.block_base[blocks].tolist()))  # a block's first entry marks it
+    assert not written[0] & written[1]
+    with kernels.use_backend("numba"):
+        one, two = body.internal_jacobian(x, threads=1), body.internal_jacobian(x, threads=2)
+    assert np.array_equal(one.data, two.data)
+    with kernels.use_backend("numpy"):
+        ref = body.internal_jacobian(x)
+    assert _rel(one, ref) < TOL
+
+
 def test_polynomial_coefficients_only_for_exact_types():
     assert elastic.polynomial_coefficients(Linear()) == (0.0, 0.0)
     assert elastic.polynomial_coefficients(Polynomial(a2=-0.4, a3=1.5)) == (-0.4, 1.5)

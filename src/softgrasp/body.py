@@ -158,9 +158,18 @@ class Body:
             rows, cols = np.concatenate([rows, vr]), np.concatenate([cols, vc])
         return BlockPattern(self.n_nodes, rows, cols)
 
-    def internal_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
+    @cached_property
+    def _assembly_partition(self) -> tuple:
+        """The elements in the compiled assembly's order
+        (:func:`softgrasp.kernels.elastic.assembly_partition`)."""
+        from softgrasp.kernels import elastic
+
+        return elastic.assembly_partition(self.edges, self.mesh.tets, self.n_nodes)
+
+    def internal_jacobian(self, x: NDArray[np.float64], threads: int = 1) -> sp.csr_matrix:
         """``d f_internal / d x`` (negative stiffness), sparse (3N, 3N), assembled into the body's
-        fixed sparsity pattern (the compiled kernels sum their blocks straight into its CSR data)."""
+        fixed sparsity pattern (the compiled kernels sum their blocks straight into its CSR data,
+        on up to ``threads`` threads: the same sums on any number)."""
         pattern = self._jacobian_pattern
         if kernels.compiled():
             from softgrasp.kernels import elastic
@@ -178,6 +187,8 @@ class Body:
                 pattern.block_base,
                 pattern.block_stride,
                 pattern.nnz,
+                self._assembly_partition,
+                threads,
             )
             return pattern.matrix(data)
         blocks = spring_jacobian_blocks(x, self.edges, self.rest_length, self.stiffness, self.material.law)

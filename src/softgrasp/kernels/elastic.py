@@ -37,6 +37,7 @@ __all__ = [
     "internal_forces",
     "internal_energy",
     "internal_jacobian_data",
+    "assembly_partition",
     "count_inverted",
 ]
 
@@ -136,13 +137,16 @@ def _springs_tension(x, v, edges, L, T, c, damped, out):  # pragma: no cover - c
 
 
 @_jit
-def _spring_blocks(x, edges, L, T, dT, psd, base, stride, use_pos, offset, out):  # pragma: no cover
+def _spring_blocks(
+    x, edges, L, T, dT, psd, base, stride, use_pos, offset, out, order, lo, hi
+):  # pragma: no cover
     """Add the blocks ``[K, K, -K, -K]`` of each edge (K = d f0 / d x1) to ``out``: entry
     (r, c) of block B = offset + (e, E + e, 2E + e, 3E + e) at ``base[B] + r stride[B] + c``
     (a :class:`softgrasp.forces.BlockPattern`'s CSR data), or at ``9 B + 3 r + c`` when
-    ``use_pos`` is false."""
+    ``use_pos`` is false. The edges ``order[lo:hi]`` (``lo:hi`` where ``order`` is empty)."""
     E = edges.shape[0]
-    for e in range(E):
+    for idx in range(lo, hi):
+        e = order[idx] if order.shape[0] else idx
         i = edges[e, 0]
         j = edges[e, 1]
         Le = L[e]
@@ -239,15 +243,19 @@ def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, ou
 
 
 @_jit
-def _volume_blocks(x, tets, rest, kappa, barrier, base, stride, use_pos, offset, out):  # pragma: no cover
-    """Add the 16 blocks ``-d^2 (kappa V0 psi) / d x_a d x_b`` of every tet to ``out``: block
-    B = offset + 16 t + 4 a + b (a, b local node indices), placed as in :func:`_spring_blocks`."""
+def _volume_blocks(
+    x, tets, rest, kappa, barrier, base, stride, use_pos, offset, out, order, lo, hi
+):  # pragma: no cover
+    """Add the 16 blocks ``-d^2 (kappa V0 psi) / d x_a d x_b`` of the tets ``order[lo:hi]``
+    (``lo:hi`` where ``order`` is empty) to ``out``: block B = offset + 16 t + 4 a + b (a, b local
+    node indices), placed as in :func:`_spring_blocks`."""
     g = np.empty((4, 3))
     w = np.empty((4, 4, 3))  # d^2 V / d x_a d x_b = skew(w[a, b]) / 6
     one = np.uint64(1)
     two = np.uint64(2)
     av = np.empty((4, 3))  # av[1..3] = a1..a3
-    for t in range(tets.shape[0]):
+    for idx in range(lo, hi):
+        t = order[idx] if order.shape[0] else idx
         n0 = np.uint64(tets[t, 0])
         for m in range(1, 4):
             nm = np.uint64(tets[t, m])
@@ -324,6 +332,7 @@ def _volume_blocks(x, tets, rest, kappa, barrier, base, stride, use_pos, offset,
 
 # ---------------------------------------------------------------------------------- wrappers
 _NO_POS = np.zeros(1, dtype=np.int64)
+_NO_ORDER = np.zeros(0, dtype=np.int64)  # the elements in their own order
 
 
 def _f64(a: Array) -> Array:
@@ -475,7 +484,9 @@ def spring_jacobian_blocks(
     x, edges = _f64(x), _i64(edges)
     L, T, dT = _law_tensions(x, edges, _f64(rest_length), _f64(stiffness), law)
     out = np.zeros(36 * edges.shape[0])
-    _spring_blocks(x, edges, L, T, dT, bool(psd), _NO_POS, _NO_POS, False, 0, out)
+    _spring_blocks(
+        x, edges, L, T, dT, bool(psd), _NO_POS, _NO_POS, False, 0, out, _NO_ORDER, 0, edges.shape[0]
+    )
     return out.reshape(-1, 3, 3)
 
 
@@ -484,8 +495,21 @@ def volume_jacobian_blocks(
 ) -> Array:
     """Compiled :func:`softgrasp.forces.volume_jacobian_blocks`, (16M, 3, 3)."""
     out = np.zeros(144 * tets.shape[0])
+    tets = _i64(tets)
     _volume_blocks(
-        _f64(x), _i64(tets), _f64(rest_volume), float(kappa), bool(barrier), _NO_POS, _NO_POS, False, 0, out
+        _f64(x),
+        tets,
+        _f64(rest_volume),
+        float(kappa),
+        bool(barrier),
+        _NO_POS,
+        _NO_POS,
+        False,
+        0,
+        out,
+        _NO_ORDER,
+        0,
+        tets.shape[0],
     )
     return out.reshape(-1, 3, 3)
 
@@ -534,6 +558,50 @@ def internal_energy(
     return e
 
 
+def assembly_partition(
+    edges: IntArray, tets: IntArray, n_nodes: int
+) -> tuple[IntArray, IntArray, IntArray, IntArray]:
+    """The edges and tets in the order :func:`internal_jacobian_data` sums them: those whose
+    nodes all lie in the first half of the node numbers, then those all in the second half (two
+    groups that write no Jacobian block in common: one thread each), then the rest.
+
+    Returns
+    -------
+    (edge order (E,), its group bounds (4,), tet order (M,), its group bounds (4,)).
+    """
+
+    def split(elements: IntArray) -> tuple[IntArray, IntArray]:
+        half = n_nodes // 2
+        low = (elements < half).all(axis=1)
+        high = (elements >= half).all(axis=1)
+        groups = [np.flatnonzero(low), np.flatnonzero(high), np.flatnonzero(~(low | high))]
+        bounds = np.cumsum([0] + [len(g) for g in groups]).astype(np.int64)
+        return np.concatenate(groups).astype(np.int64), bounds
+
+    eo, eb = split(np.asarray(edges))
+    to, tb = split(np.asarray(tets))
+    return eo, eb, to, tb
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy", parallel=True)
+def _jacobian_groups(
+    x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb
+):  # pragma: no cover - compiled
+    """The spring then volume-term blocks of :func:`assembly_partition`'s first two groups side by
+    side (they write no entry in common), then those of the third; the same sums on any number of
+    threads."""
+    offset = 4 * edges.shape[0]
+    for p in numba.prange(2):
+        _spring_blocks(x, edges, L, T, dT, False, base, stride, True, 0, out, eo, eb[p], eb[p + 1])
+        if kappa != 0.0:
+            _volume_blocks(
+                x, tets, rest, kappa, barrier, base, stride, True, offset, out, to, tb[p], tb[p + 1]
+            )
+    _spring_blocks(x, edges, L, T, dT, False, base, stride, True, 0, out, eo, eb[2], eb[3])
+    if kappa != 0.0:
+        _volume_blocks(x, tets, rest, kappa, barrier, base, stride, True, offset, out, to, tb[2], tb[3])
+
+
 def internal_jacobian_data(
     x: Array,
     edges: IntArray,
@@ -547,28 +615,37 @@ def internal_jacobian_data(
     block_base: IntArray,
     block_stride: IntArray,
     nnz: int,
+    partition: tuple | None = None,
+    threads: int = 1,
 ) -> Array:
     """CSR data (nnz,) of ``d f_internal / d x``: the spring blocks (then the volume term's, if
     kappa != 0) summed straight into the entries of a :class:`softgrasp.forces.BlockPattern`
     built on :func:`softgrasp.forces.spring_pairs` (then :func:`softgrasp.forces.volume_pairs`)
-    (its ``block_base`` and ``block_stride``), without forming the blocks."""
-    x, edges = _f64(x), _i64(edges)
+    (its ``block_base`` and ``block_stride``), without forming the blocks; in the order of
+    ``partition`` (:func:`assembly_partition`, computed here when None), its first two groups on
+    ``threads`` threads (the result does not depend on it)."""
+    from softgrasp.kernels.sparse import _Threads
+
+    x, edges, tets = _f64(x), _i64(edges), _i64(tets)
     block_base, block_stride = _i64(block_base), _i64(block_stride)
+    if partition is None:
+        partition = assembly_partition(edges, tets, x.shape[0])
     data = np.zeros(nnz)
     L, T, dT = _law_tensions(x, edges, _f64(rest_length), _f64(stiffness), law)
-    _spring_blocks(x, edges, L, T, dT, False, block_base, block_stride, True, 0, data)
-    if kappa != 0.0:
-        offset = 4 * edges.shape[0]
-        _volume_blocks(
+    with _Threads(threads):
+        _jacobian_groups(
             x,
-            _i64(tets),
+            edges,
+            L,
+            T,
+            dT,
+            tets,
             _f64(rest_volume),
             float(kappa),
             bool(barrier),
             block_base,
             block_stride,
-            True,
-            offset,
             data,
+            *partition,
         )
     return data

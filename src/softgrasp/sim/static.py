@@ -27,7 +27,13 @@ from softgrasp.body import Body
 from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.mesh.tetmesh import signed_volumes
 from softgrasp.sim import pardiso
-from softgrasp.sim.linsolve import _SINGULAR, SolverCache, _rigid_motion_free, solve_newton_system
+from softgrasp.sim.linsolve import (
+    _SINGULAR,
+    MULTIGRID_THREADS_MIN_DOF,
+    SolverCache,
+    _rigid_motion_free,
+    solve_newton_system,
+)
 from softgrasp.sim.scene import Scene, State
 
 #: Newton's progress at DEBUG level: each iteration's unbalanced force and accepted step, each friction pass.
@@ -219,7 +225,9 @@ def _newton_matrix(
     forces along v. (A Newton iteration with the symmetrised matrix converges only linearly,
     about tenfold per iteration; with the exact product, quadratically.)"""
     body = scene.body
-    J = body.internal_jacobian(x)  # in the body's fixed pattern, its data freshly computed
+    # In the body's fixed pattern, its data freshly computed; on the idle cores for a large body.
+    threads = pardiso.choose_threads() if 3 * body.n_nodes >= MULTIGRID_THREADS_MIN_DOF else 1
+    J = body.internal_jacobian(x, threads=threads)
     pat = _body_pattern(body)
     data = J.data
     approx = []
