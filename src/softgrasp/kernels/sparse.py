@@ -17,6 +17,7 @@ threads 1.05-1.12 ms.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
@@ -70,16 +71,30 @@ class CsrProduct:
         self._data = np.ascontiguousarray(A.data, dtype=np.float64)
 
     def __matmul__(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        if np.shape(x) != (self.shape[1],):
-            raise ValueError(f"a {self.shape} matrix times a vector of shape {np.shape(x)}")
-        out = np.empty(self.shape[0])
-        with _Threads(self.threads):
-            _csr_matvec(
-                self._indptr, self._indices, self._data, np.ascontiguousarray(x, dtype=np.float64), out
-            )
-        return out
+        return _apply(self, _csr_matvec, x)
 
     matvec = __matmul__
+
+
+def _apply(op: Any, kernel: Any, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``op``'s product with ``x`` by the compiled ``kernel`` on its arrays and threads."""
+    if np.shape(x) != (op.shape[1],):
+        raise ValueError(f"a {op.shape} matrix times a vector of shape {np.shape(x)}")
+    out = np.empty(op.shape[0])
+    with _Threads(op.threads):
+        kernel(op._indptr, op._indices, op._data, np.ascontiguousarray(x, dtype=np.float64), out)
+    return out
+
+
+def _sweep_rhs(shape: tuple[int, int], x: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``b`` for a sweep updating ``x`` in place on a ``shape`` matrix: checked, contiguous float64,
+    copied where it shares ``x``'s memory."""
+    if x.shape != (shape[0],) or np.shape(b) != x.shape:
+        raise ValueError(f"a sweep on {shape} needs x and b of length {shape[0]}")
+    if x.dtype != np.float64 or not x.flags.c_contiguous:
+        raise ValueError("a sweep updates x in place: it must be a contiguous float64 array")
+    b = np.ascontiguousarray(b, dtype=np.float64)
+    return b.copy() if np.shares_memory(b, x) else b
 
 
 class _Threads:
@@ -162,6 +177,36 @@ def _hybrid_sweep(indptr, indices, data, dinv, x, b, x_old, parts, forward):  # 
                 i -= one
 
 
+def _l1_parts(op: Any, kernel: Any, parts: int | None) -> int:
+    """Fill ``op.inverse_diagonal`` by ``kernel`` (the l1 inverse diagonal, rows or node blocks) for
+    ``parts`` parts, or for None :data:`SWEEP_PARTS`, or 1 where more than
+    :data:`MAX_CROSS_FRACTION` of ``op.A``'s entries would couple them; returns the parts used."""
+    n = SWEEP_PARTS if parts is None else max(1, int(parts))
+    cross = np.zeros(n, dtype=np.int64)
+    with _Threads(op.threads):
+        kernel(op._indptr, op._indices, op._data, n, op.inverse_diagonal, cross)
+        if parts is None and cross.sum() > MAX_CROSS_FRACTION * max(op.A.nnz, 1):
+            n = 1
+            kernel(op._indptr, op._indices, op._data, n, op.inverse_diagonal, cross[:1])
+    return n
+
+
+def _hybrid(op: Any, kernel: Any, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
+    """One hybrid sweep of ``op`` (its l1 inverse diagonal and parts) on ``x`` by ``kernel``."""
+    with _Threads(op.threads):
+        kernel(
+            op._indptr,
+            op._indices,
+            op._data,
+            op.inverse_diagonal,
+            x,
+            b,
+            x.copy() if op.parts > 1 else x,  # one part reads no other part's values
+            op.parts,
+            forward,
+        )
+
+
 class HybridGaussSeidel(CsrProduct):
     """l1 hybrid Gauss-Seidel sweeps on a CSR matrix A (and, as a :class:`CsrProduct`, its
     products) (Baker, Falgout, Kolev and Yang, "Multigrid
@@ -187,41 +232,12 @@ class HybridGaussSeidel(CsrProduct):
         """``parts``: the row blocks; None: :data:`SWEEP_PARTS`, or 1 where more than
         :data:`MAX_CROSS_FRACTION` of the entries would couple them."""
         super().__init__(A, threads)
-        A = self.A
-        self.inverse_diagonal = np.empty(A.shape[0])
-        self.parts = SWEEP_PARTS if parts is None else max(1, int(parts))
-        cross = np.zeros(self.parts, dtype=np.int64)
-        with _Threads(threads):
-            _l1_inverse_diagonal(
-                self._indptr, self._indices, self._data, self.parts, self.inverse_diagonal, cross
-            )
-            if parts is None and cross.sum() > MAX_CROSS_FRACTION * max(A.nnz, 1):
-                self.parts = 1
-                _l1_inverse_diagonal(
-                    self._indptr, self._indices, self._data, self.parts, self.inverse_diagonal, cross
-                )
+        self.inverse_diagonal = np.empty(self.A.shape[0])
+        self.parts = _l1_parts(self, _l1_inverse_diagonal, parts)
 
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""
-        if x.shape != (self.A.shape[0],) or np.shape(b) != x.shape:
-            raise ValueError(f"a sweep on {self.A.shape} needs x and b of length {self.A.shape[0]}")
-        if x.dtype != np.float64 or not x.flags.c_contiguous:
-            raise ValueError("a sweep updates x in place: it must be a contiguous float64 array")
-        b = np.ascontiguousarray(b, dtype=np.float64)
-        if np.shares_memory(b, x):
-            b = b.copy()
-        with _Threads(self.threads):
-            _hybrid_sweep(
-                self._indptr,
-                self._indices,
-                self._data,
-                self.inverse_diagonal,
-                x,
-                b,
-                x.copy() if self.parts > 1 else x,  # one block reads no other block's values
-                self.parts,
-                forward,
-            )
+        _hybrid(self, _hybrid_sweep, x, _sweep_rhs(self.shape, x, b), forward)
 
 
 # Block kernels
@@ -234,6 +250,17 @@ class HybridGaussSeidel(CsrProduct):
 # (pyamg's block Gauss-Seidel) or on the matrix as CSR.
 #: The block size of the block kernels (the rigid-body modes of a 3D body).
 BLOCK = 6
+
+
+@_bjit
+def _store6(out, o, s0, s1, s2, s3, s4, s5):  # pragma: no cover - compiled
+    """out[o:o + 6] = s0..s5 (``o`` unsigned)."""
+    out[o] = s0
+    out[o + np.uint64(1)] = s1
+    out[o + np.uint64(2)] = s2
+    out[o + np.uint64(3)] = s3
+    out[o + np.uint64(4)] = s4
+    out[o + np.uint64(5)] = s5
 
 
 @_bpjit
@@ -253,13 +280,7 @@ def _bsr66_matvec(indptr, indices, data, x, out):  # pragma: no cover - compiled
                 s3 += data[k, 3, c] * xc
                 s4 += data[k, 4, c] * xc
                 s5 += data[k, 5, c] * xc
-        o = six * i
-        out[o] = s0
-        out[o + np.uint64(1)] = s1
-        out[o + np.uint64(2)] = s2
-        out[o + np.uint64(3)] = s3
-        out[o + np.uint64(4)] = s4
-        out[o + np.uint64(5)] = s5
+        _store6(out, six * i, s0, s1, s2, s3, s4, s5)
 
 
 @_bpjit
@@ -277,13 +298,7 @@ def _bsr61_matvec(indptr, indices, data, x, out):  # pragma: no cover - compiled
             s3 += data[k, 3, 0] * xc
             s4 += data[k, 4, 0] * xc
             s5 += data[k, 5, 0] * xc
-        o = six * i
-        out[o] = s0
-        out[o + np.uint64(1)] = s1
-        out[o + np.uint64(2)] = s2
-        out[o + np.uint64(3)] = s3
-        out[o + np.uint64(4)] = s4
-        out[o + np.uint64(5)] = s5
+        _store6(out, six * i, s0, s1, s2, s3, s4, s5)
 
 
 @_bpjit
@@ -322,14 +337,7 @@ class BsrProduct:
         self._data = np.ascontiguousarray(A.data, dtype=np.float64)
 
     def __matmul__(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        if np.shape(x) != (self.shape[1],):
-            raise ValueError(f"a {self.shape} matrix times a vector of shape {np.shape(x)}")
-        out = np.empty(self.shape[0])
-        with _Threads(self.threads):
-            self._kernel(
-                self._indptr, self._indices, self._data, np.ascontiguousarray(x, dtype=np.float64), out
-            )
-        return out
+        return _apply(self, self._kernel, x)
 
     matvec = __matmul__
 
@@ -405,13 +413,7 @@ class BlockGaussSeidel(BsrProduct):
 
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""
-        if x.shape != (self.shape[0],) or np.shape(b) != x.shape:
-            raise ValueError(f"a sweep on {self.shape} needs x and b of length {self.shape[0]}")
-        if x.dtype != np.float64 or not x.flags.c_contiguous:
-            raise ValueError("a sweep updates x in place: it must be a contiguous float64 array")
-        b = np.ascontiguousarray(b, dtype=np.float64)
-        if np.shares_memory(b, x):
-            b = b.copy()
+        b = _sweep_rhs(self.shape, x, b)
         _block_sweep(self._indptr, self._indices, self._data, self.inverse_diagonal, x, b, forward)
 
 
@@ -622,53 +624,17 @@ class HybridBlockGaussSeidel:
         self.shape: tuple[int, int] = A.shape
         self.threads = threads
         self._indptr, self._indices, self._data = blocks
-        nb = self._indptr.shape[0] - 1
-        self.inverse_diagonal = np.empty((nb, 3, 3))
-        self.parts = SWEEP_PARTS if parts is None else max(1, int(parts))
-        cross = np.zeros(self.parts, dtype=np.int64)
-        with _Threads(threads):
-            _l1_block_inverse(
-                self._indptr, self._indices, self._data, self.parts, self.inverse_diagonal, cross
-            )
-            if parts is None and cross.sum() > MAX_CROSS_FRACTION * max(A.nnz, 1):
-                self.parts = 1
-                _l1_block_inverse(
-                    self._indptr, self._indices, self._data, self.parts, self.inverse_diagonal, cross
-                )
+        self.inverse_diagonal = np.empty((self._indptr.shape[0] - 1, 3, 3))
+        self.parts = _l1_parts(self, _l1_block_inverse, parts)
 
     def __matmul__(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        if np.shape(x) != (self.shape[1],):
-            raise ValueError(f"a {self.shape} matrix times a vector of shape {np.shape(x)}")
-        out = np.empty(self.shape[0])
-        with _Threads(self.threads):
-            _bsr33_matvec(
-                self._indptr, self._indices, self._data, np.ascontiguousarray(x, dtype=np.float64), out
-            )
-        return out
+        return _apply(self, _bsr33_matvec, x)
 
     matvec = __matmul__
 
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""
-        if x.shape != (self.shape[0],) or np.shape(b) != x.shape:
-            raise ValueError(f"a sweep on {self.shape} needs x and b of length {self.shape[0]}")
-        if x.dtype != np.float64 or not x.flags.c_contiguous:
-            raise ValueError("a sweep updates x in place: it must be a contiguous float64 array")
-        b = np.ascontiguousarray(b, dtype=np.float64)
-        if np.shares_memory(b, x):
-            b = b.copy()
-        with _Threads(self.threads):
-            _hybrid_block_sweep(
-                self._indptr,
-                self._indices,
-                self._data,
-                self.inverse_diagonal,
-                x,
-                b,
-                x.copy() if self.parts > 1 else x,
-                self.parts,
-                forward,
-            )
+        _hybrid(self, _hybrid_block_sweep, x, _sweep_rhs(self.shape, x, b), forward)
 
 
 def node_blocks(A: sp.spmatrix | sp.sparray) -> tuple | None:
