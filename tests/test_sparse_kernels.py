@@ -338,3 +338,33 @@ def test_node_block_sweeps_and_products_are_their_definition_and_the_same_bits_o
     assert type(fine_smoother(sp.eye(9, format="csr"))) is HybridGaussSeidel
     with pytest.raises(ValueError, match="contiguous float64"):
         gs.sweep(np.zeros(A.shape[0], dtype=np.float32), b, forward=True)
+
+
+def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_backends():
+    """The compiled distinct node pairs (a counting sort) against ``np.unique`` of the pair keys,
+    duplicates and empty rows included, and the body's Jacobian pattern built with either; bad
+    input is refused."""
+    from softgrasp.forces import BlockPattern, spring_pairs, volume_pairs
+    from softgrasp.kernels.sparse import unique_pairs
+
+    rng = np.random.default_rng(14)
+    for n, k in ((1, 5), (7, 0), (40, 3000)):
+        rows, cols = rng.integers(0, n, k), rng.integers(0, n, k)
+        r, c, inv = unique_pairs(rows, cols, n)
+        keys, want_inv = np.unique(rows * n + cols, return_inverse=True)
+        assert np.array_equal(r * n + c, keys) and np.array_equal(inv, want_inv)
+    mesh = box(0.05, 4)
+    body = build_body(mesh, preset("foam"), mass=0.0125)
+    rows, cols = spring_pairs(body.edges)
+    vr, vc = volume_pairs(body.mesh.tets)
+    rows, cols = np.concatenate([rows, vr]), np.concatenate([cols, vc])
+    patterns = {}
+    for name in ("numba", "numpy"):
+        with kernels.use_backend(name):
+            patterns[name] = BlockPattern(body.n_nodes, rows, cols)
+    for attr in ("block_base", "block_stride", "indptr", "indices"):
+        assert np.array_equal(getattr(patterns["numba"], attr), getattr(patterns["numpy"], attr))
+    with pytest.raises(ValueError, match="must lie in"):
+        unique_pairs(np.array([0, 5]), np.array([1, 1]), 5)
+    with pytest.raises(ValueError, match="equal-length"):
+        unique_pairs(np.array([0, 1]), np.array([1]), 5)

@@ -62,19 +62,26 @@ class BlockPattern:
             raise ValueError("rows and cols must be equal-length 1-D arrays")
         self.n_nodes = int(n_nodes)
         self.n_blocks_in = len(rows)
-        pairs, inv = np.unique(rows * n_nodes + cols, return_inverse=True)  # by row, then column
-        brow, bcol = np.divmod(pairs, n_nodes)
+        from softgrasp import kernels
+
+        if kernels.compiled():  # the same, without sorting all the pairs
+            from softgrasp.kernels.sparse import unique_pairs
+
+            brow, bcol, inv = unique_pairs(rows, cols, n_nodes)
+        else:
+            pairs, inv = np.unique(rows * n_nodes + cols, return_inverse=True)  # by row, then column
+            brow, bcol = np.divmod(pairs, n_nodes)
         count = np.bincount(brow, minlength=n_nodes)  # blocks per block row
         start = np.concatenate([[0], np.cumsum(count)])  # first block of each block row
         # Scalar row 3r + a holds 3 * count[r] entries: the blocks of block row r by column, three
         # columns each. Entry (a, b) of unique block u sits at 9 start[r] + 3 a count[r] + 3 (u -
         # start[r]) + b = base[u] + a stride[u] + b.
-        u = np.arange(len(pairs))
+        u = np.arange(len(brow))
         base = 6 * start[brow] + 3 * u
         stride = 3 * count[brow]
         self.block_base = base[inv]  # of each input block, (K,)
         self.block_stride = stride[inv]
-        self.nnz = 9 * len(pairs)
+        self.nnz = 9 * len(brow)
         self.indptr = np.concatenate([[0], np.cumsum(np.repeat(3 * count, 3))]).astype(np.int64)
         a = np.arange(3)[None, :, None]
         b = np.arange(3)[None, None, :]

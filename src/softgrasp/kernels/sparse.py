@@ -32,6 +32,7 @@ __all__ = [
     "HybridGaussSeidel",
     "SWEEP_PARTS",
     "product",
+    "unique_pairs",
 ]
 
 _pjit = numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, error_model="numpy")
@@ -669,3 +670,62 @@ def fine_smoother(
     if blocks is None or A.nnz < MIN_BLOCK_FILL * 9 * blocks[1].shape[0]:
         return HybridGaussSeidel(A, threads)
     return HybridBlockGaussSeidel(A, blocks, threads)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _unique_pairs(rows, cols, n):  # pragma: no cover - compiled
+    """:func:`unique_pairs` by a counting sort on the rows and, within a row, a mark per column."""
+    K = rows.shape[0]
+    start = np.zeros(n + 1, dtype=np.int64)
+    for k in range(K):
+        start[rows[k] + 1] += 1
+    widest = 0
+    for r in range(n):
+        widest = max(widest, start[r + 1])
+        start[r + 1] += start[r]
+    order = np.empty(K, dtype=np.int64)
+    fill = start[:-1].copy()
+    for k in range(K):
+        order[fill[rows[k]]] = k
+        fill[rows[k]] += 1
+    mark = np.full(n, -1, dtype=np.int64)
+    slot = np.empty(n, dtype=np.int64)
+    urow = np.empty(K, dtype=np.int64)
+    ucol = np.empty(K, dtype=np.int64)
+    inv = np.empty(K, dtype=np.int64)
+    seen = np.empty(widest, dtype=np.int64)
+    nu = 0
+    for r in range(n):
+        m = 0
+        for p in range(start[r], start[r + 1]):
+            c = cols[order[p]]
+            if mark[c] != r:
+                mark[c] = r
+                seen[m] = c
+                m += 1
+        row = np.sort(seen[:m])
+        for q in range(m):
+            slot[row[q]] = nu + q
+            urow[nu + q] = r
+            ucol[nu + q] = row[q]
+        for p in range(start[r], start[r + 1]):
+            k = order[p]
+            inv[k] = slot[cols[k]]
+        nu += m
+    return urow[:nu].copy(), ucol[:nu].copy(), inv
+
+
+def unique_pairs(
+    rows: NDArray[np.int64], cols: NDArray[np.int64], n: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """The distinct pairs ``(rows[k], cols[k])`` (both in ``0 .. n - 1``) sorted by row, then
+    column, and the index of each input pair among them: ``np.unique(rows * n + cols,
+    return_inverse=True)`` in linear time (no sort of all the pairs: a body's Jacobian pattern, 3.1 M
+    node pairs at 33 969 nodes)."""
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    cols = np.ascontiguousarray(cols, dtype=np.int64)
+    if rows.shape != cols.shape or rows.ndim != 1:
+        raise ValueError("rows and cols must be equal-length 1-D arrays")
+    if rows.size and (min(rows.min(), cols.min()) < 0 or max(rows.max(), cols.max()) >= n):
+        raise ValueError(f"node pairs must lie in 0 .. {n - 1}")
+    return _unique_pairs(rows, cols, int(n))
