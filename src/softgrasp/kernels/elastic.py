@@ -167,10 +167,10 @@ def _spring_blocks(
                     sign = 1.0 if q < 2 else -1.0
                     B = np.uint64(offset + q * E + e)  # unsigned: see _volume_blocks
                     if use_pos:
-                        idx = np.uint64(base[B]) + np.uint64(r) * np.uint64(stride[B]) + np.uint64(s)
+                        pos = np.uint64(base[B]) + np.uint64(r) * np.uint64(stride[B]) + np.uint64(s)
                     else:
-                        idx = np.uint64(9) * B + np.uint64(3 * r + s)
-                    out[idx] += sign * val
+                        pos = np.uint64(9) * B + np.uint64(3 * r + s)
+                    out[pos] += sign * val
 
 
 # ---------------------------------------------------------------------------------- tets

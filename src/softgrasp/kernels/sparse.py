@@ -29,8 +29,12 @@ __all__ = [
     "BlockGaussSeidel",
     "BsrProduct",
     "CsrProduct",
+    "HybridBlockGaussSeidel",
     "HybridGaussSeidel",
+    "MIN_BLOCK_FILL",
     "SWEEP_PARTS",
+    "fine_smoother",
+    "node_blocks",
     "product",
     "unique_pairs",
 ]
@@ -186,7 +190,8 @@ def _l1_parts(op: Any, kernel: Any, parts: int | None) -> int:
     cross = np.zeros(n, dtype=np.int64)
     with _Threads(op.threads):
         kernel(op._indptr, op._indices, op._data, n, op.inverse_diagonal, cross)
-        if parts is None and cross.sum() > MAX_CROSS_FRACTION * max(op.A.nnz, 1):
+        # Entries as the kernel counts them: stored ones by rows, nine a block by node blocks.
+        if parts is None and cross.sum() > MAX_CROSS_FRACTION * max(getattr(op, "_entries", op.A.nnz), 1):
             n = 1
             kernel(op._indptr, op._indices, op._data, n, op.inverse_diagonal, cross[:1])
     return n
@@ -405,6 +410,9 @@ class BlockGaussSeidel(BsrProduct):
     def __init__(self, A: sp.bsr_matrix | sp.bsr_array, threads: int = 1) -> None:
         if not sp.issparse(A) or A.format != "bsr" or tuple(A.blocksize) != (BLOCK, BLOCK):
             raise ValueError(f"block Gauss-Seidel needs a BSR matrix of {BLOCK} x {BLOCK} blocks")
+        if not A.has_canonical_format:  # one diagonal block a row, as the sweep reads it
+            A = A.copy()
+            A.sum_duplicates()
         super().__init__(A, threads)
         from pyamg.util.utils import get_block_diag
 
@@ -425,8 +433,9 @@ class BlockGaussSeidel(BsrProduct):
 # the instructions (the 27 749-node sphere's Newton matrix, 3.49 M non-zeros, on two threads:
 # product 1.65 -> 0.81 ms, sweep 1.78 -> 1.01 ms).
 #: The least fraction of the node blocks' entries a matrix must store to be swept by blocks (the
-#: zeros stored in its blocks cost memory traffic; a body's Newton matrix stores all of them, the
-#: few exact zeros of axis-aligned springs aside).
+#: zeros stored in its blocks cost memory traffic). A body's Newton matrix assembled in its
+#: pattern stores all of them; one that went through SciPy's sums loses its exact zeros (the
+#: BCC test cubes' axis-aligned springs: 0.76-0.81 of the entries left).
 MIN_BLOCK_FILL = 0.75
 
 
@@ -521,7 +530,8 @@ def _bsr33_matvec(indptr, indices, data, x, out):  # pragma: no cover - compiled
 def _l1_block_inverse(indptr, indices, data, parts, out, cross):  # pragma: no cover - compiled
     """out[i] = (D_i + L_i)^-1 for each 3 x 3 block row i: D_i its diagonal block, L_i the
     diagonal of its rows' sums of |a_kl| over the blocks outside block row i's part; zero where
-    that is singular (the rows are then left alone). cross[p]: the entries of part p's rows in
+    that is not positive definite (the rows are then left alone, as the row-wise sweep leaves a
+    row whose l1 diagonal is not positive). cross[p]: the entries of part p's rows in
     blocks outside the part."""
     nb = out.shape[0]
     for p in numba.prange(parts):
@@ -544,8 +554,11 @@ def _l1_block_inverse(indptr, indices, data, parts, out, cross):  # pragma: no c
             c01 = d[1, 2] * d[2, 0] - d[1, 0] * d[2, 2]
             c02 = d[1, 0] * d[2, 1] - d[1, 1] * d[2, 0]
             det = d[0, 0] * c00 + d[0, 1] * c01 + d[0, 2] * c02
-            scale = abs(d[0, 0]) + abs(d[1, 1]) + abs(d[2, 2])
-            if not (abs(det) > 1e-14 * scale * scale * scale) or not math.isfinite(det):
+            # Positive pivots (a positive definite block, as the row-wise sweep needs a positive
+            # diagonal), else the node is left alone.
+            minor = d[0, 0] * d[1, 1] - d[0, 1] * d[1, 0]
+            spd = d[0, 0] > 0.0 and minor > 0.0 and det > 1e-14 * d[0, 0] * d[1, 1] * d[2, 2]
+            if not spd or not math.isfinite(det):
                 for r in range(3):
                     for c in range(3):
                         out[i, r, c] = 0.0
@@ -563,7 +576,7 @@ def _l1_block_inverse(indptr, indices, data, parts, out, cross):  # pragma: no c
         cross[p] = count
 
 
-@numba.njit(cache=True, parallel=True, fastmath={"contract"}, error_model="numpy")
+@_bpjit
 def _hybrid_block_sweep(indptr, indices, data, dinv, x, b, x_old, parts, forward):  # pragma: no cover
     """One hybrid block Gauss-Seidel sweep on ``x`` (in place), 3 x 3 blocks: block rows split in
     ``parts`` side by side, each block row's unknowns x_i += dinv_i (b_i - sum_j A_ij x_j) in
@@ -625,6 +638,7 @@ class HybridBlockGaussSeidel:
         self.shape: tuple[int, int] = A.shape
         self.threads = threads
         self._indptr, self._indices, self._data = blocks
+        self._entries = 9 * self._indices.shape[0]
         self.inverse_diagonal = np.empty((self._indptr.shape[0] - 1, 3, 3))
         self.parts = _l1_parts(self, _l1_block_inverse, parts)
 
@@ -638,11 +652,12 @@ class HybridBlockGaussSeidel:
         _hybrid(self, _hybrid_block_sweep, x, _sweep_rhs(self.shape, x, b), forward)
 
 
-def node_blocks(A: sp.spmatrix | sp.sparray) -> tuple | None:
+def node_blocks(A: sp.spmatrix | sp.sparray, min_fill: float = 0.0) -> tuple | None:
     """The 3 x 3 node blocks of a square CSR matrix ``A`` (of 3 n unknowns) as BSR arrays
     ``(indptr, indices, data)``: unsigned indices, data (blocks, 3, 3), a block wherever one of its
     nine entries is stored (the others zero), each block row's blocks in column order (SciPy's
-    ``tobsr`` of sorted indices); None where ``A`` is not such a matrix."""
+    ``tobsr`` of sorted indices); None where ``A`` is not such a matrix or stores less than
+    ``min_fill`` of its blocks' entries."""
     if not sp.issparse(A) or A.format != "csr" or A.shape[0] != A.shape[1] or A.shape[0] % 3:
         return None
     if not A.has_canonical_format:
@@ -653,6 +668,8 @@ def node_blocks(A: sp.spmatrix | sp.sparray) -> tuple | None:
     _block_counts(indptr, indices, counts)
     bindptr = np.zeros(counts.shape[0] + 1, dtype=np.uint64)
     np.cumsum(counts, out=bindptr[1:])
+    if A.nnz < min_fill * 9 * int(bindptr[-1]):
+        return None
     bindices = np.empty(int(bindptr[-1]), dtype=indices.dtype)
     bdata = np.empty((bindices.shape[0], 3, 3))
     _block_fill(indptr, indices, np.ascontiguousarray(A.data, dtype=np.float64), bindptr, bindices, bdata)
@@ -666,8 +683,8 @@ def fine_smoother(
     (:class:`HybridBlockGaussSeidel`) where its stored entries fill at least :data:`MIN_BLOCK_FILL`
     of its blocks, else by rows."""
     A = A.tocsr()
-    blocks = node_blocks(A)
-    if blocks is None or A.nnz < MIN_BLOCK_FILL * 9 * blocks[1].shape[0]:
+    blocks = node_blocks(A, MIN_BLOCK_FILL)
+    if blocks is None:
         return HybridGaussSeidel(A, threads)
     return HybridBlockGaussSeidel(A, blocks, threads)
 

@@ -30,6 +30,7 @@ from softgrasp.sim import pardiso
 from softgrasp.sim.linsolve import (
     _SINGULAR,
     MULTIGRID_THREADS_MIN_DOF,
+    PARDISO_MAX_DOF,
     SolverCache,
     _rigid_motion_free,
     solve_newton_system,
@@ -225,8 +226,11 @@ def _newton_matrix(
     forces along v. (A Newton iteration with the symmetrised matrix converges only linearly,
     about tenfold per iteration; with the exact product, quadratically.)"""
     body = scene.body
-    # In the body's fixed pattern, its data freshly computed; on the idle cores for a large body.
-    threads = pardiso.choose_threads() if 3 * body.n_nodes >= MULTIGRID_THREADS_MIN_DOF else 1
+    # In the body's fixed pattern, its data freshly computed; on the idle cores for a body solved
+    # by multigrid (below, PARDISO's OpenMP threads may still be spinning on the other core).
+    threads = 1
+    if 3 * body.n_nodes >= max(MULTIGRID_THREADS_MIN_DOF, PARDISO_MAX_DOF + 1):
+        threads = pardiso.choose_threads()
     J = body.internal_jacobian(x, threads=threads)
     pat = _body_pattern(body)
     data = J.data
