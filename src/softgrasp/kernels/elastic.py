@@ -583,23 +583,26 @@ def assembly_partition(
     return eo, eb, to, tb
 
 
+@_jit
+def _jacobian_group(
+    x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb, g
+):  # pragma: no cover - compiled
+    """The spring then volume-term blocks of :func:`assembly_partition`'s group ``g``."""
+    _spring_blocks(x, edges, L, T, dT, False, base, stride, True, 0, out, eo, eb[g], eb[g + 1])
+    if kappa != 0.0:
+        offset = 4 * edges.shape[0]
+        _volume_blocks(x, tets, rest, kappa, barrier, base, stride, True, offset, out, to, tb[g], tb[g + 1])
+
+
 @numba.njit(cache=True, fastmath=False, error_model="numpy", parallel=True)
 def _jacobian_groups(
     x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb
 ):  # pragma: no cover - compiled
-    """The spring then volume-term blocks of :func:`assembly_partition`'s first two groups side by
-    side (they write no entry in common), then those of the third; the same sums on any number of
-    threads."""
-    offset = 4 * edges.shape[0]
-    for p in numba.prange(2):
-        _spring_blocks(x, edges, L, T, dT, False, base, stride, True, 0, out, eo, eb[p], eb[p + 1])
-        if kappa != 0.0:
-            _volume_blocks(
-                x, tets, rest, kappa, barrier, base, stride, True, offset, out, to, tb[p], tb[p + 1]
-            )
-    _spring_blocks(x, edges, L, T, dT, False, base, stride, True, 0, out, eo, eb[2], eb[3])
-    if kappa != 0.0:
-        _volume_blocks(x, tets, rest, kappa, barrier, base, stride, True, offset, out, to, tb[2], tb[3])
+    """:func:`assembly_partition`'s first two groups side by side (they write no entry in
+    common), then the third; the same sums on any number of threads."""
+    for g in numba.prange(2):
+        _jacobian_group(x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb, g)
+    _jacobian_group(x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb, 2)
 
 
 def internal_jacobian_data(

@@ -182,16 +182,16 @@ def _hybrid_sweep(indptr, indices, data, dinv, x, b, x_old, parts, forward):  # 
                 i -= one
 
 
-def _l1_parts(op: Any, kernel: Any, parts: int | None) -> int:
+def _l1_parts(op: Any, kernel: Any, parts: int | None, entries: int) -> int:
     """Fill ``op.inverse_diagonal`` by ``kernel`` (the l1 inverse diagonal, rows or node blocks) for
     ``parts`` parts, or for None :data:`SWEEP_PARTS`, or 1 where more than
-    :data:`MAX_CROSS_FRACTION` of ``op.A``'s entries would couple them; returns the parts used."""
+    :data:`MAX_CROSS_FRACTION` of the ``entries`` (as the kernel counts them) would couple them;
+    returns the parts used."""
     n = SWEEP_PARTS if parts is None else max(1, int(parts))
     cross = np.zeros(n, dtype=np.int64)
     with _Threads(op.threads):
         kernel(op._indptr, op._indices, op._data, n, op.inverse_diagonal, cross)
-        # Entries as the kernel counts them: stored ones by rows, nine a block by node blocks.
-        if parts is None and cross.sum() > MAX_CROSS_FRACTION * max(getattr(op, "_entries", op.A.nnz), 1):
+        if parts is None and cross.sum() > MAX_CROSS_FRACTION * max(entries, 1):
             n = 1
             kernel(op._indptr, op._indices, op._data, n, op.inverse_diagonal, cross[:1])
     return n
@@ -239,7 +239,7 @@ class HybridGaussSeidel(CsrProduct):
         :data:`MAX_CROSS_FRACTION` of the entries would couple them."""
         super().__init__(A, threads)
         self.inverse_diagonal = np.empty(self.A.shape[0])
-        self.parts = _l1_parts(self, _l1_inverse_diagonal, parts)
+        self.parts = _l1_parts(self, _l1_inverse_diagonal, parts, self.A.nnz)
 
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""
@@ -638,9 +638,9 @@ class HybridBlockGaussSeidel:
         self.shape: tuple[int, int] = A.shape
         self.threads = threads
         self._indptr, self._indices, self._data = blocks
-        self._entries = 9 * self._indices.shape[0]
         self.inverse_diagonal = np.empty((self._indptr.shape[0] - 1, 3, 3))
-        self.parts = _l1_parts(self, _l1_block_inverse, parts)
+        # Entries counted nine a block, as the block kernel counts its couplings.
+        self.parts = _l1_parts(self, _l1_block_inverse, parts, 9 * self._indices.shape[0])
 
     def __matmul__(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         return _apply(self, _bsr33_matvec, x)

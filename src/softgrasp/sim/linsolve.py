@@ -252,18 +252,17 @@ class _Multigrid:
         for level in levels[:-1]:
             # The products above hold the transfers; pyamg's own cycle is not used.
             level.R = level.P = None
-        # Each level's sweeps where softgrasp's compiled kernels make them (None: pyamg's), set by
-        # use(): the finest level's l1 hybrid Gauss-Seidel, the coarse levels' block Gauss-Seidel
-        # (6 x 6 blocks), made here.
+        # Each level's sweeps where softgrasp's compiled kernels make them (None: pyamg's): the
+        # finest level's l1 hybrid Gauss-Seidel, set by use(); the coarse levels' block
+        # Gauss-Seidel (6 x 6 blocks, pyamg's to round-off), made here.
         self._sweeps: list[Any] = [None] * (len(levels) - 1)
-        self._coarse_sweeps: list[Any] = [None] * (len(levels) - 1)
         if _compiled():
             from softgrasp.kernels.sparse import BLOCK, BlockGaussSeidel
 
             for lvl in range(1, len(levels) - 1):
                 Ak = levels[lvl].A
                 if sp.issparse(Ak) and Ak.format == "bsr" and tuple(Ak.blocksize) == (BLOCK, BLOCK):
-                    self._coarse_sweeps[lvl] = self._A[lvl] = BlockGaussSeidel(Ak)
+                    self._sweeps[lvl] = self._A[lvl] = BlockGaussSeidel(Ak)
         self.stats: dict[str, int] | None = None  # where the cycles are counted (a cache's stats)
 
     def fits(self, A: sp.csr_matrix) -> bool:
@@ -294,7 +293,7 @@ class _Multigrid:
             self.ml.coarse_solver = coarse_grid_solver("splu")
             return
         self._A[0] = self._fine
-        self._sweeps = [self._fine, *self._coarse_sweeps[1:]] if compiled() else [None] * len(self._sweeps)
+        self._sweeps[0] = self._fine if compiled() else None
         for op in (*self._A, *self._R, *self._P):
             op.threads = threads
 
@@ -888,6 +887,23 @@ def _fresh_solve(
     return _refined(A, b, f, rtol)
 
 
+def _uses_pardiso(n: int, cache: SolverCache) -> bool:
+    """Whether an unconstrained system of ``n`` unknowns goes to PARDISO."""
+    return cache.method == "pardiso" or (
+        cache.method == "auto" and n <= PARDISO_MAX_DOF and pardiso.available()
+    )
+
+
+def assembly_threads(n: int, cache: SolverCache) -> int:
+    """Threads for assembling a Newton matrix of ``n`` unknowns that ``cache`` will solve: the
+    idle cores where the system goes to multigrid with at least :data:`MULTIGRID_THREADS_MIN_DOF`
+    unknowns (as its products), one otherwise (PARDISO's OpenMP threads may still be spinning on
+    the other core)."""
+    if n < MULTIGRID_THREADS_MIN_DOF or _uses_pardiso(n, cache):
+        return 1
+    return pardiso.choose_threads()
+
+
 def solve_newton_system(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
@@ -925,10 +941,7 @@ def solve_newton_system(
     cache.stats["systems"] += 1
     # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
     # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
-    use_pardiso = C is None and (
-        cache.method == "pardiso"
-        or (cache.method == "auto" and A.shape[0] <= PARDISO_MAX_DOF and pardiso.available())
-    )
+    use_pardiso = C is None and _uses_pardiso(A.shape[0], cache)
     with pardiso.blas_one_thread() if use_pardiso else contextlib.nullcontext():
         return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol, use_pardiso)
 

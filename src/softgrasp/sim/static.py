@@ -29,10 +29,9 @@ from softgrasp.mesh.tetmesh import signed_volumes
 from softgrasp.sim import pardiso
 from softgrasp.sim.linsolve import (
     _SINGULAR,
-    MULTIGRID_THREADS_MIN_DOF,
-    PARDISO_MAX_DOF,
     SolverCache,
     _rigid_motion_free,
+    assembly_threads,
     solve_newton_system,
 )
 from softgrasp.sim.scene import Scene, State
@@ -218,7 +217,7 @@ def _static_forces_of(inter, body: Body, t: float, st, x: NDArray[np.float64]) -
 
 
 def _newton_matrix(
-    scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple, L: float
+    scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple, L: float, threads: int = 1
 ) -> tuple[sp.csr_matrix, Callable[[NDArray[np.float64]], NDArray[np.float64]] | None]:
     """The Newton matrix A = -d f / d x as assembled (symmetric: interactions whose Jacobian is a
     symmetrised approximation contribute that), and, where there are such interactions, the
@@ -226,12 +225,7 @@ def _newton_matrix(
     forces along v. (A Newton iteration with the symmetrised matrix converges only linearly,
     about tenfold per iteration; with the exact product, quadratically.)"""
     body = scene.body
-    # In the body's fixed pattern, its data freshly computed; on the idle cores for a body solved
-    # by multigrid (below, PARDISO's OpenMP threads may still be spinning on the other core).
-    threads = 1
-    if 3 * body.n_nodes >= max(MULTIGRID_THREADS_MIN_DOF, PARDISO_MAX_DOF + 1):
-        threads = pardiso.choose_threads()
-    J = body.internal_jacobian(x, threads=threads)
+    J = body.internal_jacobian(x, threads=threads)  # in the body's fixed pattern, data fresh
     pat = _body_pattern(body)
     data = J.data
     approx = []
@@ -334,7 +328,7 @@ def _newton(
         scale = max(np.abs(f_int).max(), np.abs(f - f_int).max(), grav, 1e-300)
         if C is None and (res := float(np.abs(f).max())) <= rtol * scale:
             return x, it - 1, res, lam, contacts  # balanced already: no system to solve
-        A, exact = _newton_matrix(scene, x, t, contacts, L)
+        A, exact = _newton_matrix(scene, x, t, contacts, L, assembly_threads(3 * body.n_nodes, cache))
         # Inexact Newton: the linear solve need only be as accurate as the step is far from
         # convergence (the forcing term; quadratic convergence is kept).
         forcing = min(FORCING_MAX, float(np.abs(f).max()) / scale)
