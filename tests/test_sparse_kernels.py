@@ -387,3 +387,62 @@ def test_a_node_block_that_is_not_positive_definite_is_left_alone():
     np.testing.assert_allclose(x[:3], np.linalg.solve(D[:3, :3], b[:3]), rtol=1e-14)
     np.testing.assert_array_equal(x[3:6], 0.0)
     np.testing.assert_allclose(x[6:], 1.0 / 3.0, rtol=1e-14)
+
+
+def test_the_compiled_diagonal_is_scipys_with_duplicates_and_unsorted_indices():
+    """``kernels.sparse.diagonal`` (the multigrid path reads each Newton matrix's diagonal to find
+    the nodes contacts stiffened) against SciPy's ``diagonal()``: duplicate entries summed, each
+    row's entries in reverse order, rows without a diagonal entry 0."""
+    from softgrasp.kernels.sparse import diagonal
+
+    A, _ = _cube_system(5)
+    assert np.array_equal(diagonal(A), A.diagonal())
+    rng = np.random.default_rng(31)
+    B = sp.random(60, 60, density=0.1, random_state=rng, format="csr")
+    indptr, indices, data = [0], [], []
+    for i in range(60):
+        cols = list(B.indices[B.indptr[i] : B.indptr[i + 1]][::-1])
+        vals = list(B.data[B.indptr[i] : B.indptr[i + 1]][::-1])
+        if i % 3 == 0:  # a duplicate diagonal entry, first in the row
+            cols, vals = [i, *cols], [0.25 * i, *vals]
+        indices += cols
+        data += vals
+        indptr.append(len(indices))
+    C = sp.csr_matrix((np.array(data), np.array(indices, dtype=np.int32), np.array(indptr)), shape=(60, 60))
+    assert not C.has_sorted_indices
+    want = C.toarray().diagonal()
+    assert (want == 0).any() and (want[::3] != B.diagonal()[::3]).any()
+    np.testing.assert_allclose(diagonal(C), want, rtol=1e-15, atol=0)
+
+
+def test_block_sweeps_with_some_diagonal_blocks_changed_in_place():
+    """A 6 x 6 block Gauss-Seidel whose matrix's values are changed in place (the multigrid's kept
+    coarse levels, brought up to date): after ``invert_rows`` for the changed block rows its
+    inverses are pyamg's of the new matrix, and its sweep pyamg's on it; given inverses are used
+    as they are."""
+    from pyamg.relaxation.relaxation import block_gauss_seidel
+    from pyamg.util.utils import get_block_diag
+
+    from softgrasp.kernels.sparse import BlockGaussSeidel
+
+    G = _random_bsr(20, 20, (6, 6), seed=5).tocsr()
+    A = (G @ G.T + 5.0 * sp.eye(G.shape[0])).tobsr(blocksize=(6, 6))
+    A.sum_duplicates()
+    sweeps = BlockGaussSeidel(A)
+    given = BlockGaussSeidel(A, inverse_diagonal=sweeps.inverse_diagonal)
+    assert given.inverse_diagonal is sweeps.inverse_diagonal
+    for r in (3, 11):
+        lo, hi = A.indptr[r], A.indptr[r + 1]
+        at = lo + np.flatnonzero(A.indices[lo:hi] == r)[0]
+        A.data[at] += 2.0 * np.eye(6) + 0.1
+    sweeps.invert_rows(np.array([11, 3, 3]))
+    np.testing.assert_allclose(
+        sweeps.inverse_diagonal, get_block_diag(A, blocksize=6, inv_flag=True), rtol=0, atol=1e-12
+    )
+    rng = np.random.default_rng(4)
+    b, x0 = rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
+    want = x0.copy()
+    block_gauss_seidel(A, want, b, iterations=1, sweep="forward", blocksize=6)
+    got = x0.copy()
+    sweeps.sweep(got, b, forward=True)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())

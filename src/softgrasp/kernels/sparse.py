@@ -33,6 +33,7 @@ __all__ = [
     "HybridGaussSeidel",
     "MIN_BLOCK_FILL",
     "SWEEP_PARTS",
+    "diagonal",
     "fine_smoother",
     "node_blocks",
     "product",
@@ -53,6 +54,32 @@ def _csr_matvec(indptr, indices, data, x, out):  # pragma: no cover - compiled
         for k in range(indptr[i], indptr[i + 1]):
             s += data[k] * x[indices[k]]
         out[i] = s
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _csr_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
+    """out[i] = the sum of row i's entries in column i (CSR arrays, ``indptr`` and ``indices``
+    unsigned, the indices in any order)."""
+    for i in numba.prange(out.shape[0]):
+        s = 0.0
+        col = np.uint64(i)
+        for k in range(indptr[i], indptr[i + 1]):
+            if indices[k] == col:
+                s += data[k]
+        out[i] = s
+
+
+def diagonal(A: sp.csr_matrix | sp.csr_array) -> NDArray[np.float64]:
+    """The main diagonal of a square CSR matrix, as SciPy's ``A.diagonal()`` (duplicates summed),
+    on Numba's threads: 0.6 against 4.9 ms for the 83 247-unknown Newton matrix of the 27 749-node
+    sphere."""
+    if A.format != "csr" or A.shape[0] != A.shape[1]:
+        return np.asarray(A.diagonal(), dtype=np.float64)
+    out = np.empty(A.shape[0])
+    _csr_diagonal(
+        _unsigned(A.indptr), _unsigned(A.indices), np.ascontiguousarray(A.data, dtype=np.float64), out
+    )
+    return out
 
 
 def _unsigned(a: NDArray[np.integer]) -> NDArray[np.unsignedinteger]:
@@ -407,18 +434,43 @@ class BlockGaussSeidel(BsrProduct):
     and 2.51 M non-zeros: 0.84 against 1.8-2.4 ms a sweep). The sweep itself is sequential (one
     thread); the products run on ``threads``."""
 
-    def __init__(self, A: sp.bsr_matrix | sp.bsr_array, threads: int = 1) -> None:
+    def __init__(
+        self,
+        A: sp.bsr_matrix | sp.bsr_array,
+        threads: int = 1,
+        inverse_diagonal: NDArray[np.float64] | None = None,
+    ) -> None:
+        """``inverse_diagonal``: the diagonal blocks' inverses (nb, 6, 6) where they are known
+        (used, not copied), else computed."""
         if not sp.issparse(A) or A.format != "bsr" or tuple(A.blocksize) != (BLOCK, BLOCK):
             raise ValueError(f"block Gauss-Seidel needs a BSR matrix of {BLOCK} x {BLOCK} blocks")
         if not A.has_canonical_format:  # one diagonal block a row, as the sweep reads it
             A = A.copy()
             A.sum_duplicates()
         super().__init__(A, threads)
+        if inverse_diagonal is not None:
+            self.inverse_diagonal = inverse_diagonal
+            return
         from pyamg.util.utils import get_block_diag
 
         self.inverse_diagonal = np.ascontiguousarray(
             get_block_diag(A, blocksize=BLOCK, inv_flag=True), dtype=np.float64
         )
+
+    def invert_rows(self, rows: NDArray[np.integer]) -> None:
+        """Recompute the diagonal blocks' inverses of the block ``rows`` from the matrix's
+        current values (after they were changed in place; pseudo-inverses, as pyamg's)."""
+        rows = np.unique(np.asarray(rows, dtype=np.intp))
+        if rows.size == 0:
+            return
+        A = self.A
+        blocks = np.zeros((rows.size, BLOCK, BLOCK))
+        for k, r in enumerate(rows):
+            lo, hi = A.indptr[r], A.indptr[r + 1]
+            at = np.flatnonzero(A.indices[lo:hi] == r)
+            if at.size:
+                blocks[k] = A.data[lo + at[0]]
+        self.inverse_diagonal[rows] = np.linalg.pinv(blocks)
 
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""

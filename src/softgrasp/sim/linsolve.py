@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import NotConverged
 from softgrasp.sim import pardiso
+from softgrasp.sim.coarse import UpdatedLevel, changed_nodes, galerkin_change
 
 __all__ = ["SolverCache", "solve_newton_system", "DIRECT_MAX_DOF", "PARDISO_MAX_DOF"]
 
@@ -249,6 +250,14 @@ class _Multigrid:
         self._A = [_product(level.A) for level in levels[:-1]]
         self._R = [_product(level.R) for level in levels[:-1]]
         self._P = [_product(level.P) for level in levels[:-1]]
+        # What the coarse levels' update for later matrices starts from (sim.coarse): the build
+        # matrix and its diagonal, the first prolongator by rows, the deeper ones, the coarse
+        # operators as built.
+        self._A0 = A
+        self._diagonal0: NDArray[np.float64] | None = None
+        self._P0 = levels[0].P if len(levels) > 1 else None
+        self._Pc = [level.P for level in levels[1:-1]]
+        self._Rc = [level.R for level in levels[1:-1]]
         for level in levels[:-1]:
             # The products above hold the transfers; pyamg's own cycle is not used.
             level.R = level.P = None
@@ -263,6 +272,18 @@ class _Multigrid:
                 Ak = levels[lvl].A
                 if sp.issparse(Ak) and Ak.format == "bsr" and tuple(Ak.blocksize) == (BLOCK, BLOCK):
                     self._sweeps[lvl] = self._A[lvl] = BlockGaussSeidel(Ak)
+        # The coarse levels kept up to date with the contacts (sim.coarse) where the compiled
+        # sweeps run them: the finest level's unknowns left out of the coarse space (stiffened
+        # nodes), and each coarse level's operator as built plus its change.
+        self._pinned: NDArray[np.intp] | None = None
+        self._levels: list[UpdatedLevel] = []
+        self._built_coarse = self.ml.coarse_solver
+        if self._P0 is not None and all(s is not None for s in self._sweeps[1:]):
+            self._diagonal0 = _diagonal(A)
+            self._levels = [
+                UpdatedLevel(levels[lvl].A, self._sweeps[lvl] if lvl < len(levels) - 1 else None)
+                for lvl in range(1, len(levels))
+            ]
         self.stats: dict[str, int] | None = None  # where the cycles are counted (a cache's stats)
 
     def fits(self, A: sp.csr_matrix) -> bool:
@@ -294,8 +315,41 @@ class _Multigrid:
             return
         self._A[0] = self._fine
         self._sweeps[0] = self._fine if compiled() else None
+        if self._levels:
+            # Where NumPy's kernels run the cycle it is pyamg's own: the levels as built.
+            self._update_coarse(A if compiled() else None)
         for op in (*self._A, *self._R, *self._P):
             op.threads = threads
+
+    def _update_coarse(self, A: sp.csr_matrix | None) -> None:
+        """The coarse levels for ``A``: the hierarchy's as built, with the nodes the contacts
+        stiffened since left out of the coarse space and the operators' Galerkin change for the
+        nodes they changed (:mod:`softgrasp.sim.coarse`); as built for None."""
+        assert self._P0 is not None and self._diagonal0 is not None
+        levels = self.ml.levels
+        none = np.zeros(0, dtype=np.intp)
+        stiffened, changed = (none, none) if A is None else changed_nodes(_diagonal(A), self._diagonal0)
+        if stiffened.size == 0 and changed.size == 0:
+            self._pinned = None
+            for level in self._levels:
+                level.reset()
+        else:
+            self._pinned = (3 * stiffened[:, None] + np.arange(3)).ravel() if stiffened.size else None
+            change = galerkin_change(self._P0, self._A0, A, stiffened, changed)
+            for lvl, level in enumerate(self._levels, start=1):
+                level.update(change)
+                if lvl < len(levels) - 1:
+                    change = sp.csr_matrix(self._Rc[lvl - 1] @ (change @ self._Pc[lvl - 1]))
+        for lvl, level in enumerate(self._levels, start=1):
+            levels[lvl].A = level.matrix
+            if lvl < len(levels) - 1:
+                self._sweeps[lvl] = self._A[lvl] = level.sweeps
+        if not self._levels[-1].changed:
+            self.ml.coarse_solver = self._built_coarse
+        else:
+            from pyamg.multilevel import coarse_grid_solver
+
+            self.ml.coarse_solver = coarse_grid_solver("splu")
 
     @property
     def fine(self) -> Any:
@@ -318,12 +372,19 @@ class _Multigrid:
             sweeps.sweep(x, b, forward=True)
         else:
             level.presmoother(level.A, x, b)
-        coarse_b = self._R[lvl] @ (b - self._A[lvl] @ x)
+        r = b - self._A[lvl] @ x
+        pinned = self._pinned if lvl == 0 else None
+        if pinned is not None:
+            r[pinned] = 0.0
+        coarse_b = self._R[lvl] @ r
         if lvl == len(self.ml.levels) - 2:
             coarse_x = self.ml.coarse_solver(self.ml.levels[-1].A, coarse_b)
         else:
             coarse_x = self._cycle(lvl + 1, coarse_b)
-        x += self._P[lvl] @ coarse_x
+        correction = self._P[lvl] @ coarse_x
+        if pinned is not None:
+            correction[pinned] = 0.0
+        x += correction
         if sweeps is not None:
             sweeps.sweep(x, b, forward=False)
         else:
@@ -356,6 +417,15 @@ def _compiled() -> bool:
     from softgrasp.kernels import compiled
 
     return bool(compiled())
+
+
+def _diagonal(A: sp.csr_matrix) -> NDArray[np.float64]:
+    """``A``'s diagonal, by the compiled kernel where the compiled kernels are in use."""
+    if _compiled():
+        from softgrasp.kernels.sparse import diagonal
+
+        return diagonal(A)
+    return np.asarray(A.diagonal(), dtype=np.float64)
 
 
 def _product(A: Any) -> Any:
