@@ -390,13 +390,18 @@ def test_a_node_block_that_is_not_positive_definite_is_left_alone():
 
 
 def test_the_compiled_diagonal_is_scipys_with_duplicates_and_unsorted_indices():
-    """``kernels.sparse.diagonal`` (the multigrid path reads each Newton matrix's diagonal to find
-    the nodes contacts stiffened) against SciPy's ``diagonal()``: duplicate entries summed, each
-    row's entries in reverse order, rows without a diagonal entry 0."""
-    from softgrasp.kernels.sparse import diagonal
+    """``kernels.sparse.diagonal`` and the finest level's sweeps' ``diagonal()`` (the multigrid path
+    reads each Newton matrix's diagonal to find the nodes contacts stiffened) against SciPy's
+    ``diagonal()``: duplicate entries summed, each row's entries in reverse order, rows without a
+    diagonal entry 0."""
+    from softgrasp.kernels.sparse import HybridBlockGaussSeidel, HybridGaussSeidel, diagonal, fine_smoother
 
     A, _ = _cube_system(5)
     assert np.array_equal(diagonal(A), A.diagonal())
+    by_blocks = fine_smoother(A)  # the finest level's sweeps read it from their node blocks
+    assert isinstance(by_blocks, HybridBlockGaussSeidel)
+    assert np.array_equal(by_blocks.diagonal(), A.diagonal())
+    assert np.array_equal(HybridGaussSeidel(A).diagonal(), A.diagonal())
     rng = np.random.default_rng(31)
     B = sp.random(60, 60, density=0.1, random_state=rng, format="csr")
     indptr, indices, data = [0], [], []

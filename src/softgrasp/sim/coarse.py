@@ -66,12 +66,16 @@ def changed_nodes(
     nodes: some diagonal entry grew past :data:`STIFFENED` times its build value; the changed ones,
     the stiffened among them: some diagonal entry moved by more than :data:`CHANGED` of it). An
     entry that was not positive counts as changed when it differs at all."""
-    d = np.asarray(diagonal, dtype=np.float64).reshape(-1, 3)
-    d0 = np.asarray(diagonal0, dtype=np.float64).reshape(-1, 3)
-    positive = d0 > 0
-    ratio = np.where(positive, d / np.where(positive, d0, 1.0), np.where(d == d0, 1.0, np.inf))
-    moved = np.abs(ratio - 1.0).max(axis=1)
-    return _largest(ratio.max(axis=1), STIFFENED), _largest(moved, CHANGED)
+    d = np.asarray(diagonal, dtype=np.float64)
+    d0 = np.asarray(diagonal0, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = d / d0
+    odd = np.flatnonzero(~(d0 > 0))  # few or none
+    ratio[odd] = np.where(d[odd] == d0[odd], 1.0, np.inf)
+    x, y, z = ratio[0::3], ratio[1::3], ratio[2::3]
+    high = np.maximum(np.maximum(x, y), z)
+    moved = np.maximum(high - 1.0, 1.0 - np.minimum(np.minimum(x, y), z))
+    return _largest(high, STIFFENED), _largest(moved, CHANGED)
 
 
 def _largest(value: NDArray[np.float64], floor: float) -> NDArray[np.intp]:

@@ -328,7 +328,9 @@ class _Multigrid:
         assert self._P0 is not None and self._diagonal0 is not None
         levels = self.ml.levels
         none = np.zeros(0, dtype=np.intp)
-        stiffened, changed = (none, none) if A is None else changed_nodes(_diagonal(A), self._diagonal0)
+        stiffened, changed = (
+            (none, none) if A is None else changed_nodes(self._fine.diagonal(), self._diagonal0)
+        )
         if stiffened.size == 0 and changed.size == 0:
             self._pinned = None
             for level in self._levels:
