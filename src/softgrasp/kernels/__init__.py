@@ -29,7 +29,16 @@ from contextlib import contextmanager
 
 from softgrasp.errors import ConfigError
 
-__all__ = ["BACKENDS", "ENV_VAR", "available", "compiled", "get_backend", "set_backend", "use_backend"]
+__all__ = [
+    "BACKENDS",
+    "ENV_VAR",
+    "available",
+    "compiled",
+    "forked",
+    "get_backend",
+    "set_backend",
+    "use_backend",
+]
 
 #: Backend names.
 BACKENDS = ("numba", "numpy")
@@ -116,3 +125,23 @@ def use_backend(name: str) -> Iterator[None]:
         yield
     finally:
         set_backend(previous)
+
+
+_FORKED = False
+
+
+def _mark_forked() -> None:
+    global _FORKED
+    _FORKED = True
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_mark_forked)
+
+
+def forked() -> bool:
+    """Whether this process is a fork of one that imported softgrasp. Numba's OpenMP threads do
+    not survive a fork: a parallel kernel run in the child of a process that had started them
+    terminates it ("fork() called from a process already using GNU OpenMP"), so work that has a
+    serial equivalent takes it there."""
+    return _FORKED

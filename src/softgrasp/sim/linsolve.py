@@ -172,6 +172,8 @@ def _rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
 #: (83 247 unknowns: 23-25 against 33-38 ms a cycle, 9 against 8 iterations to 1e-4).
 _PRESMOOTHER = ("block_gauss_seidel", {"sweep": "forward"})
 _POSTSMOOTHER = ("block_gauss_seidel", {"sweep": "backward"})
+#: The coarsest level's most block rows (factorised by sparse LU).
+MAX_COARSE = 300
 #: Seed of the random start from which pyamg estimates a spectral radius while it builds a
 #: hierarchy (NumPy's global generator, seeded and put back: a hierarchy should not be built
 #: while another Python thread draws from it; softgrasp's own threads build theirs one at a time,
@@ -211,11 +213,21 @@ def _hierarchy(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> Any:
         state = np.random.get_state()
         np.random.seed(AMG_SEED)
         try:
+            from softgrasp.kernels import forked
+
+            if _compiled() and not forked():
+                from softgrasp.sim.aggregation import smoothed_aggregation
+
+                # The same hierarchy, its finest Galerkin product compiled on Numba's threads
+                # (sim.aggregation); pyamg's serial one in a forked child, where they would not run.
+                return smoothed_aggregation(
+                    A, _rigid_modes(x_nodes), MAX_COARSE, "splu", _PRESMOOTHER, _POSTSMOOTHER
+                )
             return pyamg.smoothed_aggregation_solver(
                 A,
                 B=_rigid_modes(x_nodes),
                 symmetry="symmetric",
-                max_coarse=300,
+                max_coarse=MAX_COARSE,
                 coarse_solver="splu",
                 presmoother=_PRESMOOTHER,
                 postsmoother=_POSTSMOOTHER,
