@@ -242,6 +242,39 @@ def test_the_jacobian_assembly_groups_write_no_entry_in_common_and_any_thread_co
     assert np.array_equal(one.data, two.data)
 
 
+@pytest.mark.parametrize("law", ["polynomial", "tanh"])
+def test_a_large_body_sums_its_forces_in_the_assembly_order_on_any_threads(config, law, monkeypatch):
+    """A body at or above ``PARTITIONED_MIN_NODES`` nodes (lowered here) sums its forces and energy
+    in the assembly's order, its first two element groups side by side: equal to the NumPy
+    reference (forces with and without dashpots, energy) to round-off, and the same bits on one
+    thread or two. A law that is not a polynomial keeps the serial kernels."""
+    from softgrasp.kernels.sparse import _Threads
+
+    mesh, x, v = config
+    body = build_body(mesh.reordered(), Material(1e5, 0.45, 50.0, LAWS[law]))
+    assert body.damping_time > 0
+    x = np.asarray(body.mesh.points) * 1.01 + 1e-4 * np.sin(np.arange(3 * body.n_nodes)).reshape(-1, 3)
+    v = 0.05 * np.cos(np.arange(3 * body.n_nodes)).reshape(-1, 3)
+    monkeypatch.setattr(elastic, "PARTITIONED_MIN_NODES", 1)
+    calls = []
+    real = elastic.partitioned_forces
+    monkeypatch.setattr(elastic, "partitioned_forces", lambda *a, **k: calls.append(1) or real(*a, **k))
+    with kernels.use_backend("numpy"):
+        want = (body.internal_forces(x), body.internal_forces(x, v), body.internal_energy(x))
+    results = []
+    for threads in (1, 2):
+        with kernels.use_backend("numba"), _Threads(threads):
+            results.append((body.internal_forces(x), body.internal_forces(x, v), body.internal_energy(x)))
+    assert len(calls) == 6
+    for got, ref_value in zip(results[0], want, strict=True):
+        assert _rel(got, ref_value) < TOL
+    if law != "polynomial":
+        assert real(x, None, body._force_elements, body.material.law, body.kappa, body.barrier) is None
+    if numba.config.NUMBA_NUM_THREADS >= 2:
+        for one, two in zip(results[0], results[1], strict=True):
+            assert np.array_equal(one, two)
+
+
 def test_polynomial_coefficients_only_for_exact_types():
     assert elastic.polynomial_coefficients(Linear()) == (0.0, 0.0)
     assert elastic.polynomial_coefficients(Polynomial(a2=-0.4, a3=1.5)) == (-0.4, 1.5)

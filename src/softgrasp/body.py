@@ -101,11 +101,25 @@ class Body:
     ) -> NDArray[np.float64]:
         """Spring + volume (+ edge damping if ``v`` is given) forces on the nodes [N], (N, 3).
 
-        Compiled kernels when :func:`softgrasp.kernels.compiled`, else the NumPy reference."""
+        Compiled kernels when :func:`softgrasp.kernels.compiled`, else the NumPy reference. A body
+        of at least :data:`~softgrasp.kernels.elastic.PARTITIONED_MIN_NODES` nodes sums them in the
+        assembly's order on the calling thread's Numba threads (the static solver gives it the
+        idle cores), the same to the bit on any number."""
         if kernels.compiled():
             from softgrasp.kernels import elastic
 
             damped = v is not None and self.damping_time > 0
+            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES:
+                forces = elastic.partitioned_forces(
+                    x,
+                    v if damped else None,
+                    self._force_elements,
+                    self.material.law,
+                    self.kappa,
+                    self.barrier,
+                )
+                if forces is not None:
+                    return forces[0]
             return elastic.internal_forces(
                 x,
                 v if damped else None,
@@ -132,6 +146,12 @@ class Body:
         if kernels.compiled():
             from softgrasp.kernels import elastic
 
+            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES:
+                summed = elastic.partitioned_forces(
+                    x, None, self._force_elements, self.material.law, self.kappa, self.barrier, True
+                )
+                if summed is not None:
+                    return summed[1]
             return elastic.internal_energy(
                 x,
                 self.edges,
@@ -165,6 +185,17 @@ class Body:
         from softgrasp.kernels import elastic
 
         return elastic.assembly_partition(self.edges, self.mesh.tets, self.n_nodes)
+
+    @cached_property
+    def _force_elements(self) -> tuple:
+        """The force kernels' per-element arrays in the assembly's order, for a large body
+        (:func:`softgrasp.kernels.elastic.partitioned_elements`)."""
+        from softgrasp.kernels import elastic
+
+        return elastic.partitioned_elements(
+            self.edges, self.rest_length, self.stiffness, self.damping, self.mesh.tets, self.mesh.volumes,
+            self._assembly_partition,
+        )  # fmt: skip
 
     def internal_jacobian(self, x: NDArray[np.float64], threads: int = 1) -> sp.csr_matrix:
         """``d f_internal / d x`` (negative stiffness), sparse (3N, 3N), assembled into the body's

@@ -12,6 +12,7 @@ free) are enforced with Lagrange multipliers in a saddle-point system.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import weakref
@@ -571,10 +572,26 @@ def solve_static(
     the planner holds it for a whole plan): the 27 749-node settle called alone took 18.2 s with
     OpenBLAS's threads competing with the multigrid products' and PARDISO's.
     """
-    with pardiso.blas_one_thread():
+    cache = cache if cache is not None else SolverCache()
+    with pardiso.blas_one_thread(), _force_threads(scene.body, cache):
         return _solve_static(
             scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, guess
         )
+
+
+def _force_threads(body: Body, cache: SolverCache) -> contextlib.AbstractContextManager:
+    """Numba's threads for a large body's force evaluations during a static solve (its sums run
+    on the calling thread's: :meth:`softgrasp.body.Body.internal_forces`): the assembly's, the idle
+    cores on the multigrid path (:func:`~softgrasp.sim.linsolve.assembly_threads`). Nothing is
+    changed for smaller bodies or without the compiled kernels."""
+    if not kernels.compiled():
+        return contextlib.nullcontext()
+    from softgrasp.kernels.elastic import PARTITIONED_MIN_NODES
+    from softgrasp.kernels.sparse import _Threads
+
+    if body.n_nodes < PARTITIONED_MIN_NODES:
+        return contextlib.nullcontext()
+    return _Threads(assembly_threads(3 * body.n_nodes, cache))
 
 
 def _solve_static(
