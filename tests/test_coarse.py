@@ -6,6 +6,7 @@ inverses. (The kept hierarchy's convergence against a fresh one's: tests/test_li
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from softgrasp.sim import coarse
@@ -109,11 +110,14 @@ def test_a_changed_patch_leaves_rigid_translations_free():
         assert np.abs(cut @ t).max() > 1e-3 * np.abs(full).max()
 
 
-def test_changed_and_stiffened_nodes_from_the_diagonals():
+@pytest.mark.parametrize("scale", [1.0, 3.0])
+def test_changed_and_stiffened_nodes_from_the_diagonals(scale):
     """A node is stiffened when one of its diagonal entries grew past STIFFENED times the build
-    value, changed when one moved by more than CHANGED of it (either way); an entry not positive
-    at the build counts as changed when it differs; at most MAX_CHANGED of each, the largest."""
-    d0 = np.ones(18)
+    value, changed when one moved by more than CHANGED of it (either way), both relative to the
+    median node's ratio (here most nodes keep their stiffness, or all of it is scaled by three:
+    the same nodes stand out); an entry not positive at the build counts as changed when it
+    differs. A stiffness scaled throughout changes no node."""
+    d0 = np.ones(300)
     d0[15] = 0.0
     d = d0.copy()
     d[0] = 2.0  # node 0 stiffened
@@ -121,16 +125,19 @@ def test_changed_and_stiffened_nodes_from_the_diagonals():
     d[8] = 1.0 + 2.0 * coarse.CHANGED  # node 2 changed
     d[10] = 0.5  # node 3 softened: changed
     d[15] = 1e-9  # node 5: not positive at the build, now differs
+    d = np.where(d0 > 0, scale * d, d)
     stiffened, changed = changed_nodes(d, d0)
     assert stiffened.tolist() == [0, 5]
     assert changed.tolist() == [0, 2, 3, 5]
+    none = changed_nodes(5.0 * np.ones(300), np.ones(300))
+    assert none[0].size == 0 and none[1].size == 0
 
 
 def test_at_most_max_changed_nodes_the_largest_changes(monkeypatch):
     monkeypatch.setattr(coarse, "MAX_CHANGED", 3)
-    d0 = np.ones(30)
+    d0 = np.ones(90)
     d = d0.copy()
-    d[0::3] = 1.0 + np.array([0.1, 0.5, 0.2, 0.9, 0.3, 0.6, 0.07, 0.8, 0.4, 0.06])
+    d[0:30:3] = 1.0 + np.array([0.1, 0.5, 0.2, 0.9, 0.3, 0.6, 0.07, 0.8, 0.4, 0.06])
     _, changed = changed_nodes(d, d0)
     assert changed.tolist() == [3, 5, 7]
 

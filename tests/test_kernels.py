@@ -275,6 +275,36 @@ def test_a_large_body_sums_its_forces_in_the_assembly_order_on_any_threads(confi
             assert np.array_equal(one, two)
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
+def test_a_forked_child_sums_a_large_body_forces_without_numba_threads(monkeypatch):
+    """A process forked after a large body's forces ran on Numba's threads (a script forking
+    workers after planning) evaluates them in the child with the serial kernels: Numba's OpenMP
+    threads do not survive the fork (a parallel kernel there terminates the child), and the
+    forces are the same to round-off."""
+    import multiprocessing
+
+    monkeypatch.setattr(elastic, "PARTITIONED_MIN_NODES", 1)
+    body = build_body(box(0.04, 3).reordered(), Material(1e5, 0.45, 50.0, LAWS["polynomial"]))
+    x = np.asarray(body.mesh.points) * 1.01
+    with kernels.use_backend("numba"):
+        f = body.internal_forces(x)  # the parallel kernel, in the parent
+        child = multiprocessing.get_context("fork").Process(target=_forces_in_child, args=(body, x, f))
+        child.start()
+    child.join(60)
+    alive = child.is_alive()
+    if alive:
+        child.kill()
+    assert not alive and child.exitcode == 0
+
+
+def _forces_in_child(body, x, want) -> None:
+    assert kernels.forked()
+    with kernels.use_backend("numba"):
+        got = body.internal_forces(x)
+    if not np.abs(got - want).max() <= 1e-12 * np.abs(want).max():
+        raise SystemExit(3)
+
+
 def test_polynomial_coefficients_only_for_exact_types():
     assert elastic.polynomial_coefficients(Linear()) == (0.0, 0.0)
     assert elastic.polynomial_coefficients(Polynomial(a2=-0.4, a3=1.5)) == (-0.4, 1.5)

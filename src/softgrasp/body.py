@@ -104,12 +104,13 @@ class Body:
         Compiled kernels when :func:`softgrasp.kernels.compiled`, else the NumPy reference. A body
         of at least :data:`~softgrasp.kernels.elastic.PARTITIONED_MIN_NODES` nodes sums them in the
         assembly's order on the calling thread's Numba threads (the static solver gives it the
-        idle cores), the same to the bit on any number."""
+        idle cores), the same to the bit on any number; not in a forked child
+        (:func:`softgrasp.kernels.forked`)."""
         if kernels.compiled():
             from softgrasp.kernels import elastic
 
             damped = v is not None and self.damping_time > 0
-            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES:
+            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES and not kernels.forked():
                 forces = elastic.partitioned_forces(
                     x,
                     v if damped else None,
@@ -146,7 +147,7 @@ class Body:
         if kernels.compiled():
             from softgrasp.kernels import elastic
 
-            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES:
+            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES and not kernels.forked():
                 summed = elastic.partitioned_forces(
                     x, None, self._force_elements, self.material.law, self.kappa, self.barrier, True
                 )

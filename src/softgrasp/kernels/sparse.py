@@ -451,23 +451,13 @@ class BlockGaussSeidel(BsrProduct):
     and 2.51 M non-zeros: 0.84 against 1.8-2.4 ms a sweep). The sweep itself is sequential (one
     thread); the products run on ``threads``."""
 
-    def __init__(
-        self,
-        A: sp.bsr_matrix | sp.bsr_array,
-        threads: int = 1,
-        inverse_diagonal: NDArray[np.float64] | None = None,
-    ) -> None:
-        """``inverse_diagonal``: the diagonal blocks' inverses (nb, 6, 6) where they are known
-        (used, not copied), else computed."""
+    def __init__(self, A: sp.bsr_matrix | sp.bsr_array, threads: int = 1) -> None:
         if not sp.issparse(A) or A.format != "bsr" or tuple(A.blocksize) != (BLOCK, BLOCK):
             raise ValueError(f"block Gauss-Seidel needs a BSR matrix of {BLOCK} x {BLOCK} blocks")
         if not A.has_canonical_format:  # one diagonal block a row, as the sweep reads it
             A = A.copy()
             A.sum_duplicates()
         super().__init__(A, threads)
-        if inverse_diagonal is not None:
-            self.inverse_diagonal = inverse_diagonal
-            return
         from pyamg.util.utils import get_block_diag
 
         self.inverse_diagonal = np.ascontiguousarray(

@@ -6,11 +6,15 @@ The multigrid path's hierarchy is pyamg's classical smoothed aggregation with th
 standard aggregation, the candidates improved by four symmetric block Gauss-Seidel sweeps on the
 finest level, Jacobi-smoothed prolongators with omega 4/3, R = P^T, coarsening down to
 ``max_coarse`` block rows). Here each level is built by the same pyamg functions in the same order
-(the same random draws for the spectral radius estimates, the same aggregates and prolongators to
-the bit), except the finest level's Galerkin product ``P^T A P``: pyamg forms it as ``(R A) P``
-through SciPy's products on one thread (0.48-0.60 s of a 1.2-1.4 s set-up at 27 749 nodes), here
+(the same random draws for the spectral radius estimates), except the finest level's Galerkin
+product ``P^T A P``: pyamg forms it as ``(R A) P`` through SciPy's products on one thread
+(0.48-0.60 s of a 1.2-1.4 s set-up at 27 749 nodes), here
 :func:`softgrasp.kernels.galerkin.galerkin_product` (0.2 s), the same operator to the rounding of
-reordered sums. Coarser levels are small and keep SciPy's products.
+reordered sums. The finest level's aggregates and prolongator are pyamg's to the bit; the second
+level's are not always: SciPy's product leaves each row's blocks in the order it reached them,
+this one in column order, and the greedy aggregation depends on that order (on the 7 295-node
+foam cube 48 second-level aggregates differ, its operator by 7.6 %; the multigrid converges alike).
+Coarser levels are small and keep SciPy's products.
 """
 
 from __future__ import annotations

@@ -62,10 +62,13 @@ def changed_nodes(
     diagonal: NDArray[np.float64], diagonal0: NDArray[np.float64]
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """The nodes (3 unknowns each, ``x, y, z``) whose stiffness the contacts changed since the
-    build matrix, from the current and the build matrix's diagonals (3N,). Returns (the stiffened
-    nodes: some diagonal entry grew past :data:`STIFFENED` times its build value; the changed ones,
-    the stiffened among them: some diagonal entry moved by more than :data:`CHANGED` of it). An
-    entry that was not positive counts as changed when it differs at all."""
+    build matrix, from the current and the build matrix's diagonals (3N,), each entry's ratio to
+    its build value taken relative to the median node's (a stiffness changed throughout, as by a
+    scaled matrix or a stiffening material, is not a contact: scaled by two, 1 625 nodes, pinning
+    them all took 87 CG iterations where the levels as built took 23). Returns (the stiffened
+    nodes: some diagonal entry grew past :data:`STIFFENED` times that; the changed ones: some
+    entry moved by more than :data:`CHANGED` of it), each at most :data:`MAX_CHANGED`, the
+    largest. An entry that was not positive counts as changed when it differs at all."""
     d = np.asarray(diagonal, dtype=np.float64)
     d0 = np.asarray(diagonal0, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -74,7 +77,11 @@ def changed_nodes(
     ratio[odd] = np.where(d[odd] == d0[odd], 1.0, np.inf)
     x, y, z = ratio[0::3], ratio[1::3], ratio[2::3]
     high = np.maximum(np.maximum(x, y), z)
-    moved = np.maximum(high - 1.0, 1.0 - np.minimum(np.minimum(x, y), z))
+    low = np.minimum(np.minimum(x, y), z)
+    typical = float(np.median(high))
+    if np.isfinite(typical) and typical > 0 and typical != 1.0:
+        high, low = high / typical, low / typical
+    moved = np.maximum(high - 1.0, 1.0 - low)
     return _largest(high, STIFFENED), _largest(moved, CHANGED)
 
 

@@ -265,7 +265,7 @@ class _Multigrid:
         # What the coarse levels' update for later matrices starts from (sim.coarse): the build
         # matrix and its diagonal, the first prolongator by rows, the deeper ones, the coarse
         # operators as built.
-        self._A0 = A
+        self._A0: sp.csr_matrix | None = A
         self._diagonal0: NDArray[np.float64] | None = None
         self._P0 = levels[0].P if len(levels) > 1 else None
         self._Pc = [level.P for level in levels[1:-1]]
@@ -296,6 +296,8 @@ class _Multigrid:
                 UpdatedLevel(levels[lvl].A, self._sweeps[lvl] if lvl < len(levels) - 1 else None)
                 for lvl in range(1, len(levels))
             ]
+        else:
+            self._A0 = None  # no update: the build matrix is not needed
         self.stats: dict[str, int] | None = None  # where the cycles are counted (a cache's stats)
 
     def fits(self, A: sp.csr_matrix) -> bool:
@@ -337,11 +339,11 @@ class _Multigrid:
         """The coarse levels for ``A``: the hierarchy's as built, with the nodes the contacts
         stiffened since left out of the coarse space and the operators' Galerkin change for the
         nodes they changed (:mod:`softgrasp.sim.coarse`); as built for None."""
-        assert self._P0 is not None and self._diagonal0 is not None
+        assert self._P0 is not None and self._A0 is not None and self._diagonal0 is not None
         levels = self.ml.levels
         none = np.zeros(0, dtype=np.intp)
         stiffened, changed = (
-            (none, none) if A is None else changed_nodes(self._fine.diagonal(), self._diagonal0)
+            (none, none) if A is None else changed_nodes(_diagonal(A, self._fine), self._diagonal0)
         )
         if stiffened.size == 0 and changed.size == 0:
             self._pinned = None
@@ -433,9 +435,15 @@ def _compiled() -> bool:
     return bool(compiled())
 
 
-def _diagonal(A: sp.csr_matrix) -> NDArray[np.float64]:
-    """``A``'s diagonal, by the compiled kernel where the compiled kernels are in use."""
-    if _compiled():
+def _diagonal(A: sp.csr_matrix, fine: Any = None) -> NDArray[np.float64]:
+    """``A``'s diagonal: from ``fine`` (its finest-level sweeps, which read it by node blocks)
+    or by the compiled kernel where the compiled kernels are in use, by SciPy otherwise and in a
+    forked child (where Numba's threads would not run)."""
+    from softgrasp.kernels import forked
+
+    if _compiled() and not forked():
+        if fine is not None:
+            return np.asarray(fine.diagonal())
         from softgrasp.kernels.sparse import diagonal
 
         return diagonal(A)
