@@ -21,3 +21,18 @@ def sphere_grasp() -> tuple[dict[str, np.ndarray], np.ndarray]:
     centre = np.array([0.0, 0.0, r])
     fingers = ("thumb", "first", "middle")
     return {f: centre + (r + 0.008) * v for f, v in zip(fingers, normals, strict=True)}, centre + r * pts
+
+
+@pytest.fixture
+def finished_ok():
+    """``finished_ok(child)``: whether a started child process ends within 60 s with exit status
+    0 (one still running is killed)."""
+
+    def check(child) -> bool:
+        child.join(60)
+        alive = child.is_alive()
+        if alive:
+            child.kill()
+        return not alive and child.exitcode == 0
+
+    return check

@@ -276,7 +276,7 @@ def test_a_large_body_sums_its_forces_in_the_assembly_order_on_any_threads(confi
 
 
 @pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
-def test_a_forked_child_sums_a_large_body_forces_without_numba_threads(monkeypatch):
+def test_a_forked_child_sums_a_large_body_forces_without_numba_threads(monkeypatch, finished_ok):
     """A process forked after a large body's forces ran on Numba's threads (a script forking
     workers after planning) evaluates them in the child with the serial kernels: Numba's OpenMP
     threads do not survive the fork (a parallel kernel there terminates the child), and the
@@ -290,11 +290,7 @@ def test_a_forked_child_sums_a_large_body_forces_without_numba_threads(monkeypat
         f = body.internal_forces(x)  # the parallel kernel, in the parent
         child = multiprocessing.get_context("fork").Process(target=_forces_in_child, args=(body, x, f))
         child.start()
-    child.join(60)
-    alive = child.is_alive()
-    if alive:
-        child.kill()
-    assert not alive and child.exitcode == 0
+    assert finished_ok(child)
 
 
 def _forces_in_child(body, x, want) -> None:

@@ -992,7 +992,7 @@ def test_hierarchies_built_by_threads_at_once_are_those_built_alone():
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
-def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own():
+def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own(finished_ok):
     """A process forked while another thread holds the generator's lock (a sweep forking workers
     while a plan runs) builds hierarchies in the child: the child has a lock of its own (the
     parent's, held at the fork, would never be released there: the build would wait forever)."""
@@ -1005,11 +1005,7 @@ def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own():
     with linsolve._GLOBAL_RNG:  # held, as by another thread building, when the child is forked
         child = ctx.Process(target=linsolve._hierarchy, args=(A0, x))
         child.start()
-    child.join(60)
-    alive = child.is_alive()
-    if alive:
-        child.kill()
-    assert not alive and child.exitcode == 0
+    assert finished_ok(child)
 
 
 def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
