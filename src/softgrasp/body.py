@@ -110,17 +110,9 @@ class Body:
             from softgrasp.kernels import elastic
 
             damped = v is not None and self.damping_time > 0
-            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES and not kernels.forked():
-                forces = elastic.partitioned_forces(
-                    x,
-                    v if damped else None,
-                    self._force_elements,
-                    self.material.law,
-                    self.kappa,
-                    self.barrier,
-                )
-                if forces is not None:
-                    return forces[0]
+            forces = self._partitioned(x, v if damped else None, False)
+            if forces is not None:
+                return forces[0]
             return elastic.internal_forces(
                 x,
                 v if damped else None,
@@ -147,12 +139,9 @@ class Body:
         if kernels.compiled():
             from softgrasp.kernels import elastic
 
-            if self.n_nodes >= elastic.PARTITIONED_MIN_NODES and not kernels.forked():
-                summed = elastic.partitioned_forces(
-                    x, None, self._force_elements, self.material.law, self.kappa, self.barrier, True
-                )
-                if summed is not None:
-                    return summed[1]
+            summed = self._partitioned(x, None, True)
+            if summed is not None:
+                return summed[1]
             return elastic.internal_energy(
                 x,
                 self.edges,
@@ -186,6 +175,20 @@ class Body:
         from softgrasp.kernels import elastic
 
         return elastic.assembly_partition(self.edges, self.mesh.tets, self.n_nodes)
+
+    def _partitioned(
+        self, x: NDArray[np.float64], v: NDArray[np.float64] | None, want_energy: bool
+    ) -> tuple[NDArray[np.float64], float] | None:
+        """(forces, energy) summed in the assembly's order on Numba's threads
+        (:func:`softgrasp.kernels.elastic.partitioned_forces`) for a large body's polynomial law
+        outside a forked child; None otherwise (the single-pass kernels then)."""
+        from softgrasp.kernels import elastic
+
+        if self.n_nodes < elastic.PARTITIONED_MIN_NODES or kernels.forked():
+            return None
+        return elastic.partitioned_forces(
+            x, v, self._force_elements, self.material.law, self.kappa, self.barrier, want_energy
+        )
 
     @cached_property
     def _force_elements(self) -> tuple:

@@ -603,7 +603,7 @@ def _solve_static(
     rtol: float,
     max_iter: int,
     max_friction_passes: int,
-    cache: SolverCache | None,
+    cache: SolverCache,
     guess: NDArray[np.float64] | None,
 ) -> tuple[State, StaticInfo]:
     tt = state.t if t is None else float(t)
@@ -620,7 +620,6 @@ def _solve_static(
         if np.abs(viol).max() > 0:
             CCt = (C @ C.T).toarray()
             x = x - (C.T @ np.linalg.solve(CCt, viol)).reshape(-1, 3)
-    cache = cache if cache is not None else SolverCache()
     zeros = np.zeros_like(x)
     # Register contacts that start at this load step without slip returns: slip is decided only
     # once the body has deformed under the new load (at the end of each pass).
