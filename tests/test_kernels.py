@@ -275,15 +275,11 @@ def test_a_large_body_sums_its_forces_in_the_assembly_order_on_any_threads(confi
             assert np.array_equal(one, two)
 
 
-@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
-def test_a_forked_child_sums_a_large_body_forces_without_numba_threads(monkeypatch, finished_ok):
-    """A process forked after a large body's forces ran on Numba's threads (a script forking
-    workers after planning) evaluates them in the child with the serial kernels: Numba's OpenMP
-    threads do not survive the fork (a parallel kernel there terminates the child), and the
-    forces are the same to round-off."""
+def _forked_large_body_forces(finished_ok) -> None:
+    """Evaluate a large body's forces on Numba's threads, fork, and check that the child gets the
+    same forces (its ``kernels.forked()`` says whether it took the serial kernels)."""
     import multiprocessing
 
-    monkeypatch.setattr(elastic, "PARTITIONED_MIN_NODES", 1)
     body = build_body(box(0.04, 3).reordered(), Material(1e5, 0.45, 50.0, LAWS["polynomial"]))
     x = np.asarray(body.mesh.points) * 1.01
     with kernels.use_backend("numba"):
@@ -294,11 +290,88 @@ def test_a_forked_child_sums_a_large_body_forces_without_numba_threads(monkeypat
 
 
 def _forces_in_child(body, x, want) -> None:
-    assert kernels.forked()
+    if kernels.forked() != (numba.threading_layer() == "omp"):
+        raise SystemExit(2)
     with kernels.use_backend("numba"):
         got = body.internal_forces(x)
     if not np.abs(got - want).max() <= 1e-12 * np.abs(want).max():
         raise SystemExit(3)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
+def test_a_forked_child_sums_a_large_body_forces(monkeypatch, finished_ok):
+    """A process forked after a large body's forces ran on Numba's threads (a script forking
+    workers after planning) evaluates them in the child to the same values; with TBB as the
+    threading layer (the default where it is installed) on the child's own threads."""
+    monkeypatch.setattr(elastic, "PARTITIONED_MIN_NODES", 1)
+    _forked_large_body_forces(finished_ok)
+
+
+def _tbb_installed() -> bool:
+    from importlib import metadata
+
+    try:
+        metadata.distribution("tbb")
+    except metadata.PackageNotFoundError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(
+    bool(__import__("os").environ.get("NUMBA_THREADING_LAYER")) or not _tbb_installed(),
+    reason="the threading layer is chosen by the environment, or TBB is not installed",
+)
+def test_numba_threads_come_from_tbb_where_it_is_installed(monkeypatch):
+    """softgrasp makes pip's TBB library loadable, so Numba's parallel kernels run on its
+    fork-safe TBB layer rather than GNU OpenMP (whose threads a forked child cannot use)."""
+    monkeypatch.setattr(elastic, "PARTITIONED_MIN_NODES", 1)
+    body = build_body(box(0.04, 2).reordered(), Material(1e5, 0.45, 50.0, LAWS["polynomial"]))
+    with kernels.use_backend("numba"):
+        body.internal_forces(np.asarray(body.mesh.points))
+    assert numba.threading_layer() == "tbb"
+
+
+_OPENMP_FORK = """
+import sys
+sys.path.insert(0, {tests!r})
+import numba, pytest
+from softgrasp.kernels import elastic
+import test_kernels
+elastic.PARTITIONED_MIN_NODES = 1
+def finished_ok(child):
+    child.join(60)
+    alive = child.is_alive()
+    if alive:
+        child.kill()
+    return not alive and child.exitcode == 0
+test_kernels._forked_large_body_forces(finished_ok)
+print(numba.threading_layer())
+"""
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
+def test_under_openmp_a_forked_child_sums_a_large_body_forces_serially():
+    """With GNU OpenMP as the threading layer (``NUMBA_THREADING_LAYER=omp``: its threads do not
+    survive a fork, and a parallel kernel in the child terminates it) the forked child knows
+    (``kernels.forked()``) and takes the serial kernels: the same forces, the child exits 0."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tests = str(Path(__file__).parent)
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "omp"}
+    run = subprocess.run(
+        [sys.executable, "-c", _OPENMP_FORK.format(tests=tests)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    if "omp" not in run.stdout and "No threading layer could be loaded" in run.stderr:
+        pytest.skip("no GNU OpenMP runtime for Numba here")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split()[-1] == "omp"
 
 
 def test_polynomial_coefficients_only_for_exact_types():

@@ -1008,6 +1008,31 @@ def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own(finishe
     assert finished_ok(child)
 
 
+def _solve_in_child(A, b, x) -> None:
+    cache = SolverCache(method="amg", rtol=1e-8)
+    dx, _ = solve_newton_system(A, b, None, x, cache)
+    if cache.stats["amg_solves"] != 1 or not np.linalg.norm(A @ dx - b) <= 1e-8 * np.linalg.norm(b):
+        raise SystemExit(3)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_child_forked_after_multigrid_solves_runs_its_own(finished_ok):
+    """A script that solves on the multigrid path (its V-cycles on Numba's threads) and then
+    forks workers: a worker's multigrid solve converges (under GNU OpenMP, Numba's layer before
+    softgrasp made TBB loadable, the child was terminated at its first parallel V-cycle)."""
+    import multiprocessing
+
+    numba = pytest.importorskip("numba")
+    A0, A1, x = _table_then_plate(6)
+    b = np.ones(A0.shape[0])
+    solve_newton_system(A0, b, None, x, SolverCache(method="amg"))  # the parallel kernels, here
+    if numba.threading_layer() == "omp":
+        pytest.skip("Numba runs on GNU OpenMP here (TBB not installed, or chosen by the environment)")
+    child = multiprocessing.get_context("fork").Process(target=_solve_in_child, args=(A1, b, x))
+    child.start()
+    assert finished_ok(child)
+
+
 def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
     """The foam cube resting on a table (its bottom nodes held), then its top face pressed by a
     stiff plate (a penalty 50 times the nodes' own stiffness): the multigrid hierarchy kept from
