@@ -97,6 +97,24 @@ def test_sphere_rests_on_table_without_rolling():
     assert np.hypot(*(com - com0)[:2]) < 1e-3  # leans on its tripod, does not roll away
 
 
+@pytest.mark.parametrize("method", ["auto", "amg"])
+def test_newton_matrices_share_the_body_pattern_and_leave_it_intact(method):
+    """The Newton matrices are the body's Jacobian pattern with fresh values: they share its
+    index arrays (int32, as SciPy keeps them; no per-matrix copy), and a whole static solve on
+    either linear solver (PARDISO's upper triangle, multigrid's node blocks and hierarchy) leaves
+    those arrays as they were."""
+    mesh, mat, mass = make_object("sphere", 0.016)
+    body = build_body(mesh, mat, mass=mass)
+    pattern = body._jacobian_pattern
+    assert pattern.indices.dtype == np.int32 and pattern.indptr.dtype == np.int32
+    before = (pattern.indices.copy(), pattern.indptr.copy())
+    J = body.internal_jacobian(np.asarray(mesh.points))
+    assert np.shares_memory(J.indices, pattern.indices) and np.shares_memory(J.indptr, pattern.indptr)
+    scene = Scene(body, (_table(),))
+    solve_static(scene, scene.initial_state(), cache=SolverCache(method=method))
+    assert np.array_equal(pattern.indices, before[0]) and np.array_equal(pattern.indptr, before[1])
+
+
 def test_a_predicted_start_finds_the_same_rest_in_fewer_iterations():
     """A block on a rough table pressed down by a rigid plate in two equal load steps: the second
     step started from the first two rests extrapolated (the response is nearly linear) finds the
