@@ -33,9 +33,10 @@ import time
 
 import numpy as np
 
-#: Sphere mesh sizes [m] and the node counts they give: 549, 2 196, 7 576; ~32 000 with --large.
+#: Sphere mesh sizes [m] and the node counts they give: 549, 2 196, 7 576; with --large 27 749
+#: (where the earlier figures were measured) and 32 543 (the target's ~32 000).
 SIZES = (0.014, 0.008, 0.005)
-LARGE = 0.0031
+LARGE = (0.0031, 0.00295)
 #: Warm plans after the first (``warm s`` is the best of them: the benchmark machine's throughput
 #: drifts by up to +-20 % from minute to minute, and the best is the least disturbed figure).
 WARM_REPEATS = 3
@@ -139,7 +140,7 @@ def cli(repeats: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="only the ~500 and ~2 000-node meshes")
-    ap.add_argument("--large", action="store_true", help="also the ~32 000-node mesh")
+    ap.add_argument("--large", action="store_true", help="also the 27 749 and 32 543-node meshes")
     ap.add_argument("--reference", action="store_true", help="also the reference linear solver (slow)")
     ap.add_argument("--dynamic", action="store_true", help="also the dynamic solver on the ~500-node mesh")
     ap.add_argument(
@@ -162,7 +163,7 @@ def main() -> None:
         f"{'nodes':>6} {'solver':>22} {'plan s':>8} {'warm s':>7} {'ratio':>6} {'peak MB':>8} {'incr':>5} "
         f"{'margin':>7}  thumb / first / middle N"
     )
-    sizes = list(SIZES[:2] if args.quick else SIZES) + ([LARGE] if args.large else [])
+    sizes = list(SIZES[:2] if args.quick else SIZES) + (list(LARGE) if args.large else [])
     fast: list[tuple[int, float]] = []
     for h in sizes:
         r = measure(h)
