@@ -112,7 +112,7 @@ def finger_pairs(scene: Scene, state: State) -> int:
 # ----------------------------------------------------------------------------- timing helpers
 def others_running(settle: float = 0.0) -> int:
     """Runnable tasks on the machine besides the calling thread (``/proc/loadavg``), -1 if unknown;
-    after ``settle`` seconds of sleep (our own OpenMP thread spins a while after a parallel run and
+    after ``settle`` seconds of sleep (our own worker thread spins a while after a parallel run and
     counts as runnable meanwhile)."""
     time.sleep(settle)
     try:

@@ -290,7 +290,8 @@ def _forked_large_body_forces(finished_ok) -> None:
 
 
 def _forces_in_child(body, x, want) -> None:
-    if kernels.forked() != (numba.threading_layer() == "omp"):
+    lost = numba.threading_layer() == "omp"
+    if kernels.forked() != lost or kernels.compiled() == lost:
         raise SystemExit(2)
     with kernels.use_backend("numba"):
         got = body.internal_forces(x)
@@ -318,8 +319,10 @@ def _tbb_installed() -> bool:
 
 
 @pytest.mark.skipif(
-    bool(__import__("os").environ.get("NUMBA_THREADING_LAYER")) or not _tbb_installed(),
-    reason="the threading layer is chosen by the environment, or TBB is not installed",
+    __import__("os").environ.get("NUMBA_THREADING_LAYER", "default") not in ("default", "tbb", "safe")
+    or not _tbb_installed()
+    or not __import__("sys").platform.startswith("linux"),
+    reason="another threading layer chosen by the environment, TBB not installed, or not Linux",
 )
 def test_numba_threads_come_from_tbb_where_it_is_installed(monkeypatch):
     """softgrasp makes pip's TBB library loadable, so Numba's parallel kernels run on its
@@ -336,7 +339,7 @@ import sys
 sys.path.insert(0, {tests!r})
 import numba, pytest
 from softgrasp.kernels import elastic
-import test_kernels
+import test_kernels, test_linsolve
 elastic.PARTITIONED_MIN_NODES = 1
 def finished_ok(child):
     child.join(60)
@@ -345,15 +348,18 @@ def finished_ok(child):
         child.kill()
     return not alive and child.exitcode == 0
 test_kernels._forked_large_body_forces(finished_ok)
+test_linsolve._multigrid_solve_then_fork(finished_ok)
 print(numba.threading_layer())
 """
 
 
 @pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
-def test_under_openmp_a_forked_child_sums_a_large_body_forces_serially():
+def test_under_openmp_a_forked_child_takes_the_numpy_kernels():
     """With GNU OpenMP as the threading layer (``NUMBA_THREADING_LAYER=omp``: its threads do not
     survive a fork, and a parallel kernel in the child terminates it) the forked child knows
-    (``kernels.forked()``) and takes the serial kernels: the same forces, the child exits 0."""
+    (``kernels.forked()``, ``kernels.compiled()`` false) and takes the NumPy kernels, SciPy's and
+    pyamg's: a large body's forces the same, a multigrid solve converged, the child exits 0 (its
+    multigrid solve was terminated before, exit -15)."""
     import os
     import subprocess
     import sys

@@ -1015,22 +1015,26 @@ def _solve_in_child(A, b, x) -> None:
         raise SystemExit(3)
 
 
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
-def test_a_child_forked_after_multigrid_solves_runs_its_own(finished_ok):
-    """A script that solves on the multigrid path (its V-cycles on Numba's threads) and then
-    forks workers: a worker's multigrid solve converges (under GNU OpenMP, Numba's layer before
-    softgrasp made TBB loadable, the child was terminated at its first parallel V-cycle)."""
+def _multigrid_solve_then_fork(finished_ok) -> None:
+    """Solve on the multigrid path (its V-cycles on Numba's threads), fork, and check that the
+    child's own multigrid solve converges."""
     import multiprocessing
 
-    numba = pytest.importorskip("numba")
     A0, A1, x = _table_then_plate(6)
     b = np.ones(A0.shape[0])
     solve_newton_system(A0, b, None, x, SolverCache(method="amg"))  # the parallel kernels, here
-    if numba.threading_layer() == "omp":
-        pytest.skip("Numba runs on GNU OpenMP here (TBB not installed, or chosen by the environment)")
     child = multiprocessing.get_context("fork").Process(target=_solve_in_child, args=(A1, b, x))
     child.start()
     assert finished_ok(child)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_child_forked_after_multigrid_solves_runs_its_own(finished_ok):
+    """A script that solves on the multigrid path and then forks workers: a worker's multigrid
+    solve converges (under GNU OpenMP, Numba's layer before softgrasp made TBB loadable, the child
+    was terminated at its first parallel V-cycle; the same under OpenMP now:
+    ``test_kernels.test_under_openmp_a_forked_child_...``)."""
+    _multigrid_solve_then_fork(finished_ok)
 
 
 def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():

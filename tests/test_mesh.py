@@ -555,22 +555,27 @@ def test_generated_objects_are_meshed_once_and_stay_read_only() -> None:
     assert make_object("cube", 0.025)[0] is cube
 
 
-@pytest.mark.parametrize("n", [7, 5_000, 3_000_000])
+@pytest.mark.parametrize("n", [7, 5_000, 2**21 - 1, 2**21, 3_000_000])
 def test_unique_rows_of_node_indices_as_numpy_unique_by_rows(n: int) -> None:
     """The mesh's faces, edges and boundary checks find distinct rows of node indices by one
     integer key a row: the same unique rows, inverse and counts as ``np.unique(axis=0)``, with
-    sorted and unsorted rows of two and three indices; where n^3 overflows int64 (n = 3e6) the
-    three-index rows fall back to ``np.unique`` itself."""
+    sorted and unsorted rows of two and three indices, as int64, int32 and uint64, the largest
+    indices included; up to n = 2^21 - 1 three-index keys fit int64, from n = 2^21 they fall back
+    to ``np.unique`` itself."""
     from softgrasp.mesh.tetmesh import _row_keys, _unique_rows
 
     rng = np.random.default_rng(n)
     for width in (2, 3):
         rows = rng.integers(0, n, (4_000, width))
+        rows[0] = n - 1
+        rows[1, 0] = n - 1
         rows = np.concatenate([rows, rows[::3]])  # repeated rows
         for r in (rows, np.sort(rows, axis=1)):
             want = np.unique(r, axis=0, return_inverse=True, return_counts=True)
-            got = _unique_rows(r, n, inverse=True, counts=True)
-            for a, b in zip(want, got, strict=True):
-                assert np.array_equal(np.reshape(a, b.shape), b)
-            assert np.array_equal(np.unique(r, axis=0), _unique_rows(r, n))
-    assert (_row_keys(np.zeros((1, 3), dtype=np.int64), 3_000_000) is None) == (3e6**3 >= 2.0**63)
+            for typed in (r, r.astype(np.uint64)) + ((r.astype(np.int32),) if n < 2**31 else ()):
+                got = _unique_rows(typed, n, inverse=True, counts=True)
+                (u0, i0, c0), (u1, i1, c1) = want, got
+                assert u0.shape == u1.shape and np.array_equal(u0, u1) and np.array_equal(c0, c1)
+                assert np.array_equal(np.ravel(i0), i1) and i1.ndim == 1  # callers ravel it too
+                assert np.array_equal(np.unique(r, axis=0), _unique_rows(typed, n))
+    assert (_row_keys(np.zeros((1, 3), dtype=np.int64), n) is None) == (n >= 2**21)

@@ -104,8 +104,7 @@ class Body:
         Compiled kernels when :func:`softgrasp.kernels.compiled`, else the NumPy reference. A body
         of at least :data:`~softgrasp.kernels.elastic.PARTITIONED_MIN_NODES` nodes sums them in the
         assembly's order on the calling thread's Numba threads (the static solver gives it the
-        idle cores), the same to the bit on any number; not in a forked child
-        (:func:`softgrasp.kernels.forked`)."""
+        idle cores), the same to the bit on any number."""
         if kernels.compiled():
             from softgrasp.kernels import elastic
 
@@ -180,11 +179,11 @@ class Body:
         self, x: NDArray[np.float64], v: NDArray[np.float64] | None, want_energy: bool
     ) -> tuple[NDArray[np.float64], float] | None:
         """(forces, energy) summed in the assembly's order on Numba's threads
-        (:func:`softgrasp.kernels.elastic.partitioned_forces`) for a large body's polynomial law
-        outside a forked child; None otherwise (the single-pass kernels then)."""
+        (:func:`softgrasp.kernels.elastic.partitioned_forces`) for a large body's polynomial law;
+        None otherwise (the single-pass kernels then)."""
         from softgrasp.kernels import elastic
 
-        if self.n_nodes < elastic.PARTITIONED_MIN_NODES or kernels.forked():
+        if self.n_nodes < elastic.PARTITIONED_MIN_NODES:
             return None
         return elastic.partitioned_forces(
             x, v, self._force_elements, self.material.law, self.kappa, self.barrier, want_energy

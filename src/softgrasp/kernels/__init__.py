@@ -95,8 +95,10 @@ def get_backend() -> str:
 
 
 def compiled() -> bool:
-    """Whether the compiled (Numba) kernels are in use."""
-    return get_backend() == "numba"
+    """Whether the compiled (Numba) kernels are in use: the ``numba`` backend, except in a
+    process forked from one whose Numba threads were GNU OpenMP's (:func:`forked`), where any
+    parallel kernel would terminate it: there the NumPy kernels, SciPy's and pyamg's run."""
+    return get_backend() == "numba" and not _FORKED
 
 
 def set_backend(name: str) -> None:
@@ -129,14 +131,17 @@ def use_backend(name: str) -> Iterator[None]:
 
 #: The shared library of Intel TBB that Numba's ``tbb`` threading layer links against.
 TBB_LIBRARY = "libtbb.so.12"
+#: The oldest TBB Numba's layer accepts (``TBB_runtime_interface_version``: 2021 update 6).
+TBB_MIN_INTERFACE = 12060
 
 
 def _tbb_paths() -> Iterator[str]:
-    """Where the installed ``tbb`` distribution put :data:`TBB_LIBRARY` (it lands in the
-    environment's ``lib`` directory, which is not on the dynamic loader's search path); the
-    distribution's record of its files is read only when that guess fails (it costs ~40 ms)."""
+    """Where to look for :data:`TBB_LIBRARY`: the loader's own search (a conda or system TBB),
+    then where pip's ``tbb`` distribution put it (the environment's ``lib`` directory, which is
+    not on the loader's path), its record of its files read only when that guess fails (~40 ms)."""
     import sys
 
+    yield TBB_LIBRARY
     yield os.path.join(sys.prefix, "lib", TBB_LIBRARY)
     try:
         from importlib import metadata
@@ -150,8 +155,23 @@ def _tbb_paths() -> Iterator[str]:
             yield str(dist.locate_file(f))
 
 
+def _tbb_usable(lib: object) -> bool:
+    """Whether the loaded TBB ``lib`` is one Numba's layer accepts (else Numba would warn and
+    fall back to OpenMP; a warning filter set to error would make that an exception)."""
+    import ctypes
+
+    try:
+        version = lib.TBB_runtime_interface_version  # type: ignore[attr-defined]
+    except AttributeError:
+        return False
+    version.argtypes = []
+    version.restype = ctypes.c_int
+    return int(version()) >= TBB_MIN_INTERFACE
+
+
 def _load_tbb() -> str | None:
-    """Make Intel TBB loadable for Numba's threading layer; the path loaded, or None.
+    """Make Intel TBB loadable for Numba's threading layer; what was loaded (a name or a path),
+    or None.
 
     Numba tries its threading layers in the order ``tbb``, ``omp``, ``workqueue``; its ``tbb``
     layer needs :data:`TBB_LIBRARY`, which pip installs into the environment's ``lib`` directory
@@ -160,21 +180,32 @@ def _load_tbb() -> str | None:
     threads terminates the child ("fork() called from a process already using GNU OpenMP"), so a
     script that plans and then forks workers lost them. TBB's layer is fork-safe and thread-safe
     and as fast here (the 27 749-node plan 9.7 s on either, alternating). Loading the library
-    once, globally, lets Numba's own choice find it. Linux only; a choice made by the user
-    (``NUMBA_THREADING_LAYER``) is left alone."""
+    once, globally, lets Numba's own choice (or ``NUMBA_THREADING_LAYER=tbb``, ``safe``...) find
+    it; a TBB already in the process is used as it is, one too old for Numba is unloaded again.
+    Linux only (elsewhere the loader finds pip's TBB, or Numba's other layers are fork-safe)."""
     import sys
 
-    if not sys.platform.startswith("linux") or os.environ.get("NUMBA_THREADING_LAYER"):
+    if not sys.platform.startswith("linux"):
         return None
     import ctypes
 
+    try:  # already loaded (by MKL, or from the loader's path): no second copy
+        if _tbb_usable(ctypes.CDLL(TBB_LIBRARY, mode=ctypes.RTLD_GLOBAL | os.RTLD_NOLOAD)):
+            return TBB_LIBRARY
+    except OSError:
+        pass
     for path in _tbb_paths():
-        if os.path.exists(path):
-            try:
-                ctypes.CDLL(path, mode=ctypes.RTLD_GLOBAL)
-            except OSError:
-                continue
+        if path != TBB_LIBRARY and not os.path.exists(path):
+            continue
+        try:
+            lib = ctypes.CDLL(path, mode=ctypes.RTLD_GLOBAL)
+        except OSError:
+            continue
+        if _tbb_usable(lib):
             return path
+        import _ctypes
+
+        _ctypes.dlclose(lib._handle)  # too old: Numba would warn and take OpenMP anyway
     return None
 
 
@@ -185,11 +216,12 @@ _FORKED = False
 
 def _threads_lost() -> bool:
     """Whether Numba's parallel threads, started before a fork, are unusable in the child: only
-    the GNU OpenMP layer (``omp``) is not fork-safe; no threads started means nothing lost."""
+    the GNU OpenMP layer (``omp`` on Linux) is not fork-safe; no threads started means nothing
+    lost."""
     import sys
 
     numba = sys.modules.get("numba")
-    if numba is None:
+    if numba is None or not sys.platform.startswith("linux"):
         return False
     try:
         layer = numba.threading_layer()
@@ -211,6 +243,9 @@ def forked() -> bool:
     """Whether this process is a fork of one whose Numba threads do not survive the fork. With
     GNU OpenMP as Numba's threading layer (TBB not installed, or ``NUMBA_THREADING_LAYER=omp``) a
     parallel kernel run in the child of a process that had started those threads terminates it
-    ("fork() called from a process already using GNU OpenMP"), so work that has a serial
-    equivalent takes it there. With TBB (the default where it is installed) this is False."""
+    ("fork() called from a process already using GNU OpenMP"); there :func:`compiled` is false
+    and the NumPy kernels run (slower, the same results to round-off). With TBB (the default
+    where it is installed) this is False. (TBB's layer resets itself in the child when the fork
+    comes from the thread that started Numba's threads; from another thread Numba warns that
+    the child's TBB may be in an invalid state.)"""
     return _FORKED

@@ -40,6 +40,9 @@ __all__ = [
     "unique_pairs",
 ]
 
+# The parallel kernels' loop iterations each write their own outputs; none sums across
+# iterations (a prange reduction): Numba keeps one partial sum per thread, and TBB, its threading
+# layer here, hands chunks to threads dynamically, so such a sum would change from run to run.
 _pjit = numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, error_model="numpy")
 # The block kernels' sums run in a fixed order (each row's six accumulators), multiply-adds fused.
 _bpjit = numba.njit(cache=True, parallel=True, fastmath={"contract"}, error_model="numpy")

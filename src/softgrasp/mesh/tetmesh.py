@@ -39,10 +39,11 @@ def _row_keys(rows: NDArray[np.int64], n: int) -> NDArray[np.int64] | None:
     ``np.unique(rows, axis=0)`` does, about ten times faster (a sort of integers instead of one
     of row records: for the 27 749-node sphere, the mesh's checks and topology after gmsh 4.5 ->
     0.9 s, the body's build 1.0 -> 0.3 s)."""
+    rows = np.asarray(rows).astype(np.int64, copy=False)  # unsigned rows would turn the keys float
     k = rows.shape[1]
     if float(max(n, 1)) ** k >= 2.0**63:
         return None
-    key = rows[:, 0].astype(np.int64)
+    key = rows[:, 0].copy()
     for j in range(1, k):
         key = key * n + rows[:, j]
     return key

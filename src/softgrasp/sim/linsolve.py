@@ -213,13 +213,11 @@ def _hierarchy(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> Any:
         state = np.random.get_state()
         np.random.seed(AMG_SEED)
         try:
-            from softgrasp.kernels import forked
-
-            if _compiled() and not forked():
+            if _compiled():
                 from softgrasp.sim.aggregation import smoothed_aggregation
 
                 # The same hierarchy, its finest Galerkin product compiled on Numba's threads
-                # (sim.aggregation); pyamg's serial one in a forked child, where they would not run.
+                # (sim.aggregation).
                 return smoothed_aggregation(
                     A, _rigid_modes(x_nodes), MAX_COARSE, "splu", _PRESMOOTHER, _POSTSMOOTHER
                 )
@@ -437,11 +435,8 @@ def _compiled() -> bool:
 
 def _diagonal(A: sp.csr_matrix, fine: Any = None) -> NDArray[np.float64]:
     """``A``'s diagonal: from ``fine`` (its finest-level sweeps, which read it by node blocks)
-    or by the compiled kernel where the compiled kernels are in use, by SciPy otherwise and in a
-    forked child (where Numba's threads would not run)."""
-    from softgrasp.kernels import forked
-
-    if _compiled() and not forked():
+    or by the compiled kernel where the compiled kernels are in use, by SciPy otherwise."""
+    if _compiled():
         if fine is not None:
             return np.asarray(fine.diagonal())
         from softgrasp.kernels.sparse import diagonal
