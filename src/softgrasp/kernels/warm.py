@@ -11,6 +11,11 @@ fingertip (sparse LU, not PARDISO, so that no solver threads start), and places 
 on its own fingertips. It calls the kernels through
 the same code path, with the same argument types, as a plan. It is only an optimisation: a failure
 is ignored, and the real call then meets the same problem and reports it.
+
+Numba's worker threads are then started by the warm-up thread. TBB's layer resets them in a forked
+child only when the fork comes from the thread that started them (from another, Numba warns that
+the child's TBB may be in an invalid state); the command line forks no process after the warm-up
+(its figure worker is a new program, started by exec).
 """
 
 from __future__ import annotations
