@@ -26,17 +26,20 @@ PARTS = 2
 
 
 @_pjit
-def _ap_count(a_ptr, a_idx, p_ptr, p_idx, nbc, parts, counts):  # pragma: no cover - compiled
-    """counts[i] = the block columns row i of A P reaches."""
-    n = a_ptr.shape[0] - 1
+def _product_counts(x_ptr, x_idx, y_ptr, y_idx, ncols, parts, counts):  # pragma: no cover - compiled
+    """counts[i] = the distinct columns row i of the product X Y reaches, X and Y by their
+    structures alone (CSR-like row pointers and column indices; X's columns index Y's rows): the
+    rows of A P (X = A, Y = P by block columns) and the block rows of P^T (A P) (X = P's blocks by
+    block column, Y = A P)."""
+    n = x_ptr.shape[0] - 1
     for part in numba.prange(parts):
-        mark = np.full(nbc, -1, dtype=np.int64)
+        mark = np.full(ncols, -1, dtype=np.int64)
         for i in range(part * n // parts, (part + 1) * n // parts):
             m = 0
-            for k in range(a_ptr[i], a_ptr[i + 1]):
-                j = a_idx[k]
-                for q in range(p_ptr[j], p_ptr[j + 1]):
-                    J = p_idx[q]
+            for k in range(x_ptr[i], x_ptr[i + 1]):
+                j = x_idx[k]
+                for q in range(y_ptr[j], y_ptr[j + 1]):
+                    J = y_idx[q]
                     if mark[J] != i:
                         mark[J] = i
                         m += 1
@@ -74,23 +77,6 @@ def _ap_fill(
                 for b in range(6):
                     ap_val[base + t, b] = acc[J, b]
                     acc[J, b] = 0.0
-
-
-@_pjit
-def _rap_count(t_ptr, t_row, ap_ptr, ap_idx, nbc, parts, counts):  # pragma: no cover - compiled
-    """counts[I] = the block columns block row I of P^T (A P) reaches."""
-    for part in numba.prange(parts):
-        mark = np.full(nbc, -1, dtype=np.int64)
-        for I in range(part * nbc // parts, (part + 1) * nbc // parts):
-            m = 0
-            for t in range(t_ptr[I], t_ptr[I + 1]):
-                i = t_row[t]
-                for q in range(ap_ptr[i], ap_ptr[i + 1]):
-                    J = ap_idx[q]
-                    if mark[J] != I:
-                        mark[J] = I
-                        m += 1
-            counts[I] = m
 
 
 @_pjit
@@ -148,7 +134,7 @@ def galerkin_product(A: sp.spmatrix | sp.sparray, P: sp.bsr_matrix | sp.bsr_arra
     p_idx = np.asarray(P.indices, dtype=np.int64)
     p_val = np.ascontiguousarray(P.data, dtype=np.float64).reshape(-1, 6)
     counts = np.empty(n, dtype=np.int64)
-    _ap_count(a_ptr, a_idx, p_ptr, p_idx, nbc, PARTS, counts)
+    _product_counts(a_ptr, a_idx, p_ptr, p_idx, nbc, PARTS, counts)
     ap_ptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(counts, out=ap_ptr[1:])
     ap_idx = np.empty(int(ap_ptr[-1]), dtype=np.int64)
@@ -160,7 +146,7 @@ def galerkin_product(A: sp.spmatrix | sp.sparray, P: sp.bsr_matrix | sp.bsr_arra
     t_ptr = np.zeros(nbc + 1, dtype=np.int64)
     np.cumsum(np.bincount(p_idx, minlength=nbc), out=t_ptr[1:])
     counts = np.empty(nbc, dtype=np.int64)
-    _rap_count(t_ptr, t_row, ap_ptr, ap_idx, nbc, PARTS, counts)
+    _product_counts(t_ptr, t_row, ap_ptr, ap_idx, nbc, PARTS, counts)
     c_ptr = np.zeros(nbc + 1, dtype=np.int64)
     np.cumsum(counts, out=c_ptr[1:])
     c_idx = np.empty(int(c_ptr[-1]), dtype=np.int64)
