@@ -108,3 +108,41 @@ def test_the_hierarchy_is_pyamgs_with_its_finest_galerkin_product_compiled():
         assert residuals[-1] <= 1e-8 * residuals[0]
         counts.append(len(residuals))
     assert abs(counts[0] - counts[1]) <= 2, counts
+
+
+def test_the_candidates_sweeps_are_pyamgs_to_the_bit():
+    """The finest candidates' four symmetric Gauss-Seidel sweeps on ``A x = 0``, all columns in
+    one pass over each row (:func:`softgrasp.kernels.setup.gauss_seidel_columns`), against
+    pyamg's relaxation operator applied column by column: the same bits for the six rigid-body
+    modes on the cube, and for three random columns on a matrix whose rows hold their columns out
+    of order and one of whose rows has no diagonal (pyamg leaves such a row alone)."""
+    from pyamg.relaxation.utils import relaxation_as_linear_operator
+
+    from softgrasp.sim.aggregation import IMPROVE_CANDIDATES, _improved_candidates
+
+    A, x = _cube(8)
+    B = linsolve._rigid_modes(x)
+    zero = np.zeros((A.shape[0], 1))
+    want = relaxation_as_linear_operator(IMPROVE_CANDIDATES, A, zero) @ B
+    got = _improved_candidates(A, B)
+    assert np.array_equal(got, want)
+    assert not np.array_equal(got, B)  # the sweeps changed the candidates
+    assert np.array_equal(B, linsolve._rigid_modes(x))  # and left the input alone
+
+    rng = np.random.default_rng(3)
+    M = A.tolil()
+    M[7, 7] = 0.0
+    M = M.tocsr()
+    M.eliminate_zeros()
+    data, indices = M.data.copy(), M.indices.copy()
+    for i in range(M.shape[0]):  # each row's entries in a random order
+        lo, hi = M.indptr[i], M.indptr[i + 1]
+        order = lo + rng.permutation(hi - lo)
+        data[lo:hi], indices[lo:hi] = data[order], indices[order]
+    M = sp.csr_matrix((data, indices, M.indptr.copy()), shape=M.shape)
+    assert not M.has_sorted_indices
+    B3 = rng.standard_normal((M.shape[0], 3))
+    got = _improved_candidates(M, B3)
+    want = relaxation_as_linear_operator(IMPROVE_CANDIDATES, M, zero) @ B3
+    assert np.array_equal(got, want)
+    assert np.array_equal(got[7], B3[7])

@@ -14,7 +14,8 @@ reordered sums. The finest level's aggregates and prolongator are pyamg's to the
 level's are not always: SciPy's product leaves each row's blocks in the order it reached them,
 this one in column order, and the greedy aggregation depends on that order (on the 7 295-node
 foam cube 48 second-level aggregates differ, its operator by 7.6 %; the multigrid converges alike).
-Coarser levels are small and keep SciPy's products.
+Coarser levels are small and keep SciPy's products. The finest candidates' Gauss-Seidel sweeps
+are compiled too, with pyamg's arithmetic to the bit (:mod:`softgrasp.kernels.setup`).
 """
 
 from __future__ import annotations
@@ -64,8 +65,11 @@ def smoothed_aggregation(
         C = symmetric_strength_of_connection(A)
         aggregates, _ = standard_aggregation(C)
         if len(levels) == 1:
-            zero = np.zeros((A.shape[0], 1), dtype=A.dtype)
-            B = relaxation_as_linear_operator(IMPROVE_CANDIDATES, A, zero) @ B
+            if A.format == "csr":
+                B = _improved_candidates(A, B)
+            else:
+                zero = np.zeros((A.shape[0], 1), dtype=A.dtype)
+                B = relaxation_as_linear_operator(IMPROVE_CANDIDATES, A, zero) @ B
             levels[-1].B = B
         T, B = fit_candidates(aggregates, B)
         P = jacobi_prolongation_smoother(A, T, C, B, omega=OMEGA)
@@ -81,3 +85,14 @@ def smoothed_aggregation(
     ml = MultilevelSolver(levels, coarse_solver=coarse_solver)
     change_smoothers(ml, presmoother, postsmoother)
     return ml
+
+
+def _improved_candidates(A: sp.csr_matrix, B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The candidates ``B`` (n, k) after :data:`IMPROVE_CANDIDATES`' symmetric Gauss-Seidel sweeps
+    on ``A x = 0``: pyamg's ``relaxation_as_linear_operator(IMPROVE_CANDIDATES, A, 0) @ B`` (for a
+    CSR ``A`` its block sweep is the scalar one), to the bit, all k in each pass over a row."""
+    from softgrasp.kernels.setup import gauss_seidel_columns
+
+    X = np.array(B, dtype=np.float64, order="C")
+    gauss_seidel_columns(A.indptr, A.indices, A.data, X, int(IMPROVE_CANDIDATES[1]["iterations"]))
+    return X
