@@ -339,6 +339,25 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     assert plan.solver_stats["settle_systems"] == len(calls)
 
 
+def test_closing_increments_to_their_looser_tolerance_keep_the_set_points(
+    sphere_body, default_plan, monkeypatch
+):
+    """The closing increments stop at ``CLOSING_RTOL`` (1e-4 of the largest force), the held
+    state at 1e-9: the set-points are those of a plan whose increments are solved to 1e-9 too, to
+    1e-5 of themselves (the increments only carry the friction history), with fewer Newton
+    systems in the closing and the same in the settle."""
+    from softgrasp.grasp import planner
+
+    assert planner.CLOSING_RTOL == 1e-4
+    monkeypatch.setattr(planner, "CLOSING_RTOL", 1e-9)
+    tight = plan_grasp(sphere_body, PlanConfig())
+    for a, b in zip(default_plan.fingers, tight.fingers, strict=True):
+        np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-5 * b.force_norm)
+    assert default_plan.increments == tight.increments
+    assert default_plan.solver_stats["closing_systems"] < tight.solver_stats["closing_systems"]
+    assert default_plan.solver_stats["settle_systems"] == tight.solver_stats["settle_systems"]
+
+
 # --------------------------------------------------------------------------- implicit holding
 
 
