@@ -339,23 +339,23 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     assert plan.solver_stats["settle_systems"] == len(calls)
 
 
-def test_closing_increments_to_their_looser_tolerance_keep_the_set_points(
-    sphere_body, default_plan, monkeypatch
-):
-    """The closing increments stop at ``CLOSING_RTOL`` (1e-4 of the largest force), the held
-    state at 1e-9: the set-points are those of a plan whose increments are solved to 1e-9 too, to
-    1e-5 of themselves (the increments only carry the friction history), with fewer Newton
-    systems in the closing and the same in the settle."""
+def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, default_plan, monkeypatch):
+    """The closing increments and the release steps but the last stop at ``STEP_RTOL`` (1e-4 of
+    the largest force), the held state at 1e-9: the set-points are those of a plan whose steps
+    are all solved to 1e-9, to 1e-5 of themselves (the steps only carry the friction history),
+    with fewer Newton systems in the closing and in the hold check, the same in the settle."""
     from softgrasp.grasp import planner
 
-    assert planner.CLOSING_RTOL == 1e-4
-    monkeypatch.setattr(planner, "CLOSING_RTOL", 1e-9)
+    assert planner.STEP_RTOL == 1e-4
+    monkeypatch.setattr(planner, "STEP_RTOL", 1e-9)
     tight = plan_grasp(sphere_body, PlanConfig())
     for a, b in zip(default_plan.fingers, tight.fingers, strict=True):
         np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-5 * b.force_norm)
     assert default_plan.increments == tight.increments
-    assert default_plan.solver_stats["closing_systems"] < tight.solver_stats["closing_systems"]
-    assert default_plan.solver_stats["settle_systems"] == tight.solver_stats["settle_systems"]
+    stats, tight_stats = default_plan.solver_stats, tight.solver_stats
+    assert stats["closing_systems"] < tight_stats["closing_systems"]
+    assert stats["hold_check_systems"] < tight_stats["hold_check_systems"]
+    assert stats["settle_systems"] == tight_stats["settle_systems"]
 
 
 # --------------------------------------------------------------------------- implicit holding

@@ -140,7 +140,7 @@ def test_a_predicted_start_finds_the_same_rest_in_fewer_iterations():
 
 def test_an_increment_solved_to_a_looser_tolerance_stops_there_near_the_tight_rest():
     """``solve_increment`` passes ``rtol`` to the static solve (the planner's closing increments
-    use ``CLOSING_RTOL`` = 1e-4 of the largest force, its held state 1e-9): a block pressed 3 mm by
+    use ``STEP_RTOL`` = 1e-4 of the largest force, its held state 1e-9): a block pressed 3 mm by
     a rigid plate, solved to 1e-6, stops balanced to that and not to 1e-9, one Newton iteration
     earlier, at a rest within 1e-6 of the displacement of the one solved to 1e-9."""
     mesh = box((0.03, 0.03, 0.02), (3, 3, 2))

@@ -95,16 +95,19 @@ STICK_TOLERANCE = 1e-3
 #: Newton iterations into the closing (1e-4: 40 -> 108 systems at 2 196 nodes, the ball still
 #: rolling when the fingers close).
 PATH_RTOL = 1e-6
-#: Relative tolerance of the closing increments (the largest unbalanced nodal force over the
-#: largest force present). An increment's rest only carries the friction history to the next
-#: (which pairs stick, where they are anchored); the set-points come from the held state, solved
-#: to 1e-9. At 1e-4 the unbalanced force of an increment is a fraction of one node's weight (2196
-#: nodes: 2.7e-5 N against 2.2e-4 N), and an increment ends a Newton iteration earlier: the
-#: default plan's set-points moved by at most 1.3e-6 (2 196 nodes), 4e-6 (7 576), 3e-7 (27 749)
-#: and 2e-8 (32 543) of themselves against increments at ``PATH_RTOL``, far below their change
-#: between those meshes (~2 %), with 3-4 fewer Newton systems (40 -> 36, 41 -> 37, 38 -> 35,
-#: 40 -> 37) and 9 % fewer V-cycles. 1e-3 saved one system more and moved them alike.
-CLOSING_RTOL = 1e-4
+#: Relative tolerance of the load steps on the way to the held state: the closing increments and
+#: the hold check's release steps but the last, where the holding simulation starts (the largest
+#: unbalanced nodal force over the largest force present). Each of these rests only carries the
+#: friction history to the next step (which pairs stick, where they are anchored); the set-points
+#: come from the held state, solved to 1e-9. At 1e-4 the unbalanced force of a step is a fraction
+#: of one node's weight (2 196 nodes: 2.7e-5 N against 2.2e-4 N) and most steps end a Newton
+#: iteration earlier. Against ``PATH_RTOL`` for the closing and 1e-9 for the release (the
+#: default plan): 40 -> 33 Newton systems at 2 196 nodes, 41 -> 34 at 7 576, 38 -> 31 at 27 749
+#: (575 -> 445 V-cycles), 40 -> 34 at 32 543 (616 -> 515); the set-points moved by at most 4e-6
+#: of themselves, far below their change between those meshes (~2 %). The closing at 1e-3 saved
+#: one system more and moved them alike; the last release step at 1e-4 too made the hold's
+#: implicit dynamics start unbalanced (7 576 nodes: 51 systems in the hold check instead of 10).
+STEP_RTOL = 1e-4
 
 
 @dataclass(frozen=True)
@@ -632,7 +635,9 @@ def _check_hold(
             # equal parts: a nearly linear response), one iteration fewer than from the last.
             guess = None if prev is None else extrapolated(st.x, prev)
             prev = st.x
-            st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache, guess=guess)
+            # The last step, where the hold starts, to 1e-9 (solve_static's default).
+            rtol = STEP_RTOL if k < RELEASE_STEPS else 1e-9
+            st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache, guess=guess, rtol=rtol)
             if (d := float(np.linalg.norm(_com(body, st.x) - c0))) >= cfg.max_drift:
                 return _moved(d, cfg, f"with the table's support down to {1 - k / RELEASE_STEPS:.0%}")
         released = float(np.linalg.norm(_com(body, st.x) - c0))
@@ -904,7 +909,7 @@ def _advance(
             state = State(state.x, np.zeros_like(state.v), state.t, state.contacts)
         if cfg.solver != "quasistatic":
             guess = None  # the dynamics brought the object somewhere else
-        state, _, _ = solve_increment(scene, state, t, cache=cache, guess=guess, rtol=CLOSING_RTOL)
+        state, _, _ = solve_increment(scene, state, t, cache=cache, guess=guess, rtol=STEP_RTOL)
     except NotConverged as exc:
         what = f"{t * 1e3:.3g} mm of travel" if cfg.solver == "quasistatic" else f"t = {t:.4g} s"
         raise NotConverged(f"closing increment to {what} failed: {exc}") from exc
