@@ -341,17 +341,34 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
 
 def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, default_plan, monkeypatch):
     """The closing increments and the release steps but the last stop at ``STEP_RTOL`` (1e-4 of
-    the largest force), the held state at 1e-9: the set-points are those of a plan whose steps
-    are all solved to 1e-9, to 1e-5 of themselves (the steps only carry the friction history),
-    with fewer Newton systems in the closing and in the hold check, the same in the settle."""
+    the largest force); the last release step, where the hold starts, and the held state at
+    ``HELD_RTOL`` (1e-9). Against a plan whose steps are all solved to 1e-9: the same set-points
+    to 1e-5 of themselves, the same closing path (travel, grasp tests, hold checks) with its
+    per-step forces to 1e-4, fewer Newton systems in the closing and in the hold check, the same
+    in the settle."""
     from softgrasp.grasp import planner
 
-    assert planner.STEP_RTOL == 1e-4
+    assert planner.STEP_RTOL == 1e-4 and planner.HELD_RTOL == 1e-9
+    release_rtols: list[float] = []
+    real_solve = planner.solve_static
+
+    def recorded(scene, state, **kw):
+        if "support" in [i.name for i in scene.interactions]:
+            release_rtols.append(kw["rtol"])
+        return real_solve(scene, state, **kw)
+
+    monkeypatch.setattr(planner, "solve_static", recorded)
+    again = plan_grasp(sphere_body, PlanConfig())
+    assert release_rtols == [1e-4] * (planner.RELEASE_STEPS - 1) + [1e-9]
+    assert again.solver_stats == default_plan.solver_stats
     monkeypatch.setattr(planner, "STEP_RTOL", 1e-9)
     tight = plan_grasp(sphere_body, PlanConfig())
     for a, b in zip(default_plan.fingers, tight.fingers, strict=True):
         np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-5 * b.force_norm)
-    assert default_plan.increments == tight.increments
+    np.testing.assert_array_equal(default_plan.travel, tight.travel)
+    np.testing.assert_array_equal(default_plan.feasible, tight.feasible)
+    assert default_plan.hold_checks == tight.hold_checks
+    np.testing.assert_allclose(default_plan.force_norm, tight.force_norm, rtol=1e-4)
     stats, tight_stats = default_plan.solver_stats, tight.solver_stats
     assert stats["closing_systems"] < tight_stats["closing_systems"]
     assert stats["hold_check_systems"] < tight_stats["hold_check_systems"]

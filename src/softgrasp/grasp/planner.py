@@ -87,26 +87,31 @@ STICK_TOLERANCE = 1e-3
 #: Relative tolerance of the settle on the table (the largest unbalanced nodal force over the
 #: largest force present): the static solver's stall tolerance
 #: (:data:`~softgrasp.sim.static.STALL_RTOL`), which a rest on a nearly neutral mode may end at
-#: anyway. The held state the set-points come from is solved to 1e-9. Against 1e-9 here (for the
-#: settle and the closing increments): the default plan's set-points the same to eight digits or
-#: more from 2 196 to 33 969 nodes (0.2 % on one finger at 27 749 nodes, where the settled ball
-#: was solved again along its nearly neutral rolling mode); each increment's last Newton
-#: iteration, the one with the tightest linear solve, saved. A looser settle only moves its
-#: Newton iterations into the closing (1e-4: 40 -> 108 systems at 2 196 nodes, the ball still
-#: rolling when the fingers close).
+#: anyway. Against 1e-9 (the settle and, then, the closing increments): the default plan's
+#: set-points the same to eight digits or more from 2 196 to 33 969 nodes (0.2 % on one finger
+#: at 27 749 nodes, where the settled ball was solved again along its nearly neutral rolling
+#: mode). A looser settle only moves its Newton iterations into the closing (1e-4: 40 -> 108
+#: systems at 2 196 nodes, the ball still rolling when the fingers close).
 PATH_RTOL = 1e-6
-#: Relative tolerance of the load steps on the way to the held state: the closing increments and
-#: the hold check's release steps but the last, where the holding simulation starts (the largest
-#: unbalanced nodal force over the largest force present). Each of these rests only carries the
-#: friction history to the next step (which pairs stick, where they are anchored); the set-points
-#: come from the held state, solved to 1e-9. At 1e-4 the unbalanced force of a step is a fraction
-#: of one node's weight (2 196 nodes: 2.7e-5 N against 2.2e-4 N) and most steps end a Newton
-#: iteration earlier. Against ``PATH_RTOL`` for the closing and 1e-9 for the release (the
-#: default plan): 40 -> 33 Newton systems at 2 196 nodes, 41 -> 34 at 7 576, 38 -> 31 at 27 749
-#: (575 -> 445 V-cycles), 40 -> 34 at 32 543 (616 -> 515); the set-points moved by at most 4e-6
-#: of themselves, far below their change between those meshes (~2 %). The closing at 1e-3 saved
-#: one system more and moved them alike; the last release step at 1e-4 too made the hold's
-#: implicit dynamics start unbalanced (7 576 nodes: 51 systems in the hold check instead of 10).
+#: Relative tolerance of the held state the set-points come from (and of the last release step,
+#: where the holding simulation starts): :func:`~softgrasp.sim.static.solve_static`'s default.
+HELD_RTOL = 1e-9
+#: Relative tolerance of the load steps on the way to the held state: the closing increments
+#: (whole, bisected, or closing further after a failed hold check) and the hold check's release
+#: steps but the last (the largest unbalanced nodal force over the largest force present; a
+#: friction pass may end at up to ten times it). These rests carry the friction history to the
+#: next step (which pairs stick, where they are anchored), the per-step forces the plan reports
+#: (history, frames) and the grasp test that decides where the closing stops; the set-points come
+#: from the held state, solved to :data:`HELD_RTOL`. At 1e-4 most steps end a Newton iteration
+#: earlier. Against ``PATH_RTOL`` for the closing and ``HELD_RTOL`` for the release (the default
+#: plan): 40 -> 33 Newton systems at 2 196 nodes, 41 -> 34 at 7 576, 38 -> 31 at 27 749 (575 -> 445
+#: V-cycles), 40 -> 34 at 32 543 (616 -> 515); the set-points moved by at most 6e-6 of themselves
+#: and the reported per-step forces by 3e-5, far below their change between those meshes (~2 %);
+#: the grasp test's value moved by ~2e-5 (a test that close to its threshold could flip and move
+#: the final travel by a refined step). The closing at 1e-3 saved one system more and moved them
+#: alike; the last release step at 1e-4 too made the hold's implicit dynamics start unbalanced
+#: (7 576 nodes: 51 systems in the hold check instead of 10). Force control's
+#: :func:`~softgrasp.grasp.force_control.hold_setpoints` checks its hold with the same release.
 STEP_RTOL = 1e-4
 
 
@@ -635,8 +640,7 @@ def _check_hold(
             # equal parts: a nearly linear response), one iteration fewer than from the last.
             guess = None if prev is None else extrapolated(st.x, prev)
             prev = st.x
-            # The last step, where the hold starts, to 1e-9 (solve_static's default).
-            rtol = STEP_RTOL if k < RELEASE_STEPS else 1e-9
+            rtol = STEP_RTOL if k < RELEASE_STEPS else HELD_RTOL  # the last: where the hold starts
             st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache, guess=guess, rtol=rtol)
             if (d := float(np.linalg.norm(_com(body, st.x) - c0))) >= cfg.max_drift:
                 return _moved(d, cfg, f"with the table's support down to {1 - k / RELEASE_STEPS:.0%}")
@@ -646,7 +650,7 @@ def _check_hold(
         if end is None:
             return _moved(cfg.max_drift, cfg, f"during the {cfg.hold_time:g} s hold")
         moved = float(np.linalg.norm(_com(body, end.x) - c0))
-        held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache)
+        held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache, rtol=HELD_RTOL)
     except (NotConverged, SimulationUnstable) as exc:
         return f"the release or the hold found no equilibrium ({exc})"
     drift = max(released, moved, float(np.linalg.norm(_com(body, held.x) - c0)))

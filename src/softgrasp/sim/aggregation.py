@@ -65,7 +65,7 @@ def smoothed_aggregation(
         C = symmetric_strength_of_connection(A)
         aggregates, _ = standard_aggregation(C)
         if len(levels) == 1:
-            if A.format == "csr":
+            if A.format == "csr" and A.dtype == np.float64 and _sweeps_compiled(IMPROVE_CANDIDATES):
                 B = _improved_candidates(A, B)
             else:
                 zero = np.zeros((A.shape[0], 1), dtype=A.dtype)
@@ -96,3 +96,14 @@ def _improved_candidates(A: sp.csr_matrix, B: NDArray[np.float64]) -> NDArray[np
     X = np.array(B, dtype=np.float64, order="C")
     gauss_seidel_columns(A.indptr, A.indices, A.data, X, int(IMPROVE_CANDIDATES[1]["iterations"]))
     return X
+
+
+def _sweeps_compiled(method: tuple) -> bool:
+    """Whether :func:`_improved_candidates` is ``method``: pyamg's (block) Gauss-Seidel with
+    symmetric sweeps (for a CSR matrix its block sweep is the scalar one)."""
+    name, options = method
+    return (
+        name in ("gauss_seidel", "block_gauss_seidel")
+        and set(options) <= {"sweep", "iterations"}
+        and (options.get("sweep") == "symmetric")
+    )
