@@ -344,7 +344,7 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_ba
     """The compiled distinct node pairs (a counting sort) against ``np.unique`` of the pair keys,
     duplicates and empty rows included, and the body's Jacobian pattern built with either; bad
     input is refused."""
-    from softgrasp.forces import BlockPattern, spring_pairs, volume_pairs
+    from softgrasp.forces import BlockPattern, assemble_blocks, spring_pairs, volume_pairs
     from softgrasp.kernels.sparse import unique_pairs
 
     rng = np.random.default_rng(14)
@@ -358,12 +358,21 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_ba
     rows, cols = spring_pairs(body.edges)
     vr, vc = volume_pairs(body.mesh.tets)
     rows, cols = np.concatenate([rows, vr]), np.concatenate([cols, vc])
-    patterns = {}
-    for name in ("numba", "numpy"):
-        with kernels.use_backend(name):
-            patterns[name] = BlockPattern(body.n_nodes, rows, cols)
-    for attr in ("block_base", "block_stride", "indptr", "indices"):
-        assert np.array_equal(getattr(patterns["numba"], attr), getattr(patterns["numpy"], attr))
+    # The body's pattern, and random pairs with repeats and empty block rows (the compiled layout,
+    # kernels.sparse.block_layout, against NumPy's): the same arrays, types and matrix.
+    cases = [(body.n_nodes, rows, cols), (40, rng.integers(0, 30, 900), rng.integers(0, 40, 900))]
+    for n, r, c in cases:
+        patterns = {}
+        for name in ("numba", "numpy"):
+            with kernels.use_backend(name):
+                patterns[name] = BlockPattern(n, r, c)
+        for attr in ("block_base", "block_stride", "indptr", "indices"):
+            got, want = getattr(patterns["numba"], attr), getattr(patterns["numpy"], attr)
+            assert got.dtype == want.dtype and np.array_equal(got, want), attr
+        assert patterns["numba"].nnz == patterns["numpy"].nnz
+        blocks = rng.standard_normal((len(r), 3, 3))
+        want = assemble_blocks(n, r, c, blocks).toarray()
+        np.testing.assert_allclose(patterns["numba"].assemble(blocks).toarray(), want, rtol=1e-14, atol=1e-14)
     with pytest.raises(ValueError, match="must lie in"):
         unique_pairs(np.array([0, 5]), np.array([1, 1]), 5)
     with pytest.raises(ValueError, match="equal-length"):

@@ -64,13 +64,17 @@ class BlockPattern:
         self.n_blocks_in = len(rows)
         from softgrasp import kernels
 
-        if kernels.compiled():  # the same, without sorting all the pairs
-            from softgrasp.kernels.sparse import unique_pairs
+        if kernels.compiled():  # the same, without sorting all the pairs or NumPy's temporaries
+            from softgrasp.kernels.sparse import block_layout, unique_pairs
 
             brow, bcol, inv = unique_pairs(rows, cols, n_nodes)
-        else:
-            pairs, inv = np.unique(rows * n_nodes + cols, return_inverse=True)  # by row, then column
-            brow, bcol = np.divmod(pairs, n_nodes)
+            self.nnz = 9 * len(brow)
+            self.block_base, self.block_stride, self.indptr, self.indices = block_layout(
+                brow, bcol, inv, n_nodes, self._index_dtype(self.nnz, n_nodes)
+            )
+            return
+        pairs, inv = np.unique(rows * n_nodes + cols, return_inverse=True)  # by row, then column
+        brow, bcol = np.divmod(pairs, n_nodes)
         count = np.bincount(brow, minlength=n_nodes)  # blocks per block row
         start = np.concatenate([[0], np.cumsum(count)])  # first block of each block row
         # Scalar row 3r + a holds 3 * count[r] entries: the blocks of block row r by column, three
@@ -89,14 +93,18 @@ class BlockPattern:
         cols_per_row[(base[:, None, None] + a * stride[:, None, None] + b).ravel()] = (
             3 * bcol[:, None, None] + b + 0 * a
         ).ravel()
-        self.indices = cols_per_row
-        if max(self.nnz, 3 * self.n_nodes) < np.iinfo(np.int32).max:
-            # The index type SciPy would choose for the matrix: given int64, each matrix() would
-            # scan and convert a copy (4.8 ms and 16 MB a Newton matrix at 32 543 nodes); given
-            # int32, the matrices share these arrays (their structure is never changed in place:
-            # canonical CSR, so SciPy's sum_duplicates / sort_indices leave it alone).
-            self.indptr = self.indptr.astype(np.int32)
-            self.indices = self.indices.astype(np.int32)
+        index = self._index_dtype(self.nnz, n_nodes)
+        self.indptr = self.indptr.astype(index)
+        self.indices = cols_per_row.astype(index)
+
+    @staticmethod
+    def _index_dtype(nnz: int, n_nodes: int) -> type:
+        """int32 where it holds the matrix: the index type SciPy would choose. Given int64, each
+        :meth:`matrix` would scan and convert a copy (4.8 ms and 16 MB a Newton matrix at 32 543
+        nodes); given int32, the matrices share the pattern's arrays (their structure is never
+        changed in place: canonical CSR, so SciPy's sum_duplicates / sort_indices leave it
+        alone)."""
+        return np.int32 if max(nnz, 3 * n_nodes) < np.iinfo(np.int32).max else np.int64
 
     @property
     def positions(self) -> NDArray[np.int64]:

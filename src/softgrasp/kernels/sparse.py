@@ -801,6 +801,68 @@ def _unique_pairs(rows, cols, n):  # pragma: no cover - compiled
     return urow[:nu].copy(), ucol[:nu].copy(), inv
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _block_layout(
+    brow, bcol, inv, n, block_base, block_stride, indptr, indices
+):  # pragma: no cover - compiled
+    """:func:`block_layout` into the given arrays."""
+    U = brow.shape[0]
+    start = np.zeros(n + 1, dtype=np.int64)
+    for u in range(U):
+        start[brow[u] + 1] += 1
+    for r in range(n):
+        start[r + 1] += start[r]
+    base = np.empty(U, dtype=np.int64)
+    stride = np.empty(U, dtype=np.int64)
+    for u in range(U):
+        r = brow[u]
+        base[u] = 6 * start[r] + 3 * u
+        stride[u] = 3 * (start[r + 1] - start[r])
+    for k in range(inv.shape[0]):
+        block_base[k] = base[inv[k]]
+        block_stride[k] = stride[inv[k]]
+    indptr[0] = 0
+    for r in range(n):
+        count = start[r + 1] - start[r]
+        for a in range(3):
+            indptr[3 * r + a + 1] = 9 * start[r] + 3 * (a + 1) * count
+    for u in range(U):
+        c = 3 * bcol[u]
+        for a in range(3):
+            q = base[u] + a * stride[u]
+            for b in range(3):
+                indices[q + b] = c + b
+
+
+def block_layout(
+    brow: NDArray[np.int64], bcol: NDArray[np.int64], inv: NDArray[np.int64], n: int, index_dtype: type
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray, NDArray]:
+    """The CSR layout of a (3n, 3n) matrix of 3 x 3 blocks at the distinct node pairs ``(brow,
+    bcol)`` (sorted by row, then column: :func:`unique_pairs`), each input block ``k`` being pair
+    ``inv[k]``: (data position of each input block's entry (0, 0), its row stride in the data,
+    indptr, indices), the index arrays of type ``index_dtype``. Block row r's blocks fill scalar
+    rows 3r .. 3r + 2 by column, three entries each: entry (a, b) of distinct block u at
+    ``9 start[r] + 3 a count[r] + 3 (u - start[r]) + b``. The arrays
+    :class:`softgrasp.forces.BlockPattern` builds with NumPy, to the element, without its
+    temporaries (0.4 s a body of 32 543 nodes in a fresh process)."""
+    U = brow.shape[0]
+    block_base = np.empty(inv.shape[0], dtype=np.int64)
+    block_stride = np.empty(inv.shape[0], dtype=np.int64)
+    indptr = np.empty(3 * n + 1, dtype=index_dtype)
+    indices = np.empty(9 * U, dtype=index_dtype)
+    _block_layout(
+        np.ascontiguousarray(brow, dtype=np.int64),
+        np.ascontiguousarray(bcol, dtype=np.int64),
+        np.ascontiguousarray(inv, dtype=np.int64),
+        int(n),
+        block_base,
+        block_stride,
+        indptr,
+        indices,
+    )
+    return block_base, block_stride, indptr, indices
+
+
 def unique_pairs(
     rows: NDArray[np.int64], cols: NDArray[np.int64], n: int
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
