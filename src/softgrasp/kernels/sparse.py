@@ -685,7 +685,23 @@ def _hybrid_block_sweep(indptr, indices, data, dinv, x, b, x_old, parts, forward
                 i -= one
 
 
-class HybridBlockGaussSeidel:
+class NodeBlockProduct:
+    """Products ``A @ x`` of a square CSR matrix read by its 3 x 3 node blocks (``blocks``:
+    :func:`node_blocks`'s of ``A``), on ``threads`` threads (the same to the bit on any number)."""
+
+    def __init__(self, A: sp.spmatrix | sp.sparray, blocks: tuple, threads: int = 1) -> None:
+        self.A = A
+        self.shape: tuple[int, int] = A.shape
+        self.threads = threads
+        self._indptr, self._indices, self._data = blocks
+
+    def __matmul__(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return _apply(self, _bsr33_matvec, x)
+
+    matvec = __matmul__
+
+
+class HybridBlockGaussSeidel(NodeBlockProduct):
     """l1 hybrid Gauss-Seidel sweeps by 3 x 3 node blocks on a body's Newton matrix (CSR of full
     3 x 3 blocks, :func:`node_blocks`), and its products: :class:`HybridGaussSeidel` with each
     node's three unknowns updated together (x_i += (D_i + L_i)^-1 (b_i - (A x)_i), D_i the node's
@@ -696,18 +712,10 @@ class HybridBlockGaussSeidel:
         self, A: sp.spmatrix | sp.sparray, blocks: tuple, threads: int = 1, parts: int | None = None
     ) -> None:
         """``blocks``: :func:`node_blocks`'s of ``A``; ``parts`` as :class:`HybridGaussSeidel`'s."""
-        self.A = A
-        self.shape: tuple[int, int] = A.shape
-        self.threads = threads
-        self._indptr, self._indices, self._data = blocks
+        super().__init__(A, blocks, threads)
         self.inverse_diagonal = np.empty((self._indptr.shape[0] - 1, 3, 3))
         # Entries counted nine a block, as the block kernel counts its couplings.
         self.parts = _l1_parts(self, _l1_block_inverse, parts, 9 * self._indices.shape[0])
-
-    def __matmul__(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        return _apply(self, _bsr33_matvec, x)
-
-    matvec = __matmul__
 
     def sweep(self, x: NDArray[np.float64], b: NDArray[np.float64], forward: bool) -> None:
         """One sweep on ``x`` (float64, contiguous; updated in place) for ``A x = b``."""

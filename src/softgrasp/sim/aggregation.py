@@ -15,7 +15,10 @@ level's are not always: SciPy's product leaves each row's blocks in the order it
 this one in column order, and the greedy aggregation depends on that order (on the 7 295-node
 foam cube 48 second-level aggregates differ, its operator by 7.6 %; the multigrid converges alike).
 Coarser levels are small and keep SciPy's products. The finest candidates' Gauss-Seidel sweeps
-are compiled too, with pyamg's arithmetic to the bit (:mod:`softgrasp.kernels.setup`).
+are compiled too, with pyamg's arithmetic to the bit (:mod:`softgrasp.kernels.setup`), and the
+spectral radius estimate that weights each prolongator's smoothing runs pyamg's Arnoldi process
+on softgrasp's compiled products: the same estimate to rounding (so the prolongators are pyamg's
+to rounding), 0.19-0.34 -> 0.12 s on the finest level at 32 543 nodes.
 """
 
 from __future__ import annotations
@@ -32,6 +35,12 @@ __all__ = ["smoothed_aggregation"]
 IMPROVE_CANDIDATES = ("block_gauss_seidel", {"sweep": "symmetric", "iterations": 4})
 #: The prolongators' smoothing: pyamg's default damping of the Jacobi step.
 OMEGA = 4.0 / 3.0
+#: pyamg's estimate of the spectral radius that weights it (``approximate_spectral_radius``'s
+#: defaults): the dominant Ritz pair's relative residual that ends it, the Arnoldi steps of a run,
+#: the restarts.
+RHO_TOL = 0.01
+RHO_STEPS = 15
+RHO_RESTARTS = 5
 
 
 def smoothed_aggregation(
@@ -47,7 +56,7 @@ def smoothed_aggregation(
     coarse_solver=..., presmoother=..., postsmoother=...)`` with its other options at their
     defaults, the finest Galerkin product compiled where ``A`` is CSR and its prolongator has
     1 x 6 blocks (six near-null modes). Returns pyamg's ``MultilevelSolver``."""
-    from pyamg.aggregation import fit_candidates, jacobi_prolongation_smoother, standard_aggregation
+    from pyamg.aggregation import fit_candidates, standard_aggregation
     from pyamg.multilevel import MultilevelSolver
     from pyamg.relaxation.smoothing import change_smoothers
     from pyamg.relaxation.utils import relaxation_as_linear_operator
@@ -72,7 +81,7 @@ def smoothed_aggregation(
                 B = relaxation_as_linear_operator(IMPROVE_CANDIDATES, A, zero) @ B
             levels[-1].B = B
         T, B = fit_candidates(aggregates, B)
-        P = jacobi_prolongation_smoother(A, T, C, B, omega=OMEGA)
+        P = _smoothed_prolongator(A, T)
         R = P.T
         levels[-1].P, levels[-1].R = P, R
         if A.format == "csr" and P.format == "bsr" and tuple(P.blocksize) == (1, 6):
@@ -107,3 +116,60 @@ def _sweeps_compiled(method: tuple) -> bool:
         and set(options) <= {"sweep", "iterations"}
         and (options.get("sweep") == "symmetric")
     )
+
+
+def _smoothed_prolongator(A: Any, T: Any) -> Any:
+    """pyamg's ``jacobi_prolongation_smoother(A, T, C, B, omega=OMEGA)`` with its defaults (the
+    point diagonal D, one step, no filtering): ``P = T - (omega / rho) D^-1 A T``, ``rho`` the
+    spectral radius of ``D^-1 A`` as pyamg estimates it (:func:`_spectral_radius`)."""
+    from pyamg.util.utils import get_diagonal, scale_rows
+
+    D_inv = np.asarray(get_diagonal(A, inv=True), dtype=np.float64)
+    rho = _spectral_radius(A, D_inv)
+    D_inv_S = scale_rows(A, D_inv, copy=True)
+    D_inv_S = (OMEGA / rho) * D_inv_S
+    return T - (D_inv_S @ T)
+
+
+def _spectral_radius(A: Any, D_inv: NDArray[np.float64]) -> float:
+    """pyamg's ``approximate_spectral_radius(D^-1 A)`` (``D_inv`` the inverted diagonal): the
+    same random start from NumPy's global generator (the same draws consumed), Arnoldi by modified
+    Gram-Schmidt over :data:`RHO_STEPS` steps, restarted from the dominant Ritz vector until its
+    residual is below :data:`RHO_TOL` of the Ritz value, at most :data:`RHO_RESTARTS` times. The
+    products ``A v`` are softgrasp's compiled ones (by node blocks on the finest level, by 6 x 6
+    blocks below, on Numba's threads) instead of SciPy's one-thread rows, and the basis is kept in
+    one array: the same estimate to rounding, in a third of the time."""
+    import numba
+    from scipy.linalg import eig
+
+    from softgrasp.kernels.sparse import NodeBlockProduct, node_blocks, product
+
+    threads = numba.get_num_threads()
+    blocks = node_blocks(A) if A.format == "csr" else None
+    op = NodeBlockProduct(A, blocks, threads) if blocks is not None else product(A, threads)
+    n = A.shape[0]
+    steps = min(n, RHO_STEPS)
+    v0 = np.random.rand(n, 1).ravel()
+    V = np.empty((steps + 1, n))
+    for _ in range(RHO_RESTARTS + 1):
+        V[0] = v0 / np.sqrt(np.dot(v0, v0))
+        H = np.zeros((steps + 1, steps))
+        k, broke = 0, False
+        for j in range(steps):
+            w = D_inv * (op @ V[j])
+            for i in range(j + 1):
+                H[i, j] = np.dot(V[i], w)
+                w -= H[i, j] * V[i]
+            H[j + 1, j] = np.sqrt(np.dot(w, w))
+            k = j + 1
+            if H[j + 1, j] < 1e6 * np.finfo(np.float64).eps:  # an invariant subspace: exact
+                broke = True
+                break
+            np.divide(w, H[j + 1, j], out=V[k])
+        ev, evect = eig(H[:k, :k], left=False, right=True)
+        m = int(np.abs(ev).argmax())
+        error = H[k, k - 1] * evect[-1, m]
+        v0 = np.real(V[:k].T @ evect[:, m])
+        if np.abs(error) / np.abs(ev[m]) < RHO_TOL or broke:
+            break
+    return float(np.abs(ev[m]))
