@@ -129,7 +129,7 @@ def test_the_candidates_sweeps_are_pyamgs_to_the_bit():
     """The finest candidates' four symmetric Gauss-Seidel sweeps on ``A x = 0``, all columns in
     one pass over each row (:func:`softgrasp.kernels.setup.gauss_seidel_columns`), against
     pyamg's relaxation operator applied column by column: the same bits for the six rigid-body
-    modes on the cube, and for three random columns on a matrix whose rows hold their columns out
+    modes on the cube, and for six random columns on a matrix whose rows hold their columns out
     of order, with duplicate entries (one on a diagonal) and 64-bit indices, one row without its
     diagonal and one with a stored zero there (pyamg leaves both alone)."""
     from pyamg.relaxation.utils import relaxation_as_linear_operator
@@ -176,7 +176,7 @@ def test_the_candidates_sweeps_are_pyamgs_to_the_bit():
     )
     M.indices, M.indptr = M.indices.astype(np.int64), M.indptr.astype(np.int64)
     assert not M.has_sorted_indices and M.indices.dtype == np.int64
-    B3 = rng.standard_normal((M.shape[0], 3))
+    B3 = rng.standard_normal((M.shape[0], 6))
     got = _improved_candidates(M, B3)
     want = relaxation_as_linear_operator(IMPROVE_CANDIDATES, M, zero) @ B3
     _same_bits_here(got, want)

@@ -21,32 +21,12 @@ _jit = numba.njit(cache=True, error_model="numpy")
 
 
 @_jit
-def _sweep(indptr, indices, data, X, start, stop, step, rsum):  # pragma: no cover - compiled
-    """One Gauss-Seidel sweep on ``A X = 0`` over rows ``start, start + step, ...`` (``stop``
-    excluded), every column of X in each row: pyamg's ``gauss_seidel`` row update
-    ``x_i = (b_i - sum_{j != i} a_ij x_j) / a_ii`` (b = 0), skipped where ``a_ii`` is zero."""
-    k = X.shape[1]
-    for i in range(start, stop, step):
-        diag = 0.0
-        for c in range(k):
-            rsum[c] = 0.0
-        for jj in range(indptr[i], indptr[i + 1]):
-            j = indices[jj]
-            a = data[jj]
-            if j == i:
-                diag = a
-            else:
-                for c in range(k):
-                    rsum[c] += a * X[j, c]
-        if diag != 0.0:
-            for c in range(k):
-                X[i, c] = (0.0 - rsum[c]) / diag
-
-
-@_jit
 def _sweep6(indptr, indices, data, X, start, stop, step):  # pragma: no cover - compiled
-    """:func:`_sweep` for six columns, their sums in registers (an array of sums went through
-    memory: no faster than pyamg's one column at a time)."""
+    """One Gauss-Seidel sweep on ``A X = 0`` over rows ``start, start + step, ...`` (``stop``
+    excluded), the six columns of X in each row: pyamg's ``gauss_seidel`` row update
+    ``x_i = (b_i - sum_{j != i} a_ij x_j) / a_ii`` (b = 0), skipped where ``a_ii`` is zero; the six
+    sums in registers (an array of sums went through memory: no faster than pyamg's one column
+    at a time)."""
     for i in range(start, stop, step):
         diag = 0.0
         r0 = r1 = r2 = r3 = r4 = r5 = 0.0
@@ -74,19 +54,16 @@ def _sweep6(indptr, indices, data, X, start, stop, step):  # pragma: no cover - 
 @_jit
 def _gauss_seidel_columns(indptr, indices, data, X, iterations):  # pragma: no cover - compiled
     n = indptr.shape[0] - 1
-    rsum = np.empty(X.shape[1])
     for _ in range(iterations):
-        if X.shape[1] == 6:
-            _sweep6(indptr, indices, data, X, 0, n, 1)
-            _sweep6(indptr, indices, data, X, n - 1, -1, -1)
-        else:
-            _sweep(indptr, indices, data, X, 0, n, 1, rsum)
-            _sweep(indptr, indices, data, X, n - 1, -1, -1, rsum)
+        _sweep6(indptr, indices, data, X, 0, n, 1)
+        _sweep6(indptr, indices, data, X, n - 1, -1, -1)
 
 
 def gauss_seidel_columns(indptr, indices, data, X: np.ndarray, iterations: int) -> None:
     """``iterations`` symmetric Gauss-Seidel sweeps (forward, then backward) on ``A X = 0`` for
-    every column of ``X`` (n, k, C order) in place, ``A`` by its CSR arrays (rows may hold their
-    columns in any order): each column as pyamg's ``gauss_seidel(A, x, 0, iterations,
+    the six columns of ``X`` (n, 6, C order, float64) in place, ``A`` by its CSR arrays (rows may
+    hold their columns in any order): each column as pyamg's ``gauss_seidel(A, x, 0, iterations,
     sweep="symmetric")`` leaves it, to the bit."""
+    if X.ndim != 2 or X.shape[1] != 6 or X.dtype != np.float64 or not X.flags.c_contiguous:
+        raise ValueError("the sweeps take six float64 columns in C order")
     _gauss_seidel_columns(indptr, indices, data, X, iterations)

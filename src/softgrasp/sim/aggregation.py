@@ -74,7 +74,12 @@ def smoothed_aggregation(
         C = symmetric_strength_of_connection(A)
         aggregates, _ = standard_aggregation(C)
         if len(levels) == 1:
-            if A.format == "csr" and A.dtype == np.float64 and _sweeps_compiled(IMPROVE_CANDIDATES):
+            if (
+                A.format == "csr"
+                and A.dtype == np.float64
+                and B.shape[1] == 6
+                and _sweeps_compiled(IMPROVE_CANDIDATES)
+            ):
                 B = _improved_candidates(A, B)
             else:
                 zero = np.zeros((A.shape[0], 1), dtype=A.dtype)
@@ -97,9 +102,9 @@ def smoothed_aggregation(
 
 
 def _improved_candidates(A: sp.csr_matrix, B: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The candidates ``B`` (n, k) after :data:`IMPROVE_CANDIDATES`' symmetric Gauss-Seidel sweeps
+    """The candidates ``B`` (n, 6) after :data:`IMPROVE_CANDIDATES`' symmetric Gauss-Seidel sweeps
     on ``A x = 0``: pyamg's ``relaxation_as_linear_operator(IMPROVE_CANDIDATES, A, 0) @ B`` (for a
-    CSR ``A`` its block sweep is the scalar one), to the bit, all k in each pass over a row."""
+    CSR ``A`` its block sweep is the scalar one), to the bit, all six in each pass over a row."""
     from softgrasp.kernels.setup import gauss_seidel_columns
 
     X = np.array(B, dtype=np.float64, order="C")
