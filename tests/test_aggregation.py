@@ -181,17 +181,25 @@ def test_the_candidates_sweeps_are_pyamgs_to_the_bit():
     want = relaxation_as_linear_operator(IMPROVE_CANDIDATES, M, zero) @ B3
     _same_bits_here(got, want)
     assert np.array_equal(got[7], B3[7]) and np.array_equal(got[12], B3[12])
+    from softgrasp.kernels.setup import gauss_seidel_columns
+
+    with pytest.raises(ValueError, match="six float64 columns"):
+        gauss_seidel_columns(M.indptr, M.indices, M.data, np.zeros((M.shape[0], 3)), 1)
+    with pytest.raises(ValueError, match="must match"):
+        gauss_seidel_columns(M.indptr, M.indices, M.data, np.zeros((M.shape[0] - 1, 6)), 1)
     assert not np.array_equal(got[11], B3[11])
 
 
-def test_the_spectral_radius_is_pyamgs_estimate_to_rounding():
+def test_the_spectral_radius_is_pyamgs_estimate_to_rounding(monkeypatch):
     """The spectral radius of D^-1 A that weights the prolongator's smoothing, estimated by pyamg's
     restarted Arnoldi process on softgrasp's compiled products (node blocks on the finest level,
     6 x 6 blocks on the next): pyamg's estimate to rounding from the same seed, and the same draws
-    consumed from NumPy's generator; and, for a diagonal matrix, within 1 % below its largest entry."""
+    consumed from NumPy's generator; restarted (to 1e-8), also where the dominant Ritz values are
+    complex; and, for a diagonal matrix, within 1 % below its largest entry."""
     from pyamg.util.linalg import approximate_spectral_radius
     from pyamg.util.utils import get_diagonal, scale_rows
 
+    from softgrasp.sim import aggregation
     from softgrasp.sim.aggregation import _spectral_radius
 
     A, x = _cube(8)
@@ -206,6 +214,21 @@ def test_the_spectral_radius_is_pyamgs_estimate_to_rounding():
         got = _spectral_radius(M, np.asarray(D_inv, dtype=np.float64))
         assert np.random.rand() == after_want
         assert got == pytest.approx(want, rel=1e-13)
+    # Restarted: the cube's matrix to 1e-8 (several runs), and a scaled Poisson matrix S P S whose
+    # D^-1 A is far from normal, so that the dominant Ritz values are complex and the restarts run
+    # in complex arithmetic as pyamg's do.
+    n = 60
+    poisson = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    S = sp.diags(np.exp(np.random.default_rng(1).uniform(0.0, np.log(1e3), n)))
+    for M in (A, (S @ poisson @ S).tocsr()):
+        D_inv = get_diagonal(M, inv=True)
+        np.random.seed(5)
+        want = approximate_spectral_radius(scale_rows(M, D_inv, copy=True), tol=1e-8)
+        monkeypatch.setattr(aggregation, "RHO_TOL", 1e-8)
+        np.random.seed(5)
+        got = _spectral_radius(M, np.asarray(D_inv, dtype=np.float64))
+        monkeypatch.undo()
+        assert got == pytest.approx(want, rel=1e-12)
     # A diagonal D^-1 A (30 eigenvalues, 15 Arnoldi steps): the estimate is a Ritz value of a
     # symmetric matrix, so no larger than its largest eigenvalue, and within the 1 % of it that
     # ends the process.

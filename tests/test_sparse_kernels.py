@@ -345,7 +345,7 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_ba
     duplicates and empty rows included, and the body's Jacobian pattern built with either; bad
     input is refused."""
     from softgrasp.forces import BlockPattern, assemble_blocks, jacobian_pairs, spring_pairs, volume_pairs
-    from softgrasp.kernels.sparse import unique_pairs
+    from softgrasp.kernels.sparse import block_layout, unique_pairs
 
     rng = np.random.default_rng(14)
     for n, k in ((1, 5), (7, 0), (40, 3000)):
@@ -377,6 +377,12 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_ba
         blocks = rng.standard_normal((len(r), 3, 3))
         want = assemble_blocks(n, r, c, blocks).toarray()
         np.testing.assert_allclose(patterns["numba"].assemble(blocks).toarray(), want, rtol=1e-14, atol=1e-14)
+    with pytest.raises(ValueError, match="sorted"):
+        block_layout(np.array([1, 0]), np.array([0, 0]), np.array([0, 1]), 2, np.int32)
+    with pytest.raises(ValueError, match="name one of"):
+        block_layout(np.array([0, 1]), np.array([0, 0]), np.array([0, 2]), 2, np.int32)
+    with pytest.raises(ValueError, match="columns must lie"):
+        block_layout(np.array([0, 1]), np.array([0, 2]), np.array([0, 1]), 2, np.int32)
     with pytest.raises(ValueError, match="must lie in"):
         unique_pairs(np.array([0, 5]), np.array([1, 1]), 5)
     with pytest.raises(ValueError, match="equal-length"):

@@ -66,4 +66,6 @@ def gauss_seidel_columns(indptr, indices, data, X: np.ndarray, iterations: int) 
     sweep="symmetric")`` leaves it, to the bit."""
     if X.ndim != 2 or X.shape[1] != 6 or X.dtype != np.float64 or not X.flags.c_contiguous:
         raise ValueError("the sweeps take six float64 columns in C order")
+    if X.shape[0] != len(indptr) - 1 or len(indices) != len(data) or np.asarray(data).dtype != np.float64:
+        raise ValueError("X's rows, the matrix's rows and its float64 entries must match")
     _gauss_seidel_columns(indptr, indices, data, X, iterations)

@@ -32,7 +32,9 @@ __all__ = [
     "HybridBlockGaussSeidel",
     "HybridGaussSeidel",
     "MIN_BLOCK_FILL",
+    "NodeBlockProduct",
     "SWEEP_PARTS",
+    "block_layout",
     "diagonal",
     "fine_smoother",
     "node_blocks",
@@ -853,21 +855,21 @@ def block_layout(
     ``9 start[r] + 3 a count[r] + 3 (u - start[r]) + b``. The arrays
     :class:`softgrasp.forces.BlockPattern` builds with NumPy, to the element, without its
     temporaries (0.4 s a body of 32 543 nodes in a fresh process)."""
+    brow = np.ascontiguousarray(brow, dtype=np.int64)
+    bcol = np.ascontiguousarray(bcol, dtype=np.int64)
+    inv = np.ascontiguousarray(inv, dtype=np.int64)
     U = brow.shape[0]
+    if bcol.shape != brow.shape or (U and (brow[0] < 0 or brow[-1] >= n or np.any(np.diff(brow) < 0))):
+        raise ValueError("block rows must be sorted and lie in 0 .. n - 1, one column each")
+    if U and (bcol.min() < 0 or bcol.max() >= n):
+        raise ValueError("block columns must lie in 0 .. n - 1")
+    if inv.size and (inv.min() < 0 or inv.max() >= U):
+        raise ValueError("every input block must name one of the distinct pairs")
     block_base = np.empty(inv.shape[0], dtype=np.int64)
     block_stride = np.empty(inv.shape[0], dtype=np.int64)
     indptr = np.empty(3 * n + 1, dtype=index_dtype)
     indices = np.empty(9 * U, dtype=index_dtype)
-    _block_layout(
-        np.ascontiguousarray(brow, dtype=np.int64),
-        np.ascontiguousarray(bcol, dtype=np.int64),
-        np.ascontiguousarray(inv, dtype=np.int64),
-        int(n),
-        block_base,
-        block_stride,
-        indptr,
-        indices,
-    )
+    _block_layout(brow, bcol, inv, int(n), block_base, block_stride, indptr, indices)
     return block_base, block_stride, indptr, indices
 
 
