@@ -21,11 +21,12 @@ from softgrasp.forces import (
     BlockPattern,
     edge_damping_forces,
     edge_damping_jacobian,
-    jacobian_pairs,
     spring_forces,
     spring_jacobian_blocks,
+    spring_pairs,
     volume_forces,
     volume_jacobian_blocks,
+    volume_pairs,
 )
 from softgrasp.material import Material
 from softgrasp.mesh.tetmesh import TetMesh
@@ -160,9 +161,11 @@ class Body:
     def _jacobian_pattern(self) -> BlockPattern:
         """Sparsity of :meth:`internal_jacobian`, built once: the spring blocks, then the volume
         term's."""
-        return BlockPattern(
-            self.n_nodes, *jacobian_pairs(self.edges, self.mesh.tets if self.kappa != 0.0 else None)
-        )
+        rows, cols = spring_pairs(self.edges)
+        if self.kappa != 0.0:
+            vr, vc = volume_pairs(self.mesh.tets)
+            rows, cols = np.concatenate([rows, vr]), np.concatenate([cols, vc])
+        return BlockPattern(self.n_nodes, rows, cols)
 
     @cached_property
     def _assembly_partition(self) -> tuple:

@@ -310,27 +310,6 @@ def volume_pairs(tets: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np
     return np.repeat(tets, 4, axis=1).ravel(), np.tile(tets, (1, 4)).ravel()
 
 
-def jacobian_pairs(
-    edges: NDArray[np.int64], tets: NDArray[np.int64] | None
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Node pairs (rows, cols) of a body's Jacobian blocks: :func:`spring_pairs` of ``edges``, then
-    :func:`volume_pairs` of ``tets`` (none for None), each written once into its array (no
-    concatenated copies: 3.6 M pairs at 32 543 nodes)."""
-    edges = np.asarray(edges, dtype=np.int64)
-    ne = len(edges)
-    nt = 0 if tets is None else len(tets)
-    rows = np.empty(4 * ne + 16 * nt, dtype=np.int64)
-    cols = np.empty_like(rows)
-    for k, (r, c) in enumerate(((0, 1), (1, 0), (0, 0), (1, 1))):
-        rows[k * ne : (k + 1) * ne] = edges[:, r]
-        cols[k * ne : (k + 1) * ne] = edges[:, c]
-    if tets is not None:
-        tets = np.asarray(tets, dtype=np.int64)
-        rows[4 * ne :].reshape(nt, 4, 4)[:] = tets[:, :, None]
-        cols[4 * ne :].reshape(nt, 4, 4)[:] = tets[:, None, :]
-    return rows, cols
-
-
 def volume_jacobian_blocks(
     x: NDArray[np.float64],
     tets: NDArray[np.int64],

@@ -216,8 +216,8 @@ def _hierarchy(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> Any:
             if _compiled():
                 from softgrasp.sim.aggregation import smoothed_aggregation
 
-                # The same hierarchy, its finest Galerkin product and candidate sweeps compiled
-                # (sim.aggregation).
+                # The same hierarchy, its finest Galerkin product, candidate sweeps and spectral
+                # radius estimates on compiled kernels (sim.aggregation).
                 return smoothed_aggregation(
                     A, _rigid_modes(x_nodes), MAX_COARSE, "splu", _PRESMOOTHER, _POSTSMOOTHER
                 )
