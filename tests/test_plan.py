@@ -480,6 +480,60 @@ def test_implicit_integration_checks_its_step_and_accepts_an_empty_span():
             simulate_implicit(scene, state, 0.1, dt)
 
 
+@pytest.mark.parametrize("h", [0.008, 0.011])
+def test_on_its_stable_facet_a_sphere_started_lowered_settles_where_started_level(h):
+    """On its most stable hull facet, a sphere started lowered by half its estimated approach
+    (its predicted contact patch touching from the first iterate) comes to the rest found from
+    the level start: the same positions to 1e-6 of the largest displacement, the table carrying
+    the weight, in no more Newton systems (fewer on the 11 mm mesh)."""
+    from softgrasp.grasp.planner import PATH_RTOL, _lowered, _stable_pose, _table
+    from softgrasp.sim import pardiso
+
+    mesh, material, mass = make_object("sphere", h)
+    body = build_body(mesh, material, mass=mass)
+    x = _stable_pose(body, np.asarray(mesh.points))
+    table = _table(x, PlanConfig().table_mu)
+    scene = Scene(body, (table,))
+    guess = _lowered(body, x)
+    assert (guess[:, 2] < x[:, 2].min()).sum() >= 3  # at least the facet it stands on presses in
+    rests, systems = [], []
+    for start in (None, guess):
+        cache = SolverCache()
+        with pardiso.blas_one_thread():
+            rests.append(
+                solve_static(scene, scene.initial_state(x), rtol=PATH_RTOL, cache=cache, guess=start)[0]
+            )
+        systems.append(cache.stats["systems"])
+    level, lowered = rests
+    scale = float(np.abs(level.x - x).max())
+    np.testing.assert_allclose(lowered.x, level.x, rtol=0, atol=1e-6 * scale)
+    f = table.static_forces(body, lowered.x, 0.0, lowered.contacts[0])
+    assert f[:, 2].sum() == pytest.approx(body.total_mass * float(np.linalg.norm(body.gravity)), rel=1e-5)
+    assert systems[1] <= systems[0] if h == 0.008 else systems[1] < systems[0]
+
+
+def test_the_settle_starts_lowered_on_the_stable_facet_and_level_where_the_mesh_stands(monkeypatch):
+    """Where the mesh stands (the default sphere) the settle starts level with the table; a mesh
+    balanced on one node is settled on its most stable facet, started lowered
+    (:func:`softgrasp.grasp.planner._lowered`)."""
+    from softgrasp.grasp import planner
+
+    starts = []
+    real = planner.solve_static
+
+    def recorded(scene, state, **kw):
+        starts.append(kw.get("guess"))
+        return real(scene, state, **kw)
+
+    monkeypatch.setattr(planner, "solve_static", recorded)
+    for mesh, lowered in ((make_object("sphere")[0], False), (sphere(0.15, 0.06), True)):
+        body = build_body(mesh, preset("rubber"), mass=0.5)
+        starts.clear()
+        _, _, placed = planner._settle(body, PlanConfig(), SolverCache())
+        assert len(starts) == 1 and (starts[0] is not None) == lowered
+        assert np.array_equal(placed, mesh.points) != lowered
+
+
 @pytest.mark.slow
 def test_the_fine_sphere_settles_on_the_table_without_being_kicked_along_its_rolling_mode():
     """The 18 233-node sphere (3.6 mm elements) comes to rest on the table within a dozen Newton
