@@ -1137,3 +1137,20 @@ def test_multigrid_gmres_applies_the_exact_product_with_the_compiled_matrix_prod
     _pressed("amg")
     assert len(calls) > 5
     assert max(calls) <= 1e-12, max(calls)
+
+
+@pytest.mark.parametrize("method", ["auto", "amg", "direct", "reference", "pardiso"])
+@pytest.mark.parametrize("shape", [(3, 3, 3), (9, 9, 9)])
+def test_by_multigrid_says_where_a_newton_system_goes(method, shape):
+    """``by_multigrid`` (the planner's settle asks it) agrees with where ``solve_newton_system``
+    sends an unconstrained system: the multigrid solves counted, or none."""
+    if method == "pardiso" and not pardiso.available():
+        pytest.skip("MKL not installed")
+    body = build_body(box((0.03, 0.03, 0.03), shape), preset("rubber"))
+    table = PlaneContact(Plane(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])), mu=0.5)
+    x = np.asarray(body.mesh.points)
+    scene = Scene(body, (table,))
+    A = (-scene.jacobian(x - [0.0, 0.0, 1e-4], 0.0, scene.initial_state().contacts)).tocsr()  # held
+    cache = SolverCache(method=method)
+    solve_newton_system(A, np.ones(A.shape[0]), None, x, cache)
+    assert linsolve.by_multigrid(A.shape[0], cache) == (cache.stats["amg_solves"] > 0)

@@ -13,7 +13,7 @@ import pytest
 from softgrasp.body import build_body
 from softgrasp.cli import main
 from softgrasp.contact.fingertip import ContactParams
-from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged
 from softgrasp.grasp.closure import is_force_closure
 from softgrasp.grasp.initial import HandLayout, initial_grasp
 from softgrasp.grasp.planner import PlanConfig, plan_grasp
@@ -512,26 +512,72 @@ def test_on_its_stable_facet_a_sphere_started_lowered_settles_where_started_leve
     assert systems[1] <= systems[0] if h == 0.008 else systems[1] < systems[0]
 
 
-def test_the_settle_starts_lowered_on_the_stable_facet_and_level_where_the_mesh_stands(monkeypatch):
-    """Where the mesh stands (the default sphere) the settle starts level with the table; a mesh
-    balanced on one node is settled on its most stable facet, started lowered
-    (:func:`softgrasp.grasp.planner._lowered`)."""
+@pytest.mark.parametrize("method", ["auto", "amg"])
+def test_the_settle_starts_lowered_where_its_systems_go_to_multigrid(monkeypatch, method):
+    """On the multigrid path the settle starts lowered (:func:`softgrasp.grasp.planner._lowered`),
+    as meshed where the mesh stands (the default sphere) and on the most stable facet where it
+    balances on a node; where PARDISO or a sparse LU solves (the default path at these sizes) it
+    starts level."""
     from softgrasp.grasp import planner
 
     starts = []
     real = planner.solve_static
 
     def recorded(scene, state, **kw):
-        starts.append(kw.get("guess"))
+        starts.append((kw.get("guess"), kw.get("max_iter")))
         return real(scene, state, **kw)
 
     monkeypatch.setattr(planner, "solve_static", recorded)
-    for mesh, lowered in ((make_object("sphere")[0], False), (sphere(0.15, 0.06), True)):
+    for mesh, stands in ((make_object("sphere")[0], True), (sphere(0.15, 0.06), False)):
         body = build_body(mesh, preset("rubber"), mass=0.5)
         starts.clear()
-        _, _, placed = planner._settle(body, PlanConfig(), SolverCache())
-        assert len(starts) == 1 and (starts[0] is not None) == lowered
-        assert np.array_equal(placed, mesh.points) != lowered
+        _, _, placed = planner._settle(body, PlanConfig(), SolverCache(method=method))
+        assert np.array_equal(placed, mesh.points) == stands
+        assert len(starts) == 1
+        guess, max_iter = starts[0]
+        if method == "amg":  # pressed into the table under the placement, for a limited number of iterations
+            assert guess[:, 2].min() < placed[:, 2].min() and max_iter == planner.LOWERED_MAX_ITER
+        else:
+            assert guess is None and max_iter == 60
+
+
+def test_a_lowered_start_that_finds_no_rest_is_followed_by_the_level_one(monkeypatch):
+    """A lowered start that does not converge is followed by the level start from the same
+    placement, which settles; where every start fails, the error names each start and its
+    failure."""
+    from softgrasp.grasp import planner
+
+    body = build_body(sphere(0.15, 0.06), preset("rubber"), mass=0.5)  # balanced on one node
+    real = planner.solve_static
+    starts = []
+
+    def lowered_fails(scene, state, **kw):
+        starts.append(kw.get("guess") is not None)
+        if kw.get("guess") is not None:
+            raise NotConverged("static solve did not converge (forced)")
+        return real(scene, state, **kw)
+
+    monkeypatch.setattr(planner, "solve_static", lowered_fails)
+    state, table, placed = planner._settle(body, PlanConfig(), SolverCache(method="amg"))
+    assert starts == [True, False]
+    f = table.static_forces(body, state.x, 0.0, state.contacts[0])
+    assert f[:, 2].sum() == pytest.approx(body.total_mass * float(np.linalg.norm(body.gravity)), rel=1e-5)
+
+    def always_fails(scene, state, **kw):
+        raise NotConverged("static solve did not converge (forced)")
+
+    monkeypatch.setattr(planner, "solve_static", always_fails)
+    for mesh, tried in (
+        (sphere(0.15, 0.06), ["on its most stable facet, lowered", "on its most stable facet"]),
+        (make_object("sphere")[0], ["as meshed, lowered", "as meshed", "on its most stable facet, lowered",
+                                    "on its most stable facet"]),
+    ):  # fmt: skip
+        with pytest.raises(NotConverged, match="no rest on the table") as info:
+            planner._settle(
+                build_body(mesh, preset("rubber"), mass=0.5), PlanConfig(), SolverCache(method="amg")
+            )
+        message = str(info.value)
+        assert [part.split(": ")[0] for part in message.split(": ", 1)[1].split("; ")] == tried
 
 
 @pytest.mark.slow

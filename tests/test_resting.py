@@ -60,6 +60,7 @@ def test_on_a_sphere_the_approach_is_the_flat_punch_foundations_closed_form_near
     delta = resting_approach(points, facets, weight, E_STAR)
     closed_form = (weight / (E_STAR * math.sqrt(2.0 * R))) ** (2.0 / 3.0)
     assert delta == pytest.approx(closed_form, rel=0.01)
+    # The same statement against Hertz (algebra from the closed form: the 4 % the docs quote).
     assert delta / _hertz_approach(weight) == pytest.approx(
         (4.0 / (3.0 * math.sqrt(2.0))) ** (2.0 / 3.0), rel=0.01
     )
@@ -73,9 +74,8 @@ def test_lowered_by_half_the_approach_the_sphere_touches_over_hertzs_contact_dis
     weight = 0.5
     delta = resting_approach(points, facets, weight, E_STAR)
     lowered = lowered_onto_table(points, facets, weight, E_STAR)
-    np.testing.assert_allclose(
-        lowered - points, np.tile([0.0, 0.0, -delta / 2], (len(points), 1)), atol=1e-18
-    )
+    np.testing.assert_allclose(lowered[:, :2], points[:, :2], rtol=0, atol=0)
+    np.testing.assert_allclose(points[:, 2] - lowered[:, 2], delta / 2, rtol=1e-9)
     r = np.hypot(points[:, 0], points[:, 1])
     touching = lowered[:, 2] < 0.0
     cut = math.sqrt(R * delta - delta**2 / 4)
@@ -103,6 +103,34 @@ def test_a_flat_face_sinks_as_a_rigid_flat_punch_of_its_area():
     assert resting_approach(points, up, weight, E_STAR) == 0.0  # nothing faces the table
 
 
+def test_where_a_joining_node_drops_the_load_the_first_approach_that_fits_is_taken():
+    """The foundation's load grows with the approach between nodes but drops where a node joins
+    (the stiffness per area falls as the touching area grows): a small first facet and a large
+    second one 0.1 mm above give two approaches that carry the weight; the body lowered onto the
+    table reaches the smaller first, on the first node alone."""
+    area = (1e-6, 1e-4)  # the nodes' downward areas [m^2]
+    h = (0.0, 1e-4)
+
+    def load(d):  # the foundation's load at approach d [N], evaluated directly
+        on = [k for k in range(2) if h[k] < d]
+        S = sum(area[k] for k in on)
+        return 2.0 * E_STAR / (math.pi * math.sqrt(S / math.pi)) * sum(area[k] * (d - h[k]) for k in on)
+
+    # Two single-node "facets": a downward triangle of the given area on each node, its other
+    # corners far up (carrying nothing: facets are split by thirds, so each node gets a third).
+    points, facets = [], []
+    for k in range(2):
+        side = math.sqrt(2.0 * 3.0 * area[k])  # a right triangle of area 3 A_k, a third to node k
+        base = len(points)
+        points += [[10.0 * k, 0.0, h[k]], [10.0 * k + side, 0.0, 1.0], [10.0 * k, side, 1.0]]
+        facets.append([base, base + 2, base + 1])
+    points, facets = np.array(points), np.array(facets)
+    weight = 0.5 * load(1e-4)  # below the load as the second node joins, above it just after
+    assert load(1e-4 + 1e-9) < weight
+    delta = resting_approach(points, facets, weight, E_STAR)
+    assert delta < 1e-4 and load(delta) == pytest.approx(weight, rel=1e-9)
+
+
 @pytest.mark.parametrize(
     ("weight", "modulus", "what"),
     [(0.0, E_STAR, "weight"), (-1.0, E_STAR, "weight"), (math.inf, E_STAR, "weight"),
@@ -112,3 +140,10 @@ def test_a_weight_or_modulus_that_is_not_positive_is_refused(weight, modulus, wh
     points, facets = _spherical_cap(R, rings=4, segments=8)
     with pytest.raises(ValueError, match=what):
         resting_approach(points, facets, weight, modulus)
+
+
+def test_positions_that_are_not_finite_are_refused():
+    points, facets = _spherical_cap(R, rings=4, segments=8)
+    points[3, 2] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        resting_approach(points, facets, 1.0, E_STAR)

@@ -1,10 +1,9 @@
 """How far an elastic body sinks onto a rigid table under its own weight, estimated before the
 static solve that finds it: a start for that solve (:func:`softgrasp.grasp.planner._settle`).
 
-A body meshed above the table touches it at one node. Newton's first step from there hangs the
-whole weight on that node and turns the body about it; a dozen damped steps follow while the
-contact patch forms (on a 32 543-node sphere 10 of the settle's 15 linear systems). Lowered first
-by the right amount, the body starts with the nodes of its contact patch already touching.
+Placed level with the table, a body touches it at the nodes of one facet (or one node) and
+Newton's first steps hang the whole weight there while the contact patch forms. Lowered first by
+the right amount, the body starts with the nodes of its contact patch already touching.
 
 The estimate is a Winkler foundation with a flat punch's stiffness: the nodes below the approach
 ``delta`` press on the table over their downward-facing areas ``A_i`` with a pressure
@@ -13,9 +12,10 @@ stiffness per area of a rigid flat punch of the touching area's radius ``a`` (it
 ``2 E* a`` over its area ``pi a^2``), ``E* = E / (1 - nu^2)`` against a rigid table. On a sphere of
 radius R this gives ``W = sqrt(2 R) E* delta^(3/2)`` where Hertz has ``(4 / 3) sqrt(R) E*
 delta^(3/2)``: the approach 4 % short of Hertz's. The body is then lowered by *half* the
-approach: a rigid surface cut by a plane at ``delta / 2`` has Hertz's contact radius
-``a^2 = R delta``, so exactly the nodes of the predicted contact patch start touching, none
-outside it.
+approach: a sphere cut by a plane at ``delta / 2`` leaves a circle of radius ``a^2 = R delta -
+delta^2 / 4``, Hertz's contact radius for the approach ``delta`` (2 % short of Hertz's for the
+weight, as the approach is 4 % short), so on a sphere the nodes of the predicted contact patch
+start touching, none outside it (the foundation's own patch, ``a^2 = 2 R delta``, is wider).
 """
 
 from __future__ import annotations
@@ -51,6 +51,8 @@ def resting_approach(
     if not (modulus > 0 and math.isfinite(modulus)):
         raise ValueError(f"the contact modulus must be positive and finite, got {modulus} Pa")
     x = np.asarray(points, dtype=np.float64)
+    if not np.isfinite(x).all():
+        raise ValueError("the node positions must be finite")
     f = np.asarray(facets, dtype=np.int64)
     p = x[f]
     # Each facet's area projected on the table where its outward normal points down, a third to
@@ -68,8 +70,10 @@ def resting_approach(
     # With the first j + 1 nodes touching: W = (2 E* / (pi a)) (delta S - SH), a = sqrt(S / pi).
     a = np.sqrt(S / np.pi)
     delta = (weight * np.pi * a / (2.0 * modulus) + SH) / S
-    # The approach is the one whose touching nodes are those below it: the first j where delta_j
-    # does not reach the next node (the load grows with delta; a node joins where it is reached).
+    # The approach is one whose touching nodes are those below it: delta_j below the next node.
+    # The load grows with delta between nodes but drops where a node joins (the stiffness per
+    # area falls as the touching area grows), so several may fit; the first is the smallest, the
+    # one a body lowered onto the table reaches first.
     fits = np.flatnonzero(np.append(delta[:-1] <= h[1:], True))
     return float(delta[fits[0]])
 

@@ -49,7 +49,7 @@ from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim import pardiso
 from softgrasp.sim.implicit import implicit_euler_step
 from softgrasp.sim.integrators import simulate
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp.sim.linsolve import SolverCache, by_multigrid
 from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import extrapolated, solve_increment, solve_static
@@ -114,6 +114,10 @@ HELD_RTOL = 1e-9
 #: (7 576 nodes: 51 systems in the hold check instead of 10). Force control's
 #: :func:`~softgrasp.grasp.force_control.hold_setpoints` checks its hold with the same release.
 STEP_RTOL = 1e-4
+#: Newton iterations the settle's lowered start (:func:`_settle`) is given before the level start
+#: takes over: the lowered starts measured settled in 3-24 iterations; a lowered start that
+#: wanders (33 969 nodes lowered 1.2x as far: no rest in 60) then costs half as much.
+LOWERED_MAX_ITER = 30
 
 
 @dataclass(frozen=True)
@@ -438,41 +442,51 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
     one node tips over: Newton creeps along the nearly free tipping mode), standing on its most
     stable hull facet, as a real object comes to rest.
 
-    On the stable facet Newton first starts from the placement lowered by half the approach its
-    weight presses it into the table (:func:`_lowered`), the nodes of the predicted contact patch
-    touching from the first iterate, anchored for friction where they stand, as when the object is
-    set straight down; then, if that finds no rest, level with the table. Lowered, the spheres
-    measured settled on their facets in fewer Newton systems at every size (11 874 nodes 23 -> 17,
-    27 749 nodes 18 -> 4, and a rest at 32 543 nodes, where the level start found none). As
-    meshed it starts level: there a lowered start settled in 7 systems instead of 15 at 32 543
-    nodes, but in 15 or 69 (the as-meshed start failing) at 18 233 nodes, as PARDISO's thread
-    count varied, where the level start takes at most 12 (a slow test holds it to that).
+    Where its Newton systems go to multigrid (bodies of over 10 000 nodes by default), Newton
+    first starts each placement lowered by half the approach its weight presses it into the
+    table (:func:`_lowered`): the nodes of the predicted contact patch touch from the first
+    iterate, anchored for friction where they stand, as when the object is set straight down;
+    then, if that finds no rest within :data:`LOWERED_MAX_ITER` iterations, level with the
+    table. Settles of spheres, level -> lowered Newton systems: 15 662 nodes 23 -> 15, 18 233
+    (on its facet) 9 -> 6, 27 749 13 -> 12, 31 029 13 -> 3, 32 543 15 -> 7, 33 969 28 -> 22; but
+    11 874 nodes, whose as-meshed placement cycles across a contact kink from either start,
+    53 -> 69 (the lowered start's 22 iterations before the level start's 33, then 17 instead of
+    22 on the facet). On PARDISO's exact solves (smaller bodies) it starts level: the gains were
+    small and mixed there (4 498 nodes 16 -> 18, 7 576 17 -> 12), and the 18 233-node sphere
+    forced onto PARDISO settled lowered in 15-17 systems or not at all, against 9 level, its
+    iterates zig-zagging along the nearly neutral rolling mode.
     Returns (the rest state, the table, the unloaded placement the rest was found from)."""
+    lowers = by_multigrid(3 * body.n_nodes, cache)
 
-    def placements() -> Iterable[tuple[NDArray[np.float64], bool]]:
+    def starts() -> Iterable[tuple[str, NDArray[np.float64], NDArray[np.float64] | None]]:
         x = np.asarray(body.mesh.points, dtype=np.float64)
-        if _stands(x, _com(body, x)):
-            yield x, False
-        x = _stable_pose(body, x)
-        yield x, True
-        yield x, False
+        for where, placed in (("as meshed", x), ("on its most stable facet", None)):
+            if placed is None:
+                placed = _stable_pose(body, x)
+            elif not _stands(x, _com(body, x)):
+                continue
+            guess = _lowered(body, placed) if lowers else None
+            if guess is not None and not np.array_equal(guess, placed):
+                yield f"{where}, lowered", placed, guess
+            yield where, placed, None
 
-    failure: NotConverged | None = None
-    for x, lowered in placements():
+    failures = []
+    for where, x, guess in starts():
+        if failures:
+            cache.scene_changed()  # the failed start's factor or hierarchy is no guide here
         table = _table(x, cfg.table_mu)
         rest = Scene(body, (table,))
-        guess = _lowered(body, x) if lowered else None
+        max_iter = LOWERED_MAX_ITER if guess is not None else 60
         try:
-            return (
-                solve_static(rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL, guess=guess)[0],
-                table,
-                x,
-            )
+            state = solve_static(
+                rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL, guess=guess, max_iter=max_iter
+            )[0]
+            return state, table, x
         except NotConverged as exc:
-            failure = exc
+            failures.append((where, exc))
     raise NotConverged(
-        f"the object found no rest on the table, neither as meshed nor on its most stable facet: {failure}"
-    ) from failure
+        "the object found no rest on the table: " + "; ".join(f"{where}: {exc}" for where, exc in failures)
+    ) from failures[-1][1]
 
 
 def _start_centres(ig: InitialGrasp, cfg: PlanConfig) -> tuple[NDArray, NDArray, NDArray]:

@@ -40,7 +40,7 @@ from softgrasp.errors import NotConverged
 from softgrasp.sim import pardiso
 from softgrasp.sim.coarse import UpdatedLevel, changed_nodes, galerkin_change
 
-__all__ = ["SolverCache", "solve_newton_system", "DIRECT_MAX_DOF", "PARDISO_MAX_DOF"]
+__all__ = ["SolverCache", "solve_newton_system", "by_multigrid", "DIRECT_MAX_DOF", "PARDISO_MAX_DOF"]
 
 #: Without MKL, systems with at most this many unknowns are solved by sparse LU.
 DIRECT_MAX_DOF = 1500
@@ -979,6 +979,16 @@ def _uses_pardiso(n: int, cache: SolverCache) -> bool:
     return cache.method == "pardiso" or (
         cache.method == "auto" and n <= PARDISO_MAX_DOF and pardiso.available()
     )
+
+
+def by_multigrid(n: int, cache: SolverCache) -> bool:
+    """Whether an unconstrained Newton system of ``n`` unknowns that ``cache`` solves goes to the
+    multigrid-preconditioned Krylov iterations (not PARDISO's or SciPy's direct factors)."""
+    if cache.method == "reference":
+        return n > DIRECT_MAX_DOF
+    if cache.method == "direct" or _uses_pardiso(n, cache):
+        return False
+    return not (cache.method == "auto" and n <= DIRECT_MAX_DOF)
 
 
 def assembly_threads(n: int, cache: SolverCache) -> int:
