@@ -1139,13 +1139,21 @@ def test_multigrid_gmres_applies_the_exact_product_with_the_compiled_matrix_prod
     assert max(calls) <= 1e-12, max(calls)
 
 
+@pytest.mark.parametrize("mkl", [True, False])
 @pytest.mark.parametrize("method", ["auto", "amg", "direct", "reference", "pardiso"])
 @pytest.mark.parametrize("shape", [(3, 3, 3), (9, 9, 9)])
-def test_by_multigrid_says_where_a_newton_system_goes(method, shape):
+def test_by_multigrid_says_where_a_newton_system_goes(monkeypatch, mkl, method, shape):
     """``by_multigrid`` (the planner's settle asks it) agrees with where ``solve_newton_system``
-    sends an unconstrained system: the multigrid solves counted, or none."""
-    if method == "pardiso" and not pardiso.available():
+    sends an unconstrained system: the multigrid solves counted, or none; with MKL (PARDISO's
+    limit lowered so that the larger box goes past it) and without; an unknown method is refused
+    by both."""
+    if (mkl or method == "pardiso") and not pardiso.available():
         pytest.skip("MKL not installed")
+    if not mkl:
+        if method == "pardiso":
+            pytest.skip("PARDISO needs MKL")
+        monkeypatch.setattr(pardiso, "available", lambda: False)
+    monkeypatch.setattr(linsolve, "PARDISO_MAX_DOF", 3000)
     body = build_body(box((0.03, 0.03, 0.03), shape), preset("rubber"))
     table = PlaneContact(Plane(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])), mu=0.5)
     x = np.asarray(body.mesh.points)
@@ -1154,3 +1162,15 @@ def test_by_multigrid_says_where_a_newton_system_goes(method, shape):
     cache = SolverCache(method=method)
     solve_newton_system(A, np.ones(A.shape[0]), None, x, cache)
     assert linsolve.by_multigrid(A.shape[0], cache) == (cache.stats["amg_solves"] > 0)
+    unknown = SolverCache(method="cholmod")
+    with pytest.raises(ValueError, match="cholmod"):
+        linsolve.by_multigrid(A.shape[0], unknown)
+    with pytest.raises(ValueError, match="cholmod"):
+        solve_newton_system(A, np.ones(A.shape[0]), None, x, unknown)
+
+
+def test_by_multigrid_covers_each_route():
+    """The boxes above reach every route: the sizes straddle the limits."""
+    small = 3 * build_body(box((0.03, 0.03, 0.03), (3, 3, 3)), preset("rubber")).n_nodes
+    large = 3 * build_body(box((0.03, 0.03, 0.03), (9, 9, 9)), preset("rubber")).n_nodes
+    assert small <= linsolve.DIRECT_MAX_DOF < 3000 < large

@@ -114,9 +114,10 @@ HELD_RTOL = 1e-9
 #: (7 576 nodes: 51 systems in the hold check instead of 10). Force control's
 #: :func:`~softgrasp.grasp.force_control.hold_setpoints` checks its hold with the same release.
 STEP_RTOL = 1e-4
-#: Newton iterations the settle's lowered start (:func:`_settle`) is given before the level start
-#: takes over: the lowered starts measured settled in 3-24 iterations; a lowered start that
-#: wanders (33 969 nodes lowered 1.2x as far: no rest in 60) then costs half as much.
+#: Newton iterations a friction pass of the settle's lowered start (:func:`_settle`) is given
+#: before the level start takes over (the settles measured ended in one pass): the lowered starts
+#: measured settled in 3-24 iterations; one that wanders (33 969 nodes lowered 1.2x as far: no
+#: rest in 60) then costs half as much.
 LOWERED_MAX_ITER = 30
 
 
@@ -442,18 +443,19 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
     one node tips over: Newton creeps along the nearly free tipping mode), standing on its most
     stable hull facet, as a real object comes to rest.
 
-    Where its Newton systems go to multigrid (bodies of over 10 000 nodes by default), Newton
-    first starts each placement lowered by half the approach its weight presses it into the
-    table (:func:`_lowered`): the nodes of the predicted contact patch touch from the first
-    iterate, anchored for friction where they stand, as when the object is set straight down;
-    then, if that finds no rest within :data:`LOWERED_MAX_ITER` iterations, level with the
-    table. Settles of spheres, level -> lowered Newton systems: 15 662 nodes 23 -> 15, 18 233
-    (on its facet) 9 -> 6, 27 749 13 -> 12, 31 029 13 -> 3, 32 543 15 -> 7, 33 969 28 -> 22; but
-    11 874 nodes, whose as-meshed placement cycles across a contact kink from either start,
-    53 -> 69 (the lowered start's 22 iterations before the level start's 33, then 17 instead of
-    22 on the facet). On PARDISO's exact solves (smaller bodies) it starts level: the gains were
-    small and mixed there (4 498 nodes 16 -> 18, 7 576 17 -> 12), and the 18 233-node sphere
-    forced onto PARDISO settled lowered in 15-17 systems or not at all, against 9 level, its
+    Where its Newton systems go to multigrid (:func:`~softgrasp.sim.linsolve.by_multigrid`: bodies
+    of over 10 000 nodes by default with MKL, over 500 without), Newton first starts each placement
+    lowered by half the approach its weight presses it into the table (:func:`_lowered`): the nodes
+    of the predicted contact patch touch from the first iterate, anchored for friction where they
+    stand, as when the object is set straight down; then, if that finds no rest within
+    :data:`LOWERED_MAX_ITER` iterations (a friction pass), level with the table; the linear solver's
+    state is dropped between starts. Settles of spheres, level -> lowered Newton systems: 15 662
+    nodes 23 -> 15, 18 233 (on its facet) 9 -> 6, 27 749 13 -> 12, 31 029 13 -> 3, 32 543 15 -> 7,
+    33 969 28 -> 22; but 11 874 nodes, whose as-meshed placement cycles across a contact kink from
+    either start, 53 -> 69 (the lowered start's 22 iterations before the level start's 33, then 17
+    instead of 22 on the facet). On PARDISO's exact solves (smaller bodies) it starts level: the
+    gains were small and mixed there (4 498 nodes 16 -> 18, 7 576 17 -> 12), and the 18 233-node
+    sphere forced onto PARDISO settled lowered in 15-17 systems or not at all, against 9 level, its
     iterates zig-zagging along the nearly neutral rolling mode.
     Returns (the rest state, the table, the unloaded placement the rest was found from)."""
     lowers = by_multigrid(3 * body.n_nodes, cache)
@@ -476,11 +478,9 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
             cache.scene_changed()  # the failed start's factor or hierarchy is no guide here
         table = _table(x, cfg.table_mu)
         rest = Scene(body, (table,))
-        max_iter = LOWERED_MAX_ITER if guess is not None else 60
+        limit = {} if guess is None else {"guess": guess, "max_iter": LOWERED_MAX_ITER}
         try:
-            state = solve_static(
-                rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL, guess=guess, max_iter=max_iter
-            )[0]
+            state = solve_static(rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL, **limit)[0]
             return state, table, x
         except NotConverged as exc:
             failures.append((where, exc))

@@ -981,9 +981,16 @@ def _uses_pardiso(n: int, cache: SolverCache) -> bool:
     )
 
 
+def _check_method(cache: SolverCache) -> None:
+    if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
+        raise ValueError(f"unknown linear solver {cache.method!r}")
+
+
 def by_multigrid(n: int, cache: SolverCache) -> bool:
-    """Whether an unconstrained Newton system of ``n`` unknowns that ``cache`` solves goes to the
-    multigrid-preconditioned Krylov iterations (not PARDISO's or SciPy's direct factors)."""
+    """Whether an unconstrained Newton system of ``n`` unknowns that ``cache`` solves goes first to
+    the multigrid-preconditioned Krylov iterations (not PARDISO's or SciPy's direct factors; a
+    singular system PARDISO hands on to multigrid does not count)."""
+    _check_method(cache)
     if cache.method == "reference":
         return n > DIRECT_MAX_DOF
     if cache.method == "direct" or _uses_pardiso(n, cache):
@@ -1031,8 +1038,7 @@ def solve_newton_system(
     (dx (n,), lam (k,))
     """
     cache = cache if cache is not None else SolverCache()
-    if cache.method not in ("auto", "pardiso", "direct", "amg", "reference"):
-        raise ValueError(f"unknown linear solver {cache.method!r}")
+    _check_method(cache)
     if cache.precision not in ("mixed", "double"):
         raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
     cache.stats["systems"] += 1
