@@ -119,6 +119,11 @@ STEP_RTOL = 1e-4
 #: measured settled in 3-24 iterations; one that wanders (33 969 nodes lowered 1.2x as far: no
 #: rest in 60) then costs half as much.
 LOWERED_MAX_ITER = 30
+#: The least node count for which the settle starts lowered (and only where its systems go to
+#: multigrid). Measured below it with the multigrid path forced: the 4 498-node sphere 41 -> 19
+#: systems, the 2 465-node one 47 -> 77 (no rest lowered within the limit, then level); on
+#: PARDISO's exact path 4 498 nodes 16 -> 18, 7 576 17 -> 12 and a zig-zag at 18 233 nodes.
+LOWERED_MIN_NODES = 10_000
 
 
 @dataclass(frozen=True)
@@ -429,12 +434,16 @@ def _lowered(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """Where the settle's Newton starts: ``x`` lowered by half the approach its weight presses it
     into the table (:func:`softgrasp.contact.resting.lowered_onto_table`), the nodes of the
     predicted contact patch touching from the start; ``None`` (start as placed) where gravity
-    does not press the body onto the table."""
+    does not press the body onto the table, or where the patch is no more than the nodes that
+    touch as placed (a flat face down: lowered, the foam cube's settle took 3 systems, level 2)."""
     weight = -float(body.mass.sum() * body.gravity[2])
     if not weight > 0.0:
         return None
     modulus = body.material.E / (1.0 - body.material.nu**2)
-    return lowered_onto_table(x, body.mesh.facets, weight, modulus)
+    lowered = lowered_onto_table(x, body.mesh.facets, weight, modulus)
+    zmin = float(x[:, 2].min())
+    touching = int((x[:, 2] <= zmin + 1e-9 * float(np.ptp(x, axis=0).max())).sum())
+    return lowered if int((lowered[:, 2] < zmin).sum()) > touching else None
 
 
 def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, PlaneContact, NDArray]:
@@ -443,22 +452,22 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
     one node tips over: Newton creeps along the nearly free tipping mode), standing on its most
     stable hull facet, as a real object comes to rest.
 
-    Where its Newton systems go to multigrid (:func:`~softgrasp.sim.linsolve.by_multigrid`: bodies
-    of over 10 000 nodes by default with MKL, over 500 without), Newton first starts each placement
-    lowered by half the approach its weight presses it into the table (:func:`_lowered`): the nodes
-    of the predicted contact patch touch from the first iterate, anchored for friction where they
-    stand, as when the object is set straight down; then, if that finds no rest within
+    For bodies of :data:`LOWERED_MIN_NODES` nodes or more whose Newton systems go to multigrid
+    (:func:`~softgrasp.sim.linsolve.by_multigrid`, the default there), Newton first starts each
+    placement lowered by half the approach its weight presses it into the table (:func:`_lowered`):
+    the nodes of the predicted contact patch touch from the first iterate, anchored for friction
+    where they stand, as when the object is set straight down; then, if that finds no rest within
     :data:`LOWERED_MAX_ITER` iterations (a friction pass), level with the table; the linear solver's
     state is dropped between starts. Settles of spheres, level -> lowered Newton systems: 15 662
     nodes 23 -> 15, 18 233 (on its facet) 9 -> 6, 27 749 13 -> 12, 31 029 13 -> 3, 32 543 15 -> 7,
     33 969 28 -> 22; but 11 874 nodes, whose as-meshed placement cycles across a contact kink from
     either start, 53 -> 69 (the lowered start's 22 iterations before the level start's 33, then 17
-    instead of 22 on the facet). On PARDISO's exact solves (smaller bodies) it starts level: the
-    gains were small and mixed there (4 498 nodes 16 -> 18, 7 576 17 -> 12), and the 18 233-node
-    sphere forced onto PARDISO settled lowered in 15-17 systems or not at all, against 9 level, its
-    iterates zig-zagging along the nearly neutral rolling mode.
+    instead of 22 on the facet). Smaller bodies and PARDISO's exact solves start level (measured:
+    :data:`LOWERED_MIN_NODES`); the 18 233-node sphere forced onto PARDISO settled lowered in 15-17
+    systems or not at all, against 9 level, its iterates zig-zagging along the nearly neutral
+    rolling mode.
     Returns (the rest state, the table, the unloaded placement the rest was found from)."""
-    lowers = by_multigrid(3 * body.n_nodes, cache)
+    lowers = body.n_nodes >= LOWERED_MIN_NODES and by_multigrid(3 * body.n_nodes, cache)
 
     def starts() -> Iterable[tuple[str, NDArray[np.float64], NDArray[np.float64] | None]]:
         x = np.asarray(body.mesh.points, dtype=np.float64)
@@ -468,7 +477,7 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
             elif not _stands(x, _com(body, x)):
                 continue
             guess = _lowered(body, placed) if lowers else None
-            if guess is not None and not np.array_equal(guess, placed):
+            if guess is not None:
                 yield f"{where}, lowered", placed, guess
             yield where, placed, None
 
