@@ -37,6 +37,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from softgrasp.body import Body
 from softgrasp.contact.fingertip import ContactParams, Fingertip
+from softgrasp.contact.laws import effective_modulus
 from softgrasp.contact.model import FingerReport, FingertipContact
 from softgrasp.contact.resting import lowered_onto_table
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged, SimulationUnstable
@@ -416,11 +417,17 @@ def _stable_pose(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
     return stable_facet_pose(x, _com(body, x))
 
 
+def _lowest(x: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """The nodes of ``x`` at its lowest height (to 1e-9 of its size): those touching a table
+    under it."""
+    return x[:, 2] <= x[:, 2].min() + 1e-9 * float(np.ptp(x, axis=0).max())
+
+
 def _stands(x: NDArray[np.float64], com: NDArray[np.float64]) -> bool:
     """Whether ``x`` stands on the table as it is: the centre of mass lies above the convex hull
     of its lowest nodes (not balanced on a vertex or an edge, which only tips over)."""
     L = float(np.ptp(x, axis=0).max())
-    low = x[x[:, 2] <= x[:, 2].min() + 1e-9 * L, :2]
+    low = x[_lowest(x), :2]
     if len(low) < 3:
         return False
     try:
@@ -439,11 +446,10 @@ def _lowered(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64] | None:
     weight = -float(body.mass.sum() * body.gravity[2])
     if not weight > 0.0:
         return None
-    modulus = body.material.E / (1.0 - body.material.nu**2)
+    modulus = effective_modulus(math.inf, 0.0, body.material.E, body.material.nu)  # a rigid table
     lowered = lowered_onto_table(x, body.mesh.facets, weight, modulus)
-    zmin = float(x[:, 2].min())
-    touching = int((x[:, 2] <= zmin + 1e-9 * float(np.ptp(x, axis=0).max())).sum())
-    return lowered if int((lowered[:, 2] < zmin).sum()) > touching else None
+    pressed_in = int((lowered[:, 2] < x[:, 2].min()).sum())
+    return lowered if pressed_in > int(_lowest(x).sum()) else None
 
 
 def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, PlaneContact, NDArray]:

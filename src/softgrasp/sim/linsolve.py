@@ -986,16 +986,29 @@ def _check_method(cache: SolverCache) -> None:
         raise ValueError(f"unknown linear solver {cache.method!r}")
 
 
+def _route(n: int, C: sp.csr_matrix | None, cache: SolverCache) -> str:
+    """Where a Newton system of ``n`` unknowns (``C`` its constraints, or None) goes first:
+    ``"direct"`` (SciPy's sparse LU or the saddle-point solve), ``"pardiso"`` or ``"multigrid"``
+    (multigrid-preconditioned Krylov iterations). Constraints are only used where the stiffness
+    leaves rigid motions free; multigrid cannot precondition such a singular matrix, so those
+    systems go to the direct saddle-point solve."""
+    _check_method(cache)
+    if C is not None or cache.method == "direct":
+        return "direct"
+    if cache.method == "reference":
+        # softgrasp's first solver, kept as the reference of the benchmarks and tests: the
+        # symmetrised Newton matrix, sparse LU up to DIRECT_MAX_DOF unknowns, multigrid-CG beyond.
+        return "direct" if n <= DIRECT_MAX_DOF else "multigrid"
+    if _uses_pardiso(n, cache):
+        return "pardiso"
+    return "direct" if cache.method == "auto" and n <= DIRECT_MAX_DOF else "multigrid"
+
+
 def by_multigrid(n: int, cache: SolverCache) -> bool:
     """Whether an unconstrained Newton system of ``n`` unknowns that ``cache`` solves goes first to
     the multigrid-preconditioned Krylov iterations (not PARDISO's or SciPy's direct factors; a
     singular system PARDISO hands on to multigrid does not count)."""
-    _check_method(cache)
-    if cache.method == "reference":
-        return n > DIRECT_MAX_DOF
-    if cache.method == "direct" or _uses_pardiso(n, cache):
-        return False
-    return not (cache.method == "auto" and n <= DIRECT_MAX_DOF)
+    return _route(n, None, cache) == "multigrid"
 
 
 def assembly_threads(n: int, cache: SolverCache) -> int:
@@ -1038,15 +1051,12 @@ def solve_newton_system(
     (dx (n,), lam (k,))
     """
     cache = cache if cache is not None else SolverCache()
-    _check_method(cache)
+    route = _route(A.shape[0], C, cache)
     if cache.precision not in ("mixed", "double"):
         raise ValueError(f"unknown factor precision {cache.precision!r} (use 'mixed' or 'double')")
     cache.stats["systems"] += 1
-    # Constraints are only used where the stiffness leaves rigid motions free; multigrid cannot
-    # precondition such a singular matrix, so those systems go to the direct saddle-point solve.
-    use_pardiso = C is None and _uses_pardiso(A.shape[0], cache)
-    with pardiso.blas_one_thread() if use_pardiso else contextlib.nullcontext():
-        return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol, use_pardiso)
+    with pardiso.blas_one_thread() if route == "pardiso" else contextlib.nullcontext():
+        return _solve_newton_system(A, b, C, x_nodes, cache, matvec, rtol, route)
 
 
 def _solve_newton_system(
@@ -1057,23 +1067,15 @@ def _solve_newton_system(
     cache: SolverCache,
     matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None,
     rtol: float | None,
-    use_pardiso: bool,
+    route: str,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    n = A.shape[0]
-    if cache.method == "reference":
-        # softgrasp's first solver, kept as the reference of the benchmarks and tests: the
-        # symmetrised Newton matrix, sparse LU up to DIRECT_MAX_DOF unknowns, multigrid-CG beyond.
-        if C is not None or n <= DIRECT_MAX_DOF:
-            return _direct(A, b, C)
-        cache.stats["amg_solves"] += 1
-        return _pcg(A.tocsr(), b, C, x_nodes, cache)
-    if C is not None or cache.method == "direct":
+    if route == "direct":
         return _direct(A, b, C)
-    if use_pardiso:
+    if route == "pardiso":
         return _pardiso(A.tocsr(), b, x_nodes, cache, matvec, STALE_RTOL if rtol is None else min(rtol, 1e-2))
-    if cache.method == "auto" and n <= DIRECT_MAX_DOF:
-        return _direct(A, b, C)
     cache.stats["amg_solves"] += 1
+    if cache.method == "reference":
+        return _pcg(A.tocsr(), b, C, x_nodes, cache)
     if matvec is not None:
         x = _amg_gmres(A.tocsr(), b, x_nodes, cache, matvec, STALE_RTOL if rtol is None else rtol)
         if x is not None:
