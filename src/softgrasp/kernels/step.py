@@ -18,7 +18,9 @@ driven by :func:`~softgrasp.sim.integrators.simulate`, to round-off (tested to 1
   (polynomial laws only, :func:`softgrasp.kernels.elastic.polynomial_coefficients`), with the
   reciprocals of the rest lengths and volumes precomputed and multiply-adds fused (round-off);
   the same arithmetic as those kernels, in fewer instructions (:func:`pack_body`: flat arrays,
-  unsigned node indices, packed parameters), the same results to the bit;
+  unsigned node indices, packed parameters), the same results to the bit; or, without energy or
+  checks, eight elements at a time in vector instructions (:mod:`softgrasp.kernels.blocks`, by
+  default on CPUs with AVX-512: :data:`BLOCKS_DEFAULT`), the same to round-off;
 * planes: :meth:`~softgrasp.planes.PlaneContact.forces` and ``update`` written out per node;
 * fingertips: the compiled kernels of :mod:`softgrasp.kernels.contact` themselves (detection,
   forces, state update), the fingertips moving with their prescribed velocity. Their broad phase
@@ -40,6 +42,7 @@ otherwise; the trajectory does not depend on it.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -47,6 +50,8 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from softgrasp.kernels.blocks import BLOCK as _BLOCK
+from softgrasp.kernels.blocks import block_params, spring_block, volume_block, volume_block_quadratic
 from softgrasp.kernels.contact import _fingertip_forces, _fingertip_update
 from softgrasp.kernels.elastic import _J_FLOOR, _triple_product, polynomial_coefficients
 
@@ -187,16 +192,18 @@ def _plane_points(t, pl_point, pl_vel, p0):  # pragma: no cover - compiled
 
 # The body-force kernels below compute what softgrasp.kernels.elastic's _springs, _volumes and
 # _inverted compute, operation for operation (so the same bits), on data laid out by pack_body:
-# positions, velocities and forces as flat (3N,) views, node indices stored times 3 and unsigned
-# (Numba adds no negative-index wrap-around to unsigned indices, nor a stride multiply to a flat
-# array), each element's parameters side by side. Measured (2 196 nodes, one thread): 218 -> 182 us,
-# the loops being bound by their instruction count (~5 per cycle) more than by memory.
+# positions, velocities and forces as flat (4N,) views of (N, 4) arrays, node indices stored times 4
+# and unsigned (Numba adds no negative-index wrap-around to unsigned indices, nor a stride multiply
+# to a flat array), each element's parameters side by side. Measured (2 196 nodes, one thread):
+# 218 -> 182 us, the loops being bound by their instruction count (~5 per cycle) more than by
+# memory. Without energy or checks, blocks of eight elements go to softgrasp.kernels.blocks (vector
+# instructions; the same arithmetic without fused multiply-adds: round-off): 182 -> 127 us.
 
 
 @_fjit
 def _edge_pass(x, v, eq, ep, a2, a3, damped, want_energy, lo, hi, out):  # pragma: no cover - compiled
     """Springs (+ dashpots) ``lo:hi`` added to ``out``; returns their energy (0 unless
-    ``want_energy``). ``eq`` (2E,): the edges' nodes times 3; ``ep`` (4E,): their L0 [m],
+    ``want_energy``). ``eq`` (2E,): the edges' nodes times 4; ``ep`` (4E,): their L0 [m],
     1 / L0 [1/m], k L0 [N], c [N s/m]. :func:`softgrasp.kernels.elastic._springs`."""
     energy = 0.0
     a2_3 = a2 / 3.0
@@ -236,7 +243,7 @@ def _edge_pass(x, v, eq, ep, a2, a3, damped, want_energy, lo, hi, out):  # pragm
 @_fjit
 def _tet_pass(x, tq, tp, kappa, barrier, want_energy, check, lo, hi, out):  # pragma: no cover - compiled
     """Volume-term forces of tets ``lo:hi`` added to ``out`` (``kappa`` != 0), or only their
-    inverted count (``kappa`` = 0). ``tq`` (4M,): the tets' nodes times 3; ``tp`` (2M,):
+    inverted count (``kappa`` = 0). ``tq`` (4M,): the tets' nodes times 4; ``tp`` (2M,):
     1 / (6 V0) [1/m^3] and V0 [m^3]. Returns (energy, 0 unless ``want_energy``; the tets with
     non-positive signed volume and the first of them, 0 and -1 unless ``check``):
     :func:`softgrasp.kernels.elastic._volumes` and ``_inverted``."""
@@ -318,22 +325,42 @@ def _tet_pass(x, tq, tp, kappa, barrier, want_energy, check, lo, hi, out):  # pr
 @_jit
 def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragma: no cover - compiled
     """Part ``part`` of ``parts`` of the internal forces: its share of the edges and tets, into its
-    own buffer ``out`` (zeroed here); energy, inverted count and first inverted tet into ``info``.
-    ``body`` is :func:`pack_body`'s."""
-    eq, ep, tq, tp, a2, a3, damped, kappa, barrier = body
-    xf = x.reshape(-1)
-    vf = v.reshape(-1)
+    own buffer ``out`` (N, 4) (zeroed here); energy, inverted count and first inverted tet into
+    ``info``. ``body`` is :func:`pack_body`'s, whose (N, 4) copies of the positions and velocities
+    (:func:`_body_forces` fills them) are read; ``x``, ``v`` are not. Without energy or checks
+    the blocks of eight elements go to :mod:`softgrasp.kernels.blocks` when ``body`` asks for it,
+    split between the parts by blocks, the last part taking the elements left over."""
+    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, x4, v4 = body
+    xf = x4.reshape(-1)
+    vf = v4.reshape(-1)
     of = out.reshape(-1)
     for i in range(of.shape[0]):
         of[i] = 0.0
     E = eq.shape[0] // 2
     M = tq.shape[0] // 4
-    lo = part * E // parts
-    hi = (part + 1) * E // parts
-    e = _edge_pass(xf, vf, eq, ep, a2, a3, damped, want_energy, lo, hi, of)
+    fast = use_blocks and not want_energy
+    if fast:
+        nb = E // _BLOCK
+        for b in range(part * nb // parts, (part + 1) * nb // parts):
+            spring_block(xf, vf, eq, ep8, a2, a3, b, of)
+        lo = nb * _BLOCK if part == parts - 1 else E
+        e = _edge_pass(xf, vf, eq, ep, a2, a3, damped, False, lo, E, of)
+    else:
+        lo = part * E // parts
+        hi = (part + 1) * E // parts
+        e = _edge_pass(xf, vf, eq, ep, a2, a3, damped, want_energy, lo, hi, of)
     count = 0
     first = -1
-    if kappa != 0.0 or check:
+    if kappa != 0.0 and fast and not check:
+        nb = M // _BLOCK
+        for b in range(part * nb // parts, (part + 1) * nb // parts):
+            if barrier:
+                volume_block(xf, tq, tp8, kappa, _J_FLOOR, b, of)
+            else:
+                volume_block_quadratic(xf, tq, tp8, kappa, _J_FLOOR, b, of)
+        lo = nb * _BLOCK if part == parts - 1 else M
+        _tet_pass(xf, tq, tp, kappa, barrier, False, False, lo, M, of)
+    elif kappa != 0.0 or check:
         lo = part * M // parts
         hi = (part + 1) * M // parts
         ev, count, first = _tet_pass(xf, tq, tp, kappa, barrier, want_energy, check, lo, hi, of)
@@ -411,7 +438,15 @@ def _clear_finger(active, anchor, offset, slip, memory):  # pragma: no cover - c
 @_jit
 def _body_forces(parallel, x, v, body, want_energy, check, fint, info):  # pragma: no cover - compiled
     """Internal forces split in ``fint.shape[0]`` parts (summed by the caller), on as many threads
-    when ``parallel``; returns (energy, inverted count, first inverted tet or -1)."""
+    when ``parallel``; returns (energy, inverted count, first inverted tet or -1). ``x``, ``v``
+    (N, 3) are copied into ``body``'s (N, 4) arrays first; ``fint`` is (parts, N, 4), its fourth
+    column zero."""
+    x4 = body[12]
+    v4 = body[13]
+    for i in range(x.shape[0]):
+        for d in range(3):
+            x4[i, d] = x[i, d]
+            v4[i, d] = v[i, d]
     if parallel:
         _body_forces_parallel(x, v, body, want_energy, check, fint, info)
     else:
@@ -838,37 +873,79 @@ def _i64(a: Any) -> NDArray[np.int64]:
     return np.array(a, dtype=np.int64, order="C", copy=True)
 
 
-def pack_body(body: Any) -> tuple:
+def aligned_zeros(shape: tuple[int, ...]) -> Array:
+    """Zeros of ``shape``, C-contiguous, the data 64-byte aligned (the 4-wide rows of the block
+    kernels then never straddle a cache line)."""
+    n = int(np.prod(shape))
+    raw = np.zeros(n + 8)
+    start = (-raw.ctypes.data % 64) // 8
+    return raw[start : start + n].reshape(shape)
+
+
+def _host_has_avx512() -> bool:
+    """Whether the CPU Numba compiles for has AVX-512 (the block kernels' measured gain is there)."""
+    try:
+        import llvmlite.binding as llvm
+
+        return "+avx512f" in llvm.get_host_cpu_features().flatten().split(",")
+    except Exception:  # pragma: no cover - llvmlite without host feature detection
+        return False
+
+
+#: Whether :func:`pack_body` selects the block kernels of :mod:`softgrasp.kernels.blocks` by default:
+#: on CPUs with AVX-512, where they were measured (1.5x on the body forces); elsewhere the scalar
+#: loops, whose speed there is known. ``SOFTGRASP_BLOCKS=1`` / ``0`` overrides.
+BLOCKS_DEFAULT = (
+    os.environ["SOFTGRASP_BLOCKS"] != "0" if os.environ.get("SOFTGRASP_BLOCKS") else _host_has_avx512()
+)
+
+
+def pack_body(body: Any, blocks: bool | None = None) -> tuple:
     """The body's static data in the layout of the fused body-force kernels (:func:`_body_part`).
+
+    Parameters
+    ----------
+    body:
+        The :class:`softgrasp.body.Body` (polynomial stress-strain law).
+    blocks:
+        Whether the forces go through the block kernels of :mod:`softgrasp.kernels.blocks` (eight
+        elements a time) when no energy or check is asked for; None: :data:`BLOCKS_DEFAULT`.
 
     Returns
     -------
     tuple
-        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier)``: the edges' nodes times 3, (2E,)
-        unsigned; their L0 [m], 1 / L0 [1/m], k L0 [N] and dashpot c [N s/m] side by side, (4E,)
-        (c = 0 undamped); the tets' nodes times 3, (4M,) unsigned; their 1 / (6 V0) [1/m^3] and
-        V0 [m^3], (2M,); the law's ``a2``, ``a3``
+        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier, blocks, ep8, tp8, x4, v4)``: the edges'
+        nodes times 4, (2E,) unsigned; their L0 [m], 1 / L0 [1/m], k L0 [N] and dashpot c [N s/m]
+        side by side, (4E,) (c = 0 undamped); the tets' nodes times 4, (4M,) unsigned; their
+        1 / (6 V0) [1/m^3] and V0 [m^3], (2M,); the law's ``a2``, ``a3``
         (:func:`softgrasp.kernels.elastic.polynomial_coefficients`); whether the dashpots act;
-        ``kappa`` [Pa]; whether the volume term is the barrier.
+        ``kappa`` [Pa]; whether the volume term is the barrier; whether the block kernels are used;
+        (1 / L0, k L0, c) and 1 / (6 V0) a block at a time
+        (:func:`softgrasp.kernels.blocks.block_params`); (N, 4) buffers for the positions and
+        velocities the kernels read (64-byte aligned, fourth column zero).
     """
     a2, a3 = polynomial_coefficients(body.material.law)  # type: ignore[misc]
     damped = body.damping_time > 0
     rest = np.asarray(body.rest_length, dtype=np.float64)
     c = np.asarray(body.damping, dtype=np.float64) if damped else np.zeros_like(rest)
     vol = np.asarray(body.mesh.volumes, dtype=np.float64)
-    index = np.uint32 if 3 * body.n_nodes < 2**32 else np.uint64
+    index = np.uint32 if 4 * body.n_nodes < 2**32 else np.uint64
+    kl0 = np.asarray(body.stiffness, dtype=np.float64) * rest
     return (
-        np.ascontiguousarray(3 * np.asarray(body.edges), dtype=index).ravel(),
-        np.ascontiguousarray(
-            np.stack([rest, 1.0 / rest, np.asarray(body.stiffness) * rest, c], axis=1)
-        ).ravel(),
-        np.ascontiguousarray(3 * np.asarray(body.mesh.tets), dtype=index).ravel(),
+        np.ascontiguousarray(4 * np.asarray(body.edges), dtype=index).ravel(),
+        np.ascontiguousarray(np.stack([rest, 1.0 / rest, kl0, c], axis=1)).ravel(),
+        np.ascontiguousarray(4 * np.asarray(body.mesh.tets), dtype=index).ravel(),
         np.ascontiguousarray(np.stack([1.0 / (6.0 * vol), vol], axis=1)).ravel(),
         float(a2),
         float(a3),
         bool(damped),
         float(body.kappa),
         bool(body.barrier),
+        BLOCKS_DEFAULT if blocks is None else bool(blocks),
+        block_params([1.0 / rest, kl0, c]),
+        block_params([1.0 / (6.0 * vol)]),
+        aligned_zeros((body.n_nodes, 4)),
+        aligned_zeros((body.n_nodes, 4)),
     )
 
 
@@ -960,7 +1037,7 @@ class FusedStepper:
         self._grav = _f64(body.mass[:, None] * np.asarray(body.gravity, dtype=np.float64)[None, :])
         self._gvec = _f64(body.gravity, (3,))
         self._total_mass = float(body.mass.sum())
-        self._fint = np.zeros((self.parts, N, 3))
+        self._fint = aligned_zeros((self.parts, N, 4))
         self._info = np.zeros((self.parts, 3))
         self._fplane = np.zeros((N, 3))
         self._ffinger = np.zeros((N, 3))
