@@ -326,13 +326,13 @@ def _tet_pass(x, tq, tp, kappa, barrier, want_energy, check, lo, hi, out):  # pr
 def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragma: no cover - compiled
     """Part ``part`` of ``parts`` of the internal forces: its share of the edges and tets, into its
     own buffer ``out`` (N, 4) (zeroed here); energy, inverted count and first inverted tet into
-    ``info``. ``body`` is :func:`pack_body`'s, whose (N, 4) copies of the positions and velocities
-    (:func:`_body_forces` fills them) are read; ``x``, ``v`` are not. Without energy or checks
-    the blocks of eight elements go to :mod:`softgrasp.kernels.blocks` when ``body`` asks for it,
-    split between the parts by blocks, the last part taking the elements left over."""
-    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, x4, v4 = body
-    xf = x4.reshape(-1)
-    vf = v4.reshape(-1)
+    ``info``. ``x``, ``v``: positions and velocities (N, 4), C-contiguous; ``body`` is
+    :func:`pack_body`'s. Without energy or checks the blocks of eight elements go to
+    :mod:`softgrasp.kernels.blocks` when ``body`` asks for it, split between the parts by blocks,
+    the last part taking the elements left over."""
+    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _, _ = body
+    xf = x.reshape(-1)
+    vf = v.reshape(-1)
     of = out.reshape(-1)
     for i in range(of.shape[0]):
         of[i] = 0.0
@@ -439,19 +439,23 @@ def _clear_finger(active, anchor, offset, slip, memory):  # pragma: no cover - c
 def _body_forces(parallel, x, v, body, want_energy, check, fint, info):  # pragma: no cover - compiled
     """Internal forces split in ``fint.shape[0]`` parts (summed by the caller), on as many threads
     when ``parallel``; returns (energy, inverted count, first inverted tet or -1). ``x``, ``v``
-    (N, 3) are copied into ``body``'s (N, 4) arrays first; ``fint`` is (parts, N, 4), its fourth
-    column zero."""
-    x4 = body[12]
-    v4 = body[13]
-    for i in range(x.shape[0]):
-        for d in range(3):
-            x4[i, d] = x[i, d]
-            v4[i, d] = v[i, d]
+    are read where they are (N, 4) (the stepper's own layout), copied into ``body``'s (N, 4)
+    buffers where they are (N, 3); ``fint`` is (parts, N, 4), its fourth column zero."""
+    if x.shape[1] == 4:
+        x4 = x
+        v4 = v
+    else:
+        x4 = body[12]
+        v4 = body[13]
+        for i in range(x.shape[0]):
+            for d in range(3):
+                x4[i, d] = x[i, d]
+                v4[i, d] = v[i, d]
     if parallel:
-        _body_forces_parallel(x, v, body, want_energy, check, fint, info)
+        _body_forces_parallel(x4, v4, body, want_energy, check, fint, info)
     else:
         for p in range(fint.shape[0]):
-            _body_part(p, fint.shape[0], x, v, body, want_energy, check, fint[p], info[p])
+            _body_part(p, fint.shape[0], x4, v4, body, want_energy, check, fint[p], info[p])
     e = 0.0
     count = 0
     first = -1
@@ -1028,8 +1032,11 @@ class FusedStepper:
         N = body.n_nodes
         self.body = body
         self.t = float(t)
-        self.x = _f64(x, (N, 3))
-        self.v = _f64(v, (N, 3))
+        # positions and velocities (N, 4), the fourth column zero: the rows the block kernels load
+        self.x = aligned_zeros((N, 4))
+        self.v = aligned_zeros((N, 4))
+        self.x[:, :3] = _f64(x, (N, 3))
+        self.v[:, :3] = _f64(v, (N, 3))
         self._body = pack_body(body)
         self.parts = max(1, int(parts))
         self.threads = 1
@@ -1116,7 +1123,7 @@ class FusedStepper:
         self._fstate = (self.f_active, self.f_anchor, self.f_slip, self.f_memory, self.f_offset)
         # RK4: stage positions and velocities, and the weighted sums of the stage velocities and
         # accelerations
-        self._rk = tuple(np.zeros((N, 3) if method == "rk4" else (1, 3)) for _ in range(4))
+        self._rk = tuple(aligned_zeros((N, 4) if method == "rk4" else (1, 4)) for _ in range(4))
         # workspace: force buffers, fingertip centres, the fingertip broad phase's bookkeeping (see
         # _finger_reach), the planes' points now
         self._work = (
@@ -1190,7 +1197,7 @@ class FusedStepper:
     # ------------------------------------------------------------------ reading out
     def arrays(self) -> tuple[Array, Array, float]:
         """Copies of the positions [m] and velocities [m/s] (N, 3), and the time [s]."""
-        return self.x.copy(), self.v.copy(), self.t
+        return self.x[:, :3].copy(), self.v[:, :3].copy(), self.t
 
     def plane_states(self, templates: list[Any]) -> list[Any]:
         """The planes' friction states: ``templates`` (their states at the start) with ``active``
