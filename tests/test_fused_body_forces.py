@@ -92,9 +92,12 @@ def test_undamped_forces_match_the_reference(sphere, blocks):
         assert _rel(f, body.internal_forces(x)) < TOL
 
 
-@pytest.mark.parametrize("kappa", ["body", "zero"])
-def test_inverted_tets_are_counted_when_checked(sphere, kappa):
-    body = sphere if kappa == "body" else dataclasses.replace(sphere, kappa=0.0)
+@pytest.mark.parametrize("kappa", ["body", "zero", "quadratic"])
+@pytest.mark.parametrize("blocks", [True, False])
+def test_inverted_tets_are_counted_when_checked(sphere, kappa, blocks):
+    body = sphere
+    if kappa != "body":
+        body = dataclasses.replace(sphere, kappa=0.0 if kappa == "zero" else -abs(sphere.kappa))
     x, v = _state(body, seed=4, scale=0.05)
     tets = np.asarray(body.mesh.tets)
     for t in (len(tets) - 7, 11, len(tets) // 2):  # swap two nodes' positions: those tets invert
@@ -104,11 +107,12 @@ def test_inverted_tets_are_counted_when_checked(sphere, kappa):
     assert bad.size >= 3
     f_ref, e_ref = _reference(body, x, v)
     for parts in (1, 2):
-        f, e, count, first = _fused(body, x, v, True, True, parts)
+        f, e, count, first = _fused(body, x, v, True, True, parts, blocks)
         assert (count, first) == (bad.size, bad[0])
         assert _rel(f, f_ref) < TOL
         assert abs(e - e_ref) <= TOL * abs(e_ref)
-        assert _fused(body, x, v, False, False, parts)[2:] == (0, -1)
+        assert _fused(body, x, v, False, True, parts, blocks)[2:] == (bad.size, bad[0])
+        assert _fused(body, x, v, False, False, parts, blocks)[2:] == (0, -1)
 
 
 def test_nearly_flat_tets_are_found_inverted_as_the_reference_finds_them():

@@ -20,8 +20,9 @@ LLVM lowers the 8-lane vectors to whatever the CPU has (two AVX2 registers, one 
 Measured on the reference machine, 2 196-node sphere, one thread: springs and dashpots 85 -> 55 us,
 volume term 96 -> 68 us a force evaluation (``benchmarks/bench_dynamic.py``).
 
-Parameters come in blocks (:func:`block_params`): for springs, eight 1 / L0, eight k L0 and eight c
-side by side; for tets, eight 1 / (6 V0).
+Parameters come in blocks (:func:`block_params`): for springs, eight 1 / L0, eight k L0, eight c
+and eight L0 side by side; for tets, eight 1 / (6 V0) and eight V0. Variants return the block's
+energy (and, for tets, a mask of the inverted ones) for the blow-up monitor's checks.
 """
 
 from __future__ import annotations
@@ -33,7 +34,18 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
-__all__ = ["BLOCK", "block_params", "spring_block", "volume_block", "volume_block_quadratic"]
+__all__ = [
+    "BLOCK",
+    "SPRING_COLUMNS",
+    "TET_COLUMNS",
+    "block_params",
+    "spring_block",
+    "spring_block_energy",
+    "volume_block",
+    "volume_block_full",
+    "volume_block_quadratic",
+    "volume_block_quadratic_full",
+]
 
 #: Elements a block.
 BLOCK = 8
@@ -128,14 +140,24 @@ def _as_i64(b: ir.IRBuilder, v: ir.Value) -> ir.Value:
     return b.sext(v, _I64) if v.type.width < 64 else v
 
 
-@intrinsic
-def spring_block(typingctx, x, v, eq, ep, a2, a3, blk, out):  # type: ignore[no-untyped-def]
-    """Springs and dashpots ``8 blk .. 8 blk + 7`` added to ``out``: x, v, out flat views of (N, 4)
-    arrays (32-byte aligned); ``eq`` the edges' nodes times 4, two an edge; ``ep``
-    :func:`block_params` of (1 / L0, k L0, c); ``a2``, ``a3`` the law's coefficients. The arithmetic
-    of :func:`softgrasp.kernels.step._edge_pass` (damped), eight edges a time."""
-    sig = types.void(x, v, eq, ep, a2, a3, blk, out)
+def _load_v8(b: ir.IRBuilder, base: ir.Value, start: ir.Value) -> ir.Value:
+    return b.load(b.bitcast(b.gep(base, [start]), _V8.as_pointer()), align=8)
 
+
+def _lane_sum(b: ir.IRBuilder, v: ir.Value) -> ir.Value:
+    """The eight lanes added in order, as the scalar loop adds its elements."""
+    acc = b.extract_element(v, ir.Constant(_I32, 0))
+    for k in range(1, BLOCK):
+        acc = b.fadd(acc, b.extract_element(v, ir.Constant(_I32, k)))
+    return acc
+
+
+def _call_v8(b: ir.IRBuilder, name: str, v: ir.Value) -> ir.Value:
+    fn = cgutils.get_or_insert_function(b.module, ir.FunctionType(_V8, [_V8]), name)
+    return b.call(fn, [v])
+
+
+def _spring_codegen(energy: bool):  # type: ignore[no-untyped-def]
     def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
         xa, va, eqa, epa, a2v, a3v, bv, oa = args
         t = signature.args
@@ -148,21 +170,16 @@ def spring_block(typingctx, x, v, eq, ep, a2, a3, blk, out):  # type: ignore[no-
         xj, yj, zj = _to_lanes(b, [_load_row(b, X, idx[2 * k + 1]) for k in range(BLOCK)])
         ui, vi, wi = _to_lanes(b, [_load_row(b, V, idx[2 * k]) for k in range(BLOCK)])
         uj, vj, wj = _to_lanes(b, [_load_row(b, V, idx[2 * k + 1]) for k in range(BLOCK)])
-        pb = b.mul(bi, ir.Constant(_I64, 3 * BLOCK))
-        inv_l0, kl0, c = (
-            b.load(b.bitcast(b.gep(EP, [b.add(pb, ir.Constant(_I64, BLOCK * r))]), _V8.as_pointer()), align=8)
-            for r in range(3)
-        )
+        pb = b.mul(bi, ir.Constant(_I64, SPRING_COLUMNS * BLOCK))
+        inv_l0, kl0, c, l0 = (_load_v8(b, EP, b.add(pb, ir.Constant(_I64, BLOCK * r))) for r in range(4))
         dx, dy, dz = b.fsub(xj, xi), b.fsub(yj, yi), b.fsub(zj, zi)
-        sq = b.fadd(b.fadd(b.fmul(dx, dx), b.fmul(dy, dy)), b.fmul(dz, dz))
-        sqrt = cgutils.get_or_insert_function(b.module, ir.FunctionType(_V8, [_V8]), "llvm.sqrt.v8f64")
-        L = b.call(sqrt, [sq])
+        L = _call_v8(b, "llvm.sqrt.v8f64", b.fadd(b.fadd(b.fmul(dx, dx), b.fmul(dy, dy)), b.fmul(dz, dz)))
         one = _const(1.0)
         inv = b.fdiv(one, L)
         eps = b.fsub(b.fmul(L, inv_l0), one)
         e2 = b.fmul(eps, eps)
-        law = b.fadd(b.fadd(eps, b.fmul(_splat(b, a2v), e2)), b.fmul(b.fmul(_splat(b, a3v), e2), eps))
-        T = b.fmul(kl0, law)
+        a2s, a3s = _splat(b, a2v), _splat(b, a3v)
+        T = b.fmul(kl0, b.fadd(b.fadd(eps, b.fmul(a2s, e2)), b.fmul(b.fmul(a3s, e2), eps)))
         dv = b.fadd(
             b.fadd(b.fmul(b.fsub(uj, ui), dx), b.fmul(b.fsub(vj, vi), dy)), b.fmul(b.fsub(wj, wi), dz)
         )
@@ -172,12 +189,43 @@ def spring_block(typingctx, x, v, eq, ep, a2, a3, blk, out):  # type: ignore[no-
         for k in range(BLOCK):
             _add_row(b, O, idx[2 * k], rows[k], False)
             _add_row(b, O, idx[2 * k + 1], rows[k], True)
-        return context.get_dummy_value()
+        if not energy:
+            return context.get_dummy_value()
+        # k L0 L0 (e^2 / 2 + a2 e^3 / 3 + a3 e^4 / 4), as _edge_pass
+        a2_3 = b.fdiv(a2s, _const(3.0))
+        a3_4 = b.fmul(_const(0.25), a3s)
+        poly = b.fadd(
+            b.fadd(b.fmul(_const(0.5), e2), b.fmul(b.fmul(a2_3, e2), eps)), b.fmul(b.fmul(a3_4, e2), e2)
+        )
+        return _lane_sum(b, b.fmul(b.fmul(kl0, l0), poly))
 
-    return sig, codegen
+    return codegen
 
 
-def _volume_codegen(barrier: bool):  # type: ignore[no-untyped-def]
+def _spring_intrinsic(energy: bool):  # type: ignore[no-untyped-def]
+    def typer(typingctx, x, v, eq, ep, a2, a3, blk, out):  # type: ignore[no-untyped-def]
+        ret = types.float64 if energy else types.void
+        return ret(x, v, eq, ep, a2, a3, blk, out), _spring_codegen(energy)
+
+    return intrinsic(typer)
+
+
+#: Columns of the springs' :func:`block_params`: 1 / L0, k L0, c, L0.
+SPRING_COLUMNS = 4
+#: Columns of the tets' :func:`block_params`: 1 / (6 V0), V0.
+TET_COLUMNS = 2
+
+#: Springs and dashpots ``8 blk .. 8 blk + 7`` added to ``out``:
+#: ``spring_block(x, v, eq, ep, a2, a3, blk, out)`` with x, v, out flat views of (N, 4) arrays;
+#: ``eq`` the edges' nodes times 4, two an edge; ``ep`` :func:`block_params` of (1 / L0, k L0, c,
+#: L0); ``a2``, ``a3`` the law's coefficients. The arithmetic of
+#: :func:`softgrasp.kernels.step._edge_pass` (damped; c = 0 for none), eight edges a time.
+spring_block = _spring_intrinsic(False)
+#: The same, returning the eight springs' energy [J] summed.
+spring_block_energy = _spring_intrinsic(True)
+
+
+def _volume_codegen(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
     def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
         xa, tqa, tpa, kv, floor_v, bv, oa = args
         t = signature.args
@@ -197,16 +245,17 @@ def _volume_codegen(barrier: bool):  # type: ignore[no-untyped-def]
         c2 = (cross(cy, az, cz, ay), cross(cz, ax, cx, az), cross(cx, ay, cy, ax))
         c3 = (cross(ay, bz, az, by), cross(az, bx, ax, bz), cross(ax, by, ay, bx))
         det = b.fadd(b.fadd(b.fmul(ax, c1[0]), b.fmul(ay, c1[1])), b.fmul(az, c1[2]))
-        inv6v = b.load(b.bitcast(b.gep(TP, [b.mul(bi, ir.Constant(_I64, BLOCK))]), _V8.as_pointer()), align=8)
-        J = b.fmul(det, inv6v)
+        pb = b.mul(bi, ir.Constant(_I64, TET_COLUMNS * BLOCK))
+        J = b.fmul(det, _load_v8(b, TP, pb))
         one = _const(1.0)
+        kappa = _splat(b, kv)
         if barrier:
             floor = _splat(b, floor_v)
             Jc = b.select(b.fcmp_ordered(">", J, floor), J, floor)
             dw = b.fsub(one, b.fdiv(one, Jc))
         else:
             dw = b.fsub(J, one)
-        s = b.fmul(b.fdiv(b.fsub(_const(0.0), _splat(b, kv)), _const(6.0)), dw)
+        s = b.fmul(b.fdiv(b.fsub(_const(0.0), kappa), _const(6.0)), dw)
         f1 = _to_rows(b, *(b.fmul(s, w) for w in c1))
         f2 = _to_rows(b, *(b.fmul(s, w) for w in c2))
         f3 = _to_rows(b, *(b.fmul(s, w) for w in c3))
@@ -215,23 +264,42 @@ def _volume_codegen(barrier: bool):  # type: ignore[no-untyped-def]
             _add_row(b, O, idx[4 * k + 2], f2[k], False)
             _add_row(b, O, idx[4 * k + 3], f3[k], False)
             _add_row(b, O, idx[4 * k], b.fadd(b.fadd(f1[k], f2[k]), f3[k]), True)
-        return context.get_dummy_value()
+        if not full:
+            return context.get_dummy_value()
+        # energy: kappa V0 (J - 1 - log Jc) or kappa V0 dw^2 / 2, as _tet_pass
+        kv0 = b.fmul(kappa, _load_v8(b, TP, b.add(pb, ir.Constant(_I64, BLOCK))))
+        if barrier:
+            psi = b.fsub(b.fsub(J, one), _call_v8(b, "llvm.log.v8f64", Jc))
+        else:
+            psi = b.fmul(_const(0.5), b.fmul(dw, dw))
+        energy = _lane_sum(b, b.fmul(kv0, psi))
+        # inverted: not (det / 6 > 0), lane k -> bit k
+        ok = b.fcmp_ordered(">", b.fdiv(det, _const(6.0)), _const(0.0))
+        bad = b.xor(ok, ir.Constant(ir.VectorType(ir.IntType(1), BLOCK), [1] * BLOCK))
+        mask = b.zext(b.bitcast(bad, ir.IntType(BLOCK)), _I64)
+        return context.make_tuple(b, signature.return_type, [energy, mask])
 
     return codegen
 
 
-def _volume_intrinsic(barrier: bool):  # type: ignore[no-untyped-def]
+def _volume_intrinsic(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
     def typer(typingctx, x, tq, tp, kappa, floor, blk, out):  # type: ignore[no-untyped-def]
-        return types.void(x, tq, tp, kappa, floor, blk, out), _volume_codegen(barrier)
+        ret = types.Tuple((types.float64, types.int64)) if full else types.void
+        return ret(x, tq, tp, kappa, floor, blk, out), _volume_codegen(barrier, full)
 
     return intrinsic(typer)
 
 
 #: Volume-term forces of tets ``8 blk .. 8 blk + 7`` added to ``out``:
-#: ``volume_block(x, tq, tp, kappa, floor, blk, out)`` with x, out flat views of (N, 4) arrays
-#: (32-byte aligned), ``tq`` the tets' nodes times 4, four a tet, ``tp`` :func:`block_params` of
-#: 1 / (6 V0): the barrier law with J floored at ``floor``. The arithmetic of
-#: :func:`softgrasp.kernels.step._tet_pass`, eight tets a time.
-volume_block = _volume_intrinsic(True)
+#: ``volume_block(x, tq, tp, kappa, floor, blk, out)`` with x, out flat views of (N, 4) arrays,
+#: ``tq`` the tets' nodes times 4, four a tet, ``tp`` :func:`block_params` of (1 / (6 V0), V0): the
+#: barrier law with J floored at ``floor``. The arithmetic of :func:`softgrasp.kernels.step._tet_pass`,
+#: eight tets a time.
+volume_block = _volume_intrinsic(True, False)
 #: The same for the quadratic volume law (``floor`` unused).
-volume_block_quadratic = _volume_intrinsic(False)
+volume_block_quadratic = _volume_intrinsic(False, False)
+#: :data:`volume_block`, returning (the eight tets' energy [J] summed, a mask of the inverted ones:
+#: bit k set where tet ``8 blk + k`` has a signed volume not > 0).
+volume_block_full = _volume_intrinsic(True, True)
+#: The same for the quadratic volume law.
+volume_block_quadratic_full = _volume_intrinsic(False, True)

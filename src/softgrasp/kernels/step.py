@@ -18,8 +18,8 @@ driven by :func:`~softgrasp.sim.integrators.simulate`, to round-off (tested to 1
   (polynomial laws only, :func:`softgrasp.kernels.elastic.polynomial_coefficients`), with the
   reciprocals of the rest lengths and volumes precomputed and multiply-adds fused (round-off);
   the same arithmetic as those kernels, in fewer instructions (:func:`pack_body`: flat arrays,
-  unsigned node indices, packed parameters), the same results to the bit; or, without energy or
-  checks, eight elements at a time in vector instructions (:mod:`softgrasp.kernels.blocks`, by
+  unsigned node indices, packed parameters), the same results to the bit; or eight elements at a
+  time in vector instructions (:mod:`softgrasp.kernels.blocks`, by
   default on CPUs with AVX-512: :data:`BLOCKS_DEFAULT`), the same to round-off;
 * planes: :meth:`~softgrasp.planes.PlaneContact.forces` and ``update`` written out per node;
 * fingertips: the compiled kernels of :mod:`softgrasp.kernels.contact` themselves (detection,
@@ -51,7 +51,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.kernels.blocks import BLOCK as _BLOCK
-from softgrasp.kernels.blocks import block_params, spring_block, volume_block, volume_block_quadratic
+from softgrasp.kernels.blocks import (
+    block_params,
+    spring_block,
+    spring_block_energy,
+    volume_block,
+    volume_block_full,
+    volume_block_quadratic,
+    volume_block_quadratic_full,
+)
 from softgrasp.kernels.contact import _fingertip_forces, _fingertip_update
 from softgrasp.kernels.elastic import _J_FLOOR, _triple_product, polynomial_coefficients
 
@@ -196,8 +204,8 @@ def _plane_points(t, pl_point, pl_vel, p0):  # pragma: no cover - compiled
 # and unsigned (Numba adds no negative-index wrap-around to unsigned indices, nor a stride multiply
 # to a flat array), each element's parameters side by side. Measured (2 196 nodes, one thread):
 # 218 -> 182 us, the loops being bound by their instruction count (~5 per cycle) more than by
-# memory. Without energy or checks, blocks of eight elements go to softgrasp.kernels.blocks (vector
-# instructions; the same arithmetic without fused multiply-adds: round-off): 182 -> 127 us.
+# memory. Blocks of eight elements go to softgrasp.kernels.blocks (vector instructions; the same
+# arithmetic without fused multiply-adds: round-off): 182 -> 122 us.
 
 
 @_fjit
@@ -327,9 +335,9 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
     """Part ``part`` of ``parts`` of the internal forces: its share of the edges and tets, into its
     own buffer ``out`` (N, 4) (zeroed here); energy, inverted count and first inverted tet into
     ``info``. ``x``, ``v``: positions and velocities (N, 4), C-contiguous; ``body`` is
-    :func:`pack_body`'s. Without energy or checks the blocks of eight elements go to
-    :mod:`softgrasp.kernels.blocks` when ``body`` asks for it, split between the parts by blocks,
-    the last part taking the elements left over."""
+    :func:`pack_body`'s. The blocks of eight elements go to :mod:`softgrasp.kernels.blocks` when
+    ``body`` asks for it, split between the parts by blocks, the last part taking the elements left
+    over (a body without the volume term counts its inverted tets on the scalar loop)."""
     eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _, _ = body
     xf = x.reshape(-1)
     vf = v.reshape(-1)
@@ -338,28 +346,50 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
         of[i] = 0.0
     E = eq.shape[0] // 2
     M = tq.shape[0] // 4
-    fast = use_blocks and not want_energy
-    if fast:
+    if use_blocks:
         nb = E // _BLOCK
+        e = 0.0
         for b in range(part * nb // parts, (part + 1) * nb // parts):
-            spring_block(xf, vf, eq, ep8, a2, a3, b, of)
+            if want_energy:
+                e += spring_block_energy(xf, vf, eq, ep8, a2, a3, b, of)
+            else:
+                spring_block(xf, vf, eq, ep8, a2, a3, b, of)
         lo = nb * _BLOCK if part == parts - 1 else E
-        e = _edge_pass(xf, vf, eq, ep, a2, a3, damped, False, lo, E, of)
+        e += _edge_pass(xf, vf, eq, ep, a2, a3, damped, want_energy, lo, E, of)
     else:
         lo = part * E // parts
         hi = (part + 1) * E // parts
         e = _edge_pass(xf, vf, eq, ep, a2, a3, damped, want_energy, lo, hi, of)
     count = 0
     first = -1
-    if kappa != 0.0 and fast and not check:
+    if kappa != 0.0 and use_blocks:
         nb = M // _BLOCK
+        full = want_energy or check
         for b in range(part * nb // parts, (part + 1) * nb // parts):
+            if not full:
+                if barrier:
+                    volume_block(xf, tq, tp8, kappa, _J_FLOOR, b, of)
+                else:
+                    volume_block_quadratic(xf, tq, tp8, kappa, _J_FLOOR, b, of)
+                continue
             if barrier:
-                volume_block(xf, tq, tp8, kappa, _J_FLOOR, b, of)
+                ev, bad = volume_block_full(xf, tq, tp8, kappa, _J_FLOOR, b, of)
             else:
-                volume_block_quadratic(xf, tq, tp8, kappa, _J_FLOOR, b, of)
+                ev, bad = volume_block_quadratic_full(xf, tq, tp8, kappa, _J_FLOOR, b, of)
+            if want_energy:
+                e += ev
+            if check and bad != 0:
+                for k in range(_BLOCK):
+                    if (bad >> k) & 1:
+                        if first < 0:
+                            first = b * _BLOCK + k
+                        count += 1
         lo = nb * _BLOCK if part == parts - 1 else M
-        _tet_pass(xf, tq, tp, kappa, barrier, False, False, lo, M, of)
+        ev, n_bad, first_bad = _tet_pass(xf, tq, tp, kappa, barrier, want_energy, check, lo, M, of)
+        e += ev
+        count += n_bad
+        if first < 0:
+            first = first_bad
     elif kappa != 0.0 or check:
         lo = part * M // parts
         hi = (part + 1) * M // parts
@@ -913,7 +943,7 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
         The :class:`softgrasp.body.Body` (polynomial stress-strain law).
     blocks:
         Whether the forces go through the block kernels of :mod:`softgrasp.kernels.blocks` (eight
-        elements a time) when no energy or check is asked for; None: :data:`BLOCKS_DEFAULT`.
+        elements a time); None: :data:`BLOCKS_DEFAULT`.
 
     Returns
     -------
@@ -924,7 +954,7 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
         1 / (6 V0) [1/m^3] and V0 [m^3], (2M,); the law's ``a2``, ``a3``
         (:func:`softgrasp.kernels.elastic.polynomial_coefficients`); whether the dashpots act;
         ``kappa`` [Pa]; whether the volume term is the barrier; whether the block kernels are used;
-        (1 / L0, k L0, c) and 1 / (6 V0) a block at a time
+        (1 / L0, k L0, c, L0) and (1 / (6 V0), V0) a block at a time
         (:func:`softgrasp.kernels.blocks.block_params`); (N, 4) buffers for the positions and
         velocities the kernels read (64-byte aligned, fourth column zero).
     """
@@ -946,8 +976,8 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
         float(body.kappa),
         bool(body.barrier),
         BLOCKS_DEFAULT if blocks is None else bool(blocks),
-        block_params([1.0 / rest, kl0, c]),
-        block_params([1.0 / (6.0 * vol)]),
+        block_params([1.0 / rest, kl0, c, rest]),
+        block_params([1.0 / (6.0 * vol), vol]),
         aligned_zeros((body.n_nodes, 4)),
         aligned_zeros((body.n_nodes, 4)),
     )
