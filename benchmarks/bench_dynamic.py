@@ -261,6 +261,13 @@ def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
     res["  with the check's energy and volumes"] = per_call(
         lambda: k._body_forces(False, x, v, st._body, True, True, fint, info)
     )
+    # the same evaluation on the other path (block kernels / scalar loops), for the ratio
+    other = k.pack_body(scene.body, blocks=not st._body[9])
+    label = "scalar loops" if st._body[9] else "block kernels"
+    res[f"  on the {label}"] = per_call(lambda: k._body_forces(False, x, v, other, False, False, fint, info))
+    res[f"  on the {label}, with the check"] = per_call(
+        lambda: k._body_forces(False, x, v, other, True, True, fint, info)
+    )
     node_args = (
         0.0,
         x.copy(),
@@ -434,6 +441,14 @@ def main() -> None:
         f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, "
         f"backends {', '.join(kernels.available())}"
     )
+    if "numba" in kernels.available():
+        from softgrasp.kernels import step as k
+
+        print(
+            "fused body forces: "
+            + ("block kernels (eight elements a time)" if k.BLOCKS_DEFAULT else "scalar loops")
+            + " (SOFTGRASP_BLOCKS=0/1 chooses)"
+        )
     if args.compile:
         bench_compile()
     scene, s0 = build_scene(args.mesh_size)

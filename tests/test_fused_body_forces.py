@@ -14,7 +14,7 @@ import pytest
 from softgrasp import kernels
 from softgrasp.body import build_body
 from softgrasp.material import Material, Polynomial
-from softgrasp.mesh import box, signed_volumes
+from softgrasp.mesh import TetMesh, box, signed_volumes
 from softgrasp.objects import make_object
 
 pytest.importorskip("numba")
@@ -100,11 +100,12 @@ def test_inverted_tets_are_counted_when_checked(sphere, kappa, blocks):
         body = dataclasses.replace(sphere, kappa=0.0 if kappa == "zero" else -abs(sphere.kappa))
     x, v = _state(body, seed=4, scale=0.05)
     tets = np.asarray(body.mesh.tets)
-    for t in (len(tets) - 7, 11, len(tets) // 2):  # swap two nodes' positions: those tets invert
+    for t in (len(tets) - 1, 11, len(tets) // 2):  # swap two nodes' positions: those tets invert
         a, b = tets[t, 0], tets[t, 1]
         x[[a, b]] = x[[b, a]]
     bad = np.flatnonzero(~(signed_volumes(x, tets) > 0))
     assert bad.size >= 3
+    assert bad[-1] >= 8 * (len(tets) // 8)  # one among the tets left over after the blocks of eight
     f_ref, e_ref = _reference(body, x, v)
     for parts in (1, 2):
         f, e, count, first = _fused(body, x, v, True, True, parts, blocks)
@@ -146,3 +147,60 @@ def test_nearly_flat_tets_are_found_inverted_as_the_reference_finds_them():
     each(x, x.ravel(), tets, tq, old, new)
     assert 0 < old.sum() < M
     np.testing.assert_array_equal(new, old)
+
+
+@pytest.mark.parametrize("blocks", [True, False])
+def test_positions_laid_out_four_wide_are_read_in_place(sphere, blocks):
+    """The stepper's own (N, 4) positions and velocities give the forces of their (N, 3) copies."""
+    x, v = _state(sphere, seed=5)
+    packed = step.pack_body(sphere, blocks)
+    x4 = step.aligned_zeros((sphere.n_nodes, 4))
+    v4 = step.aligned_zeros((sphere.n_nodes, 4))
+    x4[:, :3], v4[:, :3] = x, v
+    results = []
+    for a, b in ((x, v), (x4, v4)):
+        fint = np.zeros((2, sphere.n_nodes, 4))
+        info = np.zeros((2, 3))
+        e = step._body_forces(
+            False, np.ascontiguousarray(a), np.ascontiguousarray(b), packed, True, True, fint, info
+        )
+        results.append((fint.copy(), e))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    assert results[0][1] == results[1][1]
+
+
+@pytest.mark.filterwarnings("ignore:the springs of mesh:UserWarning")  # one tet is not isotropic
+@pytest.mark.parametrize("shape", ["tet", "box1", "box2"])
+@pytest.mark.parametrize("parts", [1, 2, 5])
+@pytest.mark.parametrize("blocks", [True, False])
+def test_small_bodies_and_more_parts_than_blocks(shape, parts, blocks):
+    """A single tet (six springs: no block at all), a one-cell box (24 tets, three blocks) and a
+    two-cell one, split in up to five parts: every element counted once."""
+    if shape == "tet":
+        mesh = TetMesh(
+            0.01 * np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]), np.array([[0, 1, 2, 3]])
+        )
+    else:
+        mesh = box(0.02, int(shape[-1]))
+    body = build_body(mesh, Material(0.0793e6, 0.45, 45.5), mass=0.01)
+    x, v = _state(body, seed=6)
+    f_ref, e_ref = _reference(body, x, v)
+    for want_energy, check in ((False, False), (True, True)):
+        f, e, count, first = _fused(body, x, v, want_energy, check, parts, blocks)
+        assert _rel(f, f_ref) < TOL
+        assert (abs(e - e_ref) <= TOL * abs(e_ref)) if want_energy else e == 0.0
+
+
+def test_mismatched_arrays_are_refused(sphere):
+    packed = step.pack_body(sphere)
+    x, v = _state(sphere)
+    info = np.zeros((2, 3))
+    with pytest.raises(ValueError, match="fint"):
+        step._body_forces(False, x, v, packed, False, False, np.zeros((2, sphere.n_nodes, 3)), info)
+    with pytest.raises(ValueError, match="x and v"):
+        step._body_forces(
+            False, x, v[:-1].copy(), packed, False, False, np.zeros((2, sphere.n_nodes, 4)), info
+        )
+    with pytest.raises(ValueError, match="x and v"):
+        step._body_forces(False, x[:, :2].copy(), v[:, :2].copy(), packed, False, False,
+                          np.zeros((2, sphere.n_nodes, 4)), info)  # fmt: skip

@@ -93,12 +93,15 @@ def test_fused_path_is_chosen_only_when_supported(pressed):
 
 
 @pytest.mark.parametrize("method", ["semi-implicit", "rk4"])
-def test_fused_agrees_with_per_step_and_reference(pressed, method):
+@pytest.mark.parametrize("blocks", [True, False])
+def test_fused_agrees_with_per_step_and_reference(pressed, method, blocks, monkeypatch):
     """200 steps with the fingertip touching, the table's friction loaded and all dampers on: the
-    fused loop, the per-step loop on the compiled kernels and the NumPy reference agree."""
+    fused loop (its body forces on the block kernels and on the scalar loops), the per-step loop on
+    the compiled kernels and the NumPy reference agree."""
     scene, s0 = pressed
     dt = stable_time_step(scene, method)
     T = 200 * dt
+    monkeypatch.setattr(step, "BLOCKS_DEFAULT", blocks)
     with kernels.use_backend("numba"):
         fused = simulate(scene, s0, T, method=method, dt=dt)
         per_step = simulate(scene, s0, T, method=method, dt=dt, fused=False)

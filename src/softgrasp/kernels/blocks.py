@@ -20,6 +20,11 @@ LLVM lowers the 8-lane vectors to whatever the CPU has (two AVX2 registers, one 
 Measured on the reference machine, 2 196-node sphere, one thread: springs and dashpots 85 -> 55 us,
 volume term 96 -> 68 us a force evaluation (``benchmarks/bench_dynamic.py``).
 
+The callers in :mod:`softgrasp.kernels.step` are cached by Numba, which checks only their own
+file for changes: the inlined IR of this module would stay stale after an edit here, so step.py
+records this file's hash (``_BLOCKS_SOURCE_SHA256``, compared by a test): an edit here fails that
+test until step.py is updated, which renews its cache.
+
 Parameters come in blocks (:func:`block_params`): for springs, eight 1 / L0, eight k L0, eight c
 and eight L0 side by side; for tets, eight 1 / (6 V0) and eight V0. Variants return the block's
 energy (and, for tets, a mask of the inverted ones) for the blow-up monitor's checks.
@@ -41,6 +46,8 @@ __all__ = [
     "block_params",
     "spring_block",
     "spring_block_energy",
+    "spring_block_undamped",
+    "spring_block_undamped_energy",
     "volume_block",
     "volume_block_full",
     "volume_block_quadratic",
@@ -157,7 +164,7 @@ def _call_v8(b: ir.IRBuilder, name: str, v: ir.Value) -> ir.Value:
     return b.call(fn, [v])
 
 
-def _spring_codegen(energy: bool):  # type: ignore[no-untyped-def]
+def _spring_codegen(energy: bool, damped: bool):  # type: ignore[no-untyped-def]
     def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
         xa, va, eqa, epa, a2v, a3v, bv, oa = args
         t = signature.args
@@ -168,8 +175,6 @@ def _spring_codegen(energy: bool):  # type: ignore[no-untyped-def]
         idx = _indices(b, EQ, b.mul(bi, ir.Constant(_I64, 2 * BLOCK)), 2 * BLOCK)
         xi, yi, zi = _to_lanes(b, [_load_row(b, X, idx[2 * k]) for k in range(BLOCK)])
         xj, yj, zj = _to_lanes(b, [_load_row(b, X, idx[2 * k + 1]) for k in range(BLOCK)])
-        ui, vi, wi = _to_lanes(b, [_load_row(b, V, idx[2 * k]) for k in range(BLOCK)])
-        uj, vj, wj = _to_lanes(b, [_load_row(b, V, idx[2 * k + 1]) for k in range(BLOCK)])
         pb = b.mul(bi, ir.Constant(_I64, SPRING_COLUMNS * BLOCK))
         inv_l0, kl0, c, l0 = (_load_v8(b, EP, b.add(pb, ir.Constant(_I64, BLOCK * r))) for r in range(4))
         dx, dy, dz = b.fsub(xj, xi), b.fsub(yj, yi), b.fsub(zj, zi)
@@ -180,10 +185,13 @@ def _spring_codegen(energy: bool):  # type: ignore[no-untyped-def]
         e2 = b.fmul(eps, eps)
         a2s, a3s = _splat(b, a2v), _splat(b, a3v)
         T = b.fmul(kl0, b.fadd(b.fadd(eps, b.fmul(a2s, e2)), b.fmul(b.fmul(a3s, e2), eps)))
-        dv = b.fadd(
-            b.fadd(b.fmul(b.fsub(uj, ui), dx), b.fmul(b.fsub(vj, vi), dy)), b.fmul(b.fsub(wj, wi), dz)
-        )
-        T = b.fadd(T, b.fmul(c, b.fmul(dv, inv)))
+        if damped:  # the dashpot: c times the rate of extension
+            ui, vi, wi = _to_lanes(b, [_load_row(b, V, idx[2 * k]) for k in range(BLOCK)])
+            uj, vj, wj = _to_lanes(b, [_load_row(b, V, idx[2 * k + 1]) for k in range(BLOCK)])
+            dv = b.fadd(
+                b.fadd(b.fmul(b.fsub(uj, ui), dx), b.fmul(b.fsub(vj, vi), dy)), b.fmul(b.fsub(wj, wi), dz)
+            )
+            T = b.fadd(T, b.fmul(c, b.fmul(dv, inv)))
         s = b.fmul(T, inv)
         rows = _to_rows(b, b.fmul(s, dx), b.fmul(s, dy), b.fmul(s, dz))
         for k in range(BLOCK):
@@ -202,10 +210,20 @@ def _spring_codegen(energy: bool):  # type: ignore[no-untyped-def]
     return codegen
 
 
-def _spring_intrinsic(energy: bool):  # type: ignore[no-untyped-def]
+def _f64_arrays(*arrays) -> bool:  # type: ignore[no-untyped-def]
+    return all(isinstance(a, types.Array) and a.dtype == types.float64 and a.ndim == 1 for a in arrays)
+
+
+def _index_array(a) -> bool:  # type: ignore[no-untyped-def]
+    return isinstance(a, types.Array) and a.dtype in (types.uint32, types.uint64) and a.ndim == 1
+
+
+def _spring_intrinsic(energy: bool, damped: bool):  # type: ignore[no-untyped-def]
     def typer(typingctx, x, v, eq, ep, a2, a3, blk, out):  # type: ignore[no-untyped-def]
+        if not (_f64_arrays(x, v, ep, out) and _index_array(eq) and isinstance(blk, types.Integer)):
+            return None  # a typing error: flat float64 arrays, unsigned indices, an integer block
         ret = types.float64 if energy else types.void
-        return ret(x, v, eq, ep, a2, a3, blk, out), _spring_codegen(energy)
+        return ret(x, v, eq, ep, a2, a3, blk, out), _spring_codegen(energy, damped)
 
     return intrinsic(typer)
 
@@ -219,10 +237,14 @@ TET_COLUMNS = 2
 #: ``spring_block(x, v, eq, ep, a2, a3, blk, out)`` with x, v, out flat views of (N, 4) arrays;
 #: ``eq`` the edges' nodes times 4, two an edge; ``ep`` :func:`block_params` of (1 / L0, k L0, c,
 #: L0); ``a2``, ``a3`` the law's coefficients. The arithmetic of
-#: :func:`softgrasp.kernels.step._edge_pass` (damped; c = 0 for none), eight edges a time.
-spring_block = _spring_intrinsic(False)
+#: :func:`softgrasp.kernels.step._edge_pass` with dashpots, eight edges a time.
+spring_block = _spring_intrinsic(False, True)
 #: The same, returning the eight springs' energy [J] summed.
-spring_block_energy = _spring_intrinsic(True)
+spring_block_energy = _spring_intrinsic(True, True)
+#: :data:`spring_block` without dashpots (``v`` and c not read).
+spring_block_undamped = _spring_intrinsic(False, False)
+#: :data:`spring_block_energy` without dashpots.
+spring_block_undamped_energy = _spring_intrinsic(True, False)
 
 
 def _volume_codegen(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
@@ -284,6 +306,8 @@ def _volume_codegen(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
 
 def _volume_intrinsic(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
     def typer(typingctx, x, tq, tp, kappa, floor, blk, out):  # type: ignore[no-untyped-def]
+        if not (_f64_arrays(x, tp, out) and _index_array(tq) and isinstance(blk, types.Integer)):
+            return None  # a typing error: flat float64 arrays, unsigned indices, an integer block
         ret = types.Tuple((types.float64, types.int64)) if full else types.void
         return ret(x, tq, tp, kappa, floor, blk, out), _volume_codegen(barrier, full)
 

@@ -55,6 +55,8 @@ from softgrasp.kernels.blocks import (
     block_params,
     spring_block,
     spring_block_energy,
+    spring_block_undamped,
+    spring_block_undamped_energy,
     volume_block,
     volume_block_full,
     volume_block_quadratic,
@@ -350,10 +352,15 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
         nb = E // _BLOCK
         e = 0.0
         for b in range(part * nb // parts, (part + 1) * nb // parts):
-            if want_energy:
-                e += spring_block_energy(xf, vf, eq, ep8, a2, a3, b, of)
+            if damped:
+                if want_energy:
+                    e += spring_block_energy(xf, vf, eq, ep8, a2, a3, b, of)
+                else:
+                    spring_block(xf, vf, eq, ep8, a2, a3, b, of)
+            elif want_energy:
+                e += spring_block_undamped_energy(xf, vf, eq, ep8, a2, a3, b, of)
             else:
-                spring_block(xf, vf, eq, ep8, a2, a3, b, of)
+                spring_block_undamped(xf, vf, eq, ep8, a2, a3, b, of)
         lo = nb * _BLOCK if part == parts - 1 else E
         e += _edge_pass(xf, vf, eq, ep, a2, a3, damped, want_energy, lo, E, of)
     else:
@@ -471,6 +478,11 @@ def _body_forces(parallel, x, v, body, want_energy, check, fint, info):  # pragm
     when ``parallel``; returns (energy, inverted count, first inverted tet or -1). ``x``, ``v``
     are read where they are (N, 4) (the stepper's own layout), copied into ``body``'s (N, 4)
     buffers where they are (N, 3); ``fint`` is (parts, N, 4), its fourth column zero."""
+    n = body[12].shape[0]
+    if x.shape != v.shape or x.shape[0] != n or (x.shape[1] != 3 and x.shape[1] != 4):
+        raise ValueError("body forces: x and v must be (N, 3) or (N, 4) alike and fint (parts, N, 4)")
+    if fint.shape[1] != n or fint.shape[2] != 4:
+        raise ValueError("body forces: x and v must be (N, 3) or (N, 4) alike and fint (parts, N, 4)")
     if x.shape[1] == 4:
         x4 = x
         v4 = v
@@ -917,7 +929,7 @@ def aligned_zeros(shape: tuple[int, ...]) -> Array:
 
 
 def _host_has_avx512() -> bool:
-    """Whether the CPU Numba compiles for has AVX-512 (the block kernels' measured gain is there)."""
+    """Whether the host CPU has AVX-512 (where the block kernels' gain was measured)."""
     try:
         import llvmlite.binding as llvm
 
@@ -926,12 +938,28 @@ def _host_has_avx512() -> bool:
         return False
 
 
+def _blocks_default() -> bool:
+    """:data:`BLOCKS_DEFAULT` from ``SOFTGRASP_BLOCKS`` (1/true/yes/on, 0/false/no/off) or the CPU."""
+    value = os.environ.get("SOFTGRASP_BLOCKS", "").strip().lower()
+    if not value:
+        return _host_has_avx512()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(
+        f"SOFTGRASP_BLOCKS={os.environ['SOFTGRASP_BLOCKS']!r}: use 1 (block kernels) or 0 (scalar loops), "
+        "or unset it to choose by the CPU"
+    )
+
+
 #: Whether :func:`pack_body` selects the block kernels of :mod:`softgrasp.kernels.blocks` by default:
 #: on CPUs with AVX-512, where they were measured (1.5x on the body forces); elsewhere the scalar
-#: loops, whose speed there is known. ``SOFTGRASP_BLOCKS=1`` / ``0`` overrides.
-BLOCKS_DEFAULT = (
-    os.environ["SOFTGRASP_BLOCKS"] != "0" if os.environ.get("SOFTGRASP_BLOCKS") else _host_has_avx512()
-)
+#: loops, whose speed there is known. ``SOFTGRASP_BLOCKS=1`` / ``0`` overrides (read at import).
+BLOCKS_DEFAULT = _blocks_default()
+#: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
+#: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
+_BLOCKS_SOURCE_SHA256 = "0176de9f723ce5761fffa9460119385f65f86176177fc6eee4694dd99c0c2327"
 
 
 def pack_body(body: Any, blocks: bool | None = None) -> tuple:
