@@ -542,6 +542,19 @@ def _fingertip_update(
     finger, facet, val = _detect(
         x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
+    return _update_pairs(
+        finger, facet, val, x, facets, centres, radii, K, mu, n_exp, patch, ratio, min_depth_ratio, active,
+        anchor, offset, slip, memory, new_active, new_anchor, new_offset, new_slip, new_memory,
+    )  # fmt: skip
+
+
+@_jit
+def _update_pairs(
+    finger, facet, val, x, facets, centres, radii, K, mu, n_exp, patch, ratio, min_depth_ratio, active,
+    anchor, offset, slip, memory, new_active, new_anchor, new_offset, new_slip, new_memory,
+):  # fmt: skip  # pragma: no cover - compiled
+    """:func:`_fingertip_update` on the touching pairs ``finger, facet, val`` found by :func:`_detect`
+    (the fused stepper detects once for the update and the forces at the same state)."""
     nf = centres.shape[0]
     deep, total = _patch(finger, val, nf)
     wsum = np.zeros(nf)

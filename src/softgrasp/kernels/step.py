@@ -62,7 +62,13 @@ from softgrasp.kernels.blocks import (
     volume_block_quadratic,
     volume_block_quadratic_full,
 )
-from softgrasp.kernels.contact import _fingertip_forces, _fingertip_update
+from softgrasp.kernels.contact import (
+    _detect,
+    _fingertip_forces,
+    _fingertip_update,
+    _pair_forces,
+    _update_pairs,
+)
 from softgrasp.kernels.elastic import _J_FLOOR, _triple_product, polynomial_coefficients
 
 __all__ = [
@@ -697,8 +703,26 @@ def _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on):  # pragma: no
     power (0 unless ``monitor_on``)."""
     fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
     reach = _finger_reach(x, fingers, x_ref, track)
-    cur = _finger_update(x, t, fingers, fstate, cur, reach, centres)
-    _finger_forces(x, v, t, fingers, fstate, cur, reach, centres, ffinger)
+    (_, facets, boundary, indptr, indices, _, _, vel, omega, radii, K, C, closest, inside_tol, mu, n_exp,
+     hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
+    active, anchor, slip, memory, offset = fstate
+    _fingers_at(t, fingers, centres)
+    # one detection for the update and the forces: the same state (x, t), the same pairs
+    finger, facet, val = _detect(
+        x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
+    )
+    nxt = 1 - cur
+    _clear_finger(active[nxt], anchor[nxt], offset[nxt], slip[nxt], memory[nxt])
+    _update_pairs(
+        finger, facet, val, x, facets, centres, radii, K, mu, n_exp, patch, ratio, min_depth_ratio,
+        active[cur], anchor[cur], offset[cur], slip[cur], memory[cur], active[nxt], anchor[nxt], offset[nxt],
+        slip[nxt], memory[nxt],
+    )  # fmt: skip
+    cur = nxt
+    _pair_forces(
+        finger, facet, val, x, v, facets, centres, radii, vel, omega, K, C, mu, n_exp, hunt_crossley, patch,
+        ratio, min_depth_ratio, active[cur], anchor[cur], offset[cur], memory[cur], False, ffinger,
+    )  # fmt: skip
     power = 0.0
     if monitor_on:
         for i in range(x.shape[0]):
