@@ -127,74 +127,104 @@ def _plane_pass(
     px = p0[p, 0]
     py = p0[p, 1]
     pz = p0[p, 2]
-    wx = pvel[p, 0]
+    wx_p = pvel[p, 0]
     wy = pvel[p, 1]
     wz = pvel[p, 2]
     m = mu[p]
     power = 0.0
-    for i in range(lo, hi):
+    # flat views and unsigned indices, as in _node_part (the same arithmetic, fewer instructions)
+    N = np.uint64(x.shape[0])
+    wx = np.uint64(x.shape[1])
+    xf = x.reshape(-1)
+    vf = v.reshape(-1)
+    of = out.reshape(-1)
+    af = anchor.reshape(-1)
+    actf = active.reshape(-1)
+    kf = k.reshape(-1)
+    cf = c.reshape(-1)
+    ktf = kt.reshape(-1)
+    ctf = ct.reshape(-1)
+    one = np.uint64(1)
+    two = np.uint64(2)
+    three = np.uint64(3)
+    base = np.uint64(p) * N
+    for i in range(np.uint64(lo), np.uint64(hi)):
+        r = i * wx
+        n = base + i  # the node's entry in the (P, N) arrays
+        a3 = n * three  # its anchor in the (P, N, 3) one
+        x0 = xf[r]
+        x1 = xf[r + one]
+        x2 = xf[r + two]
         if update:
-            rx = x[i, 0] - px
-            ry = x[i, 1] - py
-            rz = x[i, 2] - pz
+            rx = x0 - px
+            ry = x1 - py
+            rz = x2 - pz
             pen = -rx * nx + -ry * ny + -rz * nz
             touching = pen > 0.0
             rn = rx * nx + ry * ny + rz * nz
             tx = rx - rn * nx
             ty = ry - rn * ny
             tz = rz - rn * nz
-            active[p, i] = touching
+            actf[n] = touching
             if not touching or not m > 0.0:  # the anchor follows a free node
-                anchor[p, i, 0] = tx
-                anchor[p, i, 1] = ty
-                anchor[p, i, 2] = tz
+                af[a3] = tx
+                af[a3 + one] = ty
+                af[a3 + two] = tz
             else:
-                sx = tx - anchor[p, i, 0]
-                sy = ty - anchor[p, i, 1]
-                sz = tz - anchor[p, i, 2]
+                sx = tx - af[a3]
+                sy = ty - af[a3 + one]
+                sz = tz - af[a3 + two]
                 s_norm = math.sqrt(sx * sx + sy * sy + sz * sz)
-                limit = m * k[p, i] * max(pen, 0.0) / max(kt[p, i], 1e-300)
+                limit = m * kf[n] * max(pen, 0.0) / max(ktf[n], 1e-300)
                 if s_norm > limit:  # slip: the anchor is dragged to the Coulomb limit
-                    r = limit / s_norm
-                    anchor[p, i, 0] = tx - sx * r
-                    anchor[p, i, 1] = ty - sy * r
-                    anchor[p, i, 2] = tz - sz * r
-        pen = -(x[i, 0] - px) * nx + -(x[i, 1] - py) * ny + -(x[i, 2] - pz) * nz
+                    q = limit / s_norm
+                    af[a3] = tx - sx * q
+                    af[a3 + one] = ty - sy * q
+                    af[a3 + two] = tz - sz * q
+        pen = -(x0 - px) * nx + -(x1 - py) * ny + -(x2 - pz) * nz
         if not pen > 0.0:
             continue
-        vrx = v[i, 0] - wx
-        vry = v[i, 1] - wy
-        vrz = v[i, 2] - wz
+        kn = kf[n]
+        cn = cf[n]
+        ktn = ktf[n]
+        ctn = ctf[n]
+        v0 = vf[r]
+        v1 = vf[r + one]
+        v2 = vf[r + two]
+        vrx = v0 - wx_p
+        vry = v1 - wy
+        vrz = v2 - wz
         vn = vrx * nx + vry * ny + vrz * nz
-        fn = max(k[p, i] * pen - c[p, i] * vn, 0.0)
+        fn = max(kn * pen - cn * vn, 0.0)
         fx = fn * nx
         fy = fn * ny
         fz = fn * nz
         if m > 0.0:
-            sx = x[i, 0] - (px + anchor[p, i, 0])
-            sy = x[i, 1] - (py + anchor[p, i, 1])
-            sz = x[i, 2] - (pz + anchor[p, i, 2])
+            sx = x0 - (px + af[a3])
+            sy = x1 - (py + af[a3 + one])
+            sz = x2 - (pz + af[a3 + two])
             sn = sx * nx + sy * ny + sz * nz
             sx = sx - sn * nx
             sy = sy - sn * ny
             sz = sz - sn * nz
-            tx = -kt[p, i] * sx - ct[p, i] * (vrx - vn * nx)
-            ty = -kt[p, i] * sy - ct[p, i] * (vry - vn * ny)
-            tz = -kt[p, i] * sz - ct[p, i] * (vrz - vn * nz)
+            tx = -ktn * sx - ctn * (vrx - vn * nx)
+            ty = -ktn * sy - ctn * (vry - vn * ny)
+            tz = -ktn * sz - ctn * (vrz - vn * nz)
             mag = math.sqrt(tx * tx + ty * ty + tz * tz)
             cap = m * fn
             if mag > cap:
-                r = cap / max(mag, 1e-300)
-                tx *= r
-                ty *= r
-                tz *= r
+                q = cap / max(mag, 1e-300)
+                tx *= q
+                ty *= q
+                tz *= q
             fx += tx
             fy += ty
             fz += tz
-        out[i, 0] += fx
-        out[i, 1] += fy
-        out[i, 2] += fz
-        power += fx * v[i, 0] + fy * v[i, 1] + fz * v[i, 2]
+        o = i * three
+        of[o] += fx
+        of[o + one] += fy
+        of[o + two] += fz
+        power += fx * v0 + fy * v1 + fz * v2
     return power
 
 
@@ -591,22 +621,42 @@ def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, 
     mx = 0.0
     my = 0.0
     mz = 0.0
-    for i in range(lo, hi):
+    # flat views and unsigned indices (no wrap-around, no stride multiplies): the same arithmetic as
+    # _acceleration and the update written with 2-D indices, in fewer instructions
+    xf = x.reshape(-1)
+    vf = v.reshape(-1)
+    rf = x_ref.reshape(-1)
+    ff = fint.reshape(-1)
+    gf = grav.reshape(-1)
+    pf = fplane.reshape(-1)
+    qf = ffinger.reshape(-1)
+    wx = np.uint64(x.shape[1])  # the row width of x, v, x_ref and fint (4 in the stepper)
+    wf = np.uint64(fint.shape[1]) * wx  # one part of fint
+    P = np.uint64(fint.shape[0])
+    three = np.uint64(3)
+    for i in range(np.uint64(lo), np.uint64(hi)):
         m = mass[i]
         du2 = 0.0
-        for d in range(3):
-            a = _acceleration(i, d, m, fint, grav, fplane, ffinger, True)
-            vi = v[i, d] + dt * a
-            xi = x[i, d] + dt * vi
-            v[i, d] = vi
-            x[i, d] = xi
+        r = i * wx
+        g = i * three
+        for d in range(three):
+            fi = ff[r + d]
+            for q in range(np.uint64(1), P):
+                fi += ff[q * wf + r + d]
+            a = (((fi + gf[g + d]) + pf[g + d]) + qf[g + d]) / m
+            pf[g + d] = 0.0
+            qf[g + d] = 0.0
+            vi = vf[r + d] + dt * a
+            xi = xf[r + d] + dt * vi
+            vf[r + d] = vi
+            xf[r + d] = xi
             bad |= not (abs(vi) < math.inf and abs(xi) < math.inf)
-            du = xi - x_ref[i, d]
+            du = xi - rf[r + d]
             du2 += du * du
         u2 = max(u2, du2)
-        mx += m * x[i, 0]
-        my += m * x[i, 1]
-        mz += m * x[i, 2]
+        mx += m * xf[r]
+        my += m * xf[r + np.uint64(1)]
+        mz += m * xf[r + np.uint64(2)]
     power = 0.0
     for p in range(point.shape[0]):
         power += _plane_pass(x, v, p, p0, normal, pvel, mu, k, c, kt, ct, pl_active, pl_anchor, True, lo, hi,
