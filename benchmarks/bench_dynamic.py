@@ -12,7 +12,7 @@ In the same run it prints:
   on one and on two threads. The blow-up monitor's work is included, as in every real run;
 * where a step goes: the parts of the per-step path (each measured alone, both backends), and the
   compiled parts of a fused step (body forces on one and two threads, with and without the energy
-  of the monitor's check, the node pass, the fingertip update and forces);
+  of the monitor's check, the node pass, the fingertip step: one detection, update and forces);
 * an arithmetic bound: floating-point operations per force evaluation counted from the edges and
   tets, against two measured machine rates (a single-thread BLAS ``dgemm``, the best case for
   SIMD arithmetic, and a compiled scalar loop), and the steps/s each rate would allow;
@@ -285,10 +285,8 @@ def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
     res["node pass (step, table, sums), 1 thread"] = per_call(
         lambda: [k._node_part(q, k.PARTS, *node_args, st.pl_anchor, sums[q]) for q in range(k.PARTS)]
     )
-    reach = k._finger_reach(x, fg, x_ref, track)
-    res["fingertip state update"] = per_call(lambda: k._finger_update(x, t, fg, fs, 0, reach, centres))
-    res["fingertip forces"] = per_call(
-        lambda: k._finger_forces(x, v, t, fg, fs, st._cur, reach, centres, ffinger)
+    res["fingertip step (one detection, state update, forces)"] = per_call(
+        lambda: k._finger_step(x, v, t, fg, fs, 0, st._work, True)
     )
     if two:
         numba.set_num_threads(2)

@@ -3,9 +3,10 @@
 Numba compiles the per-element loops of :mod:`softgrasp.kernels.step` to scalar code, and its
 auto-vectoriser either leaves them scalar (the scattered read-modify-write of the forces) or uses
 hardware gathers, which cost about three cycles an element on this project's reference machine
-(AMD Zen 4): slower than the scalar loop. The two intrinsics here (:func:`spring_block`,
-:func:`volume_block`) are written in LLVM IR through :func:`numba.extending.intrinsic` and inlined
-into the Numba loops that call them. Each takes one block of eight springs or eight tets:
+(AMD Zen 4): slower than the scalar loop. The intrinsics here (:data:`spring_block` and its
+variants for the springs, :data:`volume_block` and its variants for the tets) are written in LLVM
+IR through :func:`numba.extending.intrinsic` and inlined into the Numba loops that call them. Each
+takes one block of eight springs or eight tets:
 
 * the nodes' positions (and velocities) are loaded as 4-vectors ``(x, y, z, 0)`` from arrays laid
   out (N, 4) ("AoS4"), one aligned load a node, and transposed by shuffles into 8-lane vectors of
@@ -17,8 +18,8 @@ into the Numba loops that call them. Each takes one block of eight springs or ei
   in order, as in the scalar loop).
 
 LLVM lowers the 8-lane vectors to whatever the CPU has (two AVX2 registers, one AVX-512 register).
-Measured on the reference machine, 2 196-node sphere, one thread: springs and dashpots 85 -> 55 us,
-volume term 96 -> 68 us a force evaluation (``benchmarks/bench_dynamic.py``).
+Measured on the reference machine, 2 196-node sphere, one thread, inside the stepper's force
+evaluation: springs and dashpots 89 -> 54 us, volume term 93 -> 61 us (``benchmarks/README.md``).
 
 The callers in :mod:`softgrasp.kernels.step` are cached by Numba, which checks only their own
 file for changes: the inlined IR of this module would stay stale after an edit here, so step.py

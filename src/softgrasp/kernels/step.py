@@ -8,7 +8,8 @@ One call of :meth:`FusedStepper.advance` runs K steps of semi-implicit Euler,
 or of classical RK4 (four force evaluations per step, the friction states of the step's start),
 each step followed by the friction state updates of the planes (Algorithm 1 per node, as
 :meth:`softgrasp.planes.PlaneContact.update`) and of the fingertips
-(:func:`softgrasp.kernels.contact._fingertip_update`) and by the checks of
+(:func:`softgrasp.kernels.contact._fingertip_update`'s arithmetic, after one detection that the
+forces at the new state share) and by the checks of
 :class:`softgrasp.sim.stability.BlowupMonitor`: the per-step path of
 :class:`~softgrasp.sim.integrators.SemiImplicitEuler` / :class:`~softgrasp.sim.integrators.RK4`
 driven by :func:`~softgrasp.sim.integrators.simulate`, to round-off (tested to 1e-8; measured
@@ -65,7 +66,6 @@ from softgrasp.kernels.blocks import (
 from softgrasp.kernels.contact import (
     _detect,
     _fingertip_forces,
-    _fingertip_update,
     _pair_forces,
     _update_pairs,
 )
@@ -243,7 +243,7 @@ def _plane_points(t, pl_point, pl_vel, p0):  # pragma: no cover - compiled
 # to a flat array), each element's parameters side by side. Measured (2 196 nodes, one thread):
 # 218 -> 182 us, the loops being bound by their instruction count (~5 per cycle) more than by
 # memory. Blocks of eight elements go to softgrasp.kernels.blocks (vector instructions; the same
-# arithmetic without fused multiply-adds: round-off): 182 -> 122 us.
+# arithmetic without fused multiply-adds: round-off): 182 -> 115 us.
 
 
 @_fjit
@@ -573,24 +573,6 @@ def _finger_forces(x, v, t, fingers, fstate, cur, reach, centres, out):  # pragm
 
 
 @_jit
-def _finger_update(x, t, fingers, fstate, cur, reach, centres):  # pragma: no cover - compiled
-    """Fingertip friction states after a step: buffer ``cur`` of ``fstate`` updated into the other
-    one (:func:`softgrasp.kernels.contact._fingertip_update`); returns the new current buffer."""
-    (_, facets, boundary, indptr, indices, _, _, _, _, radii, K, _, closest, inside_tol, mu, n_exp, _, patch,
-     ratio, min_depth_ratio) = fingers  # fmt: skip
-    active, anchor, slip, memory, offset = fstate
-    nxt = 1 - cur
-    _clear_finger(active[nxt], anchor[nxt], offset[nxt], slip[nxt], memory[nxt])
-    _fingers_at(t, fingers, centres)
-    _fingertip_update(
-        x, facets, boundary, indptr, indices, reach, centres, radii, K, closest, inside_tol, mu, n_exp, patch,
-        ratio, min_depth_ratio, active[cur], anchor[cur], offset[cur], slip[cur], memory[cur], active[nxt],
-        anchor[nxt], offset[nxt], slip[nxt], memory[nxt],
-    )  # fmt: skip
-    return nxt
-
-
-@_jit
 def _acceleration(i, d, m, fint, grav, fplane, ffinger, clear):  # pragma: no cover - compiled
     """Component d of node i's acceleration [m/s^2]: the parts of its internal force summed, plus
     gravity, the planes' and the fingertips' forces, over its mass m; the interaction forces are
@@ -631,6 +613,8 @@ def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, 
     pf = fplane.reshape(-1)
     qf = ffinger.reshape(-1)
     wx = np.uint64(x.shape[1])  # the row width of x, v, x_ref and fint (4 in the stepper)
+    if fint.shape[2] != x.shape[1] or x_ref.shape[1] != x.shape[1]:
+        raise ValueError("node pass: x, x_ref and fint's rows must have the same width")
     wf = np.uint64(fint.shape[1]) * wx  # one part of fint
     P = np.uint64(fint.shape[0])
     three = np.uint64(3)
@@ -1033,7 +1017,7 @@ def _blocks_default() -> bool:
 BLOCKS_DEFAULT = _blocks_default()
 #: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
 #: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
-_BLOCKS_SOURCE_SHA256 = "0176de9f723ce5761fffa9460119385f65f86176177fc6eee4694dd99c0c2327"
+_BLOCKS_SOURCE_SHA256 = "0b564ee252fa6b231a72825860fb19377645859e01c9b3e925153e16674ded8a"
 
 
 def pack_body(body: Any, blocks: bool | None = None) -> tuple:
