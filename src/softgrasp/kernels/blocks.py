@@ -45,6 +45,8 @@ __all__ = [
     "SPRING_COLUMNS",
     "TET_COLUMNS",
     "block_params",
+    "node_step",
+    "node_step_two",
     "spring_block",
     "spring_block_energy",
     "spring_block_undamped",
@@ -328,3 +330,70 @@ volume_block_quadratic = _volume_intrinsic(False, False)
 volume_block_full = _volume_intrinsic(True, True)
 #: The same for the quadratic volume law.
 volume_block_quadratic_full = _volume_intrinsic(False, True)
+
+
+def _node_codegen(two_parts: bool):  # type: ignore[no-untyped-def]
+    def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
+        xa, va, ra, fa, ga, pa, qa, rv, wv, mv, dtv = args
+        t = signature.args
+        X, V, R, F, G, Pp, Q = (
+            _data(context, b, t[k], a) for k, a in enumerate((xa, va, ra, fa, ga, pa, qa))
+        )
+        r = _as_i64(b, rv)
+        f = _load_row(b, F, r)
+        if two_parts:
+            f = b.fadd(f, _load_row(b, F, b.add(_as_i64(b, wv), r)))
+        m4 = b.shuffle_vector(
+            b.insert_element(ir.Constant(_V4, ir.Undefined), mv, ir.Constant(_I32, 0)),
+            ir.Constant(_V4, ir.Undefined),
+            _mask([0] * 4),
+        )
+        dt4 = b.shuffle_vector(
+            b.insert_element(ir.Constant(_V4, ir.Undefined), dtv, ir.Constant(_I32, 0)),
+            ir.Constant(_V4, ir.Undefined),
+            _mask([0] * 4),
+        )
+        a = b.fdiv(b.fadd(b.fadd(b.fadd(f, _load_row(b, G, r)), _load_row(b, Pp, r)), _load_row(b, Q, r)), m4)
+        zero = ir.Constant(_V4, [0.0] * 4)
+        b.store(zero, _row_ptr(b, Pp, r), align=8)
+        b.store(zero, _row_ptr(b, Q, r), align=8)
+        v_new = b.fadd(_load_row(b, V, r), b.fmul(dt4, a))
+        x_new = b.fadd(_load_row(b, X, r), b.fmul(dt4, v_new))
+        b.store(v_new, _row_ptr(b, V, r), align=8)
+        b.store(x_new, _row_ptr(b, X, r), align=8)
+        fabs = cgutils.get_or_insert_function(b.module, ir.FunctionType(_V4, [_V4]), "llvm.fabs.v4f64")
+        inf = ir.Constant(_V4, [float("inf")] * 4)
+        finite = b.and_(
+            b.fcmp_ordered("<", b.call(fabs, [v_new]), inf), b.fcmp_ordered("<", b.call(fabs, [x_new]), inf)
+        )
+        bits = b.bitcast(finite, ir.IntType(4))
+        bad = b.zext(b.icmp_unsigned("!=", bits, ir.Constant(ir.IntType(4), 15)), _I64)
+        du = b.fsub(x_new, _load_row(b, R, r))
+        du2 = ir.Constant(_F64, 0.0)
+        for k in range(3):
+            e = b.extract_element(du, ir.Constant(_I32, k))
+            du2 = b.fadd(du2, b.fmul(e, e))
+        return context.make_tuple(b, signature.return_type, [du2, bad])
+
+    return codegen
+
+
+def _node_intrinsic(two_parts: bool):  # type: ignore[no-untyped-def]
+    def typer(typingctx, x, v, ref, f, g, p, q, row, width, m, dt):  # type: ignore[no-untyped-def]
+        if not (_f64_arrays(x, v, ref, f, g, p, q) and isinstance(row, types.Integer)):
+            return None
+        ret = types.Tuple((types.float64, types.int64))
+        return ret(x, v, ref, f, g, p, q, row, width, m, dt), _node_codegen(two_parts)
+
+    return intrinsic(typer)
+
+
+#: One node's semi-implicit step on (N, 4) rows, ``node_step(x, v, x_ref, fint, grav, fplane, ffinger,
+#: r, part, m, dt)`` (flat views; ``r`` the node's row start, 4 i; ``part`` the length of one part
+#: of ``fint``): a = (((fint + m g) + f_planes) + f_fingers) / m with the force buffers' parts
+#: summed first (one here, two in :data:`node_step_two`), v += dt a, x += dt v, the contact rows
+#: zeroed; returns (|x - x_ref|^2, 1 if a value of v or x is not finite). The arithmetic of
+#: :func:`softgrasp.kernels.step._node_part`'s loop, four columns at a time (the same bits).
+node_step = _node_intrinsic(False)
+#: :data:`node_step` with two parts of the force buffer.
+node_step_two = _node_intrinsic(True)

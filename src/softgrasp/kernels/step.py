@@ -55,6 +55,8 @@ from numpy.typing import NDArray
 from softgrasp.kernels.blocks import BLOCK as _BLOCK
 from softgrasp.kernels.blocks import (
     block_params,
+    node_step,
+    node_step_two,
     spring_block,
     spring_block_energy,
     spring_block_undamped,
@@ -139,6 +141,7 @@ def _plane_pass(
     xf = x.reshape(-1)
     vf = v.reshape(-1)
     of = out.reshape(-1)
+    wo = np.uint64(out.shape[1])
     af = anchor.reshape(-1)
     actf = active.reshape(-1)
     kf = k.reshape(-1)
@@ -221,7 +224,7 @@ def _plane_pass(
             fx += tx
             fy += ty
             fz += tz
-        o = i * three
+        o = i * wo
         of[o] += fx
         of[o + one] += fy
         of[o + two] += fz
@@ -613,31 +616,40 @@ def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, 
     gf = grav.reshape(-1)
     pf = fplane.reshape(-1)
     qf = ffinger.reshape(-1)
-    wx = np.uint64(x.shape[1])  # the row width of x, v, x_ref and fint (4 in the stepper)
-    if fint.shape[2] != x.shape[1] or x_ref.shape[1] != x.shape[1]:
-        raise ValueError("node pass: x, x_ref and fint's rows must have the same width")
+    wx = np.uint64(x.shape[1])  # the row width of every (N, .) array here (4 in the stepper)
+    if (
+        fint.shape[2] != wx or x_ref.shape[1] != wx or grav.shape[1] != wx or fplane.shape[1] != wx
+        or ffinger.shape[1] != wx
+    ):  # fmt: skip
+        raise ValueError("node pass: the rows of x, x_ref, grav, fplane, ffinger and fint differ in width")
     wf = np.uint64(fint.shape[1]) * wx  # one part of fint
     P = np.uint64(fint.shape[0])
-    three = np.uint64(3)
+    rows = wx == 4 and P <= 2  # a node's row at a time (softgrasp.kernels.blocks.node_step)
     for i in range(np.uint64(lo), np.uint64(hi)):
         m = mass[i]
-        du2 = 0.0
         r = i * wx
-        g = i * three
-        for d in range(three):
-            fi = ff[r + d]
-            for q in range(np.uint64(1), P):
-                fi += ff[q * wf + r + d]
-            a = (((fi + gf[g + d]) + pf[g + d]) + qf[g + d]) / m
-            pf[g + d] = 0.0
-            qf[g + d] = 0.0
-            vi = vf[r + d] + dt * a
-            xi = xf[r + d] + dt * vi
-            vf[r + d] = vi
-            xf[r + d] = xi
-            bad |= not (abs(vi) < math.inf and abs(xi) < math.inf)
-            du = xi - rf[r + d]
-            du2 += du * du
+        if rows:
+            if P == 2:
+                du2, nonfinite = node_step_two(xf, vf, rf, ff, gf, pf, qf, r, wf, m, dt)
+            else:
+                du2, nonfinite = node_step(xf, vf, rf, ff, gf, pf, qf, r, wf, m, dt)
+            bad |= nonfinite != 0
+        else:
+            du2 = 0.0
+            for d in range(np.uint64(3)):
+                fi = ff[r + d]
+                for q in range(np.uint64(1), P):
+                    fi += ff[q * wf + r + d]
+                a = (((fi + gf[r + d]) + pf[r + d]) + qf[r + d]) / m
+                pf[r + d] = 0.0
+                qf[r + d] = 0.0
+                vi = vf[r + d] + dt * a
+                xi = xf[r + d] + dt * vi
+                vf[r + d] = vi
+                xf[r + d] = xi
+                bad |= not (abs(vi) < math.inf and abs(xi) < math.inf)
+                du = xi - rf[r + d]
+                du2 += du * du
         u2 = max(u2, du2)
         mx += m * xf[r]
         my += m * xf[r + np.uint64(1)]
@@ -1015,7 +1027,7 @@ def _blocks_default() -> bool:
 BLOCKS_DEFAULT = _blocks_default()
 #: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
 #: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
-_BLOCKS_SOURCE_SHA256 = "0b564ee252fa6b231a72825860fb19377645859e01c9b3e925153e16674ded8a"
+_BLOCKS_SOURCE_SHA256 = "693179672098de457144f5c28342c4c56a381c69737ccd3b953019c7c36928f9"
 
 
 def pack_body(body: Any, blocks: bool | None = None) -> tuple:
@@ -1155,13 +1167,15 @@ class FusedStepper:
         self.parts = max(1, int(parts))
         self.threads = 1
         self._mass = _f64(body.mass)
-        self._grav = _f64(body.mass[:, None] * np.asarray(body.gravity, dtype=np.float64)[None, :])
+        # m g and the contact forces as (N, 4) rows too (fourth column zero), like the positions
+        self._grav = aligned_zeros((N, 4))
+        self._grav[:, :3] = body.mass[:, None] * np.asarray(body.gravity, dtype=np.float64)[None, :]
         self._gvec = _f64(body.gravity, (3,))
         self._total_mass = float(body.mass.sum())
         self._fint = aligned_zeros((self.parts, N, 4))
         self._info = np.zeros((self.parts, 3))
-        self._fplane = np.zeros((N, 3))
-        self._ffinger = np.zeros((N, 3))
+        self._fplane = aligned_zeros((N, 4))
+        self._ffinger = aligned_zeros((N, 4))
         self._have_forces = False
         # planes: (P, ...) parameter arrays and states
         P = len(planes)
