@@ -771,9 +771,14 @@ def _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on):  # pragma: no
         ratio, min_depth_ratio, active[cur], anchor[cur], offset[cur], memory[cur], False, ffinger,
     )  # fmt: skip
     power = 0.0
-    if monitor_on:
-        for i in range(x.shape[0]):
-            power += ffinger[i, 0] * v[i, 0] + ffinger[i, 1] * v[i, 1] + ffinger[i, 2] * v[i, 2]
+    if monitor_on:  # over the touching facets' nodes, each once: the only ones with a fingertip force
+        seen = np.zeros(x.shape[0], np.bool_)
+        for p in range(facet.shape[0]):
+            for r in range(3):
+                i = facets[facet[p], r]
+                if not seen[i]:
+                    seen[i] = True
+                    power += ffinger[i, 0] * v[i, 0] + ffinger[i, 1] * v[i, 1] + ffinger[i, 2] * v[i, 2]
     return cur, power
 
 
