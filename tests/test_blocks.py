@@ -221,20 +221,24 @@ def _node_pass(rows, fint, mass, dt):
     return sums
 
 
+@pytest.mark.parametrize("parts", [1, 2])
 @pytest.mark.parametrize("nonfinite", [False, True])
-def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(nonfinite):
-    """The node pass a row at a time (:data:`softgrasp.kernels.blocks.node_step_two`, two force
-    parts) and on its scalar loop (taken for three parts; the third zero) give the same bits."""
+def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(nonfinite, parts):
+    """The node pass a row at a time (:data:`softgrasp.kernels.blocks.node_step` /
+    ``node_step_two``, one or two force parts) and on its scalar loop (taken for three parts, the
+    extra ones zero) give the same bits."""
     rng = np.random.default_rng(4)
     n = 37
     mass = 1e-3 * (1.0 + rng.random(n))
     rows, fint = _node_case(rng, n, 2)
+    if parts == 1:
+        fint = fint[:1].copy()
     if nonfinite:
-        fint[1, 20, 1] = np.inf
+        fint[parts - 1, 20, 1] = np.inf
     rows3 = {k: v.copy() for k, v in rows.items()}
     r0 = {k: v.copy() for k, v in rows.items()}
     fint3 = step.aligned_zeros((3, n, 4))
-    fint3[:2] = fint
+    fint3[:parts] = fint
     sums = _node_pass(rows, fint, mass, 1e-5)
     sums3 = _node_pass(rows3, fint3, mass, 1e-5)
     for name in rows:
@@ -245,7 +249,7 @@ def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(nonfinite):
     assert not rows["x"][:, 3].any() and not rows["v"][:, 3].any()
     # the step itself: v += dt F / m, x += dt v (one part's check, by hand)
     if not nonfinite:
-        F = ((fint[0] + fint[1] + r0["grav"]) + r0["fplane"]) + r0["ffinger"]
+        F = ((fint.sum(axis=0) + r0["grav"]) + r0["fplane"]) + r0["ffinger"]
         v_new = r0["v"] + 1e-5 * (F / mass[:, None])
         np.testing.assert_allclose(rows["v"], v_new, rtol=1e-15, atol=0)
         np.testing.assert_allclose(rows["x"], r0["x"] + 1e-5 * v_new, rtol=1e-15, atol=0)

@@ -17,6 +17,9 @@ takes one block of eight springs or eight tets:
   read-modify-write a node, in the elements' order (a node met twice in a block is updated twice,
   in order, as in the scalar loop).
 
+:data:`node_step` (and :data:`node_step_two`) does one node's semi-implicit step on its (N, 4)
+rows, the scalar loop's arithmetic four columns at a time (the same bits).
+
 LLVM lowers the 8-lane vectors to whatever the CPU has (two AVX2 registers, one AVX-512 register).
 Measured on the reference machine, 2 196-node sphere, one thread, inside the stepper's force
 evaluation: springs and dashpots 89 -> 54 us, volume term 93 -> 61 us (``benchmarks/README.md``).
@@ -380,7 +383,10 @@ def _node_codegen(two_parts: bool):  # type: ignore[no-untyped-def]
 
 def _node_intrinsic(two_parts: bool):  # type: ignore[no-untyped-def]
     def typer(typingctx, x, v, ref, f, g, p, q, row, width, m, dt):  # type: ignore[no-untyped-def]
-        if not (_f64_arrays(x, v, ref, f, g, p, q) and isinstance(row, types.Integer)):
+        scalars = (
+            isinstance(width, types.Integer) and isinstance(m, types.Float) and isinstance(dt, types.Float)
+        )
+        if not (_f64_arrays(x, v, ref, f, g, p, q) and isinstance(row, types.Integer) and scalars):
             return None
         ret = types.Tuple((types.float64, types.int64))
         return ret(x, v, ref, f, g, p, q, row, width, m, dt), _node_codegen(two_parts)

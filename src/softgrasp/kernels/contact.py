@@ -365,9 +365,9 @@ def _pair_forces(
     patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, out,
 ):  # pragma: no cover - compiled
     """Forces of the pairs (finger, facet, val) (as :func:`_detect` gives them) added to ``out``
-    (N, 3): normal force (Eq. 9-14, patch or literal rule), elastic-slider friction with the
-    Coulomb cap (Eq. 15-16, Algorithm 1), nodal distribution (Eq. 17-20). ``static``: at rest
-    (no relative velocity: no damping, a slipping pair capped along its stick), as
+    (N, 3) (or wider: columns 0-2): normal force (Eq. 9-14, patch or literal rule), elastic-slider
+    friction with the Coulomb cap (Eq. 15-16, Algorithm 1), nodal distribution (Eq. 17-20).
+    ``static``: at rest (no relative velocity: no damping, a slipping pair capped along its stick), as
     :meth:`softgrasp.contact.model.FingertipContact.static_forces`; ``v``, ``velocities`` and
     ``omegas`` are then not read."""
     deep, total = _patch(finger, val, centres.shape[0])
@@ -456,7 +456,8 @@ def _fingertip_forces(
     memory,
     out,
 ):  # pragma: no cover - compiled
-    """Dynamic contact forces added to ``out`` (N, 3); returns the number of touching pairs."""
+    """Dynamic contact forces added to ``out`` (N, 3) (or wider: columns 0-2); returns the number of
+    touching pairs."""
     finger, facet, val = _detect(
         x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )

@@ -1032,7 +1032,7 @@ def _blocks_default() -> bool:
 BLOCKS_DEFAULT = _blocks_default()
 #: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
 #: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
-_BLOCKS_SOURCE_SHA256 = "693179672098de457144f5c28342c4c56a381c69737ccd3b953019c7c36928f9"
+_BLOCKS_SOURCE_SHA256 = "258e201ba0105b3e44246161b09d63f1e03f7800e50b560a01aec86959cdf11a"
 
 
 def pack_body(body: Any, blocks: bool | None = None) -> tuple:
