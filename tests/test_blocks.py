@@ -253,3 +253,66 @@ def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(nonfinite, parts):
         v_new = r0["v"] + 1e-5 * (F / mass[:, None])
         np.testing.assert_allclose(rows["v"], v_new, rtol=1e-15, atol=0)
         np.testing.assert_allclose(rows["x"], r0["x"] + 1e-5 * v_new, rtol=1e-15, atol=0)
+
+
+def test_the_check_energy_logarithm_matches_a_long_double_reference():
+    """The barrier energy kappa V0 (J - 1 - log J) of the check steps (:data:`volume_block_full`,
+    whose log is computed in vector instructions) against long-double arithmetic, for J from the
+    floor up to 1e3: right-angled tets with power-of-two legs make J exact, so the comparison sees
+    the logarithm's error alone (a few ulp of log J, which near J = 1 is also what bounds psi)."""
+    targets = [
+        1e-13,
+        1e-9,
+        1e-3,
+        0.3,
+        0.7071,
+        0.75,
+        1.0 - 2.0**-20,
+        1.0,
+        1.0 + 2.0**-10,
+        1.4142,
+        1.5,
+        3.0,
+        1e3,
+    ]
+    M = 8 * len(targets)
+    leg = 2.0**-7
+    X = np.zeros((4 * M, 3))
+    for b, J in enumerate(targets):
+        for k in range(8):
+            t = 8 * b + k
+            X[4 * t + 1] = [leg, 0.0, 0.0]
+            X[4 * t + 2] = [0.0, leg, 0.0]
+            X[4 * t + 3] = [0.0, 0.0, J * leg]  # det = J 2^-21 exactly
+    tets = np.arange(4 * M).reshape(M, 4)
+    vol0 = np.full(M, 2.0**-21 / 6.0)
+    tq = (4 * tets).astype(np.uint32).ravel()
+    tp8 = blocks.block_params([1.0 / (6.0 * vol0), vol0])
+    assert (tp8.reshape(-1, 2, 8)[:, 0] == 2.0**21).all()  # 1 / (6 V0) exact: J exact
+    kappa = 2.0e5
+    out = step.aligned_zeros((4 * M, 4))
+    masks = np.zeros(M // 8, np.int64)
+    energies = [
+        _tets_blocks(
+            _rows(X).ravel(),
+            tq[32 * b : 32 * (b + 1)],
+            tp8[16 * b : 16 * (b + 1)],
+            kappa,
+            _J_FLOOR,
+            1,
+            out.ravel(),
+            True,
+            masks,
+        )
+        for b in range(len(targets))
+    ]
+    ld = np.longdouble
+    for b, J in enumerate(targets):
+        Jc = max(J, _J_FLOOR)
+        psi = ld(J) - ld(1) - np.log(ld(Jc))
+        expect = ld(8) * ld(kappa) * ld(vol0[0]) * psi
+        # a few ulp of log J (near J = 1 that bounds psi's error), and the rounding of psi, of the
+        # products and of the sum of the eight lanes
+        eps = np.finfo(float).eps
+        tol = 8 * kappa * vol0[0] * (4 * eps * abs(np.log(Jc)) + 8 * eps * float(psi))
+        assert abs(ld(energies[b]) - expect) <= tol, (J, energies[b], float(expect))

@@ -170,6 +170,41 @@ def _call_v8(b: ir.IRBuilder, name: str, v: ir.Value) -> ir.Value:
     return b.call(fn, [v])
 
 
+_V8I = ir.VectorType(_I64, BLOCK)
+
+
+def _log_v8(b: ir.IRBuilder, x: ir.Value) -> ir.Value:
+    """The natural log of eight positive doubles, to about an ulp, in vector instructions (libm's
+    scalar log, one call a lane, cost the monitor's check steps 44 us at 2 196 nodes).
+
+    x = 2^e m with m in [sqrt(1/2), sqrt(2)); log m = 2 atanh(s), s = (m - 1) / (m + 1), |s| <= 0.1716,
+    by its series to s^21 (the next term below 1e-18 of the sum); log x = e ln2_hi + (log m + e ln2_lo)
+    with fdlibm's split of ln 2 (e ln2_hi exact). +inf gives +inf; zero, negative and NaN inputs are
+    not handled (the callers pass J floored at a positive value)."""
+    bits = b.bitcast(x, _V8I)
+    e = b.sub(b.lshr(bits, ir.Constant(_V8I, [52] * BLOCK)), ir.Constant(_V8I, [1023] * BLOCK))
+    mant = b.or_(
+        b.and_(bits, ir.Constant(_V8I, [0x000FFFFFFFFFFFFF] * BLOCK)),
+        ir.Constant(_V8I, [0x3FF0000000000000] * BLOCK),
+    )
+    m = b.bitcast(mant, _V8)
+    big = b.fcmp_ordered(">", m, _const(1.4142135623730951))
+    m = b.select(big, b.fmul(m, _const(0.5)), m)
+    e = b.select(big, b.add(e, ir.Constant(_V8I, [1] * BLOCK)), e)
+    ef = b.sitofp(e, _V8)
+    s = b.fdiv(b.fsub(m, _const(1.0)), b.fadd(m, _const(1.0)))
+    z = b.fmul(s, s)
+    poly = _const(1.0 / 21.0)
+    for k in range(9, 0, -1):  # 1/3 + z/5 + ... + z^9/21
+        poly = b.fadd(_const(1.0 / (2 * k + 1)), b.fmul(z, poly))
+    s2 = b.fadd(s, s)
+    log_m = b.fadd(s2, b.fmul(b.fmul(s2, z), poly))
+    ln2_hi = 6.93147180369123816490e-01
+    ln2_lo = 1.90821492927058770002e-10
+    out = b.fadd(b.fmul(ef, _const(ln2_hi)), b.fadd(log_m, b.fmul(ef, _const(ln2_lo))))
+    return b.select(b.fcmp_ordered("==", x, _const(float("inf"))), x, out)
+
+
 def _spring_codegen(energy: bool, damped: bool):  # type: ignore[no-untyped-def]
     def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
         xa, va, eqa, epa, a2v, a3v, bv, oa = args
@@ -297,7 +332,7 @@ def _volume_codegen(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
         # energy: kappa V0 (J - 1 - log Jc) or kappa V0 dw^2 / 2, as _tet_pass
         kv0 = b.fmul(kappa, _load_v8(b, TP, b.add(pb, ir.Constant(_I64, BLOCK))))
         if barrier:
-            psi = b.fsub(b.fsub(J, one), _call_v8(b, "llvm.log.v8f64", Jc))
+            psi = b.fsub(b.fsub(J, one), _log_v8(b, Jc))
         else:
             psi = b.fmul(_const(0.5), b.fmul(dw, dw))
         energy = _lane_sum(b, b.fmul(kv0, psi))

@@ -1032,7 +1032,7 @@ def _blocks_default() -> bool:
 BLOCKS_DEFAULT = _blocks_default()
 #: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
 #: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
-_BLOCKS_SOURCE_SHA256 = "258e201ba0105b3e44246161b09d63f1e03f7800e50b560a01aec86959cdf11a"
+_BLOCKS_SOURCE_SHA256 = "fa4fce1bba0b13a85a429ae7241ce7992266c2d55cc3cafc34b97587efbd6f61"
 
 
 def pack_body(body: Any, blocks: bool | None = None) -> tuple:
