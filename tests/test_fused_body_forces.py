@@ -47,14 +47,19 @@ def _state(body, seed: int = 0, scale: float = 0.15) -> tuple[np.ndarray, np.nda
     return x0 + scale * h * rng.standard_normal(x0.shape), 0.05 * rng.standard_normal(x0.shape)
 
 
+def _rows(a: np.ndarray) -> np.ndarray:
+    """(N, 3) values as the stepper's (N, 4) rows, the fourth column zero."""
+    out = step.aligned_zeros((a.shape[0], 4))
+    out[:, :3] = a
+    return out
+
+
 def _fused(body, x, v, want_energy: bool, check: bool, parts: int = 2, blocks: bool | None = None):
     """Summed forces [N] (N, 3), energy [J], inverted count and first inverted tet."""
     fint = np.zeros((parts, body.n_nodes, 4))
     info = np.zeros((parts, 3))
     packed = step.pack_body(body, blocks)
-    e, count, first = step._body_forces(
-        False, np.ascontiguousarray(x), np.ascontiguousarray(v), packed, want_energy, check, fint, info
-    )
+    e, count, first = step._body_forces(False, _rows(x), _rows(v), packed, want_energy, check, fint, info)
     assert not fint[:, :, 3].any()
     return fint[:, :, :3].sum(axis=0), e, count, first
 
@@ -149,26 +154,6 @@ def test_nearly_flat_tets_are_found_inverted_as_the_reference_finds_them():
     np.testing.assert_array_equal(new, old)
 
 
-@pytest.mark.parametrize("blocks", [True, False])
-def test_positions_laid_out_four_wide_are_read_in_place(sphere, blocks):
-    """The stepper's own (N, 4) positions and velocities give the forces of their (N, 3) copies."""
-    x, v = _state(sphere, seed=5)
-    packed = step.pack_body(sphere, blocks)
-    x4 = step.aligned_zeros((sphere.n_nodes, 4))
-    v4 = step.aligned_zeros((sphere.n_nodes, 4))
-    x4[:, :3], v4[:, :3] = x, v
-    results = []
-    for a, b in ((x, v), (x4, v4)):
-        fint = np.zeros((2, sphere.n_nodes, 4))
-        info = np.zeros((2, 3))
-        e = step._body_forces(
-            False, np.ascontiguousarray(a), np.ascontiguousarray(b), packed, True, True, fint, info
-        )
-        results.append((fint.copy(), e))
-    np.testing.assert_array_equal(results[0][0], results[1][0])
-    assert results[0][1] == results[1][1]
-
-
 @pytest.mark.filterwarnings("ignore:the springs of mesh:UserWarning")  # one tet is not isotropic
 @pytest.mark.parametrize("shape", ["tet", "box1", "box2"])
 @pytest.mark.parametrize("parts", [1, 2, 5])
@@ -194,13 +179,12 @@ def test_small_bodies_and_more_parts_than_blocks(shape, parts, blocks):
 def test_mismatched_arrays_are_refused(sphere):
     packed = step.pack_body(sphere)
     x, v = _state(sphere)
+    x4, v4 = _rows(x), _rows(v)
     info = np.zeros((2, 3))
-    with pytest.raises(ValueError, match="fint"):
-        step._body_forces(False, x, v, packed, False, False, np.zeros((2, sphere.n_nodes, 3)), info)
-    with pytest.raises(ValueError, match="x and v"):
-        step._body_forces(
-            False, x, v[:-1].copy(), packed, False, False, np.zeros((2, sphere.n_nodes, 4)), info
-        )
-    with pytest.raises(ValueError, match="x and v"):
-        step._body_forces(False, x[:, :2].copy(), v[:, :2].copy(), packed, False, False,
-                          np.zeros((2, sphere.n_nodes, 4)), info)  # fmt: skip
+    fint = np.zeros((2, sphere.n_nodes, 4))
+    with pytest.raises(ValueError, match="fint"):  # a 3-wide force buffer
+        step._body_forces(False, x4, v4, packed, False, False, np.zeros((2, sphere.n_nodes, 3)), info)
+    with pytest.raises(ValueError, match="x and v"):  # (N, 3) positions: not the stepper's rows
+        step._body_forces(False, x, v, packed, False, False, fint, info)
+    with pytest.raises(ValueError, match="x and v"):  # a row short
+        step._body_forces(False, x4, v4[:-1].copy(), packed, False, False, fint, info)

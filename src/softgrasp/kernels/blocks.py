@@ -85,9 +85,11 @@ def _mask(values: list[int] | range) -> ir.Constant:
     return ir.Constant(ir.VectorType(_I32, len(vals)), vals)
 
 
-def _splat(b: ir.IRBuilder, s: ir.Value) -> ir.Value:
-    v = b.insert_element(ir.Constant(_V8, ir.Undefined), s, ir.Constant(_I32, 0))
-    return b.shuffle_vector(v, v, _mask([0] * BLOCK))
+def _splat(b: ir.IRBuilder, s: ir.Value, lanes: int = BLOCK) -> ir.Value:
+    """The scalar ``s`` in every lane of a vector of ``lanes`` doubles."""
+    ty = ir.VectorType(_F64, lanes)
+    v = b.insert_element(ir.Constant(ty, ir.Undefined), s, ir.Constant(_I32, 0))
+    return b.shuffle_vector(v, v, _mask([0] * lanes))
 
 
 def _const(value: float) -> ir.Constant:
@@ -381,16 +383,8 @@ def _node_codegen(two_parts: bool):  # type: ignore[no-untyped-def]
         f = _load_row(b, F, r)
         if two_parts:
             f = b.fadd(f, _load_row(b, F, b.add(_as_i64(b, wv), r)))
-        m4 = b.shuffle_vector(
-            b.insert_element(ir.Constant(_V4, ir.Undefined), mv, ir.Constant(_I32, 0)),
-            ir.Constant(_V4, ir.Undefined),
-            _mask([0] * 4),
-        )
-        dt4 = b.shuffle_vector(
-            b.insert_element(ir.Constant(_V4, ir.Undefined), dtv, ir.Constant(_I32, 0)),
-            ir.Constant(_V4, ir.Undefined),
-            _mask([0] * 4),
-        )
+        m4 = _splat(b, mv, 4)
+        dt4 = _splat(b, dtv, 4)
         a = b.fdiv(b.fadd(b.fadd(b.fadd(f, _load_row(b, G, r)), _load_row(b, Pp, r)), _load_row(b, Q, r)), m4)
         zero = ir.Constant(_V4, [0.0] * 4)
         b.store(zero, _row_ptr(b, Pp, r), align=8)

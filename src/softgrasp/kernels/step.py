@@ -380,7 +380,7 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
     :func:`pack_body`'s. The blocks of eight elements go to :mod:`softgrasp.kernels.blocks` when
     ``body`` asks for it, split between the parts by blocks, the last part taking the elements left
     over (a body without the volume term counts its inverted tets on the scalar loop)."""
-    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _, _ = body
+    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _ = body
     xf = x.reshape(-1)
     vf = v.reshape(-1)
     of = out.reshape(-1)
@@ -515,29 +515,17 @@ def _clear_finger(active, anchor, offset, slip, memory):  # pragma: no cover - c
 @_jit
 def _body_forces(parallel, x, v, body, want_energy, check, fint, info):  # pragma: no cover - compiled
     """Internal forces split in ``fint.shape[0]`` parts (summed by the caller), on as many threads
-    when ``parallel``; returns (energy, inverted count, first inverted tet or -1). ``x``, ``v``
-    are read where they are (N, 4) (the stepper's own layout), copied into ``body``'s (N, 4)
-    buffers where they are (N, 3); ``fint`` is (parts, N, 4), its fourth column zero."""
-    n = body[12].shape[0]
-    if x.shape != v.shape or x.shape[0] != n or (x.shape[1] != 3 and x.shape[1] != 4):
-        raise ValueError("body forces: x and v must be (N, 3) or (N, 4) alike and fint (parts, N, 4)")
-    if fint.shape[1] != n or fint.shape[2] != 4:
-        raise ValueError("body forces: x and v must be (N, 3) or (N, 4) alike and fint (parts, N, 4)")
-    if x.shape[1] == 4:
-        x4 = x
-        v4 = v
-    else:
-        x4 = body[12]
-        v4 = body[13]
-        for i in range(x.shape[0]):
-            for d in range(3):
-                x4[i, d] = x[i, d]
-                v4[i, d] = v[i, d]
+    when ``parallel``; returns (energy, inverted count, first inverted tet or -1). ``x``, ``v``:
+    positions and velocities (N, 4) (the stepper's layout, fourth column zero, C-contiguous);
+    ``fint`` (parts, N, 4), its fourth column left zero."""
+    n = body[12]
+    if x.shape != (n, 4) or v.shape != (n, 4) or fint.shape[1] != n or fint.shape[2] != 4:
+        raise ValueError("body forces: x and v must be (N, 4) and fint (parts, N, 4), N the body's nodes")
     if parallel:
-        _body_forces_parallel(x4, v4, body, want_energy, check, fint, info)
+        _body_forces_parallel(x, v, body, want_energy, check, fint, info)
     else:
         for p in range(fint.shape[0]):
-            _body_part(p, fint.shape[0], x4, v4, body, want_energy, check, fint[p], info[p])
+            _body_part(p, fint.shape[0], x, v, body, want_energy, check, fint[p], info[p])
     e = 0.0
     count = 0
     first = -1
@@ -1032,7 +1020,7 @@ def _blocks_default() -> bool:
 BLOCKS_DEFAULT = _blocks_default()
 #: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
 #: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
-_BLOCKS_SOURCE_SHA256 = "fa4fce1bba0b13a85a429ae7241ce7992266c2d55cc3cafc34b97587efbd6f61"
+_BLOCKS_SOURCE_SHA256 = "7e57712b9253452070f26c25e3d99f98db12a7c8ae2dff27e0edfad876ee128f"
 
 
 def pack_body(body: Any, blocks: bool | None = None) -> tuple:
@@ -1049,15 +1037,14 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
     Returns
     -------
     tuple
-        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier, blocks, ep8, tp8, x4, v4)``: the edges'
+        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier, blocks, ep8, tp8, n)``: the edges'
         nodes times 4, (2E,) unsigned; their L0 [m], 1 / L0 [1/m], k L0 [N] and dashpot c [N s/m]
         side by side, (4E,) (c = 0 undamped); the tets' nodes times 4, (4M,) unsigned; their
         1 / (6 V0) [1/m^3] and V0 [m^3], (2M,); the law's ``a2``, ``a3``
         (:func:`softgrasp.kernels.elastic.polynomial_coefficients`); whether the dashpots act;
         ``kappa`` [Pa]; whether the volume term is the barrier; whether the block kernels are used;
         (1 / L0, k L0, c, L0) and (1 / (6 V0), V0) a block at a time
-        (:func:`softgrasp.kernels.blocks.block_params`); (N, 4) buffers for the positions and
-        velocities the kernels read (64-byte aligned, fourth column zero).
+        (:func:`softgrasp.kernels.blocks.block_params`); the body's node count.
     """
     a2, a3 = polynomial_coefficients(body.material.law)  # type: ignore[misc]
     damped = body.damping_time > 0
@@ -1079,8 +1066,7 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
         BLOCKS_DEFAULT if blocks is None else bool(blocks),
         block_params([1.0 / rest, kl0, c, rest]),
         block_params([1.0 / (6.0 * vol), vol]),
-        aligned_zeros((body.n_nodes, 4)),
-        aligned_zeros((body.n_nodes, 4)),
+        int(body.n_nodes),
     )
 
 
