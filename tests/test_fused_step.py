@@ -5,6 +5,8 @@ result on one thread or two; and free fall to round-off."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -20,6 +22,7 @@ from softgrasp.objects import make_object
 from softgrasp.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate, stable_time_step
 from softgrasp.sim.integrators import fused_unsupported, make_integrator
+from softgrasp.sim.stability import BlowupMonitor
 
 pytest.importorskip("numba")
 from softgrasp.kernels import step  # noqa: E402 - needs numba
@@ -251,21 +254,179 @@ def test_fused_stepper_chunks_compose(pressed):
     assert np.array_equal(parts.finger_state(s0.contacts[1]).anchor, one.finger_state(s0.contacts[1]).anchor)
 
 
-def test_threads_do_not_change_the_result(pressed):
-    """The body forces are summed from the same parts whether one thread or two compute them, so
-    the trajectory is bit-for-bit the same."""
+@pytest.mark.parametrize("method", ["semi-implicit", "rk4"])
+def test_threads_do_not_change_the_result(pressed, method):
+    """The body forces are summed from the same parts whether one thread or two compute them (two
+    threads meeting on flags for semi-implicit steps, Numba's threads for RK4), so the trajectory,
+    the friction states and the monitor's bookkeeping are bit-for-bit the same."""
     scene, s0 = pressed
     fingers = scene.interactions[1]
-    dt = stable_time_step(scene, "semi-implicit")
+    dt = stable_time_step(scene, method)
     runs = []
     for threads in (1, 2):
+        monitor = BlowupMonitor(scene, s0, method, check_every=3)
         st = step.FusedStepper(
-            scene.body, [scene.interactions[0]], [s0.contacts[0]], fingers, s0.contacts[1], s0.x, s0.v, s0.t
-        )
+            scene.body, [scene.interactions[0]], [s0.contacts[0]], fingers, s0.contacts[1], s0.x, s0.v, s0.t,
+            monitor, method=method,
+        )  # fmt: skip
         st.threads = threads
-        assert st.advance(40, dt) == 40
+        for n in (1, 13, 26):  # chunks: the threads start and stop again
+            assert st.advance(n, dt) == n
         runs.append(st)
-    assert np.array_equal(runs[0].x, runs[1].x) and np.array_equal(runs[0].v, runs[1].v)
+    one, two = runs
+    assert two.t == one.t and np.array_equal(one.x, two.x) and np.array_equal(one.v, two.v)
+    assert np.array_equal(one.pl_anchor, two.pl_anchor)
+    assert np.array_equal(one.finger_state(s0.contacts[1]).anchor, two.finger_state(s0.contacts[1]).anchor)
+    assert one.monitor.steps == two.monitor.steps == 40
+    assert one.monitor.balance == two.monitor.balance
+    assert one.finger_state(s0.contacts[1]).active.any()  # the fingertip touches
+
+
+@pytest.mark.parametrize(
+    ("nu", "factor", "check_every", "status"),
+    [
+        (0.45, 8, 10, step.STATUS_ENERGY),
+        (0.45, 12, 3, step.STATUS_INVERTED),
+        (0.45, 30, 10**6, step.STATUS_NONFINITE),
+    ],
+    ids=["energy", "inverted", "non-finite"],
+)
+def test_two_threads_stop_at_the_same_failure(nu, factor, check_every, status):
+    """A blow-up (steps far beyond the stable bound) stops the two threads at the same step, with
+    the same failure and state, as one thread."""
+    body = build_body(box(0.04, 2), Material(RUBBER.E, nu, RUBBER.density))
+    table = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.5, name="table")
+    scene = Scene(body, (table,))
+    rng = np.random.default_rng(11)
+    s0 = scene.initial_state(body.mesh.points + 1e-4 * rng.standard_normal(body.mesh.points.shape))
+    dt = factor * stable_time_step(scene, "semi-implicit")
+    runs = []
+    for threads in (1, 2):
+        monitor = BlowupMonitor(scene, s0, "semi-implicit", check_every=check_every)
+        st = step.FusedStepper(body, [table], [s0.contacts[0]], None, None, s0.x, s0.v, s0.t, monitor)
+        st.threads = threads
+        taken = st.advance(3000, dt)
+        assert 0 < taken < 3000 and st.failure is not None and st.failure.status == status
+        runs.append((taken, st))
+    (n1, one), (n2, two) = runs
+    assert n1 == n2 and one.failure == two.failure and one.monitor.steps == two.monitor.steps
+    assert np.array_equal(one.x, two.x, equal_nan=True)
+
+
+def _two_threads(pressed):
+    scene, s0 = pressed
+    st = step.FusedStepper(
+        scene.body, [scene.interactions[0]], [s0.contacts[0]], scene.interactions[1], s0.contacts[1], s0.x,
+        s0.v, s0.t,
+    )  # fmt: skip
+    st.threads = 2
+    return st, stable_time_step(scene, "semi-implicit")
+
+
+def _worker_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "softgrasp-fused-worker"]
+
+
+def _poll(cond, what: str) -> None:
+    for _ in range(20000):
+        if cond():
+            return
+        threading.Event().wait(0.0005)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _held(cond) -> bool:
+    """Whether ``cond`` still holds after a pause long enough for a running thread to move on."""
+    threading.Event().wait(0.05)
+    return cond()
+
+
+def test_the_worker_waits_for_the_leader_at_each_meeting(pressed):
+    """The worker's side of the protocol, the leader played by this test: no node part before the
+    step is set up, no body-force part before the leader's node part is done, stop ends it."""
+    st, dt = _two_threads(pressed)
+    flags = np.zeros(step._S_SIZE, np.int64)
+    shared = np.array([dt])
+    out = []
+    args = (st.x, st.v, st._mass, st._grav, st._body, st._pl, st.pl_active, st.pl_anchor, st._work, False, 0,
+            1, flags, shared)  # fmt: skip
+    worker = threading.Thread(target=lambda: out.append(step._advance_worker(*args)))
+    worker.start()
+    try:
+        assert _held(lambda: flags[step._S_NODES1] == 0)
+        flags[step._S_GO] = 1
+        _poll(lambda: flags[step._S_NODES1] == 1, "the worker's node part")
+        assert _held(lambda: flags[step._S_BODY1] == 0)  # waits for the leader's node part
+        flags[step._S_NODES0] = 1
+        _poll(lambda: flags[step._S_BODY1] == 1, "the worker's body forces")
+        assert _held(lambda: flags[step._S_NODES1] == 1)  # waits for the next step
+    finally:
+        flags[step._S_STOP] = 1
+        worker.join(timeout=30)
+    assert not worker.is_alive() and out == [1]
+
+
+def test_the_leader_waits_for_the_worker_at_each_meeting(pressed):
+    """The leader's side, the worker played by this test: no fingertips, body forces or checks
+    before the worker's node part is done, no next step before its body-force part is done (the
+    forces at the start taken as given: only the protocol is watched)."""
+    st, dt = _two_threads(pressed)
+    flags = np.zeros(step._S_SIZE, np.int64)
+    shared = np.zeros(1)
+    info = st._work[1]
+    out = []
+    args = (2, dt, False, 0.0, st.t, st.x, st.v, st._mass, st._grav, st._total_mass, st._body, st._pl,
+            st.pl_active, st.pl_anchor, st._fg, st._fstate, st._cur, st._work, True, False, st._mon, 0, 1,
+            st._gvec, st._fail, flags, shared)  # fmt: skip
+    step._advance_leader(*args[:-2], np.zeros(step._S_SIZE, np.int64) + 2**40, np.zeros(1))  # compile
+    info[:] = np.nan
+    leader = threading.Thread(target=lambda: out.append(step._advance_leader(*args)))
+    leader.start()
+    try:
+        for s in (1, 2):
+            _poll(lambda: flags[step._S_NODES0] == s, "the leader's node part")  # noqa: B023
+            assert flags[step._S_GO] == s and shared[0] == dt
+            assert _held(lambda: np.isnan(info[0, 0]))  # waits for the worker's node part
+            flags[step._S_NODES1] = s
+            _poll(lambda: not np.isnan(info[0, 0]), "the leader's body forces")
+            assert _held(lambda: flags[step._S_GO] == s)  # noqa: B023 - waits for the worker's body forces
+            info[0] = np.nan
+            flags[step._S_BODY1] = s
+        _poll(lambda: flags[step._S_STOP] == 1, "the leader's stop")
+    finally:
+        flags[step._S_STOP] = 1
+        leader.join(timeout=30)
+    assert not leader.is_alive() and out[0][:2] == (step.STATUS_OK, 2)
+
+
+def test_a_failing_worker_thread_stops_the_leader(pressed, monkeypatch):
+    """The worker thread failing sets the stop flag: the leader stops waiting for it and the
+    failure is raised, instead of a hang."""
+    st, dt = _two_threads(pressed)
+
+    def broken(*args):
+        raise MemoryError("no memory left")
+
+    monkeypatch.setattr(step, "_advance_worker", broken)
+    with pytest.raises(RuntimeError, match="second thread failed") as err:
+        st.advance(50, dt)
+    assert isinstance(err.value.__cause__, MemoryError)
+    assert not _worker_threads()
+
+
+def test_a_failing_leader_stops_the_worker(pressed, monkeypatch):
+    """The leader failing sets the stop flag too (in Python): the worker thread, waiting for the
+    next step, ends."""
+    st, dt = _two_threads(pressed)
+
+    def broken(*args):
+        threading.Event().wait(0.02)  # the worker is waiting for the first step by now
+        raise ValueError("bad input")
+
+    monkeypatch.setattr(step, "_advance_leader", broken)
+    with pytest.raises(ValueError, match="bad input"):
+        st.advance(50, dt)
+    assert not _worker_threads()
 
 
 def test_auto_threads_fall_back_when_two_threads_slow_down(monkeypatch):

@@ -37,7 +37,11 @@ raises the same :class:`~softgrasp.errors.SimulationUnstable` as the per-step pa
 Threads: the body forces and the per-node work are computed in :data:`PARTS` parts, on as many
 threads when :attr:`FusedStepper.threads` asks for them (see
 :class:`softgrasp.sim.integrators.FusedThreads` for the choice), one part after the other
-otherwise; the trajectory does not depend on it.
+otherwise; the trajectory does not depend on it. Semi-implicit steps in two parts run as two
+threads that each take the whole chunk of steps in one compiled call and meet on shared flags
+three times a step (:func:`_advance_leader`, :func:`_advance_worker`, :mod:`softgrasp.kernels.spin`):
+the second thread computes its body forces while the first does the fingertips, and nothing is
+handed to a thread pool between the steps. RK4 (and more parts) use Numba's parallel loops.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from __future__ import annotations
 import math
 import os
 import platform
+import threading
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -73,6 +78,7 @@ from softgrasp.kernels.contact import (
     _update_pairs,
 )
 from softgrasp.kernels.elastic import _J_FLOOR, _triple_product, polynomial_coefficients
+from softgrasp.kernels.spin import STRIDE, load_acquire, relax, store_release
 
 __all__ = [
     "METHODS",
@@ -93,6 +99,8 @@ _jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
 _pjit = numba.njit(cache=True, fastmath=False, error_model="numpy", parallel=True)
 # The body-force kernels fuse multiply-adds as softgrasp.kernels.elastic's do (the same results).
 _fjit = numba.njit(cache=True, fastmath={"contract"}, error_model="numpy")
+# The two threads of a chunk run without the GIL (softgrasp.kernels.spin).
+_njit_nogil = numba.njit(cache=True, fastmath=False, error_model="numpy", nogil=True)
 #: Methods the fused stepper runs (names of :func:`softgrasp.sim.stability.canonical_method`).
 METHODS = ("semi-implicit", "rk4")
 
@@ -526,6 +534,12 @@ def _body_forces(parallel, x, v, body, want_energy, check, fint, info):  # pragm
     else:
         for p in range(fint.shape[0]):
             _body_part(p, fint.shape[0], x, v, body, want_energy, check, fint[p], info[p])
+    return _body_totals(info)
+
+
+@_jit
+def _body_totals(info):  # pragma: no cover - compiled
+    """The body-force parts' ``info`` rows summed: (energy, inverted count, first inverted tet or -1)."""
     e = 0.0
     count = 0
     first = -1
@@ -662,6 +676,28 @@ def _node_pass_parallel(dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, plan
     for q in numba.prange(parts):
         _node_part(q, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
                    pl_anchor, sums[q])  # fmt: skip
+
+
+@_jit
+def _node_totals(sums, track):  # pragma: no cover - compiled
+    """The node parts' ``sums`` (see :func:`_node_part`) together: (whether a value became
+    non-finite, sum m x (3), the planes' power); the largest squared displacement goes to
+    ``track[1]``."""
+    bad = False
+    u2 = track[1]
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    p_plane = 0.0
+    for q in range(sums.shape[0]):
+        bad |= sums[q, 0] != 0.0
+        u2 = max(u2, sums[q, 1])
+        mx += sums[q, 2]
+        my += sums[q, 3]
+        mz += sums[q, 4]
+        p_plane += sums[q, 5]
+    track[1] = u2
+    return bad, mx, my, mz, p_plane
 
 
 @_jit
@@ -822,20 +858,7 @@ def _advance(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, pla
                     q, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
                     pl_anchor, sums[q],
                 )  # fmt: skip
-        bad = False
-        u2 = track[1]
-        mx = 0.0
-        my = 0.0
-        mz = 0.0
-        p_plane = 0.0
-        for q in range(parts):
-            bad |= sums[q, 0] != 0.0
-            u2 = max(u2, sums[q, 1])
-            mx += sums[q, 2]
-            my += sums[q, 3]
-            mz += sums[q, 4]
-            p_plane += sums[q, 5]
-        track[1] = u2
+        bad, mx, my, mz, p_plane = _node_totals(sums, track)
         if bad:
             fail[_F_T] = t
             fail[_F_DT] = t - t_prev
@@ -849,6 +872,109 @@ def _advance(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, pla
         if status != STATUS_OK:
             return status, s + 1, t, cur, msteps
     return STATUS_OK, n_steps, t, cur, msteps
+
+
+# Slots of the flags the leader and worker of a two-thread chunk meet on (softgrasp.kernels.spin):
+# the step the leader has started (dt and the planes' points set), the steps whose node part each
+# thread has finished, the steps whose body-force part the worker has finished, and stop.
+_S_GO, _S_NODES0, _S_NODES1, _S_BODY1, _S_STOP = (k * STRIDE for k in range(5))
+_S_SIZE = 5 * STRIDE
+#: Internal status of a two-thread chunk whose worker failed (its exception is raised).
+_STATUS_ABORTED = -1
+
+
+@_jit
+def _wait(flags, slot, value):  # pragma: no cover - compiled
+    """Spin until ``flags[slot] >= value`` (True) or the stop slot is set (False)."""
+    polls = 0
+    while load_acquire(flags, slot) < value:
+        if load_acquire(flags, _S_STOP) != 0:
+            return False
+        relax(polls)
+        polls += 1
+    return True
+
+
+@_njit_nogil
+def _advance_leader(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, body, planes, pl_active,
+                    pl_anchor, fingers, fstate, cur, work, have_forces, monitor_on, mon, msteps, check_every,
+                    gvec, fail, flags, shared):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`_advance` on two threads, this one's share: part 0 of the nodes and of the body forces,
+    and everything serial (the steps' times, the fingertips, the monitor); :func:`_advance_worker`,
+    started with the same arrays on another thread, does part 1. They meet on ``flags``
+    (:data:`_S_SIZE` zeros, :mod:`softgrasp.kernels.spin`) three times a step: the worker starts a
+    step's node part when the leader has set the step up (its dt in ``shared[0]``); the body forces
+    wait until both node parts are done (the elements reach across them); the leader's checks and
+    the next step wait until the worker's body part is done. The same arithmetic on the same parts
+    as :func:`_advance` (the same trajectory to the bit). Sets the stop slot when it returns;
+    returns as :func:`_advance` does, or :data:`_STATUS_ABORTED` when the stop slot was set by
+    someone else (the worker failed)."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
+    point, normal, pvel, mu, k, c, kt, ct = planes
+    if not have_forces:
+        _forces_at(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, False)
+    status = STATUS_OK
+    steps = n_steps
+    for s in range(n_steps):
+        t_prev = t
+        dt = t_end - t if (land and s == n_steps - 1) else h
+        t = t + dt
+        _plane_points(t, point, pvel, p0)
+        shared[0] = dt
+        store_release(flags, _S_GO, s + 1)
+        _node_part(0, 2, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active, pl_anchor,
+                   sums[0])  # fmt: skip
+        store_release(flags, _S_NODES0, s + 1)
+        if not _wait(flags, _S_NODES1, s + 1):
+            return _STATUS_ABORTED, s, t, cur, msteps
+        bad, mx, my, mz, p_plane = _node_totals(sums, track)
+        if bad:
+            fail[_F_T] = t
+            fail[_F_DT] = t - t_prev
+            status = STATUS_NONFINITE
+            steps = s + 1
+            msteps += 1
+            break
+        p_finger = 0.0
+        if fingers[0]:
+            cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
+        msteps += 1
+        check = monitor_on and msteps % check_every == 0
+        _body_part(0, 2, x, v, body, check, check, fint[0], info[0])
+        if not _wait(flags, _S_BODY1, s + 1):
+            return _STATUS_ABORTED, s, t, cur, msteps
+        if monitor_on:
+            e_int, count, first = _body_totals(info)
+            status = _after_step(
+                x, v, t, t_prev, mass, total_mass, gvec, mon, fail, p_plane + p_finger, mx, my, mz, check,
+                e_int, count, first,
+            )  # fmt: skip
+            if status != STATUS_OK:
+                steps = s + 1
+                break
+    store_release(flags, _S_STOP, 1)
+    return status, steps, t, cur, msteps
+
+
+@_njit_nogil
+def _advance_worker(x, v, mass, grav, body, planes, pl_active, pl_anchor, work, monitor_on, msteps,
+                    check_every, flags, shared):  # pragma: no cover - compiled  # fmt: skip
+    """The other thread of :func:`_advance_leader`: part 1 of the nodes and of the body forces, step
+    after step until the leader stops. Returns the steps done."""
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
+    s = 0
+    while _wait(flags, _S_GO, s + 1):
+        _node_part(1, 2, shared[0], x, v, mass, grav, fint, fplane, ffinger, x_ref, planes, p0, pl_active,
+                   pl_anchor, sums[1])  # fmt: skip
+        store_release(flags, _S_NODES1, s + 1)
+        if not _wait(flags, _S_NODES0, s + 1):
+            break
+        msteps += 1
+        check = monitor_on and msteps % check_every == 0
+        _body_part(1, 2, x, v, body, check, check, fint[1], info[1])
+        store_release(flags, _S_BODY1, s + 1)
+        s += 1
+    return s
 
 
 @_jit
@@ -1021,6 +1147,8 @@ BLOCKS_DEFAULT = _blocks_default()
 #: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
 #: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
 _BLOCKS_SOURCE_SHA256 = "7e57712b9253452070f26c25e3d99f98db12a7c8ae2dff27e0edfad876ee128f"
+#: The same for softgrasp/kernels/spin.py (tests/test_spin.py compares).
+_SPIN_SOURCE_SHA256 = "f82ed87b6b51c2283b0a9afabde4188c6cbb1a0dbaa4589d3d906ec087aa063e"
 
 
 def pack_body(body: Any, blocks: bool | None = None) -> tuple:
@@ -1277,13 +1405,17 @@ class FusedStepper:
             return 0
         mon = self.monitor
         parallel = self.threads > 1 and self.parts > 1
+        # semi-implicit steps in two parts: a leader and a worker thread for the whole chunk;
+        # otherwise Numba's threads, parallel region by parallel region
+        pair = parallel and self.method == "semi-implicit" and self.parts == 2
+        pool = parallel and not pair
         previous = numba.get_num_threads()
-        if parallel:
+        if pool:
             numba.set_num_threads(min(self.threads, self.parts, numba.config.NUMBA_NUM_THREADS))
         try:
-            status, steps, t, cur, msteps = self._call(n_steps, dt, t_end, parallel)
+            status, steps, t, cur, msteps = self._call(n_steps, dt, t_end, parallel, pair)
         finally:
-            if parallel:
+            if pool:
                 numba.set_num_threads(previous)
         self.t = float(t)
         self._cur = int(cur)
@@ -1300,8 +1432,10 @@ class FusedStepper:
             )  # fmt: skip
         return int(steps)
 
-    def _call(self, n_steps: int, dt: float, t_end: float | None, parallel: bool) -> tuple:
+    def _call(self, n_steps: int, dt: float, t_end: float | None, parallel: bool, pair: bool) -> tuple:
         mon = self.monitor
+        if pair:
+            return self._call_pair(n_steps, dt, t_end)
         args = (
             int(n_steps), float(dt), t_end is not None, float(t_end if t_end is not None else 0.0), self.t,
             self.x, self.v, self._mass, self._grav, self._total_mass, self._body, self._pl, self.pl_active,
@@ -1312,6 +1446,44 @@ class FusedStepper:
         if self.method == "rk4":
             return _advance_rk4(*args, self._rk)
         return _advance(*args)
+
+    def _call_pair(self, n_steps: int, dt: float, t_end: float | None) -> tuple:
+        """:func:`_advance_leader` here and :func:`_advance_worker` on a thread of its own."""
+        mon = self.monitor
+        flags = np.zeros(_S_SIZE, np.int64)
+        shared = np.zeros(1)
+        msteps = int(mon.steps if mon is not None else 0)
+        check_every = int(mon.check_every if mon is not None else 1)
+        failed: list[BaseException] = []
+
+        def worker() -> None:
+            try:
+                _advance_worker(
+                    self.x, self.v, self._mass, self._grav, self._body, self._pl, self.pl_active,
+                    self.pl_anchor, self._work, mon is not None, msteps, check_every, flags, shared,
+                )  # fmt: skip
+            except BaseException as exc:  # the leader must not wait for a thread that is gone
+                failed.append(exc)
+                flags[_S_STOP] = 1
+
+        thread = threading.Thread(target=worker, name="softgrasp-fused-worker", daemon=True)
+        thread.start()
+        try:
+            result = _advance_leader(
+                int(n_steps), float(dt), t_end is not None, float(t_end if t_end is not None else 0.0),
+                self.t, self.x, self.v, self._mass, self._grav, self._total_mass, self._body, self._pl,
+                self.pl_active, self.pl_anchor, self._fg, self._fstate, self._cur, self._work,
+                self._have_forces, mon is not None, self._mon, msteps, check_every, self._gvec, self._fail,
+                flags, shared,
+            )  # fmt: skip
+        finally:
+            flags[_S_STOP] = 1
+            thread.join()
+        if failed:
+            raise RuntimeError("the fused stepper's second thread failed") from failed[0]
+        if result[0] == _STATUS_ABORTED:  # the worker set the stop slot without failing: a defect
+            raise RuntimeError("the fused stepper's second thread stopped before the leader")
+        return result
 
     # ------------------------------------------------------------------ reading out
     def arrays(self) -> tuple[Array, Array, float]:
