@@ -121,7 +121,10 @@ def test_volume_blocks_match_the_scalar_loop(barrier):
     tp8 = blocks.block_params([1.0 / (6.0 * vol0), vol0])
     kappa = 2.0e5
     out_s = step.aligned_zeros((4 * M, 4))
-    e_s, count, first = step._tet_pass(x.ravel(), tq, tp, kappa, barrier, True, True, 0, M, out_s.ravel())
+    order = np.arange(M)
+    e_s, count, first = step._tet_pass(
+        x.ravel(), tq, tp, order, kappa, barrier, True, True, 0, M, out_s.ravel()
+    )
     out_b = step.aligned_zeros((4 * M, 4))
     masks = np.zeros(M // 8, np.int64)
     e_b = _tets_blocks(x.ravel(), tq, tp8, kappa, _J_FLOOR, M // 8, out_b.ravel(), barrier, masks)
@@ -148,7 +151,8 @@ def test_a_non_finite_position_gives_non_finite_forces_as_the_scalar_loop():
     tp = np.stack([1.0 / (6.0 * vol0), vol0], axis=1).ravel()
     tp8 = blocks.block_params([1.0 / (6.0 * vol0), vol0])
     out_s = step.aligned_zeros((4 * M, 4))
-    _, count, first = step._tet_pass(x.ravel(), tq, tp, 2.0e5, True, False, True, 0, M, out_s.ravel())
+    order = np.arange(M)
+    _, count, first = step._tet_pass(x.ravel(), tq, tp, order, 2.0e5, True, False, True, 0, M, out_s.ravel())
     out_b = step.aligned_zeros((4 * M, 4))
     masks = np.zeros(1, np.int64)
     _tets_blocks(x.ravel(), tq, tp8, 2.0e5, _J_FLOOR, 1, out_b.ravel(), True, masks)

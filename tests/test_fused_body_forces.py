@@ -105,12 +105,19 @@ def test_inverted_tets_are_counted_when_checked(sphere, kappa, blocks):
         body = dataclasses.replace(sphere, kappa=0.0 if kappa == "zero" else -abs(sphere.kappa))
     x, v = _state(body, seed=4, scale=0.05)
     tets = np.asarray(body.mesh.tets)
-    for t in (len(tets) - 1, 11, len(tets) // 2):  # swap two nodes' positions: those tets invert
+    order = step.pack_body(body, blocks)[13]  # the mesh's tets in the kernels' order
+    last = order[-1]
+    # with the block kernels, two tets met in the reverse of the mesh's order (the lower last)
+    k = int(np.flatnonzero(order[:-1] > order[1:])[0]) if blocks else 11
+    for t in (last, order[k], order[k + 1], len(tets) // 2):  # swap two nodes: those tets invert
         a, b = tets[t, 0], tets[t, 1]
         x[[a, b]] = x[[b, a]]
     bad = np.flatnonzero(~(signed_volumes(x, tets) > 0))
     assert bad.size >= 3
-    assert bad[-1] >= 8 * (len(tets) // 8)  # one among the tets left over after the blocks of eight
+    assert last in bad  # one among the tets left over after the blocks of eight
+    # the kernels meet the inverted tets in their own order and report the lowest mesh index
+    met = [t for t in order if t in set(bad)]
+    assert met[0] != bad[0] or not blocks
     f_ref, e_ref = _reference(body, x, v)
     for parts in (1, 2):
         f, e, count, first = _fused(body, x, v, True, True, parts, blocks)
@@ -143,9 +150,10 @@ def test_nearly_flat_tets_are_found_inverted_as_the_reference_finds_them():
     def each(x, xf, tets, tq, old, new):  # pragma: no cover - compiled
         out = np.zeros(xf.size)
         tp = np.ones(2 * tets.shape[0])
+        order = np.arange(tets.shape[0])
         for t in range(tets.shape[0]):
             old[t] = elastic._inverted(x, tets, t, t + 1)[0] > 0
-            new[t] = step._tet_pass(xf, tq, tp, 0.0, True, False, True, t, t + 1, out)[1] > 0
+            new[t] = step._tet_pass(xf, tq, tp, order, 0.0, True, False, True, t, t + 1, out)[1] > 0
 
     old = np.zeros(M, dtype=np.bool_)
     new = np.zeros(M, dtype=np.bool_)
@@ -188,3 +196,30 @@ def test_mismatched_arrays_are_refused(sphere):
         step._body_forces(False, x, v, packed, False, False, fint, info)
     with pytest.raises(ValueError, match="x and v"):  # a row short
         step._body_forces(False, x4, v4[:-1].copy(), packed, False, False, fint, info)
+
+
+@pytest.mark.parametrize("kind", ["edges", "tets"])
+def test_block_order_keeps_a_block_free_of_repeated_nodes(sphere, kind):
+    """The block kernels' element order (:func:`step._block_order`): a permutation whose blocks of
+    eight share no node (the mesh's own order repeats nodes in most blocks), elements moved only a
+    short way; and the packed body is that order (forces to round-off: the tests above)."""
+    elems = np.asarray(sphere.edges if kind == "edges" else sphere.mesh.tets, dtype=np.int64)
+    n = len(elems)
+    order = step._block_order(elems, step._ORDER_WINDOW)
+    assert np.array_equal(np.sort(order), np.arange(n))
+
+    def repeats(o):  # nodes met twice, block by block
+        blocks = elems[o[: 8 * (n // 8)]].reshape(n // 8, -1)
+        return np.array([b.size - np.unique(b).size for b in blocks])
+
+    assert repeats(np.arange(n)).sum() > n // 8  # the mesh's order: more than one a block
+    # repeats only where the elements run out: among the last 16 blocks
+    assert np.flatnonzero(repeats(order)).min(initial=n) >= n // 8 - 16
+    assert np.abs(order - np.arange(n)).max() <= step._ORDER_WINDOW + 8
+    packed = step.pack_body(sphere, True)
+    if kind == "tets":
+        assert np.array_equal(packed[13], order)
+        assert np.array_equal(packed[2].reshape(-1, 4), 4 * elems[order])
+    else:
+        assert np.array_equal(packed[0].reshape(-1, 2), 4 * elems[order])
+    assert np.array_equal(step.pack_body(sphere, False)[13], np.arange(len(sphere.mesh.tets)))
