@@ -12,7 +12,9 @@ In the same run it prints:
   on one and on two threads. The blow-up monitor's work is included, as in every real run;
 * where a step goes: the parts of the per-step path (each measured alone, both backends), and the
   compiled parts of a fused step (body forces on one and two threads, with and without the energy
-  of the monitor's check, the node pass, the fingertip step: one detection, update and forces);
+  of the monitor's check, the node pass, the fingertip step: one detection, update and forces; the
+  two-thread parts on Numba's threads, as RK4 runs them: a semi-implicit step on two threads runs
+  as a leader and a worker thread instead, its whole step is the "fused step, 2 threads" row);
 * an arithmetic bound: floating-point operations per force evaluation counted from the edges and
   tets, against two measured machine rates (a single-thread BLAS ``dgemm``, the best case for
   SIMD arithmetic, and a compiled scalar loop), and the steps/s each rate would allow;
@@ -291,10 +293,10 @@ def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
     if two:
         numba.set_num_threads(2)
         try:
-            res["body forces, 2 threads"] = per_call(
+            res["body forces, 2 of Numba's threads (RK4's stages)"] = per_call(
                 lambda: k._body_forces(True, x, v, st._body, False, False, fint, info)
             )
-            res["node pass, 2 threads"] = per_call(
+            res["node pass, 2 of Numba's threads (RK4: not used)"] = per_call(
                 lambda: k._node_pass_parallel(*node_args, st.pl_anchor, sums)
             )
         finally:
@@ -506,7 +508,7 @@ def main() -> None:
         f"  measured rates: dgemm {gemm / 1e9:.1f} Gflop/s, compiled scalar loop {scalar / 1e9:.1f} Gflop/s"
     )
     print(f"  compiled internal forces run at {flops / t_body / 1e9:.2f} Gflop/s ({t_body * 1e6:.0f} us)")
-    for name in ("body forces, 1 thread", "body forces, 2 threads"):
+    for name in ("body forces, 1 thread", "body forces, 2 of Numba's threads (RK4's stages)"):
         if name in fused:
             print(f"  fused {name}: {flops / fused[name] / 1e9:.2f} Gflop/s ({fused[name] * 1e6:.0f} us)")
     for method in METHODS:

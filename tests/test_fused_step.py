@@ -327,6 +327,25 @@ def _worker_threads() -> list[threading.Thread]:
     return [t for t in threading.enumerate() if t.name == "softgrasp-fused-worker"]
 
 
+def _advance_aside(st, n: int, dt: float) -> BaseException | None:
+    """``st.advance(n, dt)`` on a daemon thread (a hang fails the test instead of the run): what it
+    raised, or None."""
+    raised: list[BaseException | None] = []
+
+    def run() -> None:
+        try:
+            st.advance(n, dt)
+            raised.append(None)
+        except BaseException as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(timeout=120)
+    assert not thread.is_alive(), "advance() did not return"
+    return raised[0]
+
+
 def _poll(cond, what: str) -> None:
     for _ in range(20000):
         if cond():
@@ -350,7 +369,10 @@ def test_the_worker_waits_for_the_leader_at_each_meeting(pressed):
     out = []
     args = (st.x, st.v, st._mass, st._grav, st._body, st._pl, st.pl_active, st.pl_anchor, st._work, False, 0,
             1, flags, shared)  # fmt: skip
-    worker = threading.Thread(target=lambda: out.append(step._advance_worker(*args)))
+    stopped = np.zeros(step._S_SIZE, np.int64)
+    stopped[step._S_STOP] = 1
+    step._advance_worker(*args[:-2], stopped, shared)  # compiled before the thread starts
+    worker = threading.Thread(target=lambda: out.append(step._advance_worker(*args)), daemon=True)
     worker.start()
     try:
         assert _held(lambda: flags[step._S_NODES1] == 0)
@@ -380,7 +402,7 @@ def test_the_leader_waits_for_the_worker_at_each_meeting(pressed):
             st._gvec, st._fail, flags, shared)  # fmt: skip
     step._advance_leader(*args[:-2], np.zeros(step._S_SIZE, np.int64) + 2**40, np.zeros(1))  # compile
     info[:] = np.nan
-    leader = threading.Thread(target=lambda: out.append(step._advance_leader(*args)))
+    leader = threading.Thread(target=lambda: out.append(step._advance_leader(*args)), daemon=True)
     leader.start()
     try:
         for s in (1, 2):
@@ -408,10 +430,13 @@ def test_a_failing_worker_thread_stops_the_leader(pressed, monkeypatch):
         raise MemoryError("no memory left")
 
     monkeypatch.setattr(step, "_advance_worker", broken)
-    with pytest.raises(RuntimeError, match="second thread failed") as err:
-        st.advance(50, dt)
-    assert isinstance(err.value.__cause__, MemoryError)
+    err = _advance_aside(st, 50, dt)
+    assert isinstance(err, RuntimeError) and "second thread failed" in str(err)
+    assert isinstance(err.__cause__, MemoryError)
     assert not _worker_threads()
+    # the state moved on in part: the stepper refuses to go on from it
+    with pytest.raises(RuntimeError, match="failed in an earlier advance"):
+        st.advance(1, dt)
 
 
 def test_a_failing_leader_stops_the_worker(pressed, monkeypatch):
@@ -424,8 +449,8 @@ def test_a_failing_leader_stops_the_worker(pressed, monkeypatch):
         raise ValueError("bad input")
 
     monkeypatch.setattr(step, "_advance_leader", broken)
-    with pytest.raises(ValueError, match="bad input"):
-        st.advance(50, dt)
+    err = _advance_aside(st, 50, dt)
+    assert isinstance(err, ValueError) and "bad input" in str(err)
     assert not _worker_threads()
 
 

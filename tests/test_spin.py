@@ -52,13 +52,17 @@ def test_release_and_acquire_pass_the_data_between_threads():
     data = np.zeros(64, np.int64)
     seen = np.zeros(1, np.int64)
     n = 20000
-    _produce(np.zeros(2 * STRIDE, np.int64) + 1, data, 0)  # compile outside the timed threads
+    _produce(flags, data, 0)  # compiled before the threads start
+    _consume(flags, data, 0, seen)
     out = []
-    reader = threading.Thread(target=lambda: out.append(_consume(flags, data, n, seen)))
+    # both sides on daemon threads: a broken side fails the test instead of hanging the run
+    reader = threading.Thread(target=lambda: out.append(_consume(flags, data, n, seen)), daemon=True)
+    writer = threading.Thread(target=_produce, args=(flags, data, n), daemon=True)
     reader.start()
-    _produce(flags, data, n)
-    reader.join(timeout=60)
-    assert not reader.is_alive()
+    writer.start()
+    writer.join(timeout=60)
+    reader.join(timeout=1)
+    assert not writer.is_alive() and not reader.is_alive()
     assert out == [0] and seen[0] == n
     assert flags[0] == n and flags[STRIDE] == n
 
@@ -82,7 +86,9 @@ def test_a_long_wait_yields_the_core_and_still_ends():
     flags = np.zeros(step._S_SIZE, np.int64)
     done = []
     _wait_without_the_gil(np.ones(step._S_SIZE, np.int64), 0, 1)  # compiled before the thread starts
-    waiter = threading.Thread(target=lambda: done.append(_wait_without_the_gil(flags, step._S_BODY1, 1)))
+    waiter = threading.Thread(
+        target=lambda: done.append(_wait_without_the_gil(flags, step._S_BODY1, 1)), daemon=True
+    )
     waiter.start()
     threading.Event().wait(0.05)  # long past SPINS polls of about 25 ns
     assert waiter.is_alive()

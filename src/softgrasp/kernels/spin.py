@@ -82,8 +82,8 @@ def store_release(typingctx, flags, slot, value):  # type: ignore[no-untyped-def
 
 @intrinsic
 def relax(typingctx, polls):  # type: ignore[no-untyped-def]
-    """One poll's pause while spinning: the CPU's spin-wait hint (x86 ``pause``) for the first
-    :data:`SPINS` polls of a wait (``polls`` so far), then ``sched_yield`` (POSIX) on every poll."""
+    """One poll's pause while spinning: the CPU's spin-wait hint (x86 ``pause``), and from the
+    :data:`SPINS`-th poll of a wait on (``polls`` so far) also ``sched_yield`` (POSIX)."""
     if not isinstance(polls, types.Integer):
         return None
 

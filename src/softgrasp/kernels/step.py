@@ -913,7 +913,8 @@ def _advance_leader(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, bo
     the next step wait until the worker's body part is done. The same arithmetic on the same parts
     as :func:`_advance` (the same trajectory to the bit). Sets the stop slot when it returns;
     returns as :func:`_advance` does, or :data:`_STATUS_ABORTED` when the stop slot was set by
-    someone else (the worker failed)."""
+    someone else (the worker failed). After a non-finite state the worker still computes its body
+    part there (harmless: a failed chunk leaves the forces to be computed again)."""
     fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = work
     point, normal, pvel, mu, k, c, kt, ct = planes
     if not have_forces:
@@ -1114,11 +1115,11 @@ def _i64(a: Any) -> NDArray[np.int64]:
     return np.array(a, dtype=np.int64, order="C", copy=True)
 
 
-def aligned_zeros(shape: tuple[int, ...]) -> Array:
-    """Zeros of ``shape``, C-contiguous, the data 64-byte aligned (the 4-wide rows of the block
-    kernels then never straddle a cache line)."""
+def aligned_zeros(shape: tuple[int, ...], dtype: Any = np.float64) -> Array:
+    """Zeros of ``shape`` (8-byte ``dtype``), C-contiguous, the data 64-byte aligned (the 4-wide
+    rows of the block kernels then never straddle a cache line)."""
     n = int(np.prod(shape))
-    raw = np.zeros(n + 8)
+    raw = np.zeros(n + 8, dtype)
     start = (-raw.ctypes.data % 64) // 8
     return raw[start : start + n].reshape(shape)
 
@@ -1153,7 +1154,7 @@ BLOCKS_DEFAULT = _blocks_default()
 #: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
 _BLOCKS_SOURCE_SHA256 = "7e57712b9253452070f26c25e3d99f98db12a7c8ae2dff27e0edfad876ee128f"
 #: The same for softgrasp/kernels/spin.py (tests/test_spin.py compares).
-_SPIN_SOURCE_SHA256 = "f82ed87b6b51c2283b0a9afabde4188c6cbb1a0dbaa4589d3d906ec087aa063e"
+_SPIN_SOURCE_SHA256 = "27ac392cd2fbfe5999365d7ed215697cc1054c28b37c5b886f4033e5beea1908"
 
 
 #: How far past the first element not yet placed :func:`_block_order` looks for elements to fill a
@@ -1283,7 +1284,7 @@ class Failure:
     ----------
     status: :data:`STATUS_NONFINITE`, :data:`STATUS_INVERTED` or :data:`STATUS_ENERGY`.
     t: time of the failing state [s].  dt: length of the step that reached it [s].
-    count, first: inverted tets and the first of them (:data:`STATUS_INVERTED`).
+    count, first: inverted tets and the lowest mesh index among them (:data:`STATUS_INVERTED`).
     excess, scale: the energy test's excess and scale [J] (:data:`STATUS_ENERGY`).
     """
 
@@ -1369,7 +1370,9 @@ class FusedStepper:
         self._gvec = _f64(body.gravity, (3,))
         self._total_mass = float(body.mass.sum())
         self._fint = aligned_zeros((self.parts, N, 4))
-        self._info = np.zeros((self.parts, 3))
+        # a part's energy, inverted count and first inverted tet; its row padded to a cache line
+        # of its own (two threads write them)
+        self._info = aligned_zeros((self.parts, 8))
         self._fplane = aligned_zeros((N, 4))
         self._ffinger = aligned_zeros((N, 4))
         self._have_forces = False
@@ -1453,7 +1456,7 @@ class FusedStepper:
         self._work = (
             self._fint, self._info, self._fplane, self._ffinger, np.zeros((nf, 3)), self.x.copy(),
             np.array([_max_facet_edge(self.x, _i64(body.mesh.facets)), 0.0]), np.zeros((P, 3)),
-            np.zeros((self.parts, 6)),
+            aligned_zeros((self.parts, 8)),  # the node parts' sums (6), a cache line each
         )  # fmt: skip
         # monitor
         self.monitor = monitor
@@ -1466,6 +1469,7 @@ class FusedStepper:
                 monitor.energy0, monitor.scale0, monitor.energy_factor, *monitor.com0,
             )  # fmt: skip
         self.failure: Failure | None = None
+        self._broken = False
 
     # ------------------------------------------------------------------ stepping
     def advance(self, n_steps: int, dt: float, t_end: float | None = None) -> int:
@@ -1478,19 +1482,29 @@ class FusedStepper:
             The steps taken: ``n_steps``, or fewer when a blow-up check failed (then
             :attr:`failure` says which, and the stepper's state is that of the failed step).
         """
+        if self._broken:
+            raise RuntimeError(
+                "this fused stepper failed in an earlier advance() and its state is undefined: make a new one"
+            )
         if n_steps <= 0:
             return 0
         mon = self.monitor
         parallel = self.threads > 1 and self.parts > 1
         # semi-implicit steps in two parts: a leader and a worker thread for the whole chunk;
         # otherwise Numba's threads, parallel region by parallel region
-        pair = parallel and self.method == "semi-implicit" and self.parts == 2
+        two = self.parts == 2 and numba.config.NUMBA_NUM_THREADS >= 2
+        pair = parallel and self.method == "semi-implicit" and two
         pool = parallel and not pair
         previous = numba.get_num_threads()
         if pool:
             numba.set_num_threads(min(self.threads, self.parts, numba.config.NUMBA_NUM_THREADS))
         try:
             status, steps, t, cur, msteps = self._call(n_steps, dt, t_end, parallel, pair)
+        except BaseException:
+            # positions, velocities and contact states moved on while the time and the state
+            # cursor did not: refuse to go on from there
+            self._broken = True
+            raise
         finally:
             if pool:
                 numba.set_num_threads(previous)
@@ -1527,7 +1541,7 @@ class FusedStepper:
     def _call_pair(self, n_steps: int, dt: float, t_end: float | None) -> tuple:
         """:func:`_advance_leader` here and :func:`_advance_worker` on a thread of its own."""
         mon = self.monitor
-        flags = np.zeros(_S_SIZE, np.int64)
+        flags = aligned_zeros((_S_SIZE,), np.int64)
         shared = np.zeros(1)
         msteps = int(mon.steps if mon is not None else 0)
         check_every = int(mon.check_every if mon is not None else 1)

@@ -500,8 +500,9 @@ class FusedThreads:
 
     ``SOFTGRASP_THREADS`` (or :func:`softgrasp.sim.pardiso.set_threads`) fixes the count. Otherwise
     (``auto``) a chunk runs on two threads when two cores are idle
-    (:func:`softgrasp.sim.pardiso.idle_cores`) or when the previous chunk ran well on two. The
-    threads meet at least twice per step, so a thread waiting for a core another process holds
+    (:func:`softgrasp.sim.pardiso.idle_cores`) or when the previous chunk ran well on two (a
+    semi-implicit chunk starts a worker thread of its own, RK4 uses Numba's threads). The
+    threads meet two or three times a step, so a thread waiting for a core another process holds
     makes every step wait for the scheduler (measured here: 100x slower than one thread). Each
     two-thread chunk is timed; one slower per step than 1.5x the best two-thread chunk so far means
     the cores are shared now, and the rest of the run stays on one thread. Two-thread chunks are
