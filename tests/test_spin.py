@@ -48,6 +48,9 @@ def _consume(flags, data, n, seen):  # pragma: no cover - compiled
 
 
 def test_release_and_acquire_pass_the_data_between_threads():
+    """On x86 the hardware keeps stores in order by itself: there this catches a compiler that
+    hoists the polled load out of its loop (a hang, seen as the timeout) or moves the data's
+    stores past the release (stale data); on weaker hardware the ordering itself too."""
     flags = np.zeros(2 * STRIDE, np.int64)
     data = np.zeros(64, np.int64)
     seen = np.zeros(1, np.int64)

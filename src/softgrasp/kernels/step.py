@@ -812,6 +812,14 @@ def _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on):  # pragma: no
 
 
 @_jit
+def _check_step(monitor_on, msteps, check_every):  # pragma: no cover - compiled
+    """Whether monitored step number ``msteps`` runs the monitor's energy and volume checks (the
+    body forces then return the energy and the inverted tets too). The leader and the worker of a
+    two-thread chunk each count the steps and must agree."""
+    return monitor_on and msteps % check_every == 0
+
+
+@_jit
 def _end_step(
     x, v, t, t_prev, fingers, fstate, cur, work, monitor_on, msteps, check_every, parallel, body, fint, info,
     mass, total_mass, gvec, mon, fail, p_plane, mx, my, mz,
@@ -824,7 +832,7 @@ def _end_step(
     if fingers[0]:
         cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
     msteps += 1
-    check = monitor_on and msteps % check_every == 0
+    check = _check_step(monitor_on, msteps, check_every)
     e_int, count, first = _body_forces(parallel, x, v, body, check, check, fint, info)
     status = STATUS_OK
     if monitor_on:
@@ -945,7 +953,7 @@ def _advance_leader(n_steps, h, land, t_end, t, x, v, mass, grav, total_mass, bo
         if fingers[0]:
             cur, p_finger = _finger_step(x, v, t, fingers, fstate, cur, work, monitor_on)
         msteps += 1
-        check = monitor_on and msteps % check_every == 0
+        check = _check_step(monitor_on, msteps, check_every)
         _body_part(0, 2, x, v, body, check, check, fint[0], info[0])
         if not _wait(flags, _S_BODY1, s + 1):
             return _STATUS_ABORTED, s, t, cur, msteps
@@ -976,7 +984,7 @@ def _advance_worker(x, v, mass, grav, body, planes, pl_active, pl_anchor, work, 
         if not _wait(flags, _S_NODES0, s + 1):
             break
         msteps += 1
-        check = monitor_on and msteps % check_every == 0
+        check = _check_step(monitor_on, msteps, check_every)
         _body_part(1, 2, x, v, body, check, check, fint[1], info[1])
         store_release(flags, _S_BODY1, s + 1)
         s += 1
@@ -1525,33 +1533,33 @@ class FusedStepper:
 
     def _call(self, n_steps: int, dt: float, t_end: float | None, parallel: bool, pair: bool) -> tuple:
         mon = self.monitor
-        if pair:
-            return self._call_pair(n_steps, dt, t_end)
-        args = (
+        monitor = (mon is not None, self._mon, int(mon.steps if mon is not None else 0),
+                   int(mon.check_every if mon is not None else 1))  # fmt: skip
+        head = (
             int(n_steps), float(dt), t_end is not None, float(t_end if t_end is not None else 0.0), self.t,
             self.x, self.v, self._mass, self._grav, self._total_mass, self._body, self._pl, self.pl_active,
-            self.pl_anchor, self._fg, self._fstate, self._cur, self._work, self._have_forces, parallel,
-            mon is not None, self._mon, int(mon.steps if mon is not None else 0),
-            int(mon.check_every if mon is not None else 1), self._gvec, self._fail,
+            self.pl_anchor, self._fg, self._fstate, self._cur, self._work, self._have_forces,
         )  # fmt: skip
+        tail = (*monitor, self._gvec, self._fail)
+        if pair:
+            return self._call_pair(head, tail, monitor)
         if self.method == "rk4":
-            return _advance_rk4(*args, self._rk)
-        return _advance(*args)
+            return _advance_rk4(*head, parallel, *tail, self._rk)
+        return _advance(*head, parallel, *tail)
 
-    def _call_pair(self, n_steps: int, dt: float, t_end: float | None) -> tuple:
-        """:func:`_advance_leader` here and :func:`_advance_worker` on a thread of its own."""
-        mon = self.monitor
+    def _call_pair(self, head: tuple, tail: tuple, monitor: tuple) -> tuple:
+        """:func:`_advance_leader` here on :func:`_call`'s arguments and :func:`_advance_worker` on
+        a thread of its own."""
+        monitor_on, _, msteps, check_every = monitor
         flags = aligned_zeros((_S_SIZE,), np.int64)
         shared = np.zeros(1)
-        msteps = int(mon.steps if mon is not None else 0)
-        check_every = int(mon.check_every if mon is not None else 1)
         failed: list[BaseException] = []
 
         def worker() -> None:
             try:
                 _advance_worker(
                     self.x, self.v, self._mass, self._grav, self._body, self._pl, self.pl_active,
-                    self.pl_anchor, self._work, mon is not None, msteps, check_every, flags, shared,
+                    self.pl_anchor, self._work, monitor_on, msteps, check_every, flags, shared,
                 )  # fmt: skip
             except BaseException as exc:  # the leader must not wait for a thread that is gone
                 failed.append(exc)
@@ -1560,13 +1568,7 @@ class FusedStepper:
         thread = threading.Thread(target=worker, name="softgrasp-fused-worker", daemon=True)
         thread.start()
         try:
-            result = _advance_leader(
-                int(n_steps), float(dt), t_end is not None, float(t_end if t_end is not None else 0.0),
-                self.t, self.x, self.v, self._mass, self._grav, self._total_mass, self._body, self._pl,
-                self.pl_active, self.pl_anchor, self._fg, self._fstate, self._cur, self._work,
-                self._have_forces, mon is not None, self._mon, msteps, check_every, self._gvec, self._fail,
-                flags, shared,
-            )  # fmt: skip
+            result = _advance_leader(*head, *tail, flags, shared)
         finally:
             flags[_S_STOP] = 1
             thread.join()
