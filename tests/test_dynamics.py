@@ -25,7 +25,12 @@ from softgrasp.sim import (
     stable_time_step,
 )
 from softgrasp.sim.integrators import max_speed
-from softgrasp.sim.stability import STABILITY_LIMITS, half_disc_radius, node_frequency_bounds
+from softgrasp.sim.stability import (
+    STABILITY_LIMITS,
+    half_disc_radius,
+    node_frequency_bounds,
+    node_gershgorin,
+)
 
 RUBBER = Material(0.0793e6, 0.45, 45.5)
 G = 9.81
@@ -180,6 +185,23 @@ def test_frequency_bound_is_safe_and_not_too_loose(divisions, damping_ratio):
         K = -body.rest_jacobian.toarray()
         omega = math.sqrt(np.linalg.eigvalsh(K / np.sqrt(np.outer(m, m))).max())
         assert omega == pytest.approx(true, rel=1e-8)
+
+
+def test_gershgorin_row_sums_are_the_rest_matrices_and_kept_by_the_body():
+    """Body.rest_row_sums (computed once per body) are the rest stiffness and damping matrices'
+    largest absolute row sums per node, and what node_gershgorin hands out is the caller's own."""
+    body = build_body(box(0.04, 2), RUBBER, damping_ratio=0.2)
+    k, c = body.rest_row_sums
+    for J, got in ((body.rest_jacobian, k), (body.damping_jacobian(np.asarray(body.mesh.points)), c)):
+        dense = np.abs(J.toarray()).sum(axis=1).reshape(-1, 3).max(axis=1)
+        np.testing.assert_allclose(got, dense, rtol=1e-13)
+    assert c.min() > 0 and body.rest_row_sums[1] is c  # kept, not recomputed
+    k1, c1 = node_gershgorin(Scene(body))
+    k1[:] = 0.0
+    c1[:] = 0.0
+    np.testing.assert_array_equal(node_gershgorin(Scene(body))[0], k)
+    undamped = build_body(box(0.04, 2), RUBBER, damping_ratio=0.0)
+    assert not undamped.rest_row_sums[1].any()
 
 
 def test_contact_raises_the_frequency_bound():

@@ -63,7 +63,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from softgrasp.errors import SimulationUnstable
@@ -120,12 +119,6 @@ def canonical_method(method: str) -> str:
         raise ValueError(f"unknown integration method {method!r}; choose one of {sorted(_ALIASES)}") from None
 
 
-def _abs_row_max(J: sp.spmatrix) -> NDArray[np.float64]:
-    """Per node, the largest absolute row sum over its 3 rows, (N,)."""
-    rows = np.asarray(abs(J).sum(axis=1)).ravel()
-    return rows.reshape(-1, 3).max(axis=1)
-
-
 def node_gershgorin(scene: Scene) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Gershgorin stiffness and damping of every node at rest.
 
@@ -137,11 +130,7 @@ def node_gershgorin(scene: Scene) -> tuple[NDArray[np.float64], NDArray[np.float
         :meth:`damping_bound`.
     """
     body = scene.body
-    k = _abs_row_max(body.rest_jacobian)
-    if body.damping_time > 0:
-        c = _abs_row_max(body.damping_jacobian(np.asarray(body.mesh.points)))
-    else:
-        c = np.zeros(body.n_nodes)
+    k, c = (a.copy() for a in body.rest_row_sums)  # computed once per body (Body.rest_row_sums)
     for inter in scene.interactions:
         k = k + np.asarray(inter.stiffness_bound(body), dtype=np.float64)
         c = c + np.asarray(inter.damping_bound(body), dtype=np.float64)
