@@ -173,19 +173,6 @@ def test_block_params_lay_out_eight_of_each_column_a_block():
     assert blocks.block_params([np.arange(5.0)]).size == 0
 
 
-def test_step_records_the_hash_of_the_block_kernels_source():
-    """The kernels of :mod:`softgrasp.kernels.step` inline the IR of :mod:`softgrasp.kernels.blocks`
-    and are cached by Numba, which checks only step.py for changes: an edit of blocks.py has to
-    come with an edit of step.py (this hash), or stale machine code would run."""
-    import hashlib
-    from pathlib import Path
-
-    digest = hashlib.sha256(Path(blocks.__file__).read_bytes()).hexdigest()
-    assert step._BLOCKS_SOURCE_SHA256 == digest, (
-        f"blocks.py changed: set softgrasp.kernels.step._BLOCKS_SOURCE_SHA256 = {digest!r}"
-    )
-
-
 @pytest.mark.parametrize("value,expected", [("1", True), ("on", True), ("0", False), ("False", False)])
 def test_the_blocks_switch_reads_the_environment(monkeypatch, value, expected):
     monkeypatch.setenv("SOFTGRASP_BLOCKS", value)

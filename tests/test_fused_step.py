@@ -474,3 +474,21 @@ def test_auto_threads_fall_back_when_two_threads_slow_down(monkeypatch):
     assert FusedThreads().choose() == 1
     monkeypatch.setattr(pardiso, "_fixed_threads", 2)
     assert FusedThreads().choose() == 2
+
+
+def test_step_records_the_hash_of_every_module_it_inlines():
+    """The cached kernels of step.py compile in functions of other kernel modules (the block
+    kernels' IR, the contact kernels, the elastic helpers, the spin-wait atomics); Numba checks
+    only step.py's own source for changes, so step.py records the others' hashes and an edit of
+    one of them must renew its entry (and so step.py's cache). Every kernel module step.py takes
+    compiled code from has an entry."""
+    import hashlib
+    import re
+    from pathlib import Path
+
+    src = Path(step.__file__)
+    imported = set(re.findall(r"^from softgrasp\.kernels\.(\w+) import", src.read_text(), re.M))
+    assert {f"{m}.py" for m in imported} == set(step._INLINED_SOURCES_SHA256)
+    for name, recorded in step._INLINED_SOURCES_SHA256.items():
+        digest = hashlib.sha256((src.parent / name).read_bytes()).hexdigest()
+        assert recorded == digest, f"{name} changed: set step._INLINED_SOURCES_SHA256[{name!r}] = {digest!r}"

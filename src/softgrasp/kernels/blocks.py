@@ -26,7 +26,7 @@ evaluation: springs and dashpots 89 -> 54 us, volume term 93 -> 61 us (``benchma
 
 The callers in :mod:`softgrasp.kernels.step` are cached by Numba, which checks only their own
 file for changes: the inlined IR of this module would stay stale after an edit here, so step.py
-records this file's hash (``_BLOCKS_SOURCE_SHA256``, compared by a test): an edit here fails that
+records this file's hash (``_INLINED_SOURCES_SHA256``, compared by a test): an edit here fails that
 test until step.py is updated, which renews its cache.
 
 Parameters come in blocks (:func:`block_params`): for springs, eight 1 / L0, eight k L0, eight c

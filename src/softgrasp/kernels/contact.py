@@ -146,7 +146,8 @@ def _detect(
     """Touching pairs (see :func:`detect_arrays`), per fingertip in increasing facet order."""
     n_fingers = centres.shape[0]
     F = facets.shape[0]
-    mark = np.zeros(F, np.bool_)
+    mark = np.zeros(8 * ((F + 7) // 8), np.uint8)  # scanned eight facets a word
+    words = mark.view(np.uint64)
     cap = n_fingers * F  # at most every facet for every finger (np.empty: nothing is touched)
     finger = np.empty(cap, np.int64)
     facet = np.empty(cap, np.int64)
@@ -169,12 +170,18 @@ def _detect(
             dz = x[node, 2] - cz
             if dx * dx + dy * dy + dz * dz < r2:
                 for p in range(indptr[node], indptr[node + 1]):
-                    mark[indices[p]] = True
-        # narrow phase, the marked facets in increasing order
-        for j in range(F):
+                    mark[indices[p]] = 1
+        # narrow phase, the marked facets in increasing order (a word of eight unmarked skipped at once)
+        q = 0
+        while q < F:
+            if q % 8 == 0 and words[q // 8] == 0:
+                q += 8
+                continue
+            j = q
+            q += 1
             if not mark[j]:
                 continue
-            mark[j] = False
+            mark[j] = 0
             for r in range(3):
                 node = facets[j, r]
                 tri[r, 0] = x[node, 0]
@@ -286,6 +293,22 @@ def _patch(finger, val, nf):  # pragma: no cover - compiled
 
 
 @_jit
+def _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio):  # pragma: no cover - compiled
+    """Per finger, ``max(delta, 0)^n`` and k_t at its deepest pair's depth (0 without pairs): the
+    patch rule evaluates every pair of a finger there, so the powers are taken once a finger
+    instead of once a pair (the same values)."""
+    nf = deep.shape[0]
+    dn = np.zeros(nf)
+    kt = np.zeros(nf)
+    for f in range(nf):
+        if deep[f] >= 0:
+            d = val[deep[f], 10]
+            dn[f] = max(d, 0.0) ** n_exp
+            kt[f] = _tangential_stiffness(d, radii[f], K[f], n_exp, ratio, min_depth_ratio)
+    return dn, kt
+
+
+@_jit
 def _weight_depth(p, f, val, deep, total, patch):  # pragma: no cover - compiled
     """Pair p's weight w_j and the penetration its normal law is evaluated at."""
     if patch:
@@ -371,6 +394,7 @@ def _pair_forces(
     :meth:`softgrasp.contact.model.FingertipContact.static_forces`; ``v``, ``velocities`` and
     ``omegas`` are then not read."""
     deep, total = _patch(finger, val, centres.shape[0])
+    dnf, ktf = _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio)
     for p in range(finger.shape[0]):
         f = finger[p]
         j = facet[p]
@@ -385,7 +409,7 @@ def _pair_forces(
             vtx, vty, vtz, rate = _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas)
         w, depth = _weight_depth(p, f, val, deep, total, patch)
         # normal force (Eq. 9), zero unless delta > 0, never pulling
-        dn = max(depth, 0.0) ** n_exp
+        dn = dnf[f] if patch else max(depth, 0.0) ** n_exp
         if hunt_crossley:
             raw = dn * (K[f] + C[f] * rate)
         else:
@@ -397,7 +421,10 @@ def _pair_forces(
         ftz = 0.0
         if mu > 0.0:
             sx, sy, sz, _, _, _, _ = _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory)
-            kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
+            if patch:
+                kt = ktf[f]
+            else:
+                kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
             a = -(w * kt)
             b = w * (ratio * C[f])
             ftx = a * sx - b * vtx
@@ -558,14 +585,15 @@ def _update_pairs(
     (the fused stepper detects once for the update and the forces at the same state)."""
     nf = centres.shape[0]
     deep, total = _patch(finger, val, nf)
+    dnf, ktf = _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio)
     wsum = np.zeros(nf)
     for p in range(finger.shape[0]):
         f = finger[p]
         j = facet[p]
         w, depth = _weight_depth(p, f, val, deep, total, patch)
-        elastic = K[f] * max(depth, 0.0) ** n_exp if depth > 0.0 else 0.0
+        elastic = K[f] * (dnf[f] if patch else max(depth, 0.0) ** n_exp) if depth > 0.0 else 0.0
         elastic = max(elastic, 0.0)
-        kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
+        kt = ktf[f] if patch else _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
         sx, sy, sz, cont, ax, ay, az = _stick(
             p, f, j, val, x, facets, centres, active, anchor, offset, memory
         )

@@ -1158,11 +1158,17 @@ def _blocks_default() -> bool:
 #: with SSE2 alone, on the body forces); elsewhere the scalar loops, whose speed there is known.
 #: ``SOFTGRASP_BLOCKS=1`` / ``0`` overrides (read at import).
 BLOCKS_DEFAULT = _blocks_default()
-#: SHA-256 of softgrasp/kernels/blocks.py, whose IR the cached kernels here inline: an edit there must
-#: come with an edit here (tests/test_blocks.py compares), or Numba would keep the stale machine code.
-_BLOCKS_SOURCE_SHA256 = "7e57712b9253452070f26c25e3d99f98db12a7c8ae2dff27e0edfad876ee128f"
-#: The same for softgrasp/kernels/spin.py (tests/test_spin.py compares).
-_SPIN_SOURCE_SHA256 = "27ac392cd2fbfe5999365d7ed215697cc1054c28b37c5b886f4033e5beea1908"
+#: SHA-256 of the kernel modules whose compiled code the cached kernels here inline (the block
+#: kernels' IR, the contact kernels, the elastic helpers, the spin-wait atomics). Numba checks only
+#: a cached function's own file for changes, never the files of the functions it calls: an edit
+#: there must come with an edit here (tests/test_fused_step.py compares), or the stepper would run
+#: the stale machine code of the earlier source.
+_INLINED_SOURCES_SHA256 = {
+    "blocks.py": "f55a77ee5ae26c44ec66b636d5f9383cc6997de1ac77f5827fe7b15912c78054",
+    "contact.py": "df52d63b2eb1875689239d82377f0b77e0a75f5a93b7777fee38a62d4c641a01",
+    "elastic.py": "f9f85e76422adfe02f119d0231a51c9fd04a1a75480b085565cb13725914297d",
+    "spin.py": "27ac392cd2fbfe5999365d7ed215697cc1054c28b37c5b886f4033e5beea1908",
+}
 
 
 #: How far past the first element not yet placed :func:`_block_order` looks for elements to fill a
