@@ -88,6 +88,38 @@ def test_forces_and_energy_match_the_reference(request, name, kappa, parts, bloc
         assert (count, first) == (0, -1)
 
 
+@pytest.mark.parametrize("lead", [0.25, 0.43, 0.8])
+@pytest.mark.parametrize("blocks", [True, False])
+def test_two_parts_split_the_elements_at_the_lead_share(sphere, lead, blocks):
+    """pack_body's ``lead``: the first of two parts takes that share of the elements (its blocks
+    with the block kernels), the second the rest, and together they are the reference's forces.
+    The split is read off the inverted counts of a mirrored body, every tet of which is inverted."""
+    x, v = _state(sphere, seed=5)
+    f_ref, _ = _reference(sphere, x, v)
+    packed = step.pack_body(sphere, blocks, lead)
+    fint, info = np.zeros((2, sphere.n_nodes, 4)), np.zeros((2, 3))
+    step._body_forces(False, _rows(x), _rows(v), packed, False, False, fint, info)
+    assert _rel(fint[:, :, :3].sum(axis=0), f_ref) < TOL
+    M = len(sphere.mesh.tets)
+    first = 8 * int(M // 8 * lead) if blocks else int(M * lead)
+    step._body_forces(False, _rows(-x), _rows(v), packed, False, True, fint, info)  # (J floored)
+    assert (info[0, 1], info[1, 1]) == (first, M - first)
+
+
+def test_pack_body_refuses_a_share_outside_the_unit_interval(sphere):
+    for lead in (0.0, 1.0, -0.2, float("nan")):
+        with pytest.raises(ValueError, match="share"):
+            step.pack_body(sphere, lead=lead)
+
+
+def test_leader_share_gives_way_to_the_fingertips():
+    assert step.leader_share(0, 20_000) == 0.5
+    one, three = step.leader_share(1, 22_696), step.leader_share(3, 22_696)
+    assert 0.25 <= three < one < 0.5 and abs(one - 0.43) < 0.01  # the measured best at 2 196 nodes
+    assert step.leader_share(1, 5_000) < one < step.leader_share(1, 85_000) < 0.5  # the body's share grows
+    assert step.leader_share(10, 5_000) == 0.25
+
+
 @pytest.mark.parametrize("blocks", [True, False])
 def test_undamped_forces_match_the_reference(sphere, blocks):
     body = dataclasses.replace(sphere, damping_time=0.0)

@@ -40,8 +40,9 @@ threads when :attr:`FusedStepper.threads` asks for them (see
 otherwise; the trajectory does not depend on it. Semi-implicit steps in two parts run as two
 threads that each take the whole chunk of steps in one compiled call and meet on shared flags
 three times a step (:func:`_advance_leader`, :func:`_advance_worker`, :mod:`softgrasp.kernels.spin`):
-the second thread computes its body forces while the first does the fingertips, and nothing is
-handed to a thread pool between the steps. RK4 (and more parts) use Numba's parallel loops.
+the second thread computes its body forces while the first does the fingertips (the first part's
+share is the smaller by the fingertips' cost, :func:`leader_share`), and nothing is handed to a
+thread pool between the steps. RK4 (and more parts) use Numba's parallel loops.
 """
 
 from __future__ import annotations
@@ -89,6 +90,7 @@ __all__ = [
     "STATUS_OK",
     "Failure",
     "FusedStepper",
+    "leader_share",
     "pack_body",
     "supported",
 ]
@@ -387,14 +389,25 @@ def _tet_pass(x, tq, tp, order, kappa, barrier, want_energy, check, lo, hi, out)
 
 
 @_jit
+def _part_range(part, parts, n, lead):  # pragma: no cover - compiled
+    """Items ``lo:hi`` of part ``part`` of ``parts`` out of ``n``: two parts split at ``int(n lead)``
+    (:func:`pack_body`'s ``lead``), more parts in even shares."""
+    if parts == 2:
+        cut = int(n * lead)
+        return (0, cut) if part == 0 else (cut, n)
+    return part * n // parts, (part + 1) * n // parts
+
+
+@_jit
 def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragma: no cover - compiled
     """Part ``part`` of ``parts`` of the internal forces: its share of the edges and tets, into its
     own buffer ``out`` (N, 4) (zeroed here); energy, inverted count and lowest inverted tet into
     ``info``. ``x``, ``v``: positions and velocities (N, 4), C-contiguous; ``body`` is
     :func:`pack_body`'s. The blocks of eight elements go to :mod:`softgrasp.kernels.blocks` when
-    ``body`` asks for it, split between the parts by blocks, the last part taking the elements left
-    over (a body without the volume term counts its inverted tets on the scalar loop)."""
-    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _, order = body
+    ``body`` asks for it, split between the parts by blocks (:func:`_part_range`), the last part
+    taking the elements left over (a body without the volume term counts its inverted tets on the
+    scalar loop)."""
+    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _, order, lead = body
     xf = x.reshape(-1)
     vf = v.reshape(-1)
     of = out.reshape(-1)
@@ -405,7 +418,8 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
     if use_blocks:
         nb = E // _BLOCK
         e = 0.0
-        for b in range(part * nb // parts, (part + 1) * nb // parts):
+        lo, hi = _part_range(part, parts, nb, lead)
+        for b in range(lo, hi):
             if damped:
                 if want_energy:
                     e += spring_block_energy(xf, vf, eq, ep8, a2, a3, b, of)
@@ -418,15 +432,15 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
         lo = nb * _BLOCK if part == parts - 1 else E
         e += _edge_pass(xf, vf, eq, ep, a2, a3, damped, want_energy, lo, E, of)
     else:
-        lo = part * E // parts
-        hi = (part + 1) * E // parts
+        lo, hi = _part_range(part, parts, E, lead)
         e = _edge_pass(xf, vf, eq, ep, a2, a3, damped, want_energy, lo, hi, of)
     count = 0
     first = -1
     if kappa != 0.0 and use_blocks:
         nb = M // _BLOCK
         full = want_energy or check
-        for b in range(part * nb // parts, (part + 1) * nb // parts):
+        lo, hi = _part_range(part, parts, nb, lead)
+        for b in range(lo, hi):
             if not full:
                 if barrier:
                     volume_block(xf, tq, tp8, kappa, _J_FLOOR, b, of)
@@ -451,8 +465,7 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
         if n_bad > 0:
             first = _lower(first, first_bad)
     elif kappa != 0.0 or check:
-        lo = part * M // parts
-        hi = (part + 1) * M // parts
+        lo, hi = _part_range(part, parts, M, lead)
         ev, count, first = _tet_pass(xf, tq, tp, order, kappa, barrier, want_energy, check, lo, hi, of)
         e += ev
     info[0] = e
@@ -1171,6 +1184,27 @@ _INLINED_SOURCES_SHA256 = {
 }
 
 
+#: A fingertip's step (detection, friction update, forces) costs about this many times the square
+#: root of the body's element count in element force evaluations (measured on the rubber sphere at
+#: 549, 2 196 and 7 576 nodes: 11.0, 10.8 and 8.5).
+_FINGER_COST = 10.8
+
+
+def leader_share(fingertips: int, elements: int) -> float:
+    """The first of two body-force parts' share of the elements (:func:`pack_body`'s ``lead``) for a
+    scene with ``fingertips`` fingertips and ``elements`` edges and tets.
+
+    On two threads the leader computes the fingertips' step besides the first part, the worker the
+    second part alone, at the same time: the leader's smaller share ``1/2 - n C / sqrt(E)``
+    (:data:`_FINGER_COST` C) evens their work out (at 2 196 nodes with one fingertip 0.43, measured
+    the best of 0.40-0.50: 6-8 % more steps a second than 0.5); at least a quarter. The split is
+    a property of the scene, never of the threads or of timings: one thread computes the same two
+    parts and gets the same sums to the bit."""
+    if fingertips <= 0 or elements <= 0:
+        return 0.5
+    return max(0.25, 0.5 - fingertips * _FINGER_COST / math.sqrt(elements))
+
+
 #: How far past the first element not yet placed :func:`_block_order` looks for elements to fill a
 #: block with.
 _ORDER_WINDOW = 400
@@ -1225,7 +1259,7 @@ def _block_order(nodes, window):  # pragma: no cover - compiled
     return order
 
 
-def pack_body(body: Any, blocks: bool | None = None) -> tuple:
+def pack_body(body: Any, blocks: bool | None = None, lead: float = 0.5) -> tuple:
     """The body's static data in the layout of the fused body-force kernels (:func:`_body_part`).
 
     Parameters
@@ -1235,11 +1269,14 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
     blocks:
         Whether the forces go through the block kernels of :mod:`softgrasp.kernels.blocks` (eight
         elements a time); None: :data:`BLOCKS_DEFAULT`.
+    lead:
+        The first part's share of the elements when the forces are computed in two parts
+        (:func:`leader_share`), in (0, 1).
 
     Returns
     -------
     tuple
-        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier, blocks, ep8, tp8, n, order)``: the
+        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier, blocks, ep8, tp8, n, order, lead)``: the
         edges' nodes times 4, (2E,) unsigned; their L0 [m], 1 / L0 [1/m], k L0 [N] and dashpot c
         [N s/m] side by side, (4E,) (c = 0 undamped); the tets' nodes times 4, (4M,) unsigned;
         their 1 / (6 V0) [1/m^3] and V0 [m^3], (2M,); the law's ``a2``, ``a3``
@@ -1247,13 +1284,15 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
         ``kappa`` [Pa]; whether the volume term is the barrier; whether the block kernels are used;
         (1 / L0, k L0, c, L0) and (1 / (6 V0), V0) a block at a time
         (:func:`softgrasp.kernels.blocks.block_params`); the body's node count; each packed tet's
-        index in the mesh (M,).
+        index in the mesh (M,); ``lead``.
 
         For the block kernels the edges and tets are packed in :func:`_block_order` (a block's
         elements share no node, wherever a greedy pass finds such: its read-modify-writes of the
         forces then do not wait for one another; 7 % off the body forces on the reference
         machine); the scalar loops keep the mesh's order (the reference kernels' sums to the bit).
     """
+    if not 0.0 < lead < 1.0:
+        raise ValueError(f"pack_body: the first part's share must lie in (0, 1), got {lead}")
     a2, a3 = polynomial_coefficients(body.material.law)  # type: ignore[misc]
     damped = body.damping_time > 0
     rest = np.asarray(body.rest_length, dtype=np.float64)
@@ -1287,6 +1326,7 @@ def pack_body(body: Any, blocks: bool | None = None) -> tuple:
         block_params([1.0 / (6.0 * vol), vol]),
         int(body.n_nodes),
         np.ascontiguousarray(to, dtype=np.int64),
+        float(lead),
     )
 
 
@@ -1374,7 +1414,8 @@ class FusedStepper:
         self.v = aligned_zeros((N, 4))
         self.x[:, :3] = _f64(x, (N, 3))
         self.v[:, :3] = _f64(v, (N, 3))
-        self._body = pack_body(body)
+        tips = 0 if fingers is None else len(fingers.fingertips)
+        self._body = pack_body(body, lead=leader_share(tips, len(body.edges) + len(body.mesh.tets)))
         self.parts = max(1, int(parts))
         self.threads = 1
         self._mass = _f64(body.mass)
