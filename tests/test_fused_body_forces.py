@@ -106,6 +106,20 @@ def test_two_parts_split_the_elements_at_the_lead_share(sphere, lead, blocks):
     assert (info[0, 1], info[1, 1]) == (first, M - first)
 
 
+def test_the_parts_clear_whatever_their_buffers_held(sphere):
+    """Each part clears its whole buffer (writing only where it is not zero yet): NaN, -0.0 and
+    stale forces left in it from before change nothing."""
+    x, v = _state(sphere, seed=6)
+    f_ref, _ = _reference(sphere, x, v)
+    packed = step.pack_body(sphere)
+    fint = np.random.default_rng(2).standard_normal((2, sphere.n_nodes, 4))
+    fint[0, ::3] = np.nan
+    fint[1, ::5] = -0.0
+    info = np.zeros((2, 3))
+    step._body_forces(False, _rows(x), _rows(v), packed, False, False, fint, info)
+    assert _rel(fint[:, :, :3].sum(axis=0), f_ref) < TOL and not fint[:, :, 3].any()
+
+
 def test_pack_body_refuses_a_share_outside_the_unit_interval(sphere):
     for lead in (0.0, 1.0, -0.2, float("nan")):
         with pytest.raises(ValueError, match="share"):
