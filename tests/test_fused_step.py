@@ -254,6 +254,24 @@ def test_fused_stepper_chunks_compose(pressed):
     assert np.array_equal(parts.finger_state(s0.contacts[1]).anchor, one.finger_state(s0.contacts[1]).anchor)
 
 
+def test_steppers_share_a_body_packing_that_does_not_keep_the_body():
+    """A body is packed for the kernels once (pack_body's tuple kept per body and share); the
+    cache holds the body weakly: gone with its last stepper."""
+    import gc
+
+    body = build_body(box(0.03, 2), RUBBER)
+    scene = Scene(body)
+    s0 = scene.initial_state()
+    a = step.FusedStepper(body, [], [], None, None, s0.x, s0.v, s0.t)
+    b = step.FusedStepper(body, [], [], None, None, s0.x, s0.v, s0.t)
+    assert a._body is b._body and a._body[14] == 0.5  # no fingertips: even parts
+    assert body in step._PACKED
+    n = len(step._PACKED)
+    del a, b, body, scene
+    gc.collect()
+    assert len(step._PACKED) == n - 1
+
+
 @pytest.mark.parametrize("method", ["semi-implicit", "rk4"])
 def test_threads_do_not_change_the_result(pressed, method):
     """The body forces are summed from the same parts whether one thread or two compute them (two
