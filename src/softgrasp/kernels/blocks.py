@@ -5,8 +5,10 @@ auto-vectoriser either leaves them scalar (the scattered read-modify-write of th
 hardware gathers, which cost about three cycles an element on this project's reference machine
 (AMD Zen 4): slower than the scalar loop. The intrinsics here (:data:`spring_block` and its
 variants for the springs, :data:`volume_block` and its variants for the tets) are written in LLVM
-IR through :func:`numba.extending.intrinsic` and inlined into the Numba loops that call them. Each
-takes one block of eight springs or eight tets:
+IR through :func:`numba.extending.intrinsic` and inlined into the Numba loops that call them
+(:data:`tet_spring_block` and its variants take the tets with the spring each carries: one
+kernel, one set of loads and one read-modify-write a node for both terms). Each takes one block of
+eight springs or eight tets:
 
 * the nodes' positions (and velocities) are loaded as 4-vectors ``(x, y, z, 0)`` from arrays laid
   out (N, 4) ("AoS4"), one aligned load a node, and transposed by shuffles into 8-lane vectors of
@@ -47,6 +49,7 @@ __all__ = [
     "BLOCK",
     "SPRING_COLUMNS",
     "TET_COLUMNS",
+    "TET_SPRING_COLUMNS",
     "block_params",
     "node_step",
     "node_step_two",
@@ -54,6 +57,14 @@ __all__ = [
     "spring_block_energy",
     "spring_block_undamped",
     "spring_block_undamped_energy",
+    "tet_spring_block",
+    "tet_spring_block_full",
+    "tet_spring_block_quadratic",
+    "tet_spring_block_quadratic_full",
+    "tet_spring_block_quadratic_undamped",
+    "tet_spring_block_quadratic_undamped_full",
+    "tet_spring_block_undamped",
+    "tet_spring_block_undamped_full",
     "volume_block",
     "volume_block_full",
     "volume_block_quadratic",
@@ -221,36 +232,53 @@ def _spring_codegen(energy: bool, damped: bool):  # type: ignore[no-untyped-def]
         pb = b.mul(bi, ir.Constant(_I64, SPRING_COLUMNS * BLOCK))
         inv_l0, kl0, c, l0 = (_load_v8(b, EP, b.add(pb, ir.Constant(_I64, BLOCK * r))) for r in range(4))
         dx, dy, dz = b.fsub(xj, xi), b.fsub(yj, yi), b.fsub(zj, zi)
-        L = _call_v8(b, "llvm.sqrt.v8f64", b.fadd(b.fadd(b.fmul(dx, dx), b.fmul(dy, dy)), b.fmul(dz, dz)))
-        one = _const(1.0)
-        inv = b.fdiv(one, L)
-        eps = b.fsub(b.fmul(L, inv_l0), one)
-        e2 = b.fmul(eps, eps)
         a2s, a3s = _splat(b, a2v), _splat(b, a3v)
-        T = b.fmul(kl0, b.fadd(b.fadd(eps, b.fmul(a2s, e2)), b.fmul(b.fmul(a3s, e2), eps)))
-        if damped:  # the dashpot: c times the rate of extension
+        dv = None
+        if damped:
             ui, vi, wi = _to_lanes(b, [_load_row(b, V, idx[2 * k]) for k in range(BLOCK)])
             uj, vj, wj = _to_lanes(b, [_load_row(b, V, idx[2 * k + 1]) for k in range(BLOCK)])
-            dv = b.fadd(
-                b.fadd(b.fmul(b.fsub(uj, ui), dx), b.fmul(b.fsub(vj, vi), dy)), b.fmul(b.fsub(wj, wi), dz)
-            )
-            T = b.fadd(T, b.fmul(c, b.fmul(dv, inv)))
-        s = b.fmul(T, inv)
+            dv = _rate(b, (ui, vi, wi), (uj, vj, wj), (dx, dy, dz))
+        s, eps, e2 = _tension(b, dx, dy, dz, inv_l0, kl0, c, a2s, a3s, dv)
         rows = _to_rows(b, b.fmul(s, dx), b.fmul(s, dy), b.fmul(s, dz))
         for k in range(BLOCK):
             _add_row(b, O, idx[2 * k], rows[k], False)
             _add_row(b, O, idx[2 * k + 1], rows[k], True)
         if not energy:
             return context.get_dummy_value()
-        # k L0 L0 (e^2 / 2 + a2 e^3 / 3 + a3 e^4 / 4), as _edge_pass
-        a2_3 = b.fdiv(a2s, _const(3.0))
-        a3_4 = b.fmul(_const(0.25), a3s)
-        poly = b.fadd(
-            b.fadd(b.fmul(_const(0.5), e2), b.fmul(b.fmul(a2_3, e2), eps)), b.fmul(b.fmul(a3_4, e2), e2)
-        )
-        return _lane_sum(b, b.fmul(b.fmul(kl0, l0), poly))
+        return _lane_sum(b, _spring_energy(b, kl0, l0, eps, e2, a2s, a3s))
 
     return codegen
+
+
+def _rate(b: ir.IRBuilder, vi: tuple, vj: tuple, d: tuple) -> ir.Value:
+    """(v_j - v_i) . d of eight springs, d = x_j - x_i (the dashpot's rate of extension times L)."""
+    return b.fadd(
+        b.fadd(b.fmul(b.fsub(vj[0], vi[0]), d[0]), b.fmul(b.fsub(vj[1], vi[1]), d[1])),
+        b.fmul(b.fsub(vj[2], vi[2]), d[2]),
+    )
+
+
+def _tension(b, dx, dy, dz, inv_l0, kl0, c, a2s, a3s, dv):  # type: ignore[no-untyped-def]
+    """Eight springs' T / L (their force on node i is (T / L) d, on node j minus that, d = x_j - x_i)
+    with T the law's tension k L0 (eps + a2 eps^2 + a3 eps^3) plus, when ``dv`` is given, the
+    dashpot's c dv / L; returns (T / L, eps, eps^2). :func:`softgrasp.kernels.step._edge_pass`."""
+    L = _call_v8(b, "llvm.sqrt.v8f64", b.fadd(b.fadd(b.fmul(dx, dx), b.fmul(dy, dy)), b.fmul(dz, dz)))
+    one = _const(1.0)
+    inv = b.fdiv(one, L)
+    eps = b.fsub(b.fmul(L, inv_l0), one)
+    e2 = b.fmul(eps, eps)
+    T = b.fmul(kl0, b.fadd(b.fadd(eps, b.fmul(a2s, e2)), b.fmul(b.fmul(a3s, e2), eps)))
+    if dv is not None:  # the dashpot: c times the rate of extension
+        T = b.fadd(T, b.fmul(c, b.fmul(dv, inv)))
+    return b.fmul(T, inv), eps, e2
+
+
+def _spring_energy(b, kl0, l0, eps, e2, a2s, a3s):  # type: ignore[no-untyped-def]
+    """Eight springs' energy, k L0 L0 (e^2 / 2 + a2 e^3 / 3 + a3 e^4 / 4), as _edge_pass."""
+    a2_3 = b.fdiv(a2s, _const(3.0))
+    a3_4 = b.fmul(_const(0.25), a3s)
+    cubic = b.fadd(b.fmul(_const(0.5), e2), b.fmul(b.fmul(a2_3, e2), eps))
+    return b.fmul(b.fmul(kl0, l0), b.fadd(cubic, b.fmul(b.fmul(a3_4, e2), e2)))
 
 
 def _f64_arrays(*arrays) -> bool:  # type: ignore[no-untyped-def]
@@ -298,32 +326,12 @@ def _volume_codegen(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
         bi = _as_i64(b, bv)
         idx = _indices(b, TQ, b.mul(bi, ir.Constant(_I64, 4 * BLOCK)), 4 * BLOCK)
         n = [_to_lanes(b, [_load_row(b, X, idx[4 * k + r]) for k in range(BLOCK)]) for r in range(4)]
-        (x0, y0, z0), (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = n
-        ax, ay, az = b.fsub(x1, x0), b.fsub(y1, y0), b.fsub(z1, z0)
-        bx, by, bz = b.fsub(x2, x0), b.fsub(y2, y0), b.fsub(z2, z0)
-        cx, cy, cz = b.fsub(x3, x0), b.fsub(y3, y0), b.fsub(z3, z0)
-
-        def cross(p, q, r, s):  # type: ignore[no-untyped-def]
-            return b.fsub(b.fmul(p, q), b.fmul(r, s))
-
-        c1 = (cross(by, cz, bz, cy), cross(bz, cx, bx, cz), cross(bx, cy, by, cx))
-        c2 = (cross(cy, az, cz, ay), cross(cz, ax, cx, az), cross(cx, ay, cy, ax))
-        c3 = (cross(ay, bz, az, by), cross(az, bx, ax, bz), cross(ax, by, ay, bx))
-        det = b.fadd(b.fadd(b.fmul(ax, c1[0]), b.fmul(ay, c1[1])), b.fmul(az, c1[2]))
         pb = b.mul(bi, ir.Constant(_I64, TET_COLUMNS * BLOCK))
-        J = b.fmul(det, _load_v8(b, TP, pb))
-        one = _const(1.0)
-        kappa = _splat(b, kv)
-        if barrier:
-            floor = _splat(b, floor_v)
-            Jc = b.select(b.fcmp_ordered(">", J, floor), J, floor)
-            dw = b.fsub(one, b.fdiv(one, Jc))
-        else:
-            dw = b.fsub(J, one)
-        s = b.fmul(b.fdiv(b.fsub(_const(0.0), kappa), _const(6.0)), dw)
-        f1 = _to_rows(b, *(b.fmul(s, w) for w in c1))
-        f2 = _to_rows(b, *(b.fmul(s, w) for w in c2))
-        f3 = _to_rows(b, *(b.fmul(s, w) for w in c3))
+        vol = _volume(b, n, _load_v8(b, TP, pb), _splat(b, kv), floor_v, barrier)
+        s = vol["s"]
+        f1 = _to_rows(b, *(b.fmul(s, w) for w in vol["c1"]))
+        f2 = _to_rows(b, *(b.fmul(s, w) for w in vol["c2"]))
+        f3 = _to_rows(b, *(b.fmul(s, w) for w in vol["c3"]))
         for k in range(BLOCK):
             _add_row(b, O, idx[4 * k + 1], f1[k], False)
             _add_row(b, O, idx[4 * k + 2], f2[k], False)
@@ -331,20 +339,59 @@ def _volume_codegen(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
             _add_row(b, O, idx[4 * k], b.fadd(b.fadd(f1[k], f2[k]), f3[k]), True)
         if not full:
             return context.get_dummy_value()
-        # energy: kappa V0 (J - 1 - log Jc) or kappa V0 dw^2 / 2, as _tet_pass
-        kv0 = b.fmul(kappa, _load_v8(b, TP, b.add(pb, ir.Constant(_I64, BLOCK))))
-        if barrier:
-            psi = b.fsub(b.fsub(J, one), _log_v8(b, Jc))
-        else:
-            psi = b.fmul(_const(0.5), b.fmul(dw, dw))
-        energy = _lane_sum(b, b.fmul(kv0, psi))
-        # inverted: not (det / 6 > 0), lane k -> bit k
-        ok = b.fcmp_ordered(">", b.fdiv(det, _const(6.0)), _const(0.0))
-        bad = b.xor(ok, ir.Constant(ir.VectorType(ir.IntType(1), BLOCK), [1] * BLOCK))
-        mask = b.zext(b.bitcast(bad, ir.IntType(BLOCK)), _I64)
-        return context.make_tuple(b, signature.return_type, [energy, mask])
+        v0 = _load_v8(b, TP, b.add(pb, ir.Constant(_I64, BLOCK)))
+        energy = _lane_sum(b, _volume_energy(b, vol, v0, barrier))
+        return context.make_tuple(b, signature.return_type, [energy, _inverted_mask(b, vol["det"])])
 
     return codegen
+
+
+def _volume(b, n, inv_6v0, kappa, floor_v, barrier: bool) -> dict:  # type: ignore[no-untyped-def]
+    """The volume term of eight tets with vertices ``n`` (four (x, y, z) lane triples): the
+    cross products c1 = b x c, c2 = c x a, c3 = a x b of the edge vectors a, b, c from vertex 0
+    (the gradients of 6 V), det = a . c1, J = det / (6 V0), the barrier's floored J (Jc),
+    psi'(J) (dw) and s = -kappa dw / 6: the force on vertex k = 1..3 is s c_k, on vertex 0 minus
+    their sum. :func:`softgrasp.kernels.step._tet_pass`."""
+    (x0, y0, z0), (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = n
+    ax, ay, az = b.fsub(x1, x0), b.fsub(y1, y0), b.fsub(z1, z0)
+    bx, by, bz = b.fsub(x2, x0), b.fsub(y2, y0), b.fsub(z2, z0)
+    cx, cy, cz = b.fsub(x3, x0), b.fsub(y3, y0), b.fsub(z3, z0)
+
+    def cross(p, q, r, s):  # type: ignore[no-untyped-def]
+        return b.fsub(b.fmul(p, q), b.fmul(r, s))
+
+    c1 = (cross(by, cz, bz, cy), cross(bz, cx, bx, cz), cross(bx, cy, by, cx))
+    c2 = (cross(cy, az, cz, ay), cross(cz, ax, cx, az), cross(cx, ay, cy, ax))
+    c3 = (cross(ay, bz, az, by), cross(az, bx, ax, bz), cross(ax, by, ay, bx))
+    det = b.fadd(b.fadd(b.fmul(ax, c1[0]), b.fmul(ay, c1[1])), b.fmul(az, c1[2]))
+    J = b.fmul(det, inv_6v0)
+    one = _const(1.0)
+    Jc = J
+    if barrier:
+        floor = _splat(b, floor_v)
+        Jc = b.select(b.fcmp_ordered(">", J, floor), J, floor)
+        dw = b.fsub(one, b.fdiv(one, Jc))
+    else:
+        dw = b.fsub(J, one)
+    s = b.fmul(b.fdiv(b.fsub(_const(0.0), kappa), _const(6.0)), dw)
+    return {"c1": c1, "c2": c2, "c3": c3, "det": det, "J": J, "Jc": Jc, "dw": dw, "s": s, "kappa": kappa}
+
+
+def _volume_energy(b, vol: dict, v0, barrier: bool):  # type: ignore[no-untyped-def]
+    """Eight tets' volume energy, kappa V0 (J - 1 - log Jc) or kappa V0 dw^2 / 2, as _tet_pass."""
+    kv0 = b.fmul(vol["kappa"], v0)
+    if barrier:
+        psi = b.fsub(b.fsub(vol["J"], _const(1.0)), _log_v8(b, vol["Jc"]))
+    else:
+        psi = b.fmul(_const(0.5), b.fmul(vol["dw"], vol["dw"]))
+    return b.fmul(kv0, psi)
+
+
+def _inverted_mask(b: ir.IRBuilder, det: ir.Value) -> ir.Value:
+    """Bit k set where tet k's signed volume det / 6 is not > 0 (an i64)."""
+    ok = b.fcmp_ordered(">", b.fdiv(det, _const(6.0)), _const(0.0))
+    bad = b.xor(ok, ir.Constant(ir.VectorType(ir.IntType(1), BLOCK), [1] * BLOCK))
+    return b.zext(b.bitcast(bad, ir.IntType(BLOCK)), _I64)
 
 
 def _volume_intrinsic(barrier: bool, full: bool):  # type: ignore[no-untyped-def]
@@ -370,6 +417,83 @@ volume_block_quadratic = _volume_intrinsic(False, False)
 volume_block_full = _volume_intrinsic(True, True)
 #: The same for the quadratic volume law.
 volume_block_quadratic_full = _volume_intrinsic(False, True)
+
+
+#: Columns of the tets-with-a-spring kernels' :func:`block_params`: 1 / (6 V0), V0, then for the
+#: spring between vertices 0 and 1: 1 / L0, k L0, c, L0.
+TET_SPRING_COLUMNS = TET_COLUMNS + SPRING_COLUMNS
+
+
+def _tet_spring_codegen(barrier: bool, full: bool, damped: bool):  # type: ignore[no-untyped-def]
+    def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
+        xa, va, tqa, tpa, kv, floor_v, a2v, a3v, bv, oa = args
+        t = signature.args
+        X, V, TQ, TP, O = (
+            _data(context, b, t[k], a) for k, a in ((0, xa), (1, va), (2, tqa), (3, tpa), (9, oa))
+        )
+        bi = _as_i64(b, bv)
+        idx = _indices(b, TQ, b.mul(bi, ir.Constant(_I64, 4 * BLOCK)), 4 * BLOCK)
+        n = [_to_lanes(b, [_load_row(b, X, idx[4 * k + r]) for k in range(BLOCK)]) for r in range(4)]
+        pb = b.mul(bi, ir.Constant(_I64, TET_SPRING_COLUMNS * BLOCK))
+        col = [_load_v8(b, TP, b.add(pb, ir.Constant(_I64, BLOCK * r))) for r in range(TET_SPRING_COLUMNS)]
+        vol = _volume(b, n, col[0], _splat(b, kv), floor_v, barrier)
+        s = vol["s"]
+        f1 = [b.fmul(s, w) for w in vol["c1"]]
+        f2 = [b.fmul(s, w) for w in vol["c2"]]
+        f3 = [b.fmul(s, w) for w in vol["c3"]]
+        f0 = [b.fsub(_const(0.0), b.fadd(b.fadd(f1[d], f2[d]), f3[d])) for d in range(3)]
+        # the spring from vertex 0 to vertex 1: + (T / L) d on vertex 0, - on vertex 1
+        inv_l0, kl0, c, l0 = col[TET_COLUMNS:]
+        a2s, a3s = _splat(b, a2v), _splat(b, a3v)
+        d = [b.fsub(n[1][k], n[0][k]) for k in range(3)]
+        dv = None
+        if damped:
+            v0 = _to_lanes(b, [_load_row(b, V, idx[4 * k]) for k in range(BLOCK)])
+            v1 = _to_lanes(b, [_load_row(b, V, idx[4 * k + 1]) for k in range(BLOCK)])
+            dv = _rate(b, v0, v1, d)
+        ts, eps, e2 = _tension(b, *d, inv_l0, kl0, c, a2s, a3s, dv)
+        g = [b.fmul(ts, d[k]) for k in range(3)]
+        forces = ([b.fadd(f0[k], g[k]) for k in range(3)], [b.fsub(f1[k], g[k]) for k in range(3)], f2, f3)
+        for r, f in enumerate(forces):
+            rows = _to_rows(b, *f)
+            for k in range(BLOCK):
+                _add_row(b, O, idx[4 * k + r], rows[k], False)
+        if not full:
+            return context.get_dummy_value()
+        energy = b.fadd(
+            _volume_energy(b, vol, col[1], barrier), _spring_energy(b, kl0, l0, eps, e2, a2s, a3s)
+        )
+        mask = _inverted_mask(b, vol["det"])
+        return context.make_tuple(b, signature.return_type, [_lane_sum(b, energy), mask])
+
+    return codegen
+
+
+def _tet_spring_intrinsic(barrier: bool, full: bool, damped: bool):  # type: ignore[no-untyped-def]
+    def typer(typingctx, x, v, tq, tp, kappa, floor, a2, a3, blk, out):  # type: ignore[no-untyped-def]
+        if not (_f64_arrays(x, v, tp, out) and _index_array(tq) and isinstance(blk, types.Integer)):
+            return None  # a typing error: flat float64 arrays, unsigned indices, an integer block
+        ret = types.Tuple((types.float64, types.int64)) if full else types.void
+        return ret(x, v, tq, tp, kappa, floor, a2, a3, blk, out), _tet_spring_codegen(barrier, full, damped)
+
+    return intrinsic(typer)
+
+
+#: The volume term of tets ``8 blk .. 8 blk + 7`` and the spring (+ dashpot) each carries between
+#: its vertices 0 and 1 (none: k L0 = c = 0, 1 / L0 = L0 = 1), added to ``out``:
+#: ``tet_spring_block(x, v, tq, tp, kappa, floor, a2, a3, blk, out)`` with ``tp``
+#: :func:`block_params` of the :data:`TET_SPRING_COLUMNS`. A tet's four force rows take both terms
+#: to the nodes at once (the springs' own kernel updates two rows a spring). Variants: the
+#: quadratic volume law, undamped springs, and ``_full`` returning (energy [J], inverted mask) as
+#: :data:`volume_block_full`, the spring's energy included.
+tet_spring_block = _tet_spring_intrinsic(True, False, True)
+tet_spring_block_full = _tet_spring_intrinsic(True, True, True)
+tet_spring_block_quadratic = _tet_spring_intrinsic(False, False, True)
+tet_spring_block_quadratic_full = _tet_spring_intrinsic(False, True, True)
+tet_spring_block_undamped = _tet_spring_intrinsic(True, False, False)
+tet_spring_block_undamped_full = _tet_spring_intrinsic(True, True, False)
+tet_spring_block_quadratic_undamped = _tet_spring_intrinsic(False, False, False)
+tet_spring_block_quadratic_undamped_full = _tet_spring_intrinsic(False, True, False)
 
 
 def _node_codegen(two_parts: bool):  # type: ignore[no-untyped-def]

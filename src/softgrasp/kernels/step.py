@@ -68,6 +68,14 @@ from softgrasp.kernels.blocks import (
     spring_block_energy,
     spring_block_undamped,
     spring_block_undamped_energy,
+    tet_spring_block,
+    tet_spring_block_full,
+    tet_spring_block_quadratic,
+    tet_spring_block_quadratic_full,
+    tet_spring_block_quadratic_undamped,
+    tet_spring_block_quadratic_undamped_full,
+    tet_spring_block_undamped,
+    tet_spring_block_undamped_full,
     volume_block,
     volume_block_full,
     volume_block_quadratic,
@@ -400,6 +408,32 @@ def _part_range(part, parts, n, lead):  # pragma: no cover - compiled
 
 
 @_jit
+def _carrying_block(xf, vf, tq, tp8, kappa, a2, a3, blk, of, barrier, damped, full):  # pragma: no cover
+    """Tet block ``blk`` with the springs it carries (:data:`softgrasp.kernels.blocks.tet_spring_block`:
+    the variant for the volume law, the dashpots and whether the check's energy and inverted mask
+    are wanted); returns (energy, mask), (0, 0) unless ``full``."""
+    f = _J_FLOOR
+    if full:
+        if barrier:
+            if damped:
+                return tet_spring_block_full(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+            return tet_spring_block_undamped_full(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+        if damped:
+            return tet_spring_block_quadratic_full(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+        return tet_spring_block_quadratic_undamped_full(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+    if barrier:
+        if damped:
+            tet_spring_block(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+        else:
+            tet_spring_block_undamped(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+    elif damped:
+        tet_spring_block_quadratic(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+    else:
+        tet_spring_block_quadratic_undamped(xf, vf, tq, tp8, kappa, f, a2, a3, blk, of)
+    return 0.0, np.int64(0)
+
+
+@_jit
 def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragma: no cover - compiled
     """Part ``part`` of ``parts`` of the internal forces: its share of the edges and tets, into its
     own buffer ``out`` (N, 4) (zeroed here); energy, inverted count and lowest inverted tet into
@@ -408,7 +442,7 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
     ``body`` asks for it, split between the parts by blocks (:func:`_part_range`), the last part
     taking the elements left over (a body without the volume term counts its inverted tets on the
     scalar loop)."""
-    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _, order, lead = body
+    eq, ep, tq, tp, a2, a3, damped, kappa, barrier, use_blocks, ep8, tp8, _, order, lead, carry = body
     xf = x.reshape(-1)
     vf = v.reshape(-1)
     of = out.reshape(-1)
@@ -446,13 +480,17 @@ def _body_part(part, parts, x, v, body, want_energy, check, out, info):  # pragm
         full = want_energy or check
         lo, hi = _part_range(part, parts, nb, lead)
         for b in range(lo, hi):
-            if not full:
+            if carry:
+                ev, bad = _carrying_block(xf, vf, tq, tp8, kappa, a2, a3, b, of, barrier, damped, full)
+                if not full:
+                    continue
+            elif not full:
                 if barrier:
                     volume_block(xf, tq, tp8, kappa, _J_FLOOR, b, of)
                 else:
                     volume_block_quadratic(xf, tq, tp8, kappa, _J_FLOOR, b, of)
                 continue
-            if barrier:
+            elif barrier:
                 ev, bad = volume_block_full(xf, tq, tp8, kappa, _J_FLOOR, b, of)
             else:
                 ev, bad = volume_block_quadratic_full(xf, tq, tp8, kappa, _J_FLOOR, b, of)
@@ -1182,7 +1220,7 @@ BLOCKS_DEFAULT = _blocks_default()
 #: there must come with an edit here (tests/test_fused_step.py compares), or the stepper would run
 #: the stale machine code of the earlier source.
 _INLINED_SOURCES_SHA256 = {
-    "blocks.py": "f55a77ee5ae26c44ec66b636d5f9383cc6997de1ac77f5827fe7b15912c78054",
+    "blocks.py": "5f59f1e0950d40fb25f622f2a222a4d0312bfc78ced72cfdbbc10e5970fade55",
     "contact.py": "df52d63b2eb1875689239d82377f0b77e0a75f5a93b7777fee38a62d4c641a01",
     "elastic.py": "f9f85e76422adfe02f119d0231a51c9fd04a1a75480b085565cb13725914297d",
     "spin.py": "27ac392cd2fbfe5999365d7ed215697cc1054c28b37c5b886f4033e5beea1908",
@@ -1191,8 +1229,8 @@ _INLINED_SOURCES_SHA256 = {
 
 #: A fingertip's step (detection, friction update, forces) costs about this many times the square
 #: root of the body's element count in element force evaluations (measured on the rubber sphere at
-#: 549, 2 196 and 7 576 nodes: 11.0, 10.8 and 8.5).
-_FINGER_COST = 10.8
+#: 549, 2 196 and 7 576 nodes: 12.0, 11.9 and 8.9, with the tets carrying springs).
+_FINGER_COST = 11.9
 
 
 def leader_share(fingertips: int, elements: int) -> float:
@@ -1201,8 +1239,9 @@ def leader_share(fingertips: int, elements: int) -> float:
 
     On two threads the leader computes the fingertips' step besides the first part, the worker the
     second part alone, at the same time: the leader's smaller share ``1/2 - n C / sqrt(E)``
-    (:data:`_FINGER_COST` C) evens their work out (at 2 196 nodes with one fingertip 0.43, measured
-    the best of 0.40-0.50: 6-8 % more steps a second than 0.5); at least a quarter. The split is
+    (:data:`_FINGER_COST` C) evens their work out (at 2 196 nodes with one fingertip 0.42; 0.43
+    measured the best of 0.40-0.50 before the tets carried springs: 6-8 % more steps a second than
+    0.5); at least a quarter. The split is
     a property of the scene, never of the threads or of timings: one thread computes the same two
     parts and gets the same sums to the bit."""
     if fingertips <= 0 or elements <= 0:
@@ -1264,6 +1303,71 @@ def _block_order(nodes, window):  # pragma: no cover - compiled
     return order
 
 
+# A tet's vertex orders that bring each of its six edges to (0, 1), all even permutations of
+# (0, 1, 2, 3) (the signed volume keeps its sign).
+_EDGE_FIRST = np.array(
+    [[0, 1, 2, 3], [0, 2, 3, 1], [0, 3, 1, 2], [1, 2, 0, 3], [1, 3, 2, 0], [2, 3, 0, 1]], dtype=np.int64
+)
+
+
+@_jit
+def _carried_springs(tets, edges, n_nodes, n_carrying):  # pragma: no cover - compiled
+    """The spring each of the first ``n_carrying`` tets carries in the tets-with-a-spring kernels
+    (:data:`softgrasp.kernels.blocks.tet_spring_block`): each tet in turn takes, of its edges whose
+    spring no tet has taken yet, the one with the fewest tets left to take it (the first such).
+
+    Returns (each tet's vertex order bringing its spring to vertices 0 and 1, (M, 4); each tet's
+    spring, (M,), -1 for none; each spring's tet, (E,), -1 for none)."""
+    E = edges.shape[0]
+    start = np.zeros(n_nodes + 1, np.int64)  # the edges by their lower node
+    for e in range(E):
+        start[min(edges[e, 0], edges[e, 1]) + 1] += 1
+    for i in range(n_nodes):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    upper = np.empty(E, np.int64)
+    edge_of = np.empty(E, np.int64)
+    for e in range(E):
+        lo = min(edges[e, 0], edges[e, 1])
+        upper[fill[lo]] = max(edges[e, 0], edges[e, 1])
+        edge_of[fill[lo]] = e
+        fill[lo] += 1
+    M = tets.shape[0]
+    local = np.full((M, 6), -1, np.int64)  # each tet's edges in _EDGE_FIRST's order
+    left = np.zeros(E, np.int64)  # carrying tets still to come, per edge
+    for t in range(min(M, n_carrying)):
+        for r in range(6):
+            a = tets[t, _EDGE_FIRST[r, 0]]
+            b = tets[t, _EDGE_FIRST[r, 1]]
+            lo = min(a, b)
+            hi = max(a, b)
+            for q in range(start[lo], start[lo + 1]):
+                if upper[q] == hi:
+                    local[t, r] = edge_of[q]
+                    left[edge_of[q]] += 1
+                    break
+    owner = np.full(E, -1, np.int64)
+    perm = np.zeros((M, 4), np.int64)
+    carried = np.full(M, -1, np.int64)
+    for t in range(M):
+        perm[t] = _EDGE_FIRST[0]
+        if t >= n_carrying:
+            continue
+        best = -1
+        for r in range(6):
+            e = local[t, r]
+            if e >= 0 and owner[e] < 0 and (best < 0 or left[e] < left[local[t, best]]):
+                best = r
+        for r in range(6):
+            if local[t, r] >= 0:
+                left[local[t, r]] -= 1
+        if best >= 0:
+            perm[t] = _EDGE_FIRST[best]
+            owner[local[t, best]] = t
+            carried[t] = local[t, best]
+    return perm, carried, owner
+
+
 def pack_body(body: Any, blocks: bool | None = None, lead: float = 0.5) -> tuple:
     """The body's static data in the layout of the fused body-force kernels (:func:`_body_part`).
 
@@ -1281,7 +1385,7 @@ def pack_body(body: Any, blocks: bool | None = None, lead: float = 0.5) -> tuple
     Returns
     -------
     tuple
-        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier, blocks, ep8, tp8, n, order, lead)``: the
+        ``(eq, ep, tq, tp, a2, a3, damped, kappa, barrier, blocks, ep8, tp8, n, order, lead, carry)``: the
         edges' nodes times 4, (2E,) unsigned; their L0 [m], 1 / L0 [1/m], k L0 [N] and dashpot c
         [N s/m] side by side, (4E,) (c = 0 undamped); the tets' nodes times 4, (4M,) unsigned;
         their 1 / (6 V0) [1/m^3] and V0 [m^3], (2M,); the law's ``a2``, ``a3``
@@ -1289,12 +1393,18 @@ def pack_body(body: Any, blocks: bool | None = None, lead: float = 0.5) -> tuple
         ``kappa`` [Pa]; whether the volume term is the barrier; whether the block kernels are used;
         (1 / L0, k L0, c, L0) and (1 / (6 V0), V0) a block at a time
         (:func:`softgrasp.kernels.blocks.block_params`); the body's node count; each packed tet's
-        index in the mesh (M,); ``lead``.
+        index in the mesh (M,); ``lead``; whether the tets carry springs (below).
 
         For the block kernels the edges and tets are packed in :func:`_block_order` (a block's
         elements share no node, wherever a greedy pass finds such: its read-modify-writes of the
         forces then do not wait for one another; 7 % off the body forces on the reference
         machine); the scalar loops keep the mesh's order (the reference kernels' sums to the bit).
+        With the volume term, each tet of a whole block also carries one spring
+        (:func:`_carried_springs`; all 9 720 such tets at 2 196 nodes, 3 251 of the 12 971 springs
+        left for the springs' kernels): its vertices reordered (an even permutation) so that the
+        spring joins vertices 0 and 1, and ``tp8`` holds the spring's columns after the tet's
+        (:data:`softgrasp.kernels.blocks.TET_SPRING_COLUMNS`); ``eq``, ``ep`` and ``ep8`` then
+        hold the springs left. Body forces 57 -> 53 us on one thread at 2 196 nodes.
     """
     if not 0.0 < lead < 1.0:
         raise ValueError(f"pack_body: the first part's share must lie in (0, 1), got {lead}")
@@ -1308,14 +1418,33 @@ def pack_body(body: Any, blocks: bool | None = None, lead: float = 0.5) -> tuple
     use_blocks = BLOCKS_DEFAULT if blocks is None else bool(blocks)
     edges = np.asarray(body.edges, dtype=np.int64)
     tets = np.asarray(body.mesh.tets, dtype=np.int64)
+    carry = use_blocks and float(body.kappa) != 0.0
+    if use_blocks:
+        to = _block_order(tets, _ORDER_WINDOW)
+        tets, vol = tets[to], vol[to]
+    else:
+        to = np.arange(len(tets))
+    tp8 = block_params([1.0 / (6.0 * vol), vol])
+    if carry:  # the tets of whole blocks carry a spring each; the others go through the springs' kernels
+        perm, carried, owner = _carried_springs(tets, edges, body.n_nodes, _BLOCK * (len(tets) // _BLOCK))
+        tets = np.take_along_axis(tets, perm, axis=1)
+        on = carried >= 0
+        k = np.where(on, carried, 0)
+        tp8 = block_params(
+            [
+                1.0 / (6.0 * vol),
+                vol,
+                np.where(on, 1.0 / rest[k], 1.0),  # none: no force, no energy
+                np.where(on, kl0[k], 0.0),
+                np.where(on, c[k], 0.0),
+                np.where(on, rest[k], 1.0),
+            ]
+        )
+        alone = np.flatnonzero(owner < 0)
+        edges, rest, kl0, c = edges[alone], rest[alone], kl0[alone], c[alone]
     if use_blocks:
         eo = _block_order(edges, _ORDER_WINDOW)
-        to = _block_order(tets, _ORDER_WINDOW)
-    else:
-        eo = np.arange(len(edges))
-        to = np.arange(len(tets))
-    edges, rest, kl0, c = edges[eo], rest[eo], kl0[eo], c[eo]
-    tets, vol = tets[to], vol[to]
+        edges, rest, kl0, c = edges[eo], rest[eo], kl0[eo], c[eo]
     return (
         np.ascontiguousarray(4 * edges, dtype=index).ravel(),
         np.ascontiguousarray(np.stack([rest, 1.0 / rest, kl0, c], axis=1)).ravel(),
@@ -1328,10 +1457,11 @@ def pack_body(body: Any, blocks: bool | None = None, lead: float = 0.5) -> tuple
         bool(body.barrier),
         use_blocks,
         block_params([1.0 / rest, kl0, c, rest]),
-        block_params([1.0 / (6.0 * vol), vol]),
+        tp8,
         int(body.n_nodes),
         np.ascontiguousarray(to, dtype=np.int64),
         float(lead),
+        carry,
     )
 
 
