@@ -134,13 +134,19 @@ def test_leader_share_gives_way_to_the_fingertips():
     assert step.leader_share(10, 5_000) == 0.25
 
 
+@pytest.mark.parametrize("law", ["barrier", "quadratic"])
 @pytest.mark.parametrize("blocks", [True, False])
-def test_undamped_forces_match_the_reference(sphere, blocks):
+def test_undamped_forces_match_the_reference(sphere, blocks, law):
     body = dataclasses.replace(sphere, damping_time=0.0)
+    if law == "quadratic":
+        body = dataclasses.replace(body, kappa=-abs(body.kappa))
     x, v = _state(body, seed=3)
-    f, _, _, _ = _fused(body, x, v, False, False, blocks=blocks)
     with kernels.use_backend("numpy"):
-        assert _rel(f, body.internal_forces(x)) < TOL
+        f_ref, e_ref = body.internal_forces(x), body.internal_energy(x)
+    for check in (False, True):
+        f, e, count, first = _fused(body, x, v, check, check, blocks=blocks)
+        assert _rel(f, f_ref) < TOL and (count, first) == (0, -1)
+        assert abs(e - e_ref) <= TOL * abs(e_ref) if check else e == 0.0
 
 
 @pytest.mark.parametrize("kappa", ["body", "zero", "quadratic"])
