@@ -213,11 +213,13 @@ def _node_pass(rows, fint, mass, dt):
 
 
 @pytest.mark.parametrize("parts", [1, 2])
-@pytest.mark.parametrize("nonfinite", [False, True])
-def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(nonfinite, parts):
-    """The node pass a row at a time (:data:`softgrasp.kernels.blocks.node_step` /
-    ``node_step_two``, one or two force parts) and on its scalar loop (taken for three parts, the
-    extra ones zero) give the same bits."""
+@pytest.mark.parametrize("bad_node", [None, 20, 21, 36])
+def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(bad_node, parts):
+    """The node pass two rows at a time (:data:`softgrasp.kernels.blocks.node_pair_step` /
+    ``node_pair_step_two``, one or two force parts; the odd node last through ``node_step``) and on
+    its scalar loop (taken for three parts, the extra ones zero) give the same bits; a non-finite
+    value is seen in either node of a pair and in the last one."""
+    nonfinite = bad_node is not None
     rng = np.random.default_rng(4)
     n = 37
     mass = 1e-3 * (1.0 + rng.random(n))
@@ -225,7 +227,7 @@ def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(nonfinite, parts):
     if parts == 1:
         fint = fint[:1].copy()
     if nonfinite:
-        fint[parts - 1, 20, 1] = np.inf
+        fint[parts - 1, bad_node, 1] = np.inf
     rows3 = {k: v.copy() for k, v in rows.items()}
     r0 = {k: v.copy() for k, v in rows.items()}
     fint3 = step.aligned_zeros((3, n, 4))

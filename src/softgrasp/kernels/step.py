@@ -62,6 +62,8 @@ from numpy.typing import NDArray
 from softgrasp.kernels.blocks import BLOCK as _BLOCK
 from softgrasp.kernels.blocks import (
     block_params,
+    node_pair_step,
+    node_pair_step_two,
     node_step,
     node_step_two,
     spring_block,
@@ -688,7 +690,27 @@ def _node_part(part, parts, dt, x, v, mass, grav, fint, fplane, ffinger, x_ref, 
     wf = np.uint64(fint.shape[1]) * wx  # one part of fint
     P = np.uint64(fint.shape[0])
     rows = wx == 4 and P <= 2  # a node's row at a time (softgrasp.kernels.blocks.node_step)
-    for i in range(np.uint64(lo), np.uint64(hi)):
+    i0 = np.uint64(lo)
+    if rows:  # two nodes at a time (the same arithmetic and sums, in the same order)
+        while i0 + np.uint64(1) < np.uint64(hi):
+            ma = mass[i0]
+            mb = mass[i0 + np.uint64(1)]
+            r = i0 * wx
+            if P == 2:
+                da, db, nonfinite = node_pair_step_two(xf, vf, rf, ff, gf, pf, qf, r, wf, ma, mb, dt)
+            else:
+                da, db, nonfinite = node_pair_step(xf, vf, rf, ff, gf, pf, qf, r, wf, ma, mb, dt)
+            bad |= nonfinite != 0
+            u2 = max(u2, da)
+            mx += ma * xf[r]
+            my += ma * xf[r + np.uint64(1)]
+            mz += ma * xf[r + np.uint64(2)]
+            u2 = max(u2, db)
+            mx += mb * xf[r + np.uint64(4)]
+            my += mb * xf[r + np.uint64(5)]
+            mz += mb * xf[r + np.uint64(6)]
+            i0 += np.uint64(2)
+    for i in range(i0, np.uint64(hi)):
         m = mass[i]
         r = i * wx
         if rows:
@@ -1220,7 +1242,7 @@ BLOCKS_DEFAULT = _blocks_default()
 #: there must come with an edit here (tests/test_fused_step.py compares), or the stepper would run
 #: the stale machine code of the earlier source.
 _INLINED_SOURCES_SHA256 = {
-    "blocks.py": "5f59f1e0950d40fb25f622f2a222a4d0312bfc78ced72cfdbbc10e5970fade55",
+    "blocks.py": "4d22450dffb043589a422fbc552326ed86c9db0eb552d8bb239f17090024c9a0",
     "contact.py": "df52d63b2eb1875689239d82377f0b77e0a75f5a93b7777fee38a62d4c641a01",
     "elastic.py": "f9f85e76422adfe02f119d0231a51c9fd04a1a75480b085565cb13725914297d",
     "spin.py": "27ac392cd2fbfe5999365d7ed215697cc1054c28b37c5b886f4033e5beea1908",
