@@ -255,7 +255,7 @@ def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
     st = _FusedRun(scene, state, None).stepper
     st.advance(2, dt)
     x, v, t = st.x, st.v, st.t
-    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums = st._work
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums, near = st._work
     fg, fs = st._fg, st._fstate
     res["body forces, 1 thread"] = per_call(
         lambda: k._body_forces(False, x, v, st._body, False, False, fint, info)

@@ -254,6 +254,40 @@ def test_fused_stepper_chunks_compose(pressed):
     assert np.array_equal(parts.finger_state(s0.contacts[1]).anchor, one.finger_state(s0.contacts[1]).anchor)
 
 
+def test_the_near_list_holds_every_surface_node_the_full_scan_would_find(pressed):
+    """The fingertip broad phase scans a Verlet list of surface nodes (step._finger_reach): with the
+    fingertip sweeping 40 mm across the sphere and the nodes drifting and jittering, every surface
+    node within R + margin of the centre (what the scan over all of them finds) is in the list at
+    every call, the list is renewed on the way, and it is much shorter than the surface."""
+    scene, s0 = pressed
+    st = step.FusedStepper(
+        scene.body, [scene.interactions[0]], [s0.contacts[0]], scene.interactions[1], s0.contacts[1], s0.x,
+        s0.v, s0.t,
+    )  # fmt: skip
+    fg = list(st._fg)
+    fg[7] = np.array([[40.0, 10.0, -5.0]])  # the centre's velocity [m/s]: 41.5 mm in 1 ms
+    fg = tuple(fg)
+    _, _, _, _, centres, x_ref, track, _, _, near = st._work
+    boundary, radius = fg[2], fg[9][0]
+    rng = np.random.default_rng(7)
+    x = st.x.copy()
+    renewals, lengths = 0, []
+    for k in range(400):
+        t = k * 2.5e-6
+        x[:, :3] += 2e-5 * np.array([1.0, -0.5, 0.2]) + 2e-5 * rng.standard_normal((len(x), 3))
+        u2 = float(((x[:, :3] - x_ref[:, :3]) ** 2).sum(axis=1).max())
+        track[1] = max(track[1], u2)  # as the node pass keeps it
+        before = track[0], track[2]
+        margin, n = step._finger_reach(x, t, fg, x_ref, track, near, centres)
+        renewals += (track[0], track[2]) != before or track[1] == 0.0
+        listed = set(near[:n].tolist())
+        assert len(listed) == n
+        d = np.linalg.norm(x[boundary, :3] - centres[0], axis=1)
+        assert set(boundary[d < radius + margin].tolist()) <= listed
+        lengths.append(n)
+    assert renewals >= 3 and max(lengths) < 0.5 * len(boundary)
+
+
 def test_steppers_share_a_body_packing_that_does_not_keep_the_body():
     """A body is packed for the kernels once (pack_body's tuple kept per body and share); the
     cache holds the body weakly: gone with its last stepper."""
