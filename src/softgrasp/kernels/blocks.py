@@ -499,110 +499,58 @@ tet_spring_block_quadratic_undamped = _tet_spring_intrinsic(False, False, False)
 tet_spring_block_quadratic_undamped_full = _tet_spring_intrinsic(False, True, False)
 
 
-def _node_codegen(two_parts: bool):  # type: ignore[no-untyped-def]
+def _node_codegen(two_parts: bool, nodes: int):  # type: ignore[no-untyped-def]
+    lanes = 4 * nodes
+    vec = ir.VectorType(_F64, lanes)
+
     def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
-        xa, va, ra, fa, ga, pa, qa, rv, wv, mv, dtv = args
-        t = signature.args
-        X, V, R, F, G, Pp, Q = (
-            _data(context, b, t[k], a) for k, a in enumerate((xa, va, ra, fa, ga, pa, qa))
-        )
-        r = _as_i64(b, rv)
-        f = _load_row(b, F, r)
-        if two_parts:
-            f = b.fadd(f, _load_row(b, F, b.add(_as_i64(b, wv), r)))
-        m4 = _splat(b, mv, 4)
-        dt4 = _splat(b, dtv, 4)
-        a = b.fdiv(b.fadd(b.fadd(b.fadd(f, _load_row(b, G, r)), _load_row(b, Pp, r)), _load_row(b, Q, r)), m4)
-        zero = ir.Constant(_V4, [0.0] * 4)
-        b.store(zero, _row_ptr(b, Pp, r), align=8)
-        b.store(zero, _row_ptr(b, Q, r), align=8)
-        v_new = b.fadd(_load_row(b, V, r), b.fmul(dt4, a))
-        x_new = b.fadd(_load_row(b, X, r), b.fmul(dt4, v_new))
-        b.store(v_new, _row_ptr(b, V, r), align=8)
-        b.store(x_new, _row_ptr(b, X, r), align=8)
-        fabs = cgutils.get_or_insert_function(b.module, ir.FunctionType(_V4, [_V4]), "llvm.fabs.v4f64")
-        inf = ir.Constant(_V4, [float("inf")] * 4)
-        finite = b.and_(
-            b.fcmp_ordered("<", b.call(fabs, [v_new]), inf), b.fcmp_ordered("<", b.call(fabs, [x_new]), inf)
-        )
-        bits = b.bitcast(finite, ir.IntType(4))
-        bad = b.zext(b.icmp_unsigned("!=", bits, ir.Constant(ir.IntType(4), 15)), _I64)
-        du = b.fsub(x_new, _load_row(b, R, r))
-        du2 = ir.Constant(_F64, 0.0)
-        for k in range(3):
-            e = b.extract_element(du, ir.Constant(_I32, k))
-            du2 = b.fadd(du2, b.fmul(e, e))
-        return context.make_tuple(b, signature.return_type, [du2, bad])
-
-    return codegen
-
-
-def _pair_codegen(two_parts: bool):  # type: ignore[no-untyped-def]
-    def codegen(context, b, signature, args):  # type: ignore[no-untyped-def]
-        xa, va, ra, fa, ga, pa, qa, rv, wv, mav, mbv, dtv = args
+        xa, va, ra, fa, ga, pa, qa, rv, wv = args[:9]
+        masses, dtv = args[9 : 9 + nodes], args[9 + nodes]
         t = signature.args
         X, V, R, F, G, Pp, Q = (
             _data(context, b, t[k], a) for k, a in enumerate((xa, va, ra, fa, ga, pa, qa))
         )
         r = _as_i64(b, rv)
 
-        def ptr(base):  # type: ignore[no-untyped-def]
-            return b.bitcast(b.gep(base, [r]), _V8.as_pointer())
+        def ptr(base, at=r):  # type: ignore[no-untyped-def]  # the node's row (rows) from ``at``
+            return b.bitcast(b.gep(base, [at]), vec.as_pointer())
 
-        def load(base, at=None):  # type: ignore[no-untyped-def]
-            p = ptr(base) if at is None else b.bitcast(b.gep(base, [at]), _V8.as_pointer())
-            return b.load(p, align=8)
+        def load(base, at=r):  # type: ignore[no-untyped-def]
+            return b.load(ptr(base, at), align=8)
 
         f = load(F)
         if two_parts:
             f = b.fadd(f, load(F, b.add(_as_i64(b, wv), r)))
-        ma4 = _splat(b, mav, 4)
-        mb4 = _splat(b, mbv, 4)
-        m8 = b.shuffle_vector(ma4, mb4, _mask(range(8)))
-        dt8 = _splat(b, dtv, 8)
-        a = b.fdiv(b.fadd(b.fadd(b.fadd(f, load(G)), load(Pp)), load(Q)), m8)
-        zero = ir.Constant(_V8, [0.0] * 8)
+        m = _splat(b, masses[0], 4)
+        if nodes == 2:
+            m = b.shuffle_vector(m, _splat(b, masses[1], 4), _mask(range(8)))
+        dt = _splat(b, dtv, lanes)
+        a = b.fdiv(b.fadd(b.fadd(b.fadd(f, load(G)), load(Pp)), load(Q)), m)
+        zero = ir.Constant(vec, [0.0] * lanes)
         b.store(zero, ptr(Pp), align=8)
         b.store(zero, ptr(Q), align=8)
-        v_new = b.fadd(load(V), b.fmul(dt8, a))
-        x_new = b.fadd(load(X), b.fmul(dt8, v_new))
+        v_new = b.fadd(load(V), b.fmul(dt, a))
+        x_new = b.fadd(load(X), b.fmul(dt, v_new))
         b.store(v_new, ptr(V), align=8)
         b.store(x_new, ptr(X), align=8)
-        fabs = cgutils.get_or_insert_function(b.module, ir.FunctionType(_V8, [_V8]), "llvm.fabs.v8f64")
-        inf = ir.Constant(_V8, [float("inf")] * 8)
+        fabs = cgutils.get_or_insert_function(b.module, ir.FunctionType(vec, [vec]), f"llvm.fabs.v{lanes}f64")
+        inf = ir.Constant(vec, [float("inf")] * lanes)
         finite = b.and_(
             b.fcmp_ordered("<", b.call(fabs, [v_new]), inf), b.fcmp_ordered("<", b.call(fabs, [x_new]), inf)
         )
-        bits = b.bitcast(finite, ir.IntType(8))
-        bad = b.zext(b.icmp_unsigned("!=", bits, ir.Constant(ir.IntType(8), 255)), _I64)
+        bits = b.bitcast(finite, ir.IntType(lanes))
+        bad = b.zext(b.icmp_unsigned("!=", bits, ir.Constant(ir.IntType(lanes), 2**lanes - 1)), _I64)
         du = b.fsub(x_new, load(R))
         out = []
-        for h in (0, 4):
+        for h in range(0, lanes, 4):  # each node's |x - x_ref|^2
             du2 = ir.Constant(_F64, 0.0)
             for k in range(3):
                 e = b.extract_element(du, ir.Constant(_I32, h + k))
                 du2 = b.fadd(du2, b.fmul(e, e))
             out.append(du2)
-        return context.make_tuple(b, signature.return_type, [out[0], out[1], bad])
+        return context.make_tuple(b, signature.return_type, [*out, bad])
 
     return codegen
-
-
-def _pair_intrinsic(two_parts: bool):  # type: ignore[no-untyped-def]
-    def typer(typingctx, x, v, ref, f, g, p, q, row, width, ma, mb, dt):  # type: ignore[no-untyped-def]
-        if not (_f64_arrays(x, v, ref, f, g, p, q) and isinstance(row, types.Integer)):
-            return None
-        ret = types.Tuple((types.float64, types.float64, types.int64))
-        return ret(x, v, ref, f, g, p, q, row, width, ma, mb, dt), _pair_codegen(two_parts)
-
-    return intrinsic(typer)
-
-
-#: :data:`node_step` for two neighbouring nodes at once (rows ``r`` and ``r + 4``, masses ``ma``,
-#: ``mb``): returns (|x - x_ref|^2 of each, 1 if a value of v or x is not finite). The same bits.
-node_pair_step = _pair_intrinsic(False)
-#: :data:`node_pair_step` with two parts of the force buffer.
-node_pair_step_two = _pair_intrinsic(True)
 
 
 def _node_intrinsic(two_parts: bool):  # type: ignore[no-untyped-def]
@@ -613,7 +561,18 @@ def _node_intrinsic(two_parts: bool):  # type: ignore[no-untyped-def]
         if not (_f64_arrays(x, v, ref, f, g, p, q) and isinstance(row, types.Integer) and scalars):
             return None
         ret = types.Tuple((types.float64, types.int64))
-        return ret(x, v, ref, f, g, p, q, row, width, m, dt), _node_codegen(two_parts)
+        return ret(x, v, ref, f, g, p, q, row, width, m, dt), _node_codegen(two_parts, 1)
+
+    return intrinsic(typer)
+
+
+def _pair_intrinsic(two_parts: bool):  # type: ignore[no-untyped-def]
+    def typer(typingctx, x, v, ref, f, g, p, q, row, width, ma, mb, dt):  # type: ignore[no-untyped-def]
+        scalars = all(isinstance(s, types.Float) for s in (ma, mb, dt)) and isinstance(width, types.Integer)
+        if not (_f64_arrays(x, v, ref, f, g, p, q) and isinstance(row, types.Integer) and scalars):
+            return None
+        ret = types.Tuple((types.float64, types.float64, types.int64))
+        return ret(x, v, ref, f, g, p, q, row, width, ma, mb, dt), _node_codegen(two_parts, 2)
 
     return intrinsic(typer)
 
@@ -627,3 +586,9 @@ def _node_intrinsic(two_parts: bool):  # type: ignore[no-untyped-def]
 node_step = _node_intrinsic(False)
 #: :data:`node_step` with two parts of the force buffer.
 node_step_two = _node_intrinsic(True)
+#: :data:`node_step` for two neighbouring nodes at once (rows ``r`` and ``r + 4``, masses ``ma``,
+#: ``mb``): ``node_pair_step(x, v, x_ref, fint, grav, fplane, ffinger, r, part, ma, mb, dt)``
+#: returns (|x - x_ref|^2 of each, 1 if a value of v or x is not finite). The same bits.
+node_pair_step = _pair_intrinsic(False)
+#: :data:`node_pair_step` with two parts of the force buffer.
+node_pair_step_two = _pair_intrinsic(True)

@@ -1278,7 +1278,7 @@ BLOCKS_DEFAULT = _blocks_default()
 #: there must come with an edit here (tests/test_fused_step.py compares), or the stepper would run
 #: the stale machine code of the earlier source.
 _INLINED_SOURCES_SHA256 = {
-    "blocks.py": "4d22450dffb043589a422fbc552326ed86c9db0eb552d8bb239f17090024c9a0",
+    "blocks.py": "b464bc75601d1ab561186c820feb0e33a62b705bfeae0e87d6ca8956cb9138fc",
     "contact.py": "df52d63b2eb1875689239d82377f0b77e0a75f5a93b7777fee38a62d4c641a01",
     "elastic.py": "f9f85e76422adfe02f119d0231a51c9fd04a1a75480b085565cb13725914297d",
     "spin.py": "27ac392cd2fbfe5999365d7ed215697cc1054c28b37c5b886f4033e5beea1908",
