@@ -195,7 +195,7 @@ def _node_case(rng: np.random.Generator, n: int, parts: int):
     return rows, fint
 
 
-def _node_pass(rows, fint, mass, dt):
+def _node_pass(rows, fint, mass, dt, part=0, parts=1):
     n = mass.shape[0]
     planes = (
         np.zeros((0, 3)),
@@ -206,7 +206,7 @@ def _node_pass(rows, fint, mass, dt):
     )
     sums = np.zeros(6)
     step._node_part(
-        0, 1, dt, rows["x"], rows["v"], mass, rows["grav"], fint, rows["fplane"], rows["ffinger"],
+        part, parts, dt, rows["x"], rows["v"], mass, rows["grav"], fint, rows["fplane"], rows["ffinger"],
         rows["ref"], planes, np.zeros((0, 3)), np.zeros((0, n), np.bool_), np.zeros((0, n, 3)), sums,
     )  # fmt: skip
     return sums
@@ -246,6 +246,21 @@ def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(bad_node, parts):
         v_new = r0["v"] + 1e-5 * (F / mass[:, None])
         np.testing.assert_allclose(rows["v"], v_new, rtol=1e-15, atol=0)
         np.testing.assert_allclose(rows["x"], r0["x"] + 1e-5 * v_new, rtol=1e-15, atol=0)
+
+
+def test_node_parts_starting_at_an_odd_node_step_as_one_part():
+    """Two node parts of 39 nodes (the second starting at node 19, its pairs (19, 20), ...) give the
+    rows of one part over all of them to the bit."""
+    rng = np.random.default_rng(5)
+    n = 39
+    mass = 1e-3 * (1.0 + rng.random(n))
+    rows, fint = _node_case(rng, n, 2)
+    split = {k: v.copy() for k, v in rows.items()}
+    _node_pass(rows, fint, mass, 1e-5)
+    for part in (0, 1):
+        _node_pass(split, fint, mass, 1e-5, part, 2)
+    for name in rows:
+        np.testing.assert_array_equal(rows[name], split[name])
 
 
 def test_the_check_energy_logarithm_matches_a_long_double_reference():

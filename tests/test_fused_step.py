@@ -288,6 +288,16 @@ def test_the_near_list_holds_every_surface_node_the_full_scan_would_find(pressed
     assert renewals >= 3 and max(lengths) < 0.5 * len(boundary)
 
 
+def test_the_leader_takes_the_smaller_share_only_for_semi_implicit_steps(pressed):
+    """The uneven split pays where the leader does the fingertips beside its part (semi-implicit
+    on two threads); RK4's stages keep even parts."""
+    scene, s0 = pressed
+    args = (scene.body, [scene.interactions[0]], [s0.contacts[0]], scene.interactions[1], s0.contacts[1])
+    semi = step.FusedStepper(*args, s0.x, s0.v, s0.t, method="semi-implicit")
+    rk4 = step.FusedStepper(*args, s0.x, s0.v, s0.t, method="rk4")
+    assert semi._body[14] < 0.5 and rk4._body[14] == 0.5
+
+
 def test_steppers_share_a_body_packing_that_does_not_keep_the_body():
     """A body is packed for the kernels once (pack_body's tuple kept per body and share); the
     cache holds the body weakly: gone with its last stepper."""

@@ -1457,7 +1457,8 @@ def pack_body(body: Any, blocks: bool | None = None, lead: float = 0.5) -> tuple
         elements share no node, wherever a greedy pass finds such: its read-modify-writes of the
         forces then do not wait for one another; 7 % off the body forces on the reference
         machine); the scalar loops keep the mesh's order (the reference kernels' sums to the bit).
-        With the volume term, each tet of a whole block also carries one spring
+        With the volume term, each tet of a whole block also carries a spring when one of its
+        edges has a spring no tet took before it (none: an empty place, no force, no energy)
         (:func:`_carried_springs`; all 9 720 such tets at 2 196 nodes, 3 251 of the 12 971 springs
         left for the springs' kernels): its vertices reordered (an even permutation) so that the
         spring joins vertices 0 and 1, and ``tp8`` holds the spring's columns after the tet's
@@ -1624,7 +1625,10 @@ class FusedStepper:
         self.v = aligned_zeros((N, 4))
         self.x[:, :3] = _f64(x, (N, 3))
         self.v[:, :3] = _f64(v, (N, 3))
-        tips = 0 if fingers is None else len(fingers.fingertips)
+        # The leader's smaller share pays only where a leader does the fingertips beside its part
+        # (semi-implicit on two threads); RK4's stages split their parts on Numba's threads, the
+        # fingertips after them: even parts there. Chosen by the method, never by the threads.
+        tips = 0 if fingers is None or method != "semi-implicit" else len(fingers.fingertips)
         self._body = _packed(body, leader_share(tips, len(body.edges) + len(body.mesh.tets)))
         self.parts = max(1, int(parts))
         self.threads = 1
