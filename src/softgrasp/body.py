@@ -42,6 +42,11 @@ ANISOTROPY_WARNING = 0.02
 DEFAULT_DAMPING_RATIO = 0.1
 
 
+def _row_max(J: sp.spmatrix) -> NDArray[np.float64]:
+    """Per node, the largest absolute row sum of a (3N, 3N) matrix over the node's 3 rows, (N,)."""
+    return np.asarray(abs(J).sum(axis=1)).ravel().reshape(-1, 3).max(axis=1)
+
+
 @dataclass(frozen=True, eq=False)
 class Body:
     """A calibrated non-linear mass-spring body (static model; positions live in the state).
@@ -247,29 +252,29 @@ class Body:
 
         Used to size penalty contacts and time steps.
         """
-        K = abs(self.rest_jacobian)
-        rows = np.asarray(K.sum(axis=1)).ravel().reshape(-1, 3)
-        return rows.max(axis=1) / 2.0  # diagonal + off-diagonal row sums: twice the spring sum
+        return self._stiffness_rows / 2.0  # diagonal + off-diagonal row sums: twice the spring sum
+
+    @cached_property
+    def _stiffness_rows(self) -> NDArray[np.float64]:
+        """Per node, the largest absolute row sum over its 3 rows of the rest stiffness matrix
+        [N/m], (N,), read-only."""
+        k = _row_max(self.rest_jacobian)
+        k.setflags(write=False)
+        return k
 
     @cached_property
     def rest_row_sums(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Per node, the largest absolute row sum over its 3 rows of the rest stiffness matrix
-        [N/m] and of the rest damping matrix [N s/m] (zeros without dashpots), (N,) each: the
-        Gershgorin bounds of :func:`softgrasp.sim.stability.node_gershgorin`, computed once (the
-        damping matrix's assembly costs ~14 ms at 2 196 nodes, and every simulation asks)."""
-
-        def row_max(J: sp.spmatrix) -> NDArray[np.float64]:
-            rows = np.asarray(abs(J).sum(axis=1)).ravel()
-            return rows.reshape(-1, 3).max(axis=1)
-
-        k = row_max(self.rest_jacobian)
+        [N/m] (twice :attr:`node_stiffness`) and of the rest damping matrix [N s/m] (zeros without
+        dashpots), (N,) each, read-only: the Gershgorin bounds of
+        :func:`softgrasp.sim.stability.node_gershgorin`, computed once (the damping matrix's
+        assembly costs ~14 ms at 2 196 nodes, and every simulation asks)."""
         if self.damping_time > 0:
-            c = row_max(self.damping_jacobian(np.asarray(self.mesh.points)))
+            c = _row_max(self.damping_jacobian(np.asarray(self.mesh.points)))
         else:
             c = np.zeros(self.n_nodes)
-        k.setflags(write=False)
         c.setflags(write=False)
-        return k, c
+        return self._stiffness_rows, c
 
     @cached_property
     def fundamental_frequency(self) -> float:
