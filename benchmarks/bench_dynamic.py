@@ -8,7 +8,7 @@ In the same run it prints:
 * ``simulate(..., method=m)`` at the stable time step, steps/s (best and median of a few repeats),
   node-steps/s, force evaluations/s and the ratios to NumPy and to the per-step Numba path, for
   semi-implicit Euler and RK4 on the NumPy reference kernels, on the compiled kernels step by
-  step (``fused=False``) and fused (:mod:`softgrasp.kernels.step`: many steps per compiled call)
+  step (``fused=False``) and fused (:mod:`softgrasp.sim.fused.step`: many steps per compiled call)
   on one and on two threads. The blow-up monitor's work is included, as in every real run;
 * where a step goes: the parts of the per-step path (each measured alone, both backends), and the
   compiled parts of a fused step (body forces on one and two threads, with and without the energy
@@ -49,16 +49,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from softgrasp import kernels
-from softgrasp.body import Body, build_body
-from softgrasp.contact.fingertip import Fingertip
-from softgrasp.contact.model import FingertipContact
+from softgrasp import backend
+from softgrasp.physics.body import Body, build_body
+from softgrasp.physics.fingertip.params import Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.experiments.indentation import surface_height
-from softgrasp.mesh import box
-from softgrasp.objects import make_object
-from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim import pardiso
-from softgrasp.sim.integrators import _FusedRun, make_integrator, simulate
+from softgrasp.model.mesh import box
+from softgrasp.model.objects import make_object
+from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.linalg import pardiso
+from softgrasp.sim.explicit import _FusedRun, make_integrator, simulate
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.stability import BlowupMonitor, stable_time_step
 
@@ -66,7 +66,7 @@ RADIUS = 0.008  #: fingertip radius [m]
 DEPTH = 0.002  #: initial penetration of the fingertip [m]
 SPEED = 0.005  #: fingertip speed, downwards [m/s] (the paper's closing speed)
 #: Floating-point operations per element of one force evaluation, counted on the compiled kernels
-#: (softgrasp.kernels.elastic; a square root or division counts as one): per edge, the spring
+#: (softgrasp.physics.forces_compiled; a square root or division counts as one): per edge, the spring
 #: (difference 3, length 6, 1/L 1, strain 2, cubic law 6, tension 2, scaling 1, scatter 9) and
 #: its dashpot (relative velocity 3, rate 6, force 2); per tet, the volume term (edge vectors 9,
 #: three cross products 27, volume 6, J and psi' 4, coefficient 3, scatter 30).
@@ -185,7 +185,7 @@ def bench_simulate(
     other runnable tasks seen while it ran."""
     out: dict[tuple[str, str], tuple[list[float], int]] = {}
     for label, method, backend, fused, threads in CASES:
-        if backend not in kernels.available() or threads > (os.cpu_count() or 1):
+        if backend not in backend.available() or threads > (os.cpu_count() or 1):
             continue
         if threads > 1 and others_running(settle=0.5) > 0:
             print(f"  {label} ({method}) skipped: another process is running (two threads would wait for it)")
@@ -194,7 +194,7 @@ def bench_simulate(
         n = fused_steps if fused else steps
         pardiso.set_threads(threads)
         try:
-            with kernels.use_backend(backend):
+            with backend.use_backend(backend):
                 kw = {"method": method, "dt": dt, "fused": fused}
                 final = simulate(scene, s0, 5 * dt, **kw)  # warm-up (and compile)
                 assert finger_pairs(scene, final) > 0
@@ -217,8 +217,8 @@ def step_breakdown(scene: Scene, s0: State) -> dict[str, dict[str, float]]:
     integ = make_integrator("semi-implicit")
     dt = stable_time_step(scene, "semi-implicit")
     res: dict[str, dict[str, float]] = {}
-    for backend in kernels.available()[::-1]:
-        with kernels.use_backend(backend):
+    for backend in backend.available()[::-1]:
+        with backend.use_backend(backend):
             monitor = BlowupMonitor(scene, state, "semi-implicit")
             res[backend] = {
                 "Body.internal_forces": per_call(lambda: body.internal_forces(x, v)),
@@ -238,8 +238,7 @@ def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
     """Wall time [s] of a fused semi-implicit step and of its compiled parts, each measured alone."""
     import numba
 
-    from softgrasp.kernels import step as k
-
+    from softgrasp.sim.fused import step as k
     dt = stable_time_step(scene, "semi-implicit")
     state = simulate(scene, s0, 20 * dt, method="semi-implicit", dt=dt)
     two = (os.cpu_count() or 1) >= 2 and others_running(settle=0.5) == 0
@@ -325,8 +324,8 @@ def profile(scene: Scene, s0: State, steps: int, top: int = 14) -> dict[str, str
     """cProfile of ``steps`` per-step semi-implicit steps per backend: the top entries by own time."""
     dt = stable_time_step(scene, "semi-implicit")
     out = {}
-    for backend in kernels.available()[::-1]:
-        with kernels.use_backend(backend):
+    for backend in backend.available()[::-1]:
+        with backend.use_backend(backend):
             simulate(scene, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
             pr = cProfile.Profile()
             pr.enable()
@@ -357,8 +356,8 @@ def bench_kernels() -> None:
         x = np.asarray(mesh.points) + 1e-4 * rng.standard_normal(mesh.points.shape)
         v = 1e-2 * rng.standard_normal(x.shape)
         t = {}
-        for backend in kernels.available()[::-1]:
-            with kernels.use_backend(backend):
+        for backend in backend.available()[::-1]:
+            with backend.use_backend(backend):
                 t[backend, "f"] = per_call(lambda b=body, x=x, v=v: b.internal_forces(x, v), 1.0)
                 t[backend, "j"] = per_call(lambda b=body, x=x: b.internal_jacobian(x), 2.0)
         fn, fb = t["numpy", "f"], t.get(("numba", "f"), float("nan"))
@@ -373,12 +372,12 @@ _COMPILE_SNIPPET = """
 import time
 t0 = time.perf_counter()
 import numpy as np
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import Fingertip
-from softgrasp.contact.model import FingertipContact
-from softgrasp.material import Material
-from softgrasp.mesh import box
-from softgrasp.kernels import elastic, contact
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.model.material import Material
+from softgrasp.model.mesh import box
+from softgrasp.backend import elastic, contact
 t1 = time.perf_counter()
 body = build_body(box(0.02, 2), Material(1e5, 0.45, 50.0))
 x = np.asarray(body.mesh.points)
@@ -391,7 +390,7 @@ t3 = time.perf_counter()
 state = fc.init_state(body, x)
 fc.forces(body, x, x, 0.0, state)
 t4 = time.perf_counter()
-from softgrasp.planes import Plane, PlaneContact
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate
 scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), name="table"), fc))
 simulate(scene, scene.initial_state(), 1e-6, method="semi-implicit", dt=1e-7, fused=True)
@@ -439,11 +438,10 @@ def main() -> None:
         f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, NumPy {np.__version__}, "
         f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, "
-        f"backends {', '.join(kernels.available())}"
+        f"backends {', '.join(backend.available())}"
     )
-    if "numba" in kernels.available():
-        from softgrasp.kernels import step as k
-
+    if "numba" in backend.available():
+        from softgrasp.sim.fused import step as k
         print(
             "fused body forces: "
             + ("block kernels (eight elements a time)" if k.BLOCKS_DEFAULT else "scalar loops")
@@ -488,7 +486,7 @@ def main() -> None:
     print(f"{'':>38} " + " ".join(f"{b:>8}" for b in parts))
     for name in names:
         print(f"{name:>38} " + " ".join(f"{parts[b][name] * 1e6:>8.1f}" for b in parts))
-    fused = fused_breakdown(scene, s0) if "numba" in kernels.available() else {}
+    fused = fused_breakdown(scene, s0) if "numba" in backend.available() else {}
     if fused:
         print(
             "\none fused semi-implicit step, its compiled parts measured alone [us] "
@@ -519,8 +517,8 @@ def main() -> None:
             f"{20000 * k * flops / 1e9:.1f} Gflop/s"
         )
     dt = stable_time_step(scene, "semi-implicit")
-    for backend in kernels.available()[::-1]:
-        with kernels.use_backend(backend):
+    for backend in backend.available()[::-1]:
+        with backend.use_backend(backend):
             print(
                 f"  body alone, semi-implicit, minimal Python loop ({backend}): "
                 f"{body_only_steps(body, dt):.0f} steps/s"

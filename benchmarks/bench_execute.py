@@ -19,9 +19,9 @@ import time
 from pathlib import Path
 
 from softgrasp.cli import main as cli
-from softgrasp.hand.execute import ExecuteConfig, closing_lines, execute_plan
-from softgrasp.hand.mujoco_hand import MujocoHand
-from softgrasp.hand.planfile import load_plan_file
+from softgrasp.execution.controller import ExecuteConfig, closing_lines, execute_plan
+from softgrasp.execution.mujoco.hand import MujocoHand
+from softgrasp.io.planfile import load_plan_file
 
 
 def run(mesh_size: float | None) -> None:

@@ -1,7 +1,7 @@
 """Benchmark: one-fingertip indentation of the rubber sphere, softgrasp vs MuJoCo flex, same run.
 
 The scene (the speed issue's target): the paper's rubber sphere (radius 64 mm, 50 g, E = 79.3 kPa,
-nu = 0.45; :func:`softgrasp.objects.make_object`) rests on a table (friction 0.5); a rigid spherical
+nu = 0.45; :func:`softgrasp.model.objects.make_object`) rests on a table (friction 0.5); a rigid spherical
 fingertip of R = 8 mm (friction 0.8) presses straight down on its top, 15 mm of travel from first
 contact at 10 mm/s (1.5 s), then holds still until 2 s after first contact. Both engines get the
 same tet mesh (softgrasp's own points and tets), the same E, nu and mass, in one process run, one
@@ -30,18 +30,18 @@ How each side simulates it
   in MuJoCo too), by 0.1 s of backward Euler; the fingertip starts touching the settled surface
   above the sphere's centre. Its wall time includes the settling.
   ``--solver`` picks ``static``, ``implicit`` or ``both`` (default: both, one table row each).
-* **MuJoCo 4.0 flex:** :func:`softgrasp.hand.mjcf.load_indent_scene` builds the same object
+* **MuJoCo 4.0 flex:** :func:`softgrasp.execution.mujoco.scene.load_indent_scene` builds the same object
   (``flexcomp`` dim 3 from softgrasp's points and tets, ``young``/``poisson``, mass spread evenly
   over the vertices), the table and the fingertip on three world-axis slides under stiff position
   servos (1e6 N/m, critically damped: 10 um under 10 N), with the settings of
-  :mod:`softgrasp.hand.mjcf` (integrator ``discrete``, CG, elliptic cones, 2 ms steps, stiff
+  :mod:`softgrasp.execution.mujoco.scene` (integrator ``discrete``, CG, elliptic cones, 2 ms steps, stiff
   contacts: solref 2 ms / solimp 0.999-0.9999, fingertip priority so its friction 0.8 is used as
   is, table 0.5). It settles 0.3 s under gravity (timed apart), the fingertip is placed 1 mm above
   the settled top over the vertices' mean (x, y) and moves down at 10 mm/s; first contact is the
   first step with a fingertip contact force. The timed run is the 2 s from first contact: the
   servo target keeps moving 1.5 s more, then holds. Travel is the measured fingertip centre's
   drop since first contact; force is the norm of the summed contact forces of the fingertip on
-  the flex (:func:`softgrasp.hand.mjcf.contact_force`), recorded every 5 steps.
+  the flex (:func:`softgrasp.execution.mujoco.scene.contact_force`), recorded every 5 steps.
 
 Reported per mesh size: nodes, wall times [s] (softgrasp's whole test; MuJoCo's 2 s after first
 contact, its compile and settle apart), the ratio MuJoCo / softgrasp, the force at the end of the
@@ -78,7 +78,7 @@ Why the forces differ (``--diagnose`` on 549 nodes):
 
 * **Mesh convergence of the flex.** MuJoCo's force at 15 mm falls from 13.3 N (549 nodes) to
   7.9 N (2 196) and 6.6 N (7 576): coarse linear tets lock at nu = 0.45 (see
-  :mod:`softgrasp.hand.mjcf`). softgrasp's falls less (10.0 -> 7.8 N). The -25 % at 549 nodes is
+  :mod:`softgrasp.execution.mujoco.scene`). softgrasp's falls less (10.0 -> 7.8 N). The -25 % at 549 nodes is
   mostly MuJoCo's coarse-mesh stiffness; at 2 196 nodes the two agree within 2 % at 15 mm.
 * **Curve shape.** softgrasp follows Hertz's delta^1.5 at small travel (0.80 N at 2 mm on 549
   nodes, Hertz 0.8 N); MuJoCo is nearly linear from the start (2.24 N at 2 mm; 1.34 N on 2 196
@@ -118,18 +118,18 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import brentq
 
-from softgrasp.body import STANDARD_GRAVITY, Body, build_body
-from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.model import FingertipContact
+from softgrasp.physics.body import STANDARD_GRAVITY, Body, build_body
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import NotConverged, SoftgraspError
 from softgrasp.experiments.indentation import indentation_test, surface_height
-from softgrasp.hand.mjcf import IndentSpec, load_indent_scene
-from softgrasp.material import Material
-from softgrasp.mesh.tetmesh import TetMesh
-from softgrasp.objects import SPHERE_RADIUS, make_object
-from softgrasp.planes import Plane, PlaneContact
+from softgrasp.execution.mujoco.scene import IndentSpec, load_indent_scene
+from softgrasp.model.material import Material
+from softgrasp.model.mesh.tetmesh import TetMesh
+from softgrasp.model.objects import SPHERE_RADIUS, make_object
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import implicit_euler_step
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_static
 

@@ -44,9 +44,9 @@ WARM_REPEATS = 3
 
 def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover - child process
     os.environ["SOFTGRASP_LINSOLVE"] = linsolve
-    from softgrasp.body import build_body
+    from softgrasp.physics.body import build_body
     from softgrasp.grasp.planner import PlanConfig, plan_grasp
-    from softgrasp.objects import make_object
+    from softgrasp.model.objects import make_object
 
     t0 = time.perf_counter()
     mesh, mat, mass = make_object("sphere", h)

@@ -4,8 +4,8 @@ A default plan of the rubber sphere asks ``place_hand`` to place the Shadow-like
 four initial-grasp candidates (the hand refuses the first two or three: it reaches them only with
 joints inside the object). This script records those calls (their fingertip targets and the
 settled object) during one plan per mesh size, then replays each of them with the compiled kernels
-(``softgrasp.kernels.reach``) and with the NumPy reference (``SOFTGRASP_KERNELS=numpy`` semantics,
-``softgrasp.kernels.use_backend``), alternating, and prints per call the best and median times, the
+(``softgrasp.hand.placement_compiled``) and with the NumPy reference (``SOFTGRASP_KERNELS=numpy`` semantics,
+``softgrasp.backend.use_backend``), alternating, and prints per call the best and median times, the
 ratio, and whether both gave the same outcome (the same refusal, or the same placement to 1e-9).
 
 Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_reach.py [--repeats N]``.
@@ -22,11 +22,11 @@ import time
 import numpy as np
 
 import softgrasp.grasp.planner as planner
-from softgrasp import kernels
-from softgrasp.body import build_body
+from softgrasp import backend
+from softgrasp.physics.body import build_body
 from softgrasp.errors import InfeasibleGrasp
-from softgrasp.hand.reach import place_hand
-from softgrasp.objects import make_object
+from softgrasp.hand.placement import place_hand
+from softgrasp.model.objects import make_object
 
 #: Sphere mesh sizes [m]: 549 and 2 196 nodes.
 SIZES = (0.014, 0.008)
@@ -75,7 +75,7 @@ def main() -> None:
     print(f"place_hand benchmark on {platform.machine()}, {os.cpu_count()} CPUs; kernels: compiled vs NumPy")
     print(" nodes  call  compiled best/median ms   NumPy best/median ms   ratio  same outcome")
     for h in SIZES:
-        with kernels.use_backend("numba"):
+        with backend.use_backend("numba"):
             calls = _recorded_calls(h)
         n_nodes = len(make_object("sphere", h)[0].points)
         total = {"numba": 0.0, "numpy": 0.0}
@@ -83,11 +83,11 @@ def main() -> None:
             times: dict[str, list[float]] = {"numba": [], "numpy": []}
             results = {}
             for backend in ("numba", "numpy"):  # one untimed call each: loading, caches
-                with kernels.use_backend(backend):
+                with backend.use_backend(backend):
                     results[backend] = _outcome(model, targets, kw)
             for _ in range(args.repeats):
                 for backend in ("numba", "numpy"):
-                    with kernels.use_backend(backend):
+                    with backend.use_backend(backend):
                         t0 = time.perf_counter()
                         _outcome(model, targets, kw)
                         times[backend].append(time.perf_counter() - t0)

@@ -19,11 +19,11 @@ import time
 
 import numpy as np
 
-from softgrasp.body import build_body
+from softgrasp.physics.body import build_body
 from softgrasp.grasp.planner import PlanConfig, _settle
-from softgrasp.objects import make_object
+from softgrasp.model.objects import make_object
 from softgrasp.sim import static
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp.linalg.solve import SolverCache
 
 SIZES = (0.008, 0.0075, 0.006, 0.0055, 0.005)
 QUICK = (0.008, 0.0075)

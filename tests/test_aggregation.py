@@ -1,5 +1,5 @@
 """The smoothed-aggregation hierarchy built with the compiled finest Galerkin product
-(:mod:`softgrasp.sim.aggregation`, :mod:`softgrasp.kernels.galerkin`) against SciPy's product and
+(:mod:`softgrasp.linalg.multigrid.aggregation`, :mod:`softgrasp.linalg.multigrid.galerkin`) against SciPy's product and
 pyamg's own hierarchy."""
 
 from __future__ import annotations
@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from softgrasp import kernels
-from softgrasp.body import build_body
-from softgrasp.material import preset
-from softgrasp.mesh.generate import box
-from softgrasp.sim import linsolve
-
-pytestmark = pytest.mark.skipif("numba" not in kernels.available(), reason="Numba is not installed")
+from softgrasp import backend
+from softgrasp.physics.body import build_body
+from softgrasp.model.material import preset
+from softgrasp.model.mesh.generate import box
+from softgrasp.linalg import solve as linsolve
+pytestmark = pytest.mark.skipif("numba" not in backend.available(), reason="Numba is not installed")
 
 
 def _cube(n: int):
@@ -52,7 +51,7 @@ def test_the_compiled_galerkin_product_is_scipys_and_the_same_bits_on_one_thread
     smoothed prolongator (1 x 6 blocks) and for a random unsymmetric matrix with a random
     prolongator: equal to rounding, canonical 6 x 6 blocks; on one thread and two the same bits;
     other block sizes refused."""
-    from softgrasp.kernels.galerkin import galerkin_product
+    from softgrasp.linalg.multigrid.galerkin import galerkin_product
 
     A, x = _cube(8)
     P = _pyamg(A, x).levels[0].P
@@ -86,7 +85,7 @@ def test_the_hierarchy_is_pyamgs_with_its_finest_galerkin_product_compiled():
     levels are built from it by the same steps (its blocks in column order, where SciPy's product
     leaves them in the order it reached them: the aggregates may differ there). Multigrid CG with
     either hierarchy solves the system to 1e-8 in about the same number of V-cycles."""
-    from softgrasp.sim.aggregation import smoothed_aggregation
+    from softgrasp.linalg.multigrid.aggregation import smoothed_aggregation
 
     A, x = _cube(12)
     want = _pyamg(A, x)
@@ -127,14 +126,14 @@ def _same_bits_here(got, want):
 
 def test_the_candidates_sweeps_are_pyamgs_to_the_bit():
     """The finest candidates' four symmetric Gauss-Seidel sweeps on ``A x = 0``, all columns in
-    one pass over each row (:func:`softgrasp.kernels.setup.gauss_seidel_columns`), against
+    one pass over each row (:func:`softgrasp.linalg.multigrid.candidates.gauss_seidel_columns`), against
     pyamg's relaxation operator applied column by column: the same bits for the six rigid-body
     modes on the cube, and for six random columns on a matrix whose rows hold their columns out
     of order, with duplicate entries (one on a diagonal) and 64-bit indices, one row without its
     diagonal and one with a stored zero there (pyamg leaves both alone)."""
     from pyamg.relaxation.utils import relaxation_as_linear_operator
 
-    from softgrasp.sim.aggregation import IMPROVE_CANDIDATES, _improved_candidates, _sweeps_compiled
+    from softgrasp.linalg.multigrid.aggregation import IMPROVE_CANDIDATES, _improved_candidates, _sweeps_compiled
 
     assert _sweeps_compiled(IMPROVE_CANDIDATES)
     assert not _sweeps_compiled(("block_gauss_seidel", {"sweep": "forward", "iterations": 4}))
@@ -181,7 +180,7 @@ def test_the_candidates_sweeps_are_pyamgs_to_the_bit():
     want = relaxation_as_linear_operator(IMPROVE_CANDIDATES, M, zero) @ B3
     _same_bits_here(got, want)
     assert np.array_equal(got[7], B3[7]) and np.array_equal(got[12], B3[12])
-    from softgrasp.kernels.setup import gauss_seidel_columns
+    from softgrasp.linalg.multigrid.candidates import gauss_seidel_columns
 
     with pytest.raises(ValueError, match="six float64 columns"):
         gauss_seidel_columns(M.indptr, M.indices, M.data, np.zeros((M.shape[0], 3)), 1)
@@ -199,8 +198,8 @@ def test_the_spectral_radius_is_pyamgs_estimate_to_rounding(monkeypatch):
     from pyamg.util.linalg import approximate_spectral_radius
     from pyamg.util.utils import get_diagonal, scale_rows
 
-    from softgrasp.sim import aggregation
-    from softgrasp.sim.aggregation import _spectral_radius
+    from softgrasp.linalg.multigrid import aggregation
+    from softgrasp.linalg.multigrid.aggregation import _spectral_radius
 
     A, x = _cube(8)
     np.random.seed(linsolve.AMG_SEED)

@@ -1,5 +1,5 @@
-"""The block kernels (:mod:`softgrasp.kernels.blocks`: eight springs or tets a time in vector
-instructions) against the fused stepper's scalar loops (:func:`softgrasp.kernels.step._edge_pass`,
+"""The block kernels (:mod:`softgrasp.sim.fused.blocks`: eight springs or tets a time in vector
+instructions) against the fused stepper's scalar loops (:func:`softgrasp.sim.fused.step._edge_pass`,
 ``_tet_pass``) element block by element block: forces, energies, inverted masks, on blocks that
 repeat a node (read-modify-writes in order), on a nearly and a fully inverted tet (the barrier's
 floor), on a non-finite position; and the parameter layout of :func:`block_params`."""
@@ -12,8 +12,8 @@ import pytest
 pytest.importorskip("numba")
 import numba  # noqa: E402
 
-from softgrasp.kernels import blocks, step  # noqa: E402
-from softgrasp.kernels.elastic import _J_FLOOR  # noqa: E402
+from softgrasp.sim.fused import blocks, step  # noqa: E402
+from softgrasp.physics.forces_compiled import _J_FLOOR  # noqa: E402
 
 A2, A3 = 0.4, 2.0
 
@@ -215,7 +215,7 @@ def _node_pass(rows, fint, mass, dt, part=0, parts=1):
 @pytest.mark.parametrize("parts", [1, 2])
 @pytest.mark.parametrize("bad_node", [None, 20, 21, 36])
 def test_the_node_rows_step_as_the_scalar_loop_to_the_bit(bad_node, parts):
-    """The node pass two rows at a time (:data:`softgrasp.kernels.blocks.node_pair_step` /
+    """The node pass two rows at a time (:data:`softgrasp.sim.fused.blocks.node_pair_step` /
     ``node_pair_step_two``, one or two force parts; the odd node last through ``node_step``) and on
     its scalar loop (taken for three parts, the extra ones zero) give the same bits; a non-finite
     value is seen in either node of a pair and in the last one."""

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
+from softgrasp.physics.body import build_body
 from softgrasp.errors import MaterialError
 from softgrasp.experiments.compression import compression_test
-from softgrasp.material import Material
-from softgrasp.mesh import box, sphere
+from softgrasp.model.material import Material
+from softgrasp.model.mesh import box, sphere
 
 
 def _isotropic_tensor(E: float, nu: float) -> np.ndarray:
@@ -63,8 +63,7 @@ def test_direction_sums_from_moments_equal_the_direct_sums():
     """The calibration's sums over springs and probe directions, D(m) = sum_e w_e (n_e . m)^4 and
     the re-weighted ones sum_e w_e (n_e . m)^4 n_e^alpha, taken from the directions' fourth and
     eighth moments, equal the sums taken term by term."""
-    from softgrasp import network
-
+    from softgrasp.model import network
     rng = np.random.default_rng(3)
     n = rng.standard_normal((5000, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)

@@ -9,9 +9,9 @@ import json
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
+from softgrasp.physics.body import build_body
 from softgrasp.cli import main
-from softgrasp.contact.fingertip import ContactParams
+from softgrasp.physics.fingertip.params import ContactParams
 from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.experiments.calibration import (
     fit_compression,
@@ -22,9 +22,9 @@ from softgrasp.experiments.calibration import (
 )
 from softgrasp.experiments.compression import compression_test
 from softgrasp.experiments.indentation import indentation_test
-from softgrasp.material import Material, Polynomial
-from softgrasp.materialfile import read_material_file, write_material_file
-from softgrasp.objects import make_object
+from softgrasp.model.material import Material, Polynomial
+from softgrasp.io.materialfile import read_material_file, write_material_file
+from softgrasp.model.objects import make_object
 
 #: The specimen of the fits: the 50 mm cube, coarse.
 H_FIT = 0.0125
@@ -298,7 +298,7 @@ def test_material_file_feeds_plan_and_execute(tmp_path, capsys):
     import argparse
 
     from softgrasp.cli import _execute_material
-    from softgrasp.hand.planfile import load_plan_file
+    from softgrasp.io.planfile import load_plan_file
 
     mf = write_material_file(
         tmp_path / "m.toml", Material(9.0e4, 0.42, None, Polynomial(-0.5, 1.0)), ContactParams(mu=1.1)

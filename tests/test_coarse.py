@@ -1,5 +1,5 @@
 """The kept multigrid hierarchy's coarse levels brought up to date with contacts
-(:mod:`softgrasp.sim.coarse`): the Galerkin change against products formed whole, the lumped
+(:mod:`softgrasp.linalg.multigrid.coarse`): the Galerkin change against products formed whole, the lumped
 change's rigid translations, the in-place level update against SciPy's sum and pyamg's block
 inverses. (The kept hierarchy's convergence against a fresh one's: tests/test_linsolve.py.)"""
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from softgrasp.sim import coarse
-from softgrasp.sim.coarse import UpdatedLevel, changed_nodes, galerkin_change
+from softgrasp.linalg.multigrid import coarse
+from softgrasp.linalg.multigrid.coarse import UpdatedLevel, changed_nodes, galerkin_change
 
 
 def _spring_stiffness(x: np.ndarray, pairs: np.ndarray, k: np.ndarray) -> sp.csr_matrix:
@@ -161,7 +161,7 @@ def test_an_updated_level_is_the_built_operator_plus_the_change_and_resets_to_it
     one untouched."""
     from pyamg.util.utils import get_block_diag
 
-    from softgrasp.kernels.sparse import BlockGaussSeidel
+    from softgrasp.linalg.sparse import BlockGaussSeidel
 
     built = _bsr_level(7)
     values = built.data.copy()

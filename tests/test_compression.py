@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
+from softgrasp.physics.body import build_body
 from softgrasp.errors import ConfigError
 from softgrasp.experiments.compression import compression_test
-from softgrasp.material import Material, Polynomial
-from softgrasp.mesh import box
-from softgrasp.objects import make_object
+from softgrasp.model.material import Material, Polynomial
+from softgrasp.model.mesh import box
+from softgrasp.model.objects import make_object
 
 
 def _force_at(res, strain: float) -> float:

@@ -14,10 +14,10 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.geometry import FacetIndex, detect, relative_velocity
-from softgrasp.contact.laws import (
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.fingertip.geometry import FacetIndex, detect, relative_velocity
+from softgrasp.physics.fingertip.laws import (
     HERTZ_PREFACTOR,
     contact_damping,
     contact_stiffness,
@@ -27,14 +27,14 @@ from softgrasp.contact.laws import (
     restitution_hunt_crossley,
     slip_force,
 )
-from softgrasp.contact.model import FingertipContact
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import ContactError
-from softgrasp.material import Material, preset
-from softgrasp.mesh import TetMesh, box
-from softgrasp.objects import make_object
-from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim.integrators import simulate
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp.model.material import Material, preset
+from softgrasp.model.mesh import TetMesh, box
+from softgrasp.model.objects import make_object
+from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.sim.explicit import simulate
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_static
 

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.model import FingertipContact
-from softgrasp.material import Material
-from softgrasp.mesh import box
-from softgrasp.sim.integrators import simulate
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.model.material import Material
+from softgrasp.model.mesh import box
+from softgrasp.sim.explicit import simulate
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
-from softgrasp.supports import Tether
+from softgrasp.physics.supports import Tether
 
 
 @pytest.mark.slow

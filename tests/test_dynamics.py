@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
+from softgrasp.physics.body import build_body
 from softgrasp.errors import NotConverged, SimulationUnstable
-from softgrasp.material import Material
-from softgrasp.mesh import TetMesh, box, signed_volumes
-from softgrasp.planes import Plane, PlaneContact
+from softgrasp.model.material import Material
+from softgrasp.model.mesh import TetMesh, box, signed_volumes
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import (
     RK4,
     BlowupMonitor,
@@ -24,7 +24,7 @@ from softgrasp.sim import (
     simulate,
     stable_time_step,
 )
-from softgrasp.sim.integrators import max_speed
+from softgrasp.sim.explicit import max_speed
 from softgrasp.sim.stability import (
     STABILITY_LIMITS,
     half_disc_radius,
@@ -376,9 +376,9 @@ def test_settle_gives_up_after_t_max():
 
 def _flat_ball(radius: float, mesh_size: float, n_flat: int) -> TetMesh:
     """A gmsh ball whose ``n_flat`` lowest nodes are pressed onto a flat spot at z = 0."""
-    mesh_mod = pytest.importorskip("softgrasp.mesh.generate")
+    mesh_mod = pytest.importorskip("softgrasp.model.mesh.generate")
     if not hasattr(mesh_mod, "sphere"):
-        pytest.skip("softgrasp.mesh.generate has no sphere()")
+        pytest.skip("softgrasp.model.mesh.generate has no sphere()")
     ball = mesh_mod.sphere(radius, mesh_size)
     z = np.sort(ball.points[:, 2])
     p = ball.points.copy()

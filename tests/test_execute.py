@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.execute import ClosingLine, ExecuteConfig, execute_plan
-from softgrasp.hand.protocol import Hand
+from softgrasp.execution.controller import ClosingLine, ExecuteConfig, execute_plan
+from softgrasp.execution.protocol import Hand
 
 G = 9.81
 

@@ -13,7 +13,7 @@ import pytest
 
 from softgrasp.cli import main
 from softgrasp.errors import ConfigError
-from softgrasp.hand.planfile import load_plan_file
+from softgrasp.io.planfile import load_plan_file
 
 
 @pytest.fixture(scope="module")

@@ -132,7 +132,7 @@ print("done")
 
 @pytest.mark.parametrize(("idle", "child"), [(1, False), (2, True)])
 def test_auto_starts_a_child_only_with_a_second_idle_core(monkeypatch, idle, child):
-    import softgrasp.sim.pardiso as pardiso
+    import softgrasp.linalg.pardiso as pardiso
 
     monkeypatch.setenv("SOFTGRASP_FIGURES", "auto")
     monkeypatch.setattr(pardiso, "idle_cores", lambda: idle)

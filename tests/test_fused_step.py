@@ -1,4 +1,4 @@
-"""The fused compiled stepper (:mod:`softgrasp.kernels.step`) against the per-step path of
+"""The fused compiled stepper (:mod:`softgrasp.sim.fused.step`) against the per-step path of
 ``simulate`` (semi-implicit Euler and RK4) and the NumPy reference: same trajectory, contact states
 and contact forces (to 1e-8), same callbacks and progress reports, same blow-up errors, the same
 result on one thread or two; and free fall to round-off."""
@@ -10,22 +10,22 @@ import threading
 import numpy as np
 import pytest
 
-from softgrasp import kernels
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import Fingertip
-from softgrasp.contact.model import FingertipContact
+from softgrasp import backend
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import SimulationUnstable
 from softgrasp.experiments.indentation import surface_height
-from softgrasp.material import Material, Tabulated
-from softgrasp.mesh import box
-from softgrasp.objects import make_object
-from softgrasp.planes import Plane, PlaneContact
+from softgrasp.model.material import Material, Tabulated
+from softgrasp.model.mesh import box
+from softgrasp.model.objects import make_object
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate, stable_time_step
-from softgrasp.sim.integrators import fused_unsupported, make_integrator
+from softgrasp.sim.explicit import fused_unsupported, make_integrator
 from softgrasp.sim.stability import BlowupMonitor
 
 pytest.importorskip("numba")
-from softgrasp.kernels import step  # noqa: E402 - needs numba
+from softgrasp.sim.fused import step  # noqa: E402 - needs numba
 
 TOL = 1e-8
 RUBBER = Material(0.0793e6, 0.45, 45.5)
@@ -55,7 +55,7 @@ def pressed():
 
 
 def _contact_forces(scene, state) -> list[np.ndarray]:
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         return [
             inter.forces(scene.body, state.x, state.v, state.t, st)
             for inter, st in zip(scene.interactions, state.contacts, strict=True)
@@ -81,7 +81,7 @@ def _assert_same(scene, s0, fast, slow) -> None:
 def test_fused_path_is_chosen_only_when_supported(pressed):
     scene, _ = pressed
     semi = make_integrator("semi-implicit")
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         assert fused_unsupported(scene, semi) is None
         assert fused_unsupported(scene, make_integrator("rk4")) is None
         assert "dopri" in fused_unsupported(scene, make_integrator("dopri"))
@@ -89,7 +89,7 @@ def test_fused_path_is_chosen_only_when_supported(pressed):
             box(0.02, 1), Material(1e5, 0.45, 50.0, law=Tabulated([0.05, 0.1, 0.2], [5e3, 1e4, 2.1e4]))
         )
         assert "not a polynomial" in fused_unsupported(Scene(tabulated), semi)
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         assert "numpy" in fused_unsupported(scene, semi)
         with pytest.raises(ValueError, match="fused stepper cannot run"):
             simulate(scene, scene.initial_state(), 1e-5, method="semi-implicit", fused=True)
@@ -105,10 +105,10 @@ def test_fused_agrees_with_per_step_and_reference(pressed, method, blocks, monke
     dt = stable_time_step(scene, method)
     T = 200 * dt
     monkeypatch.setattr(step, "BLOCKS_DEFAULT", blocks)
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         fused = simulate(scene, s0, T, method=method, dt=dt)
         per_step = simulate(scene, s0, T, method=method, dt=dt, fused=False)
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         reference = simulate(scene, s0, T, method=method, dt=dt)
     fingers = scene.interactions[1]
     assert len(fingers.pairs(scene.body, fused.x, fused.t)) > 0
@@ -127,7 +127,7 @@ def test_callbacks_and_progress_match_per_step(pressed):
     runs = {}
     for fused in (True, False):
         calls, reports = [], []
-        with kernels.use_backend("numba"):
+        with backend.use_backend("numba"):
             out = simulate(
                 scene, s0, 57 * dt, method="semi-implicit", dt=dt, callback=calls.append, every=10,
                 progress=reports.append, fused=fused,
@@ -159,7 +159,7 @@ def test_free_fall_of_the_centroid_to_round_off():
     )
     h = stable_time_step(scene, "semi-implicit")
     n = 400
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         assert fused_unsupported(scene, make_integrator("semi-implicit")) is None
         out = simulate(scene, s0, n * h, method="semi-implicit", dt=h)
     m = body.mass / body.total_mass
@@ -201,7 +201,7 @@ def test_blow_up_raises_the_same_error(method, nu, factor, check_every, reason):
     dt = factor * stable_time_step(scene, method)
     errors = {}
     for fused in (True, False):
-        with kernels.use_backend("numba"), pytest.raises(SimulationUnstable, match=reason) as err:
+        with backend.use_backend("numba"), pytest.raises(SimulationUnstable, match=reason) as err:
             simulate(
                 scene,
                 s0,
@@ -227,7 +227,7 @@ def test_energy_bookkeeping_with_plates_doing_work():
     scene = Scene(body, (table, plate))
     s0 = scene.initial_state()
     dt = stable_time_step(scene, "semi-implicit")
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         fast = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1)
         slow = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1, fused=False)
     _assert_same(scene, s0, fast, slow)
@@ -518,8 +518,8 @@ def test_a_failing_leader_stops_the_worker(pressed, monkeypatch):
 
 
 def test_auto_threads_fall_back_when_two_threads_slow_down(monkeypatch):
-    from softgrasp.sim import pardiso
-    from softgrasp.sim.integrators import FusedThreads
+    from softgrasp.linalg import pardiso
+    from softgrasp.sim.explicit import FusedThreads
 
     monkeypatch.setattr(pardiso, "_fixed_threads", None)
     monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand.model import HandModel, _limited_step, follow_line, solve_ik, wdls_step
+from softgrasp.hand.kinematics import HandModel, _limited_step, follow_line, solve_ik, wdls_step
 
 MODEL = HandModel.default()
 FINGERS = ("thumb", "first", "middle")
@@ -225,7 +225,7 @@ def _limited_step_reference(J, dx, q, lo, hi, w, damping):  # type: ignore[no-un
 def test_batched_limited_steps_equal_the_plain_step_row_by_row() -> None:
     """Many problems at once, with joints at their limits (some pushed out, some not, one pinned
     with lower == upper): each row is the plain limit-clamped WDLS step of its own problem."""
-    from softgrasp.hand.model import _limited_steps
+    from softgrasp.hand.kinematics import _limited_steps
 
     rng = np.random.default_rng(5)
     B, m, n = 40, 9, 11
@@ -349,8 +349,8 @@ def test_thumb_opposes_finger(finger: str, point: list[float]) -> None:
 def _check_stack(model: HandModel, fingers: tuple[str, ...], seed: int) -> None:
     """Every finger at several configurations at once, in posed palm frames: the stacked fingertips,
     Jacobians and joint origins are those of each finger alone, moved into the frame."""
-    from softgrasp.hand.model import chain_stack, stack_kinematics
-    from softgrasp.hand.reach import transform
+    from softgrasp.hand.kinematics import chain_stack, stack_kinematics
+    from softgrasp.hand.placement import transform
 
     rng = np.random.default_rng(seed)
     chains = tuple(model.chain(f) for f in fingers)
@@ -523,7 +523,7 @@ def test_malformed_urdf_raises_config_error(
 
 
 def _pose(rotvec: list[float], origin: list[float]) -> np.ndarray:
-    from softgrasp.hand.reach import _rotation
+    from softgrasp.hand.placement import _rotation
 
     T = np.eye(4)
     T[:3, :3] = _rotation(np.asarray(rotvec, dtype=float))
@@ -534,7 +534,7 @@ def _pose(rotvec: list[float], origin: list[float]) -> np.ndarray:
 def _known_targets() -> dict[str, np.ndarray]:
     """Fingertip targets made by forward kinematics from a palm pose and joint angles (a grasp from
     above) that the placement does not see."""
-    from softgrasp.hand.reach import transform
+    from softgrasp.hand.placement import transform
 
     pose = _pose([2.8, 0.3, 0.2], [0.05, -0.02, 0.18])
     q = {
@@ -559,7 +559,7 @@ def test_place_hand_finds_a_posture_for_targets_of_a_known_posture() -> None:
     """Targets made by forward kinematics from a palm pose and joint angles softgrasp does not see:
     the placement reaches every one (to 10 um) within the joint limits. The posture found may
     differ (the problem has 19 unknowns for 9 equations), the fingertips may not."""
-    from softgrasp.hand.reach import REACH_TOL, place_hand
+    from softgrasp.hand.placement import REACH_TOL, place_hand
 
     targets = _known_targets()
     pl = place_hand(MODEL, targets)
@@ -572,7 +572,7 @@ def test_place_hand_finds_a_posture_for_targets_of_a_known_posture() -> None:
 
 
 def test_place_hand_names_the_finger_that_cannot_reach() -> None:
-    from softgrasp.hand.reach import place_hand
+    from softgrasp.hand.placement import place_hand
 
     targets = {"thumb": [0.0, 0.0, 0.1], "first": [0.05, 0.05, 0.1], "middle": [0.03, 0.6, 0.1]}
     with pytest.raises(
@@ -585,7 +585,7 @@ def test_place_hand_names_the_finger_that_cannot_reach() -> None:
 def test_place_hand_keeps_the_palm_out_of_the_object() -> None:
     """The same targets, once free and once inside a large block that the hand cannot reach into
     without putting its palm or joints inside: the second is refused with that reason."""
-    from softgrasp.hand.reach import place_hand
+    from softgrasp.hand.placement import place_hand
 
     targets = _known_targets()
     centre = np.mean(list(targets.values()), axis=0)
@@ -600,7 +600,7 @@ def test_the_obstacle_hull_kept_between_placements_is_the_current_obstacles() ->
     after another obstacle's hull was kept."""
     from scipy.spatial import ConvexHull
 
-    from softgrasp.hand.reach import _hull_equations, place_hand
+    from softgrasp.hand.placement import _hull_equations, place_hand
 
     rng = np.random.default_rng(3)
     a, b = rng.standard_normal((40, 3)), 2.0 + rng.standard_normal((50, 3))
@@ -660,7 +660,7 @@ PINNED = {
 
 @pytest.mark.parametrize("case", sorted(PINNED))
 def test_place_hand_finds_the_pinned_placement(case: str, sphere_grasp) -> None:
-    from softgrasp.hand.reach import place_hand
+    from softgrasp.hand.placement import place_hand
 
     if case == "known":
         pl = place_hand(MODEL, _known_targets())
@@ -678,8 +678,8 @@ def test_each_start_of_the_batched_placement_iterates_on_its_own(sphere_grasp) -
     """The starting postures of the NumPy solve advance together only to share NumPy calls: solving
     them all at once or one by one gives the same end postures (including the ones that stall or get
     stuck)."""
-    from softgrasp.hand.model import chain_stack
-    from softgrasp.hand.reach import _seeds, _solve_numpy
+    from softgrasp.hand.kinematics import chain_stack
+    from softgrasp.hand.placement import _seeds, _solve_numpy
 
     targets = dict(sphere_grasp[0])
     targets["middle"] = targets["middle"] + np.array([0.0, 0.0, 0.05])  # some starts cannot reach it
@@ -696,7 +696,7 @@ def test_each_start_of_the_batched_placement_iterates_on_its_own(sphere_grasp) -
 
 
 def test_closing_paths_move_fingertips_along_their_lines() -> None:
-    from softgrasp.hand.reach import closing_paths, place_hand, transform
+    from softgrasp.hand.placement import closing_paths, place_hand, transform
 
     targets = _known_targets()
     pl = place_hand(MODEL, targets)

@@ -1,7 +1,7 @@
 """The compiled (Numba) kernels agree with the NumPy reference to 1e-8, and the backend switch works.
 
 Agreement is measured as max |fast - reference| / max |reference| over forces, energies and
-Jacobians, for the linear law, every non-linear law of :mod:`softgrasp.material` and a user-defined
+Jacobians, for the linear law, every non-linear law of :mod:`softgrasp.model.material` and a user-defined
 law, with the volume barrier on and off, on randomly perturbed sphere and box meshes; and over
 the fingertip contact's pairs, dynamic forces and friction-state updates (both contact rules, both
 damping forms, with and without friction, sticking and slipping pairs).
@@ -15,21 +15,21 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from softgrasp import forces as ref
-from softgrasp import kernels
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.geometry import FacetIndex, detect
-from softgrasp.contact.model import FingertipContact
+from softgrasp.physics import forces as ref
+from softgrasp import backend
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.fingertip.geometry import FacetIndex, detect
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import ConfigError
-from softgrasp.material import Linear, Material, Polynomial, Tabulated
-from softgrasp.mesh import box, signed_volumes
-from softgrasp.objects import make_object
-from softgrasp.planes import Plane, PlaneContact
+from softgrasp.model.material import Linear, Material, Polynomial, Tabulated
+from softgrasp.model.mesh import box, signed_volumes
+from softgrasp.model.objects import make_object
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate, stable_time_step
 
 numba = pytest.importorskip("numba")
-from softgrasp.kernels import elastic  # noqa: E402 - needs numba
+from softgrasp.physics import forces_compiled as elastic  # noqa: E402 - needs numba
 
 TOL = 1e-8
 
@@ -105,9 +105,9 @@ def config(request):
 
 @pytest.fixture(autouse=True)
 def _restore_backend():
-    previous = kernels.get_backend()
+    previous = backend.get_backend()
     yield
-    kernels.set_backend(previous)
+    backend.set_backend(previous)
 
 
 # ------------------------------------------------------------------------------- the kernels
@@ -179,7 +179,7 @@ def test_body_backends_agree(config, law, nu):
     assert body.barrier == (nu > 0.25)
     out = {}
     for name in ("numba", "numpy"):
-        with kernels.use_backend(name):
+        with backend.use_backend(name):
             out[name] = (
                 body.internal_forces(x, v),
                 body.internal_forces(x),
@@ -197,9 +197,9 @@ def test_body_backends_agree_without_damping_or_volume_term(config):
     """nu = 1/4 (kappa = 0: springs only) and an undamped body take the other branches."""
     mesh, x, v = config
     body = build_body(mesh, Material(1e5, 0.25, 50.0, LAWS["polynomial"]), damping_ratio=0.0)
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         fast = (body.internal_forces(x, v), body.internal_energy(x), body.internal_jacobian(x))
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         slow = (body.internal_forces(x, v), body.internal_energy(x), body.internal_jacobian(x))
     for a, b in zip(fast, slow, strict=True):
         assert _rel(a, b) < TOL
@@ -230,14 +230,14 @@ def test_the_jacobian_assembly_groups_write_no_entry_in_common_and_any_thread_co
         )
         written.append(set(pattern.block_base[blocks].tolist()))  # a block's first entry marks it
     assert not written[0] & written[1]
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         one = body.internal_jacobian(x, threads=1)
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         ref = body.internal_jacobian(x)
     assert _rel(one, ref) < TOL
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one Numba thread: the groups cannot run side by side")
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         two = body.internal_jacobian(x, threads=2)
     assert np.array_equal(one.data, two.data)
 
@@ -248,7 +248,7 @@ def test_a_large_body_sums_its_forces_in_the_assembly_order_on_any_threads(confi
     in the assembly's order, its first two element groups side by side: equal to the NumPy
     reference (forces with and without dashpots, energy) to round-off, and the same bits on one
     thread or two. A law that is not a polynomial keeps the serial kernels."""
-    from softgrasp.kernels.sparse import _Threads
+    from softgrasp.linalg.sparse import _Threads
 
     mesh, x, v = config
     body = build_body(mesh.reordered(), Material(1e5, 0.45, 50.0, LAWS[law]))
@@ -259,11 +259,11 @@ def test_a_large_body_sums_its_forces_in_the_assembly_order_on_any_threads(confi
     calls = []
     real = elastic.partitioned_forces
     monkeypatch.setattr(elastic, "partitioned_forces", lambda *a, **k: calls.append(1) or real(*a, **k))
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         want = (body.internal_forces(x), body.internal_forces(x, v), body.internal_energy(x))
     results = []
     for threads in (1, 2):
-        with kernels.use_backend("numba"), _Threads(threads):
+        with backend.use_backend("numba"), _Threads(threads):
             results.append((body.internal_forces(x), body.internal_forces(x, v), body.internal_energy(x)))
     assert len(calls) == 6
     for got, ref_value in zip(results[0], want, strict=True):
@@ -277,12 +277,12 @@ def test_a_large_body_sums_its_forces_in_the_assembly_order_on_any_threads(confi
 
 def _forked_large_body_forces(finished_ok) -> None:
     """Evaluate a large body's forces on Numba's threads, fork, and check that the child gets the
-    same forces (its ``kernels.forked()`` says whether it took the serial kernels)."""
+    same forces (its ``backend.forked()`` says whether it took the serial kernels)."""
     import multiprocessing
 
     body = build_body(box(0.04, 3).reordered(), Material(1e5, 0.45, 50.0, LAWS["polynomial"]))
     x = np.asarray(body.mesh.points) * 1.01
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         f = body.internal_forces(x)  # the parallel kernel, in the parent
         child = multiprocessing.get_context("fork").Process(target=_forces_in_child, args=(body, x, f))
         child.start()
@@ -291,9 +291,9 @@ def _forked_large_body_forces(finished_ok) -> None:
 
 def _forces_in_child(body, x, want) -> None:
     lost = numba.threading_layer() == "omp"
-    if kernels.forked() != lost or kernels.compiled() == lost:
+    if backend.forked() != lost or backend.compiled() == lost:
         raise SystemExit(2)
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         got = body.internal_forces(x)
     if not np.abs(got - want).max() <= 1e-12 * np.abs(want).max():
         raise SystemExit(3)
@@ -329,7 +329,7 @@ def test_numba_threads_come_from_tbb_where_it_is_installed(monkeypatch):
     fork-safe TBB layer rather than GNU OpenMP (whose threads a forked child cannot use)."""
     monkeypatch.setattr(elastic, "PARTITIONED_MIN_NODES", 1)
     body = build_body(box(0.04, 2).reordered(), Material(1e5, 0.45, 50.0, LAWS["polynomial"]))
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         body.internal_forces(np.asarray(body.mesh.points))
     assert numba.threading_layer() == "tbb"
 
@@ -338,7 +338,7 @@ _OPENMP_FORK = """
 import sys
 sys.path.insert(0, {tests!r})
 import numba, pytest
-from softgrasp.kernels import elastic
+from softgrasp.physics import forces_compiled as elastic
 import test_kernels, test_linsolve
 elastic.PARTITIONED_MIN_NODES = 1
 def finished_ok(child):
@@ -357,7 +357,7 @@ print(numba.threading_layer())
 def test_under_openmp_a_forked_child_takes_the_numpy_kernels():
     """With GNU OpenMP as the threading layer (``NUMBA_THREADING_LAYER=omp``: its threads do not
     survive a fork, and a parallel kernel in the child terminates it) the forked child knows
-    (``kernels.forked()``, ``kernels.compiled()`` false) and takes the NumPy kernels, SciPy's and
+    (``backend.forked()``, ``backend.compiled()`` false) and takes the NumPy kernels, SciPy's and
     pyamg's: a large body's forces the same, a multigrid solve converged, the child exits 0 (its
     multigrid solve was terminated before, exit -15)."""
     import os
@@ -452,9 +452,9 @@ def test_detect_agrees(contact_setup, closest, seed):
     centres = np.array([t.centre for t in tips] + [q + 0.9 * R_TIP * n / np.linalg.norm(n)])
     radii = np.full(len(centres), R_TIP)
     index = FacetIndex.of(mesh)
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         fast = detect(x, mesh.facets, centres, radii, closest=closest, index=index)
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         slow = detect(x, mesh.facets, centres, radii, closest=closest, index=index)
     _pairs_equal(fast, slow)
     assert set(slow.finger.tolist()) >= {0, 1, 2}  # the fourth may sit in a convex edge's blind spot
@@ -484,14 +484,14 @@ def test_fingertip_forces_and_update_agree(contact_setup, params, shift, moving)
     mesh, body, x0, v = contact_setup
     v = v if moving else np.zeros_like(v)
     fc = FingertipContact(_tips_on(mesh, x0, 5, 0.002, moving), params)
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         state = fc.update(body, x0, v, 0.0, fc.init_state(body, x0 + 0.5 * shift))
     assert state.active.sum() >= 3
     x1 = x0 + shift * np.array([1.0, -0.5, 0.2])
     t1 = 1e-3
     out = {}
     for name in ("numba", "numpy"):
-        with kernels.use_backend(name):
+        with backend.use_backend(name):
             f = fc.forces(body, x1, v, t1, state)
             new = fc.update(body, x1, v, t1, state)
             out[name] = (f, new, fc.forces(body, x1, v, t1, new), fc.update(body, x1, -v, t1, new))
@@ -516,7 +516,7 @@ def test_static_and_pinned_forces_agree(contact_setup, params, shift):
     compiled call each, against the NumPy reference; moving fingertips' velocities do not enter."""
     mesh, body, x0, v = contact_setup
     fc = FingertipContact(_tips_on(mesh, x0, 5, 0.002, moving=True), params)
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         state = fc.update(body, x0, v, 0.0, fc.init_state(body, x0 + 0.5 * shift))
     x1 = x0 + shift * np.array([1.0, -0.5, 0.2])
     t1 = 1e-3
@@ -525,7 +525,7 @@ def test_static_and_pinned_forces_agree(contact_setup, params, shift):
     x2 = x1 + 3e-4 * rng.standard_normal(x1.shape)
     out = {}
     for name in ("numba", "numpy"):
-        with kernels.use_backend(name):
+        with backend.use_backend(name):
             pinned = fc.pinned_static_forces(body, x1, t1, state)
             out[name] = (fc.static_forces(body, x1, t1, state), pinned(x1), pinned(x2))
     for fast, slow in zip(out["numba"], out["numpy"], strict=True):
@@ -534,8 +534,8 @@ def test_static_and_pinned_forces_agree(contact_setup, params, shift):
     assert _rel(out["numpy"][1], out["numpy"][0]) < 1e-12  # pinned at the pairs' own state: the same
     # The cases are what they claim: some pinned pairs leave contact at x2; friction slips (or not).
     ref = fc.pairs(body, x1, t1)
-    with kernels.use_backend("numpy"):
-        from softgrasp.contact.geometry import pair_geometry
+    with backend.use_backend("numpy"):
+        from softgrasp.physics.fingertip.geometry import pair_geometry
 
         tips = fc.centres(t1), fc._radii()
         moved = pair_geometry(x2, mesh.facets, *tips, ref.finger, ref.facet, closest=True)
@@ -552,7 +552,7 @@ def test_fingertip_forces_agree_without_contact(contact_setup):
     fc = FingertipContact((far,))
     state = fc.init_state(body, x)
     for name in ("numba", "numpy"):
-        with kernels.use_backend(name):
+        with backend.use_backend(name):
             assert not fc.forces(body, x, v, 0.0, state).any()
             assert not fc.update(body, x, v, 0.0, state).active.any()
 
@@ -575,7 +575,7 @@ def test_trajectories_agree(contact_setup, method):
     dt = stable_time_step(scene, method)
     out = {}
     for name in ("numba", "numpy"):
-        with kernels.use_backend(name):
+        with backend.use_backend(name):
             out[name] = simulate(scene, s0, 40 * dt, method=method, dt=dt)
     fast, slow = out["numba"], out["numpy"]
     assert len(scene.interactions[1].pairs(body, slow.x, slow.t)) > 0
@@ -587,77 +587,79 @@ def test_trajectories_agree(contact_setup, method):
 
 # ------------------------------------------------------------------------------- the switch
 def test_default_backend_is_numba_when_installed(monkeypatch):
-    monkeypatch.delenv(kernels.ENV_VAR, raising=False)
+    monkeypatch.delenv(backend.ENV_VAR, raising=False)
     monkeypatch.setattr(kernels, "_backend", None)
-    assert kernels.get_backend() == "numba"
-    assert kernels.compiled()
+    assert backend.get_backend() == "numba"
+    assert backend.compiled()
 
 
 def test_environment_variable_selects_the_backend(monkeypatch):
-    monkeypatch.setenv(kernels.ENV_VAR, "NumPy")
+    monkeypatch.setenv(backend.ENV_VAR, "NumPy")
     monkeypatch.setattr(kernels, "_backend", None)
-    assert kernels.get_backend() == "numpy"
-    assert not kernels.compiled()
+    assert backend.get_backend() == "numpy"
+    assert not backend.compiled()
 
 
 def test_unknown_environment_value_warns_and_uses_the_default(monkeypatch):
-    monkeypatch.setenv(kernels.ENV_VAR, "fortran")
+    monkeypatch.setenv(backend.ENV_VAR, "fortran")
     monkeypatch.setattr(kernels, "_backend", None)
     with pytest.warns(UserWarning, match="not a kernel backend"):
-        assert kernels.get_backend() == "numba"
+        assert backend.get_backend() == "numba"
 
 
 def test_missing_numba_falls_back_to_numpy(monkeypatch):
-    monkeypatch.setattr(kernels, "_numba_error", lambda: kernels._NOT_INSTALLED)
+    monkeypatch.setattr(kernels, "_numba_error", lambda: backend._NOT_INSTALLED)
     monkeypatch.setattr(kernels, "_backend", None)
-    monkeypatch.setenv(kernels.ENV_VAR, "numba")
-    assert kernels.available() == ("numpy",)
+    monkeypatch.setenv(backend.ENV_VAR, "numba")
+    assert backend.available() == ("numpy",)
     with pytest.warns(UserWarning, match="Numba is not installed"):
-        assert kernels.get_backend() == "numpy"
+        assert backend.get_backend() == "numpy"
     monkeypatch.setattr(kernels, "_backend", None)
-    monkeypatch.delenv(kernels.ENV_VAR)
+    monkeypatch.delenv(backend.ENV_VAR)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the silent default
-        assert kernels.get_backend() == "numpy"
+        assert backend.get_backend() == "numpy"
     with pytest.raises(ConfigError, match="unavailable: Numba is not installed"):
-        kernels.set_backend("numba")
+        backend.set_backend("numba")
 
 
 def test_broken_numba_warns_and_falls_back_to_numpy(monkeypatch):
     monkeypatch.setattr(kernels, "_numba_error", lambda: "Numba is installed but cannot be imported (x)")
     monkeypatch.setattr(kernels, "_backend", None)
-    monkeypatch.delenv(kernels.ENV_VAR, raising=False)
+    monkeypatch.delenv(backend.ENV_VAR, raising=False)
     with pytest.warns(UserWarning, match="cannot be imported"):
-        assert kernels.get_backend() == "numpy"
+        assert backend.get_backend() == "numpy"
 
 
 def test_numba_error_is_none_when_numba_imports():
-    assert kernels._numba_error() is None
-    assert kernels.available() == ("numba", "numpy")
+    assert backend._numba_error() is None
+    assert backend.available() == ("numba", "numpy")
 
 
 def test_set_backend_rejects_unknown_names():
     with pytest.raises(ConfigError, match="unknown kernel backend 'cuda'"):
-        kernels.set_backend("cuda")
+        backend.set_backend("cuda")
 
 
 def test_use_backend_restores_the_previous_backend():
-    kernels.set_backend("numba")
-    with kernels.use_backend("numpy"):
-        assert kernels.get_backend() == "numpy"
-    assert kernels.get_backend() == "numba"
-    with pytest.raises(RuntimeError), kernels.use_backend("numpy"):
+    backend.set_backend("numba")
+    with backend.use_backend("numpy"):
+        assert backend.get_backend() == "numpy"
+    assert backend.get_backend() == "numba"
+    with pytest.raises(RuntimeError), backend.use_backend("numpy"):
         raise RuntimeError("boom")
-    assert kernels.get_backend() == "numba"
+    assert backend.get_backend() == "numba"
 
 
 _WARM_SCRIPT = """
 import json, numba
 from numba.core.registry import CPUDispatcher
-from softgrasp.kernels import contact, elastic, warm
-from softgrasp.body import build_body
+from softgrasp.cli import warm
+from softgrasp.physics import forces_compiled as elastic
+from softgrasp.physics.fingertip import compiled as contact
+from softgrasp.physics.body import build_body
 from softgrasp.grasp.planner import PlanConfig, plan_grasp
-from softgrasp.objects import make_object
+from softgrasp.model.objects import make_object
 
 def signatures():
     return {f"{m.__name__}.{k}": sorted(map(str, v.signatures)) for m in (elastic, contact)

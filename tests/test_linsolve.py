@@ -14,14 +14,15 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.model import FingertipContact
-from softgrasp.material import preset
-from softgrasp.mesh.generate import box
-from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim import linsolve, pardiso
-from softgrasp.sim.linsolve import SolverCache, solve_newton_system
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.model.material import preset
+from softgrasp.model.mesh.generate import box
+from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.linalg import pardiso
+from softgrasp.linalg import solve as linsolve
+from softgrasp.linalg.solve import SolverCache, solve_newton_system
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
 
@@ -119,10 +120,10 @@ def test_collected_factor_leaves_the_thread_count_alone():
 _COLLECTED_DURING_REFACTORISATION = """
 import gc, random, sys
 import numpy as np, scipy.sparse as sp
-from softgrasp.body import build_body
-from softgrasp.material import preset
-from softgrasp.mesh.generate import box
-from softgrasp.sim import pardiso
+from softgrasp.physics.body import build_body
+from softgrasp.model.material import preset
+from softgrasp.model.mesh.generate import box
+from softgrasp.linalg import pardiso
 K = -build_body(box(0.05, 8), preset("foam"), mass=0.0125).rest_jacobian
 K = (K + 1e-3 * sp.diags(K.diagonal())).tocsr()
 b = np.ones(K.shape[0])
@@ -703,7 +704,7 @@ def test_the_old_factor_corrected_for_new_contacts_is_the_new_matrix_inverse():
     """A0 factorised, then six nodes touch a table (a penalty 50 times their stiffness): the
     Woodbury-corrected old factor applied to b is A^-1 b, as fresh LU gives it, for A the new
     matrix (the difference lies on those nodes only). The plain old factor is far from it."""
-    from softgrasp.sim.linsolve import _Corrected
+    from softgrasp.linalg.solve import _Corrected
 
     K = _stiffness()
     f = pardiso.PardisoFactor(K)
@@ -732,7 +733,7 @@ def test_the_old_factor_corrected_for_new_contacts_is_the_new_matrix_inverse():
 def test_the_old_factor_is_not_corrected_where_stiffness_was_taken_away():
     """The table removed (the hold check's release): the factor of the matrix with the table is
     used as it is (correcting it could give a nearly singular matrix)."""
-    from softgrasp.sim.linsolve import _Corrected
+    from softgrasp.linalg.solve import _Corrected
 
     K = _stiffness()
     A0 = (K + _table_blocks(K, [0, 3, 7], 50.0)).tocsr()
@@ -749,7 +750,7 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
     """A system solved on the old factor with more than half the iteration cap (a quarter of a
     refactorisation's cost) has the next system refactorise first; one solved in fewer keeps the
     factor. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
-    import softgrasp.sim.linsolve as ls
+    import softgrasp.linalg.solve as ls
 
     K = _stiffness()
     b = np.random.default_rng(5).standard_normal(K.shape[0])
@@ -778,7 +779,7 @@ def test_an_old_factor_is_renewed_once_its_extra_solves_add_up_to_a_refactorisat
     the solves they took beyond what the factor's own system took add up to a refactorisation's
     time (``SOLVE_SPEED_RATIO`` x its operation count in solves): then the next system
     refactorises. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
-    import softgrasp.sim.linsolve as ls
+    import softgrasp.linalg.solve as ls
 
     K = _stiffness()
     b = np.random.default_rng(12).standard_normal(K.shape[0])
@@ -840,7 +841,7 @@ def test_a_changed_scene_refactorises_at_once(monkeypatch, told, precision):
 def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
     """Contacts that move over the surface on one factor (new nodes each system) do not pile up
     columns: past six times the most corrected nodes' worth, only the current nodes' are kept."""
-    import softgrasp.sim.linsolve as ls
+    import softgrasp.linalg.solve as ls
 
     K = _stiffness()
     f = pardiso.PardisoFactor(K)
@@ -979,8 +980,7 @@ def test_hierarchies_built_by_threads_at_once_are_those_built_alone():
     for each build they drew from each other's sequence."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from softgrasp.sim import linsolve
-
+    from softgrasp.linalg import solve as linsolve
     A0, A1, x = _table_then_plate(5)
     alone = [linsolve._hierarchy(A, x) for A in (A0, A1)]
     with ThreadPoolExecutor(4) as pool:
@@ -998,8 +998,7 @@ def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own(finishe
     parent's, held at the fork, would never be released there: the build would wait forever)."""
     import multiprocessing
 
-    from softgrasp.sim import linsolve
-
+    from softgrasp.linalg import solve as linsolve
     A0, _, x = _table_then_plate(3)
     ctx = multiprocessing.get_context("fork")
     with linsolve._GLOBAL_RNG:  # held, as by another thread building, when the child is forked
@@ -1055,7 +1054,7 @@ def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
 @pytest.mark.parametrize("n", [6, 10, 14])
 def test_a_kept_hierarchy_updated_for_a_pressing_plate_converges_as_a_fresh_one(n):
     """The same two systems: with the hierarchy kept from the first and its coarse levels brought
-    up to date (the plate's nodes out of the coarse space: :mod:`softgrasp.sim.coarse`), CG on the
+    up to date (the plate's nodes out of the coarse space: :mod:`softgrasp.linalg.multigrid.coarse`), CG on the
     second takes at most two iterations more than with a hierarchy built on it (16 against 15
     here); with the coarse levels as built it took more than twice as many (36 and 46). At n = 14
     the hierarchy has three levels: the change reaches the third by the second's Galerkin
@@ -1094,8 +1093,7 @@ def test_the_cache_counts_systems_set_ups_and_v_cycles_as_conjugate_gradients_ap
     hierarchy are two systems and one set-up, and the V-cycles counted are the preconditioner
     applications conjugate gradients made, one per iteration (the first before the loop, none
     after the last), counted independently by a wrapper around the V-cycle."""
-    from softgrasp.sim import linsolve
-
+    from softgrasp.linalg import solve as linsolve
     applied = []
     real = linsolve._Multigrid._cycle
 

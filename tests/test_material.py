@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from softgrasp.errors import MaterialError
-from softgrasp.material import Linear, Material, Polynomial, Tabulated, parse_material, preset
+from softgrasp.model.material import Linear, Material, Polynomial, Tabulated, parse_material, preset
 
 
 def test_presets_match_table_1():

@@ -1,4 +1,4 @@
-"""Tests of the tet mesh, its generators and file I/O (softgrasp.mesh)."""
+"""Tests of the tet mesh, its generators and file I/O (softgrasp.model.mesh)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from softgrasp.errors import MeshError
-from softgrasp.mesh import TetMesh, box, cylinder, load_mesh, save_mesh, sphere
+from softgrasp.model.mesh import TetMesh, box, cylinder, load_mesh, save_mesh, sphere
 
 R = 0.064  # sphere radius [m] used throughout
 
@@ -179,7 +179,7 @@ def test_a_thin_disc_meshes_at_its_default_size_and_a_refused_size_names_one_tha
 
 def test_core_imports_without_gmsh_or_meshio() -> None:
     code = (
-        "import sys, softgrasp, softgrasp.mesh; "
+        "import sys, softgrasp, softgrasp.model.mesh; "
         "sys.exit(int('gmsh' in sys.modules or 'meshio' in sys.modules))"
     )
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
@@ -512,8 +512,8 @@ def test_gmsh_meshes_come_numbered_locally(default_sphere: TetMesh) -> None:
 def test_body_forces_do_not_depend_on_the_numbering() -> None:
     """The body built from the renumbered mesh has the same masses, internal forces and
     Jacobian (permuted) at a deformed state: the numbering is bookkeeping, not physics."""
-    from softgrasp.body import build_body
-    from softgrasp.material import preset
+    from softgrasp.physics.body import build_body
+    from softgrasp.model.material import preset
 
     mesh = sphere(R, 0.024, on_table=False)
     rng = np.random.default_rng(3)
@@ -540,7 +540,7 @@ def test_generated_objects_are_meshed_once_and_stay_read_only() -> None:
     """A built-in object or parametric shape asked for again (a sweep's next case) is the mesh
     already generated: the same nodes and tets, arrays no caller can change; another mesh size
     or shape is meshed anew."""
-    from softgrasp.objects import make_object
+    from softgrasp.model.objects import make_object
 
     first = make_object("box:0.03x0.02x0.02", 0.01)[0]
     again = make_object("box:0.03x0.02x0.02", 0.01)[0]
@@ -562,7 +562,7 @@ def test_unique_rows_of_node_indices_as_numpy_unique_by_rows(n: int) -> None:
     sorted and unsorted rows of two and three indices, as int64, int32 and uint64, the largest
     indices included; up to n = 2^21 - 1 three-index keys fit int64, from n = 2^21 they fall back
     to ``np.unique`` itself."""
-    from softgrasp.mesh.tetmesh import _row_keys, _unique_rows
+    from softgrasp.model.mesh.tetmesh import _row_keys, _unique_rows
 
     rng = np.random.default_rng(n)
     for width in (2, 3):

@@ -1,4 +1,4 @@
-"""MuJoCo one-fingertip indentation scene (softgrasp.hand.mjcf.build_indent_mjcf / load_indent_scene).
+"""MuJoCo one-fingertip indentation scene (softgrasp.execution.mujoco.scene.build_indent_mjcf / load_indent_scene).
 
 The MuJoCo peer of softgrasp's indentation experiment (benchmarks/bench_indent.py): the rubber
 sphere (388 nodes) on the table, a rigid 8 mm fingertip on servo slides pressed 3 mm into its top.
@@ -15,9 +15,9 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from softgrasp.body import STANDARD_GRAVITY
+from softgrasp.physics.body import STANDARD_GRAVITY
 from softgrasp.errors import ConfigError, MaterialError
-from softgrasp.hand.mjcf import (
+from softgrasp.execution.mujoco.scene import (
     INDENT_TIP,
     OBJECT_NAME,
     SOLVER,
@@ -26,7 +26,7 @@ from softgrasp.hand.mjcf import (
     build_indent_mjcf,
     load_indent_scene,
 )
-from softgrasp.objects import SPHERE_RADIUS, make_object
+from softgrasp.model.objects import SPHERE_RADIUS, make_object
 
 RADIUS = 0.008
 

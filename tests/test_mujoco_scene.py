@@ -1,4 +1,4 @@
-"""MuJoCo scene of a grasp (softgrasp.hand.mjcf): MJCF building, the soft object as a flex, the hand.
+"""MuJoCo scene of a grasp (softgrasp.execution.mujoco.scene): MJCF building, the soft object as a flex, the hand.
 
 Physical checks on softgrasp's rubber sphere (radius 64 mm, 50 g, E = 79.3 kPa, nu = 0.45, 388
 nodes): the flex elasticity equals linear elasticity for affine strains, the sphere settles on
@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 import softgrasp
-from softgrasp.body import STANDARD_GRAVITY
+from softgrasp.physics.body import STANDARD_GRAVITY
 from softgrasp.errors import ConfigError, MaterialError, MeshError
-from softgrasp.hand.mjcf import (
+from softgrasp.execution.mujoco.scene import (
     DEFAULT_TIMESTEP,
     MUJOCO_MISSING,
     MujocoScene,
@@ -30,9 +30,9 @@ from softgrasp.hand.mjcf import (
     build_mjcf,
     load_scene,
 )
-from softgrasp.hand.model import HandModel
-from softgrasp.mesh.tetmesh import signed_volumes
-from softgrasp.objects import SPHERE_RADIUS, make_object
+from softgrasp.hand.kinematics import HandModel
+from softgrasp.model.mesh.tetmesh import signed_volumes
+from softgrasp.model.objects import SPHERE_RADIUS, make_object
 
 HAND = HandModel.default()
 FINGERS = ("thumb", "first", "middle")
@@ -106,8 +106,8 @@ def test_import_and_build_without_mujoco() -> None:
         "sys.modules['mujoco'] = None\n"
         "import numpy as np\n"
         "from softgrasp.errors import ConfigError\n"
-        "from softgrasp.hand import mjcf\n"
-        "from softgrasp.hand.model import HandModel\n"
+        "from softgrasp.execution.mujoco import scene as mjcf\n"
+        "from softgrasp.hand.kinematics import HandModel\n"
         "p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.02\n"
         "spec = mjcf.SceneSpec(HandModel.default(), np.eye(4), {}, p, np.array([[0, 1, 2, 3]]),\n"
         "                      0.01, 1e5, 0.3, 0.8, 0.0)\n"

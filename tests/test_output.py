@@ -6,7 +6,7 @@ import stat
 
 import pytest
 
-from softgrasp.output import write_json, write_text
+from softgrasp.io.atomic import write_json, write_text
 
 
 def test_written_files_get_the_permissions_of_an_ordinary_new_file(tmp_path):

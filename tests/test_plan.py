@@ -10,19 +10,19 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
+from softgrasp.physics.body import build_body
 from softgrasp.cli import main
-from softgrasp.contact.fingertip import ContactParams
+from softgrasp.physics.fingertip.params import ContactParams
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged
 from softgrasp.grasp.closure import is_force_closure
 from softgrasp.grasp.initial import HandLayout, initial_grasp
 from softgrasp.grasp.planner import PlanConfig, plan_grasp
-from softgrasp.material import preset
-from softgrasp.mesh.generate import box, sphere
-from softgrasp.objects import make_object
-from softgrasp.planes import Plane, PlaneContact
+from softgrasp.model.material import preset
+from softgrasp.model.mesh.generate import box, sphere
+from softgrasp.model.objects import make_object
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import simulate_implicit
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
 
@@ -304,8 +304,7 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
 
     from softgrasp.grasp import planner
     from softgrasp.grasp.planner import _settle
-    from softgrasp.sim import pardiso
-
+    from softgrasp.linalg import pardiso
     in_hold_checks, in_increments = [], []
     real_check, real_advance = planner._check_hold, planner._advance
 
@@ -488,8 +487,7 @@ def test_on_its_stable_facet_a_sphere_started_lowered_settles_where_started_leve
     displacement (1.0e-7 measured: the rolling mode is nearly neutral), the table carrying the
     weight, in fewer Newton systems (5 against 8 measured)."""
     from softgrasp.grasp.planner import HELD_RTOL, _lowered, _stable_pose, _table
-    from softgrasp.sim import pardiso
-
+    from softgrasp.linalg import pardiso
     mesh, material, mass = make_object("sphere", 0.007)
     body = build_body(mesh, material, mass=mass)
     x = _stable_pose(body, np.asarray(mesh.points))
@@ -623,8 +621,7 @@ def test_the_fine_sphere_settles_on_the_table_without_being_kicked_along_its_rol
     from scipy.spatial import ConvexHull
 
     from softgrasp.grasp.planner import _settle
-    from softgrasp.sim import pardiso
-
+    from softgrasp.linalg import pardiso
     if not pardiso.available():
         pytest.skip("the failure was on PARDISO's path (MKL not installed)")
     mesh, material, mass = make_object("sphere", 0.0036)
@@ -680,7 +677,7 @@ def test_default_plan_is_reachable_by_the_hand(default_plan):
     keeps its palm and joints outside the object (only fingertips touch it)."""
     from scipy.spatial import ConvexHull
 
-    from softgrasp.hand.reach import transform
+    from softgrasp.hand.placement import transform
 
     plan = default_plan
     hand, pl = plan.config.hand, plan.placement
@@ -750,7 +747,7 @@ def test_set_points_do_not_depend_on_round_off():
     to 1e-6. (With the fingertips starting exactly one step from tangency, whether a facet counted
     as touching at the first step's end was round-off's choice, and the set-points took one of
     several values 1-4 % apart.)"""
-    from softgrasp.mesh.tetmesh import TetMesh
+    from softgrasp.model.mesh.tetmesh import TetMesh
 
     mesh, mat, mass = make_object("sphere")
     jitter = 1e-13 * np.random.default_rng(12).standard_normal(mesh.points.shape)

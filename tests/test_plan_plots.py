@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from softgrasp.objects import make_object  # noqa: E402
+from softgrasp.model.objects import make_object  # noqa: E402
 from softgrasp.viz.plots import (  # noqa: E402
     plot_grasp_3d,
     plot_plan_force_penetration,

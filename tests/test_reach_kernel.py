@@ -1,5 +1,5 @@
-"""The compiled hand-placement solve (:mod:`softgrasp.kernels.reach`) agrees with the NumPy reference
-(:func:`softgrasp.hand.reach._solve_numpy`) to 1e-9 [m, rad], and :func:`place_hand` returns the
+"""The compiled hand-placement solve (:mod:`softgrasp.hand.placement_compiled`) agrees with the NumPy reference
+(:func:`softgrasp.hand.placement._solve_numpy`) to 1e-9 [m, rad], and :func:`place_hand` returns the
 same placement under both backends.
 
 Every iteration agrees to round-off whatever the targets (one iteration at a time along the
@@ -19,13 +19,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from softgrasp import kernels
+from softgrasp import backend
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand import reach
-from softgrasp.hand.model import ChainStack, HandModel, chain_stack
+from softgrasp.hand import placement as reach
+from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack
 
 numba = pytest.importorskip("numba")
-from softgrasp.kernels import reach as kernel  # noqa: E402 - needs numba
+from softgrasp.hand import placement_compiled as kernel  # noqa: E402 - needs numba
 
 #: Agreement of the compiled and NumPy solves: absolute [m, rad] and relative.
 TOL = 1e-9
@@ -91,7 +91,7 @@ def _problem(targets: dict[str, np.ndarray], model: HandModel = MODEL) -> Proble
 
 
 def _compiled(problem: Problem) -> kernel.Solves:
-    """:func:`kernel.solve` with the rules of :mod:`softgrasp.hand.reach` (read now: tests patch them)."""
+    """:func:`kernel.solve` with the rules of :mod:`softgrasp.hand.placement` (read now: tests patch them)."""
     return kernel.solve(
         *problem,
         reach_tol=reach.REACH_TOL,
@@ -114,7 +114,7 @@ def _assert_same(got: tuple[np.ndarray, ...], ref: tuple[np.ndarray, ...]) -> No
 
 @pytest.fixture
 def numba_backend() -> Iterator[None]:
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         yield
 
 
@@ -235,7 +235,7 @@ def test_place_hand_places_the_hand_alike_under_both_backends(case: str, sphere_
         targets, obstacle = TARGETS[case], None
     placements = {}
     for backend in ("numpy", "numba"):
-        with kernels.use_backend(backend):
+        with backend.use_backend(backend):
             placements[backend] = reach.place_hand(MODEL, targets, obstacle=obstacle)
     a, b = placements["numpy"], placements["numba"]
     np.testing.assert_allclose(b.palm_pose, a.palm_pose, rtol=TOL, atol=TOL)
@@ -251,7 +251,7 @@ def test_place_hand_refuses_unreachable_targets_alike_under_both_backends(case: 
     """The same message: the same finger, the same closest distance to 0.1 mm."""
     messages = []
     for backend in ("numpy", "numba"):
-        with kernels.use_backend(backend), pytest.raises(InfeasibleGrasp, match="cannot reach") as info:
+        with backend.use_backend(backend), pytest.raises(InfeasibleGrasp, match="cannot reach") as info:
             reach.place_hand(MODEL, TARGETS[case])
         messages.append(str(info.value))
     assert messages[0] == messages[1]

@@ -1,4 +1,4 @@
-"""``softgrasp.experiments.reproduce``: the paper's experiments end to end in one report.
+"""``softgrasp.report.reproduce``: the paper's experiments end to end in one report.
 
 One quick run (coarse meshes, about 10 s on two cores) is shared by the tests of its content; the
 failure tests run single steps with an experiment function replaced by one that raises.
@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged
-from softgrasp.experiments import reproduce as rp
-from softgrasp.experiments.reproduce import EXPERIMENTS, PAPER_TABLE1, reproduce
+from softgrasp.report import reproduce as rp
+from softgrasp.report.reproduce import EXPERIMENTS, PAPER_TABLE1, reproduce
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 FIGURE_LINK = re.compile(r"!\[[^\]]*\]\(([^)]+)\)")

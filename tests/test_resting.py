@@ -1,5 +1,5 @@
 """The approach of a body resting on the table, estimated before the settle solves for it
-(:mod:`softgrasp.contact.resting`): against Hertz on a sphere, a flat punch on a flat face, and
+(:mod:`softgrasp.physics.resting`): against Hertz on a sphere, a flat punch on a flat face, and
 the settle it starts."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.contact.resting import lowered_onto_table, resting_approach
+from softgrasp.physics.resting import lowered_onto_table, resting_approach
 
 R = 0.04  # sphere radius [m]
 E_STAR = 1.0e6 / (1.0 - 0.45**2)  # contact modulus against a rigid table [Pa]

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from softgrasp import kernels
-from softgrasp.body import build_body
-from softgrasp.material import preset
-from softgrasp.mesh.generate import box
-from softgrasp.sim import linsolve
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp import backend
+from softgrasp.physics.body import build_body
+from softgrasp.model.material import preset
+from softgrasp.model.mesh.generate import box
+from softgrasp.linalg import solve as linsolve
+from softgrasp.linalg.solve import SolverCache
 
-pytestmark = pytest.mark.skipif("numba" not in kernels.available(), reason="Numba is not installed")
+pytestmark = pytest.mark.skipif("numba" not in backend.available(), reason="Numba is not installed")
 
 
 def _cube_system(n: int = 6, local: bool = False):
@@ -36,7 +36,7 @@ def _cube_system(n: int = 6, local: bool = False):
 
 
 def test_the_compiled_product_is_scipys_and_the_same_bits_on_one_thread_or_two():
-    from softgrasp.kernels.sparse import CsrProduct
+    from softgrasp.linalg.sparse import CsrProduct
 
     A, _ = _cube_system()
     v = np.random.default_rng(0).standard_normal(A.shape[0])
@@ -58,7 +58,7 @@ def test_a_hybrid_sweep_on_a_matrix_without_couplings_between_blocks_is_gauss_se
     Gauss-Seidel itself: pyamg's forward and backward sweeps, to rounding."""
     from pyamg.relaxation.relaxation import gauss_seidel
 
-    from softgrasp.kernels.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
 
     A, _ = _cube_system(4)
     n = A.shape[0]
@@ -96,7 +96,7 @@ def test_l1_hybrid_sweeps_converge_where_plain_hybrid_ones_diverge():
     1.085); with each row's couplings to the other block added to its diagonal (the l1 term),
     M + M^T - A is positive definite and the compiled sweeps converge to A^-1 b, the error's
     energy norm falling at every sweep, forward and backward."""
-    from softgrasp.kernels.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
 
     B = np.array([[-0.7, -0.1], [0.8, 1.5], [-1.3, 1.5], [1.3, 0.8], [0.3, -0.3], [1.5, 2.0]])
     A = B @ B.T + 0.05 * np.eye(6)
@@ -129,7 +129,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     (l1 hybrid sweeps forward before the coarse correction, backward after); and the same
     hierarchy and cycle, to the bit, whatever the thread count and from one build to the next
     (pyamg's random start seeded, the caller's generator left as it was)."""
-    from softgrasp.kernels.sparse import BlockGaussSeidel, HybridBlockGaussSeidel
+    from softgrasp.linalg.sparse import BlockGaussSeidel, HybridBlockGaussSeidel
 
     A, x_nodes = _cube_system(12, local=True)
     rng = np.random.default_rng(5)
@@ -137,7 +137,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     np.random.seed(7)
     np.random.random(3)
     state = np.random.get_state()
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
     after = np.random.get_state()
     assert np.array_equal(after[1], state[1]) and after[2:] == state[2:]
@@ -147,7 +147,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     Mu, Mv = M @ u, M @ v
     assert abs(u @ Mv - v @ Mu) <= 1e-12 * np.linalg.norm(u) * np.linalg.norm(Mv)
     results = []
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         for threads in (1, 2):
             other = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
             other.use(A, threads)
@@ -164,9 +164,9 @@ def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
     A2 = (A + 0.5 * sp.diags(A.diagonal())).tocsr()
     r = np.random.default_rng(6).standard_normal(A.shape[0])
     cache = SolverCache(method="amg")
-    with kernels.use_backend("numba"):
+    with backend.use_backend("numba"):
         linsolve._multigrid(A, x_nodes, cache)
-    with kernels.use_backend("numpy"):
+    with backend.use_backend("numpy"):
         M = linsolve._multigrid(A2, x_nodes, cache)
         got = M @ r
     assert len(M.ml.levels) == 3 and M.ml.levels[0].A is A2
@@ -183,7 +183,7 @@ def test_a_matrix_not_numbered_for_locality_is_swept_as_one_block():
     same box renumbered for locality is swept in two."""
     from pyamg.relaxation.relaxation import gauss_seidel
 
-    from softgrasp.kernels.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
 
     A, _ = _cube_system(8)
     sweeps = HybridGaussSeidel(A, threads=2)
@@ -213,7 +213,7 @@ def _random_bsr(rows: int, cols: int, blocksize: tuple[int, int], seed: int) -> 
 def test_the_block_products_are_scipys_and_the_same_bits_on_one_thread_or_two(blocksize):
     """The BSR products of the multigrid hierarchy's block shapes against SciPy's product, and
     the same to the bit on one thread or two; other shapes and formats get the CSR product."""
-    from softgrasp.kernels.sparse import BsrProduct, CsrProduct, product
+    from softgrasp.linalg.sparse import BsrProduct, CsrProduct, product
 
     A = _random_bsr(40, 30, blocksize, seed=sum(blocksize))
     x = np.random.default_rng(11).standard_normal(A.shape[1])
@@ -241,7 +241,7 @@ def test_the_block_sweeps_are_pyamgs_block_gauss_seidel_and_converge():
     such matrices) to the solution of the system solved directly."""
     from pyamg.relaxation.relaxation import block_gauss_seidel
 
-    from softgrasp.kernels.sparse import BlockGaussSeidel
+    from softgrasp.linalg.sparse import BlockGaussSeidel
 
     rng = np.random.default_rng(12)
     G = _random_bsr(25, 25, (6, 6), seed=3).tocsr()
@@ -292,7 +292,7 @@ def test_node_block_sweeps_and_products_are_their_definition_and_the_same_bits_o
     solved densely; the same bits on one thread or two; repeated symmetric sweeps converge (the
     l1 term keeps M + M^T - A positive definite). A matrix that is not made of full node blocks
     keeps the row-wise sweeps."""
-    from softgrasp.kernels.sparse import (
+    from softgrasp.linalg.sparse import (
         SWEEP_PARTS,
         HybridBlockGaussSeidel,
         HybridGaussSeidel,
@@ -344,8 +344,8 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_ba
     """The compiled distinct node pairs (a counting sort) against ``np.unique`` of the pair keys,
     duplicates and empty rows included, and the body's Jacobian pattern built with either; bad
     input is refused."""
-    from softgrasp.forces import BlockPattern, assemble_blocks, spring_pairs, volume_pairs
-    from softgrasp.kernels.sparse import block_layout, unique_pairs
+    from softgrasp.physics.forces import BlockPattern, assemble_blocks, spring_pairs, volume_pairs
+    from softgrasp.linalg.sparse import block_layout, unique_pairs
 
     rng = np.random.default_rng(14)
     for n, k in ((1, 5), (7, 0), (40, 3000)):
@@ -364,7 +364,7 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_ba
     for n, r, c in cases:
         patterns = {}
         for name in ("numba", "numpy"):
-            with kernels.use_backend(name):
+            with backend.use_backend(name):
                 patterns[name] = BlockPattern(n, r, c)
         for attr in ("block_base", "block_stride", "indptr", "indices"):
             got, want = getattr(patterns["numba"], attr), getattr(patterns["numpy"], attr)
@@ -389,7 +389,7 @@ def test_a_node_block_that_is_not_positive_definite_is_left_alone():
     """As the row-wise sweep leaves a row whose l1 diagonal is not positive, the node-block sweep
     leaves a node whose (l1) diagonal block is not positive definite: its unknowns unchanged, the
     others updated."""
-    from softgrasp.kernels.sparse import HybridBlockGaussSeidel, node_blocks
+    from softgrasp.linalg.sparse import HybridBlockGaussSeidel, node_blocks
 
     D = np.diag([2.0, 2.0, 2.0, -1.0, -1.0, -1.0, 3.0, 3.0, 3.0])
     D[0, 1] = D[1, 0] = 0.5
@@ -409,7 +409,7 @@ def test_the_compiled_diagonal_is_scipys_with_duplicates_and_unsorted_indices():
     reads each Newton matrix's diagonal to find the nodes contacts stiffened) against SciPy's
     ``diagonal()``: duplicate entries summed, each row's entries in reverse order, rows without a
     diagonal entry 0."""
-    from softgrasp.kernels.sparse import HybridBlockGaussSeidel, HybridGaussSeidel, diagonal, fine_smoother
+    from softgrasp.linalg.sparse import HybridBlockGaussSeidel, HybridGaussSeidel, diagonal, fine_smoother
 
     A, _ = _cube_system(5)
     assert np.array_equal(diagonal(A), A.diagonal())
@@ -442,7 +442,7 @@ def test_block_sweeps_with_some_diagonal_blocks_changed_in_place():
     from pyamg.relaxation.relaxation import block_gauss_seidel
     from pyamg.util.utils import get_block_diag
 
-    from softgrasp.kernels.sparse import BlockGaussSeidel
+    from softgrasp.linalg.sparse import BlockGaussSeidel
 
     G = _random_bsr(20, 20, (6, 6), seed=5).tocsr()
     A = (G @ G.T + 5.0 * sp.eye(G.shape[0])).tobsr(blocksize=(6, 6))

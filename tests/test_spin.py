@@ -1,4 +1,4 @@
-"""The flags two threads of the fused stepper meet on (:mod:`softgrasp.kernels.spin`): a value
+"""The flags two threads of the fused stepper meet on (:mod:`softgrasp.sim.fused.spin`): a value
 stored with release ordering carries the writes before it to the thread that loads it with
 acquire ordering; a wait ends when the other thread gets there, or when stop is set; the
 intrinsics refuse the wrong types."""
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 numba = pytest.importorskip("numba")
-from softgrasp.kernels import step  # noqa: E402 - needs numba
-from softgrasp.kernels.spin import STRIDE, load_acquire, relax, store_release  # noqa: E402
+from softgrasp.sim.fused import step  # noqa: E402 - needs numba
+from softgrasp.sim.fused.spin import STRIDE, load_acquire, relax, store_release  # noqa: E402
 
 
 @numba.njit(nogil=True)

@@ -8,22 +8,22 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from softgrasp.body import build_body
-from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.model import FingertipContact
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import NotConverged
-from softgrasp.forces import assemble_blocks
-from softgrasp.material import Material, preset
-from softgrasp.mesh import box
-from softgrasp.objects import make_object
-from softgrasp.planes import Plane, PlaneContact
+from softgrasp.physics.forces import assemble_blocks
+from softgrasp.model.material import Material, preset
+from softgrasp.model.mesh import box
+from softgrasp.model.objects import make_object
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import static
 from softgrasp.sim.implicit import Inertia
-from softgrasp.sim.integrators import settle
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp.sim.explicit import settle
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import _cycle, _newton_matrix, extrapolated, solve_increment, solve_static
-from softgrasp.supports import Tether
+from softgrasp.physics.supports import Tether
 
 G = 9.80665
 
@@ -387,8 +387,7 @@ def test_a_static_solve_called_alone_holds_numpys_blas_to_one_thread(monkeypatch
     solve inside the planner's hold."""
     import contextlib
 
-    from softgrasp.sim import pardiso
-
+    from softgrasp.linalg import pardiso
     body = build_body(box(0.02, 3), preset("foam"), mass=0.01)
     table = PlaneContact(Plane(np.zeros(3), np.array([0.0, 0.0, 1.0])), mu=0.5)
     scene = Scene(body, (table,))

@@ -4,7 +4,7 @@
 a specimen squeezed between plates is matched by softgrasp's own compression test
 (:func:`softgrasp.experiments.compression.compression_test`) of a mesh of the specimen, by
 bounded non-linear least squares over Young's modulus E, the polynomial law's a2 and a3
-(:class:`softgrasp.material.Polynomial`) and, when the file has lateral strains, Poisson's ratio.
+(:class:`softgrasp.model.material.Polynomial`) and, when the file has lateral strains, Poisson's ratio.
 
 *Indentation* (:func:`fit_indentation`): a measured force-penetration curve of one fingertip
 pressed into the object is matched by softgrasp's indentation test
@@ -34,15 +34,15 @@ from numpy.typing import NDArray
 from scipy.interpolate import PchipInterpolator
 from scipy.optimize import least_squares
 
-from softgrasp.body import Body, build_body
-from softgrasp.contact.fingertip import ContactParams
-from softgrasp.contact.laws import contact_damping
+from softgrasp.physics.body import Body, build_body
+from softgrasp.physics.fingertip.params import ContactParams
+from softgrasp.physics.fingertip.laws import contact_damping
 from softgrasp.errors import ConfigError, MaterialError, NotConverged, SoftgraspError
 from softgrasp.experiments.compression import compression_test, outline_area
 from softgrasp.experiments.indentation import indentation_test
 from softgrasp.experiments.measured import MeasuredTable, read_table
-from softgrasp.material import Material, Polynomial
-from softgrasp.mesh.tetmesh import TetMesh
+from softgrasp.model.material import Material, Polynomial
+from softgrasp.model.mesh.tetmesh import TetMesh
 
 __all__ = [
     "Parameter",

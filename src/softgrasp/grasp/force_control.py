@@ -15,7 +15,7 @@ its set-point. Then the table is taken away and the object held for ``hold_time`
 less than ``max_drift`` and no fingertip slides.
 
 This answers "do these set-points hold this object?" for any material and friction, which is what
-robust set-points (:mod:`softgrasp.grasp.robust`) are checked with.
+robust set-points (:mod:`softgrasp.sweep.robust`) are checked with.
 """
 
 from __future__ import annotations
@@ -27,13 +27,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.body import Body
-from softgrasp.contact.fingertip import Fingertip
-from softgrasp.contact.model import FingertipContact
+from softgrasp.physics.body import Body
+from softgrasp.physics.fingertip.params import Fingertip
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import ConfigError, NotConverged
 from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.planner import PlanConfig, _check_hold, _cone_usage, closing_setup
-from softgrasp.sim.linsolve import SolverCache
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_increment
 

@@ -35,22 +35,22 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull, QhullError
 
-from softgrasp.body import Body
-from softgrasp.contact.fingertip import ContactParams, Fingertip
-from softgrasp.contact.laws import effective_modulus
-from softgrasp.contact.model import FingerReport, FingertipContact
-from softgrasp.contact.resting import lowered_onto_table
+from softgrasp.physics.body import Body
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.fingertip.laws import effective_modulus
+from softgrasp.physics.fingertip.contact import FingerReport, FingertipContact
+from softgrasp.physics.resting import lowered_onto_table
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged, SimulationUnstable
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp, ranked_grasps
-from softgrasp.hand.model import HandModel
-from softgrasp.hand.reach import HandPlacement, closing_paths, place_hand
-from softgrasp.mesh.placement import stable_facet_pose
-from softgrasp.planes import Plane, PlaneContact
-from softgrasp.sim import pardiso
+from softgrasp.hand.kinematics import HandModel
+from softgrasp.hand.placement import HandPlacement, closing_paths, place_hand
+from softgrasp.model.mesh.placement import stable_facet_pose
+from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.linalg import pardiso
 from softgrasp.sim.implicit import implicit_euler_step
-from softgrasp.sim.integrators import simulate
-from softgrasp.sim.linsolve import SolverCache, by_multigrid
+from softgrasp.sim.explicit import simulate
+from softgrasp.linalg.solve import SolverCache, by_multigrid
 from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import extrapolated, solve_increment, solve_static
@@ -282,7 +282,7 @@ class GraspPlan:
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
     solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
-        <softgrasp.sim.linsolve.SolverCache>`): Newton systems, factorisations, multigrid V-cycles
+        <softgrasp.linalg.solve.SolverCache>`): Newton systems, factorisations, multigrid V-cycles
         ... (machine-independent measures of its cost); the Newton systems also by phase:
         ``settle_systems`` (the object coming to rest on the table), ``closing_systems`` (the
         closing increments and their refinement) and ``hold_check_systems`` (the table removed,
@@ -413,7 +413,7 @@ def _table(x: NDArray[np.float64], mu: float) -> PlaneContact:
 
 def _stable_pose(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
     """``x`` turned onto its most stable hull facet about its centre of mass
-    (:func:`softgrasp.mesh.placement.stable_facet_pose`)."""
+    (:func:`softgrasp.model.mesh.placement.stable_facet_pose`)."""
     return stable_facet_pose(x, _com(body, x))
 
 
@@ -439,7 +439,7 @@ def _stands(x: NDArray[np.float64], com: NDArray[np.float64]) -> bool:
 
 def _lowered(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """Where the settle's Newton starts: ``x`` lowered by half the approach its weight presses it
-    into the table (:func:`softgrasp.contact.resting.lowered_onto_table`), the nodes of the
+    into the table (:func:`softgrasp.physics.resting.lowered_onto_table`), the nodes of the
     predicted contact patch touching from the start; ``None`` (start as placed) where gravity
     does not press the body onto the table, or where the patch is no more than the nodes that
     touch as placed (a flat face down: lowered, the foam cube's settle took 3 systems, level 2)."""
@@ -459,7 +459,7 @@ def _settle(body: Body, cfg: PlanConfig, cache: SolverCache) -> tuple[State, Pla
     stable hull facet, as a real object comes to rest.
 
     For bodies of :data:`LOWERED_MIN_NODES` nodes or more whose Newton systems go to multigrid
-    (:func:`~softgrasp.sim.linsolve.by_multigrid`, the default there), Newton first starts each
+    (:func:`~softgrasp.linalg.solve.by_multigrid`, the default there), Newton first starts each
     placement lowered by half the approach its weight presses it into the table (:func:`_lowered`):
     the nodes of the predicted contact patch touch from the first iterate, anchored for friction
     where they stand, as when the object is set straight down; then, if that finds no rest within

@@ -1,6 +1,6 @@
 """Simulation: scene and state, explicit integrators, stable time step, static solver."""
 
-from softgrasp.sim.integrators import (
+from softgrasp.sim.explicit import (
     RK4,
     DormandPrince45,
     Integrator,

@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp.body import Body
+from softgrasp.physics.body import Body
 
 __all__ = ["RampedLoad"]
 

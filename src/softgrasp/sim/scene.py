@@ -14,8 +14,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp.body import Body
-from softgrasp.forces import gravity_forces
+from softgrasp.physics.body import Body
+from softgrasp.physics.forces import gravity_forces
 
 __all__ = ["Interaction", "Scene", "State"]
 

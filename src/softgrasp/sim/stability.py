@@ -66,7 +66,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import SimulationUnstable
-from softgrasp.mesh.tetmesh import signed_volumes
+from softgrasp.model.mesh.tetmesh import signed_volumes
 from softgrasp.sim.scene import Scene, State
 
 __all__ = [

@@ -23,12 +23,12 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp import kernels
-from softgrasp.body import Body
+from softgrasp import backend
+from softgrasp.physics.body import Body
 from softgrasp.errors import NotConverged, SimulationUnstable
-from softgrasp.mesh.tetmesh import signed_volumes
-from softgrasp.sim import pardiso
-from softgrasp.sim.linsolve import (
+from softgrasp.model.mesh.tetmesh import signed_volumes
+from softgrasp.linalg import pardiso
+from softgrasp.linalg.solve import (
     _SINGULAR,
     SolverCache,
     _rigid_motion_free,
@@ -143,9 +143,8 @@ def rigid_constraints(
 def _valid(body: Body, x: NDArray[np.float64]) -> bool:
     """Whether every tet of ``body`` has a positive signed volume at ``x`` (the compiled count
     where the compiled kernels are in use: the line search asks at every trial step)."""
-    if kernels.compiled():
-        from softgrasp.kernels import elastic
-
+    if backend.compiled():
+        from softgrasp.physics import forces_compiled as elastic
         return elastic.count_inverted(x, body.mesh.tets) == 0
     return bool((signed_volumes(x, body.mesh.tets) > 0).all())
 
@@ -568,7 +567,7 @@ def solve_static(
     NotConverged: Newton stalled, or the body is not held (singular stiffness).
     SimulationUnstable: the configuration is invalid (inverted tets) at the start.
 
-    NumPy's BLAS runs on one thread meanwhile (:func:`~softgrasp.sim.pardiso.blas_one_thread`, as
+    NumPy's BLAS runs on one thread meanwhile (:func:`~softgrasp.linalg.pardiso.blas_one_thread`, as
     the planner holds it for a whole plan): the 27 749-node settle called alone took 18.2 s with
     OpenBLAS's threads competing with the multigrid products' and PARDISO's.
     """
@@ -581,13 +580,13 @@ def solve_static(
 
 def _force_threads(body: Body, cache: SolverCache) -> contextlib.AbstractContextManager:
     """Numba's threads for a large body's force evaluations during a static solve (its sums run
-    on the calling thread's: :meth:`softgrasp.body.Body.internal_forces`): the assembly's, the idle
-    cores on the multigrid path (:func:`~softgrasp.sim.linsolve.assembly_threads`). Nothing is
+    on the calling thread's: :meth:`softgrasp.physics.body.Body.internal_forces`): the assembly's, the idle
+    cores on the multigrid path (:func:`~softgrasp.linalg.solve.assembly_threads`). Nothing is
     changed for smaller bodies or without the compiled kernels."""
-    if not kernels.compiled():
+    if not backend.compiled():
         return contextlib.nullcontext()
-    from softgrasp.kernels.elastic import PARTITIONED_MIN_NODES
-    from softgrasp.kernels.sparse import _Threads
+    from softgrasp.physics.forces_compiled import PARTITIONED_MIN_NODES
+    from softgrasp.linalg.sparse import _Threads
 
     if body.n_nodes < PARTITIONED_MIN_NODES:
         return contextlib.nullcontext()

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from softgrasp.errors import ConfigError
-from softgrasp.output import atomic_write, write_json
+from softgrasp.io.atomic import atomic_write, write_json
 from softgrasp.sweep.case import output_columns, run_case
 from softgrasp.sweep.spec import Case, SweepSpec, describe_spec
 

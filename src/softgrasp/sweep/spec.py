@@ -20,7 +20,7 @@ A sweep file is TOML::
     mu = [0.3, 0.9]
     E = { low = 40e3, high = 160e3, log = true }
 
-Options are those of ``softgrasp plan`` (:data:`softgrasp.grasp.options.PLAN_DEFAULTS`: ``object``,
+Options are those of ``softgrasp plan`` (:data:`softgrasp.io.options.PLAN_DEFAULTS`: ``object``,
 ``material``, ``mesh_size``, ``mu``, ``fingertip_radius``, ``step``, ``solver``, ``safety_factor``,
 ``hold_time``, ``max_squeeze``, ``refine``, ``hand``, ``grasp``) and the material parameters ``E``
 [Pa], ``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3`` set over the object's material. SI
@@ -40,8 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from softgrasp.errors import ConfigError
-from softgrasp.grasp.options import MATERIAL_OVERRIDES, PLAN_DEFAULTS
-from softgrasp.tomlfile import read_toml
+from softgrasp.io.options import MATERIAL_OVERRIDES, PLAN_DEFAULTS
+from softgrasp.io.tomlfile import read_toml
 
 __all__ = [
     "SweepSpec",

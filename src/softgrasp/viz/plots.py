@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.output import atomic_write
+from softgrasp.io.atomic import atomic_write
 
 __all__ = ["plot_force_penetration", "plot_stress_strain"]
 

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.output import write_text
+from softgrasp.io.atomic import write_text
 
 __all__ = ["write_view"]
 

@@ -94,7 +94,7 @@ def _want_child() -> bool:
     mode = os.environ.get("SOFTGRASP_FIGURES", "auto").strip().lower()
     if mode in ("child", "inline"):
         return mode == "child"
-    from softgrasp.sim.pardiso import idle_cores
+    from softgrasp.linalg.pardiso import idle_cores
 
     return max(idle_cores() for _ in range(3)) >= 2  # this process's core and another
 

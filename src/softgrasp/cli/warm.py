@@ -1,0 +1,82 @@
+"""Loading the compiled kernels before their first use, on a background thread.
+
+A fresh process pays once for the compiled kernels: importing Numba and loading every kernel a
+static solve calls from Numba's disk cache (about 0.5-0.8 s on the 2-core benchmark machine; a
+first run on a machine compiles them instead). The command line starts :func:`warm_up_in_background`
+before it meshes the object. gmsh meshes in C with the interpreter released, so the loading
+overlaps the meshing instead of following it.
+
+The warm-up solves one tiny static problem: a 30 mm box on a table under gravity, pressed by one
+fingertip (sparse LU, not PARDISO, so that no solver threads start), and places the default hand
+on its own fingertips. It calls the kernels through
+the same code path, with the same argument types, as a plan. It is only an optimisation: a failure
+is ignored, and the real call then meets the same problem and reports it.
+
+Numba's worker threads are then started by the warm-up thread. TBB's layer resets them in a forked
+child only when the fork comes from the thread that started them (from another, Numba warns that
+the child's TBB may be in an invalid state); the command line forks no process after the warm-up
+(its figure worker is a new program, started by exec).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from softgrasp.backend import compiled
+
+__all__ = ["warm_up", "warm_up_in_background"]
+
+
+def warm_up() -> None:
+    """Load (or compile) the kernels a static solve with a table and fingertips uses, by solving
+    a tiny such problem. Does nothing with the NumPy kernels."""
+    if not compiled():
+        return
+    from softgrasp.physics.body import build_body
+    from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+    from softgrasp.physics.fingertip.contact import FingertipContact
+    from softgrasp.physics import forces_compiled as elastic
+    from softgrasp.model.material import preset
+    from softgrasp.model.mesh.generate import box
+    from softgrasp.physics.planes import Plane, PlaneContact
+    from softgrasp.linalg.solve import SolverCache
+    from softgrasp.sim.scene import Scene
+    from softgrasp.sim.static import solve_static
+
+    mesh = box(0.03, 2)
+    body = build_body(mesh, preset("rubber"), mass=0.02)
+    x = np.asarray(mesh.points, dtype=np.float64)
+    elastic.count_inverted(x, mesh.tets)
+    top = float(x[:, 2].max())
+    centre = np.array([*x[:, :2].mean(axis=0), top + 0.008 - 0.0002])
+    tip = Fingertip(0.008, centre=centre, velocity=np.array([0.0, 0.0, -1.0]))
+    fingers = FingertipContact((tip,), ContactParams(mu=0.8))
+    table = PlaneContact(Plane(np.zeros(3), np.array([0.0, 0.0, 1.0])), mu=0.5)
+    scene = Scene(body, (table, fingers))
+    state = scene.initial_state()
+    rest, _ = solve_static(scene, state, t=0.0002, cache=SolverCache(method="direct"))
+    fingers.report(body, rest.x, None, 0.0002, rest.contacts[1], static=True)
+    fingers.contact_frames(body, rest.x, 0.0002, rest.contacts[1])
+    # The hand's placement (its compiled WDLS): the default hand reaching its own fingertips.
+    from softgrasp.hand.kinematics import HandModel
+    from softgrasp.hand.placement import place_hand
+
+    hand = HandModel.default()
+    mid = {f: hand.forward(f, 0.5 * np.add(*hand.limits(f))) for f in ("thumb", "first", "middle")}
+    place_hand(hand, mid)
+
+
+def _quietly() -> None:
+    try:
+        warm_up()
+    except Exception:  # noqa: BLE001 - an optimisation only: the real call reports the problem
+        pass
+
+
+def warm_up_in_background() -> threading.Thread:
+    """Start :func:`warm_up` on a daemon thread and return it (joining it is optional)."""
+    thread = threading.Thread(target=_quietly, name="softgrasp-warm-up", daemon=True)
+    thread.start()
+    return thread

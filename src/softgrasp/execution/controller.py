@@ -1,0 +1,368 @@
+"""Executing a plan on a hand (paper step 3, Sec. 2 and 4.3.3): force-controlled closing to the
+planned set-points, then the lift and the hold, with the slip check.
+
+Phases, all driven through the :class:`~softgrasp.execution.protocol.Hand` interface:
+
+1. **settle**: the hand starts in the plan's starting posture (fingertips one step off their
+   initial contacts; the backend puts it there, a hardware hand by position control) and holds it
+   while the object comes to rest on the table;
+2. **close**: each fingertip advances along its planned straight closing line (palm frame) at a
+   speed set by its force error, ``ds/dt = v_max clip(gain (F_set - F) / F_set, -1, 1)``, an
+   integral force controller on the tactile normal force; the closing is done when every finger
+   has stayed within ``tolerance`` of its set-point for ``settle_band`` seconds;
+3. **lift**: the base rises ``lift`` metres at ``lift_speed`` on average (a half-cosine profile),
+   the fingers holding the posture that reached the set-points;
+4. **hold**: ``hold_time`` seconds at the top.
+
+The slip is the object's displacement relative to the fingertips during the lift and the hold:
+``max_t |(c(t) - g(t)) - (c(t0) - g(t0))|`` with c the object's centre of mass and g the centroid
+of the fingertips (world), t0 the start of the lift. The object is *dropped* when at the end it
+has risen less than half the lift.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.errors import ConfigError
+from softgrasp.io.planfile import PlanFile
+from softgrasp.execution.protocol import Hand
+from softgrasp.hand.placement import invert, transform
+
+__all__ = ["ClosingLine", "ExecuteConfig", "ExecutionResult", "closing_lines", "execute_plan", "PHASES"]
+
+PHASES = ("settle", "close", "lift", "hold")
+
+
+@dataclass(frozen=True)
+class ClosingLine:
+    """One finger's task: its set-point and its straight closing line in the palm frame.
+
+    Attributes
+    ----------
+    setpoint: normal force to reach [N] (> 0).
+    start: fingertip centre where the closing starts [m], palm frame, (3,).
+    direction: unit closing direction, palm frame, (3,).
+    max_travel: farthest the fingertip may advance along the line [m] (the crushing guard), and
+        back off behind its start.
+    """
+
+    setpoint: float
+    start: NDArray[np.float64]
+    direction: NDArray[np.float64]
+    max_travel: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.setpoint) and self.setpoint > 0):
+            raise ConfigError(f"set-point {self.setpoint} N must be a finite force > 0")
+        if not (math.isfinite(self.max_travel) and self.max_travel > 0):
+            raise ConfigError(f"max_travel {self.max_travel} m must be > 0")
+        d = np.asarray(self.direction, dtype=np.float64)
+        if d.shape != (3,) or abs(np.linalg.norm(d) - 1.0) > 1e-6:
+            raise ConfigError("a closing direction must be a unit vector (3,)")
+
+
+def closing_lines(plan: PlanFile, scale: float = 1.0) -> dict[str, ClosingLine]:
+    """Each finger's task from a plan: set-point ``scale`` times its planned normal force, the line
+    from its start to its final centre in the palm frame, and a crushing guard of three times the
+    planned travel (at least 5 mm more than it)."""
+    to_palm = invert(plan.palm_pose)
+    lines = {}
+    for f in plan.fingers:
+        a, b = transform(to_palm, f.start), transform(to_palm, f.final)
+        L = float(np.linalg.norm(b - a))
+        lines[f.name] = ClosingLine(scale * f.normal_force, a, (b - a) / L, max(3.0 * L, L + 0.005))
+    return lines
+
+
+@dataclass(frozen=True)
+class ExecuteConfig:
+    """Controller settings.
+
+    Attributes
+    ----------
+    lift: base rise [m].  lift_speed: [m/s].  hold_time: [s] at the top.
+    tolerance: relative force error that counts as reaching a set-point (0.05 = 5 %).
+    settle_time: [s] before the closing.  settle_band: [s] every finger must stay within the
+        tolerance to end the closing.  max_close_time: [s] before giving up on the set-points.
+    speed: largest fingertip speed of the force controller [m/s].  gain: relative force error at
+        which it is reached.  control_dt: controller period [s].
+    force_control_in_lift: keep regulating each finger's force during the lift and the hold. Off
+        by default: once the set-points are reached the fingers hold their posture (the paper's
+        lift). Three independent force loops cannot hold the object's position: when the weight
+        moves from the table to the fingers, the object drifts towards one finger, which backs
+        off while the others chase it (measured in MuJoCo: the thumb retreated to its start and
+        its force rose 15 %).
+    """
+
+    lift: float = 0.10
+    lift_speed: float = 0.05
+    hold_time: float = 2.0
+    tolerance: float = 0.05
+    settle_time: float = 0.3
+    settle_band: float = 0.2
+    max_close_time: float = 6.0
+    speed: float = 0.01
+    gain: float = 2.0
+    control_dt: float = 0.002
+    force_control_in_lift: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("lift", "hold_time", "settle_time"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"execute parameter {name} = {v} must be finite and >= 0")
+        for name in (
+            "lift_speed",
+            "tolerance",
+            "settle_band",
+            "max_close_time",
+            "speed",
+            "gain",
+            "control_dt",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"execute parameter {name} = {v} must be finite and > 0")
+
+    def describe(self) -> dict[str, float | bool]:
+        return {
+            "lift_m": self.lift,
+            "lift_speed_m_s": self.lift_speed,
+            "hold_time_s": self.hold_time,
+            "tolerance": self.tolerance,
+            "settle_time_s": self.settle_time,
+            "settle_band_s": self.settle_band,
+            "max_close_time_s": self.max_close_time,
+            "speed_m_s": self.speed,
+            "gain": self.gain,
+            "control_dt_s": self.control_dt,
+            "force_control_in_lift": self.force_control_in_lift,
+        }
+
+
+@dataclass
+class ExecutionResult:
+    """What happened.
+
+    Attributes
+    ----------
+    fingers: finger names.  setpoints: [N] per finger.
+    reached: whether the closing brought every finger within the tolerance.
+    measured: tactile normal force per finger when the closing ended [N].
+    held: mean tactile normal force per finger over the last half of the hold [N].
+    lifted: the object rose with the hand.  dropped: it did not (rose < half the lift).
+    slip: the object's largest displacement relative to the fingertips during lift and hold [m].
+    rise: the object's final rise [m].
+    series: time series, one row per control period: ``t``, ``phase`` (index in :data:`PHASES`),
+        per finger ``force`` (normal, N) and ``travel`` (m), the base rise ``base_z`` and the
+        object's centre ``com`` (3,), the fingertip centroid ``tips`` (3,).
+    events: time [s] at which each phase began, and ``first_contact`` per finger.
+    """
+
+    fingers: tuple[str, ...]
+    setpoints: dict[str, float]
+    reached: bool
+    measured: dict[str, float]
+    held: dict[str, float]
+    lifted: bool
+    dropped: bool
+    slip: float
+    rise: float
+    series: dict[str, NDArray[np.float64]]
+    events: dict[str, float] = field(default_factory=dict)
+
+    def describe(self) -> dict[str, object]:
+        """JSON-ready outcome: per finger its set-point, the force reached and held [N]; whether
+        the set-points were reached and the object lifted; slip and rise [m]; event times [s]."""
+        return {
+            "fingers": [
+                {
+                    "name": n,
+                    "setpoint_N": self.setpoints[n],
+                    "measured_N": self.measured[n],
+                    "error_N": self.measured[n] - self.setpoints[n],
+                    "held_N": self.held[n],
+                }
+                for n in self.fingers
+            ],
+            "reached": self.reached,
+            "lifted": self.lifted,
+            "dropped": self.dropped,
+            "slip_m": self.slip,
+            "rise_m": self.rise,
+            "events_s": self.events,
+        }
+
+
+def execute_plan(
+    hand: Hand,
+    lines: Mapping[str, ClosingLine],
+    config: ExecuteConfig = ExecuteConfig(),  # noqa: B008 - frozen dataclass
+    *,
+    palm_to_world: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
+    progress: Callable[[float], None] | None = None,
+    on_event: Callable[[str], None] | None = None,
+) -> ExecutionResult:
+    """Run the settle, force-controlled closing, lift and hold on ``hand``.
+
+    Parameters
+    ----------
+    hand: the backend.  lines: per finger, its set-point and closing line (palm frame).
+    config: controller settings.
+    palm_to_world: maps palm-frame points (K, 3) to the world at the current base pose (for the
+        slip measure); None when the palm frame is the world's translated by the base offset.
+    progress: called with the fraction of the planned duration done.
+    on_event: called with ``"start"`` (fingers at their start, object settled), ``"contact"``
+        (every finger touches), ``"closed"`` (the closing ended), ``"end"`` (after the hold).
+    """
+    names = tuple(lines)
+    missing = set(names) - set(hand.fingers)
+    if missing:
+        raise ConfigError(f"the hand has no finger(s) {', '.join(sorted(missing))}; it has {hand.fingers}")
+    cfg = config
+    dt = cfg.control_dt
+    travel = {f: 0.0 for f in names}
+    rows: list[tuple] = []
+    events: dict[str, float] = {}
+    base = np.zeros(3)
+    planned = cfg.settle_time + cfg.max_close_time / 3 + cfg.lift / cfg.lift_speed + cfg.hold_time
+
+    def command() -> None:
+        hand.command_fingertips({f: lines[f].start + travel[f] * lines[f].direction for f in names})
+
+    def record(phase: int, forces: Mapping[str, float]) -> None:
+        where = hand.fingertip_positions()
+        tips = np.array([where[f] for f in names])
+        world = palm_to_world(tips) if palm_to_world is not None else tips + base
+        rows.append(
+            (
+                hand.time,
+                phase,
+                tuple(forces[f] for f in names),
+                tuple(travel[f] for f in names),
+                base[2],
+                hand.object_position().copy(),
+                world.mean(axis=0),
+            )
+        )
+        if progress is not None:
+            progress(min(hand.time / planned, 1.0))
+
+    def control(forces: Mapping[str, float]) -> None:
+        for f in names:
+            line = lines[f]
+            err = (line.setpoint - forces[f]) / line.setpoint
+            v = cfg.speed * float(np.clip(cfg.gain * err, -1.0, 1.0))
+            travel[f] = float(np.clip(travel[f] + v * dt, -line.max_travel, line.max_travel))
+
+    # 1. settle
+    command()
+    t_end = hand.time + cfg.settle_time
+    events["settle"] = hand.time
+    last = hand.fingertip_normal_forces()  # the tactile reading after the latest step
+    while hand.time < t_end - 1e-12:
+        hand.step(dt)
+        last = hand.fingertip_normal_forces()
+        record(0, last)
+    if on_event is not None:
+        on_event("start")
+    # 2. force-controlled closing
+    events["close"] = hand.time
+    touching = False
+    t_limit = hand.time + cfg.max_close_time
+    inside_since: float | None = None
+    reached = False
+    while hand.time < t_limit - 1e-12:
+        forces = last
+        for f in names:
+            if forces[f] > 0 and f"first_contact_{f}" not in events:
+                events[f"first_contact_{f}"] = hand.time
+        if not touching and all(f"first_contact_{f}" in events for f in names):
+            touching = True
+            if on_event is not None:
+                on_event("contact")
+        within = all(abs(forces[f] - lines[f].setpoint) <= cfg.tolerance * lines[f].setpoint for f in names)
+        if within:
+            inside_since = hand.time if inside_since is None else inside_since
+            if hand.time - inside_since >= cfg.settle_band - 1e-12:
+                reached = True
+                break
+        else:
+            inside_since = None
+        control(forces)
+        command()
+        hand.step(dt)
+        last = hand.fingertip_normal_forces()
+        record(1, last)
+    measured = dict(last)
+    if on_event is not None:
+        on_event("closed")
+
+    # 3. lift, and 4. hold
+    def run(phase: int, duration: float, base_z: Callable[[float], float] | None = None) -> None:
+        """``duration`` seconds of control periods; ``base_z(elapsed)`` commands the base."""
+        nonlocal last
+        start = hand.time
+        while hand.time < start + duration - 1e-12:
+            if base_z is not None:
+                base[2] = base_z(hand.time + dt - start)
+                hand.command_base(base.copy())
+            if cfg.force_control_in_lift:
+                control(last)
+                command()
+            hand.step(dt)
+            last = hand.fingertip_normal_forces()
+            record(phase, last)
+
+    rise_time = cfg.lift / cfg.lift_speed
+    events["lift"] = hand.time
+    lift_start = len(rows)
+    # A smooth rise (half a cosine: no jerk at either end) at lift_speed on average.
+    run(2, rise_time, lambda e: cfg.lift * 0.5 * (1.0 - math.cos(math.pi * min(e / rise_time, 1.0))))
+    events["hold"] = hand.time
+    hold_start = len(rows)
+    run(3, cfg.hold_time)
+    events["end"] = hand.time
+    if on_event is not None:
+        on_event("end")
+
+    t = np.array([r[0] for r in rows])
+    series = {
+        "t": t,
+        "phase": np.array([r[1] for r in rows], dtype=np.int64),
+        "force": np.array([r[2] for r in rows]).reshape(len(rows), len(names)),
+        "travel": np.array([r[3] for r in rows]).reshape(len(rows), len(names)),
+        "base_z": np.array([r[4] for r in rows]),
+        "com": np.array([r[5] for r in rows]).reshape(len(rows), 3),
+        "tips": np.array([r[6] for r in rows]).reshape(len(rows), 3),
+    }
+    rel = series["com"] - series["tips"]
+    if lift_start < len(rows):
+        ref = rel[lift_start - 1] if lift_start > 0 else rel[0]
+        slip = float(np.linalg.norm(rel[lift_start:] - ref, axis=1).max())
+    else:
+        slip = 0.0
+    com0 = series["com"][lift_start - 1] if lift_start > 0 else hand.object_position()
+    rise = float(series["com"][-1, 2] - com0[2]) if len(rows) else 0.0
+    dropped = rise < 0.5 * cfg.lift
+    last = series["force"][hold_start + (len(rows) - hold_start) // 2 :]
+    held = {f: float(last[:, j].mean()) if len(last) else math.nan for j, f in enumerate(names)}
+    return ExecutionResult(
+        fingers=names,
+        setpoints={f: lines[f].setpoint for f in names},
+        reached=reached,
+        measured={f: float(measured[f]) for f in names},
+        held=held,
+        lifted=not dropped,
+        dropped=dropped,
+        slip=slip,
+        rise=rise,
+        series=series,
+        events=events,
+    )

@@ -1,0 +1,551 @@
+"""Compiled (Numba) floating-palm WDLS: the hand-placement solve of :mod:`softgrasp.hand.placement`.
+
+:func:`solve` returns what :func:`softgrasp.hand.placement._solve_numpy` returns (the NumPy reference)
+to round-off: the same iteration for every starting posture, written as plain loops over one
+posture at a time instead of NumPy calls shared by all of them. Per posture and iteration:
+
+* the fingertip errors ``e = targets - tips`` ``(3 C,)`` and their Jacobian ``(3 C, 6 + n)`` with
+  respect to the palm translation, a small palm rotation about world axes and the joints;
+* the step aims at ``e`` shortened to at most ``max_step`` [m]; the limit-clamped WDLS step
+  (:func:`softgrasp.hand.kinematics._limited_steps`) freezes every joint at a limit whose step points
+  out of its range and recomputes, until none is left;
+* a line search takes the first of the step times 1, 1/2, 1/4, ... (``max_halvings`` of them) whose
+  joints, clipped into their limits, decrease the error norm; the palm moves by the step's
+  translation and rotation, and its step coordinates restart at 0;
+* the posture stops at a largest fingertip error <= ``reach_tol``, when that error fell by less
+  than ``stall_fraction`` of itself over ``stall_window`` iterations, when the step is zero or no
+  shortened step decreases the error norm, or after ``max_iter`` iterations.
+
+The kinematics are those of a :class:`~softgrasp.hand.kinematics.ChainStack` (revolute, prismatic and
+fixed or padding joints, mimic joints through ``column``, ``gain`` and ``offset``), evaluated as
+3 x 4 affine products root to tip; the damped system ``J W^-1 J^T + damping^2 I`` is solved by
+Gaussian elimination with partial pivoting. The NumPy reference multiplies the transforms pairwise
+and calls BLAS and LAPACK, which sum in other orders, so one iteration of the two agrees to
+round-off (about 1e-10 rad for a step of 0.5 rad near a singular posture), not bit for bit. Over a
+whole solve the iteration amplifies round-off as it amplifies any perturbation: postures that reach
+their targets end within about 1e-9 of the reference's; postures wandering short of unreachable
+targets can end far apart (the reference itself ends up to 1 rad elsewhere when a starting posture
+moves by one ulp), at much the same error.
+
+Kernels are compiled with ``cache=True`` (on-disk cache: only the first run compiles),
+``fastmath=False`` and ``error_model="numpy"`` (a division by zero gives inf/nan like NumPy).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import NamedTuple
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.errors import ConfigError
+from softgrasp.hand.kinematics import ChainStack
+
+__all__ = [
+    "STOP_REACHED",
+    "STOP_STALLED",
+    "STOP_NO_STEP",
+    "STOP_NO_DECREASE",
+    "STOP_MAX_ITER",
+    "Solves",
+    "supported",
+    "solve",
+]
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: Why a posture stopped iterating: its largest fingertip error is <= ``reach_tol``; that error
+#: stalled; the clamped step is zero; no shortened step decreased the error norm; ``max_iter``.
+STOP_REACHED = 0
+STOP_STALLED = 1
+STOP_NO_STEP = 2
+STOP_NO_DECREASE = 3
+STOP_MAX_ITER = 4
+
+_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+
+
+# ---------------------------------------------------------------------------------- kinematics
+@_jit
+def _compose(A, B, out):  # pragma: no cover - compiled
+    """The affine product ``A B`` of 3 x 4 transforms (implicit last row 0 0 0 1) into ``out``."""
+    for i in range(3):
+        a0 = A[i, 0]
+        a1 = A[i, 1]
+        a2 = A[i, 2]
+        for j in range(3):
+            out[i, j] = a0 * B[0, j] + a1 * B[1, j] + a2 * B[2, j]
+        out[i, 3] = a0 * B[0, 3] + a1 * B[1, 3] + a2 * B[2, 3] + A[i, 3]
+
+
+@_jit
+def _forward(basis, column, gain, offset, length, R, p, q, T, M, frames, tips):  # pragma: no cover
+    """Frames after every joint ``(C, L, 3, 4)`` (world, 3 x 4) and fingertips ``(C, 3)`` [m] of the
+    chains with palm rotation ``R`` (3, 3), origin ``p`` (3,) and joints ``q`` (n,). Joint ``(l, c)``
+    takes the value ``gain q[column] + offset``; its transform is ``cos(value) basis[l, c, 0] +
+    sin(value) basis[l, c, 1] + basis[l, c, 2] (+ value basis[l, c, 3])`` (rows 0-2 of the flat
+    4 x 4). Padding joints past ``length[c]`` are identities and skipped. ``T``, ``M``: scratch
+    (3, 4)."""
+    K = basis.shape[2]
+    for c in range(length.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                T[i, j] = R[i, j]
+            T[i, 3] = p[i]
+        for l in range(length[c]):
+            value = gain[l, c] * q[column[l, c]] + offset[l, c]
+            cv = math.cos(value)
+            sv = math.sin(value)
+            for r in range(12):
+                v = cv * basis[l, c, 0, r] + sv * basis[l, c, 1, r] + basis[l, c, 2, r]
+                if K == 4:
+                    v += value * basis[l, c, 3, r]
+                M[r // 4, r % 4] = v
+            _compose(T, M, frames[c, l])
+            for i in range(3):
+                for j in range(4):
+                    T[i, j] = frames[c, l, i, j]
+        for i in range(3):
+            tips[c, i] = T[i, 3]
+
+
+@_jit
+def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pragma: no cover
+    """Jacobian ``J`` ``(3 C, 6 + n)`` of the fingertips with respect to the palm translation, a small
+    palm rotation about world axes and the joints, from the :func:`_forward` frames and tips of a
+    palm at ``p``. A revolute joint's column is ``a x (tip - o)``, a prismatic one's ``a`` (``a`` its
+    world axis, ``o`` its origin), times the joint's gain, added to its driving joint's column."""
+    J[:, :] = 0.0
+    for c in range(length.shape[0]):
+        r0 = 3 * c
+        rx = tips[c, 0] - p[0]
+        ry = tips[c, 1] - p[1]
+        rz = tips[c, 2] - p[2]
+        for i in range(3):
+            J[r0 + i, i] = 1.0
+        # d tip / d w_k = e_k x r: the columns of -[r]x
+        J[r0, 4] = rz
+        J[r0, 5] = -ry
+        J[r0 + 1, 3] = -rz
+        J[r0 + 1, 5] = rx
+        J[r0 + 2, 3] = ry
+        J[r0 + 2, 4] = -rx
+        for l in range(length[c]):
+            g = gain[l, c]
+            if g == 0.0:
+                continue  # a fixed joint (or a mimic joint with multiplier 0): no column
+            F = frames[c, l]
+            ax = F[0, 0] * axis[l, c, 0, 0] + F[0, 1] * axis[l, c, 1, 0] + F[0, 2] * axis[l, c, 2, 0]
+            ay = F[1, 0] * axis[l, c, 0, 0] + F[1, 1] * axis[l, c, 1, 0] + F[1, 2] * axis[l, c, 2, 0]
+            az = F[2, 0] * axis[l, c, 0, 0] + F[2, 1] * axis[l, c, 1, 0] + F[2, 2] * axis[l, c, 2, 0]
+            if prismatic[l, c]:
+                cx = ax
+                cy = ay
+                cz = az
+            else:
+                dx = F[0, 3] - tips[c, 0]
+                dy = F[1, 3] - tips[c, 1]
+                dz = F[2, 3] - tips[c, 2]
+                cx = az * dy - ay * dz
+                cy = ax * dz - az * dx
+                cz = ay * dx - ax * dy
+            k = 6 + column[l, c]
+            J[r0, k] += g * cx
+            J[r0 + 1, k] += g * cy
+            J[r0 + 2, k] += g * cz
+
+
+@_jit
+def _rotation(wx, wy, wz, out):  # pragma: no cover - compiled
+    """Rotation (3, 3) by the vector ``w`` (axis times angle) into ``out`` (the identity below 1e-15
+    rad), as :func:`softgrasp.hand.placement._rotations`."""
+    a = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if a < 1e-15:
+        for i in range(3):
+            for j in range(3):
+                out[i, j] = 1.0 if i == j else 0.0
+        return
+    ux = wx / a
+    uy = wy / a
+    uz = wz / a
+    c = math.cos(a)
+    s = math.sin(a)
+    t = 1.0 - c
+    out[0, 0] = c + t * (ux * ux)
+    out[1, 1] = c + t * (uy * uy)
+    out[2, 2] = c + t * (uz * uz)
+    out[0, 1] = -(s * uz) + t * (ux * uy)
+    out[1, 0] = s * uz + t * (uy * ux)
+    out[0, 2] = s * uy + t * (ux * uz)
+    out[2, 0] = -(s * uy) + t * (uz * ux)
+    out[1, 2] = -(s * ux) + t * (uy * uz)
+    out[2, 1] = s * ux + t * (uz * uy)
+
+
+# ---------------------------------------------------------------------------------- WDLS
+@_jit
+def _norm(e):  # pragma: no cover - compiled
+    """Euclidean norm of ``e``."""
+    s = 0.0
+    for i in range(e.shape[0]):
+        s += e[i] * e[i]
+    return math.sqrt(s)
+
+
+@_jit
+def _largest(e):  # pragma: no cover - compiled
+    """Largest fingertip distance of the stacked fingertip errors ``e`` ``(3 C,)``."""
+    worst = 0.0
+    for c in range(e.shape[0] // 3):
+        d = math.sqrt(e[3 * c] * e[3 * c] + e[3 * c + 1] * e[3 * c + 1] + e[3 * c + 2] * e[3 * c + 2])
+        if d > worst or d != d:  # NaN wins, as in NumPy's max
+            worst = d
+    return worst
+
+
+@_jit
+def _linear_solve(A, b, y):  # pragma: no cover - compiled
+    """Solve ``A y = b`` (``A`` (m, m), overwritten by its LU factors) by Gaussian elimination with
+    partial pivoting (the method of LAPACK's ``gesv``, which :func:`numpy.linalg.solve` calls)."""
+    m = A.shape[0]
+    for i in range(m):
+        y[i] = b[i]
+    for j in range(m):
+        piv = j
+        big = abs(A[j, j])
+        for i in range(j + 1, m):
+            if abs(A[i, j]) > big:
+                big = abs(A[i, j])
+                piv = i
+        if piv != j:
+            for k in range(m):
+                t = A[j, k]
+                A[j, k] = A[piv, k]
+                A[piv, k] = t
+            t = y[j]
+            y[j] = y[piv]
+            y[piv] = t
+        inv = 1.0 / A[j, j]
+        for i in range(j + 1, m):
+            A[i, j] *= inv
+        for i in range(j + 1, m):
+            f = A[i, j]
+            for k in range(j + 1, m):
+                A[i, k] -= f * A[j, k]
+    for i in range(m):
+        s = y[i]
+        for k in range(i):
+            s -= A[i, k] * y[k]
+        y[i] = s
+    for i in range(m - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, m):
+            s -= A[i, k] * y[k]
+        y[i] = s / A[i, i]
+
+
+@_jit
+def _limited_step(J, dx, x, lower, upper, winv, damping, limit_eps, w, outward, A, y, dq):  # pragma: no cover
+    """Limit-clamped WDLS step ``dq`` ``(N,)`` of :func:`softgrasp.hand.kinematics._limited_steps` for one
+    posture: ``dq = W^-1 J^T (J W^-1 J^T + damping^2 I)^-1 dx`` with the inverse weight of every
+    joint at a limit whose step points out of its range set to 0, recomputed until there is none.
+    Returns the number of recomputations. ``w``, ``outward`` (N,), ``A`` (m, m), ``y`` (m,): scratch."""
+    m, N = J.shape
+    for k in range(N):
+        at_lower = x[k] <= lower[k] + limit_eps
+        at_upper = x[k] >= upper[k] - limit_eps
+        w[k] = 0.0 if (at_lower and at_upper) else winv[k]  # a joint with lower == upper never moves
+        outward[k] = (1.0 if at_upper else 0.0) - (1.0 if at_lower else 0.0)
+    damp = damping * damping
+    rounds = 0
+    while True:
+        for i in range(m):
+            for j in range(i + 1):
+                s = 0.0
+                for k in range(N):
+                    s += J[i, k] * w[k] * J[j, k]
+                A[i, j] = s
+                A[j, i] = s
+            A[i, i] += damp
+        _linear_solve(A, dx, y)
+        for k in range(N):
+            s = 0.0
+            for i in range(m):
+                s += J[i, k] * w[k] * y[i]
+            dq[k] = s
+        blocked = False
+        for k in range(N):
+            if w[k] != 0.0 and dq[k] * outward[k] > 0.0:
+                w[k] = 0.0
+                blocked = True
+        if not blocked:
+            return rounds
+        rounds += 1
+
+
+@_jit
+def _solve(
+    basis,
+    axis,
+    prismatic,
+    column,
+    gain,
+    offset,
+    length,
+    goal,
+    lower,
+    upper,
+    winv,
+    R0,
+    p0,
+    q0,
+    reach_tol,
+    max_iter,
+    max_step,
+    damping,
+    stall_fraction,
+    stall_window,
+    max_halvings,
+    limit_eps,
+    R_out,
+    p_out,
+    q_out,
+    err_out,
+    iterations,
+    stop,
+    clamps,
+):  # pragma: no cover - compiled
+    """The floating-palm WDLS of every starting posture ``s`` (``R0[s]``, ``p0[s]``, ``q0[s]``), one
+    after the other; writes the last palm rotation, origin, joints and largest fingertip error to
+    ``R_out``, ``p_out``, ``q_out``, ``err_out``, the iterations taken, the rule that stopped them
+    (``STOP_*``) and the number of limit-clamped step recomputations to ``iterations``, ``stop`` and
+    ``clamps``."""
+    S, n = q0.shape
+    C = length.shape[0]
+    L = basis.shape[0]
+    N = 6 + n
+    m = 3 * C
+    T = np.empty((3, 4))
+    M = np.empty((3, 4))
+    frames = np.empty((C, L, 3, 4))
+    tips = np.empty((C, 3))
+    J = np.empty((m, N))
+    A = np.empty((m, m))
+    y = np.empty(m)
+    w = np.empty(N)
+    outward = np.empty(N)
+    e = np.empty(m)
+    e_try = np.empty(m)
+    dx = np.empty(m)
+    dq = np.empty(N)
+    x = np.empty(N)
+    x_try = np.empty(N)
+    R = np.empty((3, 3))
+    R_try = np.empty((3, 3))
+    p = np.empty(3)
+    p_try = np.empty(3)
+    turn = np.empty((3, 3))
+    history = np.empty(max_iter + 1)  # history[i]: the largest error after i iterations
+    for s in range(S):
+        # Element by element (array-to-array slice assignments would bring in Numba's shape check
+        # and its exception message, ~4 s of the kernel's compilation).
+        for i in range(3):
+            p[i] = p0[s, i]
+            for j in range(3):
+                R[i, j] = R0[s, i, j]
+        for k in range(6):
+            x[k] = 0.0  # palm step coordinates, 0 at the current pose
+        for k in range(n):
+            x[6 + k] = q0[s, k]
+        _forward(basis, column, gain, offset, length, R, p, x[6:], T, M, frames, tips)
+        for i in range(m):
+            e[i] = goal[i] - tips[i // 3, i % 3]
+        err = _largest(e)
+        _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J)
+        history[0] = err
+        clamps[s] = 0
+        why = STOP_MAX_ITER
+        done = 0
+        for it in range(max_iter):
+            if not err > reach_tol:
+                why = STOP_REACHED
+                break
+            if it >= stall_window:
+                if not history[max(it - stall_window - 1, 0)] - err >= stall_fraction * err:
+                    why = STOP_STALLED  # short of the targets: a limit or the workspace's edge
+                    break
+            norm = _norm(e)
+            scale = min(1.0, max_step / norm)  # at most max_step long
+            for i in range(m):
+                dx[i] = e[i] * scale
+            clamps[s] += _limited_step(J, dx, x, lower, upper, winv, damping, limit_eps, w, outward, A, y, dq)
+            done = it + 1
+            any_step = False
+            for k in range(N):
+                any_step = any_step or dq[k] != 0.0
+            if not any_step:
+                why = STOP_NO_STEP
+                break
+            moved = False
+            alpha = 1.0
+            for _ in range(max_halvings):
+                for k in range(N):
+                    v = x[k] + dq[k] * alpha  # the palm part is the step itself
+                    x_try[k] = min(max(v, lower[k]), upper[k])
+                for i in range(3):
+                    p_try[i] = p[i] + dq[i] * alpha
+                _rotation(dq[3] * alpha, dq[4] * alpha, dq[5] * alpha, turn)
+                for i in range(3):
+                    for j in range(3):
+                        R_try[i, j] = turn[i, 0] * R[0, j] + turn[i, 1] * R[1, j] + turn[i, 2] * R[2, j]
+                _forward(basis, column, gain, offset, length, R_try, p_try, x_try[6:], T, M, frames, tips)
+                for i in range(m):
+                    e_try[i] = goal[i] - tips[i // 3, i % 3]
+                if _norm(e_try) < norm:
+                    moved = True
+                    break
+                alpha *= 0.5
+            if not moved:
+                why = STOP_NO_DECREASE
+                break
+            for i in range(3):
+                p[i] = p_try[i]
+                for j in range(3):
+                    R[i, j] = R_try[i, j]
+            for k in range(6):
+                x[k] = 0.0
+            for k in range(6, N):
+                x[k] = x_try[k]
+            for i in range(m):
+                e[i] = e_try[i]
+            _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J)  # frames of the step taken
+            err = _largest(e)
+            history[it + 1] = err
+        for i in range(3):
+            p_out[s, i] = p[i]
+            for j in range(3):
+                R_out[s, i, j] = R[i, j]
+        for k in range(n):
+            q_out[s, k] = x[6 + k]
+        err_out[s] = err
+        iterations[s] = done
+        stop[s] = why
+
+
+# ---------------------------------------------------------------------------------- Python side
+class Solves(NamedTuple):
+    """What :func:`solve` returns for ``S`` starting postures of a stack with ``n`` joints.
+
+    R: last palm rotation of each, ``(S, 3, 3)``.  p: last palm origin, ``(S, 3)`` [m].
+    q: last joints, ``(S, n)`` [rad or m].  error: largest fingertip distance to its target,
+    ``(S,)`` [m].  iterations: WDLS steps computed, ``(S,)`` (a last step that was not taken
+    included).  stop: the rule that stopped each, one of the ``STOP_*`` codes, ``(S,)``.
+    clamps: limit-clamped step recomputations (a joint at a limit frozen), ``(S,)``.
+    """
+
+    R: Array
+    p: Array
+    q: Array
+    error: Array
+    iterations: IntArray
+    stop: IntArray
+    clamps: IntArray
+
+
+@lru_cache(maxsize=64)
+def _scatter_matches(stack: ChainStack) -> bool:
+    """Whether ``stack.select`` is exactly the scatter of ``gain`` to ``column`` (every joint adds
+    ``gain`` times its column to one joint's), which the kernel assumes."""
+    L, C = stack.column.shape
+    expected = np.zeros_like(stack.select)
+    for l in range(L):
+        for c in range(C):
+            expected[c, l, stack.column[l, c]] += stack.gain[l, c]
+    return bool(np.array_equal(expected, stack.select))
+
+
+def supported(stack: ChainStack, damping: float) -> bool:
+    """Whether :func:`solve` handles ``stack`` with this ``damping`` (> 0: the kernel has no
+    pseudo-inverse for the undamped step), i.e. any stack :func:`~softgrasp.hand.kinematics.chain_stack`
+    builds."""
+    return damping > 0.0 and stack.basis.shape[2] in (3, 4) and _scatter_matches(stack)
+
+
+def solve(
+    stack: ChainStack,
+    targets: Array,
+    R: Array,
+    p: Array,
+    q: Array,
+    *,
+    reach_tol: float,
+    max_iter: int,
+    max_step: float,
+    damping: float,
+    stall_fraction: float,
+    stall_window: int,
+    max_halvings: int,
+    limit_eps: float,
+) -> Solves:
+    """Floating-palm WDLS towards the targets ``(C, 3)`` [m] from each of ``S`` starting postures (palm
+    rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)`` [m], joints ``q`` ``(S, n)``, inside their
+    limits); see :class:`Solves`.
+
+    The rules are those of :func:`softgrasp.hand.placement._solve_numpy` (see the module docstring):
+    ``reach_tol`` [m], ``max_iter``, ``max_step`` [m], ``damping`` [m] (> 0, :func:`supported`),
+    ``stall_fraction`` over ``stall_window`` iterations, ``max_halvings`` and the limit tolerance
+    ``limit_eps`` [rad or m]. All joint weights are 1.
+    """
+    R0 = np.ascontiguousarray(R, dtype=np.float64)
+    p0 = np.ascontiguousarray(p, dtype=np.float64)
+    q0 = np.ascontiguousarray(q, dtype=np.float64)
+    S, n = q0.shape
+    if R0.shape != (S, 3, 3) or p0.shape != (S, 3) or n != stack.n:
+        raise ConfigError(
+            f"solve needs R (S, 3, 3), p (S, 3) and q (S, {stack.n}); got {R0.shape}, {p0.shape}, {q0.shape}"
+        )
+    goal = np.ascontiguousarray(targets, dtype=np.float64).ravel()
+    if goal.shape != (3 * len(stack.chains),):
+        raise ConfigError(f"solve needs targets ({len(stack.chains)}, 3); got {np.shape(targets)}")
+    inf = np.full(6, np.inf)
+    lower = np.concatenate([-inf] + [c.lower for c in stack.chains])
+    upper = np.concatenate([inf] + [c.upper for c in stack.chains])
+    out = Solves(
+        np.empty((S, 3, 3)),
+        np.empty((S, 3)),
+        np.empty((S, n)),
+        np.empty(S),
+        np.empty(S, dtype=np.int64),
+        np.empty(S, dtype=np.int64),
+        np.empty(S, dtype=np.int64),
+    )
+    _solve(
+        stack.basis,
+        stack.axis,
+        stack.prismatic,
+        stack.column.astype(np.int64, copy=False),
+        stack.gain,
+        stack.offset,
+        np.asarray(stack.length, dtype=np.int64),
+        goal,
+        lower,
+        upper,
+        np.ones(6 + n),
+        R0,
+        p0,
+        q0,
+        float(reach_tol),
+        int(max_iter),
+        float(max_step),
+        float(damping),
+        float(stall_fraction),
+        int(stall_window),
+        int(max_halvings),
+        float(limit_eps),
+        *out,
+    )
+    return out

@@ -1,0 +1,162 @@
+"""From plan options (what ``softgrasp plan`` and a sweep case name) to the object and the planner
+configuration: one mapping shared by the command line, ``--config`` files and sweeps.
+
+Options are plain values: ``object`` (built-in name, shape or mesh file), ``mesh_size`` [m],
+``material`` (preset, ``key=value`` list or a ``.toml`` material file), the planner's settings
+(:data:`PLAN_DEFAULTS`; ``grasp`` names a ``plan.json`` whose initial grasp is closed from instead
+of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDES`: ``E`` [Pa],
+``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3``) applied over the object's material.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+from softgrasp.errors import ConfigError
+from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
+
+if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help stays quick
+    from softgrasp.physics.body import Body
+    from softgrasp.physics.fingertip.params import ContactParams
+    from softgrasp.grasp.planner import PlanConfig
+
+__all__ = [
+    "PLAN_DEFAULTS",
+    "MATERIAL_OVERRIDES",
+    "load_body",
+    "hand_model",
+    "contact_params",
+    "plan_config",
+    "material_file",
+]
+
+#: ``softgrasp plan`` options that a --config TOML file (or a sweep) may set, with their defaults.
+PLAN_DEFAULTS: dict[str, object] = {
+    "object": "sphere",
+    "material": None,
+    "mesh_size": None,
+    "mu": 0.8,
+    "fingertip_radius": 0.008,
+    "step": 0.0005,
+    "solver": "quasistatic",
+    "safety_factor": 1.0,
+    "hold_time": 1.0,
+    "max_squeeze": 0.5,
+    "refine": 3,
+    "hand": "shadow_like",
+    "grasp": None,
+    "out": "softgrasp-out/plan",
+    "reorient": False,
+}
+
+#: Material parameters a sweep may set over the object's material.
+MATERIAL_OVERRIDES = ("E", "nu", "density", "mass", "a2", "a3")
+
+
+def material_file(spec: str | None) -> MaterialFile | None:
+    """The material file named by a ``material`` option, or None for a preset or key=value list."""
+    if spec is None or not is_material_file(spec):
+        return None
+    return read_material_file(spec)
+
+
+def load_body(
+    object_name: str,
+    mesh_size: float | None = None,
+    material: str | None = None,
+    *,
+    reorient: bool = False,
+    mfile: MaterialFile | None = None,
+    overrides: Mapping[str, float] | None = None,
+) -> Body:
+    """The object's body: its mesh, its material (the object's default, a preset or key=value list,
+    or a material file ``mfile`` already read from ``material``) and the ``overrides``.
+
+    A material given with its own density or mass decides the mass; a preset, or a file without a
+    density, keeps a built-in object's mass.
+    """
+    from softgrasp.physics.body import build_body
+    from softgrasp.model.material import Material, Polynomial, parse_material
+    from softgrasp.model.objects import make_object
+
+    mesh, mat, mass = make_object(object_name, mesh_size, reorient=reorient)
+    if material is not None and is_material_file(material):
+        mf = mfile if mfile is not None else read_material_file(material)
+        if mf.material is not None:
+            mat = mf.material
+            if mat.density is not None:
+                mass = None
+            elif mass is None:
+                raise ConfigError(
+                    f"material file {mf.path} has no density_kg_m3; the object {object_name!r} needs one "
+                    "for its mass"
+                )
+    elif material is not None:
+        mat, spec_mass = parse_material(material)
+        if spec_mass is not None:
+            mass = spec_mass
+        elif "density" in material:
+            mass = None
+    if overrides:
+        unknown = sorted(set(overrides) - set(MATERIAL_OVERRIDES))
+        if unknown:
+            raise ConfigError(f"unknown material parameter(s) {unknown}; known: {list(MATERIAL_OVERRIDES)}")
+        ov = {k: float(v) for k, v in overrides.items()}
+        law = mat.law
+        if "a2" in ov or "a3" in ov:
+            base = law.describe() if isinstance(law, Polynomial) else {}
+            law = Polynomial(
+                ov.get("a2", float(base.get("a2", 0.0))), ov.get("a3", float(base.get("a3", 0.0)))
+            )
+        density = ov.get("density", mat.density)
+        mat = Material(ov.get("E", mat.E), ov.get("nu", mat.nu), density, law, mat.name)
+        if "density" in ov:
+            mass = None
+        if "mass" in ov:
+            mass = ov["mass"]
+    return build_body(mesh, mat, mass=mass)
+
+
+def hand_model(name: str):
+    """The hand model named by ``hand``: the packaged Shadow-like hand, a URDF file, or none."""
+    from softgrasp.hand.kinematics import HandModel
+
+    if name == "shadow_like":
+        return HandModel.default()
+    if name == "none":
+        return None
+    return HandModel.from_urdf(name)
+
+
+def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -> ContactParams:
+    """Contact parameters: the defaults (and ``kw``), a material file's [contact] over them, then
+    ``mu`` when given."""
+    from softgrasp.physics.fingertip.params import ContactParams
+
+    params = ContactParams(**kw)  # type: ignore[arg-type]
+    if mfile is not None:
+        params = mfile.contact_params(params)
+    if mu is not None:
+        params = replace(params, mu=float(mu))
+    return params
+
+
+def plan_config(options: Mapping[str, object], contact: ContactParams) -> PlanConfig:
+    """The planner configuration of merged plan ``options`` (every key of :data:`PLAN_DEFAULTS`)."""
+    from softgrasp.grasp.planner import PlanConfig
+    from softgrasp.io.planfile import load_plan_grasp
+
+    return PlanConfig(
+        contact=contact,
+        fingertip_radius=float(options["fingertip_radius"]),  # type: ignore[arg-type]
+        step=float(options["step"]),  # type: ignore[arg-type]
+        solver=str(options["solver"]),
+        safety_factor=float(options["safety_factor"]),  # type: ignore[arg-type]
+        hold_time=float(options["hold_time"]),  # type: ignore[arg-type]
+        max_squeeze=float(options["max_squeeze"]),  # type: ignore[arg-type]
+        refine=int(options["refine"]),  # type: ignore[call-overload]
+        hand=hand_model(str(options["hand"])),
+        grasp=None if options.get("grasp") is None else load_plan_grasp(str(options["grasp"])),
+    )

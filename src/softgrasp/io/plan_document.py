@@ -1,0 +1,168 @@
+"""A planned grasp as plain data: the ``softgrasp.plan/1`` JSON document, the per-increment
+history rows and the people-facing table (no file I/O here)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.physics.body import Body
+from softgrasp.grasp.initial import FINGER_NAMES
+from softgrasp.grasp.planner import GraspPlan
+
+__all__ = ["SCHEMA", "plan_document", "history_rows", "HISTORY_HEADER", "plan_table", "hand_polylines"]
+
+SCHEMA = "softgrasp.plan/1"
+#: Equilibrium is "satisfied" when the held state's residuals are below this fraction of the weight.
+EQUILIBRIUM_TOL = 0.02
+HISTORY_HEADER = (
+    "increment",
+    "finger",
+    "penetration_m",
+    "force_norm_N",
+    "normal_force_N",
+    "tangential_force_N",
+)
+
+
+def _v(a: np.ndarray) -> list[float]:
+    return [float(x) for x in np.asarray(a).ravel()]
+
+
+def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, Any]:
+    """The ``plan.json`` document (keys carry their units)."""
+    m = body.material
+    ig = plan.initial
+    weight = float(body.total_mass * np.linalg.norm(body.gravity))
+    arm = float(np.linalg.norm(plan.contact_points - plan.com, axis=1).max())
+    satisfied = (
+        plan.friction_margin > 0.0
+        and plan.force_residual <= EQUILIBRIUM_TOL * weight
+        and plan.torque_residual <= EQUILIBRIUM_TOL * weight * arm
+    )
+    return {
+        "schema": SCHEMA,
+        "object": {
+            "name": object_name,
+            "mass_kg": body.total_mass,
+            "nodes": int(body.n_nodes),
+            "tets": int(len(body.mesh.tets)),
+            "material": {
+                "name": m.name,
+                "E_Pa": m.E,
+                "nu": m.nu,
+                "density_kg_m3": m.density,
+                "law": m.law.describe(),
+            },
+        },
+        "parameters": plan.config.describe(),
+        "initial_grasp": {
+            "criterion": "Ferrari-Canny epsilon on 8-edge friction cones, grasp plane through the "
+            "centre of mass",
+            "epsilon": ig.epsilon,
+            "thumb_azimuth_deg": float(np.degrees(ig.thumb_azimuth)),
+            "finger_half_spread_deg": float(np.degrees(ig.spread)),
+            "triangle_centroid_m": _v(ig.centroid),
+            "contacts_m": [_v(q) for q in ig.points],
+            "normals": [_v(n) for n in ig.normals],
+            "facets": [int(f) for f in ig.facets],
+        },
+        "fingers": [
+            {
+                "name": f.name,
+                "initial_contact_m": _v(f.initial_contact),
+                "start_position_m": _v(plan.start_centres[j]),
+                "final_position_m": _v(f.final_position),
+                "penetration_m": f.penetration,
+                "force_N": _v(f.force),
+                "force_norm_N": f.force_norm,
+                "normal_force_N": f.normal_force,
+                "tangential_force_N": f.tangential_force,
+                "rigid_minimum_normal_force_N": float(plan.rigid_normal_forces[j]),
+                "first_contact_travel_m": float(plan.first_contact_travel[j]),
+            }
+            for j, f in enumerate(plan.fingers)
+        ],
+        "equilibrium": {
+            "satisfied": bool(satisfied),
+            "force_residual_N": plan.force_residual,
+            "torque_residual_Nm": plan.torque_residual,
+            "friction_margin": plan.friction_margin,
+            "rigid_utilisation": plan.rigid_utilisation,
+            "weight_N": weight,
+            "tolerance": f"residuals <= {EQUILIBRIUM_TOL:.0%} of the weight (torque: x largest lever arm)",
+        },
+        "hold": {
+            "com_drift_m": plan.com_drift,
+            "duration_s": plan.hold_time,
+            "checks": [{"travel_m": t, "result": r} for t, r in plan.hold_checks],
+        },
+        "hand": _hand_section(plan),
+        "increments": plan.increments,
+        "wall_time_s": plan.wall_time,
+    }
+
+
+def _hand_section(plan: GraspPlan) -> dict[str, Any] | None:
+    """The hand's posture: palm pose, and per finger its joints at the start of the closing and at
+    the held state (the last row of its closing path)."""
+    pl, hand = plan.placement, plan.config.hand
+    if pl is None or hand is None or plan.joint_paths is None:
+        return None
+    return {
+        "model": hand.source,
+        "palm_pose": [_v(row) for row in pl.palm_pose],
+        "fingers": {
+            f.name: {
+                "joints": list(hand.joint_names(f.name)),
+                "q_start_rad": _v(plan.joint_paths[f.name][0]),
+                "q_final_rad": _v(plan.joint_paths[f.name][-1]),
+            }
+            for f in plan.fingers
+        },
+    }
+
+
+def history_rows(plan: GraspPlan) -> list[tuple[object, ...]]:
+    """One row per increment and finger, in :data:`HISTORY_HEADER` order."""
+    rows: list[tuple[object, ...]] = []
+    for k in range(plan.increments):
+        for j, name in enumerate(FINGER_NAMES):
+            rows.append(
+                (
+                    k + 1,
+                    name,
+                    float(plan.penetration[k, j]),
+                    float(plan.force_norm[k, j]),
+                    float(plan.normal_force[k, j]),
+                    float(plan.tangential_force[k, j]),
+                )
+            )
+    return rows
+
+
+def plan_table(plan: GraspPlan) -> str:
+    """The paper's Table 2 for this plan: finger, penetration [mm], force [N]."""
+    lines = [f"{'finger':<8} {'penetration mm':>15} {'force N':>9} {'normal N':>9} {'friction N':>11}"]
+    for f in plan.fingers:
+        lines.append(
+            f"{f.name:<8} {f.penetration * 1e3:>15.2f} {f.force_norm:>9.3f} {f.normal_force:>9.3f} "
+            f"{f.tangential_force:>11.3f}"
+        )
+    return "\n".join(lines)
+
+
+def hand_polylines(plan: GraspPlan) -> list[NDArray[np.float64]]:
+    """The hand in the held state as world polylines [m]: the palm from the wrist through the
+    knuckles and back, and each finger from its base joint to its fingertip (empty without a hand
+    model)."""
+    from softgrasp.hand.placement import transform
+
+    hand, pl = plan.config.hand, plan.placement
+    if hand is None or pl is None or plan.joint_paths is None:
+        return []
+    fingers = [transform(pl.palm_pose, hand.link_points(f, q[-1])) for f, q in plan.joint_paths.items()]
+    wrist = pl.palm_pose[:3, 3]
+    return [np.array([wrist, *(f[0] for f in fingers), wrist]), *fingers]

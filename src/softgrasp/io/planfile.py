@@ -1,0 +1,216 @@
+"""Reading a ``plan.json`` (schema ``softgrasp.plan/1``) for execution, with every field the
+executor uses checked: a file of another schema, with missing fields or non-physical values is
+refused with a message naming the field."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.errors import ConfigError
+from softgrasp.grasp.initial import InitialGrasp
+from softgrasp.io.plan_document import SCHEMA
+
+__all__ = ["PlanFinger", "PlanFile", "load_plan_file", "load_plan_grasp", "SCHEMA"]
+
+
+@dataclass(frozen=True)
+class PlanFinger:
+    """One finger of a plan: where its closing starts and ends (world, m), its set-point (the
+    normal force of the held state, N) and its joints at the start (rad)."""
+
+    name: str
+    start: NDArray[np.float64]
+    final: NDArray[np.float64]
+    normal_force: float
+    q_start: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PlanFile:
+    """The parts of a plan the executor needs (SI units, world frame)."""
+
+    path: Path
+    object_name: str
+    mesh_file: Path
+    mass: float
+    E: float
+    nu: float
+    mu: float
+    fingertip_radius: float
+    table_mu: float
+    hand_source: str
+    palm_pose: NDArray[np.float64]
+    fingers: tuple[PlanFinger, ...]
+    document: dict[str, Any]
+
+
+def _get(doc: Any, path: str) -> Any:
+    cur = doc
+    for key in path.split("."):
+        if not isinstance(cur, dict) or key not in cur:
+            raise ConfigError(f"plan file: missing field {path!r}")
+        cur = cur[key]
+    return cur
+
+
+def _number(
+    doc: Any, path: str, *, lo: float = -math.inf, hi: float = math.inf, open_lo: bool = True
+) -> float:
+    v = _get(doc, path)
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ConfigError(f"plan file: field {path!r} must be a finite number, got {v!r}")
+    v = float(v)
+    below = v <= lo if open_lo else v < lo
+    if below or v >= hi:
+        lo_s = "" if lo == -math.inf else f"{'>' if open_lo else '>='} {lo:g}"
+        hi_s = "" if hi == math.inf else f"< {hi:g}"
+        bounds = " and ".join(filter(None, (lo_s, hi_s)))
+        raise ConfigError(f"plan file: field {path!r} = {v:g} is not physical (must be {bounds})")
+    return v
+
+
+def _vector(doc: Any, path: str, n: int = 3) -> NDArray[np.float64]:
+    v = _get(doc, path)
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"plan file: field {path!r} must be {n} finite numbers, got {v!r}")
+    return a
+
+
+def _read_document(p: Path) -> dict[str, Any]:
+    """The JSON document of a plan file, its schema checked."""
+    if not p.is_file():
+        raise ConfigError(f"plan file {p} does not exist (write one with: softgrasp plan --out DIR)")
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"plan file {p} is not readable JSON: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"plan file {p}: expected a JSON object at the top level")
+    schema = doc.get("schema")
+    if schema != SCHEMA:
+        raise ConfigError(f"plan file {p}: schema {schema!r} is not {SCHEMA!r}; re-plan with this softgrasp")
+    return doc
+
+
+def load_plan_grasp(path: str | Path) -> InitialGrasp:
+    """The initial grasp of a plan file (its three contacts, their normals and the triangle's
+    centroid), to plan another closing from the same contacts (``softgrasp plan --grasp``)."""
+    doc = _read_document(Path(path))
+    ig = doc.get("initial_grasp")
+    if isinstance(ig, dict) and "contacts_m" not in ig:
+        raise ConfigError(
+            f"plan file {path} holds no contact points (written by an earlier softgrasp): "
+            "re-plan it to reuse its grasp"
+        )
+    rows = {}
+    for key in ("contacts_m", "normals"):
+        v = _get(doc, f"initial_grasp.{key}")
+        a = np.asarray(v, dtype=np.float64) if isinstance(v, list) else np.zeros(0)
+        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            raise ConfigError(
+                f"plan file: field 'initial_grasp.{key}' must be 3 x 3 finite numbers, got {v!r}"
+            )
+        rows[key] = a
+    n = np.linalg.norm(rows["normals"], axis=1)
+    if np.abs(n - 1.0).max() > 1e-6:
+        raise ConfigError("plan file: field 'initial_grasp.normals' must hold unit vectors")
+    facets = _get(doc, "initial_grasp.facets")
+    if not (isinstance(facets, list) and len(facets) == 3 and all(type(f) is int and f >= 0 for f in facets)):
+        raise ConfigError(f"plan file: field 'initial_grasp.facets' must be 3 facet numbers, got {facets!r}")
+    return InitialGrasp(
+        points=rows["contacts_m"],
+        normals=rows["normals"],
+        facets=np.asarray(facets, dtype=np.int64),
+        centroid=_vector(doc, "initial_grasp.triangle_centroid_m"),
+        epsilon=_number(doc, "initial_grasp.epsilon", lo=0.0, open_lo=False),
+        thumb_azimuth=math.radians(_number(doc, "initial_grasp.thumb_azimuth_deg")),
+        spread=math.radians(_number(doc, "initial_grasp.finger_half_spread_deg")),
+    )
+
+
+def load_plan_file(path: str | Path) -> PlanFile:
+    """Read and check ``path``; :class:`ConfigError` says what is wrong and where."""
+    p = Path(path)
+    doc = _read_document(p)
+    mesh_name = _get(doc, "object.mesh_file")
+    if not isinstance(mesh_name, str) or not mesh_name:
+        raise ConfigError("plan file: field 'object.mesh_file' must name the object's mesh file")
+    mesh_file = (p.parent / mesh_name).resolve()
+    if not mesh_file.is_file():
+        raise ConfigError(
+            f"plan file: the object mesh {mesh_file} is missing (it is written beside plan.json)"
+        )
+    hand = _get(doc, "hand")
+    if hand is None:
+        raise ConfigError(
+            "plan file: no 'hand' section: the plan was made without a hand model (re-plan with one)"
+        )
+    pose = (
+        np.asarray(_get(doc, "hand.palm_pose"), dtype=np.float64)
+        if isinstance(_get(doc, "hand.palm_pose"), list)
+        else np.zeros(0)
+    )
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise ConfigError("plan file: field 'hand.palm_pose' must be a 4 x 4 matrix of finite numbers")
+    R = pose[:3, :3]
+    if (
+        np.abs(R @ R.T - np.eye(3)).max() > 1e-6
+        or abs(np.linalg.det(R) - 1) > 1e-6
+        or np.any(pose[3] != [0, 0, 0, 1])
+    ):
+        raise ConfigError("plan file: field 'hand.palm_pose' is not a rigid transform")
+    fingers_doc = _get(doc, "fingers")
+    if not isinstance(fingers_doc, list) or not fingers_doc:
+        raise ConfigError("plan file: field 'fingers' must be a non-empty list")
+    fingers = []
+    for k, f in enumerate(fingers_doc):
+        where = f"fingers[{k}]"
+        name = f.get("name") if isinstance(f, dict) else None
+        if not isinstance(name, str):
+            raise ConfigError(f"plan file: field '{where}.name' must be a finger name")
+        q = _get(doc, f"hand.fingers.{name}.q_start_rad")
+        qa = np.asarray(q, dtype=np.float64) if isinstance(q, list) else np.zeros((0, 0))
+        if qa.ndim != 1 or not np.all(np.isfinite(qa)):
+            raise ConfigError(
+                f"plan file: field 'hand.fingers.{name}.q_start_rad' must be a list of finite angles"
+            )
+        named = {where: f}
+        start = _vector(named, f"{where}.start_position_m")
+        final = _vector(named, f"{where}.final_position_m")
+        if np.linalg.norm(final - start) <= 0:
+            raise ConfigError(f"plan file: finger {name!r} has no closing travel (start = final position)")
+        fingers.append(
+            PlanFinger(
+                name=name,
+                start=start,
+                final=final,
+                normal_force=_number(named, f"{where}.normal_force_N", lo=0.0),
+                q_start=qa,
+            )
+        )
+    return PlanFile(
+        path=p,
+        object_name=str(_get(doc, "object.name")),
+        mesh_file=mesh_file,
+        mass=_number(doc, "object.mass_kg", lo=0.0),
+        E=_number(doc, "object.material.E_Pa", lo=0.0),
+        nu=_number(doc, "object.material.nu", lo=-1.0, hi=0.5),
+        mu=_number(doc, "parameters.contact.mu", lo=0.0),
+        fingertip_radius=_number(doc, "parameters.fingertip_radius_m", lo=0.0),
+        table_mu=_number(doc, "parameters.table_mu", lo=0.0, open_lo=False),
+        hand_source=str(_get(doc, "hand.model")),
+        palm_pose=pose,
+        fingers=tuple(fingers),
+        document=doc,
+    )

@@ -1,0 +1,157 @@
+"""Built-in objects of the paper's experiments, and loading user objects.
+
+* ``cube`` — the foam cube of the indentation experiment: 50 mm edge (the paper does not give its
+  size; 50 mm fits the hand), mass 12.5 g (density 100 kg/m^3, a dense polyurethane foam), material
+  ``foam`` (Table 1: E = 4.9284 MPa, nu = 0.39). Meshed as a structured BCC box.
+* ``sphere`` — the rubber sphere of the grasp experiment: radius 0.064 m, mass 0.05 kg (Sec. 4.2),
+  material ``rubber`` (Table 1: E = 0.0793 MPa, nu = 0.45). Meshed with gmsh.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from softgrasp.model.memory import release_freed_memory
+from softgrasp.errors import MeshError
+from softgrasp.model.material import Material, preset
+from softgrasp.model.mesh.placement import rest_on_table
+from softgrasp.model.mesh.tetmesh import TetMesh
+
+__all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object"]
+
+#: Edge of the default foam cube [m].
+CUBE_SIZE = 0.05
+#: Radius of the default rubber sphere [m] (paper, Sec. 4.2).
+SPHERE_RADIUS = 0.064
+#: Generated meshes kept per process (see :func:`_generated`).
+GENERATED_KEPT = 4
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A built-in object: its default material, total mass [kg] and default element size [m]."""
+
+    name: str
+    material: str
+    mass: float
+    mesh_size: float
+    description: str
+
+
+OBJECTS: dict[str, ObjectSpec] = {
+    "cube": ObjectSpec("cube", "foam", 0.0125, CUBE_SIZE / 6, "50 mm foam cube, 12.5 g"),
+    "sphere": ObjectSpec("sphere", "rubber", 0.05, SPHERE_RADIUS / 4, "rubber sphere, radius 64 mm, 50 g"),
+}
+
+
+def make_object(
+    name_or_path: str, mesh_size: float | None = None, *, reorient: bool = False
+) -> tuple[TetMesh, Material, float | None]:
+    """Mesh, default material and mass [kg] of a built-in object or a mesh file.
+
+    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) is taken in metres and gets
+    the ``rubber`` material and no fixed mass (the material density decides); ``reorient`` flips
+    its inverted tets instead of refusing them.
+    The mesh rests on the table plane z = 0 in a stable pose (:func:`rest_on_table`).
+    """
+    mesh, material, mass = _make_object(name_or_path, mesh_size, reorient)
+    release_freed_memory()
+    return mesh, material, mass
+
+
+def _make_object(
+    name_or_path: str, mesh_size: float | None, reorient: bool
+) -> tuple[TetMesh, Material, float | None]:
+    if mesh_size is not None and not mesh_size > 0:
+        raise MeshError(f"mesh size must be > 0 m, got {mesh_size}")
+    if name_or_path in OBJECTS:
+        spec = OBJECTS[name_or_path]
+        return _generated(name_or_path, mesh_size), preset(spec.material), spec.mass
+    if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
+        return _generated(name_or_path, mesh_size), preset("rubber"), None
+    path = Path(name_or_path)
+    if not path.suffix:
+        raise MeshError(
+            f"unknown object {name_or_path!r}; built-in objects are {sorted(OBJECTS)}, or give a mesh file"
+        )
+    from softgrasp.model.mesh.io import load_mesh
+
+    mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size, reorient=reorient))
+    return mesh, preset("rubber"), None
+
+
+@functools.lru_cache(maxsize=GENERATED_KEPT)
+def _generated(name: str, mesh_size: float | None) -> TetMesh:
+    """The mesh of a built-in object or parametric shape, generated once per process for each
+    (name, mesh size) among the last few asked for: meshing is deterministic, the mesh immutable
+    (its arrays read-only), and a sweep or a script planning the same object again (another
+    friction coefficient, material or hand) then skips gmsh (0.3 s for the default sphere, 0.8 s
+    at 2 196 nodes)."""
+    from softgrasp.model.mesh import generate
+    if name in OBJECTS:
+        spec = OBJECTS[name]
+        h = spec.mesh_size if mesh_size is None else mesh_size
+        if spec.name == "cube":
+            return generate.box(CUBE_SIZE, _box_cells("cube", (CUBE_SIZE,) * 3, h), name="cube")
+        return rest_on_table(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
+    return _shape(name, mesh_size)
+
+
+def _box_cells(what: str, size: Sequence[float], h: float) -> list[int]:
+    """Cells of a box meshed at about ``h`` along each edge (``size``); at least two across its
+    thinnest edge, else MeshError (a box one cell thick has no interior node and forces that mean
+    nothing: most often a size meant in millimetres given as metres)."""
+    cells = [max(1, round(a / h)) for a in size]
+    if min(cells) < 2:
+        from softgrasp.model.mesh._gmsh import millimetre_hint
+
+        thin = min(size)
+        raise MeshError(
+            f"{what} mesh_size {h:.4g} m leaves fewer than two cells across its thinnest edge "
+            f"({thin * 1e3:.3g} mm); {millimetre_hint(h, thin / 1.5)}use mesh_size <= {thin / 1.5:.3g} m"
+        )
+    return cells
+
+
+#: Most cells of a parametric box (each 12 tets): beyond it, a coarser --mesh-size is needed.
+MAX_SHAPE_CELLS = 20_000
+
+#: Parametric shapes ``--object KIND:DIMENSIONS`` (metres): what each needs.
+SHAPES = {
+    "box": "box:WxDxH (edge lengths; box:A for a cube)",
+    "cylinder": "cylinder:DxH (diameter x height, axis vertical)",
+    "ball": "ball:R (radius)",
+}
+
+
+def _shape(spec: str, mesh_size: float | None) -> TetMesh:
+    """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
+    ``ball:0.03``), meshed with about four elements across its smallest dimension by default."""
+    from softgrasp.model.mesh import generate
+    kind, _, dims = spec.partition(":")
+    try:
+        vals = [float(v) for v in dims.lower().split("x")]
+    except ValueError:
+        vals = []
+    want = {"box": (1, 3), "cylinder": (2,), "ball": (1,)}[kind]
+    if len(vals) not in want or not all(v > 0 and v < float("inf") for v in vals):
+        raise MeshError(f"cannot read the shape {spec!r}; give {SHAPES[kind]} in metres, every size > 0")
+    if kind == "box":
+        size = vals * 3 if len(vals) == 1 else vals
+        h = min(size) / 4 if mesh_size is None else mesh_size
+        cells = _box_cells(spec, size, h)
+        if cells[0] * cells[1] * cells[2] > MAX_SHAPE_CELLS:
+            raise MeshError(
+                f"{spec} at {h * 1e3:.3g} mm elements needs {cells[0] * cells[1] * cells[2]} cells (at most "
+                f"{MAX_SHAPE_CELLS}); give a larger --mesh-size"
+            )
+        return generate.box(size, cells, name=spec)
+    if kind == "cylinder":
+        D, H = vals
+        h = min(D, H) / 4 if mesh_size is None else mesh_size
+        return rest_on_table(generate.cylinder(D / 2, H, h, name=spec))
+    R = vals[0]
+    return rest_on_table(generate.sphere(R, R / 4 if mesh_size is None else mesh_size, name=spec))

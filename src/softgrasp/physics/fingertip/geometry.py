@@ -1,0 +1,353 @@
+"""Fingertip-facet contact detection (paper Sec. 3.1) and contact-point kinematics (Eq. 1-8).
+
+A fingertip is a sphere of centre c and radius R. With the paper's test (``closest=False``) it
+touches boundary facet j when the projection P_j of c on the facet's plane lies inside the triangle
+and the distance d_j = (c - P_j)·n_j from the plane, measured along the facet's outward normal,
+satisfies 0 < d_j < R; its penetration is delta_j = R - d_j (Eq. 14), its contact point P_j and its
+contact normal n_j.
+
+With ``closest=True`` (the patch rule) a pair is the sphere's true overlap with the triangle: its
+contact point is the triangle's closest point Q_j to c (P_j when the projection falls inside, else
+on an edge) and its penetration delta_j = R - |c - Q_j| > 0, so that no facet of the contact patch
+is left out however small the facets are next to the fingertip, and a pair enters or leaves at
+zero penetration. The facet must face the centre (d_j > 0); its *facing* cos(n_j, c - Q_j) =
+d_j / |c - Q_j| goes to 0 as it turns edge-on to the centre, and the patch rule weights it by that
+(its area seen from the centre). At a sharp convex edge the facets on both sides share the edge's
+closest point.
+
+Broad phase: the surface nodes near each fingertip and the facets around them (a node-to-facet
+index computed once per mesh, :class:`FacetIndex`), so the cost grows with the boundary nodes at a
+few microseconds per thousand, not with F log F; without an index, a k-d tree of facet centroids.
+With an index and the compiled kernels selected (:mod:`softgrasp.backend`), :func:`detect` runs
+both phases in one compiled pass (:mod:`softgrasp.physics.fingertip.compiled`); the NumPy code here is the
+reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from softgrasp import backend
+from softgrasp.model.mesh.tetmesh import TetMesh
+
+__all__ = ["ContactPairs", "FacetIndex", "detect", "pair_geometry", "barycentric", "relative_velocity"]
+
+#: Tolerance on barycentric coordinates for "inside the triangle" (shared edges count for both).
+INSIDE_TOL = 1e-12
+
+
+@dataclass(frozen=True)
+class ContactPairs:
+    """Touching (fingertip, facet) pairs at one configuration.
+
+    Attributes
+    ----------
+    finger: fingertip index of each pair, (k,).
+    facet: boundary facet index of each pair, (k,).
+    bary: barycentric (area) coordinates A_i / A_G of the contact point, (k, 3) (Eq. 4, 8).
+    point: contact point [m], (k, 3): the projection P_j of the centre on the facet (paper's test),
+        or the triangle's closest point Q_j to the centre (patch rule; P_j when inside).
+    normal: the facet's outward unit normal n_j, (k, 3).
+    distance: |c - point| [m], (k,) (d_j, the centre-to-plane distance, with the paper's test).
+    depth: penetration delta_j = R - distance [m], (k,) (Eq. 14).
+    area: current facet area [m^2], (k,).
+    facing: cosine between the facet's normal and the direction from the contact point to the
+        centre, d_j / distance, in (0, 1] (1 with the paper's test), (k,).
+    """
+
+    finger: NDArray[np.int64]
+    facet: NDArray[np.int64]
+    bary: NDArray[np.float64]
+    point: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    distance: NDArray[np.float64]
+    depth: NDArray[np.float64]
+    area: NDArray[np.float64]
+    facing: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return int(self.finger.size)
+
+
+def barycentric(
+    p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Barycentric coordinates of points p (k, 3) with respect to triangles (a, b, c), each (k, 3),
+    after projection on the triangles' planes; shape (k, 3), rows summing to 1."""
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    wb = (d11 * d20 - d01 * d21) / den
+    wc = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - wb - wc, wb, wc], axis=1)
+
+
+def closest_points(
+    p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Points of the triangles (a, b, c) (k, 3 each) closest to the points p (k, 3) whose
+    projections fall outside them: the nearest of the three edges' closest points (a later edge
+    wins only when strictly closer).
+    Returns (points (k, 3), their barycentric coordinates (k, 3))."""
+    verts = (a, b, c)
+    best = np.full(len(p), np.inf)
+    q = np.zeros_like(p)
+    bary = np.zeros_like(p)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        e = verts[j] - verts[i]
+        t = np.clip(np.einsum("ij,ij->i", p - verts[i], e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
+        qe = verts[i] + t[:, None] * e
+        d2 = np.einsum("ij,ij->i", p - qe, p - qe)
+        better = d2 < best
+        best[better] = d2[better]
+        q[better] = qe[better]
+        be = np.zeros_like(p)
+        be[:, i] = 1.0 - t
+        be[:, j] = t
+        bary[better] = be[better]
+    return q, bary
+
+
+@dataclass(frozen=True)
+class FacetIndex:
+    """What the node-based broad phase needs of a mesh, computed once per mesh.
+
+    Attributes
+    ----------
+    boundary_nodes: nodes on the surface, (B,).
+    indptr, indices: boundary facets around each node, CSR (:attr:`TetMesh.node_facets`).
+    max_edge: longest facet edge at rest [m].
+    """
+
+    boundary_nodes: NDArray[np.int64]
+    indptr: NDArray[np.int64]
+    indices: NDArray[np.int64]
+    max_edge: float
+
+    @classmethod
+    def of(cls, mesh: TetMesh) -> FacetIndex:
+        indptr, indices = mesh.node_facets
+        return cls(mesh.boundary_nodes, indptr, indices, mesh.max_facet_edge)
+
+
+#: Surface edges may stretch up to this factor of their rest length for the node-based broad phase.
+MAX_STRETCH = 3.0
+
+
+def broad_phase_reach(index: FacetIndex) -> float:
+    """Margin [m] beyond a fingertip's radius within which a surface node may carry a facet in
+    contact: every point of a triangle lies within its longest edge of one of its nodes, and
+    surface edges are taken to stretch at most :data:`MAX_STRETCH` times their rest length."""
+    return (1.0 + 3.0 * INSIDE_TOL) * MAX_STRETCH * index.max_edge
+
+
+def _candidates_tree(
+    x: NDArray[np.float64], facets: NDArray[np.int64], centres, radii
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(finger, facet) candidates from a k-d tree of all facet centroids, O(F log F)."""
+    tri = x[facets]
+    cen = tri.mean(axis=1)
+    # Every contact point (inside the triangle up to INSIDE_TOL) lies within that factor of the
+    # largest centroid-vertex distance of the centroid.
+    extent = (1.0 + 3.0 * INSIDE_TOL) * float(np.linalg.norm(tri - cen[:, None, :], axis=2).max())
+    tree = cKDTree(cen)
+    fi, fj = [], []
+    for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
+        near = np.asarray(tree.query_ball_point(c, R + extent), dtype=np.int64)
+        fj.append(near)
+        fi.append(np.full(near.size, i, dtype=np.int64))
+    return np.concatenate(fi), np.concatenate(fj)
+
+
+def _candidates_nodes(
+    x: NDArray[np.float64], index: FacetIndex, centres, radii
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(finger, facet) candidates from the surface nodes near each fingertip, O(B) with a tiny
+    constant (see :func:`broad_phase_reach`)."""
+    xb = x[index.boundary_nodes]
+    reach = broad_phase_reach(index)
+    fi, fj = [], []
+    for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
+        d2 = np.einsum("ij,ij->i", xb - c, xb - c)
+        nodes = index.boundary_nodes[d2 < (R + reach) ** 2]
+        if nodes.size == 0:
+            continue
+        starts, ends = index.indptr[nodes], index.indptr[nodes + 1]
+        lens = ends - starts
+        offs = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
+        near = np.unique(index.indices[np.arange(lens.sum()) + offs])
+        fj.append(near)
+        fi.append(np.full(near.size, i, dtype=np.int64))
+    if not fj:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(fi), np.concatenate(fj)
+
+
+def detect(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    *,
+    closest: bool = False,
+    index: FacetIndex | None = None,
+) -> ContactPairs:
+    """All touching (fingertip, facet) pairs (Sec. 3.1).
+
+    Parameters
+    ----------
+    x: node positions [m], (N, 3).  facets: boundary facets (F, 3), outward ordering.
+    centres: fingertip centres [m], (n_f, 3).  radii: fingertip radii [m], (n_f,).
+    closest: False for the paper's test (the centre's projection inside the triangle); True for
+        the sphere's overlap with each triangle, measured to its closest point (patch rule; see
+        the module notes).
+    index: the mesh's :class:`FacetIndex`: the broad phase then looks at the surface nodes near
+        each fingertip (cost ~ boundary nodes, a few microseconds per thousand) instead of
+        building a k-d tree of all facet centroids (cost ~ F log F).
+    """
+    if index is not None and backend.compiled():
+        return _detect_compiled(x, facets, centres, radii, closest, index)
+    if index is None:
+        fi, fj = _candidates_tree(x, facets, centres, radii)
+    else:
+        fi, fj = _candidates_nodes(x, index, centres, radii)
+    if fj.size == 0:
+        return _empty()
+    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False)
+
+
+def pair_geometry(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    finger: NDArray[np.int64],
+    facet: NDArray[np.int64],
+    *,
+    closest: bool = False,
+) -> ContactPairs:
+    """The geometry of given (fingertip, facet) pairs at ``x``, whether they touch there or not
+    (depths may be <= 0, projections outside the triangles): the pairs of an earlier
+    :func:`detect`, followed through a small displacement (derivatives along a direction with
+    the contact set fixed, as a Jacobian assumes)."""
+    if len(facet) == 0:
+        return _empty()
+    return _narrow_phase(
+        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True
+    )
+
+
+def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool) -> ContactPairs:
+    """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``."""
+    tri = x[facets[fj]]  # (k, 3, 3) candidates only
+    a, b, c3 = tri[:, 0], tri[:, 1], tri[:, 2]
+    nrm = np.cross(b - a, c3 - a)
+    twice_area = np.linalg.norm(nrm, axis=1)
+    n = nrm / twice_area[:, None]
+    ctr = centres[fi]
+    d = np.einsum("ij,ij->i", ctr - a, n)
+    R = radii[fi]
+    point = ctr - d[:, None] * n
+    bary = barycentric(point, a, b, c3)
+    low = bary.min(axis=1)
+    if closest:
+        out = np.flatnonzero(low < 0)
+        if out.size:
+            point[out], bary[out] = closest_points(ctr[out], a[out], b[out], c3[out])
+        dist = np.linalg.norm(ctr - point, axis=1)
+        fac = np.clip(d / np.where(dist > 0, dist, 1.0), 0.0, 1.0)
+        ok = (d > 0) & (dist < R)
+    else:
+        dist = d
+        fac = np.ones(len(fj))
+        ok = (d > 0) & (d < R) & (low >= -INSIDE_TOL)
+    if keep_all:
+        ok = np.ones(len(fj), bool)
+    return ContactPairs(
+        finger=fi[ok],
+        facet=fj[ok],
+        bary=bary[ok],
+        point=point[ok],
+        normal=n[ok],
+        distance=dist[ok],
+        depth=R[ok] - dist[ok],
+        area=0.5 * twice_area[ok],
+        facing=fac[ok],
+    )
+
+
+def _detect_compiled(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    closest: bool,
+    index: FacetIndex,
+) -> ContactPairs:
+    """:func:`detect` with the node-index broad phase, by the compiled kernel
+    (:mod:`softgrasp.physics.fingertip.compiled`): the same pairs in the same order, fields equal to
+    round-off. The float fields are read-only views of one (k, 13) array."""
+    from softgrasp.physics.fingertip.compiled import detect_arrays
+
+    fi, fj, val = detect_arrays(
+        x,
+        facets,
+        index.boundary_nodes,
+        index.indptr,
+        index.indices,
+        broad_phase_reach(index),
+        centres,
+        radii,
+        closest,
+        INSIDE_TOL,
+    )
+    val.flags.writeable = False
+    return ContactPairs(
+        finger=fi,
+        facet=fj,
+        bary=val[:, 0:3],
+        point=val[:, 3:6],
+        normal=val[:, 6:9],
+        distance=val[:, 9],
+        depth=val[:, 10],
+        area=val[:, 11],
+        facing=val[:, 12],
+    )
+
+
+def _empty() -> ContactPairs:
+    z3 = np.zeros((0, 3))
+    z = np.zeros(0)
+    return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z)
+
+
+def relative_velocity(
+    pairs: ContactPairs,
+    facets: NDArray[np.int64],
+    v: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    velocities: NDArray[np.float64],
+    omegas: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Relative velocity of the fingertip with respect to the facet at each contact point.
+
+    ``V_finger(P) = V_c + Omega x (P - c)`` (Eq. 1); ``V_facet(P) = sum_i (A_i/A_G) V_Ni`` (Eq. 4);
+    ``V_r = V_finger - V_facet`` (Eq. 5); normal part ``(V_r·n) n`` (Eq. 6), tangential rest (Eq. 7).
+
+    Returns
+    -------
+    (V_r (k, 3), V_n (k, 3), V_t (k, 3)) [m/s]
+    """
+    vf = velocities[pairs.finger] + np.cross(omegas[pairs.finger], pairs.point - centres[pairs.finger])
+    vfacet = np.einsum("ki,kij->kj", pairs.bary, v[facets[pairs.facet]])
+    vr = vf - vfacet
+    vn = np.einsum("ij,ij->i", vr, pairs.normal)[:, None] * pairs.normal
+    return vr, vn, vr - vn

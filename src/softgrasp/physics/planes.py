@@ -1,0 +1,262 @@
+"""Rigid planes touching the body's nodes: the table, and the plates of a compression test.
+
+Normal force: a penalty spring-dashpot per node, ``f_n = max(0, k_c p - c_c v_n)`` with penetration
+p = -(x - P)·n. Friction: the elastic-slider model of the paper's Algorithm 1 applied per node: a
+tangential spring from the node to an *anchor* fixed on the plane (stick displacement v) gives
+``f_t = -k_t v - c_t v_t``; when its norm would exceed ``mu f_n`` the node slips, the force is
+``mu f_n`` along the trial direction and the anchor is dragged along (slip displacement u). Anchors
+are created when a node touches the plane and dropped when it leaves.
+
+Stiffnesses are per node and proportional to the node's own elastic stiffness
+(:attr:`softgrasp.physics.body.Body.node_stiffness`), so the contact is equally stiff on any mesh.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from softgrasp.physics.body import Body
+from softgrasp.errors import ContactError
+from softgrasp.physics.forces import assemble_blocks
+
+__all__ = ["Plane", "PlaneContact", "PlaneState"]
+
+
+@dataclass(frozen=True)
+class Plane:
+    """An infinite rigid plane moving at constant velocity.
+
+    Attributes
+    ----------
+    point: a point of the plane at t = 0 [m], (3,).
+    normal: unit normal pointing towards the body (the free side), (3,).
+    velocity: plane velocity [m/s], (3,).
+    """
+
+    point: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    velocity: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64)
+        norm = float(np.linalg.norm(n))
+        if not norm > 0:
+            raise ContactError("plane normal must be a non-zero vector")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "point", np.asarray(self.point, dtype=np.float64))
+        object.__setattr__(self, "velocity", np.asarray(self.velocity, dtype=np.float64))
+
+    def point_at(self, t: float) -> NDArray[np.float64]:
+        """A point of the plane at time t [m]."""
+        return self.point + t * self.velocity
+
+
+@dataclass(frozen=True)
+class PlaneState:
+    """Friction state of one plane: which nodes touch and their anchors.
+
+    Attributes
+    ----------
+    active: nodes in contact at the last update, (N,) bool.
+    anchor: anchor positions in the plane, relative to its moving point [m], (N, 3). A free node's
+        anchor follows it, so that a node touching during a step sticks where it entered contact.
+    """
+
+    active: NDArray[np.bool_]
+    anchor: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PlaneContact:
+    """Penalty contact with Coulomb friction between a plane and every node of the body.
+
+    Parameters
+    ----------
+    plane: the plane.
+    mu: friction coefficient (>= 0); 0 is frictionless.
+    penalty: normal stiffness per node as a multiple of the node's elastic stiffness.
+    damping_ratio: damping ratio of each node's penalty spring (with the node's mass).
+    tangential_ratio: k_t / k_n.
+    name: label (``table``, ``bottom``, ``top``).
+    """
+
+    plane: Plane
+    mu: float = 0.5
+    penalty: float = 50.0
+    damping_ratio: float = 0.5
+    tangential_ratio: float = 1.0
+    name: str = "plane"
+
+    def __post_init__(self) -> None:
+        for k in ("mu", "penalty", "damping_ratio", "tangential_ratio"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v >= 0):
+                raise ContactError(f"{self.name}: {k} = {v} is invalid; it must be >= 0")
+        if self.penalty <= 0:
+            raise ContactError(f"{self.name}: penalty must be > 0")
+
+    # ------------------------------------------------------------------ parameters
+    def stiffness(self, body: Body) -> NDArray[np.float64]:
+        """Normal penalty stiffness per node [N/m], (N,)."""
+        return self.penalty * body.node_stiffness
+
+    def _coeffs(self, body: Body) -> tuple[NDArray[np.float64], ...]:
+        k = self.stiffness(body)
+        c = 2.0 * self.damping_ratio * np.sqrt(k * body.mass)
+        return k, c, self.tangential_ratio * k, self.tangential_ratio * c
+
+    def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> PlaneState:
+        """State with every node's anchor at its current position (nodes already touching stick
+        where they are)."""
+        p0, n, pen = self._geometry(x, t)
+        rel = x - p0
+        anchor = rel - (rel @ n)[:, None] * n
+        return PlaneState(active=pen > 0, anchor=anchor)
+
+    def stiffness_bound(self, body: Body) -> NDArray[np.float64]:
+        """Largest stiffness the contact may add to each node [N/m], (N,) (for time steps)."""
+        k = self.stiffness(body)
+        return k * max(1.0, self.tangential_ratio)
+
+    def damping_bound(self, body: Body) -> NDArray[np.float64]:
+        """Largest damping the contact may add to each node [N s/m], (N,)."""
+        _, c, _, ct = self._coeffs(body)
+        return np.maximum(c, ct)
+
+    # ------------------------------------------------------------------ kernels
+    def _geometry(self, x: NDArray[np.float64], t: float):
+        p0 = self.plane.point_at(t)
+        n = self.plane.normal
+        pen = -(x - p0) @ n
+        return p0, n, pen
+
+    def _tangential_stretch(self, x, p0, n, state: PlaneState, touching) -> NDArray[np.float64]:
+        s = np.where(touching[:, None], x - (p0 + state.anchor), 0.0)
+        return s - (s @ n)[:, None] * n
+
+    def forces(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
+    ) -> NDArray[np.float64]:
+        """Contact forces on the nodes [N], (N, 3); slip is capped at ``mu f_n`` (Eq. 15-16)."""
+        k, c, kt, ct = self._coeffs(body)
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        vrel = v - self.plane.velocity
+        vn = vrel @ n
+        fn = np.where(touching, np.maximum(k * pen - c * vn, 0.0), 0.0)
+        f = fn[:, None] * n
+        if self.mu > 0:
+            s = self._tangential_stretch(x, p0, n, state, touching)
+            vt = vrel - vn[:, None] * n
+            ft = -kt[:, None] * s - ct[:, None] * vt
+            ft[~touching] = 0.0
+            mag = np.linalg.norm(ft, axis=1)
+            cap = self.mu * fn
+            over = mag > cap
+            ft[over] *= (cap[over] / np.maximum(mag[over], 1e-300))[:, None]
+            f += ft
+        return f
+
+    def _static_touching(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
+        """The touching nodes (the few a body stands on, not all N: only they carry force), their
+        penalty and friction stiffnesses, the normal, their penetrations and tangential stretches.
+
+        At rest the table holds every touching node where it touched (a rough table): sticking
+        without a Coulomb limit keeps the static problem a potential, which Newton's method solves
+        reliably. Sliding on the table is simulated by the dynamic solvers.
+        """
+        p0, n, pen = self._geometry(x, t)
+        on = np.flatnonzero(pen > 0)
+        k = self.stiffness(body)[on]
+        s = x[on] - (p0 + state.anchor[on])
+        return on, k, self.tangential_ratio * k, n, pen[on], s - (s @ n)[:, None] * n
+
+    def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
+        """Potential [J] of the normal penalty springs and of the sticking friction springs
+        ``k_t |s|^2 / 2``."""
+        _, k, kt, _, pen, s = self._static_touching(body, x, t, state)
+        e = 0.5 * float(np.sum(k * pen**2))
+        if self.mu > 0:
+            e += 0.5 * float(np.sum(kt * np.einsum("ij,ij->i", s, s)))
+        return e
+
+    def static_forces(
+        self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState
+    ) -> NDArray[np.float64]:
+        """Forces at rest [N], (N, 3): penalty normal force and the sticking elastic-slider friction
+        of touching nodes (minus the gradient of :meth:`energy`)."""
+        on, k, kt, n, pen, s = self._static_touching(body, x, t, state)
+        f = np.zeros(x.shape)
+        f[on] = (k * pen)[:, None] * n
+        if self.mu > 0:
+            f[on] -= kt[:, None] * s
+        return f
+
+    def jacobian_diagonal(
+        self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """:meth:`jacobian` by its non-zero diagonal 3x3 blocks (the plane couples no two nodes):
+        (the nodes on or beyond the plane (K,), their blocks (K, 3, 3)); every other block is zero."""
+        _, n, pen = self._geometry(x, t)
+        # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
+        # body resting on the plane must not look unsupported to Newton's method (nor slide).
+        on = np.flatnonzero(pen >= 0)
+        k = self.stiffness(body)[on]
+        nn = np.outer(n, n)
+        blocks = -k[:, None, None] * nn[None]
+        if self.mu > 0:
+            blocks = blocks - (self.tangential_ratio * k)[:, None, None] * (np.eye(3) - nn)[None]
+        return on, blocks
+
+    def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:
+        """``d f / d x`` of :meth:`static_forces` (block diagonal), sparse (3N, 3N)."""
+        on, blocks = self.jacobian_diagonal(body, x, t, state)
+        return assemble_blocks(body.n_nodes, on, on, blocks)
+
+    def update(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
+    ) -> PlaneState:
+        """Advance the friction state after an accepted step or static solve (Algorithm 1).
+
+        Free nodes carry their anchor along; a node in contact keeps its anchor (stick) unless its
+        tangential spring exceeds ``mu f_n``, in which case it slips: the anchor is dragged so that
+        the stretch is exactly ``mu f_n / k_t``. Leaving contact resets the state (the anchor
+        follows the node again).
+        """
+        k, _, kt, _ = self._coeffs(body)
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        rel = x - p0
+        rel_t = rel - (rel @ n)[:, None] * n
+        anchor = np.where(touching[:, None], state.anchor, rel_t)
+        if self.mu > 0:
+            s = rel_t - anchor
+            s_norm = np.linalg.norm(s, axis=1)
+            limit = self.mu * k * np.maximum(pen, 0.0) / np.maximum(kt, 1e-300)
+            slip = touching & (s_norm > limit)
+            if slip.any():
+                anchor[slip] = rel_t[slip] - s[slip] * (limit[slip] / s_norm[slip])[:, None]
+        else:
+            anchor = rel_t
+        return replace(state, active=touching.copy(), anchor=anchor)
+
+    def static_update(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
+        """State update of a static solve: free nodes carry their anchors along, so a node that
+        touches sticks where it entered contact; touching nodes keep their anchors (no slip)."""
+        p0, n, pen = self._geometry(x, t)
+        touching = pen > 0
+        rel = x - p0
+        rel_t = rel - (rel @ n)[:, None] * n
+        anchor = np.where(touching[:, None], state.anchor, rel_t)
+        return replace(state, anchor=anchor, active=touching.copy())
+
+    def normal_reaction(
+        self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
+    ) -> float:
+        """Total force [N] the plane exerts on the body along its normal."""
+        return float(self.forces(body, x, v, t, state).sum(axis=0) @ self.plane.normal)

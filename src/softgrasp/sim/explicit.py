@@ -1,0 +1,725 @@
+"""Explicit time integration of a scene: RK4, semi-implicit Euler and adaptive Dormand-Prince 5(4).
+
+The equations of motion are the first-order system
+
+    x' = v,    v' = a(x, v, t) = F(x, v, t; contacts) / m                                  (1)
+
+with F = :meth:`Scene.forces` (internal springs, volume term and dampers, gravity, interactions)
+and lumped node masses m. The friction state of the contacts is frozen during a step; after every
+accepted step it is advanced with :meth:`Scene.update_contacts` (the stick/slip update of the
+paper's Algorithm 1). :func:`simulate` drives an integrator to a final time with blow-up detection
+(:class:`~softgrasp.sim.stability.BlowupMonitor`); :func:`settle` runs until the body is at rest.
+
+With the compiled kernels selected (:mod:`softgrasp.backend`), :func:`simulate` runs semi-implicit
+Euler and RK4 on scenes of planes and fingertips in compiled chunks of many steps
+(:class:`softgrasp.sim.fused.step.FusedStepper`: the same trajectory to round-off, the same callbacks,
+progress reports and blow-up errors, several times faster than the per-step loop on the compiled
+kernels: ``benchmarks/bench_dynamic.py``);
+other methods, interactions and the NumPy kernels take the per-step loop.
+
+Everything here is numerical: nothing is printed; ``progress`` callbacks let a front end draw bars.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.errors import NotConverged, SimulationUnstable
+from softgrasp.sim.scene import Scene, State
+from softgrasp.sim.stability import (
+    BlowupMonitor,
+    canonical_method,
+    stable_time_step,
+    unstable_error,
+)
+
+__all__ = [
+    "RK4",
+    "DormandPrince45",
+    "Integrator",
+    "SemiImplicitEuler",
+    "FusedThreads",
+    "fused_unsupported",
+    "make_integrator",
+    "max_speed",
+    "settle",
+    "simulate",
+]
+
+Array = NDArray[np.float64]
+
+
+def _acceleration(scene: Scene, x: Array, v: Array, t: float, contacts: tuple[Any, ...]) -> Array:
+    """Right-hand side a = F / m of Eq. (1) [m/s^2], (N, 3)."""
+    return scene.forces(x, v, t, contacts) / scene.body.mass[:, None]
+
+
+def _finish(scene: Scene, state: State, x: Array, v: Array, dt: float) -> State:
+    """The state after an accepted step: new x, v, t and updated friction states."""
+    t = state.t + dt
+    return State(x, v, t, scene.update_contacts(x, v, t, state.contacts))
+
+
+def max_speed(v: Array) -> float:
+    """Largest node speed [m/s] of velocities ``v`` (N, 3)."""
+    return float(np.sqrt(np.max(np.einsum("ij,ij->i", v, v))))
+
+
+class Integrator(ABC):
+    """One step of an explicit method for Eq. (1).
+
+    Attributes
+    ----------
+    method: canonical method name used for stability bounds (``rk4``, ``dopri``,
+        ``semi-implicit``).
+    adaptive: whether :meth:`step` may take a shorter step than asked (then ``state.t`` tells).
+    """
+
+    method: str = ""
+    adaptive: bool = False
+
+    @abstractmethod
+    def step(self, scene: Scene, state: State, dt: float) -> State:
+        """Advance ``state`` by ``dt`` [s] (adaptive methods: by at most ``dt``); friction states
+        are updated after the step."""
+
+
+class SemiImplicitEuler(Integrator):
+    """Semi-implicit (symplectic) Euler: ``v += dt a(x, v); x += dt v``.
+
+    First order; for undamped bodies it conserves linear and angular momentum exactly and keeps the
+    energy error bounded (O(dt), no drift). Stable for ``dt < 2 / rho`` (see
+    :mod:`softgrasp.sim.stability`).
+    """
+
+    method = "semi-implicit"
+
+    def step(self, scene: Scene, state: State, dt: float) -> State:
+        v = state.v + dt * _acceleration(scene, state.x, state.v, state.t, state.contacts)
+        x = state.x + dt * v
+        return _finish(scene, state, x, v, dt)
+
+
+class RK4(Integrator):
+    """Classical fourth-order Runge-Kutta on Eq. (1), four force evaluations per step.
+
+    Stable for ``dt < 2.8 / omega_max`` without damping and ``dt < 2.5 / rho`` in general.
+    """
+
+    method = "rk4"
+
+    def step(self, scene: Scene, state: State, dt: float) -> State:
+        x, v, t, c = state.x, state.v, state.t, state.contacts
+        h2 = 0.5 * dt
+        a1 = _acceleration(scene, x, v, t, c)
+        v2 = v + h2 * a1
+        a2 = _acceleration(scene, x + h2 * v, v2, t + h2, c)
+        v3 = v + h2 * a2
+        a3 = _acceleration(scene, x + h2 * v2, v3, t + h2, c)
+        v4 = v + dt * a3
+        a4 = _acceleration(scene, x + dt * v3, v4, t + dt, c)
+        x_new = x + (dt / 6.0) * (v + 2.0 * v2 + 2.0 * v3 + v4)
+        v_new = v + (dt / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+        return _finish(scene, state, x_new, v_new, dt)
+
+
+# Dormand & Prince (1980) 5(4) tableau: nodes, stage coefficients, 5th-order weights (= last row,
+# first-same-as-last) and the difference between the 5th- and embedded 4th-order weights.
+_DP_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
+_DP_A = (
+    (),
+    (1 / 5,),
+    (3 / 40, 9 / 40),
+    (44 / 45, -56 / 15, 32 / 9),
+    (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
+    (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
+    (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84),
+)
+_DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
+
+
+def _same_tree(a: Any, b: Any) -> bool:
+    """Whether two friction states are equal (dataclasses, tuples, arrays, scalars); False when
+    unsure."""
+    if a is b:
+        return True
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, np.ndarray):
+        return a.shape == b.shape and bool(np.array_equal(a, b))
+    if isinstance(a, (tuple, list)):
+        return len(a) == len(b) and all(_same_tree(p, q) for p, q in zip(a, b, strict=True))
+    if dataclasses.is_dataclass(a) and not isinstance(a, type):
+        return all(_same_tree(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
+    if isinstance(a, (int, float, complex, str, bool, type(None))):
+        return bool(a == b)
+    return False
+
+
+class DormandPrince45(Integrator):
+    """Adaptive Dormand-Prince 5(4) with first-same-as-last and error control.
+
+    The error of a step is the difference of the fifth- and embedded fourth-order solutions,
+    measured in the RMS norm ``sqrt(mean((e_k / s_k)^2))`` with
+    ``s_k = atol + rtol max(|y_k(t)|, |y_k(t + dt)|)`` (``atol_x`` [m] for positions, ``atol_v``
+    [m/s] for velocities). A step is accepted when the norm is <= 1; the next step is
+    ``dt * clip(safety * err^(-1/5), fac_min, fac_max)`` (no growth right after a rejection),
+    capped at ``dt_max`` and at the stable bound :func:`stable_time_step` (the problem is stiff:
+    the highest node frequencies bound the step long before the error does).
+
+    Attributes
+    ----------
+    accepted, rejected: step counts.
+    dt_next: step size [s] proposed for the next step (None before the first).
+    """
+
+    method = "dopri"
+    adaptive = True
+
+    def __init__(
+        self,
+        rtol: float = 1e-6,
+        atol_x: float = 1e-9,
+        atol_v: float = 1e-6,
+        *,
+        dt_max: float | None = None,
+        dt_min: float = 1e-12,
+        safety: float = 0.9,
+        fac_min: float = 0.2,
+        fac_max: float = 5.0,
+        max_rejections: int = 50,
+    ) -> None:
+        if not (rtol >= 0 and atol_x >= 0 and atol_v >= 0 and rtol + atol_x > 0 and rtol + atol_v > 0):
+            raise ValueError("tolerances must be >= 0 and rtol + atol > 0")
+        if not (0 < safety <= 1 and 0 < fac_min < 1 < fac_max):
+            raise ValueError("need 0 < safety <= 1 and 0 < fac_min < 1 < fac_max")
+        self.rtol, self.atol_x, self.atol_v = float(rtol), float(atol_x), float(atol_v)
+        self.dt_max = dt_max
+        self.dt_min = float(dt_min)
+        self.safety, self.fac_min, self.fac_max = float(safety), float(fac_min), float(fac_max)
+        self.max_rejections = int(max_rejections)
+        self.accepted = 0
+        self.rejected = 0
+        self.dt_next: float | None = None
+        self._cap: tuple[Scene, float] | None = None
+        self._fsal: tuple[State, Array] | None = None
+
+    def stable_cap(self, scene: Scene) -> float:
+        """Largest step [s] this integrator takes on ``scene``: min(dt_max, stable bound)."""
+        if self._cap is None or self._cap[0] is not scene:
+            self._cap = (scene, stable_time_step(scene, self.method))
+        cap = self._cap[1]
+        return cap if self.dt_max is None else min(cap, self.dt_max)
+
+    def _rhs(self, scene: Scene, y: Array, t: float, contacts: tuple[Any, ...]) -> Array:
+        n = y.shape[0] // 2
+        x, v = y[:n], y[n:]
+        return np.concatenate([v, _acceleration(scene, x, v, t, contacts)])
+
+    def _attempt(self, scene: Scene, y: Array, k1: Array, t: float, h: float, c: tuple[Any, ...]):
+        """One trial step: (y_new, f(y_new), error norm)."""
+        ks = [k1]
+        for i in range(1, 7):
+            yi = y + h * sum(a * k for a, k in zip(_DP_A[i], ks, strict=True) if a != 0.0)
+            ks.append(self._rhs(scene, yi, t + _DP_C[i] * h, c))
+        y_new = yi  # stage 7 is evaluated at the fifth-order solution (FSAL)
+        err = h * sum(e * k for e, k in zip(_DP_E, ks, strict=True) if e != 0.0)
+        n = y.shape[0] // 2
+        atol = np.empty((y.shape[0], 1))
+        atol[:n], atol[n:] = self.atol_x, self.atol_v
+        scale = atol + self.rtol * np.maximum(np.abs(y), np.abs(y_new))
+        norm = float(np.sqrt(np.mean((err / scale) ** 2)))
+        return y_new, ks[-1], norm
+
+    def step(self, scene: Scene, state: State, dt: float) -> State:
+        """Take one accepted step of at most ``dt`` [s] (and at most the stable cap).
+
+        Raises
+        ------
+        SimulationUnstable
+            The error test keeps failing (step below ``dt_min`` or ``max_rejections`` retries).
+        """
+        cap = self.stable_cap(scene)
+        h = min(dt, cap)
+        y = np.concatenate([state.x, state.v])
+        if self._fsal is not None and self._fsal[0] is state:
+            k1 = self._fsal[1]
+        else:
+            k1 = self._rhs(scene, y, state.t, state.contacts)
+        rejected_here = 0
+        while True:
+            y_new, k_last, norm = self._attempt(scene, y, k1, state.t, h, state.contacts)
+            if norm <= 1.0:
+                break
+            self.rejected += 1
+            rejected_here += 1
+            factor = self.safety * norm**-0.2 if math.isfinite(norm) else self.fac_min
+            h *= min(1.0, max(self.fac_min, factor))
+            if h < self.dt_min or rejected_here > self.max_rejections:
+                raise unstable_error(
+                    scene,
+                    self.method,
+                    state.t,
+                    h,
+                    f"error control failed after {rejected_here} rejected steps",
+                )
+        self.accepted += 1
+        growth = self.safety * norm**-0.2 if norm > 0 else self.fac_max
+        growth = min(self.fac_max if rejected_here == 0 else 1.0, max(self.fac_min, growth))
+        self.dt_next = min(h * growth, cap)
+        n = state.x.shape[0]
+        new = _finish(scene, state, y_new[:n], y_new[n:], h)
+        # First same as last: reuse f(y_new) if the contact update changed nothing.
+        self._fsal = (new, k_last) if _same_tree(new.contacts, state.contacts) else None
+        return new
+
+
+def make_integrator(method: str | Integrator, **options: Any) -> Integrator:
+    """An integrator from a method name (see :func:`canonical_method`) or the instance itself.
+
+    ``options`` go to :class:`DormandPrince45` (``rtol``, ``atol_x``, ``atol_v``, ...).
+    """
+    if isinstance(method, Integrator):
+        if options:
+            raise ValueError("integrator options only apply when the method is given by name")
+        return method
+    name = canonical_method(method)
+    if name == "dopri":
+        return DormandPrince45(**options)
+    if options:
+        raise ValueError(f"method {name!r} takes no options, got {sorted(options)}")
+    return RK4() if name == "rk4" else SemiImplicitEuler()
+
+
+def _check_time_step(scene: Scene, integ: Integrator, dt: float | None, check_dt: bool) -> float:
+    """The step size to use: the stable bound by default; an error if ``dt`` exceeds it."""
+    bound = stable_time_step(scene, integ.method)
+    if dt is None:
+        return bound
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"time step must be positive and finite, got {dt}")
+    if check_dt and not integ.adaptive and dt > bound:
+        raise SimulationUnstable(
+            f"dt = {dt:.3g} s exceeds the stable time step {bound:.3g} s of {integ.method} for this scene "
+            f"(Gershgorin bound, safety 0.9); use dt <= {bound:.3g} s or pass check_dt=False",
+            bound,
+        )
+    return dt
+
+
+def _guarded_step(
+    scene: Scene, state: State, integ: Integrator, dt: float, monitor: BlowupMonitor | None
+) -> State:
+    """One step followed by the monitor's checks.
+
+    Floating-point overflow and invalid-operation warnings are silenced during the step: a blow-up
+    (e.g. a tet flattened in an intermediate stage makes the volume barrier explode) surfaces as
+    non-finite positions or velocities, which the monitor turns into :class:`SimulationUnstable`.
+    """
+    t_prev = state.t
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        new = integ.step(scene, state, dt)
+        if monitor is not None:
+            monitor.after_step(new, new.t - t_prev)
+    return new
+
+
+def _advance(
+    scene: Scene, state: State, integ: Integrator, dt: float, t_end: float, monitor: BlowupMonitor | None
+) -> Iterator[State]:
+    """Yield the state after every accepted step until ``t_end`` [s].
+
+    Fixed-step methods take ``n = ceil((t_end - t0) / dt)`` equal steps so they land on t_end.
+    """
+    t0 = state.t
+    span = t_end - t0
+    if span <= 0:
+        return
+    if not integ.adaptive:
+        n = max(1, math.ceil(span / dt * (1.0 - 1e-12)))
+        h = span / n
+        for _ in range(n - 1):
+            state = _guarded_step(scene, state, integ, h, monitor)
+            yield state
+        # Land exactly on t_end: the last step is t_end - t, not h, to avoid accumulated round-off.
+        yield _guarded_step(scene, state, integ, t_end - state.t, monitor)
+        return
+    h = dt
+    while state.t < t_end:
+        remaining = t_end - state.t
+        if remaining <= 1e-12 * max(1.0, abs(t_end)):
+            break
+        state = _guarded_step(scene, state, integ, min(h, remaining), monitor)
+        nxt = getattr(integ, "dt_next", None)
+        h = dt if nxt is None else min(nxt, dt)
+        yield state
+
+
+def simulate(
+    scene: Scene,
+    state: State,
+    t_end: float,
+    *,
+    method: str | Integrator = "rk4",
+    dt: float | None = None,
+    callback: Callable[[State], None] | None = None,
+    every: int = 1,
+    progress: Callable[[float], None] | None = None,
+    check_dt: bool = True,
+    check_every: int = 10,
+    fused: bool | None = None,
+    **options: Any,
+) -> State:
+    """Integrate Eq. (1) from ``state`` to time ``t_end``.
+
+    Parameters
+    ----------
+    scene:
+        Body and interactions.
+    state:
+        Initial state (``state.t`` is the start time [s]).
+    t_end:
+        Final time [s]; the returned state has ``t == t_end`` (to round-off).
+    method:
+        ``rk4`` (default), ``semi-implicit``, ``dopri``/``rk45``, or an :class:`Integrator`.
+    dt:
+        Time step [s]; default the stable bound :func:`stable_time_step`. Fixed-step methods take
+        equal steps of at most dt; for ``dopri`` it is the largest step (also capped at the stable
+        bound) and the first one tried.
+    callback:
+        Called as ``callback(state)`` with the initial state, after every ``every``-th step and
+        with the final state (for recording).
+    every:
+        Steps between callbacks (>= 1).
+    progress:
+        Called with the completed fraction of the time span in [0, 1] (about 100 times).
+    check_dt:
+        If true, a fixed-step ``dt`` above the stable bound raises at once.
+    check_every:
+        Steps between the volume and energy checks of the blow-up monitor.
+    fused:
+        Whether to run the steps in compiled chunks (:mod:`softgrasp.sim.fused.step`): ``None``
+        (default) does so when it can -- compiled kernels selected (:mod:`softgrasp.backend`),
+        semi-implicit Euler or RK4 (fixed steps), only :class:`~softgrasp.physics.planes.PlaneContact` and
+        :class:`~softgrasp.physics.fingertip.contact.FingertipContact` interactions (at most one of the
+        latter), a polynomial stress-strain law; ``False`` never (the per-step path); ``True``
+        requires it (``ValueError`` when it cannot). Both paths give the same trajectory to
+        round-off, with the same callbacks, progress reports and blow-up checks.
+    options:
+        Tolerances etc. of :class:`DormandPrince45` when ``method`` is a name.
+
+    Returns
+    -------
+    State
+        The state at ``t_end``.
+
+    Raises
+    ------
+    SimulationUnstable
+        ``dt`` above the stable bound (with ``check_dt``), or the integration blew up (non-finite
+        values, an inverted tet, runaway energy; see :class:`BlowupMonitor`). ``suggested_dt`` on
+        the exception gives a step to retry with.
+    """
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    integ = make_integrator(method, **options)
+    h = _check_time_step(scene, integ, dt, check_dt)
+    reason = fused_unsupported(scene, integ) if fused is not False else "disabled"
+    if fused and reason is not None:
+        raise ValueError(f"the fused stepper cannot run this simulation: {reason}")
+    monitor = BlowupMonitor(scene, state, integ.method, check_every=check_every)
+    if reason is None:
+        return _simulate_fused(scene, state, integ.method, h, t_end, monitor, callback, every, progress)
+    t0, span = state.t, t_end - state.t
+    if callback is not None:
+        callback(state)
+    next_report = 0.0
+    steps = 0
+    last_called = 0
+    current = state
+    for current in _advance(scene, state, integ, h, t_end, monitor):
+        steps += 1
+        if callback is not None and steps % every == 0:
+            callback(current)
+            last_called = steps
+        if progress is not None and span > 0:
+            frac = min(1.0, (current.t - t0) / span)
+            if frac >= next_report:
+                progress(frac)
+                next_report = frac + 0.01
+    if steps:
+        monitor.check(current, h)
+    if callback is not None and steps and last_called != steps:
+        callback(current)
+    if progress is not None:
+        progress(1.0)
+    return current
+
+
+# ---------------------------------------------------------------------------------- fused path
+#: Most steps one compiled call takes (keeps Ctrl-C responsive: ~0.1 s at 20 000 steps/s).
+FUSED_CHUNK = 2000
+
+
+def fused_unsupported(scene: Scene, integ: Integrator) -> str | None:
+    """Why :func:`simulate` cannot run ``scene`` with ``integ`` in compiled chunks
+    (:class:`softgrasp.sim.fused.step.FusedStepper`), or None when it can."""
+    from softgrasp import backend
+    if backend.get_backend() != "numba":
+        return f"the {backend.get_backend()} kernels are selected"
+    if type(integ) not in (SemiImplicitEuler, RK4):
+        return f"method {integ.method!r} (semi-implicit Euler and RK4 are fused)"
+    from softgrasp.physics.fingertip.contact import FingertipContact
+    from softgrasp.physics.planes import PlaneContact
+
+    planes, fingers = [], []
+    for inter in scene.interactions:
+        if type(inter) is PlaneContact:
+            planes.append(inter)
+        elif type(inter) is FingertipContact:
+            fingers.append(inter)
+        else:
+            return f"interaction {getattr(inter, 'name', '?')!r} of type {type(inter).__name__}"
+    from softgrasp.sim.fused.step import supported
+
+    return supported(scene.body, planes, fingers)
+
+
+class FusedThreads:
+    """How many threads the fused stepper computes on, chunk by chunk (the trajectory does not
+    depend on it: :data:`softgrasp.sim.fused.step.PARTS`).
+
+    ``SOFTGRASP_THREADS`` (or :func:`softgrasp.linalg.pardiso.set_threads`) fixes the count. Otherwise
+    (``auto``) a chunk runs on two threads when two cores are idle
+    (:func:`softgrasp.linalg.pardiso.idle_cores`) or when the previous chunk ran well on two (a
+    semi-implicit chunk starts a worker thread of its own, RK4 uses Numba's threads). The
+    threads meet two or three times a step, so a thread waiting for a core another process holds
+    makes every step wait for the scheduler (measured here: 100x slower than one thread). Each
+    two-thread chunk is timed; one slower per step than 1.5x the best two-thread chunk so far means
+    the cores are shared now, and the rest of the run stays on one thread. Two-thread chunks are
+    kept short (:attr:`chunk_seconds`) so that such a slowdown costs little before it is seen.
+    """
+
+    #: Wall time [s] a two-thread chunk aims at (auto mode).
+    chunk_seconds = 0.02
+
+    def __init__(self) -> None:
+        from softgrasp.linalg import pardiso
+        self._pardiso = pardiso
+        self.fixed: int | None = pardiso._fixed_threads
+        self.best = math.inf  # best seconds per step on two threads
+        self.fallback = False
+        self.last = 1
+
+    def choose(self) -> int:
+        """Threads for the next chunk."""
+        if self.fixed is not None:
+            self.last = max(1, self.fixed)
+        elif self.fallback:
+            self.last = 1
+        else:
+            fine = self.last >= 2 and math.isfinite(self.best)
+            self.last = 2 if fine or self._pardiso.idle_cores() >= 2 else 1
+        return self.last
+
+    def chunk(self, threads: int, longest: int) -> int:
+        """Most steps the next chunk on ``threads`` threads takes."""
+        if threads < 2 or self.fixed is not None:
+            return longest
+        if not math.isfinite(self.best):
+            return min(longest, 32)
+        return max(1, min(longest, int(self.chunk_seconds / self.best)))
+
+    def record(self, threads: int, steps: int, seconds: float) -> None:
+        """Account for a chunk of ``steps`` steps that took ``seconds`` on ``threads`` threads."""
+        if threads < 2 or self.fixed is not None or steps <= 0:
+            return
+        per = seconds / steps
+        if per > 1.5 * self.best:
+            self.fallback = True
+        self.best = min(self.best, per)
+
+
+class _FusedRun:
+    """A :class:`~softgrasp.sim.fused.step.FusedStepper` on a scene, read out as :class:`State`."""
+
+    def __init__(
+        self, scene: Scene, state: State, monitor: BlowupMonitor | None, method: str = "semi-implicit"
+    ) -> None:
+        from softgrasp.physics.fingertip.contact import FingertipContact
+        from softgrasp.sim.fused.step import FusedStepper
+
+        self.template = state
+        self.planes = [i for i, inter in enumerate(scene.interactions) if type(inter) is not FingertipContact]
+        fingers = [i for i, inter in enumerate(scene.interactions) if type(inter) is FingertipContact]
+        self.finger = fingers[0] if fingers else None
+        inter, contacts = scene.interactions, state.contacts
+        self.stepper = FusedStepper(
+            scene.body,
+            [inter[i] for i in self.planes],
+            [contacts[i] for i in self.planes],
+            None if self.finger is None else inter[self.finger],
+            None if self.finger is None else contacts[self.finger],
+            state.x,
+            state.v,
+            state.t,
+            monitor,
+            method=method,
+        )
+
+    def state(self) -> State:
+        """The current state (copies)."""
+        st = self.stepper
+        x, v, t = st.arrays()
+        contacts = list(self.template.contacts)
+        for i, ps in zip(self.planes, st.plane_states([contacts[i] for i in self.planes]), strict=True):
+            contacts[i] = ps
+        if self.finger is not None:
+            contacts[self.finger] = st.finger_state(contacts[self.finger])
+        return State(x, v, t, tuple(contacts))
+
+
+def _fused_error(monitor: BlowupMonitor, failure: Any) -> SimulationUnstable:
+    from softgrasp.sim.fused import step
+    if failure.status == step.STATUS_NONFINITE:
+        reason = "positions or velocities became non-finite"
+    elif failure.status == step.STATUS_INVERTED:
+        reason = monitor.inverted_reason(failure.count, failure.first)
+    else:
+        reason = monitor.energy_reason(failure.excess, failure.scale)
+    return monitor.error(failure.t, failure.dt, reason)
+
+
+def _simulate_fused(
+    scene: Scene,
+    state: State,
+    method: str,
+    dt: float,
+    t_end: float,
+    monitor: BlowupMonitor,
+    callback: Callable[[State], None] | None,
+    every: int,
+    progress: Callable[[float], None] | None,
+) -> State:
+    """:func:`simulate` for semi-implicit Euler or RK4 in compiled chunks: the same equal steps (the last
+    one landing on ``t_end``), callbacks, progress reports and checks as the per-step loop, each
+    chunk ending where the loop would call back or report."""
+    t0, span = state.t, t_end - state.t
+    if callback is not None:
+        callback(state)
+    if span <= 0:
+        if progress is not None:
+            progress(1.0)
+        return state
+    n = max(1, math.ceil(span / dt * (1.0 - 1e-12)))
+    h = span / n
+    run = _FusedRun(scene, state, monitor, method)
+    threads = FusedThreads()
+    done = 0
+    next_report = 0.0
+    last_called = 0
+    while done < n:
+        run.stepper.threads = threads.choose()
+        target = min(n, done + threads.chunk(run.stepper.threads, FUSED_CHUNK))
+        if callback is not None:
+            target = min(target, (done // every + 1) * every)
+        if progress is not None:
+            target = min(target, max(done + 1, math.ceil(next_report * n)))
+        start = time.perf_counter()
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            taken = run.stepper.advance(target - done, h, t_end if target == n else None)
+        threads.record(run.stepper.threads, taken, time.perf_counter() - start)
+        done += taken
+        if run.stepper.failure is not None:
+            raise _fused_error(monitor, run.stepper.failure)
+        if callback is not None and done % every == 0:
+            callback(run.state())
+            last_called = done
+        if progress is not None:
+            frac = min(1.0, (run.stepper.t - t0) / span)
+            if frac >= next_report:
+                progress(frac)
+                next_report = frac + 0.01
+    current = run.state()
+    monitor.check(current, dt)
+    if callback is not None and last_called != done:
+        callback(current)
+    if progress is not None:
+        progress(1.0)
+    return current
+
+
+def settle(
+    scene: Scene,
+    state: State,
+    *,
+    t_max: float,
+    tol_velocity: float,
+    hold: float | None = None,
+    method: str | Integrator = "rk4",
+    dt: float | None = None,
+    check_dt: bool = True,
+    check_every: int = 10,
+    **options: Any,
+) -> State:
+    """Integrate until every node is slower than ``tol_velocity`` for ``hold`` seconds.
+
+    Used to let a body come to rest (e.g. on the table) before grasping.
+
+    Parameters
+    ----------
+    scene, state:
+        Scene and initial state.
+    t_max:
+        Longest simulated time [s] allowed (from ``state.t``).
+    tol_velocity:
+        Speed [m/s] every node must stay below.
+    hold:
+        How long [s] the speeds must stay below the tolerance; default two periods of the body's
+        fundamental mode, ``4 pi / omega_1`` (:attr:`Body.fundamental_frequency`).
+    method, dt, check_dt, check_every, options:
+        As in :func:`simulate`.
+
+    Returns
+    -------
+    State
+        The first state at which the speeds have stayed below the tolerance for ``hold``.
+
+    Raises
+    ------
+    NotConverged
+        Not at rest after ``t_max``.
+    SimulationUnstable
+        As in :func:`simulate`.
+    """
+    if not (tol_velocity > 0 and t_max > 0):
+        raise ValueError("tol_velocity and t_max must be > 0")
+    if hold is None:
+        hold = 4.0 * math.pi / scene.body.fundamental_frequency
+    integ = make_integrator(method, **options)
+    h = _check_time_step(scene, integ, dt, check_dt)
+    monitor = BlowupMonitor(scene, state, integ.method, check_every=check_every)
+    t0 = state.t
+    quiet_since: float | None = state.t if max_speed(state.v) < tol_velocity else None
+    current = state
+    for current in _advance(scene, state, integ, h, t0 + t_max, monitor):
+        if max_speed(current.v) < tol_velocity:
+            if quiet_since is None:
+                quiet_since = current.t
+            if current.t - quiet_since >= hold * (1.0 - 1e-9):
+                monitor.check(current, h)
+                return current
+        else:
+            quiet_since = None
+    raise NotConverged(
+        f"body not at rest after {t_max:.4g} s: a node moves at {max_speed(current.v):.3g} m/s "
+        f"(tolerance {tol_velocity:.3g} m/s held for {hold:.3g} s); increase t_max or damping"
+    )
