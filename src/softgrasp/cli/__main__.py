@@ -1,0 +1,5 @@
+"""`python -m softgrasp.cli`: the command line."""
+
+from softgrasp.cli import main
+
+raise SystemExit(main())
