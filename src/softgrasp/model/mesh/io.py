@@ -158,8 +158,8 @@ def load_mesh(
     TetMesh
         The validated mesh, points in metres. A volume file keeps its node numbering (node
         numbers in softgrasp's outputs are the file's); a surface file's mesh comes numbered for
-        memory locality (:meth:`TetMesh.reordered`, which a volume mesh numbered scattered, as
-        gmsh numbers, gains from too: the 27 749-node sphere's plan 128 -> 106 s).
+        memory locality (:meth:`TetMesh.reordered`; a volume mesh numbered scattered, as gmsh
+        numbers, gains from it too).
 
     Raises
     ------
