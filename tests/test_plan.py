@@ -517,7 +517,7 @@ def test_on_its_stable_facet_a_sphere_started_lowered_settles_where_started_leve
 def test_a_flat_face_down_is_not_lowered():
     """The foam cube stands on its whole bottom face: lowering it would press in no node that does
     not touch already (the predicted patch is the face), so the settle starts level on every
-    path (lowered, its settle took 3 Newton systems on multigrid, level 2)."""
+    path."""
     from softgrasp.grasp.settle import lowered_start
 
     mesh, material, mass = make_object("cube")
