@@ -10,7 +10,7 @@ every later plan of a session or a sweep worker costs). Each row also gives the 
 systems and, beyond PARDISO's size, its multigrid V-cycles (``GraspPlan.solver_stats``): counts
 that do not drift with the machine's throughput. Peers measured in the same run: the
 reference linear solver (SciPy's sparse LU of the symmetrised Newton matrix up to 1 500 unknowns,
-multigrid-preconditioned CG beyond, as softgrasp did before PARDISO; ``--reference``), and the
+multigrid-preconditioned CG beyond; ``--reference``), and the
 dynamic solver (the paper's explicit RK4 through every increment at 50 mm/s, then a static rest;
 ``--dynamic``, the ~500-node mesh only: its cost grows as N^(4/3) per simulated second).
 
@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 #: Sphere mesh sizes [m] and the node counts they give: 549, 2 196, 7 576; with --large 27 749
-#: (where the earlier figures were measured) and 32 543 (the target's ~32 000).
+#: and 32 543 (the target's ~32 000).
 SIZES = (0.014, 0.008, 0.005)
 LARGE = (0.0031, 0.00295)
 #: Warm plans after the first (``warm s`` is the best of them: the benchmark machine's throughput

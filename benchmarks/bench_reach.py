@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 import softgrasp.grasp.planner as planner
+import softgrasp.grasp.setup as setup
 from softgrasp import backend
 from softgrasp.physics.body import build_body
 from softgrasp.errors import InfeasibleGrasp
@@ -37,17 +38,17 @@ def _recorded_calls(h: float) -> list[tuple]:
     mesh, mat, mass = make_object("sphere", h)
     body = build_body(mesh, mat, mass=mass)
     calls: list[tuple] = []
-    real = planner.place_hand
+    real = setup.place_hand
 
     def record(model, targets, **kw):
         calls.append((model, dict(targets), kw))
         return real(model, targets, **kw)
 
-    planner.place_hand = record
+    setup.place_hand = record
     try:
         planner.plan_grasp(body, planner.PlanConfig())
     finally:
-        planner.place_hand = real
+        setup.place_hand = real
     return calls
 
 

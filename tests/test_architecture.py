@@ -21,7 +21,6 @@ OVERSIZED = {
     "cli/__init__.py": 1318,
     "execution/mujoco/scene.py": 1181,
     "experiments/calibration.py": 757,
-    "grasp/planner.py": 980,
     "hand/kinematics.py": 994,
     "hand/placement_compiled.py": 551,
     "linalg/pardiso.py": 843,
@@ -34,7 +33,6 @@ OVERSIZED = {
     "sim/explicit.py": 725,
     "sim/fused/blocks.py": 594,
     "sim/fused/step.py": 1870,
-    "sim/static.py": 692,
     "viz/plots.py": 880,
     "viz/view.py": 888,
 }

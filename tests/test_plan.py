@@ -293,20 +293,20 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     """``GraspPlan.solver_stats`` counts the Newton systems of the whole plan (the settle, the
     closing, the hold check), as a wrapper around the static solver's linear solve counts them;
     the default plan's repeat solves the same number."""
-    from softgrasp.sim import static
+    from softgrasp.sim import newton
 
     calls = []
-    real = static.solve_newton_system
+    real = newton.solve_newton_system
 
     def counted(*args, **kw):
         calls.append(1)
         return real(*args, **kw)
 
-    from softgrasp.grasp import planner
-    from softgrasp.grasp.planner import _settle
+    from softgrasp.grasp import closing
+    from softgrasp.grasp.settle import settle_on_table
     from softgrasp.linalg import pardiso
     in_hold_checks, in_increments = [], []
-    real_check, real_advance = planner._check_hold, planner._advance
+    real_check, real_advance = closing.check_hold, closing._advance
 
     def check_counted(*args, **kw):
         before = len(calls)
@@ -320,9 +320,9 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
         in_increments.append(len(calls) - before)
         return out
 
-    monkeypatch.setattr(static, "solve_newton_system", counted)
-    monkeypatch.setattr(planner, "_check_hold", check_counted)
-    monkeypatch.setattr(planner, "_advance", advance_counted)
+    monkeypatch.setattr(newton, "solve_newton_system", counted)
+    monkeypatch.setattr(closing, "check_hold", check_counted)
+    monkeypatch.setattr(closing, "_advance", advance_counted)
     plan = plan_grasp(sphere_body, PlanConfig())
     assert plan.solver_stats["systems"] == len(calls) > 0
     assert plan.solver_stats["systems"] == default_plan.solver_stats["systems"]
@@ -334,7 +334,7 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     assert plan.solver_stats["closing_systems"] == sum(in_increments) > 0
     calls.clear()
     with pardiso.blas_one_thread():
-        _settle(sphere_body, PlanConfig(), SolverCache())
+        settle_on_table(sphere_body, PlanConfig(), SolverCache())
     assert plan.solver_stats["settle_systems"] == len(calls)
 
 
@@ -345,22 +345,23 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
     to 1e-5 of themselves, the same closing path (travel, grasp tests, hold checks) with its
     per-step forces to 1e-4, fewer Newton systems in the closing and in the hold check, the same
     in the settle."""
-    from softgrasp.grasp import planner
+    from softgrasp.grasp import closing, config, hold
 
-    assert planner.STEP_RTOL == 1e-4 and planner.HELD_RTOL == 1e-9
+    assert config.STEP_RTOL == 1e-4 and config.HELD_RTOL == 1e-9
     release_rtols: list[float] = []
-    real_solve = planner.solve_static
+    real_solve = hold.solve_static
 
     def recorded(scene, state, **kw):
         if "support" in [i.name for i in scene.interactions]:
             release_rtols.append(kw["rtol"])
         return real_solve(scene, state, **kw)
 
-    monkeypatch.setattr(planner, "solve_static", recorded)
+    monkeypatch.setattr(hold, "solve_static", recorded)
     again = plan_grasp(sphere_body, PlanConfig())
-    assert release_rtols == [1e-4] * (planner.RELEASE_STEPS - 1) + [1e-9]
+    assert release_rtols == [1e-4] * (config.RELEASE_STEPS - 1) + [1e-9]
     assert again.solver_stats == default_plan.solver_stats
-    monkeypatch.setattr(planner, "STEP_RTOL", 1e-9)
+    monkeypatch.setattr(closing, "STEP_RTOL", 1e-9)  # the closing increments
+    monkeypatch.setattr(hold, "STEP_RTOL", 1e-9)  # the release steps
     tight = plan_grasp(sphere_body, PlanConfig())
     for a, b in zip(default_plan.fingers, tight.fingers, strict=True):
         np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-5 * b.force_norm)
@@ -486,14 +487,15 @@ def test_on_its_stable_facet_a_sphere_started_lowered_settles_where_started_leve
     on and balanced to 1e-9 of the largest force: the same positions to 1e-6 of the largest
     displacement (1.0e-7 measured: the rolling mode is nearly neutral), the table carrying the
     weight, in fewer Newton systems (5 against 8 measured)."""
-    from softgrasp.grasp.planner import HELD_RTOL, _lowered, _stable_pose, _table
+    from softgrasp.grasp.config import HELD_RTOL
+    from softgrasp.grasp.settle import lowered_start, stable_pose, table_under
     from softgrasp.linalg import pardiso
     mesh, material, mass = make_object("sphere", 0.007)
     body = build_body(mesh, material, mass=mass)
-    x = _stable_pose(body, np.asarray(mesh.points))
-    table = _table(x, PlanConfig().table_mu)
+    x = stable_pose(body, np.asarray(mesh.points))
+    table = table_under(x, PlanConfig().table_mu)
     scene = Scene(body, (table,))
-    guess = _lowered(body, x)
+    guess = lowered_start(body, x)
     zmin = x[:, 2].min()
     assert (guess[:, 2] < zmin).sum() > (x[:, 2] <= zmin + 1e-12).sum() == 3  # more than the facet presses in
     rests, systems = [], []
@@ -515,33 +517,34 @@ def test_on_its_stable_facet_a_sphere_started_lowered_settles_where_started_leve
 def test_a_flat_face_down_is_not_lowered():
     """The foam cube stands on its whole bottom face: lowering it would press in no node that does
     not touch already (the predicted patch is the face), so the settle starts level on every
-    path (lowered, its settle took 3 Newton systems on multigrid, level 2)."""
-    from softgrasp.grasp.planner import _lowered
+    path."""
+    from softgrasp.grasp.settle import lowered_start
 
     mesh, material, mass = make_object("cube")
     body = build_body(mesh, material, mass=mass)
-    assert _lowered(body, np.asarray(mesh.points)) is None
+    assert lowered_start(body, np.asarray(mesh.points)) is None
     sphere_mesh, material, mass = make_object("sphere", 0.007)
-    assert _lowered(build_body(sphere_mesh, material, mass=mass), np.asarray(sphere_mesh.points)) is not None
+    sphere_body = build_body(sphere_mesh, material, mass=mass)
+    assert lowered_start(sphere_body, np.asarray(sphere_mesh.points)) is not None
 
 
 @pytest.mark.parametrize("method", ["auto", "amg"])
 def test_the_settle_starts_lowered_where_its_systems_go_to_multigrid(monkeypatch, method):
-    """On the multigrid path the settle starts lowered (:func:`softgrasp.grasp.planner._lowered`),
+    """On the multigrid path the settle starts lowered (:func:`softgrasp.grasp.settle.lowered_start`),
     as meshed where the mesh stands (the default sphere) and on the most stable facet where it
     balances on a node; where PARDISO or a sparse LU solves (the default path at these sizes) it
     starts level."""
-    from softgrasp.grasp import planner
+    from softgrasp.grasp import settle
 
     starts = []
-    real = planner.solve_static
+    real = settle.solve_static
 
     def recorded(scene, state, **kw):
         starts.append((kw.get("guess"), kw.get("max_iter")))
         return real(scene, state, **kw)
 
-    monkeypatch.setattr(planner, "solve_static", recorded)
-    monkeypatch.setattr(planner, "LOWERED_MIN_NODES", 0)  # these small bodies stand for large ones
+    monkeypatch.setattr(settle, "solve_static", recorded)
+    monkeypatch.setattr(settle, "LOWERED_MIN_NODES", 0)  # these small bodies stand for large ones
     # Rubber balls whose predicted patches reach beyond the nodes touching as placed: the 2 465-node
     # default sphere (50 g), and a 150 mm ball of 5 kg meshed pole-down.
     for mesh, mass, stands in (
@@ -550,19 +553,19 @@ def test_the_settle_starts_lowered_where_its_systems_go_to_multigrid(monkeypatch
     ):
         body = build_body(mesh, preset("rubber"), mass=mass)
         starts.clear()
-        _, _, placed = planner._settle(body, PlanConfig(), SolverCache(method=method))
+        _, _, placed = settle.settle_on_table(body, PlanConfig(), SolverCache(method=method))
         assert np.array_equal(placed, mesh.points) == stands
         guess, max_iter = starts[0]
         if method == "amg":  # pressed into the table under the placement, for a limited number of iterations
-            assert guess[:, 2].min() < placed[:, 2].min() and max_iter == planner.LOWERED_MAX_ITER
+            assert guess[:, 2].min() < placed[:, 2].min() and max_iter == settle.LOWERED_MAX_ITER
             # Settled lowered, or (the 2 465-node sphere: no rest within the limit) level after it.
             assert len(starts) == 1 or [start is None for start, _ in starts[1:]] == [True]
         else:
             assert len(starts) == 1 and guess is None and max_iter is None  # solve_static's own limit
     # Below LOWERED_MIN_NODES the settle starts level on multigrid too.
-    monkeypatch.setattr(planner, "LOWERED_MIN_NODES", 10**9)
+    monkeypatch.setattr(settle, "LOWERED_MIN_NODES", 10**9)
     starts.clear()
-    planner._settle(body, PlanConfig(), SolverCache(method=method))
+    settle.settle_on_table(body, PlanConfig(), SolverCache(method=method))
     assert [start is None for start, _ in starts] == [True]
 
 
@@ -570,10 +573,10 @@ def test_a_lowered_start_that_finds_no_rest_is_followed_by_the_level_one(monkeyp
     """A lowered start that does not converge is followed by the level start from the same
     placement, which settles; where every start fails, the error names each start and its
     failure."""
-    from softgrasp.grasp import planner
+    from softgrasp.grasp import settle
 
     body = build_body(sphere(0.15, 0.06), preset("rubber"), mass=5.0)  # balanced on one node
-    real = planner.solve_static
+    real = settle.solve_static
     starts = []
 
     def lowered_fails(scene, state, **kw):
@@ -582,13 +585,13 @@ def test_a_lowered_start_that_finds_no_rest_is_followed_by_the_level_one(monkeyp
             raise NotConverged("static solve did not converge (forced)")
         return real(scene, state, **kw)
 
-    monkeypatch.setattr(planner, "solve_static", lowered_fails)
-    monkeypatch.setattr(planner, "LOWERED_MIN_NODES", 0)  # a small body standing for a large one
+    monkeypatch.setattr(settle, "solve_static", lowered_fails)
+    monkeypatch.setattr(settle, "LOWERED_MIN_NODES", 0)  # a small body standing for a large one
     cache = SolverCache(method="amg")
     dropped = []
     real_changed = cache.scene_changed
     cache.scene_changed = lambda: (dropped.append(len(starts)), real_changed())
-    state, table, placed = planner._settle(body, PlanConfig(), cache)
+    state, table, placed = settle.settle_on_table(body, PlanConfig(), cache)
     assert starts == [True, False]
     assert dropped == [1]  # the solver's state dropped after the failed start, before the next
     f = table.static_forces(body, state.x, 0.0, state.contacts[0])
@@ -597,14 +600,14 @@ def test_a_lowered_start_that_finds_no_rest_is_followed_by_the_level_one(monkeyp
     def always_fails(scene, state, **kw):
         raise NotConverged("static solve did not converge (forced)")
 
-    monkeypatch.setattr(planner, "solve_static", always_fails)
+    monkeypatch.setattr(settle, "solve_static", always_fails)
     for mesh, tried in (
         (sphere(0.15, 0.06), ["on its most stable facet, lowered", "on its most stable facet"]),
         (make_object("sphere")[0], ["as meshed, lowered", "as meshed", "on its most stable facet, lowered",
                                     "on its most stable facet"]),
     ):  # fmt: skip
         with pytest.raises(NotConverged, match="no rest on the table") as info:
-            planner._settle(
+            settle.settle_on_table(
                 build_body(mesh, preset("rubber"), mass=5.0), PlanConfig(), SolverCache(method="amg")
             )
         message = str(info.value)
@@ -620,7 +623,7 @@ def test_the_fine_sphere_settles_on_the_table_without_being_kicked_along_its_rol
     off and it wandered for 47 iterations or found no rest in 60 (the default plan failed)."""
     from scipy.spatial import ConvexHull
 
-    from softgrasp.grasp.planner import _settle
+    from softgrasp.grasp.settle import settle_on_table
     from softgrasp.linalg import pardiso
     if not pardiso.available():
         pytest.skip("the failure was on PARDISO's path (MKL not installed)")
@@ -628,7 +631,7 @@ def test_the_fine_sphere_settles_on_the_table_without_being_kicked_along_its_rol
     body = build_body(mesh, material, mass=mass)
     cache = SolverCache(method="pardiso")  # where it failed (beyond PARDISO_MAX_DOF by default now)
     with pardiso.blas_one_thread():
-        state, table, _ = _settle(body, PlanConfig(), cache)
+        state, table, _ = settle_on_table(body, PlanConfig(), cache)
     assert cache.stats["systems"] <= 12
     f = table.static_forces(body, state.x, 0.0, state.contacts[0])
     weight = body.total_mass * float(np.linalg.norm(body.gravity))
@@ -645,10 +648,10 @@ def test_a_mesh_balanced_on_one_node_is_stood_on_a_stable_facet():
     the centre of mass projects inside the facet and three nodes carry the object."""
     from scipy.spatial import ConvexHull
 
-    from softgrasp.grasp.planner import _stable_pose
+    from softgrasp.grasp.settle import stable_pose
 
     body = build_body(sphere(0.15, 0.06), preset("rubber"), mass=0.5)
-    x = _stable_pose(body, np.asarray(body.mesh.points))
+    x = stable_pose(body, np.asarray(body.mesh.points))
     low = np.flatnonzero(x[:, 2] < x[:, 2].min() + 1e-9)
     assert len(low) >= 3  # a facet down, not a node
     com = body.mass @ x / body.total_mass

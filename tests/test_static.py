@@ -17,12 +17,14 @@ from softgrasp.model.material import Material, preset
 from softgrasp.model.mesh import box
 from softgrasp.model.objects import make_object
 from softgrasp.physics.planes import Plane, PlaneContact
-from softgrasp.sim import static
+from softgrasp.sim import newton
 from softgrasp.sim.implicit import Inertia
 from softgrasp.sim.explicit import settle
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene
-from softgrasp.sim.static import _cycle, _newton_matrix, extrapolated, solve_increment, solve_static
+from softgrasp.sim.newton import cycle_period
+from softgrasp.sim.newton_matrix import newton_matrix
+from softgrasp.sim.static import extrapolated, solve_increment, solve_static
 from softgrasp.physics.supports import Tether
 
 G = 9.80665
@@ -173,7 +175,7 @@ def test_a_tipping_ball_follows_negative_curvature_to_the_same_rest(monkeypatch)
     body = build_body(mesh, mat, mass=mass)
     scene = Scene(body, (_table(),))
     followed, info = solve_static(scene, scene.initial_state(), cache=SolverCache(precision="double"))
-    monkeypatch.setattr(static, "NEGATIVE_CURVATURE_MAX_GROWTH", 1.0)  # the shifted steps only
+    monkeypatch.setattr(newton, "NEGATIVE_CURVATURE_MAX_GROWTH", 1.0)  # the shifted steps only
     crept, info_crept = solve_static(scene, scene.initial_state(), cache=SolverCache(precision="double"))
     np.testing.assert_allclose(followed.x, crept.x, rtol=0, atol=1e-9)
     assert info.newton_iterations < info_crept.newton_iterations
@@ -185,7 +187,7 @@ def test_newton_progress_is_logged_one_record_per_iteration(caplog):
     mesh, mat, mass = make_object("sphere", 0.016)
     body = build_body(mesh, mat, mass=mass)
     scene = Scene(body, (_table(),))
-    with caplog.at_level(logging.DEBUG, logger="softgrasp.sim.static"):
+    with caplog.at_level(logging.DEBUG, logger="softgrasp.sim"):
         _, info = solve_static(scene, scene.initial_state())
     its = [r.getMessage() for r in caplog.records if r.getMessage().startswith("newton it")]
     passes = [r.getMessage() for r in caplog.records if r.getMessage().startswith("friction pass")]
@@ -197,13 +199,16 @@ def test_newton_progress_is_logged_one_record_per_iteration(caplog):
 def test_cycling_newton_iterates_are_recognised():
     """Newton's iterates that return to the same unbalanced forces with a period of 2-4, twice in
     a row, cycle (and would to the iteration limit); converging or merely noisy ones do not."""
-    assert _cycle([5.0, 1e-3, 2e-3, 1e-3, 2e-3]) == 2
-    assert _cycle([9.4e-3, 9.36e-3, 3.2e-2, 9.4e-3, 9.36e-3, 3.2e-2]) == 3
-    assert _cycle([1.0, 0.5, 1.0, 0.5, 0.25]) == 0  # converging after one return
-    assert _cycle([1e-3, 2e-3, 1e-3]) == 0  # one return only
-    assert _cycle([1e-3 * 0.5**k for k in range(12)]) == 0
-    assert _cycle([4.196770e-02, 5.245263e-02, 4.196556e-02, 5.248980e-02, 4.196556e-02, 5.248980e-02]) == 2
-    assert _cycle([1e-3, 2e-3, 1e-3 * (1 + 1e-4), 2e-3, 1e-3 * (1 + 2e-4)]) == 0  # drifting: not a cycle
+    assert cycle_period([5.0, 1e-3, 2e-3, 1e-3, 2e-3]) == 2
+    assert cycle_period([9.4e-3, 9.36e-3, 3.2e-2, 9.4e-3, 9.36e-3, 3.2e-2]) == 3
+    assert cycle_period([1.0, 0.5, 1.0, 0.5, 0.25]) == 0  # converging after one return
+    assert cycle_period([1e-3, 2e-3, 1e-3]) == 0  # one return only
+    assert cycle_period([1e-3 * 0.5**k for k in range(12)]) == 0
+    assert cycle_period(
+        [4.196770e-02, 5.245263e-02, 4.196556e-02, 5.248980e-02, 4.196556e-02, 5.248980e-02]
+    ) == 2
+    # Drifting: not a cycle.
+    assert cycle_period([1e-3, 2e-3, 1e-3 * (1 + 1e-4), 2e-3, 1e-3 * (1 + 2e-4)]) == 0
 
 
 def test_static_and_dynamic_rest_states_agree():
@@ -271,8 +276,6 @@ def test_a_balanced_iterate_is_accepted_when_shifted_steps_stall(monkeypatch):
     solver that must shift, gains 1 % per step and drifts 1 um along the free mode, Newton accepts
     the balanced state at once (it ran to the iteration limit before); with solves that converge
     it is not accepted early."""
-    import softgrasp.sim.static as static
-
     mesh = box((0.03, 0.03, 0.03), (3, 3, 3))
     body = build_body(mesh, Material(1e5, 0.3, 1000.0))
     scene = Scene(body, (_table(0.0),))
@@ -286,8 +289,8 @@ def test_a_balanced_iterate_is_accepted_when_shifted_steps_stall(monkeypatch):
     r1 = np.abs(scene.static_forces(rest.x + 1e-9 * d, 0.0, rest.contacts)).max()
     start = replace(rest, x=rest.x + 1e-9 * (1e-7 * scale / r1) * d)
     f0 = np.abs(scene.static_forces(start.x, 0.0, start.contacts)).max()
-    assert 1e-8 * scale < f0 < static.STALL_RTOL * scale
-    real = static.solve_newton_system
+    assert 1e-8 * scale < f0 < newton.STALL_RTOL * scale
+    real = newton.solve_newton_system
 
     def crawling(A, b, C, x, cache, **kw):
         dx, lam = real(A, b, C, x, cache, **kw)
@@ -296,11 +299,11 @@ def test_a_balanced_iterate_is_accepted_when_shifted_steps_stall(monkeypatch):
         drift[0::3] = 1e-6  # a slide along the table: the free mode
         return 0.01 * dx + drift, lam  # the shifted step: 1 % of the way, and drifting
 
-    monkeypatch.setattr(static, "solve_newton_system", crawling)
+    monkeypatch.setattr(newton, "solve_newton_system", crawling)
     _, info = solve_static(scene, start, rtol=1e-12, max_iter=60)
     assert info.newton_iterations <= 2
-    assert info.residual_N <= static.STALL_RTOL * scale
-    monkeypatch.setattr(static, "solve_newton_system", real)  # converging solves: no early stop
+    assert info.residual_N <= newton.STALL_RTOL * scale
+    monkeypatch.setattr(newton, "solve_newton_system", real)  # converging solves: no early stop
     _, info = solve_static(scene, start, rtol=1e-12, max_iter=60)
     assert info.residual_N < 1e-3 * f0
 
@@ -374,7 +377,7 @@ def test_newton_matrix_summed_into_the_body_pattern_is_the_sparse_sum_entry_for_
     state, _ = solve_static(pressed, pressed.initial_state(), t=0.5e-3)
     x = state.x + 1e-5 * np.sin(np.arange(X.size)).reshape(-1, 3)
     contacts = (state.contacts[0], state.contacts[1], None, None)
-    A, exact = _newton_matrix(scene, x, 0.5e-3, contacts, 0.05)
+    A, exact = newton_matrix(scene, x, 0.5e-3, contacts, 0.05)
     assert len(fc.pairs(body, x, 0.5e-3)) > 0 and exact is not None
     assert np.array_equal(A.toarray(), _sparse_sum(scene, x, 0.5e-3, contacts))
     assert A[3 * far, 0] == -50.0  # the strut's coupling is there: A = -J
@@ -382,9 +385,8 @@ def test_newton_matrix_summed_into_the_body_pattern_is_the_sparse_sum_entry_for_
 
 def test_a_static_solve_called_alone_holds_numpys_blas_to_one_thread(monkeypatch):
     """A static solve called outside a plan holds NumPy's BLAS to one thread while it runs, as the
-    planner does for a whole plan (OpenBLAS's threads otherwise compete with the solver's: the
-    27 749-node settle called alone took 17-18 s instead of 8-9), and finds the same rest as a
-    solve inside the planner's hold."""
+    planner does for a whole plan (OpenBLAS's threads otherwise compete with the solver's), and
+    finds the same rest as a solve inside the planner's hold."""
     import contextlib
 
     from softgrasp.linalg import pardiso

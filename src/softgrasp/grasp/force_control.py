@@ -2,7 +2,7 @@
 (Sec. 4.3.3) simulated with softgrasp's own object model, quasi-statically.
 
 From the object at rest on the table and the fingertips at the start of their closing lines
-(:func:`softgrasp.grasp.planner.closing_setup`), each fingertip first moves to where it touches
+(:func:`softgrasp.grasp.setup.closing_setup`), each fingertip first moves to where it touches
 the object; then every increment moves each fingertip along its own line by the secant estimate
 of the travel that brings its normal force (the tactile sensor's reading) to its set-point,
 
@@ -11,7 +11,7 @@ of the travel that brings its normal force (the tactile sensor's reading) to its
 and the object comes to static equilibrium (the fingers push the object on the table and each
 other's forces change with it). The closing ends when every finger is within ``tolerance`` of
 its set-point. Then the table is taken away and the object held for ``hold_time`` seconds
-(:func:`softgrasp.grasp.planner` ``_check_hold``): the grasp holds when the centre of mass moves
+(:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when the centre of mass moves
 less than ``max_drift`` and no fingertip slides.
 
 This answers "do these set-points hold this object?" for any material and friction, which is what
@@ -32,7 +32,9 @@ from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import ConfigError, NotConverged
 from softgrasp.grasp.initial import FINGER_NAMES
-from softgrasp.grasp.planner import PlanConfig, _check_hold, _cone_usage, closing_setup
+from softgrasp.grasp.config import PlanConfig
+from softgrasp.grasp.hold import check_hold, cone_usage
+from softgrasp.grasp.setup import closing_setup
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_increment
@@ -206,10 +208,10 @@ def hold_setpoints(
         s_prev, f_prev = s, forces
         s = s + move
         forces = fc.report(body, state.x, None, 1.0, state.contacts[1], static=True).normal
-    checked = _check_hold(body, setup.table, fc, state, 1.0, cfg, cache)
+    checked = check_hold(body, setup.table, fc, state, 1.0, cfg, cache)
     if isinstance(checked, str):
         return result(s, forces, increments, False, checked)
     held, fixed, drift = checked
     rep = fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True)
-    margin = float(1.0 - _cone_usage(rep, cfg.contact.mu).max())
+    margin = float(1.0 - cone_usage(rep, cfg.contact.mu).max())
     return result(s, forces, increments, True, "held", drift, margin, rep.normal.copy())

@@ -1,5 +1,5 @@
 """How far an elastic body sinks onto a rigid table under its own weight, estimated before the
-static solve that finds it: a start for that solve (:func:`softgrasp.grasp.planner._settle`).
+static solve that finds it: a start for that solve (:func:`softgrasp.grasp.settle.settle_on_table`).
 
 Placed level with the table, a body touches it at the nodes of one facet (or one node) and
 Newton's first steps hang the whole weight there while the contact patch forms. Lowered first by

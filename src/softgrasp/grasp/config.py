@@ -1,0 +1,177 @@
+"""The planner's configuration (:class:`PlanConfig`) and its fixed, tuned constants, each with
+the reason for its value.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from softgrasp.errors import ConfigError
+from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp
+from softgrasp.hand.kinematics import HandModel
+from softgrasp.physics.fingertip.params import ContactParams
+
+__all__ = [
+    "PlanConfig",
+    "SOLVERS",
+    "START_BACKOFF",
+    "MAX_PLACEMENTS",
+    "PER_SPREAD",
+    "PATH_RTOL",
+    "LOWERED_MAX_ITER",
+    "LOWERED_MIN_NODES",
+    "STEP_RTOL",
+    "HELD_RTOL",
+    "RELEASE_STEPS",
+    "HOLD_DT",
+    "MAX_HALVINGS",
+    "SETTLED",
+    "STICK_TOLERANCE",
+]
+
+#: The closing's solvers: a static solve per increment, or explicit dynamics through it first.
+SOLVERS = ("quasistatic", "dynamic")
+
+# Step 1: the initial grasp and the closing lines.
+#: Closing steps the fingertips start back from tangency with the object: first contact falls in
+#: the middle of the second increment, never on an increment's end, where whether a tangent
+#: facet touches (and is anchored at the unloaded surface) would be decided by round-off.
+START_BACKOFF = 1.5
+#: Initial-grasp shapes the planner tries to reach with the hand before giving up: a bound on
+#: the placement searches spent on an object the hand cannot grasp.
+MAX_PLACEMENTS = 12
+#: Failed placements after which a spread angle of the layout is skipped: on a near-symmetric
+#: object its other azimuths fail alike.
+PER_SPREAD = 1
+
+# The object at rest on the table.
+#: Relative tolerance of the settle on the table: the static solver's stall tolerance
+#: (:data:`~softgrasp.sim.newton.STALL_RTOL`), where a rest on a nearly neutral rolling mode may
+#: end anyway; a tighter settle leaves the set-points the same to eight digits.
+PATH_RTOL = 1e-6
+#: Newton iterations a friction pass of the settle's lowered start is given before the level start
+#: takes over: lowered starts that find a rest take 3-24; one that wanders costs half the usual 60.
+LOWERED_MAX_ITER = 30
+#: The least node count for which the settle starts lowered (only where its systems go to
+#: multigrid): below it the lowered start saved Newton systems on some meshes and cost on others.
+LOWERED_MIN_NODES = 10_000
+
+# Step 2: the closing increments, the release and the held state.
+#: Relative tolerance of the load steps on the way to the held state (the closing increments and
+#: the release steps but the last): they carry only the friction history, the reported per-step
+#: forces and the grasp test, and end a Newton iteration earlier than at ``HELD_RTOL`` while the
+#: set-points, solved from the held state, move by less than 1e-5 of themselves.
+STEP_RTOL = 1e-4
+#: Relative tolerance of the held state the set-points come from, and of the last release step
+#: where the holding simulation starts (a looser start leaves the hold's dynamics unbalanced).
+HELD_RTOL = 1e-9
+#: Static load steps in which the table's support is taken away before the holding simulation:
+#: the weight passes to the fingers quasi-statically, as in a slow lift.
+RELEASE_STEPS = 4
+#: First time step of the implicit holding simulation [s]: a twentieth of the default hold.
+HOLD_DT = 0.05
+#: Halvings of the holding simulation's step allowed when a step's Newton solve fails: a sudden
+#: slip or release resolved in steps down to HOLD_DT / 64.
+MAX_HALVINGS = 6
+#: Centre-of-mass motion per holding step below which the step is doubled [m]: the object has
+#: come to rest, and larger steps then cost nothing in accuracy.
+SETTLED = 1e-6
+#: A fingertip counts as sliding when its resultant friction uses this close to all of its cone:
+#: a fingertip at the Coulomb limit is not taken for sticking on the static solve's round-off.
+STICK_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """Everything the planner uses besides the object.
+
+    Attributes
+    ----------
+    contact: fingertip contact parameters (friction mu, exponent, K prefactor, rule ...).
+    fingertip_radius: R of the three fingertips [m] (Shadow-hand-like: 8 mm).
+    step: closing increment of each fingertip [m] (paper: small increments; 0.5 mm).
+    solver: ``quasistatic`` (static equilibrium per increment) or ``dynamic`` (the paper's
+        explicit Runge-Kutta through each increment at ``closing_speed``, then static settling).
+    closing_speed: fingertip speed of the dynamic solver [m/s].
+    safety_factor: the grasp test must hold this multiple of the weight (>= 1).
+    hold_time: simulated holding time of the verification [s].
+    max_drift: largest centre-of-mass motion over ``hold_time`` for a hold [m].
+    max_squeeze: largest travel past the last finger's first contact, as a fraction of the
+        shortest finger-to-centroid distance (beyond it the object is crushed).
+    refine: bisections of the last closing step for the smallest travel that passes the grasp test
+        (the set-points then resolve step / 2^refine: stiff objects gain force fast).
+    table_mu: friction between object and table.
+    layout: the search grid and coarse reach limits of the initial grasp (:class:`HandLayout`).
+    hand: the hand's kinematic model (default: the packaged Shadow-like hand); the initial grasp
+        must be reachable by it and its fingertips must follow the closing lines. ``None`` plans
+        for free fingertips (the layout alone limits the grasp).
+    grasp: an initial grasp to close from instead of searching for one (the contacts of an
+        earlier plan: the same closing lines for another material or friction); ``None``: search.
+    """
+
+    contact: ContactParams = field(default_factory=ContactParams)
+    fingertip_radius: float = 0.008
+    step: float = 0.0005
+    solver: str = "quasistatic"
+    closing_speed: float = 0.05
+    safety_factor: float = 1.0
+    hold_time: float = 1.0
+    max_drift: float = 0.001
+    max_squeeze: float = 0.5
+    refine: int = 3
+    table_mu: float = 0.5
+    layout: HandLayout = field(default_factory=HandLayout)
+    hand: HandModel | None = field(default_factory=HandModel.default)
+    grasp: InitialGrasp | None = None
+
+    def __post_init__(self) -> None:
+        checks = {
+            "fingertip_radius": self.fingertip_radius > 0,
+            "step": self.step > 0,
+            "closing_speed": self.closing_speed > 0,
+            "safety_factor": self.safety_factor >= 1.0,
+            "hold_time": self.hold_time >= 0,
+            "max_drift": self.max_drift > 0,
+            "max_squeeze": 0 < self.max_squeeze < 1,
+            "table_mu": self.table_mu >= 0,
+            "refine": 0 <= self.refine <= 10,
+        }
+        for name, ok in checks.items():
+            v = getattr(self, name)
+            if not (ok and math.isfinite(v)):
+                raise ConfigError(f"plan parameter {name} = {v} is invalid")
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.hand is not None:
+            for finger in FINGER_NAMES:
+                r = self.hand.fingertip_radius(finger)
+                if abs(r - self.fingertip_radius) > 1e-9:
+                    raise ConfigError(
+                        f"fingertip radius {self.fingertip_radius * 1e3:g} mm differs from the hand's "
+                        f"{finger} fingertip ({r * 1e3:g} mm in {self.hand.source}); plan with the hand's "
+                        "radius, a URDF with the radius wanted, or no hand (--hand none)"
+                    )
+        if self.step >= self.fingertip_radius:
+            raise ConfigError(
+                f"closing step {self.step * 1e3:g} mm must be smaller than the fingertip radius "
+                f"{self.fingertip_radius * 1e3:g} mm"
+            )
+
+    def describe(self) -> dict[str, object]:
+        return {
+            "contact": self.contact.describe(),
+            "fingertip_radius_m": self.fingertip_radius,
+            "step_m": self.step,
+            "solver": self.solver,
+            "closing_speed_m_s": self.closing_speed,
+            "safety_factor": self.safety_factor,
+            "hold_time_s": self.hold_time,
+            "max_drift_m": self.max_drift,
+            "max_squeeze": self.max_squeeze,
+            "refine": self.refine,
+            "table_mu": self.table_mu,
+            "hand_layout": self.layout.describe(),
+            "hand": None if self.hand is None else self.hand.source,
+            "grasp": "given" if self.grasp is not None else "searched",
+        }

@@ -1,0 +1,127 @@
+"""The object at rest on the table, before the fingers close (paper Sec. 4.3.2): the mesh as it
+stands, or turned onto its most stable hull facet where it would tip over, brought to static
+equilibrium under its weight on a rough table.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import ConvexHull, QhullError
+
+from softgrasp.errors import NotConverged
+from softgrasp.grasp.config import LOWERED_MAX_ITER, LOWERED_MIN_NODES, PATH_RTOL, PlanConfig
+from softgrasp.linalg.solve import SolverCache, by_multigrid
+from softgrasp.model.mesh.placement import stable_facet_pose
+from softgrasp.physics.body import Body
+from softgrasp.physics.fingertip.laws import effective_modulus
+from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.physics.resting import lowered_onto_table
+from softgrasp.sim.scene import Scene, State
+from softgrasp.sim.static import solve_static
+
+__all__ = ["settle_on_table", "centre_of_mass", "table_under", "stable_pose", "lowered_start"]
+
+
+def centre_of_mass(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The centre of mass of ``body`` at node positions ``x`` [m]."""
+    return (body.mass @ x) / body.total_mass
+
+
+def table_under(x: NDArray[np.float64], mu: float) -> PlaneContact:
+    """The table: the horizontal plane under the lowest node of ``x``."""
+    zmin = float(x[:, 2].min())
+    return PlaneContact(Plane(np.array([0.0, 0.0, zmin]), np.array([0.0, 0.0, 1.0])), mu=mu, name="table")
+
+
+def stable_pose(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``x`` turned onto its most stable hull facet about its centre of mass
+    (:func:`softgrasp.model.mesh.placement.stable_facet_pose`)."""
+    return stable_facet_pose(x, centre_of_mass(body, x))
+
+
+def _lowest(x: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """The nodes of ``x`` at its lowest height (to 1e-9 of its size): those touching a table
+    under it."""
+    return x[:, 2] <= x[:, 2].min() + 1e-9 * float(np.ptp(x, axis=0).max())
+
+
+def _stands(x: NDArray[np.float64], com: NDArray[np.float64]) -> bool:
+    """Whether ``x`` stands on the table as it is: the centre of mass lies above the convex hull
+    of its lowest nodes (not balanced on a vertex or an edge, which only tips over)."""
+    L = float(np.ptp(x, axis=0).max())
+    low = x[_lowest(x), :2]
+    if len(low) < 3:
+        return False
+    try:
+        hull = ConvexHull(low)
+    except QhullError:
+        return False  # collinear: an edge
+    return bool((hull.equations[:, :2] @ com[:2] + hull.equations[:, 2] <= 1e-12 * L).all())
+
+
+def lowered_start(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """Where the settle's Newton starts: ``x`` lowered by half the approach its weight presses it
+    into the table (:func:`softgrasp.physics.resting.lowered_onto_table`), the nodes of the
+    predicted contact patch touching from the start; ``None`` (start as placed) where gravity
+    does not press the body onto the table, or where the patch is no more than the nodes that
+    touch as placed (a flat face down, where lowering gains nothing)."""
+    weight = -float(body.mass.sum() * body.gravity[2])
+    if not weight > 0.0:
+        return None
+    modulus = effective_modulus(math.inf, 0.0, body.material.E, body.material.nu)  # a rigid table
+    lowered = lowered_onto_table(x, body.mesh.facets, weight, modulus)
+    pressed_in = int((lowered[:, 2] < x[:, 2].min()).sum())
+    return lowered if pressed_in > int(_lowest(x).sum()) else None
+
+
+def settle_on_table(
+    body: Body, cfg: PlanConfig, cache: SolverCache
+) -> tuple[State, PlaneContact, NDArray[np.float64]]:
+    """The object at rest on the table, and the table. As the mesh stands if its centre of mass is
+    above its lowest nodes' hull and a rest is found there; otherwise (a convex mesh balanced on
+    one node tips over: Newton creeps along the nearly free tipping mode), standing on its most
+    stable hull facet, as a real object comes to rest.
+
+    For bodies of :data:`~softgrasp.grasp.config.LOWERED_MIN_NODES` nodes or more whose Newton
+    systems go to multigrid (:func:`~softgrasp.linalg.solve.by_multigrid`, the default there),
+    Newton first starts each placement lowered by half the approach its weight presses it into the
+    table (:func:`lowered_start`): the nodes of the predicted contact patch touch from the first
+    iterate, anchored for friction where they stand, as when the object is set straight down;
+    then, if that finds no rest within :data:`~softgrasp.grasp.config.LOWERED_MAX_ITER`
+    iterations (a friction pass), level with the table; the linear solver's state is dropped
+    between starts. Smaller bodies and PARDISO's exact solves start level: there the iterates of a
+    lowered sphere may zig-zag along its nearly neutral rolling mode.
+    Returns (the rest state, the table, the unloaded placement the rest was found from)."""
+    lowers = body.n_nodes >= LOWERED_MIN_NODES and by_multigrid(3 * body.n_nodes, cache)
+
+    def starts() -> Iterable[tuple[str, NDArray[np.float64], NDArray[np.float64] | None]]:
+        x = np.asarray(body.mesh.points, dtype=np.float64)
+        for where, placed in (("as meshed", x), ("on its most stable facet", None)):
+            if placed is None:
+                placed = stable_pose(body, x)
+            elif not _stands(x, centre_of_mass(body, x)):
+                continue
+            guess = lowered_start(body, placed) if lowers else None
+            if guess is not None:
+                yield f"{where}, lowered", placed, guess
+            yield where, placed, None
+
+    failures = []
+    for where, x, guess in starts():
+        if failures:
+            cache.scene_changed()  # the failed start's factor or hierarchy is no guide here
+        table = table_under(x, cfg.table_mu)
+        rest = Scene(body, (table,))
+        limit = {} if guess is None else {"guess": guess, "max_iter": LOWERED_MAX_ITER}
+        try:
+            state = solve_static(rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL, **limit)[0]
+            return state, table, x
+        except NotConverged as exc:
+            failures.append((where, exc))
+    raise NotConverged(
+        "the object found no rest on the table: " + "; ".join(f"{where}: {exc}" for where, exc in failures)
+    ) from failures[-1][1]
