@@ -34,8 +34,6 @@ OVERSIZED = {
     "sim/fused/blocks.py": 594,
     "sim/fused/step.py": 1870,
     "sim/static.py": 692,
-    "viz/plots.py": 880,
-    "viz/view.py": 888,
 }
 
 #: Environment variables the package still reads (the thread count may stay; the rest are to go).
