@@ -19,7 +19,6 @@ LIMIT = 500
 #: Modules still over the limit, with the size they may not exceed (lines); to be split.
 OVERSIZED = {
     "cli/__init__.py": 1318,
-    "experiments/calibration.py": 757,
     "grasp/planner.py": 980,
     "hand/kinematics.py": 994,
     "hand/placement_compiled.py": 551,
