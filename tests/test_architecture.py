@@ -28,7 +28,6 @@ OVERSIZED = {
     "physics/fingertip/compiled.py": 798,
     "physics/fingertip/contact.py": 693,
     "physics/forces_compiled.py": 757,
-    "report/reproduce.py": 1478,
     "sim/explicit.py": 725,
     "sim/fused/blocks.py": 594,
     "sim/fused/step.py": 1870,
