@@ -1,11 +1,11 @@
 """The simulation settings of softgrasp's MuJoCo scenes, and why they are what they are.
 
-Names, gains and solver options shared by the grasp scene (:mod:`.mjcf`) and the indentation
-scene (:mod:`.indent`). Written for MuJoCo 4.0 (the ``discrete`` integrator they rely on appeared
-in 3.13).
+Names, gains and solver options shared by the grasp scene
+(:mod:`softgrasp.execution.mujoco.mjcf`) and the indentation scene
+(:mod:`softgrasp.execution.mujoco.indent`). Written for MuJoCo 4.0 (the ``discrete`` integrator
+they rely on appeared in 3.13).
 
 Choices
--------
 -------
 * **Integrator** ``discrete``, solver ``CG``, elliptic friction cones. ``discrete`` is the only
   MuJoCo integrator implicit in position: flex elasticity, servo gains and joint damping enter
