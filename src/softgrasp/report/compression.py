@@ -4,12 +4,11 @@ identified E and nu next to Table 1's (and, for the sphere, Hertz's law fitted t
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
 from softgrasp.experiments.compression import CompressionResult, compression_test
-from softgrasp.report.context import Context, Progress, linear_solver, object_of, power_fit, rel
+from softgrasp.report.context import Context, Progress, hertz_force, linear_solver, object_of, power_fit, rel
 from softgrasp.report.document import Block, figures, fmt, object_rows, params_table, pct, status_line
 
 #: The paper's Table 1: identified Young's modulus [Pa] and Poisson's ratio of each object.
@@ -30,16 +29,15 @@ def _hertz_sphere_modulus(res: CompressionResult, nu: float, max_strain: float) 
     """Young's modulus [Pa] of a sphere from its compression between plates by Hertz's law.
 
     Each plate is a Hertz contact of a sphere of radius R = H/2 with a rigid plane, taking half
-    the plate travel d: F = (4/3) E/(1 - nu^2) sqrt(R) (d/2)^(3/2). Fitted by least squares on
-    the force over strains up to ``max_strain``.
+    the plate travel d: F = (4/3) E/(1 - nu^2) sqrt(R) (d/2)^(3/2) (:func:`hertz_force`), linear in
+    E. Fitted by least squares on the force over strains up to ``max_strain``.
     """
     sel = (res.strain > 0) & (res.strain <= max_strain + 1e-12)
     if not sel.any():
         return None
     R = 0.5 * res.height_m
-    x = (4.0 / 3.0) * math.sqrt(R) * (0.5 * res.displacement_m[sel]) ** 1.5
-    E_star = float(x @ res.force_N[sel] / (x @ x))
-    return E_star * (1.0 - nu**2)
+    x = hertz_force(1.0, nu, R, 0.5 * res.displacement_m[sel])  # the force at E = 1 Pa
+    return float(x @ res.force_N[sel] / (x @ x))
 
 
 def run_compression(ctx: Context, rec: dict[str, Any], progress: Progress, name: str) -> None:

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from softgrasp.model.objects import OBJECTS, make_object
 from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.laws import HERTZ_PREFACTOR, contact_stiffness, effective_modulus
 
 
 @dataclass(frozen=True)
@@ -120,3 +121,11 @@ def power_fit(x: NDArray[np.float64], y: NDArray[np.float64]) -> float | None:
     if sel.sum() < 2:
         return None
     return float(np.polyfit(np.log(x[sel]), np.log(y[sel]), 1)[0])
+
+
+def hertz_force(E: float, nu: float, R: float, delta: Any) -> Any:
+    """Hertz: force [N] of a rigid sphere of radius ``R`` [m] pressed ``delta`` [m] into an elastic
+    half-space of Young's modulus ``E`` [Pa] and Poisson's ratio ``nu``: the contact law
+    K delta^(3/2) with Hertz's prefactor 4/3 and the effective modulus of a rigid indenter."""
+    K = contact_stiffness(effective_modulus(math.inf, 0.0, E, nu), R, HERTZ_PREFACTOR)
+    return K * np.asarray(delta) ** 1.5

@@ -4,23 +4,16 @@ and Hertz's, and the fitted exponent of F ~ delta^n."""
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from softgrasp.experiments.indentation import default_steps, indentation_test
-from softgrasp.report.context import Context, Progress, linear_solver, object_of, power_fit
+from softgrasp.report.context import Context, Progress, hertz_force, linear_solver, object_of, power_fit
 from softgrasp.report.document import Block, figures, fmt, object_rows, params_table, status_line
 
 #: Exponent of the paper's contact law F = K delta^n (Eq. 9-11).
 MODEL_EXPONENT = 1.5
-
-
-def _hertz_force(E: float, nu: float, R: float, delta: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Hertz: force [N] of a rigid sphere of radius R pressed delta into an elastic half-space."""
-    return (4.0 / 3.0) * E / (1.0 - nu**2) * math.sqrt(R) * np.asarray(delta) ** 1.5
 
 
 def run_indentation(ctx: Context, rec: dict[str, Any], progress: Progress) -> None:
@@ -73,7 +66,7 @@ def run_indentation(ctx: Context, rec: dict[str, Any], progress: Progress) -> No
                 "penetration_m": float(q),
                 "force_N": float(np.interp(q, d, F)),
                 "contact_law_force_N": float(res.K_N_m1_5 * q**params.exponent),
-                "hertz_half_space_force_N": float(_hertz_force(m.E, m.nu, radius, q)),
+                "hertz_half_space_force_N": float(hertz_force(m.E, m.nu, radius, q)),
             }
             for q in depths
         ],
