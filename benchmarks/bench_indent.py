@@ -30,11 +30,11 @@ How each side simulates it
   in MuJoCo too), by 0.1 s of backward Euler; the fingertip starts touching the settled surface
   above the sphere's centre. Its wall time includes the settling.
   ``--solver`` picks ``static``, ``implicit`` or ``both`` (default: both, one table row each).
-* **MuJoCo 4.0 flex:** :func:`softgrasp.execution.mujoco.scene.load_indent_scene` builds the same object
+* **MuJoCo 4.0 flex:** :func:`softgrasp.execution.mujoco.indent.load_indent_scene` builds the same object
   (``flexcomp`` dim 3 from softgrasp's points and tets, ``young``/``poisson``, mass spread evenly
   over the vertices), the table and the fingertip on three world-axis slides under stiff position
   servos (1e6 N/m, critically damped: 10 um under 10 N), with the settings of
-  :mod:`softgrasp.execution.mujoco.scene` (integrator ``discrete``, CG, elliptic cones, 2 ms steps, stiff
+  :mod:`softgrasp.execution.mujoco.options` (integrator ``discrete``, CG, elliptic cones, 2 ms steps, stiff
   contacts: solref 2 ms / solimp 0.999-0.9999, fingertip priority so its friction 0.8 is used as
   is, table 0.5). It settles 0.3 s under gravity (timed apart), the fingertip is placed 1 mm above
   the settled top over the vertices' mean (x, y) and moves down at 10 mm/s; first contact is the
@@ -123,7 +123,7 @@ from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import NotConverged, SoftgraspError
 from softgrasp.experiments.indentation import indentation_test, surface_height
-from softgrasp.execution.mujoco.scene import IndentSpec, load_indent_scene
+from softgrasp.execution.mujoco.indent import IndentSpec, load_indent_scene
 from softgrasp.model.material import Material
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.objects import SPHERE_RADIUS, make_object

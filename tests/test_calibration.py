@@ -361,7 +361,8 @@ def test_engine_flags_unidentified_bound_and_unconverged_parameters():
     """A residual that does not depend on one parameter (not identified, kept at its start), one
     whose optimum lies beyond its bound (at bound), and a solve cut short (not converged) are all
     said so, and the well-posed parameter is found with a deviation matching the noise."""
-    from softgrasp.experiments.calibration import _least_squares, _Spec
+    from softgrasp.experiments.fitting import FitSpec as _Spec
+    from softgrasp.experiments.fitting import solve_fit as _least_squares
 
     rng = np.random.default_rng(5)
     x = np.linspace(0.0, 1.0, 40)

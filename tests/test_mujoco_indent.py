@@ -1,4 +1,4 @@
-"""MuJoCo one-fingertip indentation scene (softgrasp.execution.mujoco.scene.build_indent_mjcf / load_indent_scene).
+"""MuJoCo one-fingertip indentation scene (softgrasp.execution.mujoco.indent).
 
 The MuJoCo peer of softgrasp's indentation experiment (benchmarks/bench_indent.py): the rubber
 sphere (388 nodes) on the table, a rigid 8 mm fingertip on servo slides pressed 3 mm into its top.
@@ -17,15 +17,14 @@ import pytest
 
 from softgrasp.physics.body import STANDARD_GRAVITY
 from softgrasp.errors import ConfigError, MaterialError
-from softgrasp.execution.mujoco.scene import (
+from softgrasp.execution.mujoco.indent import (
     INDENT_TIP,
-    OBJECT_NAME,
-    SOLVER,
     TIP_KP,
     IndentSpec,
     build_indent_mjcf,
     load_indent_scene,
 )
+from softgrasp.execution.mujoco.options import OBJECT_NAME, SOLVER
 from softgrasp.model.objects import SPHERE_RADIUS, make_object
 
 RADIUS = 0.008

@@ -1,4 +1,4 @@
-"""MuJoCo scene of a grasp (softgrasp.execution.mujoco.scene): MJCF building, the soft object as a flex, the hand.
+"""MuJoCo scene of a grasp (softgrasp.execution.mujoco): MJCF building, the soft object as a flex, the hand.
 
 Physical checks on softgrasp's rubber sphere (radius 64 mm, 50 g, E = 79.3 kPa, nu = 0.45, 388
 nodes): the flex elasticity equals linear elasticity for affine strains, the sphere settles on
@@ -22,14 +22,10 @@ import pytest
 import softgrasp
 from softgrasp.physics.body import STANDARD_GRAVITY
 from softgrasp.errors import ConfigError, MaterialError, MeshError
-from softgrasp.execution.mujoco.scene import (
-    DEFAULT_TIMESTEP,
-    MUJOCO_MISSING,
-    MujocoScene,
-    SceneSpec,
-    build_mjcf,
-    load_scene,
-)
+from softgrasp.execution.mujoco.mjcf import build_mjcf
+from softgrasp.execution.mujoco.options import DEFAULT_TIMESTEP
+from softgrasp.execution.mujoco.scene import MUJOCO_MISSING, MujocoScene, load_scene
+from softgrasp.execution.mujoco.spec import SceneSpec
 from softgrasp.hand.kinematics import HandModel
 from softgrasp.model.mesh.tetmesh import signed_volumes
 from softgrasp.model.objects import SPHERE_RADIUS, make_object
@@ -106,14 +102,14 @@ def test_import_and_build_without_mujoco() -> None:
         "sys.modules['mujoco'] = None\n"
         "import numpy as np\n"
         "from softgrasp.errors import ConfigError\n"
-        "from softgrasp.execution.mujoco import scene as mjcf\n"
+        "from softgrasp.execution.mujoco import mjcf, scene, spec as sp\n"
         "from softgrasp.hand.kinematics import HandModel\n"
         "p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.02\n"
-        "spec = mjcf.SceneSpec(HandModel.default(), np.eye(4), {}, p, np.array([[0, 1, 2, 3]]),\n"
+        "spec = sp.SceneSpec(HandModel.default(), np.eye(4), {}, p, np.array([[0, 1, 2, 3]]),\n"
         "                      0.01, 1e5, 0.3, 0.8, 0.0)\n"
         "assert '<flexcomp' in mjcf.build_mjcf(spec)\n"
         "try:\n"
-        "    mjcf.load_scene(spec)\n"
+        "    scene.load_scene(spec)\n"
         "except ConfigError as exc:\n"
         "    print(exc)\n"
     )

@@ -16,7 +16,9 @@ from pathlib import Path
 import pytest
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged
-from softgrasp.report import reproduce as rp
+from softgrasp.report import compression as rp_compression
+from softgrasp.report import grasp as rp_grasp
+from softgrasp.report import indentation as rp_indentation
 from softgrasp.report.reproduce import EXPERIMENTS, PAPER_TABLE1, reproduce
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -217,7 +219,7 @@ def test_a_failing_experiment_is_reported_not_raised(tmp_path, monkeypatch):
     def fails(*args, **kwargs):
         raise NotConverged("Newton stalled at increment 3 (test)")
 
-    monkeypatch.setattr(rp, "indentation_test", fails)
+    monkeypatch.setattr(rp_indentation, "indentation_test", fails)
     result = reproduce(tmp_path, quick=True, experiments=["indentation_cube", "compression_cube"])
     assert [s.name for s in result.steps] == ["compression_cube", "indentation_cube"]
     assert result.failed == ("indentation_cube",) and not result.ok
@@ -238,7 +240,7 @@ def test_an_internal_error_keeps_its_traceback(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise ValueError("bug in the test")
 
-    monkeypatch.setattr(rp, "compression_test", broken)
+    monkeypatch.setattr(rp_compression, "compression_test", broken)
     result = reproduce(tmp_path, quick=True, experiments=["compression_sphere"])
     assert result.failed == ("compression_sphere",)
     doc = json.loads(result.data_json.read_text(encoding="utf-8"))
@@ -251,7 +253,7 @@ def test_no_plan_skips_the_execution(tmp_path, monkeypatch):
     def infeasible(*args, **kwargs):
         raise InfeasibleGrasp("no reachable force-closure grasp (test)")
 
-    monkeypatch.setattr(rp, "plan_grasp", infeasible)
+    monkeypatch.setattr(rp_grasp, "plan_grasp", infeasible)
     result = reproduce(tmp_path, quick=True, experiments=["grasp_sphere", "execution_sphere"])
     assert result.failed == ("grasp_sphere",) and result.skipped == ("execution_sphere",)
     assert "grasp step failed" in result.step("execution_sphere").message

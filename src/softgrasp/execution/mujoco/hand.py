@@ -17,7 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.execution.mujoco.scene import MujocoScene, SceneSpec, load_scene
+from softgrasp.execution.mujoco.scene import MujocoScene, load_scene
+from softgrasp.execution.mujoco.spec import SceneSpec
 from softgrasp.hand.kinematics import HandModel, track
 from softgrasp.io.planfile import PlanFile
 from softgrasp.hand.placement import invert, transform
