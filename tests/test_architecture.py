@@ -18,7 +18,6 @@ LIMIT = 500
 
 #: Modules still over the limit, with the size they may not exceed (lines); to be split.
 OVERSIZED = {
-    "cli/__init__.py": 1318,
     "execution/mujoco/scene.py": 1181,
     "experiments/calibration.py": 757,
     "grasp/planner.py": 980,
