@@ -78,7 +78,8 @@ def test_material_takes_keywords_with_units_and_stays_the_model_type():
         sg.Material(E=1e5, E_Pa=1e5, nu=0.3)
     with pytest.raises(sg.MaterialError):
         sg.Material(E_Pa=-1.0, nu=0.3)
-    assert sg.material("rubber") == ModelMaterial(0.0793e6, 0.45, sg.material("rubber").density, name="rubber")
+    rubber = sg.material("rubber")
+    assert rubber == ModelMaterial(0.0793e6, 0.45, rubber.density, name="rubber")
     assert sg.material("E=1e5,nu=0.3,density=50").E == 1e5
 
 

@@ -8,7 +8,8 @@ units throughout.
 The public API (:mod:`softgrasp.api`)::
 
     import softgrasp as sg
-    obj = sg.load_object("banana.stl", units="mm", material=sg.Material(E_Pa=80e3, nu=0.45, density_kg_m3=950))
+    rubber = sg.Material(E_Pa=80e3, nu=0.45, density_kg_m3=950)
+    obj = sg.load_object("banana.stl", units="mm", material=rubber)
     plan = sg.plan(obj, hand=sg.load_hand("shadow_like"), mu=0.8)
     plan.setpoints_N      # the fingers' normal-force set-points [N]
     plan.save("out/")     # the files of `softgrasp plan --out out/`

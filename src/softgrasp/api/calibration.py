@@ -129,7 +129,8 @@ class Calibration:
             comment=f"softgrasp calibrate: {', '.join(f'{k} {self.sources[k]}' for k in self.fits)}\n"
             "use with --material FILE in plan, indent, compress and execute",
         )
-        doc = {**self.document, "wall_time_s": time.perf_counter() - (self._started if started is None else started)}
+        wall = time.perf_counter() - (self._started if started is None else started)
+        doc = {**self.document, "wall_time_s": wall}
         write_json(out / "calibration.json", doc)
         return out
 

@@ -206,7 +206,8 @@ def execute(
                 progress=progress,
             )
         with tempfile.TemporaryDirectory(prefix="softgrasp-plan-") as tmp:
-            run = _execute(load_plan_file(plan.write_plan_file(tmp)), lift_m, scale, material, backend, progress)
+            planned = load_plan_file(plan.write_plan_file(tmp))
+            run = _execute(planned, lift_m, scale, material, backend, progress)
         run.document["plan"] = None
         return run
     if isinstance(plan, str | Path):
@@ -239,7 +240,9 @@ def _execute(
     def snapshot(event: str) -> None:
         frames[event] = hand.snapshot(names)
 
-    res = execute_plan(hand, lines, cfg, palm_to_world=hand.palm_to_world, progress=progress, on_event=snapshot)
+    res = execute_plan(
+        hand, lines, cfg, palm_to_world=hand.palm_to_world, progress=progress, on_event=snapshot
+    )
     wall = time.perf_counter() - t0
     ser = res.series
     sim = float(ser["t"][-1]) if len(ser["t"]) else 0.0

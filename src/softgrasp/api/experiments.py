@@ -119,8 +119,15 @@ def compress(
         raise ConfigError(f"--plate-friction must be >= 0, got {plate_friction}")
     if not isinstance(obj, SoftObject):
         obj = load_object(obj)
-    res = compression_test(obj.body, strain=strain, steps=steps, plate_friction=plate_friction, progress=progress)
-    params = {"strain": strain, "steps": steps, "plate_friction": plate_friction, "mesh_size_m": obj.mesh_size_m}
+    res = compression_test(
+        obj.body, strain=strain, steps=steps, plate_friction=plate_friction, progress=progress
+    )
+    params = {
+        "strain": strain,
+        "steps": steps,
+        "plate_friction": plate_friction,
+        "mesh_size_m": obj.mesh_size_m,
+    }
     return Compression(obj, res, params, _started=started)
 
 
@@ -278,5 +285,7 @@ def indent(
     res = indentation_test(
         obj.body, depth=depth_m, radius=radius_m, speed=speed_m_s, steps=n, params=params, progress=progress
     )
-    error = mean_abs_force_error(res, measured.penetration_m, measured.force_N) if measured is not None else None
+    error = None
+    if measured is not None:
+        error = mean_abs_force_error(res, measured.penetration_m, measured.force_N)
     return Indentation(obj, res, params, radius_m, n, rule, measured, error, _started=started)

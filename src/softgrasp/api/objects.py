@@ -91,7 +91,9 @@ class SoftObject:
         return {"name": self.source, **self.body.describe()}
 
 
-def _material_file(spec: str | Material | MaterialFile | None) -> tuple[str | Material | None, MaterialFile | None]:
+def _material_file(
+    spec: str | Material | MaterialFile | None,
+) -> tuple[str | Material | None, MaterialFile | None]:
     if isinstance(spec, MaterialFile):
         return str(spec.path), spec
     if isinstance(spec, str) and is_material_file(spec):

@@ -86,7 +86,9 @@ def progress_bar(desc: str, total: int = 1000):
 
 
 @contextmanager
-def counting_bar(desc: str, unit: str = " simulations", total: int | None = None) -> Iterator[Callable[[int], None]]:
+def counting_bar(
+    desc: str, unit: str = " simulations", total: int | None = None
+) -> Iterator[Callable[[int], None]]:
     """A bar on stderr counting ``unit``; yields its callback taking the count so far."""
     from tqdm import tqdm
 

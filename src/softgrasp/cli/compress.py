@@ -39,7 +39,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}, density = {m.density:.4g} kg/m^3")
     bar, update = progress_bar("compress")
     try:
-        test = compress(obj, strain=args.strain, steps=args.steps, plate_friction=args.plate_friction, progress=update)
+        test = compress(
+            obj, strain=args.strain, steps=args.steps, plate_friction=args.plate_friction, progress=update
+        )
     finally:
         bar.close()
     test.save(out, started=t0)

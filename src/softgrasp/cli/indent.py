@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     test.save(out, started=t0)
     res = test.result
     print(
-        f"finger   R = {args.radius * 1e3:.3g} mm, depth {args.depth * 1e3:.3g} mm in {test.steps} increments, "
+        f"finger   R = {args.radius * 1e3:.3g} mm, depth {args.depth * 1e3:.3g} mm in {test.steps} "
+        "increments, "
         f"mu = {test.contact.mu:g}, {args.rule} rule"
     )
     if res.point_shift_m > 0:
@@ -100,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
         f"K = {res.K_N_m1_5:.4g} N/m^1.5, contact depth {res.contact_depth_m[-1] * 1e3:.3g} mm"
     )
     if measured is not None and test.mean_abs_error_N is not None:
-        print(f"mean absolute force error vs {measured.points} measured points: {test.mean_abs_error_N:.3g} N")
+        print(
+            f"mean absolute force error vs {measured.points} measured points: {test.mean_abs_error_N:.3g} N"
+        )
     print(f"wrote {out}/indent.csv, indent.json, indent.png ({time.perf_counter() - t0:.1f} s)")
     return 0

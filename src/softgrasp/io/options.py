@@ -91,7 +91,9 @@ def load_body(
         if mat.density is not None:
             mass = None
         elif mass is None:
-            raise ConfigError(f"the material has no density; the object {object_name!r} needs one for its mass")
+            raise ConfigError(
+                f"the material has no density; the object {object_name!r} needs one for its mass"
+            )
     elif material is not None and is_material_file(material):
         mf = mfile if mfile is not None else read_material_file(material)
         if mf.material is not None:
