@@ -184,6 +184,9 @@ def execute(
         The simulated hand: ``mujoco``.
     progress:
         Called with the fraction of the planned duration done.
+
+    A :class:`Plan` not saved yet is executed from a temporary copy of its ``plan.json`` and
+    ``object.vtu`` (the run's document then names no plan file).
     """
     import math
 
