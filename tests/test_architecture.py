@@ -18,7 +18,6 @@ LIMIT = 500
 
 #: Modules still over the limit, with the size they may not exceed (lines); to be split.
 OVERSIZED = {
-    "cli/__init__.py": 1318,
     "hand/kinematics.py": 994,
     "hand/placement_compiled.py": 551,
     "linalg/pardiso.py": 843,

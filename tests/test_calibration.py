@@ -297,7 +297,7 @@ def test_material_file_feeds_plan_and_execute(tmp_path, capsys):
     object it grasps; --mu on the command line still wins over the file."""
     import argparse
 
-    from softgrasp.cli import _execute_material
+    from softgrasp.cli.execute import _execute_material
     from softgrasp.io.planfile import load_plan_file
 
     mf = write_material_file(

@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING
 from softgrasp.errors import ConfigError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
 
+from softgrasp.model.material import Material
+
 if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help stays quick
     from softgrasp.physics.body import Body
     from softgrasp.physics.fingertip.params import ContactParams
@@ -65,24 +67,34 @@ def material_file(spec: str | None) -> MaterialFile | None:
 def load_body(
     object_name: str,
     mesh_size: float | None = None,
-    material: str | None = None,
+    material: str | Material | None = None,
     *,
     reorient: bool = False,
     mfile: MaterialFile | None = None,
     overrides: Mapping[str, float] | None = None,
+    scale: float = 1.0,
 ) -> Body:
-    """The object's body: its mesh, its material (the object's default, a preset or key=value list,
-    or a material file ``mfile`` already read from ``material``) and the ``overrides``.
+    """The object's body: its mesh (a mesh file's coordinates times ``scale`` in metres), its
+    material (the object's default, a :class:`Material`, a preset or key=value list, or a material
+    file ``mfile`` already read from ``material``) and the ``overrides``.
 
-    A material given with its own density or mass decides the mass; a preset, or a file without a
-    density, keeps a built-in object's mass.
+    A material given with its own density or mass decides the mass; a preset, or a file or
+    :class:`Material` without a density, keeps a built-in object's mass.
     """
     from softgrasp.physics.body import build_body
-    from softgrasp.model.material import Material, Polynomial, parse_material
+    from softgrasp.model.material import Polynomial, parse_material
     from softgrasp.model.objects import make_object
 
-    mesh, mat, mass = make_object(object_name, mesh_size, reorient=reorient)
-    if material is not None and is_material_file(material):
+    mesh, mat, mass = make_object(object_name, mesh_size, reorient=reorient, scale=scale)
+    if isinstance(material, Material):
+        mat = material
+        if mat.density is not None:
+            mass = None
+        elif mass is None:
+            raise ConfigError(
+                f"the material has no density; the object {object_name!r} needs one for its mass"
+            )
+    elif material is not None and is_material_file(material):
         mf = mfile if mfile is not None else read_material_file(material)
         if mf.material is not None:
             mat = mf.material

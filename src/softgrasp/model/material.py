@@ -224,18 +224,19 @@ class Tabulated:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Material:
     """An isotropic soft material.
 
     Parameters
     ----------
     E:
-        Small-strain Young's modulus [Pa], > 0.
+        Small-strain Young's modulus [Pa], > 0 (keyword ``E_Pa`` as well).
     nu:
         Poisson's ratio, in (-1, 0.5).
     density:
-        Mass density [kg/m^3], > 0; ``None`` when the object's total mass is given instead.
+        Mass density [kg/m^3], > 0 (keyword ``density_kg_m3`` as well); ``None`` when the
+        object's total mass is given instead.
     law:
         Normalised stress-strain law of the edge springs (default: linear).
     name:
@@ -247,6 +248,44 @@ class Material:
     density: float | None = None
     law: StressStrainLaw = field(default_factory=Linear)
     name: str = "custom"
+
+    def __init__(
+        self,
+        E: float | None = None,
+        nu: float | None = None,
+        density: float | None = None,
+        law: StressStrainLaw | None = None,
+        name: str = "custom",
+        *,
+        E_Pa: float | None = None,
+        density_kg_m3: float | None = None,
+    ) -> None:
+        if E_Pa is not None:
+            if E is not None:
+                raise TypeError("Material: give E or E_Pa, not both")
+            E = E_Pa
+        if density_kg_m3 is not None:
+            if density is not None:
+                raise TypeError("Material: give density or density_kg_m3, not both")
+            density = density_kg_m3
+        if E is None or nu is None:
+            raise TypeError("Material needs E (E_Pa) [Pa] and nu")
+        object.__setattr__(self, "E", E)
+        object.__setattr__(self, "nu", nu)
+        object.__setattr__(self, "density", density)
+        object.__setattr__(self, "law", Linear() if law is None else law)
+        object.__setattr__(self, "name", name)
+        self.__post_init__()
+
+    @property
+    def E_Pa(self) -> float:
+        """Young's modulus [Pa] (the same as ``E``)."""
+        return self.E
+
+    @property
+    def density_kg_m3(self) -> float | None:
+        """Mass density [kg/m^3] (the same as ``density``)."""
+        return self.density
 
     def __post_init__(self) -> None:
         if not (isinstance(self.E, (int, float)) and math.isfinite(self.E) and self.E > 0):

@@ -48,25 +48,29 @@ OBJECTS: dict[str, ObjectSpec] = {
 
 
 def make_object(
-    name_or_path: str, mesh_size: float | None = None, *, reorient: bool = False
+    name_or_path: str, mesh_size: float | None = None, *, reorient: bool = False, scale: float = 1.0
 ) -> tuple[TetMesh, Material, float | None]:
     """Mesh, default material and mass [kg] of a built-in object or a mesh file.
 
-    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) is taken in metres and gets
-    the ``rubber`` material and no fixed mass (the material density decides); ``reorient`` flips
-    its inverted tets instead of refusing them.
+    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) gets the ``rubber`` material
+    and no fixed mass (the material density decides); its coordinates times ``scale`` are metres
+    (``1e-3`` for a file in millimetres); ``reorient`` flips its inverted tets instead of refusing
+    them. Built-in objects and shapes are in metres (``scale`` 1).
     The mesh rests on the table plane z = 0 in a stable pose (:func:`rest_on_table`).
     """
-    mesh, material, mass = _make_object(name_or_path, mesh_size, reorient)
+    mesh, material, mass = _make_object(name_or_path, mesh_size, reorient, scale)
     release_freed_memory()
     return mesh, material, mass
 
 
 def _make_object(
-    name_or_path: str, mesh_size: float | None, reorient: bool
+    name_or_path: str, mesh_size: float | None, reorient: bool, scale: float = 1.0
 ) -> tuple[TetMesh, Material, float | None]:
     if mesh_size is not None and not mesh_size > 0:
         raise MeshError(f"mesh size must be > 0 m, got {mesh_size}")
+    builtin = name_or_path in OBJECTS or (":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES)
+    if builtin and scale != 1.0:
+        raise MeshError(f"units apply to mesh files; {name_or_path!r} is given in metres")
     if name_or_path in OBJECTS:
         spec = OBJECTS[name_or_path]
         return _generated(name_or_path, mesh_size), preset(spec.material), spec.mass
@@ -79,7 +83,7 @@ def _make_object(
         )
     from softgrasp.model.mesh.io import load_mesh
 
-    mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size, reorient=reorient))
+    mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size, reorient=reorient, scale=scale))
     return mesh, preset("rubber"), None
 
 

@@ -33,7 +33,7 @@ from softgrasp.io.atomic import write_text
 
 __all__ = ["write_view"]
 
-#: The arrays ``softgrasp plan`` writes into ``frames.npz`` (see ``softgrasp.cli._write_frames``).
+#: The arrays ``softgrasp plan`` writes into ``frames.npz`` (see ``softgrasp.api.planning.Plan.save``).
 _ARRAYS = (
     "travel",
     "positions",

@@ -1,0 +1,264 @@
+"""Executing a plan on a simulated hand: :func:`execute` and its result :class:`Execution`, whose
+:meth:`Execution.save` writes the files of ``softgrasp execute``.
+
+The hand closes its fingertips under force control to the plan's set-points, lifts the object and
+holds it (MuJoCo; :mod:`softgrasp.execution`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from softgrasp.api.planning import Plan
+from softgrasp.errors import ConfigError
+
+if TYPE_CHECKING:
+    from softgrasp.execution.controller import ClosingLine, ExecuteConfig, ExecutionResult
+    from softgrasp.io.planfile import PlanFile
+
+__all__ = ["Execution", "execute", "with_material_file", "EXECUTE_SCHEMA"]
+
+EXECUTE_SCHEMA = "softgrasp.execute/1"
+
+
+def with_material_file(plan: PlanFile, path: str) -> tuple[PlanFile, dict[str, float]]:
+    """``plan`` with the object's material (E, nu) and fingertip friction of the material file
+    ``path`` over it (the hand then grasps an object that differs from the one planned for; mass
+    as planned), and the values changed."""
+    from softgrasp.io.materialfile import is_material_file, read_material_file
+
+    if not is_material_file(path):
+        raise ConfigError(f"execute --material takes a material file (.toml), got {path!r}")
+    mf = read_material_file(path)
+    changes: dict[str, float] = {}
+    if mf.material is not None:
+        changes.update(E=mf.material.E, nu=mf.material.nu)
+    if "mu" in mf.contact:
+        changes["mu"] = float(mf.contact["mu"])  # type: ignore[arg-type]
+    return replace(plan, **changes), changes
+
+
+@dataclass(eq=False)
+class Execution:
+    """An executed plan.
+
+    Attributes
+    ----------
+    plan: the plan file executed (its object material possibly replaced).
+    result: the controller's record (:class:`~softgrasp.execution.controller.ExecutionResult`).
+    config: the controller settings.  lines: per finger its set-point and closing line.
+    frames: snapshots of the hand and object at the events ``start``, ``contact``, ``closed``, ``end``.
+    facets: the object's surface triangles (for the pictures).
+    document: the ``execute.json`` document.
+    """
+
+    plan: PlanFile
+    result: ExecutionResult
+    config: ExecuteConfig
+    lines: dict[str, ClosingLine]
+    frames: dict[str, tuple]
+    facets: Any
+    document: dict[str, Any]
+
+    @property
+    def lifted(self) -> bool:
+        """Whether the object rose with the hand."""
+        return bool(self.result.lifted)
+
+    @property
+    def dropped(self) -> bool:
+        """Whether the object fell (rose less than half the lift)."""
+        return bool(self.result.dropped)
+
+    @property
+    def reached(self) -> bool:
+        """Whether the closing brought every finger within the tolerance of its set-point."""
+        return bool(self.result.reached)
+
+    @property
+    def slip_m(self) -> float:
+        """The object's largest displacement relative to the fingertips in lift and hold [m]."""
+        return float(self.result.slip)
+
+    @property
+    def rise_m(self) -> float:
+        """The object's final rise [m]."""
+        return float(self.result.rise)
+
+    @property
+    def setpoints_N(self) -> dict[str, float]:
+        """Each finger's set-point [N] (the plan's, times the scale)."""
+        return {n: float(v) for n, v in self.result.setpoints.items()}
+
+    @property
+    def measured_N(self) -> dict[str, float]:
+        """Each finger's tactile normal force when the closing ended [N]."""
+        return {n: float(v) for n, v in self.result.measured.items()}
+
+    @property
+    def held_N(self) -> dict[str, float]:
+        """Each finger's mean tactile normal force over the last half of the hold [N]."""
+        return {n: float(v) for n, v in self.result.held.items()}
+
+    @property
+    def simulated_time_s(self) -> float:
+        """Simulated time of the whole execution [s]."""
+        return float(self.document["simulated_time_s"])
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``execute.json`` document."""
+        return dict(self.document)
+
+    def save(self, out: str | Path) -> list[str]:
+        """Write ``execute.json``, ``execute.csv``, ``execute_forces.png`` and a picture per event
+        (``frame_start.png`` ...) into ``out``; return the pictures' names."""
+        import numpy as np
+
+        from softgrasp.execution.controller import PHASES
+        from softgrasp.io.atomic import write_json, write_text
+        from softgrasp.viz.plots import EXECUTION_FRAME_TITLES, plot_execution_forces, plot_execution_frame
+
+        out = Path(out)
+        res, names = self.result, [f.name for f in self.plan.fingers]
+        ser = res.series
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        head = ["t_s", "phase", "base_rise_m", "com_x_m", "com_y_m", "com_z_m"]
+        head += [f"{n}_normal_force_N" for n in names] + [f"{n}_travel_m" for n in names]
+        w.writerow(head)
+        for k in range(len(ser["t"])):
+            row = [ser["t"][k], PHASES[int(ser["phase"][k])], ser["base_z"][k], *ser["com"][k]]
+            row += list(ser["force"][k]) + list(ser["travel"][k])
+            w.writerow([f"{v:.9g}" if isinstance(v, float | np.floating) else v for v in row])
+        phases = [(p, res.events[p]) for p in PHASES if p in res.events]
+        plot_execution_forces(
+            ser["t"],
+            ser["force"],
+            [self.lines[n].setpoint for n in names],
+            names,
+            out / "execute_forces.png",
+            phases=phases,
+            tolerance=self.config.tolerance,
+        )
+        pictures = []
+        for event in EXECUTION_FRAME_TITLES:
+            if event in self.frames:
+                name = f"frame_{event}.png"
+                plot_execution_frame(
+                    out / name, self.frames[event], self.facets, names, self.plan.fingertip_radius, event
+                )
+                pictures.append(name)
+        write_text(out / "execute.csv", buf.getvalue())
+        write_json(out / "execute.json", self.document)
+        return pictures
+
+
+def execute(
+    plan: Plan | PlanFile | str | Path,
+    *,
+    lift_m: float = 0.10,
+    scale: float = 1.0,
+    material: str | None = None,
+    backend: str = "mujoco",
+    progress: Callable[[float], None] | None = None,
+) -> Execution:
+    """Execute ``plan`` (a :class:`Plan`, a ``plan.json`` written by ``softgrasp plan`` or its
+    :class:`~softgrasp.io.planfile.PlanFile`) under
+    force control on a simulated hand, lift the object ``lift_m`` [m] and hold it.
+
+    Parameters
+    ----------
+    scale:
+        Multiplies the set-points.
+    material:
+        A material file (``.toml``): grasp an object of its material and fingertip friction
+        instead of the planned one.
+    backend:
+        The simulated hand: ``mujoco``.
+    progress:
+        Called with the fraction of the planned duration done.
+
+    A :class:`Plan` not saved yet is executed from a temporary copy of its ``plan.json`` and
+    ``object.vtu`` (the run's document then names no plan file).
+    """
+    import math
+
+    from softgrasp.io.planfile import load_plan_file
+
+    if not (math.isfinite(scale) and scale > 0):
+        raise ConfigError(f"--scale must be a number > 0, got {scale}")
+    if not (math.isfinite(lift_m) and lift_m > 0):
+        raise ConfigError(f"--lift must be a height > 0 m, got {lift_m}")
+    if backend != "mujoco":
+        raise ConfigError(f"backend must be mujoco, got {backend!r}")
+    if isinstance(plan, Plan):
+        if plan.directory is not None:
+            return execute(
+                plan.directory / "plan.json",
+                lift_m=lift_m,
+                scale=scale,
+                material=material,
+                backend=backend,
+                progress=progress,
+            )
+        with tempfile.TemporaryDirectory(prefix="softgrasp-plan-") as tmp:
+            planned = load_plan_file(plan.write_plan_file(tmp))
+            run = _execute(planned, lift_m, scale, material, backend, progress)
+        run.document["plan"] = None
+        return run
+    if isinstance(plan, str | Path):
+        plan = load_plan_file(plan)
+    return _execute(plan, lift_m, scale, material, backend, progress)
+
+
+def _execute(
+    plan: PlanFile,
+    lift_m: float,
+    scale: float,
+    material: str | None,
+    backend: str,
+    progress: Callable[[float], None] | None,
+) -> Execution:
+    from softgrasp.execution.controller import ExecuteConfig, closing_lines, execute_plan
+    from softgrasp.execution.mujoco.hand import MujocoHand
+    from softgrasp.model.mesh.io import load_mesh
+
+    t0 = time.perf_counter()
+    if material is not None:
+        plan, _ = with_material_file(plan, material)
+    hand = MujocoHand.from_plan(plan)
+    facets = load_mesh(plan.mesh_file).facets
+    lines = closing_lines(plan, scale)
+    cfg = ExecuteConfig(lift=float(lift_m))
+    names = [f.name for f in plan.fingers]
+    frames: dict[str, tuple] = {}
+
+    def snapshot(event: str) -> None:
+        frames[event] = hand.snapshot(names)
+
+    res = execute_plan(
+        hand, lines, cfg, palm_to_world=hand.palm_to_world, progress=progress, on_event=snapshot
+    )
+    wall = time.perf_counter() - t0
+    ser = res.series
+    sim = float(ser["t"][-1]) if len(ser["t"]) else 0.0
+    doc = {
+        "schema": EXECUTE_SCHEMA,
+        "plan": str(Path(plan.path).resolve()),
+        "backend": backend,
+        "scale": scale,
+        "object_material": {"file": material, "E_Pa": plan.E, "nu": plan.nu, "mu": plan.mu},
+        "parameters": {**cfg.describe(), "mujoco_timestep_s": float(hand.scene.model.opt.timestep)},
+        **res.describe(),
+        "simulated_time_s": sim,
+        "wall_time_s": wall,
+        "realtime_factor": sim / wall if wall > 0 else None,
+    }
+    return Execution(plan, res, cfg, lines, frames, facets, doc)

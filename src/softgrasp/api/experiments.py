@@ -1,0 +1,291 @@
+"""Simulated material tests of the public API: :func:`compress` (an object between rigid plates,
+paper Fig. 8-9) and :func:`indent` (one fingertip pressed into it, paper Fig. 10-11), whose
+results' ``save(dir)`` write the files of ``softgrasp compress`` and ``softgrasp indent``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from softgrasp.api.objects import SoftObject, load_object
+from softgrasp.errors import ConfigError
+
+if TYPE_CHECKING:
+    from softgrasp.experiments.compression import CompressionResult
+    from softgrasp.experiments.indentation import IndentationResult
+    from softgrasp.physics.fingertip.params import ContactParams
+
+__all__ = ["Compression", "compress", "ForceCurve", "read_force_curve", "Indentation", "indent"]
+
+
+def _csv(header: list[str], rows: Any) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for row in rows:
+        w.writerow(row)
+    return buf.getvalue()
+
+
+@dataclass(eq=False)
+class Compression:
+    """A simulated compression test.
+
+    Attributes
+    ----------
+    object: the specimen.  result: the force-displacement record
+    (:class:`~softgrasp.experiments.compression.CompressionResult`: ``apparent_E_Pa``,
+    ``force_N``, ``strain``, ``stress_Pa`` ...).  parameters: the test's settings (SI units).
+    """
+
+    object: SoftObject
+    result: CompressionResult
+    parameters: dict[str, Any]
+    _started: float = field(default_factory=time.perf_counter, repr=False)
+
+    @property
+    def apparent_E_Pa(self) -> float:
+        """Young's modulus from the initial slope of the stress-strain curve [Pa]."""
+        return float(self.result.apparent_E_Pa)
+
+    @property
+    def peak_force_N(self) -> float:
+        """Largest plate force [N]."""
+        return float(self.result.force_N.max())
+
+    def to_dict(self, started: float | None = None) -> dict[str, Any]:
+        """The ``compress.json`` document; ``wall_time_s`` counts from ``started`` (a
+        :func:`time.perf_counter` value; default when :func:`compress` began)."""
+        res = self.result
+        return {
+            "schema": "softgrasp.compress/1",
+            "object": self.object.to_dict(),
+            "parameters": {
+                **self.parameters,
+                "height_m": res.height_m,
+                "area_m2": res.area_m2,
+                "fit_strain": res.fit_strain,
+                "solver": "static Newton, sparse Jacobian, energy line search",
+            },
+            "apparent_E_Pa": res.apparent_E_Pa,
+            "apparent_nu": res.apparent_nu,
+            "peak_force_N": float(res.force_N.max()),
+            "peak_stress_Pa": float(res.stress_Pa.max()),
+            "newton_iterations": res.newton_iterations.tolist(),
+            "wall_time_s": time.perf_counter() - (self._started if started is None else started),
+        }
+
+    def save(self, out: str | Path, *, started: float | None = None) -> Path:
+        """Write ``compress.csv``, ``compress.json`` and ``compress.png`` into ``out``."""
+        from softgrasp.io.atomic import write_json, write_text
+        from softgrasp.viz.plots import plot_stress_strain
+
+        out, res = Path(out), self.result
+        rows = zip(res.displacement_m, res.force_N, res.strain, res.stress_Pa, strict=True)
+        header = ["displacement_m", "force_N", "strain", "stress_Pa"]
+        write_text(out / "compress.csv", _csv(header, ([f"{v:.9g}" for v in row] for row in rows)))
+        write_json(out / "compress.json", self.to_dict(started))
+        plot_stress_strain(
+            out / "compress.png",
+            res.strain,
+            res.stress_Pa,
+            apparent_E_Pa=res.apparent_E_Pa,
+            title=f"Compression of the {self.object.source} ({self.object.material.name})",
+            linear_E_Pa=self.object.material.E,
+        )
+        return out
+
+
+def compress(
+    obj: SoftObject | str = "sphere",
+    *,
+    strain: float = 0.3,
+    steps: int = 30,
+    plate_friction: float = 0.5,
+    progress: Callable[[float], None] | None = None,
+) -> Compression:
+    """Compress ``obj`` between rigid plates to the engineering ``strain`` in ``steps`` load
+    increments (static Newton per increment). ``plate_friction``: the platens' friction
+    coefficient (0.5, rubber on steel: faces stick at rest; 0 is a lubricated test)."""
+    from softgrasp.experiments.compression import compression_test
+
+    started = time.perf_counter()
+    if not plate_friction >= 0:
+        raise ConfigError(f"--plate-friction must be >= 0, got {plate_friction}")
+    if not isinstance(obj, SoftObject):
+        obj = load_object(obj)
+    res = compression_test(
+        obj.body, strain=strain, steps=steps, plate_friction=plate_friction, progress=progress
+    )
+    params = {
+        "strain": strain,
+        "steps": steps,
+        "plate_friction": plate_friction,
+        "mesh_size_m": obj.mesh_size_m,
+    }
+    return Compression(obj, res, params, _started=started)
+
+
+@dataclass(frozen=True)
+class ForceCurve:
+    """A measured force-penetration curve: its file, penetrations [m] and forces [N]."""
+
+    path: str
+    penetration_m: Any
+    force_N: Any
+
+    @property
+    def points(self) -> int:
+        """Number of measured points."""
+        return int(self.penetration_m.size)
+
+
+def read_force_curve(path: str | Path, depth_m: float) -> ForceCurve:
+    """A measured force-penetration CSV (header: ``penetration_m`` or ``penetration_mm``, and
+    ``force_N``), its penetrations within 0..``depth_m``."""
+    from softgrasp.experiments.indentation import read_force_curve as read
+
+    pen, force = read(path, max_penetration=depth_m)
+    return ForceCurve(str(path), pen, force)
+
+
+@dataclass(eq=False)
+class Indentation:
+    """A simulated indentation: one fingertip pressed into the object resting on the table.
+
+    Attributes
+    ----------
+    object: the object.  result: the record (:class:`~softgrasp.experiments.indentation.
+    IndentationResult`).  contact: the contact parameters.  radius_m: the fingertip radius.
+    steps: the load increments.  measured: the curve compared with, or None.
+    mean_abs_error_N: mean absolute force error against it, or None.
+    """
+
+    object: SoftObject
+    result: IndentationResult
+    contact: ContactParams
+    radius_m: float
+    steps: int
+    rule: str
+    measured: ForceCurve | None = None
+    mean_abs_error_N: float | None = None
+    _started: float = field(default_factory=time.perf_counter, repr=False)
+
+    @property
+    def force_at_depth_N(self) -> float:
+        """The force at the full depth [N]."""
+        return float(self.result.force_N[-1])
+
+    def to_dict(self, started: float | None = None) -> dict[str, Any]:
+        """The ``indent.json`` document; ``wall_time_s`` counts from ``started`` (default when
+        :func:`indent` began)."""
+        res = self.result
+        report: dict[str, Any] = {
+            "schema": "softgrasp.indent/1",
+            "object": self.object.to_dict(),
+            "parameters": {
+                "depth_m": res.depth_m,
+                "radius_m": self.radius_m,
+                "speed_m_s": res.speed_m_s,
+                "steps": self.steps,
+                "increment_m": res.depth_m / self.steps,
+                "mesh_size_m": self.object.mesh_size_m,
+                "table_mu": res.table_mu,
+                "point_m": res.point_m.tolist(),
+                "point_shift_m": res.point_shift_m,
+                "surface_z_m": res.surface_z_m,
+                "first_contact_travel_m": res.first_contact_travel_m,
+                "penetration": "fingertip travel since first detected contact with the settled object",
+                "solver": "quasi-static: a static Newton solve per increment, after settling on the table",
+            },
+            "contact": self.contact.describe(),
+            "fingertip": res.fingertip.describe(),
+            "K_N_m1.5": res.K_N_m1_5,
+            "peak_force_N": res.peak_force_N,
+            "force_at_depth_N": float(res.force_N[-1]),
+            "contact_depth_m": res.contact_depth_m.tolist(),
+            "newton_iterations": res.newton_iterations.tolist(),
+            "split_increments": res.halvings,
+        }
+        if self.measured is not None:
+            report["data_file"] = self.measured.path
+            report["measured_points"] = self.measured.points
+            report["mean_abs_error_N"] = self.mean_abs_error_N
+        report["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
+        return report
+
+    def save(self, out: str | Path, *, started: float | None = None) -> Path:
+        """Write ``indent.csv``, ``indent.json`` and ``indent.png`` into ``out``."""
+        from softgrasp.io.atomic import write_json, write_text
+        from softgrasp.viz.plots import plot_force_penetration
+
+        out, res = Path(out), self.result
+        header = ["time_s", "penetration_m", "force_N", "normal_force_N", "tangential_force_N", "contacts"]
+        cols = (res.time_s, res.penetration_m, res.force_N, res.normal_force_N, res.tangential_force_N)
+        rows = ([*(f"{v:.9g}" for v in vals), int(n)] for *vals, n in zip(*cols, res.contacts, strict=True))
+        write_text(out / "indent.csv", _csv(header, rows))
+        write_json(out / "indent.json", self.to_dict(started))
+        m = self.object.material
+        title = f"Indentation of the {self.object.source} ({m.name}), R = {self.radius_m * 1e3:.3g} mm"
+        measured = None if self.measured is None else (self.measured.penetration_m, self.measured.force_N)
+        plot_force_penetration(
+            out / "indent.png",
+            res.penetration_m,
+            res.force_N,
+            title=title,
+            measured=measured,
+            mean_abs_error_N=self.mean_abs_error_N,
+        )
+        return out
+
+
+def check_indent(mu: float | None, steps: int | None) -> None:
+    """Refuse a negative friction coefficient and a step count outside 1..100000."""
+    if mu is not None and not mu >= 0:
+        raise ConfigError(f"--mu must be >= 0, got {mu}")
+    if steps is not None and not 1 <= steps <= 100_000:
+        raise ConfigError(f"--steps must be an integer from 1 to 100000, got {steps}")
+
+
+def indent(
+    obj: SoftObject | str = "cube",
+    *,
+    depth_m: float = 0.005,
+    radius_m: float = 0.008,
+    speed_m_s: float = 0.005,
+    steps: int | None = None,
+    mu: float | None = None,
+    rule: str = "patch",
+    data: str | Path | ForceCurve | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> Indentation:
+    """Press a fingertip of radius ``radius_m`` [m] ``depth_m`` [m] into ``obj`` (beyond first
+    contact) at ``speed_m_s`` in ``steps`` increments (default about 0.25 mm each, at least 10),
+    quasi-statically after the object settled on the table.
+
+    ``mu``: fingertip friction (default the material file's, else 0.8). ``rule``: ``patch`` or
+    ``facet`` (the paper's literal rule). ``data``: a measured force-penetration curve to compare
+    with (:func:`read_force_curve`, or its file).
+    """
+    from softgrasp.experiments.indentation import default_steps, indentation_test, mean_abs_force_error
+    from softgrasp.io.options import contact_params
+
+    started = time.perf_counter()
+    check_indent(mu, steps)
+    if not isinstance(obj, SoftObject):
+        obj = load_object(obj)
+    params = contact_params(obj.material_file, mu, rule=rule)
+    measured = read_force_curve(data, depth_m) if isinstance(data, str | Path) else data
+    n = steps if steps is not None else default_steps(depth_m)
+    res = indentation_test(
+        obj.body, depth=depth_m, radius=radius_m, speed=speed_m_s, steps=n, params=params, progress=progress
+    )
+    error = None
+    if measured is not None:
+        error = mean_abs_force_error(res, measured.penetration_m, measured.force_N)
+    return Indentation(obj, res, params, radius_m, n, rule, measured, error, _started=started)

@@ -1,0 +1,162 @@
+"""Objects, materials and hands of the public API: what a grasp is planned for and with.
+
+:func:`load_object` gives a :class:`SoftObject` (the mass-spring body of a built-in object, a
+parametric shape or a mesh file, with its material); :func:`material` a preset
+:class:`~softgrasp.model.material.Material`; :func:`load_hand` a hand model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from softgrasp.errors import ConfigError
+from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
+from softgrasp.model.material import Material
+
+if TYPE_CHECKING:
+    from softgrasp.hand.kinematics import HandModel
+    from softgrasp.model.mesh.tetmesh import TetMesh
+    from softgrasp.physics.body import Body
+
+__all__ = ["UNITS", "SoftObject", "load_object", "material", "load_hand"]
+
+#: Length units of mesh files: name -> metres per unit.
+UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+
+
+@dataclass(frozen=True, eq=False)
+class SoftObject:
+    """A soft object ready to be planned for, compressed, indented or calibrated.
+
+    Attributes
+    ----------
+    source: the built-in object (``sphere``, ``cube``), shape (``box:WxDxH``, ``cylinder:DxH``,
+        ``ball:R``; metres) or mesh file it was made from.
+    body: its mass-spring model (mesh resting on the table, material, masses, springs).
+    material_spec: the material as given (preset name, ``key=value`` list, material file,
+        :class:`Material`), or None for the object's own.
+    material_file: the material file read from ``material_spec`` (its ``[contact]`` table sets the
+        fingertip friction of plans and indentations), or None.
+    mesh_size_m: the element size asked for [m], or None for the object's default.
+    units: the length unit of a mesh file (``m``, ``cm``, ``mm``).
+    reorient: whether inverted tets of a mesh file were flipped.
+    """
+
+    source: str
+    body: Body
+    material_spec: str | Material | None = None
+    material_file: MaterialFile | None = None
+    mesh_size_m: float | None = None
+    units: str = "m"
+    reorient: bool = False
+
+    @property
+    def name(self) -> str:
+        """The object's label in plan outputs: a file's stem, else the source."""
+        return Path(self.source).stem if "." in self.source else self.source
+
+    @property
+    def mesh(self) -> TetMesh:
+        """The tetrahedral mesh, resting on the table plane z = 0 [m]."""
+        return self.body.mesh
+
+    @property
+    def material(self) -> Material:
+        """The object's material."""
+        return self.body.material
+
+    @property
+    def mass_kg(self) -> float:
+        """Total mass [kg]."""
+        return float(self.body.total_mass)
+
+    @property
+    def density_given(self) -> bool:
+        """Whether the material as given carries its own density (a calibration then writes it)."""
+        spec, mf = self.material_spec, self.material_file
+        if mf is not None:
+            return mf.material is not None and mf.material.density is not None
+        if isinstance(spec, Material):
+            return spec.density is not None
+        return spec is not None and "density" in spec
+
+    def summary(self) -> str:
+        """One line for people: the mesh and the mass."""
+        return f"{self.body.mesh.summary()}, mass {self.mass_kg * 1e3:.1f} g"
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready description: name, mesh and model sizes, material (units in the keys)."""
+        return {"name": self.source, **self.body.describe()}
+
+
+def _material_file(
+    spec: str | Material | MaterialFile | None,
+) -> tuple[str | Material | None, MaterialFile | None]:
+    if isinstance(spec, MaterialFile):
+        return str(spec.path), spec
+    if isinstance(spec, str) and is_material_file(spec):
+        return spec, read_material_file(spec)
+    return spec, None
+
+
+def load_object(
+    source: str | Path = "sphere",
+    *,
+    units: str = "m",
+    material: str | Material | MaterialFile | None = None,
+    mesh_size_m: float | None = None,
+    reorient: bool = False,
+) -> SoftObject:
+    """The soft object ``source``: a built-in object (``sphere``: the paper's 64 mm rubber sphere,
+    ``cube``: its 50 mm foam cube), a shape (``box:0.04x0.03x0.02``, ``cylinder:DxH``, ``ball:R``,
+    metres) or a mesh file (a tet mesh meshio reads, or a closed ``.stl``/``.obj``/``.ply``/``.off``
+    surface, tet-meshed by gmsh).
+
+    Parameters
+    ----------
+    units:
+        Length unit of a mesh file's coordinates: ``m``, ``cm`` or ``mm``.
+    material:
+        A :class:`Material`, a preset name (``rubber``, ``foam``), a ``key=value`` list
+        (``E=80e3,nu=0.45,density=950``) or a material file (``.toml``, as ``softgrasp calibrate``
+        writes); default the object's own (a file: ``rubber``). A material with a density
+        decides the mass; one without keeps a built-in object's mass.
+    mesh_size_m:
+        Target element size [m]; default the object's (a file: one eighth of its bounding box's
+        mean side).
+    reorient:
+        Flip inverted tets of a volume mesh file instead of refusing it.
+    """
+    from softgrasp.io.options import load_body
+
+    if units not in UNITS:
+        raise ConfigError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    if isinstance(material, dict):
+        raise ConfigError("material must be a Material, a preset name, key=value text or a .toml file")
+    source = str(source)
+    spec, mfile = _material_file(material)
+    body = load_body(source, mesh_size_m, spec, reorient=reorient, mfile=mfile, scale=UNITS[units])
+    return SoftObject(source, body, spec, mfile, mesh_size_m, units, reorient)
+
+
+def material(name: str) -> Material:
+    """The preset material ``name`` (``rubber``, ``foam``: Table 1 of the reference paper), or a
+    ``key=value`` list (``E=80e3,nu=0.45,density=950``, optionally after a preset name)."""
+    from softgrasp.model.material import PRESETS, parse_material
+
+    if name in PRESETS:
+        return PRESETS[name]
+    mat, mass = parse_material(name)
+    if mass is not None:
+        raise ConfigError("a material has no mass; give density=... (kg/m^3) instead of mass=...")
+    return mat
+
+
+def load_hand(name: str | Path = "shadow_like") -> HandModel | None:
+    """The hand: ``shadow_like`` (the packaged Shadow-like hand), a URDF file (fingertip links
+    ``th_tip``, ``ff_tip``, ``mf_tip``), or ``none`` (free fingertips: returns None)."""
+    from softgrasp.io.options import hand_model
+
+    return hand_model(str(name))

@@ -1,0 +1,325 @@
+"""Planning a grasp: :func:`plan` and its result :class:`Plan`, whose :meth:`Plan.save` writes the
+files of ``softgrasp plan --out DIR``.
+
+A plan closes the three fingertips of the hand on the object in small increments until the
+object, released from the table, is held (paper Sec. 2, 4.3); its set-points are the fingertips'
+normal forces in the held state.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import shutil
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from softgrasp.api.objects import SoftObject, load_object
+from softgrasp.errors import ConfigError
+from softgrasp.io.options import PLAN_DEFAULTS
+
+if TYPE_CHECKING:
+    from softgrasp.grasp.planner import GraspPlan, PlanConfig
+    from softgrasp.hand.kinematics import HandModel
+    from softgrasp.viz.worker import FigureWorker
+
+__all__ = ["Plan", "plan", "plan_options", "PLAN_FILES", "ROBUST_OUTPUTS"]
+
+#: The files :meth:`Plan.save` (``softgrasp plan --out DIR``) writes.
+PLAN_FILES = (
+    "plan.json",
+    "history.csv",
+    "object.vtu",
+    "frames.npz",
+    "forces.png",
+    "force_penetration.png",
+    "grasp.png",
+)
+#: What robust set-points (``plan --uncertain``) write besides the plan.
+ROBUST_OUTPUTS = ("robust.json", "robust.png", "robust", ".robust-partial")
+
+
+def plan_options(given: Mapping[str, object], config_file: str | Path | None = None) -> dict[str, object]:
+    """The plan options (every key of :data:`~softgrasp.io.options.PLAN_DEFAULTS`): the ``given``
+    ones (None or False: not given) over a TOML ``config_file``'s over the defaults, each checked
+    for its type."""
+    conf: dict[str, object] = {}
+    if config_file is not None:
+        from softgrasp.io.tomlfile import read_toml
+
+        raw = read_toml(config_file, "config file")
+        conf = {k.replace("-", "_"): v for k, v in raw.items()}
+        unknown = sorted(set(conf) - set(PLAN_DEFAULTS))
+        if unknown:
+            raise ConfigError(
+                f"config file {config_file}: unknown key(s) {', '.join(unknown)}; "
+                f"known: {', '.join(sorted(PLAN_DEFAULTS))}"
+            )
+    merged: dict[str, object] = {}
+    for key, default in PLAN_DEFAULTS.items():
+        value = given.get(key)
+        if value is None or value is False:  # (0.0 == False: test identity, not equality)
+            value = conf.get(key, default)
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if default is not None and not isinstance(value, type(default)):
+            raise ConfigError(f"option {key} must be a {type(default).__name__}, got {value!r}")
+        merged[key] = value
+    if merged["solver"] not in ("quasistatic", "dynamic"):
+        raise ConfigError(f"solver must be quasistatic or dynamic, got {merged['solver']!r}")
+    return merged
+
+
+@dataclass(eq=False)
+class Plan:
+    """A planned grasp.
+
+    Attributes
+    ----------
+    object: the object planned for.
+    grasp: the planner's full result (:class:`~softgrasp.grasp.planner.GraspPlan`: initial grasp,
+        per-increment history, held state, hand posture).
+    config: the planner configuration used.
+    options: the plan options (as ``softgrasp plan`` names them; SI units).
+    document: the ``plan.json`` document (schema ``softgrasp.plan/1``).
+    directory: the folder :meth:`save` last wrote, or None.
+    """
+
+    object: SoftObject
+    grasp: GraspPlan
+    config: PlanConfig
+    options: dict[str, object]
+    document: dict[str, Any]
+    directory: Path | None = None
+    _started: float = field(default_factory=time.perf_counter, repr=False)
+
+    @property
+    def setpoints_N(self) -> dict[str, float]:
+        """Each finger's force set-point: its normal force in the held state [N]."""
+        return {f["name"]: float(f["normal_force_N"]) for f in self.document["fingers"]}
+
+    @property
+    def forces_N(self) -> dict[str, float]:
+        """Each finger's total force (normal and friction) in the held state [N]."""
+        return {f.name: float(f.force_norm) for f in self.grasp.fingers}
+
+    @property
+    def penetration_m(self) -> dict[str, float]:
+        """Each fingertip's penetration into the object in the held state [m]."""
+        return {f.name: float(f.penetration) for f in self.grasp.fingers}
+
+    @property
+    def mu(self) -> float:
+        """The fingertip friction coefficient planned with."""
+        return float(self.config.contact.mu)
+
+    def table(self) -> str:
+        """The set-points as a table for people (the paper's Table 2)."""
+        from softgrasp.io.plan_document import plan_table
+
+        return plan_table(self.grasp)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``plan.json`` document (a copy)."""
+        import copy
+
+        return copy.deepcopy(self.document)
+
+    def write_plan_file(self, out: str | Path) -> Path:
+        """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu``, into
+        ``out``; return the path of ``plan.json``."""
+        from softgrasp.io.atomic import write_json
+        from softgrasp.model.mesh.io import save_mesh
+        from softgrasp.model.mesh.tetmesh import TetMesh
+
+        out = Path(out)
+        mesh = self.object.body.mesh
+        save_mesh(TetMesh(self.grasp.placed, mesh.tets, name=mesh.name), out / "object.vtu")
+        self.document["object"]["mesh_file"] = "object.vtu"
+        return write_json(out / "plan.json", self.document)
+
+    def save(
+        self, out: str | Path, *, figures: FigureWorker | None = None, started: float | None = None
+    ) -> Path:
+        """Write the files of ``softgrasp plan --out DIR`` (:data:`PLAN_FILES`) into ``out``, and
+        remove an earlier robust run's outputs there; return ``out``.
+
+        ``figures`` draws the PNGs (default: a worker started here); ``plan.json``'s ``wall_time_s``
+        counts from ``started`` (a :func:`time.perf_counter` value; default when :func:`plan` began).
+        """
+        if figures is None:
+            from softgrasp.viz.worker import FigureWorker
+
+            with FigureWorker() as worker:
+                return self.save(out, figures=worker, started=started)
+        import numpy as np
+
+        from softgrasp.io.atomic import write_text
+        from softgrasp.io.plan_document import HISTORY_HEADER, hand_polylines, history_rows
+
+        out = Path(out)
+        g, body, doc = self.grasp, self.object.body, self.document
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(HISTORY_HEADER)
+        for row in history_rows(g):
+            w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+        names = [f.name for f in g.fingers]
+        figures.draw(
+            "plot_plan_forces",
+            np.arange(1.0, g.increments + 1.0),
+            g.force_norm,
+            names,
+            out / "forces.png",
+            setpoints=[f.force_norm for f in g.fingers],
+        )
+        figures.draw(
+            "plot_plan_force_penetration", g.penetration, g.force_norm, names, out / "force_penetration.png"
+        )
+        m = body.material
+        figures.draw(
+            "plot_grasp_3d",
+            g.positions,
+            body.mesh.facets,
+            g.centres,
+            np.full(3, self.config.fingertip_radius),
+            np.array([f.force for f in g.fingers]),
+            g.contact_points,
+            names,
+            out / "grasp.png",
+            title=f"Held grasp of the {doc['object']['name']} ({m.name}), mu = {self.mu:g}",
+            weight=(g.com, body.total_mass * float(abs(body.gravity[2]))),
+            links=hand_polylines(g),
+        )
+        write_text(out / "history.csv", buf.getvalue())
+        _write_frames(out / "frames.npz", g, body.mesh.facets)
+        remove_robust_outputs(out)  # an earlier robust run's, which no longer belong to this plan
+        doc["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
+        self.write_plan_file(out)
+        figures.finish()
+        self.directory = out
+        return out
+
+
+def remove_robust_outputs(out: Path) -> None:
+    """Remove the outputs of robust set-points (:data:`ROBUST_OUTPUTS`) from ``out``."""
+    for name in ROBUST_OUTPUTS:
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists():
+            path.unlink()
+
+
+def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:
+    """The closing increments and the held state, for ``softgrasp view`` (SI units)."""
+    import numpy as np
+
+    from softgrasp.io.atomic import atomic_write
+
+    fr = plan.frames
+    assert fr is not None
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                travel=fr.travel,
+                positions=fr.positions,
+                centres=fr.centres,
+                forces=fr.forces,
+                held_positions=plan.positions,
+                held_centres=plan.centres,
+                held_forces=np.array([f.force for f in plan.fingers]),
+                facets=np.asarray(facets, dtype=np.int64),
+                fingertip_radius=np.float64(plan.config.fingertip_radius),
+                finger_names=np.array([f.name for f in plan.fingers]),
+            )
+
+    atomic_write(path, write)
+
+
+def plan(
+    obj: SoftObject | str = "sphere",
+    hand: HandModel | str | None = "shadow_like",
+    *,
+    mu: float | None = None,
+    fingertip_radius_m: float = 0.008,
+    step_m: float = 0.0005,
+    solver: str = "quasistatic",
+    safety_factor: float = 1.0,
+    hold_time_s: float = 1.0,
+    max_squeeze: float = 0.5,
+    refine: int = 3,
+    grasp: str | Path | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> Plan:
+    """Plan a three-finger grasp of ``obj`` and its force set-points.
+
+    Parameters
+    ----------
+    obj:
+        The object (:func:`load_object`), or a source for it (built-in name, shape, mesh file in
+        metres).
+    hand:
+        A hand model (:func:`load_hand`), ``shadow_like``, a URDF file, or None / ``none`` for
+        free fingertips.
+    mu:
+        Fingertip friction coefficient; default the object's material file's, else 0.8.
+    fingertip_radius_m, step_m:
+        Fingertip radius and closing increment [m].
+    solver:
+        ``quasistatic`` (a static Newton solve per increment) or ``dynamic`` (explicit
+        Runge-Kutta through each increment).
+    safety_factor:
+        The grasp test must hold this multiple of the weight.
+    hold_time_s:
+        Simulated holding time of the grasp test [s].
+    max_squeeze:
+        Largest finger travel past first contact, as a fraction of its reach.
+    refine:
+        Bisections of the last step for the smallest squeeze that holds.
+    grasp:
+        An earlier ``plan.json`` whose initial grasp (contacts, closing lines) is closed from
+        instead of searching for one.
+    progress:
+        Called with the fraction of the plan done.
+    """
+    from softgrasp.grasp.planner import plan_grasp
+    from softgrasp.io.options import contact_params, plan_config
+    from softgrasp.io.plan_document import plan_document
+
+    started = time.perf_counter()
+    if not isinstance(obj, SoftObject):
+        obj = load_object(obj)
+    hand_name = "none" if hand is None else hand if isinstance(hand, str) else hand.source
+    options: dict[str, object] = {
+        **PLAN_DEFAULTS,
+        "object": obj.source,
+        "material": obj.material_spec,
+        "mesh_size": obj.mesh_size_m,
+        "reorient": obj.reorient,
+        "fingertip_radius": float(fingertip_radius_m),
+        "step": float(step_m),
+        "solver": solver,
+        "safety_factor": float(safety_factor),
+        "hold_time": float(hold_time_s),
+        "max_squeeze": float(max_squeeze),
+        "refine": int(refine),
+        "hand": str(hand_name),
+        "grasp": None if grasp is None else str(grasp),
+    }
+    if solver not in ("quasistatic", "dynamic"):
+        raise ConfigError(f"solver must be quasistatic or dynamic, got {solver!r}")
+    contact = contact_params(obj.material_file, mu)
+    options["mu"] = contact.mu
+    if hand is None or isinstance(hand, str):
+        config = plan_config(options, contact)
+    else:
+        config = replace(plan_config({**options, "hand": "none"}, contact), hand=hand)
+    g = plan_grasp(obj.body, config, progress=progress)
+    doc = plan_document(g, obj.body, obj.name)
+    return Plan(obj, g, config, options, doc, _started=started)

@@ -1,0 +1,129 @@
+"""What the commands share: the argument parser's class, number checks, the options naming an
+object, progress bars on stderr."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, NoReturn
+
+if TYPE_CHECKING:
+    from softgrasp.api.objects import SoftObject
+    from softgrasp.io.materialfile import MaterialFile
+
+__all__ = ["Parser", "positive", "add_common", "progress_bar", "counting_bar", "material_file", "load"]
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one clear line."""
+
+    def error(self, message: str) -> NoReturn:  # one clear line instead of usage + error
+        self.exit(2, f"softgrasp: error: {message} (see 'softgrasp {self.prog.split()[-1]} --help')\n")
+
+
+def positive(name: str) -> Callable[[str], float]:
+    """An argument type: a number > 0, refused naming the option ``name``."""
+
+    def conv(s: str) -> float:
+        try:
+            v = float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {s!r}") from None
+        if not v > 0:
+            raise argparse.ArgumentTypeError(f"{name} must be > 0, got {s}")
+        return v
+
+    return conv
+
+
+def add_common(p: argparse.ArgumentParser) -> None:
+    """The options naming the object, its material and mesh, and the output folder."""
+    p.add_argument(
+        "--object",
+        default="sphere",
+        help="built-in object (cube, sphere), a shape (box:WxDxH, cylinder:DxH, ball:R; metres) "
+        "or a mesh file (.msh .vtk .vtu .stl .obj ..., metres)",
+    )
+    p.add_argument(
+        "--material",
+        default=None,
+        help="preset (foam, rubber) or E=..,nu=..,density=.. [Pa, -, kg/m^3]; default: the object's",
+    )
+    p.add_argument(
+        "--mesh-size",
+        type=positive("--mesh-size"),
+        default=None,
+        metavar="M",
+        help="target element size [m]",
+    )
+    p.add_argument(
+        "--reorient", action="store_true", help="flip inverted tets of a mesh file instead of refusing it"
+    )
+    p.add_argument("--out", default=None, metavar="DIR", help="output folder")
+
+
+def progress_bar(desc: str, total: int = 1000):
+    """A bar on stderr and its callback taking the fraction done."""
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=total,
+        desc=desc,
+        unit="‰",
+        leave=False,
+        disable=None,
+        file=sys.stderr,
+        bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}",
+    )
+
+    def update(fraction: float) -> None:
+        bar.n = int(round(fraction * total))
+        bar.refresh()
+
+    return bar, update
+
+
+@contextmanager
+def counting_bar(
+    desc: str, unit: str = " simulations", total: int | None = None
+) -> Iterator[Callable[[int], None]]:
+    """A bar on stderr counting ``unit``; yields its callback taking the count so far."""
+    from tqdm import tqdm
+
+    b = tqdm(total=total, desc=desc, unit=unit, leave=False, disable=None, file=sys.stderr)
+
+    def update(k: int) -> None:
+        b.n = k
+        b.refresh()
+
+    try:
+        yield update
+    finally:
+        b.close()
+
+
+def material_file(args: argparse.Namespace) -> MaterialFile | None:
+    """The --material FILE.toml of a command, read once (None when --material is not a file)."""
+    from softgrasp.io.materialfile import is_material_file, read_material_file
+
+    spec = getattr(args, "material", None)
+    if spec is None or not is_material_file(spec):
+        return None
+    if getattr(args, "_material_file", None) is None:
+        args._material_file = read_material_file(spec)
+    return args._material_file
+
+
+def load(args: argparse.Namespace) -> SoftObject:
+    """The object of --object, --material, --mesh-size and --reorient."""
+    from softgrasp.api.objects import load_object
+
+    mf = material_file(args)
+    return load_object(
+        args.object,
+        material=mf if mf is not None else args.material,
+        mesh_size_m=args.mesh_size,
+        reorient=args.reorient,
+    )

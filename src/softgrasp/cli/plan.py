@@ -1,0 +1,206 @@
+"""``softgrasp plan``: a three-finger grasp and its force set-points (paper Sec. 2, 4.3), with
+robust set-points over uncertain parameters (``--uncertain``)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from softgrasp.cli.args import add_common, load, material_file, positive, progress_bar
+from softgrasp.errors import ConfigError
+
+if TYPE_CHECKING:
+    from softgrasp.viz.worker import FigureWorker
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(sub) -> None:
+    pl = sub.add_parser("plan", help="plan a three-finger grasp and its force set-points (paper Sec. 2, 4.3)")
+    add_common(pl)
+    pl.set_defaults(object=None, func=run)
+    for action in pl._actions:
+        if action.dest == "object":
+            action.help = f"{action.help} (default: sphere, the paper's rubber sphere)"
+        elif action.dest == "out":
+            action.help = f"{action.help} (default: softgrasp-out/plan)"
+    pl.add_argument(
+        "--mu",
+        type=float,
+        default=None,
+        help="fingertip friction coefficient (default 0.8); wins over a --material file's, which wins "
+        "over --config's",
+    )
+    pl.add_argument(
+        "--fingertip-radius",
+        type=positive("--fingertip-radius"),
+        default=None,
+        help="fingertip radius [m] (default 0.008)",
+    )
+    pl.add_argument(
+        "--step", type=positive("--step"), default=None, help="closing increment [m] (default 0.0005)"
+    )
+    pl.add_argument(
+        "--solver",
+        choices=("quasistatic", "dynamic"),
+        default=None,
+        help="rest per increment by static Newton (default) or the paper's explicit Runge-Kutta",
+    )
+    pl.add_argument(
+        "--safety-factor",
+        type=float,
+        default=None,
+        help="the grasp test must hold this multiple of the weight (default 1)",
+    )
+    pl.add_argument(
+        "--hold-time", type=float, default=None, help="simulated holding time of the check [s] (default 1)"
+    )
+    pl.add_argument(
+        "--max-squeeze",
+        type=float,
+        default=None,
+        help="largest finger travel past first contact, fraction of its reach (default 0.5)",
+    )
+    pl.add_argument(
+        "--refine",
+        type=int,
+        default=None,
+        help="bisections of the last step for the smallest holding squeeze (default 3: step / 8)",
+    )
+    pl.add_argument(
+        "--hand",
+        default=None,
+        metavar="URDF",
+        help="the hand: a URDF file (fingertip links th_tip, ff_tip, mf_tip), 'shadow_like' (default, "
+        "packaged) or 'none' (free fingertips, no reachability check)",
+    )
+    pl.add_argument(
+        "--grasp",
+        default=None,
+        metavar="PLAN.json",
+        help="close from the initial grasp of an earlier plan (same object and mesh) instead of searching "
+        "for one: the same contacts and closing lines for another material or friction",
+    )
+    pl.add_argument("--config", default=None, metavar="FILE.toml", help="TOML file with any of these options")
+    rb = pl.add_argument_group(
+        "robust set-points",
+        "plan for uncertain parameters: the set-points that hold the object for every sampled parameter set",
+    )
+    rb.add_argument(
+        "--uncertain",
+        action="append",
+        default=[],
+        metavar="NAME=RANGE",
+        help="an uncertain parameter (mu, E, nu, density, mass, a2, a3) and its range: LOW..HIGH (SI), "
+        "±P%% of the nominal value, or ±D; repeat for several "
+        "(e.g. --uncertain mu=0.4..0.8 --uncertain E=±20%%)",
+    )
+    rb.add_argument(
+        "--samples", type=int, default=None, help="parameter sets sampled over the ranges (default 64)"
+    )
+    rb.add_argument(
+        "--quantile",
+        type=float,
+        default=None,
+        help="hold this share of the samples (e.g. 0.9) instead of every one",
+    )
+    rb.add_argument("--seed", type=int, default=None, help="seed of the samples' draw (default 0)")
+    rb.add_argument("--workers", type=int, default=None, help="local Dask worker processes (default 2)")
+    rb.add_argument(
+        "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from softgrasp.viz.worker import FigureWorker
+
+    # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
+    # files are written.
+    with FigureWorker() as figures:
+        return _plan(args, figures)
+
+
+def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
+    from softgrasp.cli.warm import warm_up_in_background
+
+    warm_up_in_background()  # the compiled kernels load while the object is meshed
+    from softgrasp.api.planning import plan, plan_options
+    from softgrasp.io.options import contact_params
+
+    t0 = time.perf_counter()
+    mu_given = args.mu
+    opts = plan_options(vars(args), args.config)
+    args = argparse.Namespace(**{**vars(args), **opts})
+    obj = load(args)
+    out = Path(str(args.out))
+    m = obj.material
+    print(f"object   {obj.summary()}")
+    print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
+    # mu from --mu, else the material file, else --config or 0.8
+    mf = material_file(args)
+    mu = mu_given if mu_given is not None or (mf is not None and "mu" in mf.contact) else args.mu
+    uncertain = _uncertain(args, obj, contact_params(mf, mu).mu)
+    bar, update = progress_bar("plan")
+    try:
+        result = plan(
+            obj,
+            hand=args.hand,
+            mu=mu,
+            fingertip_radius_m=args.fingertip_radius,
+            step_m=args.step,
+            solver=args.solver,
+            safety_factor=args.safety_factor,
+            hold_time_s=args.hold_time,
+            max_squeeze=args.max_squeeze,
+            refine=args.refine,
+            grasp=args.grasp,
+            progress=update,
+        )
+    finally:
+        bar.close()
+    result.save(out, figures=figures, started=t0)
+    g, doc = result.grasp, result.document
+    print(result.table())
+    eq = doc["equilibrium"]
+    print(
+        f"held: residual {eq['force_residual_N']:.2e} N, {eq['torque_residual_Nm']:.2e} N m; "
+        f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
+        f"{g.com_drift * 1e3:.2f} mm in {g.hold_time:g} s"
+    )
+    for travel, why in g.hold_checks[:-1]:
+        print(f"not held at {travel * 1e3:.2f} mm of travel: {why}; closed further")
+    if uncertain:
+        from softgrasp.cli.robust import robust
+
+        return robust(args, result, uncertain, out, t0)
+    if eq["friction_margin"] < 0.05:
+        print(
+            f"note: held at the friction limit (margin {eq['friction_margin']:.1%}): the least squeeze "
+            "that holds; for a real hand, whose forces and friction vary, plan with --safety-factor 1.5 "
+            "or more"
+        )
+    print(
+        f"wrote {out}/plan.json, history.csv, object.vtu, frames.npz, forces.png, force_penetration.png, "
+        "grasp.png "
+        f"({g.increments} increments, {time.perf_counter() - t0:.1f} s)"
+    )
+    return 0
+
+
+def _uncertain(args: argparse.Namespace, obj, mu: float) -> list:
+    """The --uncertain parameters (checked before the nominal plan runs)."""
+    if not args.uncertain:
+        for flag in ("quantile", "scheduler", "samples", "seed", "workers"):
+            if getattr(args, flag) is not None:
+                raise ConfigError(f"--{flag} applies to robust set-points: give --uncertain NAME=RANGE too")
+        return []
+    from softgrasp.api.robust import ROBUST_DEFAULTS, uncertain_parameters
+
+    for key, default in ROBUST_DEFAULTS.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
+    return uncertain_parameters(
+        obj, mu, args.uncertain, samples=args.samples, quantile=args.quantile, workers=args.workers
+    )

@@ -1,0 +1,24 @@
+"""``softgrasp view``: an interactive 3-D page of a plan run."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(sub) -> None:
+    vw = sub.add_parser(
+        "view", help="write an interactive 3-D page of a plan run (closing increments, forces)"
+    )
+    vw.add_argument("run_dir", metavar="RUN_DIR", help="a folder written by softgrasp plan --out")
+    vw.add_argument("--out", default=None, metavar="FILE.html", help="the page (default RUN_DIR/view.html)")
+    vw.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from softgrasp.viz.view import write_view
+
+    path = write_view(args.run_dir, args.out)
+    print(f"wrote {path} (open it in a browser; it needs no network)")
+    return 0
