@@ -43,6 +43,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_indent.py
 	$(BIN)/python benchmarks/bench_execute.py
 	$(BIN)/python benchmarks/bench_sweep.py
+	$(BIN)/python benchmarks/bench_revisions.py
 
 clean:
 	rm -rf $(VENV) softgrasp-out .pytest_cache
