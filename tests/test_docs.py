@@ -60,3 +60,16 @@ def test_every_figure_the_docs_show_is_there():
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     for target in re.findall(r"\]\(((?:docs|benchmarks)/[^)#\s]+)", readme):
         assert (ROOT / target).is_file(), f"README.md: {target}"
+
+
+def _table(text: str) -> list[str]:
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| what | script |"))
+    end = next(i for i in range(start, len(lines)) if not lines[i].startswith("|"))
+    return lines[start:end]
+
+
+def test_the_performance_page_shows_the_benchmarks_table():
+    bench = (ROOT / "benchmarks" / "README.md").read_text(encoding="utf-8")
+    page = (ROOT / "docs" / "performance.md").read_text(encoding="utf-8")
+    assert _table(page) == _table(bench)
