@@ -24,7 +24,7 @@ OVERSIZED = {
     "grasp/planner.py": 980,
     "hand/kinematics.py": 994,
     "hand/placement_compiled.py": 551,
-    "linalg/pardiso.py": 843,
+    "linalg/pardiso.py": 528,
     "linalg/solve.py": 1085,
     "linalg/sparse.py": 889,
     "physics/fingertip/compiled.py": 798,
@@ -42,11 +42,7 @@ OVERSIZED = {
 #: Environment variables the package still reads (the thread count may stay; the rest are to go).
 ENV_VARIABLES = {
     "SOFTGRASP_BLOCKS",
-    "SOFTGRASP_FACTOR_PRECISION",
-    "SOFTGRASP_FIGURES",
     "SOFTGRASP_KERNELS",
-    "SOFTGRASP_LINSOLVE",
-    "SOFTGRASP_MKL_RT",
     "SOFTGRASP_THREADS",
 }
 

@@ -42,7 +42,7 @@ def _stiffness(n: int = 4, shift: float = 1e-3) -> sp.csr_matrix:
 def test_factors_with_different_thread_counts_interleave():
     """Each factor keeps the thread count of its analysis (PARDISO crashes if it changes between
     phases): a one-thread and a two-thread factor used alternately both solve exactly; the
-    automatic choice stays between 1 and the cores."""
+    automatic choice is the cores this process may use."""
     K = _stiffness()
     b = np.random.default_rng(2).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
@@ -58,7 +58,7 @@ def test_factors_with_different_thread_counts_interleave():
                 np.testing.assert_allclose(f.solve(1.5 * b), want, rtol=1e-9, atol=0)
     finally:
         pardiso.set_threads(None)
-    assert 1 <= pardiso.idle_cores() <= len(__import__("os").sched_getaffinity(0))
+    assert pardiso.choose_threads() == (pardiso.fixed_threads() or len(os.sched_getaffinity(0)))
 
 
 @needs_mkl
@@ -94,24 +94,25 @@ def test_collected_factor_leaves_the_thread_count_alone():
     K = _stiffness()
     b = np.random.default_rng(4).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
-    lib = pardiso._library()
+    from softgrasp.linalg import mkl
+
     gc.collect()  # cycles left by earlier tests queue now; the next call releases them
     gc.disable()
     try:
         pardiso.set_threads(1)
         one = pardiso.PardisoFactor(K)
-        assert not pardiso._RELEASED
+        assert not mkl._RELEASED
         one.cycle = one  # only the cycle collector frees it
         pardiso.set_threads(2)
         two = pardiso.PardisoFactor(K)
         np.testing.assert_allclose(two.solve(b), want, rtol=1e-9, atol=0)
-        assert lib.MKL_Get_Max_Threads() == 2
+        assert mkl.max_threads() == 2
         del one
         gc.collect()
-        assert lib.MKL_Get_Max_Threads() == 2
-        assert len(pardiso._RELEASED) == 1
+        assert mkl.max_threads() == 2
+        assert len(mkl._RELEASED) == 1
         np.testing.assert_allclose(two.solve(b), want, rtol=1e-9, atol=0)
-        assert not pardiso._RELEASED
+        assert not mkl._RELEASED
     finally:
         gc.enable()
         pardiso.set_threads(None)
@@ -167,70 +168,33 @@ def test_factor_collected_during_another_factorisation_does_not_crash():
     assert out.stdout.strip() == "ok"
 
 
-@needs_mkl
-def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
-    """With automatic threads, a factor analysed on two idle cores is analysed again with one
-    thread when later solves or factorisations find only one idle, and the solves slowed down,
-    ``BUSY_LOOKS`` looks in a row (another process started; not for a look or two, an instant's
-    runnable task, nor for a task that does not slow the solves), and keeps solving exactly."""
-    K = _stiffness()
-    b = np.random.default_rng(3).standard_normal(K.shape[0])
-    want = spla.spsolve(K.tocsc(), b)
-    try:
-        pardiso.set_threads(None)
-        monkeypatch.setattr(pardiso, "_fixed_threads", None)
-        monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
-        f = pardiso.PardisoFactor(K)
-        assert f._threads == 2
-        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-        monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)
-        monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 3600.0)  # not looked at again yet
-        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-        assert f._threads == 2
-        monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 0.0)
-        monkeypatch.setattr(pardiso, "SLOW_SOLVE", math.inf)  # busy looks, but the solves stay fast
-        for _ in range(2 * pardiso.BUSY_LOOKS):
-            np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-            assert f._threads == 2
-        monkeypatch.setattr(pardiso, "SLOW_SOLVE", 0.0)  # every solve counts as slowed down
-        looks = iter([1, 2] + [1] * pardiso.BUSY_LOOKS)
-        monkeypatch.setattr(pardiso, "idle_cores", lambda: next(looks))
-        for _ in range(2 + pardiso.BUSY_LOOKS - 1):  # a busy look, an idle one, then busy ones
-            np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-            assert f._threads == 2
-        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-        assert f._threads == 1
-        f.refactor(f.same_pattern(2.0 * K))
-        np.testing.assert_allclose(f.solve(2.0 * b), want, rtol=1e-9, atol=0)
-    finally:
-        monkeypatch.undo()
-        pardiso.set_threads(None)
+def test_auto_threads_are_a_fixed_rule_not_the_machine_load(monkeypatch):
+    """``auto`` is the cores this process may run on, whatever else runs; a number in
+    ``SOFTGRASP_THREADS`` (or :func:`set_threads`) fixes the count; the load is never read."""
+    from softgrasp.linalg import threads
+
+    monkeypatch.setattr(threads, "_fixed", None)
+    assert threads.choose_threads() == threads.cores() == len(os.sched_getaffinity(0))
+    monkeypatch.setenv("SOFTGRASP_THREADS", "3")
+    threads.set_threads(None)
+    assert threads.choose_threads() == 3 and threads.fixed_threads() == 3
+    threads.set_threads(1)
+    assert threads.choose_threads() == 1
+    monkeypatch.setenv("SOFTGRASP_THREADS", "auto")
+    threads.set_threads(None)
+    assert threads.fixed_threads() is None
+    monkeypatch.undo()
+    threads.set_threads(None)
 
 
-def test_idle_cores_leave_out_this_process_own_busy_threads():
-    """A thread of this process that computes (NumPy releases the GIL) is counted as this
-    process's own runnable thread, not as another process's load: an OpenMP thread spinning
-    after a solve must not make the machine look busy."""
-    import threading
+def test_mkl_is_found_where_the_mkl_wheel_installs_it():
+    """The library comes from the ``mkl`` distribution's own file list (no path setting)."""
+    from softgrasp.linalg import mkl
 
-    a = np.random.default_rng(0).standard_normal((400, 400))
-    stop = threading.Event()
-
-    def busy() -> None:
-        while not stop.is_set():
-            a @ a
-
-    seen = []
-    worker = threading.Thread(target=busy)
-    worker.start()
-    try:
-        for _ in range(200):
-            seen.append(pardiso._own_runnable())
-    finally:
-        stop.set()
-        worker.join()
-    assert max(seen) >= 2  # the caller and the busy thread
-    assert min(seen) >= 1
+    pytest.importorskip("importlib.metadata")
+    names = mkl._candidates()
+    if pardiso.available():
+        assert any("libmkl_rt" in name for name in names)
 
 
 @needs_mkl
@@ -870,7 +834,10 @@ def test_numpy_blas_runs_on_one_thread_while_pardiso_may_run_on_two():
     def apis() -> dict[str, str]:
         return {i["filepath"]: i["internal_api"] for i in threadpoolctl.threadpool_info()}
 
-    if pardiso._openblas() is None or pardiso._cores() < 2:
+    from softgrasp.linalg import mkl as mkl_library
+    from softgrasp.linalg.threads import cores
+
+    if mkl_library._openblas() is None or cores() < 2:
         pytest.skip("needs NumPy on OpenBLAS and two cores")
     K = _stiffness()
     pardiso.set_threads(2)

@@ -747,7 +747,7 @@ def plan_grasp(
     body: Body,
     config: PlanConfig = PlanConfig(),  # noqa: B008 - frozen dataclass
     *,
-    progress: Callable[[float], None] | None = None,
+    progress: Callable[[float], None] | None = None, cache: SolverCache | None = None,
 ) -> GraspPlan:
     """Plan a three-finger grasp of ``body`` resting on a table (paper steps 1-2).
 
@@ -755,6 +755,7 @@ def plan_grasp(
     ----------
     body: the object.  config: everything else (:class:`PlanConfig`).
     progress: called with the fraction of the largest allowed travel reached after each increment.
+    cache: the linear solves' state (its ``method`` chooses the solver); a fresh one if None.
 
     Raises
     ------
@@ -762,14 +763,13 @@ def plan_grasp(
     NotConverged: an increment found no static equilibrium even when split.
     """
     with pardiso.blas_one_thread():
-        return _plan_grasp(body, config, progress)
+        return _plan_grasp(body, config, progress, SolverCache() if cache is None else cache)
 
 
-def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None] | None) -> GraspPlan:
+def _plan_grasp(body: Body, config: PlanConfig, progress: Callable | None, cache: SolverCache) -> GraspPlan:
     t0 = time.perf_counter()
     cfg = config
     mu = cfg.contact.mu
-    cache = SolverCache()
     setup = closing_setup(body, cfg, cache)
     settled, table, placed, xs = setup.settled, setup.table, setup.placed, setup.settled.x
     ig, placement, start, u, first = (

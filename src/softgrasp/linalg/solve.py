@@ -90,18 +90,15 @@ class SolverCache:
     method: ``"auto"`` (PARDISO up to :data:`PARDISO_MAX_DOF` unknowns where MKL is installed,
         else sparse LU up to :data:`DIRECT_MAX_DOF`; multigrid beyond), ``"pardiso"``,
         ``"direct"``, ``"amg"`` or ``"reference"`` (sparse LU up to :data:`DIRECT_MAX_DOF`, multigrid
-        beyond, never the exact Newton product: the solver softgrasp had before PARDISO); default
-        from the environment variable ``SOFTGRASP_LINSOLVE``.
+        beyond, never the exact Newton product).
     rtol: relative tolerance of the multigrid-preconditioned solves (the tightest asked: a Newton
         step asks only its forcing term, when that is looser).
     precision: of PARDISO's Cholesky factors: ``"mixed"`` (single-precision factors, every solve
         refined against the double-precision matrix by conjugate gradients or GMRES to the
         tolerance asked, as solves with an older factor always were; the verdicts positive
         definite / indefinite / singular the double factor's: see
-        :class:`~softgrasp.linalg.pardiso.PardisoFactor`) or ``"double"``; default from the
-        environment variable ``SOFTGRASP_FACTOR_PRECISION``, else ``"mixed"``. The two reach the
-        same rests to the Newton tolerance (the default plan's set-points to 1e-12 from 388 to
-        2 998 nodes), but where the rest is a branch choice (a Newton iterate within rounding of
+        :class:`~softgrasp.linalg.pardiso.PardisoFactor`) or ``"double"``. The two reach the
+        same rests to the Newton tolerance, but where the rest is a branch choice (a Newton iterate within rounding of
         the tolerance on an indefinite matrix: a compressed softening cube about to buckle) float32
         rounding makes that choice noisy; the material tests, whose curves the calibration fits
         difference, use ``"double"``.
@@ -111,9 +108,9 @@ class SolverCache:
         ``multigrid_cycles``), and the shifts of indefinite matrices where there were any.
     """
 
-    method: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_LINSOLVE", "auto"))
+    method: str = "auto"
     rtol: float = 1e-10
-    precision: str = field(default_factory=lambda: os.environ.get("SOFTGRASP_FACTOR_PRECISION", "mixed"))
+    precision: str = "mixed"
     _ml: object | None = field(default=None, repr=False)
     _iterations: list[int] = field(default_factory=list, repr=False)
     _factor: pardiso.PardisoFactor | None = field(default=None, repr=False)

@@ -238,9 +238,6 @@ def _rel(a: float, b: float) -> float:
 
 def _linear_solver() -> str:
     from softgrasp.linalg import pardiso
-    method = os.environ.get("SOFTGRASP_LINSOLVE", "auto")
-    if method != "auto":
-        return f"SOFTGRASP_LINSOLVE={method}"
     return "MKL PARDISO" if pardiso.available() else "sparse LU / multigrid-preconditioned CG"
 
 
