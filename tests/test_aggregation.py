@@ -15,7 +15,7 @@ from softgrasp import backend
 from softgrasp.physics.body import build_body
 from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box
-from softgrasp.linalg import solve as linsolve
+from softgrasp.linalg.multigrid import hierarchy as linsolve
 pytestmark = pytest.mark.skipif("numba" not in backend.available(), reason="Numba is not installed")
 
 
@@ -37,12 +37,12 @@ def _pyamg(A, x):
     np.random.seed(linsolve.AMG_SEED)
     return pyamg.smoothed_aggregation_solver(
         A,
-        B=linsolve._rigid_modes(x),
+        B=linsolve.rigid_modes(x),
         symmetry="symmetric",
         max_coarse=linsolve.MAX_COARSE,
         coarse_solver="splu",
-        presmoother=linsolve._PRESMOOTHER,
-        postsmoother=linsolve._POSTSMOOTHER,
+        presmoother=linsolve.PRESMOOTHER,
+        postsmoother=linsolve.POSTSMOOTHER,
     )
 
 
@@ -92,11 +92,11 @@ def test_the_hierarchy_is_pyamgs_with_its_finest_galerkin_product_compiled():
     np.random.seed(linsolve.AMG_SEED)
     got = smoothed_aggregation(
         A,
-        linsolve._rigid_modes(x),
+        linsolve.rigid_modes(x),
         linsolve.MAX_COARSE,
         "splu",
-        linsolve._PRESMOOTHER,
-        linsolve._POSTSMOOTHER,
+        linsolve.PRESMOOTHER,
+        linsolve.POSTSMOOTHER,
     )
     assert len(got.levels) == len(want.levels) == 3
     P, W = got.levels[0].P, want.levels[0].P
@@ -139,13 +139,13 @@ def test_the_candidates_sweeps_are_pyamgs_to_the_bit():
     assert not _sweeps_compiled(("block_gauss_seidel", {"sweep": "forward", "iterations": 4}))
     assert not _sweeps_compiled(("jacobi", {"iterations": 4}))
     A, x = _cube(8)
-    B = linsolve._rigid_modes(x)
+    B = linsolve.rigid_modes(x)
     zero = np.zeros((A.shape[0], 1))
     want = relaxation_as_linear_operator(IMPROVE_CANDIDATES, A, zero) @ B
     got = _improved_candidates(A, B)
     _same_bits_here(got, want)
     assert not np.array_equal(got, B)  # the sweeps changed the candidates
-    assert np.array_equal(B, linsolve._rigid_modes(x))  # and left the input alone
+    assert np.array_equal(B, linsolve.rigid_modes(x))  # and left the input alone
 
     rng = np.random.default_rng(3)
     M = A.tolil()

@@ -21,7 +21,10 @@ from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.linalg import pardiso
+from softgrasp.linalg import factored, krylov
 from softgrasp.linalg import solve as linsolve
+from softgrasp.linalg.multigrid import cycle, hierarchy
+from softgrasp.linalg.multigrid import krylov as mg_krylov
 from softgrasp.linalg.solve import SolverCache, solve_newton_system
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
@@ -244,7 +247,7 @@ def test_a_single_precision_factor_solves_to_single_precision_and_the_newton_sol
     cache = SolverCache(method="pardiso", precision="mixed")
     x, _ = solve_newton_system(K, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
     assert cache._factor.single_precision
-    assert np.linalg.norm(K @ x - b) <= linsolve.STALE_RTOL * np.linalg.norm(b)
+    assert np.linalg.norm(K @ x - b) <= krylov.STALE_RTOL * np.linalg.norm(b)
     assert np.abs(x - ref).max() <= 1e-6 * np.abs(ref).max()
 
 
@@ -299,6 +302,52 @@ def test_multigrid_cg_shifts_an_indefinite_stiffness_into_a_descent_step():
     assert min(res) < 1e-8, res
 
 
+def test_conjugate_gradients_breaking_down_raise_not_converged():
+    """A preconditioner that gives ``r^T M r = 0`` for a residual that is not zero makes conjugate
+    gradients divide by zero (the hand-written iteration raised ZeroDivisionError): SciPy's
+    iteration, watched, raises NotConverged instead."""
+    from softgrasp.errors import NotConverged
+
+    A = sp.identity(2, format="csr")
+    turn = np.array([[0.0, -1.0], [1.0, 0.0]])  # M r is orthogonal to r
+    with pytest.raises(NotConverged, match="broke down"):
+        krylov.cg(A, np.array([1.0, 0.0]), turn, 1e-10, 50)
+    x, it, curved = krylov.cg(A, np.array([1.0, 2.0]), sp.identity(2), 1e-12, 50)
+    assert not curved and it == 1 and np.allclose(x, [1.0, 2.0])
+
+
+@pytest.mark.parametrize("always", [False, True])
+def test_a_multigrid_breakdown_rebuilds_the_hierarchy_then_raises_not_converged(monkeypatch, always):
+    """A V-cycle that returns nothing (``r^T M r = 0``): the multigrid path builds the hierarchy
+    anew on the same matrix and solves with it; where the new one breaks down too, the solve
+    raises NotConverged (a softgrasp error the Newton iteration handles), never ZeroDivisionError."""
+    from softgrasp.errors import NotConverged
+
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    K = _stiffness()
+    b = np.random.default_rng(8).standard_normal(K.shape[0])
+    real = cycle.Multigrid.matvec
+    built: list[object] = []
+
+    def broken(self, r):
+        if not built or built[0] is self or always:
+            built.append(self) if not built else None
+            return np.zeros_like(r)
+        return real(self, r)
+
+    monkeypatch.setattr(cycle.Multigrid, "matvec", broken)
+    monkeypatch.setattr(cycle.Multigrid, "__matmul__", broken)
+    cache = SolverCache(method="amg")
+    if always:
+        with pytest.raises(NotConverged, match="broke down"):
+            solve_newton_system(K, b, None, np.asarray(body.mesh.points), cache)
+        assert cache.stats["multigrid_setups"] == 2
+        return
+    x, _ = solve_newton_system(K, b, None, np.asarray(body.mesh.points), cache)
+    assert cache.stats["multigrid_setups"] == 2
+    assert np.linalg.norm(K @ x - b) <= 1e-8 * np.linalg.norm(b)
+
+
 def _tipping(K: sp.csr_matrix) -> tuple[sp.csr_matrix, NDArray, float]:
     """K (in its own pattern) with its softest modes turned unstable (a body about to tip over on
     its few supports), the softest mode, and the first of the Newton solver's diagonal shifts tau
@@ -343,7 +392,7 @@ def test_pardiso_shifts_an_indefinite_held_stiffness_by_cholesky_alone(stale, pr
     assert float(b @ x) > 0
     assert cache.stats["indefinite_factor"] == 1 and cache.stats["shifted"] == 1
     assert all(mtype != pardiso.SYMMETRIC_INDEFINITE for mtype, _ in f._pts)  # never analysed for LDL^T
-    shifts = round(math.log10(tau / linsolve.INDEFINITE_SHIFT)) + 1  # factorisations of A + tau D
+    shifts = round(math.log10(tau / krylov.INDEFINITE_SHIFT)) + 1  # factorisations of A + tau D
     per_failure = 2 if precision == "mixed" else 1
     failures = shifts - 1 + (0 if stale else 1)  # the failed shifts, and A's own Cholesky
     assert cache.stats["factorisations"] == 1 + 1 + per_failure * failures
@@ -445,7 +494,7 @@ def test_gmres_on_a_singular_operator_returns_a_least_squares_step_not_a_blown_u
     n = 60
     A = np.diag(np.r_[np.zeros(3), np.linspace(1.0, 2.0, n - 3)])
     b = np.random.default_rng(1).standard_normal(n)
-    x = linsolve._gmres(lambda v: A @ v, b, lambda v: v, 80, 1e-8)
+    x = krylov.gmres(lambda v: A @ v, b, lambda v: v, 80, 1e-8)
     want = np.linalg.lstsq(A, b, rcond=None)[0]
     assert x is not None
     assert np.linalg.norm(A @ x - b) == pytest.approx(np.linalg.norm(A @ want - b), rel=1e-8)
@@ -626,13 +675,13 @@ def test_multigrid_newton_reaches_the_direct_rest_with_its_solves_stopped_at_the
     body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
     scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=1.0, name="table"),))
     asked: list[float] = []
-    cg = linsolve._cg
+    cg = mg_krylov.cg
 
-    def spy(A, b, M, proj, rtol, max_it):
+    def spy(A, b, M, rtol, max_it):
         asked.append(rtol)
-        return cg(A, b, M, proj, rtol, max_it)
+        return cg(A, b, M, rtol, max_it)
 
-    monkeypatch.setattr(linsolve, "_cg", spy)
+    monkeypatch.setattr(mg_krylov, "cg", spy)
     rests = {}
     for method in ("amg", "direct"):
         cache = SolverCache(method=method)
@@ -668,7 +717,7 @@ def test_the_old_factor_corrected_for_new_contacts_is_the_new_matrix_inverse():
     """A0 factorised, then six nodes touch a table (a penalty 50 times their stiffness): the
     Woodbury-corrected old factor applied to b is A^-1 b, as fresh LU gives it, for A the new
     matrix (the difference lies on those nodes only). The plain old factor is far from it."""
-    from softgrasp.linalg.solve import _Corrected
+    from softgrasp.linalg.factored import _Corrected
 
     K = _stiffness()
     f = pardiso.PardisoFactor(K)
@@ -697,7 +746,7 @@ def test_the_old_factor_corrected_for_new_contacts_is_the_new_matrix_inverse():
 def test_the_old_factor_is_not_corrected_where_stiffness_was_taken_away():
     """The table removed (the hold check's release): the factor of the matrix with the table is
     used as it is (correcting it could give a nearly singular matrix)."""
-    from softgrasp.linalg.solve import _Corrected
+    from softgrasp.linalg.factored import _Corrected
 
     K = _stiffness()
     A0 = (K + _table_blocks(K, [0, 3, 7], 50.0)).tocsr()
@@ -714,7 +763,7 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
     """A system solved on the old factor with more than half the iteration cap (a quarter of a
     refactorisation's cost) has the next system refactorise first; one solved in fewer keeps the
     factor. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
-    import softgrasp.linalg.solve as ls
+    import softgrasp.linalg.factored as ls
 
     K = _stiffness()
     b = np.random.default_rng(5).standard_normal(K.shape[0])
@@ -728,7 +777,7 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
             pre.solve(rhs)
         return spla.spsolve(A.tocsc(), rhs), False
 
-    monkeypatch.setattr(ls, "_stale_pcg", stand_in)
+    monkeypatch.setattr(ls, "stale_pcg", stand_in)
     K2 = (1.01 * K).tocsr()
     before = cache.stats["factorisations"]
     solve_newton_system(K2, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
@@ -743,7 +792,7 @@ def test_an_old_factor_is_renewed_once_its_extra_solves_add_up_to_a_refactorisat
     the solves they took beyond what the factor's own system took add up to a refactorisation's
     time (``SOLVE_SPEED_RATIO`` x its operation count in solves): then the next system
     refactorises. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
-    import softgrasp.linalg.solve as ls
+    import softgrasp.linalg.factored as ls
 
     K = _stiffness()
     b = np.random.default_rng(12).standard_normal(K.shape[0])
@@ -763,7 +812,7 @@ def test_an_old_factor_is_renewed_once_its_extra_solves_add_up_to_a_refactorisat
             pre.solve(rhs)
         return spla.spsolve(A.tocsc(), rhs), False
 
-    monkeypatch.setattr(ls, "_stale_pcg", stand_in)
+    monkeypatch.setattr(ls, "stale_pcg", stand_in)
     before = cache.stats["factorisations"]
     K2 = (1.01 * K).tocsr()
     for _ in range(kept + 1):
@@ -805,7 +854,7 @@ def test_a_changed_scene_refactorises_at_once(monkeypatch, told, precision):
 def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
     """Contacts that move over the surface on one factor (new nodes each system) do not pile up
     columns: past six times the most corrected nodes' worth, only the current nodes' are kept."""
-    import softgrasp.linalg.solve as ls
+    import softgrasp.linalg.factored as ls
 
     K = _stiffness()
     f = pardiso.PardisoFactor(K)
@@ -884,7 +933,7 @@ def test_a_single_precision_solve_of_a_tiny_right_hand_side_is_not_flushed_to_ze
         assert np.linalg.norm(K @ xt - b * tiny) <= 1e-2 * tiny * np.linalg.norm(b)
     cache = SolverCache(method="pardiso", precision="mixed")
     x, _ = solve_newton_system(K, b * 1e-40, None, np.zeros((K.shape[0] // 3, 3)), cache)
-    assert np.linalg.norm(K @ x - b * 1e-40) <= linsolve.STALE_RTOL * 1e-40 * np.linalg.norm(b)
+    assert np.linalg.norm(K @ x - b * 1e-40) <= krylov.STALE_RTOL * 1e-40 * np.linalg.norm(b)
 
 
 @needs_mkl
@@ -904,7 +953,7 @@ def test_a_failed_first_solve_of_a_new_factor_leaves_no_stale_renewal_count(monk
     def fail(*args, **kwargs):
         raise NotConverged("stand-in")
 
-    monkeypatch.setattr(linsolve, "_fresh_solve", fail)
+    monkeypatch.setattr(factored, "_fresh_solve", fail)
     cache.scene_changed()  # the next system refactorises
     with pytest.raises(NotConverged):
         solve_newton_system((1.1 * K).tocsr(), b, None, x_nodes, cache)
@@ -949,9 +998,9 @@ def test_hierarchies_built_by_threads_at_once_are_those_built_alone():
 
     from softgrasp.linalg import solve as linsolve
     A0, A1, x = _table_then_plate(5)
-    alone = [linsolve._hierarchy(A, x) for A in (A0, A1)]
+    alone = [hierarchy.hierarchy(A, x) for A in (A0, A1)]
     with ThreadPoolExecutor(4) as pool:
-        built = list(pool.map(lambda k: linsolve._hierarchy((A0, A1)[k % 2], x), range(16)))
+        built = list(pool.map(lambda k: hierarchy.hierarchy((A0, A1)[k % 2], x), range(16)))
     for k, ml in enumerate(built):
         want = alone[k % 2]
         for a, b in zip(ml.levels[:-1], want.levels[:-1], strict=True):
@@ -968,8 +1017,8 @@ def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own(finishe
     from softgrasp.linalg import solve as linsolve
     A0, _, x = _table_then_plate(3)
     ctx = multiprocessing.get_context("fork")
-    with linsolve._GLOBAL_RNG:  # held, as by another thread building, when the child is forked
-        child = ctx.Process(target=linsolve._hierarchy, args=(A0, x))
+    with hierarchy._GLOBAL_RNG:  # held, as by another thread building, when the child is forked
+        child = ctx.Process(target=hierarchy.hierarchy, args=(A0, x))
         child.start()
     assert finished_ok(child)
 
@@ -1060,16 +1109,15 @@ def test_the_cache_counts_systems_set_ups_and_v_cycles_as_conjugate_gradients_ap
     hierarchy are two systems and one set-up, and the V-cycles counted are the preconditioner
     applications conjugate gradients made, one per iteration (the first before the loop, none
     after the last), counted independently by a wrapper around the V-cycle."""
-    from softgrasp.linalg import solve as linsolve
     applied = []
-    real = linsolve._Multigrid._cycle
+    real = cycle.Multigrid._cycle
 
-    def cycle(self, lvl, b):
+    def counted(self, lvl, b):
         if lvl == 0:
             applied.append(1)
         return real(self, lvl, b)
 
-    monkeypatch.setattr(linsolve._Multigrid, "_cycle", cycle)
+    monkeypatch.setattr(cycle.Multigrid, "_cycle", counted)
     cache, *_ = _both_on_one_hierarchy(8, 1e-8, seed=3)
     assert cache.stats["systems"] == 2 and cache.stats["multigrid_setups"] == 1
     assert cache.stats["multigrid_cycles"] == len(applied) == sum(cache.iterations) > 2
@@ -1090,7 +1138,7 @@ def test_multigrid_gmres_applies_the_exact_product_with_the_compiled_matrix_prod
     the multigrid's product of the assembled matrix plus the exact product's finite-difference
     correction, equal to the exact product itself to rounding, at every application."""
     calls = []
-    fast = linsolve._fast_exact
+    fast = mg_krylov._fast_exact
 
     def checked(fine, correction, v):
         got = fast(fine, correction, v)
@@ -1098,7 +1146,7 @@ def test_multigrid_gmres_applies_the_exact_product_with_the_compiled_matrix_prod
         calls.append(float(np.abs(got - want).max() / np.abs(want).max()))
         return got
 
-    monkeypatch.setattr(linsolve, "_fast_exact", checked)
+    monkeypatch.setattr(mg_krylov, "_fast_exact", checked)
     _pressed("amg")
     assert len(calls) > 5
     assert max(calls) <= 1e-12, max(calls)

@@ -13,7 +13,8 @@ from softgrasp import backend
 from softgrasp.physics.body import build_body
 from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box
-from softgrasp.linalg import solve as linsolve
+from softgrasp.linalg.multigrid import hierarchy
+from softgrasp.linalg.multigrid import krylov as mg_krylov
 from softgrasp.linalg.solve import SolverCache
 
 pytestmark = pytest.mark.skipif("numba" not in backend.available(), reason="Numba is not installed")
@@ -138,7 +139,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     np.random.random(3)
     state = np.random.get_state()
     with backend.use_backend("numba"):
-        M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+        M = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
     after = np.random.get_state()
     assert np.array_equal(after[1], state[1]) and after[2:] == state[2:]
     assert len(M.ml.levels) == 3 and M._sweeps[0].parts == 2  # the coarse recursion, two blocks
@@ -149,7 +150,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     results = []
     with backend.use_backend("numba"):
         for threads in (1, 2):
-            other = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+            other = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
             other.use(A, threads)
             results.append(other @ u)
     assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], Mu)
@@ -165,13 +166,13 @@ def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
     r = np.random.default_rng(6).standard_normal(A.shape[0])
     cache = SolverCache(method="amg")
     with backend.use_backend("numba"):
-        linsolve._multigrid(A, x_nodes, cache)
+        mg_krylov.multigrid(A, x_nodes, cache)
     with backend.use_backend("numpy"):
-        M = linsolve._multigrid(A2, x_nodes, cache)
+        M = mg_krylov.multigrid(A2, x_nodes, cache)
         got = M @ r
     assert len(M.ml.levels) == 3 and M.ml.levels[0].A is A2
     # pyamg's own cycle on the same (seeded) hierarchy, its finest level swapped as softgrasp's
-    reference = linsolve._hierarchy(A, x_nodes)
+    reference = hierarchy.hierarchy(A, x_nodes)
     reference.levels[0].A = A2
     want = reference.aspreconditioner(cycle="V").matvec(r)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())

@@ -55,7 +55,7 @@ def _candidates() -> list[str]:
         except PackageNotFoundError:
             files = []
         found = [f for f in files if f.name.startswith("libmkl_rt.so") or f.name == "mkl_rt.dll"]
-        names += sorted((str(f.locate()) for f in found), key=len)
+        names += sorted((os.path.normpath(f.locate()) for f in found), key=len)
     except ImportError:  # pragma: no cover - the standard library has it
         pass
     system = find_library("mkl_rt")
