@@ -1,6 +1,8 @@
 """The smoothed-aggregation hierarchy of a body's Newton matrix (pyamg), reproducible run to run.
 
-The near-null space is the body's six rigid-body modes, the standard choice for elasticity. pyamg
+pyamg's classical smoothed aggregation builds it (``smoothed_aggregation_solver``: symmetric
+strength, standard aggregation, Jacobi-smoothed prolongators, coarsening to :data:`MAX_COARSE`
+block rows). The near-null space is the body's six rigid-body modes, the standard choice for elasticity. pyamg
 estimates a spectral radius from a random start while it builds the hierarchy: the start is drawn
 from NumPy's global generator seeded with :data:`AMG_SEED` under a lock, so that the same matrix
 gives the same hierarchy and a plan the same numbers, whichever threads build hierarchies at once.
@@ -15,8 +17,6 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-
-from softgrasp import backend
 
 __all__ = ["AMG_SEED", "MAX_COARSE", "POSTSMOOTHER", "PRESMOOTHER", "hierarchy", "rigid_modes"]
 
@@ -78,14 +78,6 @@ def hierarchy(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> Any:
         state = np.random.get_state()
         np.random.seed(AMG_SEED)
         try:
-            if backend.compiled():
-                from softgrasp.linalg.multigrid.aggregation import smoothed_aggregation
-
-                # The same hierarchy, its finest Galerkin product, candidate sweeps and spectral
-                # radius estimates on compiled kernels.
-                return smoothed_aggregation(
-                    A, rigid_modes(x_nodes), MAX_COARSE, "splu", PRESMOOTHER, POSTSMOOTHER
-                )
             return pyamg.smoothed_aggregation_solver(
                 A,
                 B=rigid_modes(x_nodes),
@@ -97,5 +89,3 @@ def hierarchy(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> Any:
             )
         finally:
             np.random.set_state(state)
-
-
