@@ -25,7 +25,6 @@ OVERSIZED = {
     "hand/kinematics.py": 994,
     "hand/placement_compiled.py": 551,
     "linalg/pardiso.py": 528,
-    "linalg/sparse.py": 889,
     "physics/fingertip/compiled.py": 798,
     "physics/fingertip/contact.py": 693,
     "physics/forces_compiled.py": 757,

@@ -59,7 +59,7 @@ def test_a_hybrid_sweep_on_a_matrix_without_couplings_between_blocks_is_gauss_se
     Gauss-Seidel itself: pyamg's forward and backward sweeps, to rounding."""
     from pyamg.relaxation.relaxation import gauss_seidel
 
-    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.smoothers import SWEEP_PARTS, HybridGaussSeidel
 
     A, _ = _cube_system(4)
     n = A.shape[0]
@@ -97,7 +97,7 @@ def test_l1_hybrid_sweeps_converge_where_plain_hybrid_ones_diverge():
     1.085); with each row's couplings to the other block added to its diagonal (the l1 term),
     M + M^T - A is positive definite and the compiled sweeps converge to A^-1 b, the error's
     energy norm falling at every sweep, forward and backward."""
-    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.smoothers import SWEEP_PARTS, HybridGaussSeidel
 
     B = np.array([[-0.7, -0.1], [0.8, 1.5], [-1.3, 1.5], [1.3, 0.8], [0.3, -0.3], [1.5, 2.0]])
     A = B @ B.T + 0.05 * np.eye(6)
@@ -130,7 +130,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     (l1 hybrid sweeps forward before the coarse correction, backward after); and the same
     hierarchy and cycle, to the bit, whatever the thread count and from one build to the next
     (pyamg's random start seeded, the caller's generator left as it was)."""
-    from softgrasp.linalg.sparse import BlockGaussSeidel, HybridBlockGaussSeidel
+    from softgrasp.linalg.smoothers import BlockGaussSeidel, HybridBlockGaussSeidel
 
     A, x_nodes = _cube_system(12, local=True)
     rng = np.random.default_rng(5)
@@ -184,7 +184,7 @@ def test_a_matrix_not_numbered_for_locality_is_swept_as_one_block():
     same box renumbered for locality is swept in two."""
     from pyamg.relaxation.relaxation import gauss_seidel
 
-    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.smoothers import SWEEP_PARTS, HybridGaussSeidel
 
     A, _ = _cube_system(8)
     sweeps = HybridGaussSeidel(A, threads=2)
@@ -242,7 +242,7 @@ def test_the_block_sweeps_are_pyamgs_block_gauss_seidel_and_converge():
     such matrices) to the solution of the system solved directly."""
     from pyamg.relaxation.relaxation import block_gauss_seidel
 
-    from softgrasp.linalg.sparse import BlockGaussSeidel
+    from softgrasp.linalg.smoothers import BlockGaussSeidel
 
     rng = np.random.default_rng(12)
     G = _random_bsr(25, 25, (6, 6), seed=3).tocsr()
@@ -293,12 +293,12 @@ def test_node_block_sweeps_and_products_are_their_definition_and_the_same_bits_o
     solved densely; the same bits on one thread or two; repeated symmetric sweeps converge (the
     l1 term keeps M + M^T - A positive definite). A matrix that is not made of full node blocks
     keeps the row-wise sweeps."""
-    from softgrasp.linalg.sparse import (
+    from softgrasp.linalg.sparse import node_blocks
+    from softgrasp.linalg.smoothers import (
         SWEEP_PARTS,
         HybridBlockGaussSeidel,
         HybridGaussSeidel,
         fine_smoother,
-        node_blocks,
     )
 
     A, _ = _cube_system(5, local=True)
@@ -390,7 +390,8 @@ def test_a_node_block_that_is_not_positive_definite_is_left_alone():
     """As the row-wise sweep leaves a row whose l1 diagonal is not positive, the node-block sweep
     leaves a node whose (l1) diagonal block is not positive definite: its unknowns unchanged, the
     others updated."""
-    from softgrasp.linalg.sparse import HybridBlockGaussSeidel, node_blocks
+    from softgrasp.linalg.sparse import node_blocks
+    from softgrasp.linalg.smoothers import HybridBlockGaussSeidel
 
     D = np.diag([2.0, 2.0, 2.0, -1.0, -1.0, -1.0, 3.0, 3.0, 3.0])
     D[0, 1] = D[1, 0] = 0.5
@@ -410,7 +411,8 @@ def test_the_compiled_diagonal_is_scipys_with_duplicates_and_unsorted_indices():
     reads each Newton matrix's diagonal to find the nodes contacts stiffened) against SciPy's
     ``diagonal()``: duplicate entries summed, each row's entries in reverse order, rows without a
     diagonal entry 0."""
-    from softgrasp.linalg.sparse import HybridBlockGaussSeidel, HybridGaussSeidel, diagonal, fine_smoother
+    from softgrasp.linalg.sparse import diagonal
+    from softgrasp.linalg.smoothers import HybridBlockGaussSeidel, HybridGaussSeidel, fine_smoother
 
     A, _ = _cube_system(5)
     assert np.array_equal(diagonal(A), A.diagonal())
@@ -443,7 +445,7 @@ def test_block_sweeps_with_some_diagonal_blocks_changed_in_place():
     from pyamg.relaxation.relaxation import block_gauss_seidel
     from pyamg.util.utils import get_block_diag
 
-    from softgrasp.linalg.sparse import BlockGaussSeidel
+    from softgrasp.linalg.smoothers import BlockGaussSeidel
 
     G = _random_bsr(20, 20, (6, 6), seed=5).tocsr()
     A = (G @ G.T + 5.0 * sp.eye(G.shape[0])).tobsr(blocksize=(6, 6))

@@ -3,7 +3,7 @@
 pyamg builds the smoothed-aggregation hierarchy (:mod:`softgrasp.linalg.multigrid.hierarchy`);
 :class:`Multigrid` keeps it across the Newton systems of one loading, makes each new matrix its
 finest level, and applies one V-cycle from zero: compiled products and sweeps
-(:mod:`softgrasp.linalg.sparse`) where the compiled kernels are in use, SciPy's and pyamg's
+(:mod:`softgrasp.linalg.sparse`, :mod:`softgrasp.linalg.smoothers`) where the compiled kernels are in use, SciPy's and pyamg's
 otherwise.
 """
 
@@ -59,7 +59,7 @@ class Multigrid:
         # Gauss-Seidel (6 x 6 blocks, pyamg's to round-off), made here.
         self._sweeps: list[Any] = [None] * (len(levels) - 1)
         if _compiled():
-            from softgrasp.linalg.sparse import BLOCK, BlockGaussSeidel
+            from softgrasp.linalg.smoothers import BLOCK, BlockGaussSeidel
 
             for lvl in range(1, len(levels) - 1):
                 Ak = levels[lvl].A
@@ -94,7 +94,7 @@ class Multigrid:
             self._A[0] = self._sweeps[0] = None
 
         if compiled():
-            from softgrasp.linalg.sparse import fine_smoother
+            from softgrasp.linalg.smoothers import fine_smoother
 
             # The finest level's sweeps, and its products.
             self._fine = fine_smoother(A, threads)

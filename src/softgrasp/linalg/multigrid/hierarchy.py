@@ -39,7 +39,7 @@ def rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
 #: The multigrid V-cycle's smoothing on every level pyamg sweeps: one forward (block) Gauss-Seidel
 #: sweep before the coarse correction, one backward after (a symmetric preconditioner, as
 #: conjugate gradients need; the finest level's sweeps are softgrasp's own where the compiled
-#: kernels are in use, :class:`~softgrasp.linalg.sparse.HybridGaussSeidel`). A symmetric sweep
+#: kernels are in use, :class:`~softgrasp.linalg.smoothers.HybridGaussSeidel`). A symmetric sweep
 #: on each side (pyamg's default) costs half as much again a cycle for about one iteration fewer.
 PRESMOOTHER = ("block_gauss_seidel", {"sweep": "forward"})
 POSTSMOOTHER = ("block_gauss_seidel", {"sweep": "backward"})
