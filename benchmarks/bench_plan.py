@@ -131,7 +131,8 @@ def cli(repeats: int) -> None:
                 "from softgrasp.cli import main; main()"
             )
             t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-c", script, "plan", "--out", out], check=True, capture_output=True)
+            command = [sys.executable, "-c", script, "plan", "--out", out]
+            subprocess.run(command, check=True, capture_output=True)
             times[mode].append(time.perf_counter() - t0)
     shutil.rmtree(out, ignore_errors=True)
     med = {m: statistics.median(v) for m, v in times.items()}

@@ -24,7 +24,6 @@ OVERSIZED = {
     "grasp/planner.py": 980,
     "hand/kinematics.py": 994,
     "hand/placement_compiled.py": 551,
-    "linalg/pardiso.py": 528,
     "physics/fingertip/compiled.py": 798,
     "physics/fingertip/contact.py": 693,
     "physics/forces_compiled.py": 757,

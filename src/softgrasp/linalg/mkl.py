@@ -25,10 +25,39 @@ from numpy.typing import NDArray
 
 from softgrasp.linalg.threads import choose_threads
 
-__all__ = ["available", "blas_one_thread", "call", "library", "release_later"]
+__all__ = ["PardisoError", "available", "blas_one_thread", "call", "library", "release_later"]
 
 #: MKL's code for its Intel OpenMP threading layer (``MKL_Set_Threading_Layer``).
 MKL_THREADING_INTEL = 0
+
+_ERRORS = {
+    -1: "input inconsistent",
+    -2: "not enough memory",
+    -3: "reordering problem",
+    -4: "zero pivot, numerical factorisation or iterative refinement problem",
+    -5: "unclassified (internal) error",
+    -6: "reordering failed",
+    -7: "diagonal matrix is singular",
+    -8: "32-bit integer overflow problem",
+    -9: "not enough memory for out-of-core solver",
+    -10: "error opening out-of-core files",
+    -11: "read/write error with out-of-core files",
+}
+
+
+class PardisoError(RuntimeError):
+    """PARDISO reported an error (the message gives its code and meaning; ``code``: PARDISO's
+    error code, None where PARDISO was not called)."""
+
+    def __init__(self, message: str, code: int | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+
+    @classmethod
+    def of(cls, phase: int, code: int) -> PardisoError:
+        """The error of a call of ``phase`` that returned ``code``."""
+        return cls(f"PARDISO phase {phase} failed: {_ERRORS.get(code, 'error')} ({code})", code)
+
 
 _INT = ctypes.POINTER(ctypes.c_int32)
 _DBL = ctypes.POINTER(ctypes.c_double)

@@ -37,18 +37,12 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from softgrasp.linalg import mkl
-from softgrasp.linalg.mkl import available, blas_one_thread
+from softgrasp.linalg.mkl import PardisoError, available, blas_one_thread
 from softgrasp.linalg.threads import choose_threads, fixed_threads, set_threads
 
-__all__ = [
-    "PardisoError",
-    "PardisoFactor",
-    "available",
-    "blas_one_thread",
-    "choose_threads",
-    "fixed_threads",
-    "set_threads",
-]
+# What callers reach through this module: the factor, its error, MKL's state and the threads.
+__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread"]
+__all__ += ["choose_threads", "fixed_threads", "set_threads"]
 
 #: PARDISO's matrix type for real symmetric indefinite matrices (LDL^T, Bunch-Kaufman pivoting).
 SYMMETRIC_INDEFINITE = -2
@@ -61,10 +55,8 @@ SPD_RETRY = 4
 #: A Cholesky factorisation with a pivot below this fraction of its matrix's diagonal entry counts
 #: as not positive definite: PARDISO's Cholesky of a singular positive semi-definite stiffness
 #: (a body not held: rigid motions free) succeeds with pivots ~1e-14 of the diagonal, reports
-#: nothing, and its solves blow the free motions up. Such a matrix then gets the LDL^T factor it
-#: had before Cholesky was used. (LDL^T does not flag it either: its pivot perturbation does not
-#: scale with the matrix; a free foam cube's stiffness, diagonal ~1e5 N/m, gives
-#: :attr:`PardisoFactor.perturbed_pivots` 0, the same matrix times 1e-9 gives 6.)
+#: nothing, and its solves blow the free motions up. Such a matrix then gets an LDL^T factor
+#: (whose pivot perturbation, not scaled with the matrix, need not flag it either).
 SPD_PIVOT_RTOL = 1e-8
 #: A single-precision Cholesky factor (``PardisoFactor(..., single=True)``) is kept only when its
 #: smallest pivot is at least this fraction of its matrix's diagonal entry; otherwise the matrix is
@@ -72,36 +64,11 @@ SPD_PIVOT_RTOL = 1e-8
 #: singular) exactly as without single precision. A pivot d_k = a_kk - sum_j l_kj^2 d_j carries a
 #: rounding error of about (a few) x float32's eps (6e-8) x a_kk, i.e. a relative error of
 #: ~1e-7 / (d_k / a_kk): above this floor the single pivots are known to within a few percent, so
-#: the single factor's verdict cannot differ from the double one's. The default plan's Cholesky
-#: factors have ratios of 1e-2-2e-1 (2 196 nodes).
+#: the single factor's verdict cannot differ from the double one's.
 SINGLE_PIVOT_FLOOR = 1e-4
 #: PARDISO's error code for a zero or negative pivot (a Cholesky of a matrix that is not positive
 #: definite).
 _ZERO_PIVOT = -4
-
-_ERRORS = {
-    -1: "input inconsistent",
-    -2: "not enough memory",
-    -3: "reordering problem",
-    -4: "zero pivot, numerical factorisation or iterative refinement problem",
-    -5: "unclassified (internal) error",
-    -6: "reordering failed",
-    -7: "diagonal matrix is singular",
-    -8: "32-bit integer overflow problem",
-    -9: "not enough memory for out-of-core solver",
-    -10: "error opening out-of-core files",
-    -11: "read/write error with out-of-core files",
-}
-
-
-class PardisoError(RuntimeError):
-    """PARDISO reported an error (the message gives its code and meaning; ``code``: PARDISO's
-    error code, None where PARDISO was not called)."""
-
-    def __init__(self, message: str, code: int | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-
 
 #: Nested-dissection orderings of the patterns analysed lately, by a digest of the pattern: a
 #: body's Newton matrices keep one pattern from plan to plan (the symbolic analysis reused per
@@ -365,7 +332,7 @@ class PardisoFactor:
             perm=perm,
         )
         if code != 0:
-            raise PardisoError(f"PARDISO phase {phase} failed: {_ERRORS.get(code, 'error')} ({code})", code)
+            raise PardisoError.of(phase, code)
         return x.astype(np.float64, copy=False)
 
     def same_pattern(self, A: sp.spmatrix) -> sp.csr_matrix | None:

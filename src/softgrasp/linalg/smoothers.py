@@ -157,7 +157,8 @@ class HybridGaussSeidel(CsrProduct):
     Gauss-Seidel does, the others' taken as they were before the sweep, and each row's diagonal
     increased by the absolute values of its couplings to other blocks. Without that increase the
     sweep need not converge (the iteration's M + M^T - A is the diagonal minus the couplings
-    between blocks, which need not be positive); with it M + M^T - A is positive definite for symmetric positive definite A.
+    between blocks, which need not be positive); with it M + M^T - A is positive definite for
+    symmetric positive definite A.
     A forward sweep followed by a backward one is symmetric, as a conjugate-gradient
     preconditioner must be.
 

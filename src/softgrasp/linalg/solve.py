@@ -65,9 +65,9 @@ class SolverCache:
         tolerance asked, as solves with an older factor always were; the verdicts positive
         definite / indefinite / singular the double factor's: see
         :class:`~softgrasp.linalg.pardiso.PardisoFactor`) or ``"double"``. The two reach the
-        same rests to the Newton tolerance, but where the rest is a branch choice (a Newton iterate within rounding of
-        the tolerance on an indefinite matrix: a compressed softening cube about to buckle) float32
-        rounding makes that choice noisy; the material tests, whose curves the calibration fits
+        same rests to the Newton tolerance, but where the rest is a branch choice (a Newton
+        iterate within rounding of the tolerance on an indefinite matrix: a compressed softening
+        cube about to buckle) float32 rounding makes that choice noisy; the material tests, whose curves the calibration fits
         difference, use ``"double"``.
     stats: counts of what the solves did: Newton ``systems`` solved, PARDISO ``analyses``,
         ``factorisations`` and solves with an older factor (``stale_solves``), multigrid solves
@@ -156,7 +156,8 @@ def by_multigrid(n: int, cache: SolverCache) -> bool:
 
 def assembly_threads(n: int, cache: SolverCache) -> int:
     """Threads for assembling a Newton matrix of ``n`` unknowns that ``cache`` will solve: the
-    thread count (:func:`~softgrasp.linalg.threads.choose_threads`) where the system goes to multigrid with at least :data:`MULTIGRID_THREADS_MIN_DOF`
+    thread count (:func:`~softgrasp.linalg.threads.choose_threads`) where the system goes to
+    multigrid with at least :data:`MULTIGRID_THREADS_MIN_DOF`
     unknowns (as its products), one otherwise (PARDISO's OpenMP threads may still be spinning on
     the other core)."""
     if n < MULTIGRID_THREADS_MIN_DOF or _uses_pardiso(n, cache):
@@ -216,7 +217,8 @@ def _solve_newton_system(
     if route == "direct":
         return _direct(A, b, C)
     if route == "pardiso":
-        return pardiso_solve(A.tocsr(), b, x_nodes, cache, matvec, STALE_RTOL if rtol is None else min(rtol, 1e-2))
+        stale_rtol = STALE_RTOL if rtol is None else min(rtol, 1e-2)
+        return pardiso_solve(A.tocsr(), b, x_nodes, cache, matvec, stale_rtol)
     cache.stats["amg_solves"] += 1
     if cache.method == "reference":
         return pcg(A.tocsr(), b, x_nodes, cache), np.zeros(0)

@@ -3,8 +3,8 @@
 pyamg builds the smoothed-aggregation hierarchy (:mod:`softgrasp.linalg.multigrid.hierarchy`);
 :class:`Multigrid` keeps it across the Newton systems of one loading, makes each new matrix its
 finest level, and applies one V-cycle from zero: compiled products and sweeps
-(:mod:`softgrasp.linalg.sparse`, :mod:`softgrasp.linalg.smoothers`) where the compiled kernels are in use, SciPy's and pyamg's
-otherwise.
+(:mod:`softgrasp.linalg.sparse`, :mod:`softgrasp.linalg.smoothers`) where the compiled kernels
+are in use, SciPy's and pyamg's otherwise.
 """
 
 from __future__ import annotations
