@@ -60,8 +60,6 @@ CORRECT_RTOL = 0.5
 CORRECT_MAX_NODES = 24
 
 
-
-
 def _rigid_motion_free(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> bool:
     """Whether a rigid translation or rotation of the nodes ``x_nodes`` meets (almost) no stiffness
     in A: nothing holds the body in place (its stiffness is singular)."""
@@ -69,7 +67,6 @@ def _rigid_motion_free(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> bool:
     B /= np.linalg.norm(B, axis=0)
     scale = float(np.abs(A).sum(axis=1).max()) or 1.0  # the largest row sum bounds |A|
     return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * scale).any())
-
 
 
 def _shifted_solve(
@@ -115,7 +112,6 @@ def _shifted_solve(
     return f.solve(b)
 
 
-
 def _refined(
     A: sp.csr_matrix, b: NDArray[np.float64], f: pardiso.PardisoFactor, rtol: float
 ) -> NDArray[np.float64]:
@@ -125,7 +121,6 @@ def _refined(
     tol = min(rtol, REFINED_RTOL) if f.single_precision else rtol
     x, _ = stale_pcg(A, b, f, EXACT_MAX_IT, tol, keep_last=f.single_precision)
     return f.solve(b) if x is None else x
-
 
 
 def pardiso_solve(
@@ -205,7 +200,6 @@ def pardiso_solve(
     return x, np.zeros(0)
 
 
-
 def _fresh_solve(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
@@ -231,7 +225,6 @@ def _fresh_solve(
     # The factor of A itself: one solve, refined by a few conjugate-gradient steps where rounding
     # in the factor left more than the tolerance (the solves do no iterative refinement).
     return _refined(A, b, f, rtol)
-
 
 
 class _Corrected:
@@ -316,5 +309,3 @@ class _Corrected:
         if self._Z is None:
             return y
         return y - self._Z @ (self._W @ y[self._S])
-
-

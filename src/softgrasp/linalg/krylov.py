@@ -154,7 +154,6 @@ def stale_pcg(
     return (x if keep_last else None), False
 
 
-
 def gmres(
     matvec: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     b: NDArray[np.float64],
@@ -210,5 +209,3 @@ def gmres(
             return x
         V[k + 1] = w / vk
     return None
-
-

@@ -1,7 +1,7 @@
 """Intel oneMKL as softgrasp calls it: the library, its thread count, and the PARDISO call.
 
 The library is the one the ``mkl`` wheel installs (``libmkl_rt``, found through the wheel's file
-list, else by the system's library search); :func:`available` says whether it loaded, and
+list or in the environment's ``lib`` directory, else by the system's library search); :func:`available` says whether it loaded, and
 :mod:`softgrasp.linalg.solve` falls back to SciPy's sparse LU and multigrid-preconditioned CG where
 it did not. MKL runs on Intel's OpenMP runtime, whatever OpenMP another library loaded first.
 
@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import glob
 import os
+import sys
 import threading
 from collections.abc import Iterator
 from ctypes.util import find_library
@@ -73,24 +75,22 @@ _RELEASED: list[tuple[NDArray[np.int64], int, int, tuple[NDArray, ...]]] = []
 
 
 def _candidates() -> list[str]:
-    """Where ``libmkl_rt`` may be: the files of the installed ``mkl`` distribution, then the
-    system's library search."""
-    names: list[str] = []
-    try:
-        from importlib.metadata import PackageNotFoundError, distribution
+    """Where ``libmkl_rt`` may be: the files of the installed ``mkl`` distribution, the
+    environment's own library directory (where the wheel, and conda, put it), then the system's
+    library search."""
+    from importlib.metadata import PackageNotFoundError, distribution
 
-        try:
-            files = distribution("mkl").files or []
-        except PackageNotFoundError:
-            files = []
-        found = [f for f in files if f.name.startswith("libmkl_rt.so") or f.name == "mkl_rt.dll"]
-        names += sorted((os.path.normpath(f.locate()) for f in found), key=len)
-    except ImportError:  # pragma: no cover - the standard library has it
-        pass
+    try:
+        files = distribution("mkl").files or []
+    except PackageNotFoundError:
+        files = []
+    found = [f for f in files if f.name.startswith("libmkl_rt.so") or f.name == "mkl_rt.dll"]
+    names = sorted((os.path.normpath(f.locate()) for f in found), key=len)
+    names += sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
     system = find_library("mkl_rt")
     if system:
         names.append(system)
-    return names
+    return list(dict.fromkeys(names))
 
 
 @cache

@@ -130,4 +130,3 @@ def unique_pairs(
     if rows.size and (min(rows.min(), cols.min()) < 0 or max(rows.max(), cols.max()) >= n):
         raise ValueError(f"node pairs must lie in 0 .. {n - 1}")
     return _unique_pairs(rows, cols, int(n))
-

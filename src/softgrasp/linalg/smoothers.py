@@ -405,5 +405,3 @@ def fine_smoother(
     if blocks is None:
         return HybridGaussSeidel(A, threads)
     return HybridBlockGaussSeidel(A, blocks, threads)
-
-

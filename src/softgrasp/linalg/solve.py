@@ -30,16 +30,16 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import NotConverged
 from softgrasp.linalg import pardiso
-from softgrasp.linalg.factored import _rigid_motion_free, pardiso_solve
+from softgrasp.linalg.factored import _rigid_motion_free as _rigid_motion_free  # sim.static's
+from softgrasp.linalg.factored import pardiso_solve
 from softgrasp.linalg.krylov import SINGULAR, STALE_RTOL
 from softgrasp.linalg.multigrid.krylov import MULTIGRID_THREADS_MIN_DOF, amg_gmres, pcg
 from softgrasp.linalg.threads import choose_threads
 
 __all__ = ["SolverCache", "solve_newton_system", "by_multigrid", "DIRECT_MAX_DOF", "PARDISO_MAX_DOF"]
 
-#: The static solver's message for a stiffness that does not hold the body, and its test of one.
+#: The message for a stiffness that does not hold the body (sim.static's too).
 _SINGULAR = SINGULAR
-_rigid_motion_free = _rigid_motion_free
 
 #: Without MKL, systems with at most this many unknowns are solved by sparse LU.
 DIRECT_MAX_DOF = 1500
@@ -47,6 +47,7 @@ DIRECT_MAX_DOF = 1500
 #: (beyond, the factor's memory and time grow faster than multigrid's; below, PARDISO's plans take
 #: fewer Newton systems and less time).
 PARDISO_MAX_DOF = 30_000
+
 
 @dataclass
 class SolverCache:
@@ -67,8 +68,8 @@ class SolverCache:
         :class:`~softgrasp.linalg.pardiso.PardisoFactor`) or ``"double"``. The two reach the
         same rests to the Newton tolerance, but where the rest is a branch choice (a Newton
         iterate within rounding of the tolerance on an indefinite matrix: a compressed softening
-        cube about to buckle) float32 rounding makes that choice noisy; the material tests, whose curves the calibration fits
-        difference, use ``"double"``.
+        cube about to buckle) float32 rounding makes that choice noisy; the material tests, whose
+        curves the calibration fits difference, use ``"double"``.
     stats: counts of what the solves did: Newton ``systems`` solved, PARDISO ``analyses``,
         ``factorisations`` and solves with an older factor (``stale_solves``), multigrid solves
         (``amg_solves``), hierarchy set-ups and V-cycles (``multigrid_setups``,
@@ -110,11 +111,9 @@ class SolverCache:
         in): the next one refactorises at once instead of first trying the last factorisation as
         a preconditioner, which a removed table's or finger's stiffness makes a poor one (the
         pattern's analysis is kept), and the multigrid hierarchy is built anew (its coarse levels
-        would keep the removed stiffness: the 27 749-node hold check's solves took 27-49 V-cycles
-        on the hierarchy built with the table, where the closing's took 16-33)."""
+        would keep the removed stiffness and precondition the new systems poorly)."""
         self._try_stale = False
         self._ml = None
-
 
 
 def _uses_pardiso(n: int, cache: SolverCache) -> bool:
@@ -157,13 +156,12 @@ def by_multigrid(n: int, cache: SolverCache) -> bool:
 def assembly_threads(n: int, cache: SolverCache) -> int:
     """Threads for assembling a Newton matrix of ``n`` unknowns that ``cache`` will solve: the
     thread count (:func:`~softgrasp.linalg.threads.choose_threads`) where the system goes to
-    multigrid with at least :data:`MULTIGRID_THREADS_MIN_DOF`
-    unknowns (as its products), one otherwise (PARDISO's OpenMP threads may still be spinning on
+    multigrid with at least :data:`MULTIGRID_THREADS_MIN_DOF` unknowns (as its products), one
+    otherwise (PARDISO's OpenMP threads may still be spinning on
     the other core)."""
     if n < MULTIGRID_THREADS_MIN_DOF or _uses_pardiso(n, cache):
         return 1
     return choose_threads()
-
 
 
 def solve_newton_system(
@@ -227,8 +225,8 @@ def _solve_newton_system(
         if x is not None:
             return x, np.zeros(0)
     # Conjugate gradients to the Newton iteration's forcing term, as GMRES above.
-    return pcg(A.tocsr(), b, x_nodes, cache, None if rtol is None else max(rtol, cache.rtol)), np.zeros(0)
-
+    x = pcg(A.tocsr(), b, x_nodes, cache, None if rtol is None else max(rtol, cache.rtol))
+    return x, np.zeros(0)
 
 
 def _direct(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None):
@@ -245,5 +243,3 @@ def _direct(A: sp.csr_matrix, b: NDArray[np.float64], C: sp.csr_matrix | None):
     if not np.isfinite(sol).all():
         raise NotConverged(f"static solve failed: {SINGULAR}")
     return sol[: A.shape[0]], sol[A.shape[0] :]
-
-

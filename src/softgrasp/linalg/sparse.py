@@ -131,7 +131,6 @@ def _apply(op: Any, kernel: Any, x: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-
 class _Threads:
     """Numba's thread count set to ``n`` (at most Numba's pool) for the ``with`` block."""
 
@@ -395,5 +394,3 @@ def node_blocks(A: sp.spmatrix | sp.sparray, min_fill: float = 0.0) -> tuple | N
     bdata = np.empty((bindices.shape[0], 3, 3))
     _block_fill(indptr, indices, np.ascontiguousarray(A.data, dtype=np.float64), bindptr, bindices, bdata)
     return bindptr, bindices, bdata
-
-

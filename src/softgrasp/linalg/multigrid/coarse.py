@@ -1,6 +1,6 @@
 """The coarse levels of a kept multigrid hierarchy brought up to date with the contacts made since.
 
-A smoothed-aggregation hierarchy is costly to build (about a second at 30 000 nodes), so the
+A smoothed-aggregation hierarchy is costly to build (many V-cycles' worth of work), so the
 multigrid path keeps one across the Newton systems of a loading and swaps in each new matrix as
 its finest level (:class:`softgrasp.linalg.multigrid.cycle.Multigrid`). Its coarse levels then lag behind
 the contacts: a node pressed into the table since has a penalty stiffness tens of times its own,
@@ -60,8 +60,8 @@ def changed_nodes(
     """The nodes (3 unknowns each, ``x, y, z``) whose stiffness the contacts changed since the
     build matrix, from the current and the build matrix's diagonals (3N,), each entry's ratio to
     its build value taken relative to the median node's (a stiffness changed throughout, as by a
-    scaled matrix or a stiffening material, is not a contact: scaled by two, 1 625 nodes, pinning
-    them all took 87 CG iterations where the levels as built took 23). Returns (the stiffened
+    scaled matrix or a stiffening material, is not a contact, and pinning every node would make
+    the coarse levels useless). Returns (the stiffened
     nodes: some diagonal entry grew past :data:`STIFFENED` times that; the changed ones: some
     entry moved by more than :data:`CHANGED` of it), each at most :data:`MAX_CHANGED`, the
     largest. An entry that was not positive counts as changed when it differs at all."""

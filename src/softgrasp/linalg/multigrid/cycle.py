@@ -196,7 +196,6 @@ class Multigrid:
     __matmul__ = matvec
 
 
-
 class ScipyProduct:
     """SciPy's product, where the compiled kernels are not in use (the same interface as
     :class:`~softgrasp.linalg.sparse.CsrProduct`)."""
@@ -235,5 +234,3 @@ def _product(A: Any) -> Any:
 
         return product(A)
     return ScipyProduct(A)
-
-

@@ -35,7 +35,6 @@ def rigid_modes(x: NDArray[np.float64]) -> NDArray[np.float64]:
     return B
 
 
-
 #: The multigrid V-cycle's smoothing on every level pyamg sweeps: one forward (block) Gauss-Seidel
 #: sweep before the coarse correction, one backward after (a symmetric preconditioner, as
 #: conjugate gradients need; the finest level's sweeps are softgrasp's own where the compiled

@@ -39,8 +39,6 @@ STALE_HIERARCHY_IT = 60
 MULTIGRID_THREADS_MIN_DOF = 20_000
 
 
-
-
 def multigrid(A: sp.csr_matrix, x_nodes: NDArray[np.float64], cache: SolverCache) -> Multigrid:
     """The multigrid preconditioner kept in ``cache`` (built there when there is none or it was
     dropped), its finest level made ``A``, its products on :func:`choose_threads` threads (one
@@ -108,7 +106,6 @@ def _fast_exact(
     return correction(v, np.asarray(fine @ v))
 
 
-
 def amg_gmres(
     A: sp.csr_matrix,
     b: NDArray[np.float64],
@@ -130,5 +127,3 @@ def amg_gmres(
             return x
         cache._ml = None
     return None
-
-
