@@ -191,13 +191,20 @@ def test_auto_threads_are_a_fixed_rule_not_the_machine_load(monkeypatch):
 
 
 def test_mkl_is_found_where_the_mkl_wheel_installs_it():
-    """The library comes from the ``mkl`` distribution's own file list (no path setting)."""
+    """The library comes from the ``mkl`` distribution's own file list (no path setting), each
+    candidate once."""
+    from importlib.metadata import PackageNotFoundError, distribution
+
     from softgrasp.linalg import mkl
 
-    pytest.importorskip("importlib.metadata")
     names = mkl._candidates()
-    if pardiso.available():
-        assert any("libmkl_rt" in name for name in names)
+    assert len(names) == len(set(names))
+    try:
+        wheel = [f for f in distribution("mkl").files or [] if f.name.startswith("libmkl_rt.so")]
+    except PackageNotFoundError:
+        pytest.skip("the mkl wheel is not installed")
+    assert wheel and os.path.normpath(wheel[0].locate()) in names
+    assert pardiso.available()
 
 
 @needs_mkl
