@@ -5,9 +5,9 @@
   stiffness: the caller shifts the diagonal) ends them with the progress so far, and a zero or
   non-finite ``r^T M r`` or a non-finite iterate is a breakdown, raised as
   :class:`~softgrasp.errors.NotConverged`;
-* :func:`stale_pcg`: conjugate gradients preconditioned by the factorisation of a nearby matrix,
-  started from that factor's solve, which proves a matrix indefinite when it meets curvature
-  beyond round-off;
+* :func:`stale_pcg`: conjugate gradients (SciPy's) preconditioned by the factorisation of a
+  nearby matrix, started from that factor's solve, which prove a matrix indefinite when they meet
+  curvature beyond round-off;
 * :func:`gmres`: right-preconditioned GMRES without restart on the exact (non-symmetric) Newton
   product.
 """
@@ -50,11 +50,12 @@ class Factor(Protocol):
 
 
 class _Curvature(Exception):
-    """Raised inside SciPy's iteration at a direction ``p`` of non-positive curvature."""
+    """Raised inside SciPy's iteration at a direction ``p`` of non-positive curvature ``pAp``."""
 
-    def __init__(self, p: NDArray[np.float64]) -> None:
+    def __init__(self, p: NDArray[np.float64], pAp: float = 0.0) -> None:
         super().__init__()
         self.p = p
+        self.pAp = pAp
 
 
 def cg(
@@ -119,39 +120,51 @@ def stale_pcg(
     keep_last: bool = False,
 ) -> tuple[NDArray[np.float64] | None, bool]:
     """Conjugate gradients on ``A x = b`` preconditioned by the factorisation ``f`` of a nearby
-    matrix. Returns (x, or None when they do not reach ``rtol`` in ``max_it`` iterations or meet
-    negative curvature (with ``keep_last``: the last iterate then); whether they met a
-    direction p of negative curvature beyond round-off,
+    matrix, started from ``f``'s solve of ``b`` (SciPy's iteration). Returns (x, or None when they
+    do not reach ``rtol`` in ``max_it`` iterations or meet a direction p with ``p^T A p <= 0`` or a
+    residual with ``r^T f^-1 r <= 0`` (with ``keep_last``: the last iterate then); whether they met
+    a direction p of negative curvature beyond round-off,
     ``p^T A p < -NEGATIVE_CURVATURE_ROUNDOFF n eps max_i sum_j |A_ij| |p|^2``: a proof that A is
     indefinite)."""
+    b = np.asarray(b, dtype=np.float64)
     bnorm = float(np.linalg.norm(b))
     if bnorm == 0:
         return np.zeros_like(b), False
-    x = f.solve(b)
-    r = b - A @ x
-    if float(np.linalg.norm(r)) <= rtol * bnorm:
-        return x, False
-    z = f.solve(r)
-    p = z.copy()
-    rz = float(r @ z)
-    for _ in range(max_it):
-        Ap = A @ p
+    n = b.shape[0]
+    x0 = f.solve(b)
+    # SciPy's first product is the starting residual's (none from a zero start).
+    seen: dict[str, Any] = {"x": x0, "rz": math.inf, "start": bool(x0.any())}
+
+    def matvec(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        Ap = np.asarray(A @ p, dtype=np.float64)
+        if seen["start"]:
+            seen["start"] = False
+            return Ap
         pAp = float(p @ Ap)
-        if not pAp > 0 or not rz > 0:
-            # Round-off in p^T A p is at most ~n eps |p|^T |A| |p| <= n eps max_i sum_j |A_ij| |p|^2.
-            row_sum = float(abs(A).sum(axis=1).max())
-            bound = NEGATIVE_CURVATURE_ROUNDOFF * A.shape[0] * np.finfo(float).eps * row_sum * float(p @ p)
-            return (x if keep_last else None), pAp < -bound
-        alpha = rz / pAp
-        x += alpha * p
-        r -= alpha * Ap
-        if float(np.linalg.norm(r)) <= rtol * bnorm:
-            return x, False
+        if not pAp > 0 or not seen["rz"] > 0:
+            raise _Curvature(p.copy(), pAp)
+        return Ap
+
+    def psolve(r: NDArray[np.float64]) -> NDArray[np.float64]:
         z = f.solve(r)
-        rz_new = float(r @ z)
-        p = z + (rz_new / rz) * p
-        rz = rz_new
-    return (x if keep_last else None), False
+        seen["rz"] = float(r @ z)
+        return z
+
+    def track(xk: NDArray[np.float64]) -> None:
+        seen["x"] = xk  # SciPy's iterate, updated in place
+
+    op = spla.LinearOperator((n, n), matvec=matvec, dtype=np.float64)
+    pre = spla.LinearOperator((n, n), matvec=psolve, dtype=np.float64)
+    try:
+        x, info = spla.cg(op, b, x0=x0.copy(), rtol=rtol, atol=0.0, maxiter=max_it, M=pre, callback=track)
+    except _Curvature as bend:
+        # Round-off in p^T A p is at most ~n eps |p|^T |A| |p| <= n eps max_i sum_j |A_ij| |p|^2.
+        row_sum = float(abs(A).sum(axis=1).max())
+        bound = NEGATIVE_CURVATURE_ROUNDOFF * n * np.finfo(float).eps * row_sum * float(bend.p @ bend.p)
+        return (np.array(seen["x"]) if keep_last else None), bend.pAp < -bound
+    if info > 0 and float(np.linalg.norm(b - A @ x)) > rtol * bnorm:
+        return (x if keep_last else None), False  # (SciPy tests the last iterate only at the next)
+    return x, False
 
 
 def gmres(
