@@ -15,7 +15,7 @@ dynamic solver (the paper's explicit RK4 through every increment at 50 mm/s, the
 ``--dynamic``, the ~500-node mesh only: its cost grows as N^(4/3) per simulated second).
 
 ``--cli N`` times the whole default ``softgrasp plan`` command instead, its figures drawn by a
-child process and, as the peer, in its own process (``SOFTGRASP_FIGURES=inline``).
+child process and, as the peer, in its own process (``FigureWorker("inline")``).
 
 Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_plan.py [--quick] [--large]
 [--reference] [--dynamic] [--cli N]``.
@@ -43,9 +43,9 @@ WARM_REPEATS = 3
 
 
 def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover - child process
-    os.environ["SOFTGRASP_LINSOLVE"] = linsolve
-    from softgrasp.physics.body import build_body
     from softgrasp.grasp.planner import PlanConfig, plan_grasp
+    from softgrasp.linalg.solve import SolverCache
+    from softgrasp.physics.body import build_body
     from softgrasp.model.objects import make_object
 
     t0 = time.perf_counter()
@@ -54,7 +54,7 @@ def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
-        plan = plan_grasp(body, PlanConfig(solver=solver))
+        plan = plan_grasp(body, PlanConfig(solver=solver), cache=SolverCache(method=linsolve))
         result = {
             "forces": [f.force_norm for f in plan.fingers],
             "increments": plan.increments,
@@ -78,7 +78,7 @@ def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover
         warm = []
         for _ in range(WARM_REPEATS):
             t0 = time.perf_counter()
-            plan_grasp(body, PlanConfig(solver=solver))
+            plan_grasp(body, PlanConfig(solver=solver), cache=SolverCache(method=linsolve))
             warm.append(time.perf_counter() - t0)
         result["warm_s"] = min(warm)
     out.send(result)
@@ -120,14 +120,19 @@ def cli(repeats: int) -> None:
     import sys
     import tempfile
 
-    exe = shutil.which("softgrasp", path=os.path.dirname(sys.executable)) or "softgrasp"
     times: dict[str, list[float]] = {"child": [], "inline": []}
     out = tempfile.mkdtemp(prefix="bench_plan_cli_")
     for _ in range(repeats):
         for mode in times:
-            env = dict(os.environ, SOFTGRASP_FIGURES=mode)
+            # The command itself, its figure worker in the mode measured.
+            script = (
+                "import functools, softgrasp.viz.worker as w; "
+                f"w.FigureWorker.__init__ = functools.partialmethod(w.FigureWorker.__init__, {mode!r}); "
+                "from softgrasp.cli import main; main()"
+            )
             t0 = time.perf_counter()
-            subprocess.run([exe, "plan", "--out", out], env=env, check=True, capture_output=True)
+            command = [sys.executable, "-c", script, "plan", "--out", out]
+            subprocess.run(command, check=True, capture_output=True)
             times[mode].append(time.perf_counter() - t0)
     shutil.rmtree(out, ignore_errors=True)
     med = {m: statistics.median(v) for m, v in times.items()}
@@ -149,7 +154,7 @@ def main() -> None:
         default=0,
         metavar="N",
         help="only the whole `softgrasp plan` command on the default object, N times each with its "
-        "figures drawn by a child process and in its own process (SOFTGRASP_FIGURES=inline), alternating",
+        "figures drawn by a child process and in its own process (inline), alternating",
     )
     args = ap.parse_args()
     if args.cli:

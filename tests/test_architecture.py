@@ -20,9 +20,6 @@ LIMIT = 500
 OVERSIZED = {
     "hand/kinematics.py": 994,
     "hand/placement_compiled.py": 551,
-    "linalg/pardiso.py": 843,
-    "linalg/solve.py": 1085,
-    "linalg/sparse.py": 889,
     "physics/fingertip/compiled.py": 798,
     "physics/fingertip/contact.py": 693,
     "physics/forces_compiled.py": 757,
@@ -34,11 +31,7 @@ OVERSIZED = {
 #: Environment variables the package still reads (the thread count may stay; the rest are to go).
 ENV_VARIABLES = {
     "SOFTGRASP_BLOCKS",
-    "SOFTGRASP_FACTOR_PRECISION",
-    "SOFTGRASP_FIGURES",
     "SOFTGRASP_KERNELS",
-    "SOFTGRASP_LINSOLVE",
-    "SOFTGRASP_MKL_RT",
     "SOFTGRASP_THREADS",
 }
 

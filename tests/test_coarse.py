@@ -161,7 +161,7 @@ def test_an_updated_level_is_the_built_operator_plus_the_change_and_resets_to_it
     one untouched."""
     from pyamg.util.utils import get_block_diag
 
-    from softgrasp.linalg.sparse import BlockGaussSeidel
+    from softgrasp.linalg.smoothers import BlockGaussSeidel
 
     built = _bsr_level(7)
     values = built.data.copy()

@@ -3,7 +3,6 @@ back, and a child that cannot start or dies leaves the figures to this process."
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
@@ -26,18 +25,12 @@ def _draw_all(figures: FigureWorker, out) -> None:
     figures.draw("plot_plan_force_penetration", P, F, NAMES, out / "force_penetration.png")
 
 
-@pytest.fixture(autouse=True)
-def _child(monkeypatch):
-    """A child whatever the machine's load (``auto`` would skip it on a busy machine)."""
-    monkeypatch.setenv("SOFTGRASP_FIGURES", "child")
-
-
 def test_the_child_draws_the_same_png_bytes_as_this_process(tmp_path):
     """Matplotlib's Agg output is deterministic: the child's files equal those drawn here."""
     here, there = tmp_path / "here", tmp_path / "there"
     plots.plot_plan_forces(K, F, NAMES, here / "forces.png")
     plots.plot_plan_force_penetration(P, F, NAMES, here / "force_penetration.png")
-    with FigureWorker() as figures:
+    with FigureWorker("child") as figures:
         assert figures.in_child
         _draw_all(figures, there)
         figures.finish()
@@ -48,7 +41,7 @@ def test_the_child_draws_the_same_png_bytes_as_this_process(tmp_path):
 def test_a_failing_figure_raises_in_the_caller_and_the_others_are_still_drawn(tmp_path):
     """A figure whose data do not fit (three names, two force columns) raises the child's own
     error from finish(); the figure queued after it is written all the same."""
-    with FigureWorker() as figures:
+    with FigureWorker("child") as figures:
         figures.draw("plot_plan_forces", K, F[:, :2], NAMES, tmp_path / "bad.png")
         figures.draw("plot_plan_forces", K, F, NAMES, tmp_path / "good.png")
         with pytest.raises(Exception) as caught:
@@ -62,17 +55,15 @@ def test_a_failing_figure_raises_in_the_caller_and_the_others_are_still_drawn(tm
 
 @pytest.mark.parametrize("why", ["refused", "inline"])
 def test_figures_are_drawn_here_when_no_child_starts(tmp_path, monkeypatch, why):
-    """No child where the system refuses one, or where SOFTGRASP_FIGURES=inline asks for none:
-    the same files, drawn in this process."""
+    """No child where the system refuses one, or where the mode ``inline`` asks for none: the same
+    files, drawn in this process."""
 
     def refuse(*a, **k):
         raise OSError("no processes left")
 
     if why == "refused":
         monkeypatch.setattr(subprocess, "Popen", refuse)
-    else:
-        monkeypatch.setenv("SOFTGRASP_FIGURES", "inline")
-    with FigureWorker() as figures:
+    with FigureWorker("child" if why == "refused" else "inline") as figures:
         assert not figures.in_child
         _draw_all(figures, tmp_path)
         figures.finish()
@@ -84,7 +75,7 @@ def test_figures_are_drawn_here_when_no_child_starts(tmp_path, monkeypatch, why)
 def test_figures_the_child_did_not_draw_before_it_died_are_drawn_here(tmp_path, late):
     """Jobs sent, then the child killed while it still loads Matplotlib (before it read them):
     finish() finds it dead and draws them here; so is a job queued after its death."""
-    with FigureWorker() as figures:
+    with FigureWorker("child") as figures:
         _draw_all(figures, tmp_path)
         figures._proc.kill()
         figures._proc.wait()
@@ -99,7 +90,7 @@ def test_figures_the_child_did_not_draw_before_it_died_are_drawn_here(tmp_path, 
 
 
 def test_a_failed_command_stops_an_idle_child_at_once():
-    figures = FigureWorker()
+    figures = FigureWorker("child")
     proc = figures._proc
     with pytest.raises(RuntimeError), figures:
         raise RuntimeError("the plan failed")
@@ -115,7 +106,7 @@ signal.signal(signal.SIGPIPE, signal.SIG_DFL)
 import numpy as np
 from pathlib import Path
 from softgrasp.viz.worker import FigureWorker
-with FigureWorker() as figures:
+with FigureWorker("child") as figures:
     figures._proc.kill()
     figures._proc.wait()
     out = Path({str(tmp_path)!r}) / "f.png"
@@ -123,18 +114,23 @@ with FigureWorker() as figures:
     figures.finish()
 print("done")
 """
-    env = dict(os.environ, SOFTGRASP_FIGURES="child")
-    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env)
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "done"
     assert (tmp_path / "f.png").stat().st_size > 0
 
 
-@pytest.mark.parametrize(("idle", "child"), [(1, False), (2, True)])
-def test_auto_starts_a_child_only_with_a_second_idle_core(monkeypatch, idle, child):
-    import softgrasp.linalg.pardiso as pardiso
+@pytest.mark.parametrize(("cores", "child"), [(1, False), (2, True)])
+def test_auto_starts_a_child_only_with_a_second_core(monkeypatch, cores, child):
+    """``auto`` follows the thread count, a fixed rule (the cores this process may use, or the
+    fixed count), never the machine's momentary load."""
+    from softgrasp.linalg import threads
 
-    monkeypatch.setenv("SOFTGRASP_FIGURES", "auto")
-    monkeypatch.setattr(pardiso, "idle_cores", lambda: idle)
+    monkeypatch.setattr(threads, "_fixed", cores)
     with FigureWorker() as figures:
         assert figures.in_child == child
+
+
+def test_an_unknown_mode_is_refused():
+    with pytest.raises(ValueError, match="figure mode"):
+        FigureWorker("sometimes")

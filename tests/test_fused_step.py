@@ -521,21 +521,21 @@ def test_auto_threads_fall_back_when_two_threads_slow_down(monkeypatch):
     from softgrasp.linalg import pardiso
     from softgrasp.sim.explicit import FusedThreads
 
-    monkeypatch.setattr(pardiso, "_fixed_threads", None)
-    monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
+    monkeypatch.setattr(pardiso, "fixed_threads", lambda: None)
+    monkeypatch.setattr(pardiso, "choose_threads", lambda: 2)
     th = FusedThreads()
     assert th.choose() == 2 and th.chunk(2, 2000) == 32  # a short first chunk measures the speed
     th.record(2, 32, 32 * 1e-4)
     assert th.chunk(2, 2000) == round(th.chunk_seconds / 1e-4)
-    monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)  # our own waiting thread looks busy
+    monkeypatch.setattr(pardiso, "choose_threads", lambda: 1)  # our own waiting thread looks busy
     assert th.choose() == 2
     th.record(2, 200, 200 * 1e-2)  # 100x slower per step: another process holds a core
     assert th.choose() == 1 and th.chunk(1, 2000) == 2000
-    monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
+    monkeypatch.setattr(pardiso, "choose_threads", lambda: 2)
     assert th.choose() == 1  # for the rest of the run
-    monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)
+    monkeypatch.setattr(pardiso, "choose_threads", lambda: 1)
     assert FusedThreads().choose() == 1
-    monkeypatch.setattr(pardiso, "_fixed_threads", 2)
+    monkeypatch.setattr(pardiso, "fixed_threads", lambda: 2)
     assert FusedThreads().choose() == 2
 
 

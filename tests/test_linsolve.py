@@ -21,7 +21,10 @@ from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.linalg import pardiso
+from softgrasp.linalg import factored, krylov
 from softgrasp.linalg import solve as linsolve
+from softgrasp.linalg.multigrid import cycle, hierarchy
+from softgrasp.linalg.multigrid import krylov as mg_krylov
 from softgrasp.linalg.solve import SolverCache, solve_newton_system
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
@@ -42,7 +45,7 @@ def _stiffness(n: int = 4, shift: float = 1e-3) -> sp.csr_matrix:
 def test_factors_with_different_thread_counts_interleave():
     """Each factor keeps the thread count of its analysis (PARDISO crashes if it changes between
     phases): a one-thread and a two-thread factor used alternately both solve exactly; the
-    automatic choice stays between 1 and the cores."""
+    automatic choice is the cores this process may use."""
     K = _stiffness()
     b = np.random.default_rng(2).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
@@ -58,7 +61,7 @@ def test_factors_with_different_thread_counts_interleave():
                 np.testing.assert_allclose(f.solve(1.5 * b), want, rtol=1e-9, atol=0)
     finally:
         pardiso.set_threads(None)
-    assert 1 <= pardiso.idle_cores() <= len(__import__("os").sched_getaffinity(0))
+    assert pardiso.choose_threads() == (pardiso.fixed_threads() or len(os.sched_getaffinity(0)))
 
 
 @needs_mkl
@@ -94,24 +97,25 @@ def test_collected_factor_leaves_the_thread_count_alone():
     K = _stiffness()
     b = np.random.default_rng(4).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
-    lib = pardiso._library()
+    from softgrasp.linalg import mkl
+
     gc.collect()  # cycles left by earlier tests queue now; the next call releases them
     gc.disable()
     try:
         pardiso.set_threads(1)
         one = pardiso.PardisoFactor(K)
-        assert not pardiso._RELEASED
+        assert not mkl._RELEASED
         one.cycle = one  # only the cycle collector frees it
         pardiso.set_threads(2)
         two = pardiso.PardisoFactor(K)
         np.testing.assert_allclose(two.solve(b), want, rtol=1e-9, atol=0)
-        assert lib.MKL_Get_Max_Threads() == 2
+        assert mkl.max_threads() == 2
         del one
         gc.collect()
-        assert lib.MKL_Get_Max_Threads() == 2
-        assert len(pardiso._RELEASED) == 1
+        assert mkl.max_threads() == 2
+        assert len(mkl._RELEASED) == 1
         np.testing.assert_allclose(two.solve(b), want, rtol=1e-9, atol=0)
-        assert not pardiso._RELEASED
+        assert not mkl._RELEASED
     finally:
         gc.enable()
         pardiso.set_threads(None)
@@ -167,70 +171,40 @@ def test_factor_collected_during_another_factorisation_does_not_crash():
     assert out.stdout.strip() == "ok"
 
 
-@needs_mkl
-def test_auto_threads_drop_when_cores_get_busy(monkeypatch):
-    """With automatic threads, a factor analysed on two idle cores is analysed again with one
-    thread when later solves or factorisations find only one idle, and the solves slowed down,
-    ``BUSY_LOOKS`` looks in a row (another process started; not for a look or two, an instant's
-    runnable task, nor for a task that does not slow the solves), and keeps solving exactly."""
-    K = _stiffness()
-    b = np.random.default_rng(3).standard_normal(K.shape[0])
-    want = spla.spsolve(K.tocsc(), b)
+def test_auto_threads_are_a_fixed_rule_not_the_machine_load(monkeypatch):
+    """``auto`` is the cores this process may run on, whatever else runs; a number in
+    ``SOFTGRASP_THREADS`` (or :func:`set_threads`) fixes the count; the load is never read."""
+    from softgrasp.linalg import threads
+
+    monkeypatch.setattr(threads, "_fixed", None)
+    assert threads.choose_threads() == threads.cores() == len(os.sched_getaffinity(0))
+    monkeypatch.setenv("SOFTGRASP_THREADS", "3")
+    threads.set_threads(None)
+    assert threads.choose_threads() == 3 and threads.fixed_threads() == 3
+    threads.set_threads(1)
+    assert threads.choose_threads() == 1
+    monkeypatch.setenv("SOFTGRASP_THREADS", "auto")
+    threads.set_threads(None)
+    assert threads.fixed_threads() is None
+    monkeypatch.undo()
+    threads.set_threads(None)
+
+
+def test_mkl_is_found_where_the_mkl_wheel_installs_it():
+    """The library comes from the ``mkl`` distribution's own file list (no path setting), each
+    candidate once."""
+    from importlib.metadata import PackageNotFoundError, distribution
+
+    from softgrasp.linalg import mkl
+
+    names = mkl._candidates()
+    assert len(names) == len(set(names))
     try:
-        pardiso.set_threads(None)
-        monkeypatch.setattr(pardiso, "_fixed_threads", None)
-        monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
-        f = pardiso.PardisoFactor(K)
-        assert f._threads == 2
-        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-        monkeypatch.setattr(pardiso, "idle_cores", lambda: 1)
-        monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 3600.0)  # not looked at again yet
-        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-        assert f._threads == 2
-        monkeypatch.setattr(pardiso, "LOAD_CHECK_INTERVAL", 0.0)
-        monkeypatch.setattr(pardiso, "SLOW_SOLVE", math.inf)  # busy looks, but the solves stay fast
-        for _ in range(2 * pardiso.BUSY_LOOKS):
-            np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-            assert f._threads == 2
-        monkeypatch.setattr(pardiso, "SLOW_SOLVE", 0.0)  # every solve counts as slowed down
-        looks = iter([1, 2] + [1] * pardiso.BUSY_LOOKS)
-        monkeypatch.setattr(pardiso, "idle_cores", lambda: next(looks))
-        for _ in range(2 + pardiso.BUSY_LOOKS - 1):  # a busy look, an idle one, then busy ones
-            np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-            assert f._threads == 2
-        np.testing.assert_allclose(f.solve(b), want, rtol=1e-9, atol=0)
-        assert f._threads == 1
-        f.refactor(f.same_pattern(2.0 * K))
-        np.testing.assert_allclose(f.solve(2.0 * b), want, rtol=1e-9, atol=0)
-    finally:
-        monkeypatch.undo()
-        pardiso.set_threads(None)
-
-
-def test_idle_cores_leave_out_this_process_own_busy_threads():
-    """A thread of this process that computes (NumPy releases the GIL) is counted as this
-    process's own runnable thread, not as another process's load: an OpenMP thread spinning
-    after a solve must not make the machine look busy."""
-    import threading
-
-    a = np.random.default_rng(0).standard_normal((400, 400))
-    stop = threading.Event()
-
-    def busy() -> None:
-        while not stop.is_set():
-            a @ a
-
-    seen = []
-    worker = threading.Thread(target=busy)
-    worker.start()
-    try:
-        for _ in range(200):
-            seen.append(pardiso._own_runnable())
-    finally:
-        stop.set()
-        worker.join()
-    assert max(seen) >= 2  # the caller and the busy thread
-    assert min(seen) >= 1
+        wheel = [f for f in distribution("mkl").files or [] if f.name.startswith("libmkl_rt.so")]
+    except PackageNotFoundError:
+        pytest.skip("the mkl wheel is not installed")
+    assert wheel and os.path.normpath(wheel[0].locate()) in names
+    assert pardiso.available()
 
 
 @needs_mkl
@@ -280,7 +254,7 @@ def test_a_single_precision_factor_solves_to_single_precision_and_the_newton_sol
     cache = SolverCache(method="pardiso", precision="mixed")
     x, _ = solve_newton_system(K, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
     assert cache._factor.single_precision
-    assert np.linalg.norm(K @ x - b) <= linsolve.STALE_RTOL * np.linalg.norm(b)
+    assert np.linalg.norm(K @ x - b) <= krylov.STALE_RTOL * np.linalg.norm(b)
     assert np.abs(x - ref).max() <= 1e-6 * np.abs(ref).max()
 
 
@@ -335,6 +309,52 @@ def test_multigrid_cg_shifts_an_indefinite_stiffness_into_a_descent_step():
     assert min(res) < 1e-8, res
 
 
+def test_conjugate_gradients_breaking_down_raise_not_converged():
+    """A preconditioner that gives ``r^T M r = 0`` for a residual that is not zero makes conjugate
+    gradients divide by zero (the hand-written iteration raised ZeroDivisionError): SciPy's
+    iteration, watched, raises NotConverged instead."""
+    from softgrasp.errors import NotConverged
+
+    A = sp.identity(2, format="csr")
+    turn = np.array([[0.0, -1.0], [1.0, 0.0]])  # M r is orthogonal to r
+    with pytest.raises(NotConverged, match="broke down"):
+        krylov.cg(A, np.array([1.0, 0.0]), turn, 1e-10, 50)
+    x, it, curved = krylov.cg(A, np.array([1.0, 2.0]), sp.identity(2), 1e-12, 50)
+    assert not curved and it == 1 and np.allclose(x, [1.0, 2.0])
+
+
+@pytest.mark.parametrize("always", [False, True])
+def test_a_multigrid_breakdown_rebuilds_the_hierarchy_then_raises_not_converged(monkeypatch, always):
+    """A V-cycle that returns nothing (``r^T M r = 0``): the multigrid path builds the hierarchy
+    anew on the same matrix and solves with it; where the new one breaks down too, the solve
+    raises NotConverged (a softgrasp error the Newton iteration handles), never ZeroDivisionError."""
+    from softgrasp.errors import NotConverged
+
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    K = _stiffness()
+    b = np.random.default_rng(8).standard_normal(K.shape[0])
+    real = cycle.Multigrid.matvec
+    built: list[object] = []
+
+    def broken(self, r):
+        if not built or built[0] is self or always:
+            built.append(self) if not built else None
+            return np.zeros_like(r)
+        return real(self, r)
+
+    monkeypatch.setattr(cycle.Multigrid, "matvec", broken)
+    monkeypatch.setattr(cycle.Multigrid, "__matmul__", broken)
+    cache = SolverCache(method="amg")
+    if always:
+        with pytest.raises(NotConverged, match="broke down"):
+            solve_newton_system(K, b, None, np.asarray(body.mesh.points), cache)
+        assert cache.stats["multigrid_setups"] == 2
+        return
+    x, _ = solve_newton_system(K, b, None, np.asarray(body.mesh.points), cache)
+    assert cache.stats["multigrid_setups"] == 2
+    assert np.linalg.norm(K @ x - b) <= 1e-8 * np.linalg.norm(b)
+
+
 def _tipping(K: sp.csr_matrix) -> tuple[sp.csr_matrix, NDArray, float]:
     """K (in its own pattern) with its softest modes turned unstable (a body about to tip over on
     its few supports), the softest mode, and the first of the Newton solver's diagonal shifts tau
@@ -379,7 +399,7 @@ def test_pardiso_shifts_an_indefinite_held_stiffness_by_cholesky_alone(stale, pr
     assert float(b @ x) > 0
     assert cache.stats["indefinite_factor"] == 1 and cache.stats["shifted"] == 1
     assert all(mtype != pardiso.SYMMETRIC_INDEFINITE for mtype, _ in f._pts)  # never analysed for LDL^T
-    shifts = round(math.log10(tau / linsolve.INDEFINITE_SHIFT)) + 1  # factorisations of A + tau D
+    shifts = round(math.log10(tau / krylov.INDEFINITE_SHIFT)) + 1  # factorisations of A + tau D
     per_failure = 2 if precision == "mixed" else 1
     failures = shifts - 1 + (0 if stale else 1)  # the failed shifts, and A's own Cholesky
     assert cache.stats["factorisations"] == 1 + 1 + per_failure * failures
@@ -481,7 +501,7 @@ def test_gmres_on_a_singular_operator_returns_a_least_squares_step_not_a_blown_u
     n = 60
     A = np.diag(np.r_[np.zeros(3), np.linspace(1.0, 2.0, n - 3)])
     b = np.random.default_rng(1).standard_normal(n)
-    x = linsolve._gmres(lambda v: A @ v, b, lambda v: v, 80, 1e-8)
+    x = krylov.gmres(lambda v: A @ v, b, lambda v: v, 80, 1e-8)
     want = np.linalg.lstsq(A, b, rcond=None)[0]
     assert x is not None
     assert np.linalg.norm(A @ x - b) == pytest.approx(np.linalg.norm(A @ want - b), rel=1e-8)
@@ -662,13 +682,13 @@ def test_multigrid_newton_reaches_the_direct_rest_with_its_solves_stopped_at_the
     body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
     scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=1.0, name="table"),))
     asked: list[float] = []
-    cg = linsolve._cg
+    cg = mg_krylov.cg
 
-    def spy(A, b, M, proj, rtol, max_it):
+    def spy(A, b, M, rtol, max_it):
         asked.append(rtol)
-        return cg(A, b, M, proj, rtol, max_it)
+        return cg(A, b, M, rtol, max_it)
 
-    monkeypatch.setattr(linsolve, "_cg", spy)
+    monkeypatch.setattr(mg_krylov, "cg", spy)
     rests = {}
     for method in ("amg", "direct"):
         cache = SolverCache(method=method)
@@ -704,7 +724,7 @@ def test_the_old_factor_corrected_for_new_contacts_is_the_new_matrix_inverse():
     """A0 factorised, then six nodes touch a table (a penalty 50 times their stiffness): the
     Woodbury-corrected old factor applied to b is A^-1 b, as fresh LU gives it, for A the new
     matrix (the difference lies on those nodes only). The plain old factor is far from it."""
-    from softgrasp.linalg.solve import _Corrected
+    from softgrasp.linalg.factored import _Corrected
 
     K = _stiffness()
     f = pardiso.PardisoFactor(K)
@@ -733,7 +753,7 @@ def test_the_old_factor_corrected_for_new_contacts_is_the_new_matrix_inverse():
 def test_the_old_factor_is_not_corrected_where_stiffness_was_taken_away():
     """The table removed (the hold check's release): the factor of the matrix with the table is
     used as it is (correcting it could give a nearly singular matrix)."""
-    from softgrasp.linalg.solve import _Corrected
+    from softgrasp.linalg.factored import _Corrected
 
     K = _stiffness()
     A0 = (K + _table_blocks(K, [0, 3, 7], 50.0)).tocsr()
@@ -750,7 +770,7 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
     """A system solved on the old factor with more than half the iteration cap (a quarter of a
     refactorisation's cost) has the next system refactorise first; one solved in fewer keeps the
     factor. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
-    import softgrasp.linalg.solve as ls
+    import softgrasp.linalg.factored as ls
 
     K = _stiffness()
     b = np.random.default_rng(5).standard_normal(K.shape[0])
@@ -764,7 +784,7 @@ def test_an_old_factor_that_needed_many_iterations_is_renewed_before_the_next_sy
             pre.solve(rhs)
         return spla.spsolve(A.tocsc(), rhs), False
 
-    monkeypatch.setattr(ls, "_stale_pcg", stand_in)
+    monkeypatch.setattr(ls, "stale_pcg", stand_in)
     K2 = (1.01 * K).tocsr()
     before = cache.stats["factorisations"]
     solve_newton_system(K2, b, None, np.zeros((K.shape[0] // 3, 3)), cache)
@@ -779,7 +799,7 @@ def test_an_old_factor_is_renewed_once_its_extra_solves_add_up_to_a_refactorisat
     the solves they took beyond what the factor's own system took add up to a refactorisation's
     time (``SOLVE_SPEED_RATIO`` x its operation count in solves): then the next system
     refactorises. (The iterations are stood in for: each 'iteration' one solve with the factor.)"""
-    import softgrasp.linalg.solve as ls
+    import softgrasp.linalg.factored as ls
 
     K = _stiffness()
     b = np.random.default_rng(12).standard_normal(K.shape[0])
@@ -799,7 +819,7 @@ def test_an_old_factor_is_renewed_once_its_extra_solves_add_up_to_a_refactorisat
             pre.solve(rhs)
         return spla.spsolve(A.tocsc(), rhs), False
 
-    monkeypatch.setattr(ls, "_stale_pcg", stand_in)
+    monkeypatch.setattr(ls, "stale_pcg", stand_in)
     before = cache.stats["factorisations"]
     K2 = (1.01 * K).tocsr()
     for _ in range(kept + 1):
@@ -841,7 +861,7 @@ def test_a_changed_scene_refactorises_at_once(monkeypatch, told, precision):
 def test_the_kept_correction_columns_stay_bounded_as_contacts_move():
     """Contacts that move over the surface on one factor (new nodes each system) do not pile up
     columns: past six times the most corrected nodes' worth, only the current nodes' are kept."""
-    import softgrasp.linalg.solve as ls
+    import softgrasp.linalg.factored as ls
 
     K = _stiffness()
     f = pardiso.PardisoFactor(K)
@@ -870,7 +890,10 @@ def test_numpy_blas_runs_on_one_thread_while_pardiso_may_run_on_two():
     def apis() -> dict[str, str]:
         return {i["filepath"]: i["internal_api"] for i in threadpoolctl.threadpool_info()}
 
-    if pardiso._openblas() is None or pardiso._cores() < 2:
+    from softgrasp.linalg import mkl as mkl_library
+    from softgrasp.linalg.threads import cores
+
+    if mkl_library._openblas() is None or cores() < 2:
         pytest.skip("needs NumPy on OpenBLAS and two cores")
     K = _stiffness()
     pardiso.set_threads(2)
@@ -917,7 +940,7 @@ def test_a_single_precision_solve_of_a_tiny_right_hand_side_is_not_flushed_to_ze
         assert np.linalg.norm(K @ xt - b * tiny) <= 1e-2 * tiny * np.linalg.norm(b)
     cache = SolverCache(method="pardiso", precision="mixed")
     x, _ = solve_newton_system(K, b * 1e-40, None, np.zeros((K.shape[0] // 3, 3)), cache)
-    assert np.linalg.norm(K @ x - b * 1e-40) <= linsolve.STALE_RTOL * 1e-40 * np.linalg.norm(b)
+    assert np.linalg.norm(K @ x - b * 1e-40) <= krylov.STALE_RTOL * 1e-40 * np.linalg.norm(b)
 
 
 @needs_mkl
@@ -937,7 +960,7 @@ def test_a_failed_first_solve_of_a_new_factor_leaves_no_stale_renewal_count(monk
     def fail(*args, **kwargs):
         raise NotConverged("stand-in")
 
-    monkeypatch.setattr(linsolve, "_fresh_solve", fail)
+    monkeypatch.setattr(factored, "_fresh_solve", fail)
     cache.scene_changed()  # the next system refactorises
     with pytest.raises(NotConverged):
         solve_newton_system((1.1 * K).tocsr(), b, None, x_nodes, cache)
@@ -982,9 +1005,9 @@ def test_hierarchies_built_by_threads_at_once_are_those_built_alone():
 
     from softgrasp.linalg import solve as linsolve
     A0, A1, x = _table_then_plate(5)
-    alone = [linsolve._hierarchy(A, x) for A in (A0, A1)]
+    alone = [hierarchy.hierarchy(A, x) for A in (A0, A1)]
     with ThreadPoolExecutor(4) as pool:
-        built = list(pool.map(lambda k: linsolve._hierarchy((A0, A1)[k % 2], x), range(16)))
+        built = list(pool.map(lambda k: hierarchy.hierarchy((A0, A1)[k % 2], x), range(16)))
     for k, ml in enumerate(built):
         want = alone[k % 2]
         for a, b in zip(ml.levels[:-1], want.levels[:-1], strict=True):
@@ -1001,8 +1024,8 @@ def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own(finishe
     from softgrasp.linalg import solve as linsolve
     A0, _, x = _table_then_plate(3)
     ctx = multiprocessing.get_context("fork")
-    with linsolve._GLOBAL_RNG:  # held, as by another thread building, when the child is forked
-        child = ctx.Process(target=linsolve._hierarchy, args=(A0, x))
+    with hierarchy._GLOBAL_RNG:  # held, as by another thread building, when the child is forked
+        child = ctx.Process(target=hierarchy.hierarchy, args=(A0, x))
         child.start()
     assert finished_ok(child)
 
@@ -1093,16 +1116,15 @@ def test_the_cache_counts_systems_set_ups_and_v_cycles_as_conjugate_gradients_ap
     hierarchy are two systems and one set-up, and the V-cycles counted are the preconditioner
     applications conjugate gradients made, one per iteration (the first before the loop, none
     after the last), counted independently by a wrapper around the V-cycle."""
-    from softgrasp.linalg import solve as linsolve
     applied = []
-    real = linsolve._Multigrid._cycle
+    real = cycle.Multigrid._cycle
 
-    def cycle(self, lvl, b):
+    def counted(self, lvl, b):
         if lvl == 0:
             applied.append(1)
         return real(self, lvl, b)
 
-    monkeypatch.setattr(linsolve._Multigrid, "_cycle", cycle)
+    monkeypatch.setattr(cycle.Multigrid, "_cycle", counted)
     cache, *_ = _both_on_one_hierarchy(8, 1e-8, seed=3)
     assert cache.stats["systems"] == 2 and cache.stats["multigrid_setups"] == 1
     assert cache.stats["multigrid_cycles"] == len(applied) == sum(cache.iterations) > 2
@@ -1123,7 +1145,7 @@ def test_multigrid_gmres_applies_the_exact_product_with_the_compiled_matrix_prod
     the multigrid's product of the assembled matrix plus the exact product's finite-difference
     correction, equal to the exact product itself to rounding, at every application."""
     calls = []
-    fast = linsolve._fast_exact
+    fast = mg_krylov._fast_exact
 
     def checked(fine, correction, v):
         got = fast(fine, correction, v)
@@ -1131,7 +1153,7 @@ def test_multigrid_gmres_applies_the_exact_product_with_the_compiled_matrix_prod
         calls.append(float(np.abs(got - want).max() / np.abs(want).max()))
         return got
 
-    monkeypatch.setattr(linsolve, "_fast_exact", checked)
+    monkeypatch.setattr(mg_krylov, "_fast_exact", checked)
     _pressed("amg")
     assert len(calls) > 5
     assert max(calls) <= 1e-12, max(calls)

@@ -13,7 +13,8 @@ from softgrasp import backend
 from softgrasp.physics.body import build_body
 from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box
-from softgrasp.linalg import solve as linsolve
+from softgrasp.linalg.multigrid import hierarchy
+from softgrasp.linalg.multigrid import krylov as mg_krylov
 from softgrasp.linalg.solve import SolverCache
 
 pytestmark = pytest.mark.skipif("numba" not in backend.available(), reason="Numba is not installed")
@@ -58,7 +59,7 @@ def test_a_hybrid_sweep_on_a_matrix_without_couplings_between_blocks_is_gauss_se
     Gauss-Seidel itself: pyamg's forward and backward sweeps, to rounding."""
     from pyamg.relaxation.relaxation import gauss_seidel
 
-    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.smoothers import SWEEP_PARTS, HybridGaussSeidel
 
     A, _ = _cube_system(4)
     n = A.shape[0]
@@ -96,7 +97,7 @@ def test_l1_hybrid_sweeps_converge_where_plain_hybrid_ones_diverge():
     1.085); with each row's couplings to the other block added to its diagonal (the l1 term),
     M + M^T - A is positive definite and the compiled sweeps converge to A^-1 b, the error's
     energy norm falling at every sweep, forward and backward."""
-    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.smoothers import SWEEP_PARTS, HybridGaussSeidel
 
     B = np.array([[-0.7, -0.1], [0.8, 1.5], [-1.3, 1.5], [1.3, 0.8], [0.3, -0.3], [1.5, 2.0]])
     A = B @ B.T + 0.05 * np.eye(6)
@@ -129,7 +130,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     (l1 hybrid sweeps forward before the coarse correction, backward after); and the same
     hierarchy and cycle, to the bit, whatever the thread count and from one build to the next
     (pyamg's random start seeded, the caller's generator left as it was)."""
-    from softgrasp.linalg.sparse import BlockGaussSeidel, HybridBlockGaussSeidel
+    from softgrasp.linalg.smoothers import BlockGaussSeidel, HybridBlockGaussSeidel
 
     A, x_nodes = _cube_system(12, local=True)
     rng = np.random.default_rng(5)
@@ -138,7 +139,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     np.random.random(3)
     state = np.random.get_state()
     with backend.use_backend("numba"):
-        M = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+        M = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
     after = np.random.get_state()
     assert np.array_equal(after[1], state[1]) and after[2:] == state[2:]
     assert len(M.ml.levels) == 3 and M._sweeps[0].parts == 2  # the coarse recursion, two blocks
@@ -149,7 +150,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     results = []
     with backend.use_backend("numba"):
         for threads in (1, 2):
-            other = linsolve._multigrid(A, x_nodes, SolverCache(method="amg"))
+            other = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
             other.use(A, threads)
             results.append(other @ u)
     assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], Mu)
@@ -165,13 +166,13 @@ def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
     r = np.random.default_rng(6).standard_normal(A.shape[0])
     cache = SolverCache(method="amg")
     with backend.use_backend("numba"):
-        linsolve._multigrid(A, x_nodes, cache)
+        mg_krylov.multigrid(A, x_nodes, cache)
     with backend.use_backend("numpy"):
-        M = linsolve._multigrid(A2, x_nodes, cache)
+        M = mg_krylov.multigrid(A2, x_nodes, cache)
         got = M @ r
     assert len(M.ml.levels) == 3 and M.ml.levels[0].A is A2
     # pyamg's own cycle on the same (seeded) hierarchy, its finest level swapped as softgrasp's
-    reference = linsolve._hierarchy(A, x_nodes)
+    reference = hierarchy.hierarchy(A, x_nodes)
     reference.levels[0].A = A2
     want = reference.aspreconditioner(cycle="V").matvec(r)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
@@ -183,7 +184,7 @@ def test_a_matrix_not_numbered_for_locality_is_swept_as_one_block():
     same box renumbered for locality is swept in two."""
     from pyamg.relaxation.relaxation import gauss_seidel
 
-    from softgrasp.linalg.sparse import SWEEP_PARTS, HybridGaussSeidel
+    from softgrasp.linalg.smoothers import SWEEP_PARTS, HybridGaussSeidel
 
     A, _ = _cube_system(8)
     sweeps = HybridGaussSeidel(A, threads=2)
@@ -241,7 +242,7 @@ def test_the_block_sweeps_are_pyamgs_block_gauss_seidel_and_converge():
     such matrices) to the solution of the system solved directly."""
     from pyamg.relaxation.relaxation import block_gauss_seidel
 
-    from softgrasp.linalg.sparse import BlockGaussSeidel
+    from softgrasp.linalg.smoothers import BlockGaussSeidel
 
     rng = np.random.default_rng(12)
     G = _random_bsr(25, 25, (6, 6), seed=3).tocsr()
@@ -292,12 +293,12 @@ def test_node_block_sweeps_and_products_are_their_definition_and_the_same_bits_o
     solved densely; the same bits on one thread or two; repeated symmetric sweeps converge (the
     l1 term keeps M + M^T - A positive definite). A matrix that is not made of full node blocks
     keeps the row-wise sweeps."""
-    from softgrasp.linalg.sparse import (
+    from softgrasp.linalg.sparse import node_blocks
+    from softgrasp.linalg.smoothers import (
         SWEEP_PARTS,
         HybridBlockGaussSeidel,
         HybridGaussSeidel,
         fine_smoother,
-        node_blocks,
     )
 
     A, _ = _cube_system(5, local=True)
@@ -389,7 +390,8 @@ def test_a_node_block_that_is_not_positive_definite_is_left_alone():
     """As the row-wise sweep leaves a row whose l1 diagonal is not positive, the node-block sweep
     leaves a node whose (l1) diagonal block is not positive definite: its unknowns unchanged, the
     others updated."""
-    from softgrasp.linalg.sparse import HybridBlockGaussSeidel, node_blocks
+    from softgrasp.linalg.sparse import node_blocks
+    from softgrasp.linalg.smoothers import HybridBlockGaussSeidel
 
     D = np.diag([2.0, 2.0, 2.0, -1.0, -1.0, -1.0, 3.0, 3.0, 3.0])
     D[0, 1] = D[1, 0] = 0.5
@@ -409,7 +411,8 @@ def test_the_compiled_diagonal_is_scipys_with_duplicates_and_unsorted_indices():
     reads each Newton matrix's diagonal to find the nodes contacts stiffened) against SciPy's
     ``diagonal()``: duplicate entries summed, each row's entries in reverse order, rows without a
     diagonal entry 0."""
-    from softgrasp.linalg.sparse import HybridBlockGaussSeidel, HybridGaussSeidel, diagonal, fine_smoother
+    from softgrasp.linalg.sparse import diagonal
+    from softgrasp.linalg.smoothers import HybridBlockGaussSeidel, HybridGaussSeidel, fine_smoother
 
     A, _ = _cube_system(5)
     assert np.array_equal(diagonal(A), A.diagonal())
@@ -442,7 +445,7 @@ def test_block_sweeps_with_some_diagonal_blocks_changed_in_place():
     from pyamg.relaxation.relaxation import block_gauss_seidel
     from pyamg.util.utils import get_block_diag
 
-    from softgrasp.linalg.sparse import BlockGaussSeidel
+    from softgrasp.linalg.smoothers import BlockGaussSeidel
 
     G = _random_bsr(20, 20, (6, 6), seed=5).tocsr()
     A = (G @ G.T + 5.0 * sp.eye(G.shape[0])).tobsr(blocksize=(6, 6))

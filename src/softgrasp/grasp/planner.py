@@ -55,6 +55,7 @@ def plan_grasp(
     config: PlanConfig = PlanConfig(),  # noqa: B008 - frozen dataclass
     *,
     progress: Callable[[float], None] | None = None,
+    cache: SolverCache | None = None,
 ) -> GraspPlan:
     """Plan a three-finger grasp of ``body`` resting on a table (paper steps 1-2).
 
@@ -62,6 +63,7 @@ def plan_grasp(
     ----------
     body: the object.  config: everything else (:class:`PlanConfig`).
     progress: called with the fraction of the largest allowed travel reached after each increment.
+    cache: the linear solves' state (its ``method`` chooses the solver); a fresh one if None.
 
     Raises
     ------
@@ -69,14 +71,15 @@ def plan_grasp(
     NotConverged: an increment found no static equilibrium even when split.
     """
     with pardiso.blas_one_thread():
-        return _plan_grasp(body, config, progress)
+        return _plan_grasp(body, config, progress, SolverCache() if cache is None else cache)
 
 
-def _plan_grasp(body: Body, config: PlanConfig, progress: Callable[[float], None] | None) -> GraspPlan:
+def _plan_grasp(
+    body: Body, config: PlanConfig, progress: Callable[[float], None] | None, cache: SolverCache
+) -> GraspPlan:
     t0 = time.perf_counter()
     cfg = config
     mu = cfg.contact.mu
-    cache = SolverCache()
     setup = closing_setup(body, cfg, cache)  # step 1
     ig, placement, start, first = setup.grasp, setup.placement, setup.start, setup.first_touch
     closing = Closing(body, cfg, setup, cache, progress)  # step 2

@@ -8,72 +8,41 @@ factorisation (phase 11), the numerical factorisation (22) and the triangular so
 :class:`PardisoFactor` runs phase 11 once for a pattern (and matrix type) and phase 22 for every
 new matrix of that pattern: as matrix type 2 (Cholesky) while the matrices are positive definite,
 as type -2 (real symmetric indefinite, Bunch-Kaufman pivoting) when one is not (a stiffness may
-lose definiteness under compression, or be singular while a body is not held). At 7 576 nodes
-the default plan took 10.1 s against 11.7 s with LDL^T throughout (alternating runs); at 2 196
-nodes, whose settle leans through indefinite matrices, the two were level. The Newton solver needs
-no inertia of an indefinite matrix, only a factor of its diagonally shifted, positive definite
-neighbour: it stops at Cholesky's failure (``refactor(..., stop_if_indefinite=True)``) and
-factorises the shift by :meth:`PardisoFactor.refactor_positive` (the default plan's settle at 2 196
-nodes: 8 -> 6 factorisations and no LDL^T analysis, 1.35-1.40 -> 1.20-1.25 s a plan on one thread).
+lose definiteness under compression, or be singular while a body is not held). The Newton solver
+needs no inertia of an indefinite matrix, only a factor of its diagonally shifted, positive
+definite neighbour: it stops at Cholesky's failure (``refactor(..., stop_if_indefinite=True)``)
+and factorises the shift by :meth:`PardisoFactor.refactor_positive`.
 
 Mixed precision (``PardisoFactor(A, single=True)``, softgrasp's Newton solves by default): the
 Cholesky factor is computed and applied in single precision (PARDISO's ``iparm[27]``), and the
-caller refines every solve against the double-precision matrix (conjugate gradients or GMRES, as
-it always did with an older factor used as a preconditioner). A factorisation takes ~0.63 of the
-time, a solve ~0.67, the factor half the memory (2 196 nodes, one thread: 21 vs 33 ms and 0.54 vs
-0.80 ms); the default plan there needed 30 more solves (232 vs 202: a fresh factor's own system is
-refined to 1e-11) and ran 0.87-0.88 s against 0.99-1.04 s with double factors on two threads, the
-same set-points to 1e-12. Where float32 cannot resolve
-a matrix's pivots (the smallest below :data:`SINGLE_PIVOT_FLOOR` of its diagonal entry) or its
-Cholesky fails, the double factorisation is made and decides, so that whether a matrix counts as
-positive definite, indefinite or singular does not depend on the precision.
+caller refines every solve against the double-precision matrix (conjugate gradients or GMRES).
+A factorisation and a solve take about two thirds of the time, the factor half the memory. Where
+float32 cannot resolve a matrix's pivots (the smallest below :data:`SINGLE_PIVOT_FLOOR` of its
+diagonal entry) or its Cholesky fails, the double factorisation is made and decides, so that
+whether a matrix counts as positive definite, indefinite or singular does not depend on the
+precision.
 
-The library comes from the ``mkl`` wheel (x86_64); :func:`available` says whether it loaded, and
-:mod:`softgrasp.linalg.solve` falls back to multigrid-preconditioned CG where it did not.
-
-Threads (``SOFTGRASP_THREADS``: a number, or ``auto``, the default): PARDISO's OpenMP threads wait
-for each other by spinning, so they pay only on cores nobody else is using. On this 2-core machine
-two threads made the default plan at 2 196 nodes 1.4x faster when it was idle and 2x slower with
-one other busy process (40x for a single solve in another measurement). ``auto`` therefore
-chooses, when a pattern is analysed (PARDISO keeps that count through every later phase of the
-pattern: changing it in between crashed MKL here), as many threads as there are cores not running
-another process at that moment (Linux's count of runnable tasks in ``/proc/loadavg`` less this
-process's own runnable threads; one thread where that is not available), and analyses again with
-fewer threads when solves or factorisations find fewer cores idle several looks in a row (other
-work started: two threads then made each solve ~10x slower here). MKL runs on Intel's OpenMP
-runtime, whose idle threads spin for ``KMP_BLOCKTIME`` (its default 200 ms) after a solve before
-they sleep: a Newton iteration's solves come faster than that, between other work, and each found
-the threads awake. Measured on the default plan at 2 196 nodes, idle machine: with the threads
-asleep at once (``KMP_BLOCKTIME=0``) a two-thread solve took 2.1 ms and a factorisation 32 ms,
-slower than one thread; after 1 ms of spinning 1.6 ms; after 50-200 ms, 0.85-0.95 ms and 25 ms.
-Their spinning is this process's own work, not another's: the looks leave it out.
-:func:`set_threads` fixes a number.
+The library and the calls are :mod:`softgrasp.linalg.mkl`'s; a factor runs on the thread count
+:mod:`softgrasp.linalg.threads` gives when its pattern is analysed, through every later phase.
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
-import glob
 import hashlib
 import math
-import os
-import sys
 import threading
-import time
-from collections.abc import Iterator
-from ctypes.util import find_library
-from functools import cache
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread", "idle_cores", "set_threads"]
+from softgrasp.linalg import mkl
+from softgrasp.linalg.mkl import PardisoError, available, blas_one_thread
+from softgrasp.linalg.threads import choose_threads, fixed_threads, set_threads
 
-
-#: MKL's code for its Intel OpenMP threading layer (``MKL_Set_Threading_Layer``).
-MKL_THREADING_INTEL = 0
+# What callers reach through this module: the factor, its error, MKL's state and the threads.
+__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread"]
+__all__ += ["choose_threads", "fixed_threads", "set_threads"]
 
 #: PARDISO's matrix type for real symmetric indefinite matrices (LDL^T, Bunch-Kaufman pivoting).
 SYMMETRIC_INDEFINITE = -2
@@ -86,10 +55,8 @@ SPD_RETRY = 4
 #: A Cholesky factorisation with a pivot below this fraction of its matrix's diagonal entry counts
 #: as not positive definite: PARDISO's Cholesky of a singular positive semi-definite stiffness
 #: (a body not held: rigid motions free) succeeds with pivots ~1e-14 of the diagonal, reports
-#: nothing, and its solves blow the free motions up. Such a matrix then gets the LDL^T factor it
-#: had before Cholesky was used. (LDL^T does not flag it either: its pivot perturbation does not
-#: scale with the matrix; a free foam cube's stiffness, diagonal ~1e5 N/m, gives
-#: :attr:`PardisoFactor.perturbed_pivots` 0, the same matrix times 1e-9 gives 6.)
+#: nothing, and its solves blow the free motions up. Such a matrix then gets an LDL^T factor
+#: (whose pivot perturbation, not scaled with the matrix, need not flag it either).
 SPD_PIVOT_RTOL = 1e-8
 #: A single-precision Cholesky factor (``PardisoFactor(..., single=True)``) is kept only when its
 #: smallest pivot is at least this fraction of its matrix's diagonal entry; otherwise the matrix is
@@ -97,257 +64,11 @@ SPD_PIVOT_RTOL = 1e-8
 #: singular) exactly as without single precision. A pivot d_k = a_kk - sum_j l_kj^2 d_j carries a
 #: rounding error of about (a few) x float32's eps (6e-8) x a_kk, i.e. a relative error of
 #: ~1e-7 / (d_k / a_kk): above this floor the single pivots are known to within a few percent, so
-#: the single factor's verdict cannot differ from the double one's. The default plan's Cholesky
-#: factors have ratios of 1e-2-2e-1 (2 196 nodes).
+#: the single factor's verdict cannot differ from the double one's.
 SINGLE_PIVOT_FLOOR = 1e-4
 #: PARDISO's error code for a zero or negative pivot (a Cholesky of a matrix that is not positive
 #: definite).
 _ZERO_PIVOT = -4
-
-_ERRORS = {
-    -1: "input inconsistent",
-    -2: "not enough memory",
-    -3: "reordering problem",
-    -4: "zero pivot, numerical factorisation or iterative refinement problem",
-    -5: "unclassified (internal) error",
-    -6: "reordering failed",
-    -7: "diagonal matrix is singular",
-    -8: "32-bit integer overflow problem",
-    -9: "not enough memory for out-of-core solver",
-    -10: "error opening out-of-core files",
-    -11: "read/write error with out-of-core files",
-}
-
-
-class PardisoError(RuntimeError):
-    """PARDISO reported an error (the message gives its code and meaning; ``code``: PARDISO's
-    error code, None where PARDISO was not called)."""
-
-    def __init__(self, message: str, code: int | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-
-
-#: Seconds between two looks at the machine's load from one factor's solves (reading
-#: ``/proc/loadavg`` cost ~0.2 ms here, as much as a fifth of a solve at 2 000 nodes).
-LOAD_CHECK_INTERVAL = 0.02
-#: Consecutive looks that must find fewer idle cores before a factor drops threads, and looks
-#: taken when a pattern is analysed (the most idle cores seen counts). On the idle machine about
-#: 1 look in 100 sees a second runnable task for an instant (a system daemon): one look made
-#: most plans at 2 196 nodes drop to one thread for good within their first second.
-BUSY_LOOKS = 3
-#: A look that finds fewer idle cores counts only when the last solve took more than this many
-#: times the fastest of the factor's thread count (a core another process holds made two-thread
-#: solves ~10x slower here; the default plan at 7 576 nodes, on the idle machine, dropped a thread
-#: half-way for a kernel thread's runnable moments without it).
-SLOW_SOLVE = 2.0
-
-
-def _configured_threads() -> int | None:
-    """The thread count ``SOFTGRASP_THREADS`` fixes, or None for ``auto``."""
-    value = os.environ.get("SOFTGRASP_THREADS", "auto").strip().lower()
-    if value in ("", "auto"):
-        return None
-    try:
-        return max(1, int(value))
-    except ValueError:
-        return None
-
-
-_fixed_threads: int | None = _configured_threads()
-_current_threads = 0
-
-
-def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def _own_runnable() -> int:
-    """This process's threads that are running or runnable right now (>= 1: the caller's)."""
-    n = 0
-    for tid in os.listdir("/proc/self/task"):
-        try:
-            with open(f"/proc/self/task/{tid}/stat", encoding="ascii") as fh:
-                stat = fh.read()
-        except OSError:  # the thread ended
-            continue
-        n += stat[stat.rindex(")") + 2] == "R"
-    return max(n, 1)
-
-
-def idle_cores() -> int:
-    """Cores available to this process that no other process is running on right now (>= 1):
-    the cores minus the runnable tasks (``/proc/loadavg``) that are not this process's threads
-    (its own OpenMP threads spinning after a solve are not someone else's work); 1 where the
-    counts cannot be read."""
-    try:
-        with open("/proc/loadavg", encoding="ascii") as fh:
-            runnable = int(fh.read().split()[3].split("/")[0])
-        own = _own_runnable()
-    except (OSError, ValueError, IndexError):
-        return 1
-    return max(1, min(_cores(), _cores() - max(runnable - own, 0)))
-
-
-def choose_threads() -> int:
-    """Thread count for a new factor (and for the multigrid path's compiled products): fixed, or
-    ``auto``: the idle cores (the most of :data:`BUSY_LOOKS` looks: another process that runs is
-    seen in every look)."""
-    if _fixed_threads is not None:
-        return _fixed_threads
-    return max(idle_cores() for _ in range(BUSY_LOOKS))
-
-
-def _use_threads(lib: ctypes.CDLL, n: int) -> None:
-    global _current_threads
-    if n != _current_threads:
-        lib.MKL_Set_Num_Threads(ctypes.c_int(n))
-        _current_threads = n
-
-
-#: Every PARDISO call and thread-count change is made holding this lock, so that calls from
-#: several Python threads keep :data:`_current_threads` the count of the call being made (a
-#: numerical factorisation run with another count than its pattern's analysis crashes MKL: a
-#: segmentation fault, reproduced here; solves survived it).
-_LOCK = threading.RLock()
-#: Handles of collected factors waiting to be released: (handle, thread count, matrix type, the
-#: arrays the handle was made with). A finaliser only appends here; the next PARDISO call
-#: releases them.
-_RELEASED: list[tuple[NDArray[np.int64], int, int, tuple[NDArray, ...]]] = []
-
-
-def _arguments(
-    pt: NDArray[np.int64],
-    mtype: int,
-    phase: int,
-    data: NDArray,
-    indptr: NDArray[np.int32],
-    indices: NDArray[np.int32],
-    iparm: NDArray[np.int32],
-    rhs: NDArray,
-    x: NDArray,
-    err: ctypes.c_int32,
-    perm: NDArray[np.int32] | None = None,
-) -> tuple:
-    """The sixteen arguments of one ``pardiso`` call (one right-hand side, no messages; ``data``,
-    ``rhs`` and ``x`` in float32 where ``iparm[27]`` = 1, else float64)."""
-    return (
-        pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-        ctypes.byref(ctypes.c_int32(1)),  # maxfct
-        ctypes.byref(ctypes.c_int32(1)),  # mnum
-        ctypes.byref(ctypes.c_int32(mtype)),
-        ctypes.byref(ctypes.c_int32(phase)),
-        ctypes.byref(ctypes.c_int32(indptr.size - 1)),  # n
-        data.ctypes.data_as(_DBL),
-        indptr.ctypes.data_as(_INT),
-        indices.ctypes.data_as(_INT),
-        None if perm is None else perm.ctypes.data_as(_INT),  # fill-in reducing ordering
-        ctypes.byref(ctypes.c_int32(1)),  # nrhs
-        iparm.ctypes.data_as(_INT),
-        ctypes.byref(ctypes.c_int32(0)),  # msglvl
-        rhs.ctypes.data_as(_DBL),
-        x.ctypes.data_as(_DBL),
-        ctypes.byref(err),
-    )
-
-
-def _release_pending(lib: ctypes.CDLL) -> None:
-    """Release the memory of collected factors (phase -1, each with its own thread count).
-    Called holding :data:`_LOCK`, before a call sets its own thread count."""
-    while _RELEASED:
-        pt, threads, mtype, (data, indptr, indices, iparm) = _RELEASED.pop()
-        _use_threads(lib, threads)
-        dummy = np.zeros(1)
-        lib.pardiso(*_arguments(pt, mtype, -1, data, indptr, indices, iparm, dummy, dummy, ctypes.c_int32(0)))
-
-
-@cache
-def _library() -> ctypes.CDLL | None:
-    """MKL's single dynamic library, or None where it is not installed."""
-    names = [os.environ.get("SOFTGRASP_MKL_RT"), find_library("mkl_rt")]
-    names += sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
-    for name in names:
-        if not name:
-            continue
-        try:
-            lib = ctypes.CDLL(name)
-            lib.pardiso  # noqa: B018 - the symbol must exist
-            if not os.environ.get("MKL_THREADING_LAYER"):
-                # Intel's OpenMP runtime (shipped with MKL) whatever was loaded before: MKL
-                # otherwise takes GNU OpenMP where another library (gmsh) loaded it, which
-                # KMP_BLOCKTIME does not reach. Before any other MKL call.
-                lib.MKL_Set_Threading_Layer(ctypes.c_int(MKL_THREADING_INTEL))
-            return lib
-        except (OSError, AttributeError):
-            continue
-    return None
-
-
-def set_threads(n: int | None) -> None:
-    """Number of threads of the factorisations analysed from now on (>= 1); None: as
-    ``SOFTGRASP_THREADS`` says (a number, or ``auto``)."""
-    global _fixed_threads
-    _fixed_threads = _configured_threads() if n is None else max(1, int(n))
-
-
-def available() -> bool:
-    """Whether MKL PARDISO could be loaded."""
-    return _library() is not None
-
-
-@cache
-def _openblas():  # -> threadpoolctl.ThreadpoolController | None
-    """threadpoolctl's controller of the OpenBLAS (or BLIS) that NumPy and SciPy call, or None."""
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:  # pragma: no cover - a dependency
-        return None
-    controller = ThreadpoolController().select(internal_api=["openblas", "blis"])
-    return controller if controller.lib_controllers else None
-
-
-#: Holders of :func:`blas_one_thread` (threads of this process), the limit set while any holds it.
-_blas_holders = 0
-_blas_limiter = None  # threadpoolctl's limiter while held (it restores the counts it found)
-_BLAS_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def blas_one_thread() -> Iterator[None]:
-    """A context in which NumPy's own BLAS (OpenBLAS, not MKL) runs on one thread, while PARDISO
-    runs on more than one: each runtime's idle threads spin for a while after a call, and on two
-    cores OpenBLAS's second thread then waits for the core an MKL thread spins on (and the other
-    way round). The Newton solves' vector products (GMRES, conjugate gradients) gain nothing from
-    a second BLAS thread at these sizes. Measured on the default plan at 7 576 nodes, two PARDISO
-    threads: 7.4-7.7 s with OpenBLAS's two threads, 4.6-4.7 s with one (one PARDISO thread:
-    5.1-5.4 s); at 2 196 nodes within the machine's noise. The limit must hold between the solves
-    too (the line search's norms woke OpenBLAS's thread: 6.8-7.3 s with it on the solves alone),
-    so the planner holds it for the whole plan. Does nothing where PARDISO runs on one thread (a
-    fixed count of 1, one core, or no MKL). Reference-counted across threads: the counts found
-    when the first holder entered are restored when the last one leaves (the CLI's warm-up solves
-    on a background thread while the plan starts)."""
-    global _blas_holders, _blas_limiter
-    threads = _fixed_threads if _fixed_threads is not None else _cores()
-    controller = _openblas() if threads > 1 and available() else None
-    if controller is None:
-        yield
-        return
-    with _BLAS_LOCK:
-        if _blas_holders == 0:
-            _blas_limiter = controller.limit(limits=1)
-        _blas_holders += 1
-    try:
-        yield
-    finally:
-        with _BLAS_LOCK:
-            _blas_holders -= 1
-            if _blas_holders == 0 and _blas_limiter is not None:
-                _blas_limiter.restore_original_limits()
-                _blas_limiter = None
-
 
 #: Nested-dissection orderings of the patterns analysed lately, by a digest of the pattern: a
 #: body's Newton matrices keep one pattern from plan to plan (the symbolic analysis reused per
@@ -355,6 +76,7 @@ def blas_one_thread() -> Iterator[None]:
 _ORDERINGS: dict[bytes, NDArray[np.int32]] = {}
 #: How many orderings are kept (each n 4-byte integers).
 ORDERINGS_KEPT = 8
+_ORDERINGS_LOCK = threading.Lock()
 
 
 def _pattern_key(indptr: NDArray[np.int32], indices: NDArray[np.int32]) -> bytes:
@@ -364,10 +86,6 @@ def _pattern_key(indptr: NDArray[np.int32], indices: NDArray[np.int32]) -> bytes
     h.update(indptr.tobytes())
     h.update(indices.tobytes())
     return h.digest()
-
-
-_INT = ctypes.POINTER(ctypes.c_int32)
-_DBL = ctypes.POINTER(ctypes.c_double)
 
 
 def _keys(indptr: NDArray, indices: NDArray, n: int) -> NDArray[np.int64]:
@@ -386,23 +104,19 @@ class PardisoFactor:
     single: factorise positive definite matrices in single precision (mixed precision: for
         callers that refine every solve against the double-precision matrix, as softgrasp's
         Newton solves do by conjugate gradients or GMRES; a solve's relative residual is then
-        ~1e-4 instead of ~1e-12). At 2 196 nodes a factorisation took 21 instead of 33 ms and a
-        solve 0.54 instead of 0.80 ms (one thread), half the factor's memory. A single factor is
-        kept only when its smallest pivot is at least :data:`SINGLE_PIVOT_FLOOR` of its diagonal
-        entry; otherwise (and always for LDL^T) the matrix is factorised in double precision, so
+        ~1e-4 instead of ~1e-12), for about two thirds of the time and half the memory. A single
+        factor is kept only when its smallest pivot is at least :data:`SINGLE_PIVOT_FLOOR` of its
+        diagonal entry; otherwise (and always for LDL^T) the matrix is factorised in double precision, so
         the verdicts (positive definite, indefinite, singular) are the double factor's.
     """
 
     def __init__(self, A: sp.spmatrix, *, single: bool = False) -> None:
-        lib = _library()
-        if lib is None:
+        if not available():
             raise PardisoError("MKL PARDISO is not installed (pip install mkl)")
-        self._fn = lib.pardiso
-        self._fn.restype = None
         # One PARDISO handle (and its iparm) per matrix type, each analysed when first used: a
-        # matrix is factorised by Cholesky while it is positive definite (factorisation 1.2x
-        # and solve 1.25x faster than LDL^T on two threads at 2 196 nodes), by LDL^T with
-        # Bunch-Kaufman pivoting when it is not (a body about to tip, a singular stiffness).
+        # matrix is factorised by Cholesky while it is positive definite (faster than LDL^T), by
+        # LDL^T with Bunch-Kaufman pivoting when it is not (a body about to tip, a singular
+        # stiffness).
         # Handles are keyed by (matrix type, single precision).
         self._pts: dict[tuple[int, bool], NDArray[np.int64]] = {}
         self._iparms: dict[tuple[int, bool], NDArray[np.int32]] = {}
@@ -422,10 +136,6 @@ class PardisoFactor:
         # PARDISO sizes its work per thread in the analysis: every phase of this factor must run
         # with the same thread count (changing it in between crashed MKL here).
         self._threads = choose_threads()
-        self._load_checked = time.monotonic()
-        self._busy_looks = 0  # consecutive looks that found fewer idle cores than threads
-        self._solve_times = [math.inf, math.inf]  # the fastest solve of this thread count, the last
-        self._lib = lib
         # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
         # their positions in this factor's data (None: every entry, in order).
         self._gather: tuple[NDArray, NDArray, NDArray, NDArray | None] | None = None
@@ -458,18 +168,17 @@ class PardisoFactor:
             iparm[27] = 1 if single else 0  # matrix, right-hand side and solution in float32
             # The first analysis of a pattern returns its nested-dissection ordering; every
             # later one (the other matrix type's, the same pattern's in a later solve) takes it:
-            # the same graph, the same ordering, without running METIS again (21 -> 9 ms an
-            # analysis at 2 196 nodes).
+            # the same graph, the same ordering, without running METIS again.
             pattern = self._pattern
             if self._perm is None:
-                with _LOCK:
+                with _ORDERINGS_LOCK:
                     self._perm = _ORDERINGS.get(pattern)
             iparm[4] = 2 if self._perm is None else 1
             perm = np.zeros(self.n, dtype=np.int32) if self._perm is None else self._perm
             self._call(11, key=key, perm=perm)
             perm.setflags(write=False)  # PARDISO only reads it from now on (iparm[4] = 1)
             self._perm = perm
-            with _LOCK:
+            with _ORDERINGS_LOCK:
                 _ORDERINGS.pop(pattern, None)
                 _ORDERINGS[pattern] = perm  # the most recent last
                 while len(_ORDERINGS) > ORDERINGS_KEPT:
@@ -544,16 +253,7 @@ class PardisoFactor:
         dtype = np.float32 if key[1] else np.float64
         df = np.zeros(self.n, dtype=dtype)
         da = np.zeros(self.n, dtype=dtype)
-        err = ctypes.c_int32(0)
-        with _LOCK:
-            self._lib.pardiso_getdiag(
-                self._pts[key].ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-                df.ctypes.data_as(_DBL),
-                da.ctypes.data_as(_DBL),
-                ctypes.byref(ctypes.c_int32(1)),
-                ctypes.byref(err),
-            )
-        if err.value != 0:
+        if mkl.get_diagonal(self._pts[key], df, da) != 0:
             return 0.0  # no diagonal: take the factorisation that reports its pivots
         return float(np.min(df.astype(np.float64) / np.where(da > 0.0, da, np.inf)))
 
@@ -618,8 +318,8 @@ class PardisoFactor:
             data = self._data
         x = np.zeros(self.n if b is not None else 1, dtype=dtype)
         rhs = np.ascontiguousarray(b, dtype=dtype) if b is not None else np.zeros(1, dtype=dtype)
-        err = ctypes.c_int32(0)
-        args = _arguments(
+        code = mkl.call(
+            self._threads,
             self._pts[key],
             mtype,
             phase,
@@ -629,19 +329,10 @@ class PardisoFactor:
             self._iparms[key],
             rhs,
             x,
-            err,
-            perm,
+            perm=perm,
         )
-        with _LOCK:
-            # A collector run in between (any allocation may start one) only queues releases:
-            # nothing changes the thread count between the next line and the call.
-            _release_pending(self._lib)
-            _use_threads(self._lib, self._threads)
-            self._fn(*args)
-        if err.value != 0:
-            raise PardisoError(
-                f"PARDISO phase {phase} failed: {_ERRORS.get(err.value, 'error')} ({err.value})", err.value
-            )
+        if code != 0:
+            raise PardisoError.of(phase, code)
         return x.astype(np.float64, copy=False)
 
     def same_pattern(self, A: sp.spmatrix) -> sp.csr_matrix | None:
@@ -718,8 +409,6 @@ class PardisoFactor:
         that would otherwise follow, to count the negative pivots, is spared. ``ldlt``: LDL^T at
         once, no Cholesky tried."""
         self._set_values(U)
-        if self._fewer_threads():
-            return True
         return self._factorise(stop_if_indefinite, ldlt)
 
     def refactor_positive(self, U: sp.csr_matrix) -> bool:
@@ -728,8 +417,6 @@ class PardisoFactor:
         matrices were, Cholesky is tried: a shifted matrix is positive definite more often than
         not, and then its Cholesky is cheaper than LDL^T."""
         self._set_values(U)
-        if self._fewer_threads() and self.positive_definite:
-            return True
         return self._cholesky() == "positive"
 
     def _set_values(self, U: sp.csr_matrix) -> None:
@@ -751,9 +438,7 @@ class PardisoFactor:
         """``A^-1 b`` for the matrix last factorised."""
         if not self._ready:
             raise PardisoError("no factorisation in use: the last one found the matrix not positive definite")
-        self._fewer_threads()
         self.solves += 1
-        t0 = time.perf_counter()
         if self.single_precision:
             # Scaled by a power of two (exact) to a largest entry in [1, 2): float32 would flush a
             # tiny right-hand side (a nearly balanced Newton step's) to zero or lose it to
@@ -763,45 +448,12 @@ class PardisoFactor:
             x = self._call(33, b / scale) * scale
         else:
             x = self._call(33, b)
-        dt = time.perf_counter() - t0
-        self._solve_times = [min(self._solve_times[0], dt), dt]
         return x
 
     @property
     def values(self) -> NDArray[np.float64]:
         """The upper triangle's values last factorised (in the factor's CSR pattern)."""
         return self._data
-
-    def _fewer_threads(self) -> bool:
-        """With ``auto`` threads (looking at most every :data:`LOAD_CHECK_INTERVAL` seconds): if
-        fewer cores are idle than this factor's threads, with the last solve slower than
-        :data:`SLOW_SOLVE` times the fastest, in :data:`BUSY_LOOKS` looks in a row, analyse and
-        factorise again with as many as are (other work started on the machine: spinning threads
-        would make every solve many times slower). Returns whether it refactorised."""
-        if self._threads == 1 or _fixed_threads is not None:
-            return False
-        now = time.monotonic()
-        if now - self._load_checked < LOAD_CHECK_INTERVAL:
-            return False
-        self._load_checked = now
-        n = idle_cores()
-        fastest, last = self._solve_times
-        if n >= self._threads or last <= SLOW_SOLVE * fastest:
-            # Idle cores, or another task (a kernel thread: memory scanning) that did not slow
-            # the last solve down.
-            self._busy_looks = 0
-            return False
-        self._busy_looks += 1
-        if self._busy_looks < BUSY_LOOKS:
-            return False
-        self._busy_looks = 0
-        self._solve_times = [math.inf, math.inf]
-        for key in self._pts:
-            self._call(-1, key=key)  # release the memory of the old thread count
-        self._pts, self._iparms = {}, {}
-        self._threads = n
-        self._factorise()
-        return True
 
     @property
     def solves_per_factorisation(self) -> float:
@@ -838,6 +490,6 @@ class PardisoFactor:
             for key, pt in self._pts.items():
                 if pt.any():
                     arrays = (self._data, self._indptr, self._indices, self._iparms[key])
-                    _RELEASED.append((pt, self._threads, key[0], arrays))
+                    mkl.release_later(pt, self._threads, key[0], arrays)
         except Exception:  # noqa: BLE001 - never raise from a finaliser
             pass

@@ -5,7 +5,6 @@ describe an object and make the run's numbers JSON-safe."""
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,9 +84,6 @@ def linear_solver() -> str:
     """The linear solver the run's static and implicit solves use, for the report."""
     from softgrasp.linalg import pardiso
 
-    method = os.environ.get("SOFTGRASP_LINSOLVE", "auto")
-    if method != "auto":
-        return f"SOFTGRASP_LINSOLVE={method}"
     return "MKL PARDISO" if pardiso.available() else "sparse LU / multigrid-preconditioned CG"
 
 

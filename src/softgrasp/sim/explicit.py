@@ -498,8 +498,8 @@ class FusedThreads:
     depend on it: :data:`softgrasp.sim.fused.step.PARTS`).
 
     ``SOFTGRASP_THREADS`` (or :func:`softgrasp.linalg.pardiso.set_threads`) fixes the count. Otherwise
-    (``auto``) a chunk runs on two threads when two cores are idle
-    (:func:`softgrasp.linalg.pardiso.idle_cores`) or when the previous chunk ran well on two (a
+    (``auto``) a chunk runs on two threads when the thread count allows two
+    (:func:`softgrasp.linalg.pardiso.choose_threads`) or when the previous chunk ran well on two (a
     semi-implicit chunk starts a worker thread of its own, RK4 uses Numba's threads). The
     threads meet two or three times a step, so a thread waiting for a core another process holds
     makes every step wait for the scheduler (measured here: 100x slower than one thread). Each
@@ -514,7 +514,7 @@ class FusedThreads:
     def __init__(self) -> None:
         from softgrasp.linalg import pardiso
         self._pardiso = pardiso
-        self.fixed: int | None = pardiso._fixed_threads
+        self.fixed: int | None = pardiso.fixed_threads()
         self.best = math.inf  # best seconds per step on two threads
         self.fallback = False
         self.last = 1
@@ -527,7 +527,7 @@ class FusedThreads:
             self.last = 1
         else:
             fine = self.last >= 2 and math.isfinite(self.best)
-            self.last = 2 if fine or self._pardiso.idle_cores() >= 2 else 1
+            self.last = 2 if fine or self._pardiso.choose_threads() >= 2 else 1
         return self.last
 
     def chunk(self, threads: int, longest: int) -> int:

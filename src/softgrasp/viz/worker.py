@@ -16,9 +16,10 @@ child can be started, or it dies, the figures not yet drawn are drawn here: the 
 later. Each figure function writes its PNG atomically, so a failure or a stopped child leaves no
 half-written file.
 
-The environment variable ``SOFTGRASP_FIGURES`` chooses: ``auto`` (the default) starts the child
-only when a core besides the caller's is idle (on a busy machine the child's start-up costs more
-than it saves), ``child`` always, ``inline`` never (every figure drawn in the caller's process).
+``FigureWorker(mode)`` chooses: ``"auto"`` (the default) starts the child where this process may
+run on more than one core (:func:`softgrasp.linalg.threads.choose_threads`: a fixed rule, not the
+machine's momentary load; one core would run the child's start-up instead of the caller's work),
+``"child"`` always, ``"inline"`` never (every figure drawn in the caller's process).
 """
 
 from __future__ import annotations
@@ -89,18 +90,24 @@ def serve(jobs: IO[bytes], answers: IO[bytes]) -> None:
         answers.flush()
 
 
-def _want_child() -> bool:
-    """Whether to start the child (``SOFTGRASP_FIGURES``: see the module's text)."""
-    mode = os.environ.get("SOFTGRASP_FIGURES", "auto").strip().lower()
-    if mode in ("child", "inline"):
-        return mode == "child"
-    from softgrasp.linalg.pardiso import idle_cores
+#: The figure modes of :class:`FigureWorker`.
+MODES = ("auto", "child", "inline")
 
-    return max(idle_cores() for _ in range(3)) >= 2  # this process's core and another
+
+def _want_child(mode: str) -> bool:
+    """Whether to start the child for ``mode`` (see the module's text)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown figure mode {mode!r} (use one of {', '.join(MODES)})")
+    if mode != "auto":
+        return mode == "child"
+    from softgrasp.linalg.threads import choose_threads
+
+    return choose_threads() >= 2  # this process's core and another
 
 
 class FigureWorker:
-    """A child process that draws :mod:`softgrasp.viz.plots` figures (see the module's text).
+    """A child process that draws :mod:`softgrasp.viz.plots` figures (see the module's text);
+    ``mode``: ``"auto"``, ``"child"`` or ``"inline"``.
 
     Use it as a context manager, so that the child is stopped whatever happens::
 
@@ -111,13 +118,13 @@ class FigureWorker:
             figures.finish()
     """
 
-    def __init__(self) -> None:
+    def __init__(self, mode: str = "auto") -> None:
         self._jobs: list[tuple[str, tuple[Any, ...], dict[str, Any]]] = []
         self._done = 0  # jobs drawn (here or there) and answered, in order
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._answers: IO[bytes] | None = None
-        if not _want_child():
+        if not _want_child(mode):
             return  # finish() draws the figures here
         env = dict(os.environ)
         # The child imports this softgrasp, wherever it was imported from.

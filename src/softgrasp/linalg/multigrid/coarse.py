@@ -1,14 +1,13 @@
 """The coarse levels of a kept multigrid hierarchy brought up to date with the contacts made since.
 
-A smoothed-aggregation hierarchy is costly to build (about a second at 30 000 nodes), so the
+A smoothed-aggregation hierarchy is costly to build (many V-cycles' worth of work), so the
 multigrid path keeps one across the Newton systems of a loading and swaps in each new matrix as
-its finest level (:class:`softgrasp.linalg.solve._Multigrid`). Its coarse levels then lag behind
+its finest level (:class:`softgrasp.linalg.multigrid.cycle.Multigrid`). Its coarse levels then lag behind
 the contacts: a node pressed into the table since has a penalty stiffness tens of times its own,
 which the coarse space, whose basis functions move that node with its whole aggregate, does not
 know; fingertips pressing a few facets add stiffness there. The V-cycle still converges, but
-GMRES or CG first spend 6-10 iterations finding those few modes, then converge at the rate of a
-fresh hierarchy (the 27 749-node sphere's closing: 21-22 V-cycles to 1e-4 where a hierarchy built
-afresh on the same matrix takes 13).
+GMRES or CG first spend several iterations finding those few modes, then converge at the rate of
+a fresh hierarchy.
 
 Two changes, each on a few nodes' neighbourhoods, bring the kept hierarchy back to that:
 
@@ -17,22 +16,19 @@ Two changes, each on a few nodes' neighbourhoods, bring the kept hierarchy back 
   (P' = P with those rows zero), so the coarse correction leaves them alone and the smoother, for
   which a penalty-dominated node is an easy local problem, handles them. Keeping them in, their
   new stiffness summed into the coarse operator, is worse than stale (the penalty spread over the
-  aggregate pins it: 27-41 iterations where the stale levels take 18-21);
+  aggregate pins it);
 * the coarse operators follow the stiffness the nodes whose diagonal moved by more than
   :data:`CHANGED` gained or lost (the fingertips' contacts, distributed by shape functions, add
   5-50 % to a handful of nodes): the Galerkin products of P' with the build matrix plus that
   change (:func:`galerkin_change`). The change is taken among those nodes, its couplings to the
   other nodes moved onto their diagonal blocks so that a rigid translation meets it as it meets
-  the whole change; taken as it is in their rows and columns, the edge of the patch broke the
-  operator's rigid modes and the 33 969-node settle's systems needed more iterations than stale.
+  the whole change; taken as it is in their rows and columns, the edge of the patch would break
+  the operator's rigid modes.
 
 The second level's operator changes by a sparse matrix computed on those nodes and their
 neighbours alone, deeper levels by its Galerkin products; the operators are changed in place
-(:class:`UpdatedLevel`). Measured on Newton matrices of the default plan (GMRES to 1e-4, stale /
-updated / fresh): 27 749 nodes, closing 21 / 13 / 13 and 22 / 13 / 13, settle 15 / 12 / 10 and
-30 / 24 / 19; 33 969 nodes, settle 26 / 18 / 14, 34 / 25 / 15 and 26 / 25 / 17, hold 17 / 14 / 13.
-Whole plans: 27 749 nodes 769 -> 584 V-cycles, 33 969 nodes 1 196 -> 1 066 (and no rebuilt
-hierarchy), the same Newton systems and set-points.
+(:class:`UpdatedLevel`). The updated levels take about as many iterations as a fresh hierarchy
+would, for a fraction of its set-up.
 """
 
 from __future__ import annotations
@@ -54,7 +50,7 @@ STIFFENED = 1.5
 #: operators need not follow).
 CHANGED = 0.05
 #: At most this many changed nodes (the largest changes) are followed: the update's cost grows
-#: with them (0.3 s for 4 000 at 34 000 nodes), its gain does not.
+#: with them, its gain does not.
 MAX_CHANGED = 1000
 
 
@@ -64,8 +60,8 @@ def changed_nodes(
     """The nodes (3 unknowns each, ``x, y, z``) whose stiffness the contacts changed since the
     build matrix, from the current and the build matrix's diagonals (3N,), each entry's ratio to
     its build value taken relative to the median node's (a stiffness changed throughout, as by a
-    scaled matrix or a stiffening material, is not a contact: scaled by two, 1 625 nodes, pinning
-    them all took 87 CG iterations where the levels as built took 23). Returns (the stiffened
+    scaled matrix or a stiffening material, is not a contact, and pinning every node would make
+    the coarse levels useless). Returns (the stiffened
     nodes: some diagonal entry grew past :data:`STIFFENED` times that; the changed ones: some
     entry moved by more than :data:`CHANGED` of it), each at most :data:`MAX_CHANGED`, the
     largest. An entry that was not positive counts as changed when it differs at all."""
@@ -239,7 +235,7 @@ class UpdatedLevel:
             matrix = (self._matrix + C).tobsr(blocksize=(b, b))
             sweeps = None
             if self._sweeps is not None:
-                from softgrasp.linalg.sparse import BlockGaussSeidel
+                from softgrasp.linalg.smoothers import BlockGaussSeidel
 
                 sweeps = BlockGaussSeidel(matrix, self._sweeps.threads)
             self._other = (matrix, sweeps)
