@@ -22,8 +22,6 @@ OVERSIZED = {
     "execution/mujoco/scene.py": 1181,
     "experiments/calibration.py": 757,
     "grasp/planner.py": 980,
-    "hand/kinematics.py": 994,
-    "hand/placement_compiled.py": 551,
     "linalg/pardiso.py": 843,
     "linalg/solve.py": 1085,
     "linalg/sparse.py": 889,

@@ -1,14 +1,14 @@
-"""Compiled (Numba) floating-palm WDLS: the hand-placement solve of :mod:`softgrasp.hand.placement`.
+"""The floating-palm WDLS of the hand placement (:mod:`softgrasp.hand.placement`), compiled with Numba.
 
-:func:`solve` returns what :func:`softgrasp.hand.placement._solve_numpy` returns (the NumPy reference)
-to round-off: the same iteration for every starting posture, written as plain loops over one
-posture at a time instead of NumPy calls shared by all of them. Per posture and iteration:
+:func:`solve` iterates every starting posture on its own, one after the other. Per posture and
+iteration:
 
 * the fingertip errors ``e = targets - tips`` ``(3 C,)`` and their Jacobian ``(3 C, 6 + n)`` with
   respect to the palm translation, a small palm rotation about world axes and the joints;
 * the step aims at ``e`` shortened to at most ``max_step`` [m]; the limit-clamped WDLS step
-  (:func:`softgrasp.hand.kinematics._limited_steps`) freezes every joint at a limit whose step points
-  out of its range and recomputes, until none is left;
+  (:func:`softgrasp.hand.ik.limited_step`, the palm's six coordinates acting as joints without
+  limits) freezes every joint at a limit whose step points out of its range and recomputes, until
+  none is left;
 * a line search takes the first of the step times 1, 1/2, 1/4, ... (``max_halvings`` of them) whose
   joints, clipped into their limits, decrease the error norm; the palm moves by the step's
   translation and rotation, and its step coordinates restart at 0;
@@ -18,14 +18,10 @@ posture at a time instead of NumPy calls shared by all of them. Per posture and 
 
 The kinematics are those of a :class:`~softgrasp.hand.kinematics.ChainStack` (revolute, prismatic and
 fixed or padding joints, mimic joints through ``column``, ``gain`` and ``offset``), evaluated as
-3 x 4 affine products root to tip; the damped system ``J W^-1 J^T + damping^2 I`` is solved by
-Gaussian elimination with partial pivoting. The NumPy reference multiplies the transforms pairwise
-and calls BLAS and LAPACK, which sum in other orders, so one iteration of the two agrees to
-round-off (about 1e-10 rad for a step of 0.5 rad near a singular posture), not bit for bit. Over a
-whole solve the iteration amplifies round-off as it amplifies any perturbation: postures that reach
-their targets end within about 1e-9 of the reference's; postures wandering short of unreachable
-targets can end far apart (the reference itself ends up to 1 rad elsewhere when a starting posture
-moves by one ulp), at much the same error.
+3 x 4 affine products root to tip. The iteration amplifies round-off as it amplifies any
+perturbation: postures that reach their targets are insensitive to it, but postures wandering
+short of unreachable targets can end far apart (up to 1 rad) when a starting posture moves by one
+ulp, at much the same error.
 
 Kernels are compiled with ``cache=True`` (on-disk cache: only the first run compiles),
 ``fastmath=False`` and ``error_model="numpy"`` (a division by zero gives inf/nan like NumPy).
@@ -34,14 +30,13 @@ Kernels are compiled with ``cache=True`` (on-disk cache: only the first run comp
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 from typing import NamedTuple
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
+from softgrasp.hand.ik import jit, limited_step
 from softgrasp.hand.kinematics import ChainStack
 
 __all__ = [
@@ -51,7 +46,6 @@ __all__ = [
     "STOP_NO_DECREASE",
     "STOP_MAX_ITER",
     "Solves",
-    "supported",
     "solve",
 ]
 
@@ -66,11 +60,8 @@ STOP_NO_STEP = 2
 STOP_NO_DECREASE = 3
 STOP_MAX_ITER = 4
 
-_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
-
-
 # ---------------------------------------------------------------------------------- kinematics
-@_jit
+@jit
 def _compose(A, B, out):  # pragma: no cover - compiled
     """The affine product ``A B`` of 3 x 4 transforms (implicit last row 0 0 0 1) into ``out``."""
     for i in range(3):
@@ -82,7 +73,7 @@ def _compose(A, B, out):  # pragma: no cover - compiled
         out[i, 3] = a0 * B[0, 3] + a1 * B[1, 3] + a2 * B[2, 3] + A[i, 3]
 
 
-@_jit
+@jit
 def _forward(basis, column, gain, offset, length, R, p, q, T, M, frames, tips):  # pragma: no cover
     """Frames after every joint ``(C, L, 3, 4)`` (world, 3 x 4) and fingertips ``(C, 3)`` [m] of the
     chains with palm rotation ``R`` (3, 3), origin ``p`` (3,) and joints ``q`` (n,). Joint ``(l, c)``
@@ -113,7 +104,7 @@ def _forward(basis, column, gain, offset, length, R, p, q, T, M, frames, tips): 
             tips[c, i] = T[i, 3]
 
 
-@_jit
+@jit
 def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pragma: no cover
     """Jacobian ``J`` ``(3 C, 6 + n)`` of the fingertips with respect to the palm translation, a small
     palm rotation about world axes and the joints, from the :func:`_forward` frames and tips of a
@@ -159,10 +150,10 @@ def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pra
             J[r0 + 2, k] += g * cz
 
 
-@_jit
-def _rotation(wx, wy, wz, out):  # pragma: no cover - compiled
+@jit
+def rotation(wx, wy, wz, out):  # pragma: no cover - compiled
     """Rotation (3, 3) by the vector ``w`` (axis times angle) into ``out`` (the identity below 1e-15
-    rad), as :func:`softgrasp.hand.placement._rotations`."""
+    rad; Rodrigues' formula)."""
     a = math.sqrt(wx * wx + wy * wy + wz * wz)
     if a < 1e-15:
         for i in range(3):
@@ -187,7 +178,7 @@ def _rotation(wx, wy, wz, out):  # pragma: no cover - compiled
 
 
 # ---------------------------------------------------------------------------------- WDLS
-@_jit
+@jit
 def _norm(e):  # pragma: no cover - compiled
     """Euclidean norm of ``e``."""
     s = 0.0
@@ -196,7 +187,7 @@ def _norm(e):  # pragma: no cover - compiled
     return math.sqrt(s)
 
 
-@_jit
+@jit
 def _largest(e):  # pragma: no cover - compiled
     """Largest fingertip distance of the stacked fingertip errors ``e`` ``(3 C,)``."""
     worst = 0.0
@@ -207,87 +198,7 @@ def _largest(e):  # pragma: no cover - compiled
     return worst
 
 
-@_jit
-def _linear_solve(A, b, y):  # pragma: no cover - compiled
-    """Solve ``A y = b`` (``A`` (m, m), overwritten by its LU factors) by Gaussian elimination with
-    partial pivoting (the method of LAPACK's ``gesv``, which :func:`numpy.linalg.solve` calls)."""
-    m = A.shape[0]
-    for i in range(m):
-        y[i] = b[i]
-    for j in range(m):
-        piv = j
-        big = abs(A[j, j])
-        for i in range(j + 1, m):
-            if abs(A[i, j]) > big:
-                big = abs(A[i, j])
-                piv = i
-        if piv != j:
-            for k in range(m):
-                t = A[j, k]
-                A[j, k] = A[piv, k]
-                A[piv, k] = t
-            t = y[j]
-            y[j] = y[piv]
-            y[piv] = t
-        inv = 1.0 / A[j, j]
-        for i in range(j + 1, m):
-            A[i, j] *= inv
-        for i in range(j + 1, m):
-            f = A[i, j]
-            for k in range(j + 1, m):
-                A[i, k] -= f * A[j, k]
-    for i in range(m):
-        s = y[i]
-        for k in range(i):
-            s -= A[i, k] * y[k]
-        y[i] = s
-    for i in range(m - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, m):
-            s -= A[i, k] * y[k]
-        y[i] = s / A[i, i]
-
-
-@_jit
-def _limited_step(J, dx, x, lower, upper, winv, damping, limit_eps, w, outward, A, y, dq):  # pragma: no cover
-    """Limit-clamped WDLS step ``dq`` ``(N,)`` of :func:`softgrasp.hand.kinematics._limited_steps` for one
-    posture: ``dq = W^-1 J^T (J W^-1 J^T + damping^2 I)^-1 dx`` with the inverse weight of every
-    joint at a limit whose step points out of its range set to 0, recomputed until there is none.
-    Returns the number of recomputations. ``w``, ``outward`` (N,), ``A`` (m, m), ``y`` (m,): scratch."""
-    m, N = J.shape
-    for k in range(N):
-        at_lower = x[k] <= lower[k] + limit_eps
-        at_upper = x[k] >= upper[k] - limit_eps
-        w[k] = 0.0 if (at_lower and at_upper) else winv[k]  # a joint with lower == upper never moves
-        outward[k] = (1.0 if at_upper else 0.0) - (1.0 if at_lower else 0.0)
-    damp = damping * damping
-    rounds = 0
-    while True:
-        for i in range(m):
-            for j in range(i + 1):
-                s = 0.0
-                for k in range(N):
-                    s += J[i, k] * w[k] * J[j, k]
-                A[i, j] = s
-                A[j, i] = s
-            A[i, i] += damp
-        _linear_solve(A, dx, y)
-        for k in range(N):
-            s = 0.0
-            for i in range(m):
-                s += J[i, k] * w[k] * y[i]
-            dq[k] = s
-        blocked = False
-        for k in range(N):
-            if w[k] != 0.0 and dq[k] * outward[k] > 0.0:
-                w[k] = 0.0
-                blocked = True
-        if not blocked:
-            return rounds
-        rounds += 1
-
-
-@_jit
+@jit
 def _solve(
     basis,
     axis,
@@ -334,10 +245,6 @@ def _solve(
     frames = np.empty((C, L, 3, 4))
     tips = np.empty((C, 3))
     J = np.empty((m, N))
-    A = np.empty((m, m))
-    y = np.empty(m)
-    w = np.empty(N)
-    outward = np.empty(N)
     e = np.empty(m)
     e_try = np.empty(m)
     dx = np.empty(m)
@@ -382,7 +289,8 @@ def _solve(
             scale = min(1.0, max_step / norm)  # at most max_step long
             for i in range(m):
                 dx[i] = e[i] * scale
-            clamps[s] += _limited_step(J, dx, x, lower, upper, winv, damping, limit_eps, w, outward, A, y, dq)
+            dq, rounds = limited_step(J, dx, x, lower, upper, winv, damping, limit_eps)
+            clamps[s] += rounds
             done = it + 1
             any_step = False
             for k in range(N):
@@ -398,7 +306,7 @@ def _solve(
                     x_try[k] = min(max(v, lower[k]), upper[k])
                 for i in range(3):
                     p_try[i] = p[i] + dq[i] * alpha
-                _rotation(dq[3] * alpha, dq[4] * alpha, dq[5] * alpha, turn)
+                rotation(dq[3] * alpha, dq[4] * alpha, dq[5] * alpha, turn)
                 for i in range(3):
                     for j in range(3):
                         R_try[i, j] = turn[i, 0] * R[0, j] + turn[i, 1] * R[1, j] + turn[i, 2] * R[2, j]
@@ -456,25 +364,6 @@ class Solves(NamedTuple):
     clamps: IntArray
 
 
-@lru_cache(maxsize=64)
-def _scatter_matches(stack: ChainStack) -> bool:
-    """Whether ``stack.select`` is exactly the scatter of ``gain`` to ``column`` (every joint adds
-    ``gain`` times its column to one joint's), which the kernel assumes."""
-    L, C = stack.column.shape
-    expected = np.zeros_like(stack.select)
-    for l in range(L):
-        for c in range(C):
-            expected[c, l, stack.column[l, c]] += stack.gain[l, c]
-    return bool(np.array_equal(expected, stack.select))
-
-
-def supported(stack: ChainStack, damping: float) -> bool:
-    """Whether :func:`solve` handles ``stack`` with this ``damping`` (> 0: the kernel has no
-    pseudo-inverse for the undamped step), i.e. any stack :func:`~softgrasp.hand.kinematics.chain_stack`
-    builds."""
-    return damping > 0.0 and stack.basis.shape[2] in (3, 4) and _scatter_matches(stack)
-
-
 def solve(
     stack: ChainStack,
     targets: Array,
@@ -495,8 +384,8 @@ def solve(
     rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)`` [m], joints ``q`` ``(S, n)``, inside their
     limits); see :class:`Solves`.
 
-    The rules are those of :func:`softgrasp.hand.placement._solve_numpy` (see the module docstring):
-    ``reach_tol`` [m], ``max_iter``, ``max_step`` [m], ``damping`` [m] (> 0, :func:`supported`),
+    The rules are those of the module docstring: ``reach_tol`` [m], ``max_iter``, ``max_step``
+    [m], ``damping`` [m] (>= 0; 0: the undamped, pseudo-inverse step),
     ``stall_fraction`` over ``stall_window`` iterations, ``max_halvings`` and the limit tolerance
     ``limit_eps`` [rad or m]. All joint weights are 1.
     """
