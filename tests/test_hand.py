@@ -355,7 +355,10 @@ def test_thumb_opposes_finger(finger: str, point: list[float]) -> None:
 
 def _check_stack(model: HandModel, fingers: tuple[str, ...], seed: int) -> None:
     """Every finger at several configurations at once, in posed palm frames: the stacked fingertips,
-    Jacobians and joint origins are those of each finger alone, moved into the frame."""
+    Jacobians and joint origins are those of each finger alone, moved into the frame, and those of
+    the NumPy oracle."""
+    from oracles.hand import stack_kinematics as numpy_kinematics
+
     from softgrasp.hand.kinematics import chain_stack, stack_kinematics
     from softgrasp.hand.placement import transform
 
@@ -372,6 +375,12 @@ def _check_stack(model: HandModel, fingers: tuple[str, ...], seed: int) -> None:
     k0 = stack_kinematics(stack, q)  # palm frame, fingertips only
     assert k.jacobian is not None and k.origins is not None
     assert k.tips.shape == (B, len(fingers), 3) and k.jacobian.shape == (B, len(fingers), 3, stack.n)
+    ref = numpy_kinematics(stack, q, R, p, jacobian=True, origins=True)
+    assert ref.jacobian is not None and ref.origins is not None
+    np.testing.assert_allclose(k.tips, ref.tips, atol=1e-14)
+    np.testing.assert_allclose(k.jacobian, ref.jacobian, atol=1e-14)
+    np.testing.assert_allclose(k.origins, ref.origins, atol=1e-14)
+    np.testing.assert_allclose(k0.tips, numpy_kinematics(stack, q).tips, atol=1e-14)
     for b in range(B):
         for c, (f, chain) in enumerate(zip(fingers, chains, strict=True)):
             qf = q[b, stack.starts[c] : stack.starts[c] + chain.dof]

@@ -1,4 +1,10 @@
-"""NumPy oracle of the hand placement's floating-palm WDLS (:mod:`softgrasp.hand.placement_solve`).
+"""NumPy oracles of the hand's forward kinematics (:func:`softgrasp.hand.kinematics.stack_kinematics`)
+and of the placement's floating-palm WDLS (:mod:`softgrasp.hand.placement_solve`).
+
+:func:`stack_kinematics` evaluates the chains of a stack vectorised over configurations and chains:
+each joint's 4 x 4 transform from the stack's ``basis`` (:func:`local_transforms`), multiplied
+pairwise (:func:`chain_product`, :func:`chain_frames`), the Jacobian's columns scattered to the
+joints by :func:`select`.
 
 :func:`solve` iterates all starting postures at once, vectorised with NumPy (every posture still
 iterates on its own: they advance in lockstep only to share NumPy calls), with the rules read
@@ -10,25 +16,145 @@ so it sums in other orders than the compiled solve: one iteration of the two agr
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.hand import placement as rules
 from softgrasp.hand.ik import LIMIT_EPS
-from softgrasp.hand.kinematics import (
-    _LEVI_CIVITA,
-    ChainStack,
-    chain_frames,
-    chain_product,
-    frame_kinematics,
-    local_transforms,
-)
+from softgrasp.hand.kinematics import _LEVI_CIVITA, ChainStack, Kinematics
 
 #: Trial steps of the line search evaluated at once, shared among the postures still searching (a
 #: cost trade-off only: each posture takes the first step of 1, 1/2, 1/4, ... that decreases its error).
 TRIAL_BUDGET = 24
 
 _EYE3 = np.eye(3)
+
+
+@lru_cache(maxsize=64)
+def select(stack: ChainStack) -> NDArray[np.float64]:
+    """``d value / d q`` ``(C, L, n)`` of every joint of ``stack`` (the Jacobian's scatter: a mimic
+    joint adds to its driver; zero for a fixed joint)."""
+    L, C = stack.column.shape
+    out = np.zeros((C, L, stack.n))
+    for l in range(L):
+        for c in range(C):
+            out[c, l, stack.column[l, c]] += stack.gain[l, c]
+    return out
+
+
+def values(stack: ChainStack, q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Every joint's value ``(L, B, C)`` for the stacked joint vectors ``q`` ``(B, n)`` (a fixed
+    joint's value is arbitrary when the stack is ``plain``)."""
+    value = np.take(q, stack.column, axis=1).transpose(1, 0, 2)
+    return value if stack.plain else value * stack.gain[:, None] + stack.offset[:, None]
+
+
+def local_transforms(
+    stack: ChainStack,
+    q: NDArray[np.float64],
+    rot: NDArray[np.float64] | None = None,
+    pos: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
+    """Each joint's transform (its origin times its motion) for each row of ``q`` ``(B, n)``:
+    ``(L, B, C, 4, 4)``, preceded by the palm's pose (``rot`` ``(B, 3, 3)``, ``pos`` ``(B, 3)``, both
+    or neither) if given: ``(1 + L, B, C, 4, 4)``. Their product, root to tip, is the chain."""
+    B = q.shape[0]
+    L, C, K = stack.basis.shape[:3]
+    value = values(stack, q)
+    coef = np.ones((L, B, C, 1, K))
+    np.cos(value, out=coef[..., 0, 0])
+    np.sin(value, out=coef[..., 0, 1])
+    if stack.has_prismatic:
+        coef[..., 0, 3] = value
+    root = rot is not None
+    E = np.empty((L + root, B, C, 1, 16))
+    np.matmul(coef, stack.basis[:, None], out=E[root:])
+    E = E.reshape(L + root, B, C, 4, 4)
+    if root:
+        assert rot is not None and pos is not None
+        E[0, :, :, :3, :3] = rot[:, None]
+        E[0, :, :, :3, 3] = pos[:, None]
+        E[0, :, :, 3] = (0.0, 0.0, 0.0, 1.0)
+    return E
+
+
+def chain_product(E: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The product ``E[0] @ E[1] @ ... `` of transforms ``(K, ..., 4, 4)`` (pairwise, log2 K rounds)."""
+    while len(E) > 1:
+        half = len(E) // 2
+        P = E[0 : 2 * half : 2] @ E[1 : 2 * half : 2]
+        E = np.concatenate([P, E[-1:]]) if len(E) % 2 else P
+    return E[0]
+
+
+def chain_frames(E: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The prefix products ``E[0] @ ... @ E[k]`` of transforms ``(K, ..., 4, 4)`` (a new array;
+    Hillis-Steele scan, log2 K rounds)."""
+    P = E.copy()
+    d = 1
+    while d < len(P):
+        P[d:] = P[:-d] @ P[d:]
+        d *= 2
+    return P
+
+
+def frame_kinematics(
+    stack: ChainStack,
+    frames: NDArray[np.float64],
+    q: NDArray[np.float64],
+    *,
+    jacobian: bool = False,
+    origins: bool = False,
+) -> Kinematics:
+    """:class:`Kinematics` from the frames ``(L, B, C, 4, 4)`` after each joint (the prefix products
+    of :func:`local_transforms` without the palm's) for the joint vectors ``q`` ``(B, n)``.
+
+    A revolute joint's Jacobian column is ``a x (p_tip - p_joint)``, a prismatic one's ``a`` (``a``
+    the joint axis in the output frame); a mimic joint adds its column times its multiplier to
+    its driver's.
+    """
+    L, B, C = frames.shape[:3]
+    tips = frames[-1, :, :, :3, 3]
+    if not (jacobian or origins):
+        return Kinematics(tips, None, None)
+    o = frames[..., :3, 3]  # a revolute or fixed joint does not move its own origin
+    a = None
+    if stack.has_prismatic or jacobian:
+        a = (frames[..., :3, :3] @ stack.axis[:, None])[..., 0]  # joint axes, (L, B, C, 3)
+        if stack.has_prismatic:
+            o = o - np.where(stack.prismatic[:, None], values(stack, q), 0.0)[..., None] * a
+    J = None
+    if jacobian:
+        assert a is not None
+        neg_cross = (a @ _LEVI_CIVITA).reshape(L, B, C, 3, 3)  # -[a]x
+        col = (neg_cross @ (o - tips)[..., None])[..., 0]  # a x (tip - o), (L, B, C, 3)
+        if stack.has_prismatic:
+            col = np.where(stack.prismatic[:, None, :, None], a, col)
+        J = col.transpose(1, 2, 3, 0) @ select(stack)  # fixed joints have zero rows in select
+    return Kinematics(tips, J, o.transpose(1, 2, 0, 3) if origins else None)
+
+
+def stack_kinematics(
+    stack: ChainStack,
+    q: NDArray[np.float64],
+    rot: NDArray[np.float64] | None = None,
+    pos: NDArray[np.float64] | None = None,
+    *,
+    jacobian: bool = False,
+    origins: bool = False,
+) -> Kinematics:
+    """Fingertips (and optionally the Jacobian and joint origins) of every chain of ``stack`` for each
+    row of ``q`` ``(B, n)`` (validated by the caller), in the frame where the palm has rotation
+    ``rot`` ``(B, 3, 3)`` and origin ``pos`` ``(B, 3)`` (both or neither; default: the palm frame).
+    See :func:`local_transforms` and :func:`frame_kinematics` (the NumPy form of
+    :func:`softgrasp.hand.kinematics.stack_kinematics`)."""
+    E = local_transforms(stack, q, rot, pos)
+    if not (jacobian or origins):
+        return Kinematics(chain_product(E)[..., :3, 3], None, None)
+    frames = chain_frames(E)
+    return frame_kinematics(stack, frames[rot is not None :], q, jacobian=jacobian, origins=origins)
 
 
 def rotations(w: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -5,20 +5,18 @@ Hanafusa; Chiaverini's WDLS), compiled with Numba; every caller uses it: :func:`
 arguments), the limit-clamped step :func:`limited_step` of :func:`solve_ik`, :func:`track` and
 :func:`follow_line`, and the floating-palm placement (:mod:`softgrasp.hand.placement_solve`).
 
-Kernels are compiled with ``cache=True`` (on-disk cache: only the first run compiles),
-``fastmath=False`` and ``error_model="numpy"`` (a division by zero gives inf/nan like NumPy).
+The kernels are compiled as :mod:`softgrasp.hand.kinematics`'s (:data:`~softgrasp.hand.kinematics.jit`).
 """
 
 from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand.kinematics import FingerChain, HandModel, _kinematics
+from softgrasp.hand.kinematics import FingerChain, HandModel, _kinematics, jit
 
 __all__ = [
     "LINE_TOLERANCE",
@@ -50,8 +48,6 @@ STALL_WINDOW = 10
 
 #: Extra random starting configurations tried by :func:`solve_ik` after ``q0`` and mid-range.
 IK_RESTARTS = 6
-
-jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
 
 
 # ---------------------------------------------------------------------- WDLS

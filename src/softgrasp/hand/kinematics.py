@@ -2,14 +2,19 @@
 
 :class:`HandModel` is a hand read from a URDF (:mod:`softgrasp.hand.urdf`): its fingers' serial
 chains, each ending at a fingertip sphere. A finger's joint vector ``q`` holds its independent
-joints in root-to-tip order; mimic joints follow their drivers. Several chains are evaluated at
-once, vectorised over a batch of configurations, through a :class:`ChainStack`.
+joints in root-to-tip order; mimic joints follow their drivers. Chains are evaluated through a
+:class:`ChainStack` (several chains and a batch of configurations at once) by the compiled
+:func:`forward` and :func:`joint_columns`, which the hand placement's solve calls too.
 
 All positions are in the palm (root link) frame unless a palm pose is given; SI units (m, rad).
+Kernels are compiled with Numba (:data:`jit`: ``cache=True``, an on-disk cache, so only the first
+run compiles; ``fastmath=False``; ``error_model="numpy"``, a division by zero gives inf/nan like
+NumPy).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -18,6 +23,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import NamedTuple
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -32,12 +38,13 @@ __all__ = [
     "ChainStack",
     "Kinematics",
     "chain_stack",
-    "local_transforms",
-    "chain_product",
-    "chain_frames",
-    "frame_kinematics",
+    "forward",
+    "joint_columns",
     "stack_kinematics",
 ]
+
+#: The Numba compilation of softgrasp's hand kernels.
+jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
 
 #: ``-[a]x = a @ _LEVI_CIVITA`` (reshaped to 3 x 3): the Levi-Civita symbol as ``eps[k, 3 i + j]``.
 _LEVI_CIVITA = np.zeros((3, 9))
@@ -61,8 +68,7 @@ class ChainStack:
     for a revolute joint, the shift for a prismatic one, the origin alone for a fixed or padding
     joint, whose value is then irrelevant; ``K = 3`` without prismatic joints). ``axis``
     ``(L, C, 3, 1)`` is its unit axis in its own frame (0 for a fixed joint); ``prismatic``
-    ``(L, C)`` its kind. ``select`` ``(C, L, n)`` is ``d value / d q`` (the Jacobian's scatter: a
-    mimic joint adds to its driver; zero for a fixed joint).
+    ``(L, C)`` its kind; ``lengths`` is ``length`` as an array.
     """
 
     chains: tuple[FingerChain, ...]
@@ -72,10 +78,10 @@ class ChainStack:
     basis: NDArray[np.float64]
     axis: NDArray[np.float64]
     prismatic: NDArray[np.bool_]
-    column: NDArray[np.intp]
+    column: NDArray[np.int64]
     gain: NDArray[np.float64]
     offset: NDArray[np.float64]
-    select: NDArray[np.float64]
+    lengths: NDArray[np.int64]
     has_prismatic: bool
     plain: bool
 
@@ -92,10 +98,9 @@ def chain_stack(chains: tuple[FingerChain, ...]) -> ChainStack:
     axis = np.zeros((L, C, 3))
     revolute = np.zeros((L, C), dtype=bool)
     prismatic = np.zeros((L, C), dtype=bool)
-    column = np.zeros((L, C), dtype=np.intp)
+    column = np.zeros((L, C), dtype=np.int64)
     gain = np.zeros((L, C))
     offset = np.zeros((L, C))
-    select = np.zeros((C, L, n))
     for c, chain in enumerate(chains):
         for l, (joint, k, g, b) in enumerate(
             zip(chain.joints, chain.drive_index, chain.drive_gain, chain.drive_offset, strict=True)
@@ -108,7 +113,6 @@ def chain_stack(chains: tuple[FingerChain, ...]) -> ChainStack:
             prismatic[l, c] = joint.kind == "prismatic"
             column[l, c] = starts[c] + k
             gain[l, c], offset[l, c] = g, b
-            select[c, l, starts[c] + k] = g
     # A revolute joint's motion is [[c (I - A) + s K + A, 0], [0, 1]] (A = a a^T, K = [a]x), a
     # prismatic one's [[I, t a], [0, 1]] (t its shift), a fixed one's I: each picks its coefficients.
     rev = revolute[..., None, None]
@@ -128,7 +132,7 @@ def chain_stack(chains: tuple[FingerChain, ...]) -> ChainStack:
         "column": column,
         "gain": gain,
         "offset": offset,
-        "select": select,
+        "lengths": np.array([len(c.joints) for c in chains], dtype=np.int64),
     }
     for a in arrays.values():
         a.setflags(write=False)
@@ -151,96 +155,122 @@ class Kinematics(NamedTuple):
     origins: NDArray[np.float64] | None
 
 
-def _values(stack: ChainStack, q: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Every joint's value ``(L, B, C)`` for the stacked joint vectors ``q`` ``(B, n)`` (a fixed
-    joint's value is arbitrary when the stack is ``plain``)."""
-    value = np.take(q, stack.column, axis=1).transpose(1, 0, 2)
-    return value if stack.plain else value * stack.gain[:, None] + stack.offset[:, None]
+@jit
+def _compose(A, B, out):  # pragma: no cover - compiled
+    """The affine product ``A B`` of 3 x 4 transforms (implicit last row 0 0 0 1) into ``out``."""
+    for i in range(3):
+        a0 = A[i, 0]
+        a1 = A[i, 1]
+        a2 = A[i, 2]
+        for j in range(3):
+            out[i, j] = a0 * B[0, j] + a1 * B[1, j] + a2 * B[2, j]
+        out[i, 3] = a0 * B[0, 3] + a1 * B[1, 3] + a2 * B[2, 3] + A[i, 3]
 
 
-def local_transforms(
-    stack: ChainStack,
-    q: NDArray[np.float64],
-    rot: NDArray[np.float64] | None = None,
-    pos: NDArray[np.float64] | None = None,
-) -> NDArray[np.float64]:
-    """Each joint's transform (its origin times its motion) for each row of ``q`` ``(B, n)``:
-    ``(L, B, C, 4, 4)``, preceded by the palm's pose (``rot`` ``(B, 3, 3)``, ``pos`` ``(B, 3)``, both
-    or neither) if given: ``(1 + L, B, C, 4, 4)``. Their product, root to tip, is the chain."""
-    B = q.shape[0]
-    L, C, K = stack.basis.shape[:3]
-    value = _values(stack, q)
-    coef = np.ones((L, B, C, 1, K))
-    np.cos(value, out=coef[..., 0, 0])
-    np.sin(value, out=coef[..., 0, 1])
-    if stack.has_prismatic:
-        coef[..., 0, 3] = value
-    root = rot is not None
-    E = np.empty((L + root, B, C, 1, 16))
-    np.matmul(coef, stack.basis[:, None], out=E[root:])
-    E = E.reshape(L + root, B, C, 4, 4)
-    if root:
-        assert rot is not None and pos is not None
-        E[0, :, :, :3, :3] = rot[:, None]
-        E[0, :, :, :3, 3] = pos[:, None]
-        E[0, :, :, 3] = (0.0, 0.0, 0.0, 1.0)
-    return E
+@jit
+def forward(basis, column, gain, offset, length, R, p, q, T, M, frames, tips):  # pragma: no cover
+    """Frames after every joint ``(C, L, 3, 4)`` (3 x 4) and fingertips ``(C, 3)`` [m] of the
+    :class:`ChainStack` arrays' chains with palm rotation ``R`` (3, 3), origin ``p`` (3,) and joints
+    ``q`` (n,), root to tip. Joint ``(l, c)`` takes the value ``gain q[column] + offset``; its
+    transform is ``cos(value) basis[l, c, 0] + sin(value) basis[l, c, 1] + basis[l, c, 2]
+    (+ value basis[l, c, 3])`` (rows 0-2 of the flat 4 x 4). Padding joints past ``length[c]`` are
+    identities and skipped. ``T``, ``M``: scratch (3, 4)."""
+    K = basis.shape[2]
+    for c in range(length.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                T[i, j] = R[i, j]
+            T[i, 3] = p[i]
+        for l in range(length[c]):
+            value = gain[l, c] * q[column[l, c]] + offset[l, c]
+            cv = math.cos(value)
+            sv = math.sin(value)
+            for r in range(12):
+                v = cv * basis[l, c, 0, r] + sv * basis[l, c, 1, r] + basis[l, c, 2, r]
+                if K == 4:
+                    v += value * basis[l, c, 3, r]
+                M[r // 4, r % 4] = v
+            _compose(T, M, frames[c, l])
+            for i in range(3):
+                for j in range(4):
+                    T[i, j] = frames[c, l, i, j]
+        for i in range(3):
+            tips[c, i] = T[i, 3]
 
 
-def chain_product(E: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The product ``E[0] @ E[1] @ ... `` of transforms ``(K, ..., 4, 4)`` (pairwise, log2 K rounds)."""
-    while len(E) > 1:
-        half = len(E) // 2
-        P = E[0 : 2 * half : 2] @ E[1 : 2 * half : 2]
-        E = np.concatenate([P, E[-1:]]) if len(E) % 2 else P
-    return E[0]
+@jit
+def joint_columns(axis, prismatic, column, gain, length, frames, tips, J, first):  # pragma: no cover
+    """Add the joints' columns of the fingertips' Jacobian to ``J`` ``(3 C, first + n)`` (column
+    ``first + k`` for joint ``k``; rows ``3 c`` to ``3 c + 2`` for chain ``c``), from the
+    :func:`forward` frames and tips. A revolute joint's column is ``a x (tip - o)``, a prismatic
+    one's ``a`` (``a`` its axis, ``o`` its origin, in the frames' frame), times the joint's gain,
+    added to its driving joint's column."""
+    for c in range(length.shape[0]):
+        r0 = 3 * c
+        for l in range(length[c]):
+            g = gain[l, c]
+            if g == 0.0:
+                continue  # a fixed joint (or a mimic joint with multiplier 0): no column
+            F = frames[c, l]
+            ax = F[0, 0] * axis[l, c, 0, 0] + F[0, 1] * axis[l, c, 1, 0] + F[0, 2] * axis[l, c, 2, 0]
+            ay = F[1, 0] * axis[l, c, 0, 0] + F[1, 1] * axis[l, c, 1, 0] + F[1, 2] * axis[l, c, 2, 0]
+            az = F[2, 0] * axis[l, c, 0, 0] + F[2, 1] * axis[l, c, 1, 0] + F[2, 2] * axis[l, c, 2, 0]
+            if prismatic[l, c]:
+                cx = ax
+                cy = ay
+                cz = az
+            else:
+                dx = F[0, 3] - tips[c, 0]
+                dy = F[1, 3] - tips[c, 1]
+                dz = F[2, 3] - tips[c, 2]
+                cx = az * dy - ay * dz
+                cy = ax * dz - az * dx
+                cz = ay * dx - ax * dy
+            k = first + column[l, c]
+            J[r0, k] += g * cx
+            J[r0 + 1, k] += g * cy
+            J[r0 + 2, k] += g * cz
 
 
-def chain_frames(E: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The prefix products ``E[0] @ ... @ E[k]`` of transforms ``(K, ..., 4, 4)`` (a new array;
-    Hillis-Steele scan, log2 K rounds)."""
-    P = E.copy()
-    d = 1
-    while d < len(P):
-        P[d:] = P[:-d] @ P[d:]
-        d *= 2
-    return P
-
-
-def frame_kinematics(
-    stack: ChainStack,
-    frames: NDArray[np.float64],
-    q: NDArray[np.float64],
-    *,
-    jacobian: bool = False,
-    origins: bool = False,
-) -> Kinematics:
-    """:class:`Kinematics` from the frames ``(L, B, C, 4, 4)`` after each joint (the prefix products
-    of :func:`local_transforms` without the palm's) for the joint vectors ``q`` ``(B, n)``.
-
-    A revolute joint's Jacobian column is ``a x (p_tip - p_joint)``, a prismatic one's ``a`` (``a``
-    the joint axis in the output frame); a mimic joint adds its column times its multiplier to
-    its driver's.
-    """
-    L, B, C = frames.shape[:3]
-    tips = frames[-1, :, :, :3, 3]
-    if not (jacobian or origins):
-        return Kinematics(tips, None, None)
-    o = frames[..., :3, 3]  # a revolute or fixed joint does not move its own origin
-    a = None
-    if stack.has_prismatic or jacobian:
-        a = (frames[..., :3, :3] @ stack.axis[:, None])[..., 0]  # joint axes, (L, B, C, 3)
-        if stack.has_prismatic:
-            o = o - np.where(stack.prismatic[:, None], _values(stack, q), 0.0)[..., None] * a
-    J = None
-    if jacobian:
-        assert a is not None
-        neg_cross = (a @ _LEVI_CIVITA).reshape(L, B, C, 3, 3)  # -[a]x
-        col = (neg_cross @ (o - tips)[..., None])[..., 0]  # a x (tip - o), (L, B, C, 3)
-        if stack.has_prismatic:
-            col = np.where(stack.prismatic[:, None, :, None], a, col)
-        J = col.transpose(1, 2, 3, 0) @ stack.select  # fixed joints have zero rows in select
-    return Kinematics(tips, J, o.transpose(1, 2, 0, 3) if origins else None)
+@jit
+def _batch(basis, axis, prismatic, column, gain, offset, length, R, p, q, tips_out, J_out, origins_out):  # noqa: E501 # pragma: no cover
+    """:func:`forward` for each row ``b`` of ``R`` ``(B, 3, 3)``, ``p`` ``(B, 3)``, ``q`` ``(B, n)``
+    into ``tips_out`` ``(B, C, 3)``; the Jacobian ``(B, C, 3, n)`` and the joint origins
+    ``(B, C, L, 3)`` too unless ``J_out``, ``origins_out`` have no rows."""
+    B, n = q.shape
+    C = length.shape[0]
+    L = basis.shape[0]
+    T = np.empty((3, 4))
+    M = np.empty((3, 4))
+    frames = np.empty((C, L, 3, 4))
+    tips = np.empty((C, 3))
+    J = np.empty((3 * C, n))
+    for b in range(B):
+        forward(basis, column, gain, offset, length, R[b], p[b], q[b], T, M, frames, tips)
+        for c in range(C):
+            for i in range(3):
+                tips_out[b, c, i] = tips[c, i]
+        if J_out.shape[0] > 0:
+            J[:, :] = 0.0
+            joint_columns(axis, prismatic, column, gain, length, frames, tips, J, 0)
+            for c in range(C):
+                for i in range(3):
+                    for k in range(n):
+                        J_out[b, c, i, k] = J[3 * c + i, k]
+        if origins_out.shape[0] > 0:
+            for c in range(C):
+                for l in range(L):
+                    if l >= length[c]:
+                        for i in range(3):
+                            origins_out[b, c, l, i] = tips[c, i]
+                        continue
+                    F = frames[c, l]
+                    shift = 0.0  # a prismatic joint moves its frame along its axis from its origin
+                    if prismatic[l, c]:
+                        shift = gain[l, c] * q[b, column[l, c]] + offset[l, c]
+                    for i in range(3):
+                        a = F[i, 0] * axis[l, c, 0, 0] + F[i, 1] * axis[l, c, 1, 0] + F[i, 2] * axis[l, c, 2, 0]
+                        origins_out[b, c, l, i] = F[i, 3] - shift * a
 
 
 def stack_kinematics(
@@ -255,12 +285,39 @@ def stack_kinematics(
     """Fingertips (and optionally the Jacobian and joint origins) of every chain of ``stack`` for each
     row of ``q`` ``(B, n)`` (validated by the caller), in the frame where the palm has rotation
     ``rot`` ``(B, 3, 3)`` and origin ``pos`` ``(B, 3)`` (both or neither; default: the palm frame).
-    See :func:`local_transforms` and :func:`frame_kinematics`."""
-    E = local_transforms(stack, q, rot, pos)
-    if not (jacobian or origins):
-        return Kinematics(chain_product(E)[..., :3, 3], None, None)
-    frames = chain_frames(E)
-    return frame_kinematics(stack, frames[rot is not None :], q, jacobian=jacobian, origins=origins)
+
+    Each chain's transforms are multiplied root to tip (:func:`forward`). A revolute joint's
+    Jacobian column is ``a x (p_tip - p_joint)``, a prismatic one's ``a`` (``a`` the joint axis in
+    the output frame); a mimic joint adds its column times its multiplier to its driver's.
+    """
+    qa = np.ascontiguousarray(q, dtype=np.float64)
+    B = qa.shape[0]
+    if rot is None:
+        R = np.broadcast_to(np.eye(3), (B, 3, 3))
+        p = np.zeros((B, 3))
+    else:
+        assert pos is not None
+        R, p = rot, pos
+    C, L = len(stack.chains), stack.basis.shape[0]
+    tips = np.empty((B, C, 3))
+    J = np.empty((B if jacobian else 0, C, 3, stack.n))
+    o = np.empty((B if origins else 0, C, L, 3))
+    _batch(
+        stack.basis,
+        stack.axis,
+        stack.prismatic,
+        stack.column,
+        stack.gain,
+        stack.offset,
+        stack.lengths,
+        np.ascontiguousarray(R, dtype=np.float64),
+        np.ascontiguousarray(p, dtype=np.float64),
+        qa,
+        tips,
+        J,
+        o,
+    )
+    return Kinematics(tips, J if jacobian else None, o if origins else None)
 
 
 def _kinematics(

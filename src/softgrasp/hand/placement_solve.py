@@ -36,8 +36,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.ik import jit, limited_step
-from softgrasp.hand.kinematics import ChainStack
+from softgrasp.hand.ik import limited_step
+from softgrasp.hand.kinematics import ChainStack, forward, jit, joint_columns
 
 __all__ = [
     "STOP_REACHED",
@@ -60,56 +60,12 @@ STOP_NO_STEP = 2
 STOP_NO_DECREASE = 3
 STOP_MAX_ITER = 4
 
-# ---------------------------------------------------------------------------------- kinematics
-@jit
-def _compose(A, B, out):  # pragma: no cover - compiled
-    """The affine product ``A B`` of 3 x 4 transforms (implicit last row 0 0 0 1) into ``out``."""
-    for i in range(3):
-        a0 = A[i, 0]
-        a1 = A[i, 1]
-        a2 = A[i, 2]
-        for j in range(3):
-            out[i, j] = a0 * B[0, j] + a1 * B[1, j] + a2 * B[2, j]
-        out[i, 3] = a0 * B[0, 3] + a1 * B[1, 3] + a2 * B[2, 3] + A[i, 3]
-
-
-@jit
-def _forward(basis, column, gain, offset, length, R, p, q, T, M, frames, tips):  # pragma: no cover
-    """Frames after every joint ``(C, L, 3, 4)`` (world, 3 x 4) and fingertips ``(C, 3)`` [m] of the
-    chains with palm rotation ``R`` (3, 3), origin ``p`` (3,) and joints ``q`` (n,). Joint ``(l, c)``
-    takes the value ``gain q[column] + offset``; its transform is ``cos(value) basis[l, c, 0] +
-    sin(value) basis[l, c, 1] + basis[l, c, 2] (+ value basis[l, c, 3])`` (rows 0-2 of the flat
-    4 x 4). Padding joints past ``length[c]`` are identities and skipped. ``T``, ``M``: scratch
-    (3, 4)."""
-    K = basis.shape[2]
-    for c in range(length.shape[0]):
-        for i in range(3):
-            for j in range(3):
-                T[i, j] = R[i, j]
-            T[i, 3] = p[i]
-        for l in range(length[c]):
-            value = gain[l, c] * q[column[l, c]] + offset[l, c]
-            cv = math.cos(value)
-            sv = math.sin(value)
-            for r in range(12):
-                v = cv * basis[l, c, 0, r] + sv * basis[l, c, 1, r] + basis[l, c, 2, r]
-                if K == 4:
-                    v += value * basis[l, c, 3, r]
-                M[r // 4, r % 4] = v
-            _compose(T, M, frames[c, l])
-            for i in range(3):
-                for j in range(4):
-                    T[i, j] = frames[c, l, i, j]
-        for i in range(3):
-            tips[c, i] = T[i, 3]
-
 
 @jit
 def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pragma: no cover
     """Jacobian ``J`` ``(3 C, 6 + n)`` of the fingertips with respect to the palm translation, a small
-    palm rotation about world axes and the joints, from the :func:`_forward` frames and tips of a
-    palm at ``p``. A revolute joint's column is ``a x (tip - o)``, a prismatic one's ``a`` (``a`` its
-    world axis, ``o`` its origin), times the joint's gain, added to its driving joint's column."""
+    palm rotation about world axes and the joints, from the :func:`forward` frames and tips of a
+    palm at ``p``: the joints' columns are :func:`~softgrasp.hand.kinematics.joint_columns`."""
     J[:, :] = 0.0
     for c in range(length.shape[0]):
         r0 = 3 * c
@@ -125,29 +81,7 @@ def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pra
         J[r0 + 1, 5] = rx
         J[r0 + 2, 3] = ry
         J[r0 + 2, 4] = -rx
-        for l in range(length[c]):
-            g = gain[l, c]
-            if g == 0.0:
-                continue  # a fixed joint (or a mimic joint with multiplier 0): no column
-            F = frames[c, l]
-            ax = F[0, 0] * axis[l, c, 0, 0] + F[0, 1] * axis[l, c, 1, 0] + F[0, 2] * axis[l, c, 2, 0]
-            ay = F[1, 0] * axis[l, c, 0, 0] + F[1, 1] * axis[l, c, 1, 0] + F[1, 2] * axis[l, c, 2, 0]
-            az = F[2, 0] * axis[l, c, 0, 0] + F[2, 1] * axis[l, c, 1, 0] + F[2, 2] * axis[l, c, 2, 0]
-            if prismatic[l, c]:
-                cx = ax
-                cy = ay
-                cz = az
-            else:
-                dx = F[0, 3] - tips[c, 0]
-                dy = F[1, 3] - tips[c, 1]
-                dz = F[2, 3] - tips[c, 2]
-                cx = az * dy - ay * dz
-                cy = ax * dz - az * dx
-                cz = ay * dx - ax * dy
-            k = 6 + column[l, c]
-            J[r0, k] += g * cx
-            J[r0 + 1, k] += g * cy
-            J[r0 + 2, k] += g * cz
+    joint_columns(axis, prismatic, column, gain, length, frames, tips, J, 6)
 
 
 @jit
@@ -268,7 +202,7 @@ def _solve(
             x[k] = 0.0  # palm step coordinates, 0 at the current pose
         for k in range(n):
             x[6 + k] = q0[s, k]
-        _forward(basis, column, gain, offset, length, R, p, x[6:], T, M, frames, tips)
+        forward(basis, column, gain, offset, length, R, p, x[6:], T, M, frames, tips)
         for i in range(m):
             e[i] = goal[i] - tips[i // 3, i % 3]
         err = _largest(e)
@@ -310,7 +244,7 @@ def _solve(
                 for i in range(3):
                     for j in range(3):
                         R_try[i, j] = turn[i, 0] * R[0, j] + turn[i, 1] * R[1, j] + turn[i, 2] * R[2, j]
-                _forward(basis, column, gain, offset, length, R_try, p_try, x_try[6:], T, M, frames, tips)
+                forward(basis, column, gain, offset, length, R_try, p_try, x_try[6:], T, M, frames, tips)
                 for i in range(m):
                     e_try[i] = goal[i] - tips[i // 3, i % 3]
                 if _norm(e_try) < norm:
@@ -416,10 +350,10 @@ def solve(
         stack.basis,
         stack.axis,
         stack.prismatic,
-        stack.column.astype(np.int64, copy=False),
+        stack.column,
         stack.gain,
         stack.offset,
-        np.asarray(stack.length, dtype=np.int64),
+        stack.lengths,
         goal,
         lower,
         upper,
