@@ -55,8 +55,8 @@ _LEVI_CIVITA.setflags(write=False)
 
 @dataclass(frozen=True, eq=False)
 class ChainStack:
-    """Finger chains prepared for forward kinematics evaluated all at once, vectorised over a batch of
-    configurations and over the chains (:func:`chain_stack` builds and caches it).
+    """Finger chains as the arrays of the compiled forward kinematics (:func:`forward`), for several
+    chains and a batch of configurations at once (:func:`chain_stack` builds and caches it).
 
     The chains' joint vectors are concatenated, in order, into one vector of length ``n``
     (``starts[c]`` is where chain ``c``'s begins). Chain ``c`` has ``length[c]`` joints, padded with

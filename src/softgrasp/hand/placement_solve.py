@@ -23,8 +23,10 @@ perturbation: postures that reach their targets are insensitive to it, but postu
 short of unreachable targets can end far apart (up to 1 rad) when a starting posture moves by one
 ulp, at much the same error.
 
-Kernels are compiled with ``cache=True`` (on-disk cache: only the first run compiles),
-``fastmath=False`` and ``error_model="numpy"`` (a division by zero gives inf/nan like NumPy).
+The kernels are compiled as :mod:`softgrasp.hand.kinematics`'s (:data:`~softgrasp.hand.kinematics.jit`).
+Numba's on-disk cache of :func:`solve`'s kernel notices changes to this file only: after an edit
+of the kernels it calls in :mod:`softgrasp.hand.kinematics` or :mod:`softgrasp.hand.ik`, delete this
+module's cache files (``__pycache__/placement_solve.*.nbi``, ``.nbc``).
 """
 
 from __future__ import annotations
