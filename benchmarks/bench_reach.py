@@ -126,7 +126,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7, help="timed replays of each call per solve")
     args = ap.parse_args()
-    print(f"place_hand benchmark on {platform.machine()}, {os.cpu_count()} CPUs; compiled solve vs NumPy oracle")
+    machine = f"{platform.machine()}, {os.cpu_count()} CPUs"
+    print(f"place_hand benchmark on {machine}; compiled solve vs NumPy oracle")
     print("   nodes  call  compiled best/median ms   NumPy best/median ms   ratio  same outcome")
     calls, wall = _command()
     total = _replay("plan", calls, args.repeats)

@@ -358,7 +358,6 @@ def _check_stack(model: HandModel, fingers: tuple[str, ...], seed: int) -> None:
     Jacobians and joint origins are those of each finger alone, moved into the frame, and those of
     the NumPy oracle."""
     from oracles.hand import stack_kinematics as numpy_kinematics
-
     from softgrasp.hand.kinematics import chain_stack, stack_kinematics
     from softgrasp.hand.placement import transform
 
@@ -695,7 +694,6 @@ def test_each_start_of_the_batched_placement_iterates_on_its_own(sphere_grasp) -
     compiled solve takes them one after the other: solving them all at once or one by one gives the
     same end postures (including the ones that stall or get stuck)."""
     from oracles.hand import solve as _solve_numpy
-
     from softgrasp.hand.kinematics import chain_stack
     from softgrasp.hand.placement import _seeds, _solve
 

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from oracles import hand as oracle
 
+from oracles import hand as oracle
 from softgrasp.errors import ConfigError, InfeasibleGrasp
 from softgrasp.hand import placement as reach
 from softgrasp.hand import placement_solve as kernel

@@ -296,8 +296,9 @@ def limited_steps(
     winv: NDArray[np.float64],
     damping: float,
 ) -> NDArray[np.float64]:
-    """:func:`softgrasp.hand.ik.limited_step` for a batch: ``J`` ``(B, m, n)``, ``dx`` ``(B, m)``, ``q`` ``(B, n)``;
-    ``lower``, ``upper`` and the inverse joint weights ``winv`` ``(n,)``. Returns ``dq`` ``(B, n)``.
+    """:func:`softgrasp.hand.ik.limited_step` for a batch: ``J`` ``(B, m, n)``, ``dx`` ``(B, m)``,
+    ``q`` ``(B, n)``; ``lower``, ``upper`` and the inverse joint weights ``winv`` ``(n,)``. Returns
+    ``dq`` ``(B, n)``.
 
     A frozen joint gets the inverse weight 0 (the same as dropping its column: its step is exactly
     0 and it adds nothing to ``J W^-1 J^T``).

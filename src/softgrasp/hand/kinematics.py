@@ -233,44 +233,45 @@ def joint_columns(axis, prismatic, column, gain, length, frames, tips, J, first)
 
 
 @jit
-def _batch(basis, axis, prismatic, column, gain, offset, length, R, p, q, tips_out, J_out, origins_out):  # noqa: E501 # pragma: no cover
+def _batch(basis, axis, prismatic, column, gain, offset, length, R, p, q, tips, J_out, origins):  # pragma: no cover
     """:func:`forward` for each row ``b`` of ``R`` ``(B, 3, 3)``, ``p`` ``(B, 3)``, ``q`` ``(B, n)``
-    into ``tips_out`` ``(B, C, 3)``; the Jacobian ``(B, C, 3, n)`` and the joint origins
-    ``(B, C, L, 3)`` too unless ``J_out``, ``origins_out`` have no rows."""
+    into ``tips`` ``(B, C, 3)``; the Jacobian ``J_out`` ``(B, C, 3, n)`` and the joint origins
+    ``(B, C, L, 3)`` too unless ``J_out``, ``origins`` have no rows."""
     B, n = q.shape
     C = length.shape[0]
     L = basis.shape[0]
     T = np.empty((3, 4))
     M = np.empty((3, 4))
     frames = np.empty((C, L, 3, 4))
-    tips = np.empty((C, 3))
+    tip = np.empty((C, 3))
     J = np.empty((3 * C, n))
     for b in range(B):
-        forward(basis, column, gain, offset, length, R[b], p[b], q[b], T, M, frames, tips)
+        forward(basis, column, gain, offset, length, R[b], p[b], q[b], T, M, frames, tip)
         for c in range(C):
             for i in range(3):
-                tips_out[b, c, i] = tips[c, i]
+                tips[b, c, i] = tip[c, i]
         if J_out.shape[0] > 0:
             J[:, :] = 0.0
-            joint_columns(axis, prismatic, column, gain, length, frames, tips, J, 0)
+            joint_columns(axis, prismatic, column, gain, length, frames, tip, J, 0)
             for c in range(C):
                 for i in range(3):
                     for k in range(n):
                         J_out[b, c, i, k] = J[3 * c + i, k]
-        if origins_out.shape[0] > 0:
+        if origins.shape[0] > 0:
             for c in range(C):
                 for l in range(L):
                     if l >= length[c]:
                         for i in range(3):
-                            origins_out[b, c, l, i] = tips[c, i]
+                            origins[b, c, l, i] = tip[c, i]
                         continue
                     F = frames[c, l]
                     shift = 0.0  # a prismatic joint moves its frame along its axis from its origin
                     if prismatic[l, c]:
                         shift = gain[l, c] * q[b, column[l, c]] + offset[l, c]
+                    u = axis[l, c]
                     for i in range(3):
-                        a = F[i, 0] * axis[l, c, 0, 0] + F[i, 1] * axis[l, c, 1, 0] + F[i, 2] * axis[l, c, 2, 0]
-                        origins_out[b, c, l, i] = F[i, 3] - shift * a
+                        a = F[i, 0] * u[0, 0] + F[i, 1] * u[1, 0] + F[i, 2] * u[2, 0]  # world axis
+                        origins[b, c, l, i] = F[i, 3] - shift * a
 
 
 def stack_kinematics(
