@@ -5,7 +5,7 @@ initial-grasp candidates (the hand refuses the first ones: it reaches them only 
 the object). This script runs that command once, recording those calls (their fingertip targets and
 the settled object) and the command's wall time, then does the same for the planner alone at
 larger mesh sizes; it replays every call with the compiled solve
-(:mod:`softgrasp.hand.placement_solve`, what ``place_hand`` runs) and with the NumPy oracle of the
+(:mod:`softgrasp.hand.descent`, what ``place_hand`` runs) and with the NumPy oracle of the
 tests (``tests/oracles/hand.py``), alternating, and prints per call the best and median times, the
 ratio, and whether both gave the same outcome (the same refusal, or the same placement to 1e-9).
 

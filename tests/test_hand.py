@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand.ik import LIMIT_EPS, follow_line, limited_step, solve_ik, wdls_step
+from softgrasp.hand.ik import follow_line, solve_ik
 from softgrasp.hand.kinematics import HandModel
+from softgrasp.hand.wdls import LIMIT_EPS, limited_step, wdls_step
 
 MODEL = HandModel.default()
 FINGERS = ("thumb", "first", "middle")

@@ -1,4 +1,4 @@
-"""The hand-placement solve (:mod:`softgrasp.hand.placement_solve`, compiled) agrees with the NumPy
+"""The hand-placement solve (:mod:`softgrasp.hand.descent`, compiled) agrees with the NumPy
 oracle (:func:`oracles.hand.solve`) to 1e-9 [m, rad], and :func:`place_hand` returns the same
 placement with either.
 
@@ -21,7 +21,7 @@ import pytest
 from oracles import hand as oracle
 from softgrasp.errors import ConfigError, InfeasibleGrasp
 from softgrasp.hand import placement as reach
-from softgrasp.hand import placement_solve as kernel
+from softgrasp.hand import descent as kernel
 from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack
 
 #: Agreement of the compiled solve and the NumPy oracle: absolute [m, rad] and relative.

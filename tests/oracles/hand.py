@@ -1,5 +1,5 @@
 """NumPy oracles of the hand's forward kinematics (:func:`softgrasp.hand.kinematics.stack_kinematics`)
-and of the placement's floating-palm WDLS (:mod:`softgrasp.hand.placement_solve`).
+and of the placement's floating-palm WDLS (:mod:`softgrasp.hand.descent`).
 
 :func:`stack_kinematics` evaluates the chains of a stack vectorised over configurations and chains:
 each joint's 4 x 4 transform from the stack's ``basis`` (:func:`local_transforms`), multiplied
@@ -9,9 +9,9 @@ joints by :func:`select`.
 :func:`solve` iterates all starting postures at once, vectorised with NumPy (every posture still
 iterates on its own: they advance in lockstep only to share NumPy calls), with the rules read
 from :mod:`softgrasp.hand.placement` at call time (tests patch them). Its limit-clamped step
-:func:`limited_steps` is the batched NumPy form of :func:`softgrasp.hand.ik.limited_step`, its
-kinematics those of :mod:`softgrasp.hand.kinematics` (pairwise 4 x 4 products, BLAS and LAPACK),
-so it sums in other orders than the compiled solve: one iteration of the two agrees to round-off.
+:func:`limited_steps` is the batched NumPy form of :func:`softgrasp.hand.wdls.limited_step`, its
+kinematics those above (pairwise 4 x 4 products, BLAS and LAPACK), so it sums in other orders than
+the compiled solve: one iteration of the two agrees to round-off.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.hand import placement as rules
-from softgrasp.hand.ik import LIMIT_EPS
 from softgrasp.hand.kinematics import _LEVI_CIVITA, ChainStack, Kinematics
+from softgrasp.hand.wdls import LIMIT_EPS
 
 #: Trial steps of the line search evaluated at once, shared among the postures still searching (a
 #: cost trade-off only: each posture takes the first step of 1, 1/2, 1/4, ... that decreases its error).
@@ -296,7 +296,7 @@ def limited_steps(
     winv: NDArray[np.float64],
     damping: float,
 ) -> NDArray[np.float64]:
-    """:func:`softgrasp.hand.ik.limited_step` for a batch: ``J`` ``(B, m, n)``, ``dx`` ``(B, m)``,
+    """:func:`softgrasp.hand.wdls.limited_step` for a batch: ``J`` ``(B, m, n)``, ``dx`` ``(B, m)``,
     ``q`` ``(B, n)``; ``lower``, ``upper`` and the inverse joint weights ``winv`` ``(n,)``. Returns
     ``dq`` ``(B, n)``.
 

@@ -6,7 +6,7 @@ The palm is a free rigid body (the arm positions it): its pose is found together
 fingers' joints by WDLS on the stacked fingertip tasks, the palm's six coordinates (a translation
 and a small rotation about world axes) acting as extra joints without limits. Several starting
 postures are tried (grasps from above, and Kabsch's best rigid fit of a nominal posture's
-fingertips onto the targets), each iterating on its own (:mod:`softgrasp.hand.placement_solve`,
+fingertips onto the targets), each iterating on its own (:mod:`softgrasp.hand.descent`,
 compiled); a solution must reach
 every target, keep every joint inside its limits and keep the palm and all finger joints outside
 the object. The one with the most room to its joint limits wins (the first one on a tie).
@@ -27,9 +27,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand import placement_solve
-from softgrasp.hand.ik import LIMIT_EPS, follow_line
+from softgrasp.hand import descent
+from softgrasp.hand.ik import follow_line
 from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack, stack_kinematics
+from softgrasp.hand.wdls import LIMIT_EPS
 
 __all__ = ["HandPlacement", "place_hand", "closing_paths", "transform", "invert"]
 
@@ -92,7 +93,7 @@ def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
 def _rotation(w: NDArray[np.float64]) -> NDArray[np.float64]:
     """Rotation by the vector ``w`` (axis times angle)."""
     out = np.empty((3, 3))
-    placement_solve.rotation(float(w[0]), float(w[1]), float(w[2]), out)
+    descent.rotation(float(w[0]), float(w[1]), float(w[2]), out)
     return out
 
 
@@ -201,8 +202,8 @@ def _solve(
     """Floating-palm WDLS towards the targets ``(C, 3)`` from each of ``S`` starting postures (palm
     rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)``, joints ``q`` ``(S, n)``); returns the last
     ``R``, ``p``, ``q`` and largest fingertip error ``(S,)`` of each
-    (:func:`softgrasp.hand.placement_solve.solve` with this module's rules)."""
-    return placement_solve.solve(
+    (:func:`softgrasp.hand.descent.solve` with this module's rules)."""
+    return descent.solve(
         stack,
         targets,
         R,

@@ -1,4 +1,7 @@
-"""The floating-palm WDLS of the hand placement (:mod:`softgrasp.hand.placement`), compiled with Numba.
+"""The clamped WDLS descent of the hand's inverse kinematics, compiled with Numba: the fingertips of
+one or more fingers driven to their targets by the joints, and by the palm when it floats (the hand
+placement, :mod:`softgrasp.hand.placement`) or with the palm fixed (one finger's IK,
+:mod:`softgrasp.hand.ik`).
 
 :func:`solve` iterates every starting posture on its own, one after the other. Per posture and
 iteration:
@@ -6,9 +9,9 @@ iteration:
 * the fingertip errors ``e = targets - tips`` ``(3 C,)`` and their Jacobian ``(3 C, 6 + n)`` with
   respect to the palm translation, a small palm rotation about world axes and the joints;
 * the step aims at ``e`` shortened to at most ``max_step`` [m]; the limit-clamped WDLS step
-  (:func:`softgrasp.hand.ik.limited_step`, the palm's six coordinates acting as joints without
-  limits) freezes every joint at a limit whose step points out of its range and recomputes, until
-  none is left;
+  (:func:`softgrasp.hand.wdls.limited_step`; the palm's six coordinates act as joints without
+  limits, or pinned at 0 when the palm is fixed) freezes every joint at a limit whose step points
+  out of its range and recomputes, until none is left;
 * a line search takes the first of the step times 1, 1/2, 1/4, ... (``max_halvings`` of them) whose
   joints, clipped into their limits, decrease the error norm; the palm moves by the step's
   translation and rotation, and its step coordinates restart at 0;
@@ -25,8 +28,8 @@ ulp, at much the same error.
 
 The kernels are compiled as :mod:`softgrasp.hand.kinematics`'s (:data:`~softgrasp.hand.kinematics.jit`).
 Numba's on-disk cache of :func:`solve`'s kernel notices changes to this file only: after an edit
-of the kernels it calls in :mod:`softgrasp.hand.kinematics` or :mod:`softgrasp.hand.ik`, delete this
-module's cache files (``__pycache__/placement_solve.*.nbi``, ``.nbc``).
+of the kernels it calls in :mod:`softgrasp.hand.kinematics` or :mod:`softgrasp.hand.wdls`, delete
+this module's cache files (``__pycache__/descent.*.nbi``, ``.nbc``).
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.ik import limited_step
+from softgrasp.hand.wdls import limited_step
 from softgrasp.hand.kinematics import ChainStack, forward, jit, joint_columns
 
 __all__ = [
@@ -307,6 +310,8 @@ def solve(
     p: Array,
     q: Array,
     *,
+    winv: Array | None = None,
+    palm_fixed: bool = False,
     reach_tol: float,
     max_iter: int,
     max_step: float,
@@ -316,14 +321,14 @@ def solve(
     max_halvings: int,
     limit_eps: float,
 ) -> Solves:
-    """Floating-palm WDLS towards the targets ``(C, 3)`` [m] from each of ``S`` starting postures (palm
+    """Clamped WDLS towards the targets ``(C, 3)`` [m] from each of ``S`` starting postures (palm
     rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)`` [m], joints ``q`` ``(S, n)``, inside their
-    limits); see :class:`Solves`.
+    limits); see :class:`Solves`. The palm floats unless ``palm_fixed``.
 
-    The rules are those of the module docstring: ``reach_tol`` [m], ``max_iter``, ``max_step``
-    [m], ``damping`` [m] (>= 0; 0: the undamped, pseudo-inverse step),
-    ``stall_fraction`` over ``stall_window`` iterations, ``max_halvings`` and the limit tolerance
-    ``limit_eps`` [rad or m]. All joint weights are 1.
+    ``winv`` ``(n,)`` are the inverse joint weights (default 1; the palm's are 1). The rules are
+    those of the module docstring: ``reach_tol`` [m], ``max_iter``, ``max_step`` [m], ``damping``
+    [m] (>= 0; 0: the undamped, pseudo-inverse step), ``stall_fraction`` over ``stall_window``
+    iterations, ``max_halvings`` and the limit tolerance ``limit_eps`` [rad or m].
     """
     R0 = np.ascontiguousarray(R, dtype=np.float64)
     p0 = np.ascontiguousarray(p, dtype=np.float64)
@@ -336,9 +341,12 @@ def solve(
     goal = np.ascontiguousarray(targets, dtype=np.float64).ravel()
     if goal.shape != (3 * len(stack.chains),):
         raise ConfigError(f"solve needs targets ({len(stack.chains)}, 3); got {np.shape(targets)}")
-    inf = np.full(6, np.inf)
-    lower = np.concatenate([-inf] + [c.lower for c in stack.chains])
-    upper = np.concatenate([inf] + [c.upper for c in stack.chains])
+    palm = np.zeros(6) if palm_fixed else np.full(6, np.inf)
+    lower = np.concatenate([-palm] + [c.lower for c in stack.chains])
+    upper = np.concatenate([palm] + [c.upper for c in stack.chains])
+    weights = np.ones(6 + n)
+    if winv is not None:
+        weights[6:] = winv
     out = Solves(
         np.empty((S, 3, 3)),
         np.empty((S, 3)),
@@ -359,7 +367,7 @@ def solve(
         goal,
         lower,
         upper,
-        np.ones(6 + n),
+        weights,
         R0,
         p0,
         q0,
