@@ -51,6 +51,7 @@ __all__ = [
     "STOP_NO_DECREASE",
     "STOP_MAX_ITER",
     "Solves",
+    "rotation",
     "solve",
 ]
 

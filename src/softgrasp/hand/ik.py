@@ -106,8 +106,8 @@ def solve_ik(
     """Independent joint vector placing the ``finger``'s fingertip centre at ``target`` [m].
 
     Iterates WDLS steps (:func:`softgrasp.hand.descent.solve` with the palm fixed, joint weights
-    ``weights``, default 1) on the fingertip error, each aimed at most :data:`MAX_CARTESIAN_STEP` along the error and shortened
-    by halving until the error decreases. Joint limits: ``q0`` is first clipped into the limits;
+    ``weights``, default 1) on the fingertip error, each aimed at most :data:`MAX_CARTESIAN_STEP`
+    along the error and shortened by halving until the error decreases. Joint limits: ``q0`` is first clipped into the limits;
     at every iteration a joint sitting at a limit whose step would push it further out is removed
     from the step (infinite weight) and the step recomputed with the other joints; the trial
     ``q`` is clipped into the limits, so the result never leaves them. Iterations stop at an error

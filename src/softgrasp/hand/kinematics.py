@@ -4,7 +4,7 @@
 chains, each ending at a fingertip sphere. A finger's joint vector ``q`` holds its independent
 joints in root-to-tip order; mimic joints follow their drivers. Chains are evaluated through a
 :class:`ChainStack` (several chains and a batch of configurations at once) by the compiled
-:func:`forward` and :func:`joint_columns`, which the hand placement's solve calls too.
+:func:`forward` and :func:`joint_columns`, which the IK descent (:mod:`softgrasp.hand.descent`) calls too.
 
 All positions are in the palm (root link) frame unless a palm pose is given; SI units (m, rad).
 Kernels are compiled with Numba (:data:`jit`: ``cache=True``, an on-disk cache, so only the first

@@ -24,7 +24,6 @@ __all__ = ["LIMIT_EPS", "wdls", "limited_step", "wdls_step"]
 LIMIT_EPS = 1e-12
 
 
-
 @jit
 def wdls(J, dx, winv, damping):  # pragma: no cover - compiled
     """The WDLS step ``dq = W^-1 J^T (J W^-1 J^T + damping^2 I)^-1 dx`` ``(n,)``.
