@@ -27,9 +27,6 @@ short of unreachable targets can end far apart (up to 1 rad) when a starting pos
 ulp, at much the same error.
 
 The kernels are compiled as :mod:`softgrasp.hand.kinematics`'s (:data:`~softgrasp.hand.kinematics.jit`).
-Numba's on-disk cache of :func:`solve`'s kernel notices changes to this file only: after an edit
-of the kernels it calls in :mod:`softgrasp.hand.kinematics` or :mod:`softgrasp.hand.wdls`, delete
-this module's cache files (``__pycache__/descent.*.nbi``, ``.nbc``).
 """
 
 from __future__ import annotations
@@ -65,6 +62,16 @@ STOP_STALLED = 1
 STOP_NO_STEP = 2
 STOP_NO_DECREASE = 3
 STOP_MAX_ITER = 4
+
+#: SHA-256 of the modules whose compiled code the cached kernels here inline (the forward
+#: kinematics and the WDLS step). Numba checks only a cached function's own file for changes, never
+#: the files of the functions it calls: an edit there must come with an edit here
+#: (tests/test_reach_kernel.py compares), or the descent would run the stale machine code of the
+#: earlier source.
+_INLINED_SOURCES_SHA256 = {
+    "kinematics.py": "e04e31ad38a6503d71fa2195e8734955a258b9ff204878c4f35b5c11e142013f",
+    "wdls.py": "af8a086e61b90a34ed7bc4138a3de65354daeb477108e21fb7d049563c1be597",
+}
 
 
 @jit
