@@ -1,4 +1,4 @@
-"""Shadow-like hand kinematics: URDF reading, forward kinematics, Jacobian, WDLS and IK."""
+"""Shadow-like hand: URDF reading, forward kinematics, Jacobian, WDLS, IK and palm placement."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand.kinematics import HandModel, _limited_step, follow_line, solve_ik, wdls_step
+from softgrasp.hand.ik import follow_line, solve_ik
+from softgrasp.hand.kinematics import HandModel
+from softgrasp.hand.wdls import LIMIT_EPS, limited_step, wdls_step
 
 MODEL = HandModel.default()
 FINGERS = ("thumb", "first", "middle")
@@ -200,11 +202,13 @@ def test_limited_step_freezes_joints_pushed_out_of_their_range() -> None:
     dx = np.array([0.0, -2e-3, 1e-3])
     free_step = wdls_step(J, dx, damping=1e-3)
     assert free_step[1] > 0.0  # unconstrained, J3 would leave its range
-    dq = _limited_step(J, dx, q, lo, hi, np.ones(3), 1e-3)
-    assert dq[1] == 0.0
+    dq, rounds = limited_step(J, dx, q, lo, hi, np.ones(3), 1e-3, LIMIT_EPS)
+    assert dq[1] == 0.0 and rounds == 1
     np.testing.assert_allclose(dq[[0, 2]], wdls_step(J[:, [0, 2]], dx, damping=1e-3), rtol=1e-12)
     # a step pointing back into the range is left alone
-    np.testing.assert_allclose(_limited_step(J, -dx, q, lo, hi, np.ones(3), 1e-3), -free_step, rtol=1e-12)
+    back, rounds = limited_step(J, -dx, q, lo, hi, np.ones(3), 1e-3, LIMIT_EPS)
+    np.testing.assert_allclose(back, -free_step, rtol=1e-12)
+    assert rounds == 0
 
 
 def _limited_step_reference(J, dx, q, lo, hi, w, damping):  # type: ignore[no-untyped-def]
@@ -222,10 +226,11 @@ def _limited_step_reference(J, dx, q, lo, hi, w, damping):  # type: ignore[no-un
     return np.zeros_like(q)
 
 
-def test_batched_limited_steps_equal_the_plain_step_row_by_row() -> None:
-    """Many problems at once, with joints at their limits (some pushed out, some not, one pinned
-    with lower == upper): each row is the plain limit-clamped WDLS step of its own problem."""
-    from softgrasp.hand.kinematics import _limited_steps
+def test_limited_steps_equal_the_plain_step_row_by_row() -> None:
+    """Many problems, with joints at their limits (some pushed out, some not, one pinned with
+    lower == upper): the compiled step of each, and the NumPy oracle's batch of all at once, are the
+    plain limit-clamped WDLS step of each problem."""
+    from oracles.hand import limited_steps
 
     rng = np.random.default_rng(5)
     B, m, n = 40, 9, 11
@@ -239,11 +244,14 @@ def test_batched_limited_steps_equal_the_plain_step_row_by_row() -> None:
     q[:, 4] = 0.2
     w = rng.uniform(0.5, 2.0, size=n)
     for damping in (1e-3, 0.0):
-        dq = _limited_steps(J, dx, q, lo, hi, 1.0 / w, damping)
+        dq = limited_steps(J, dx, q, lo, hi, 1.0 / w, damping)
         assert dq.shape == (B, n)
         for b in range(B):
             ref = _limited_step_reference(J[b], dx[b], q[b], lo, hi, w, damping)
             np.testing.assert_allclose(dq[b], ref, rtol=1e-9, atol=1e-15)
+            one = limited_step(J[b], dx[b], q[b], lo, hi, 1.0 / w, damping, LIMIT_EPS)[0]
+            np.testing.assert_allclose(one, ref, rtol=1e-9, atol=1e-15)
+            assert one[4] == 0.0
         assert np.all(dq[:, 4] == 0.0)
 
 
@@ -348,7 +356,9 @@ def test_thumb_opposes_finger(finger: str, point: list[float]) -> None:
 
 def _check_stack(model: HandModel, fingers: tuple[str, ...], seed: int) -> None:
     """Every finger at several configurations at once, in posed palm frames: the stacked fingertips,
-    Jacobians and joint origins are those of each finger alone, moved into the frame."""
+    Jacobians and joint origins are those of each finger alone, moved into the frame, and those of
+    the NumPy oracle."""
+    from oracles.hand import stack_kinematics as numpy_kinematics
     from softgrasp.hand.kinematics import chain_stack, stack_kinematics
     from softgrasp.hand.placement import transform
 
@@ -365,6 +375,12 @@ def _check_stack(model: HandModel, fingers: tuple[str, ...], seed: int) -> None:
     k0 = stack_kinematics(stack, q)  # palm frame, fingertips only
     assert k.jacobian is not None and k.origins is not None
     assert k.tips.shape == (B, len(fingers), 3) and k.jacobian.shape == (B, len(fingers), 3, stack.n)
+    ref = numpy_kinematics(stack, q, R, p, jacobian=True, origins=True)
+    assert ref.jacobian is not None and ref.origins is not None
+    np.testing.assert_allclose(k.tips, ref.tips, atol=1e-14)
+    np.testing.assert_allclose(k.jacobian, ref.jacobian, atol=1e-14)
+    np.testing.assert_allclose(k.origins, ref.origins, atol=1e-14)
+    np.testing.assert_allclose(k0.tips, numpy_kinematics(stack, q).tips, atol=1e-14)
     for b in range(B):
         for c, (f, chain) in enumerate(zip(fingers, chains, strict=True)):
             qf = q[b, stack.starts[c] : stack.starts[c] + chain.dof]
@@ -616,8 +632,8 @@ def test_the_obstacle_hull_kept_between_placements_is_the_current_obstacles() ->
     place_hand(MODEL, targets, obstacle=far)
 
 
-# Placements found by the seed-by-seed implementation (softgrasp before the batched solver), rows 0-2
-# of the palm pose and the joint vectors: the batched solver must find the same ones.
+# Placements of a known-posture grasp and of the sphere grasp, rows 0-2 of the palm pose and the
+# joint vectors: the placement must find these.
 PINNED = {
     "known": (
         [
@@ -675,11 +691,12 @@ def test_place_hand_finds_the_pinned_placement(case: str, sphere_grasp) -> None:
 
 
 def test_each_start_of_the_batched_placement_iterates_on_its_own(sphere_grasp) -> None:
-    """The starting postures of the NumPy solve advance together only to share NumPy calls: solving
-    them all at once or one by one gives the same end postures (including the ones that stall or get
-    stuck)."""
+    """The starting postures of the NumPy oracle advance together only to share NumPy calls, and the
+    compiled solve takes them one after the other: solving them all at once or one by one gives the
+    same end postures (including the ones that stall or get stuck)."""
+    from oracles.hand import solve as _solve_numpy
     from softgrasp.hand.kinematics import chain_stack
-    from softgrasp.hand.placement import _seeds, _solve_numpy
+    from softgrasp.hand.placement import _seeds, _solve
 
     targets = dict(sphere_grasp[0])
     targets["middle"] = targets["middle"] + np.array([0.0, 0.0, 0.05])  # some starts cannot reach it
@@ -688,11 +705,12 @@ def test_each_start_of_the_batched_placement_iterates_on_its_own(sphere_grasp) -
     seeds = _seeds(MODEL, FINGERS, T, np.array([0.0, 0.0, 1.0]))
     poses = np.array([pose for pose, _ in seeds])
     q0 = np.array([np.concatenate([q[f] for f in FINGERS]) for _, q in seeds])
-    together = _solve_numpy(stack, T, poses[:, :3, :3], poses[:, :3, 3], q0)
-    for s in range(len(seeds)):
-        alone = _solve_numpy(stack, T, poses[s : s + 1, :3, :3], poses[s : s + 1, :3, 3], q0[s : s + 1])
-        for a, b in zip(together, alone, strict=True):
-            np.testing.assert_allclose(a[s], b[0], rtol=0, atol=1e-12)
+    for solve in (_solve_numpy, _solve):
+        together = solve(stack, T, poses[:, :3, :3], poses[:, :3, 3], q0)
+        for s in range(len(seeds)):
+            alone = solve(stack, T, poses[s : s + 1, :3, :3], poses[s : s + 1, :3, 3], q0[s : s + 1])
+            for a, b in zip(together, alone, strict=True):
+                np.testing.assert_allclose(a[s], b[0], rtol=0, atol=1e-12)
 
 
 def test_closing_paths_move_fingertips_along_their_lines() -> None:

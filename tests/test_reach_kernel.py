@@ -1,11 +1,11 @@
-"""The compiled hand-placement solve (:mod:`softgrasp.hand.placement_compiled`) agrees with the NumPy reference
-(:func:`softgrasp.hand.placement._solve_numpy`) to 1e-9 [m, rad], and :func:`place_hand` returns the
-same placement under both backends.
+"""The hand-placement solve (:mod:`softgrasp.hand.descent`, compiled) agrees with the NumPy
+oracle (:func:`oracles.hand.solve`) to 1e-9 [m, rad], and :func:`place_hand` returns the same
+placement with either.
 
 Every iteration agrees to round-off whatever the targets (one iteration at a time along the
-reference's path). Whole solves compound that round-off: a posture reaching its targets along a
-well-conditioned path ends within 1e-9 of the reference, but one wandering near singular postures
-short of unreachable targets does not (the reference itself ends up to 1 rad elsewhere when its
+oracle's path). Whole solves compound that round-off: a posture reaching its targets along a
+well-conditioned path ends within 1e-9 of the oracle, but one wandering near singular postures
+short of unreachable targets does not (the oracle itself ends up to 1 rad elsewhere when its
 start moves by one ulp). Whole solves of unreachable targets are therefore compared with rules
 (stall window, iteration and halving budgets) that retire every posture before the round-off grows;
 each comparison also checks that its posture stopped by the rule under test.
@@ -13,21 +13,18 @@ each comparison also checks that its posture stopped by the rule under test.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from softgrasp import backend
+from oracles import hand as oracle
 from softgrasp.errors import ConfigError, InfeasibleGrasp
 from softgrasp.hand import placement as reach
+from softgrasp.hand import descent as kernel
 from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack
 
-numba = pytest.importorskip("numba")
-from softgrasp.hand import placement_compiled as kernel  # noqa: E402 - needs numba
-
-#: Agreement of the compiled and NumPy solves: absolute [m, rad] and relative.
+#: Agreement of the compiled solve and the NumPy oracle: absolute [m, rad] and relative.
 TOL = 1e-9
 
 MODEL = HandModel.default()
@@ -112,32 +109,26 @@ def _assert_same(got: tuple[np.ndarray, ...], ref: tuple[np.ndarray, ...]) -> No
     np.testing.assert_allclose(got[3], ref[3], rtol=0, atol=TOL)
 
 
-@pytest.fixture
-def numba_backend() -> Iterator[None]:
-    with backend.use_backend("numba"):
-        yield
-
-
 # ---------------------------------------------------------------------- whole solves
 
 
 @pytest.mark.parametrize("case", ["known", "lower limits"])
-def test_compiled_solve_equals_the_reference(case: str, numba_backend: None) -> None:
-    """Every start reaches its targets; ``_solve`` runs the kernel, which ends where the reference
+def test_compiled_solve_equals_the_oracle(case: str) -> None:
+    """Every start reaches its targets; ``_solve`` runs the kernel, which ends where the oracle
     does (the lower-limit targets make the clamped step freeze joints)."""
     problem = _problem(TARGETS[case])
     got = reach._solve(*problem)
     stats = _compiled(problem)
     for a, b in zip(got, stats[:4], strict=True):
         np.testing.assert_array_equal(a, b)  # _solve dispatched to the kernel
-    _assert_same(got, reach._solve_numpy(*problem))
+    _assert_same(got, oracle.solve(*problem))
     assert np.all(stats.stop == kernel.STOP_REACHED)
     if case == "lower limits":
         assert stats.clamps.sum() > len(stats.clamps)
 
 
 def test_compiled_solve_of_a_hand_with_prismatic_offset_mimic_and_padded_joints(
-    tmp_path: Path, numba_backend: None
+    tmp_path: Path
 ) -> None:
     """A prismatic joint, a mimic joint with gain 2 and an offset, a fixed joint and a shorter chain
     (padded): the kernel supports every kind of joint a :class:`ChainStack` holds."""
@@ -172,7 +163,7 @@ def test_compiled_solve_of_a_hand_with_prismatic_offset_mimic_and_padded_joints(
     p = np.array([s[:3, 3] for s in starts])
     q0 = np.array([[0.01, 0.0, 0.0], [0.04, 0.3, -0.2]])
     got = reach._solve(stack, T, R, p, q0)
-    _assert_same(got, reach._solve_numpy(stack, T, R, p, q0))
+    _assert_same(got, oracle.solve(stack, T, R, p, q0))
     assert np.all(got[3] <= reach.REACH_TOL)
 
 
@@ -186,8 +177,8 @@ def test_compiled_solve_of_a_hand_with_prismatic_offset_mimic_and_padded_joints(
     ],
 )
 @pytest.mark.parametrize("case", ["far", "spread", "mixed limits"])
-def test_unreachable_targets_retire_as_in_the_reference(
-    case: str, rules: dict[str, float], stop: int, monkeypatch: pytest.MonkeyPatch, numba_backend: None
+def test_unreachable_targets_retire_as_in_the_oracle(
+    case: str, rules: dict[str, float], stop: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Each retirement rule, with budgets that retire every start before round-off grows: the same
     end postures and errors, and the rule under test stopped some starts short of the targets."""
@@ -195,7 +186,7 @@ def test_unreachable_targets_retire_as_in_the_reference(
         monkeypatch.setattr(reach, name, value)
     problem = _problem(TARGETS[case])
     got = reach._solve(*problem)
-    _assert_same(got, reach._solve_numpy(*problem))
+    _assert_same(got, oracle.solve(*problem))
     stats = _compiled(problem)
     assert np.any((stats.stop == stop) & (stats.error > reach.REACH_TOL))
 
@@ -204,17 +195,17 @@ def test_unreachable_targets_retire_as_in_the_reference(
 
 
 @pytest.mark.parametrize("case", sorted(TARGETS))
-def test_every_iteration_equals_the_reference_along_its_path(
+def test_every_iteration_equals_the_oracle_along_its_path(
     case: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """From each state of the reference's first 40 iterations (all starts), one compiled iteration
-    ends where one reference iteration does, and moves the same starts (the others are retired:
+    """From each state of the oracle's first 40 iterations (all starts), one compiled iteration
+    ends where one oracle iteration does, and moves the same starts (the others are retired:
     no shortened step decreased the error, or the targets are reached)."""
     monkeypatch.setattr(reach, "MAX_ITER", 1)
     stack, T, R, p, q = _problem(TARGETS[case])
     clamped = 0
     for _ in range(40):
-        ref = reach._solve_numpy(stack, T, R, p, q)
+        ref = oracle.solve(stack, T, R, p, q)
         got = _compiled((stack, T, R, p, q))
         _assert_same(got, ref)
         moved = np.any(ref[2] != q, axis=1) | np.any(ref[1] != p, axis=1)
@@ -227,17 +218,29 @@ def test_every_iteration_equals_the_reference_along_its_path(
 # ---------------------------------------------------------------------- place_hand
 
 
+def _placements(targets, monkeypatch: pytest.MonkeyPatch, **kw):  # type: ignore[no-untyped-def]
+    """:func:`reach.place_hand` of ``targets`` with the compiled solve, then with the oracle's (the
+    placement or the refusal's message of each)."""
+    out = []
+    for solve in (reach._solve, oracle.solve):
+        with monkeypatch.context() as m:
+            m.setattr(reach, "_solve", solve)
+            try:
+                out.append(reach.place_hand(MODEL, targets, **kw))
+            except InfeasibleGrasp as exc:
+                out.append(str(exc))
+    return out
+
+
 @pytest.mark.parametrize("case", ["known", "lower limits", "sphere"])
-def test_place_hand_places_the_hand_alike_under_both_backends(case: str, sphere_grasp) -> None:
+def test_place_hand_places_the_hand_alike_with_the_oracle(
+    case: str, sphere_grasp, monkeypatch: pytest.MonkeyPatch
+) -> None:
     if case == "sphere":
         targets, obstacle = sphere_grasp
     else:
         targets, obstacle = TARGETS[case], None
-    placements = {}
-    for backend in ("numpy", "numba"):
-        with backend.use_backend(backend):
-            placements[backend] = reach.place_hand(MODEL, targets, obstacle=obstacle)
-    a, b = placements["numpy"], placements["numba"]
+    b, a = _placements(targets, monkeypatch, obstacle=obstacle)
     np.testing.assert_allclose(b.palm_pose, a.palm_pose, rtol=TOL, atol=TOL)
     assert list(b.q) == list(a.q) == list(FINGERS)
     for f in FINGERS:
@@ -247,27 +250,22 @@ def test_place_hand_places_the_hand_alike_under_both_backends(case: str, sphere_
 
 
 @pytest.mark.parametrize("case", ["far", "spread"])
-def test_place_hand_refuses_unreachable_targets_alike_under_both_backends(case: str) -> None:
+def test_place_hand_refuses_unreachable_targets_alike_with_the_oracle(
+    case: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The same message: the same finger, the same closest distance to 0.1 mm."""
-    messages = []
-    for backend in ("numpy", "numba"):
-        with backend.use_backend(backend), pytest.raises(InfeasibleGrasp, match="cannot reach") as info:
-            reach.place_hand(MODEL, TARGETS[case])
-        messages.append(str(info.value))
+    messages = _placements(TARGETS[case], monkeypatch)
+    assert all(isinstance(m, str) and "cannot reach" in m for m in messages)
     assert messages[0] == messages[1]
 
 
-def test_undamped_solves_fall_back_to_numpy(monkeypatch: pytest.MonkeyPatch, numba_backend: None) -> None:
-    """The kernel has no pseudo-inverse for an undamped step: with DAMPING = 0 ``_solve`` is the
-    NumPy reference."""
+def test_undamped_solves_equal_the_oracle(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With DAMPING = 0 the step is the weighted pseudo-inverse one (the Moore-Penrose inverse of
+    ``J W^-1 J^T``), in the kernel as in the oracle."""
     problem = _problem(TARGETS["known"])
-    assert kernel.supported(problem[0], reach.DAMPING)
-    assert not kernel.supported(problem[0], 0.0)
     monkeypatch.setattr(reach, "DAMPING", 0.0)
     monkeypatch.setattr(reach, "MAX_ITER", 3)
-    got = reach._solve(*problem)
-    for a, b in zip(got, reach._solve_numpy(*problem), strict=True):
-        np.testing.assert_array_equal(a, b)
+    _assert_same(reach._solve(*problem), oracle.solve(*problem))
 
 
 def test_solve_rejects_mismatched_shapes() -> None:
@@ -276,3 +274,19 @@ def test_solve_rejects_mismatched_shapes() -> None:
         _compiled((stack, T, R, p, q[:, :-1]))
     with pytest.raises(ConfigError, match="solve needs targets"):
         _compiled((stack, T[:2], R, p, q))
+
+
+def test_descent_records_the_hash_of_every_module_it_inlines() -> None:
+    """The cached kernel of descent.py compiles in the forward kinematics and the WDLS step of other
+    modules; Numba checks only descent.py's own source for changes, so descent.py records the
+    others' hashes and an edit of one of them must renew its entry (and so descent.py's cache)."""
+    import hashlib
+    import re
+
+    src = Path(kernel.__file__)
+    imported = set(re.findall(r"^from softgrasp\.hand\.(\w+) import", src.read_text(), re.M))
+    assert {f"{m}.py" for m in imported} == set(kernel._INLINED_SOURCES_SHA256)
+    for name, recorded in kernel._INLINED_SOURCES_SHA256.items():
+        digest = hashlib.sha256((src.parent / name).read_bytes()).hexdigest()
+        fix = f"set descent._INLINED_SOURCES_SHA256[{name!r}] = {digest!r}"
+        assert recorded == digest, f"{name} changed: {fix}"

@@ -5,9 +5,9 @@ and the joint paths that move the fingertips along their straight closing lines 
 The palm is a free rigid body (the arm positions it): its pose is found together with the
 fingers' joints by WDLS on the stacked fingertip tasks, the palm's six coordinates (a translation
 and a small rotation about world axes) acting as extra joints without limits. Several starting
-postures are tried (Kabsch's best rigid fit of a nominal posture's fingertips onto the targets),
-each iterating on its own (in one compiled call, :mod:`softgrasp.hand.placement_compiled`, or all together
-vectorised with NumPy, depending on :func:`softgrasp.backend.compiled`); a solution must reach
+postures are tried (grasps from above, and Kabsch's best rigid fit of a nominal posture's
+fingertips onto the targets), each iterating on its own (:mod:`softgrasp.hand.descent`,
+compiled); a solution must reach
 every target, keep every joint inside its limits and keep the palm and all finger joints outside
 the object. The one with the most room to its joint limits wins (the first one on a tie).
 
@@ -26,23 +26,11 @@ from types import MappingProxyType
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from softgrasp import backend
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand.kinematics import (
-    _LEVI_CIVITA,
-    LIMIT_EPS,
-    ChainStack,
-    HandModel,
-    _axis_rotation,
-    _limited_steps,
-    chain_frames,
-    chain_product,
-    chain_stack,
-    follow_line,
-    frame_kinematics,
-    local_transforms,
-    stack_kinematics,
-)
+from softgrasp.hand import descent
+from softgrasp.hand.ik import follow_line
+from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack, stack_kinematics
+from softgrasp.hand.wdls import LIMIT_EPS
 
 __all__ = ["HandPlacement", "place_hand", "closing_paths", "transform", "invert"]
 
@@ -60,12 +48,6 @@ STALL_FRACTION = 0.01
 STALL_WINDOW = 20
 #: Step halvings of the line search before a posture counts as stuck.
 MAX_HALVINGS = 20
-#: Trial steps of the line search evaluated at once, shared among the postures still searching (a
-#: cost trade-off only: each posture takes the first step of 1, 1/2, 1/4, ... that decreases its error).
-TRIAL_BUDGET = 24
-_ALPHA = 0.5 ** np.arange(MAX_HALVINGS)
-
-_EYE3 = np.eye(3)
 
 
 @dataclass(frozen=True)
@@ -110,20 +92,9 @@ def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _rotation(w: NDArray[np.float64]) -> NDArray[np.float64]:
     """Rotation by the vector ``w`` (axis times angle)."""
-    a = float(np.linalg.norm(w))
-    return np.eye(3) if a < 1e-15 else _axis_rotation(w / a, a)
-
-
-def _rotations(w: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`_rotation` of each row of ``w`` ``(B, 3)``: ``(B, 3, 3)``."""
-    a = np.sqrt(np.einsum("ij,ij->i", w, w))
-    small = a < 1e-15
-    u = w / np.where(small, 1.0, a)[:, None]
-    c, s = np.cos(a)[:, None, None], np.sin(a)[:, None, None]
-    skew = (u @ _LEVI_CIVITA).reshape(-1, 3, 3)  # -[u]x
-    R = c * _EYE3 - s * skew + (1.0 - c) * (u[:, :, None] * u[:, None, :])
-    R[small] = _EYE3
-    return R
+    out = np.empty((3, 3))
+    descent.rotation(float(w[0]), float(w[1]), float(w[2]), out)
+    return out
 
 
 def _kabsch(src: NDArray[np.float64], dst: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -221,33 +192,6 @@ def _outside(points: NDArray[np.float64], hull_eq: NDArray[np.float64] | None, m
     return bool((dist.max(axis=1) >= margin).all())
 
 
-def _jacobian(
-    stack: ChainStack, E: NDArray[np.float64], p: NDArray[np.float64], q: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Jacobian ``(B, 3 C, 6 + n)`` of the world fingertips with respect to the palm translation, a
-    small palm rotation about world axes and the joints, from the :func:`local_transforms` ``E``
-    (palm pose first) of hands with palm origins ``p`` ``(B, 3)`` and joints ``q`` ``(B, n)``."""
-    k = frame_kinematics(stack, chain_frames(E)[1:], q, jacobian=True)
-    assert k.jacobian is not None
-    B, C = k.tips.shape[:2]
-    J = np.empty((B, C, 3, 6 + stack.n))
-    J[:, :, :, 0:3] = _EYE3
-    J[:, :, :, 3:6] = ((k.tips - p[:, None, :]) @ _LEVI_CIVITA).reshape(B, C, 3, 3)  # -[r]x
-    J[:, :, :, 6:] = k.jacobian
-    return J.reshape(B, 3 * C, 6 + stack.n)
-
-
-def _norms(e: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Euclidean norm of each row of ``e`` ``(B, m)``."""
-    return np.sqrt(np.einsum("ij,ij->i", e, e))
-
-
-def _errors(e: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Largest fingertip distance per row of the stacked fingertip errors ``e`` ``(B, 3 C)``."""
-    d = e.reshape(len(e), e.shape[1] // 3, 3)
-    return np.sqrt(np.einsum("ijk,ijk->ij", d, d).max(axis=1))
-
-
 def _solve(
     stack: ChainStack,
     targets: NDArray[np.float64],
@@ -257,123 +201,23 @@ def _solve(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Floating-palm WDLS towards the targets ``(C, 3)`` from each of ``S`` starting postures (palm
     rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)``, joints ``q`` ``(S, n)``); returns the last
-    ``R``, ``p``, ``q`` and largest fingertip error ``(S,)`` of each.
-
-    The compiled kernel (:func:`softgrasp.hand.placement_compiled.solve`) when :func:`softgrasp.backend.compiled`
-    says so and the kernel supports the stack and :data:`DAMPING` (any stack, with damping > 0:
-    :func:`softgrasp.hand.placement_compiled.supported`); the NumPy reference :func:`_solve_numpy` otherwise.
-    Their iterations agree to round-off; a whole solve compounds it (see :mod:`softgrasp.hand.placement_compiled`).
-    """
-    if backend.compiled():
-        from softgrasp.hand import placement_compiled as kernel
-        if kernel.supported(stack, DAMPING):
-            return kernel.solve(
-                stack,
-                targets,
-                R,
-                p,
-                q,
-                reach_tol=REACH_TOL,
-                max_iter=MAX_ITER,
-                max_step=MAX_STEP,
-                damping=DAMPING,
-                stall_fraction=STALL_FRACTION,
-                stall_window=STALL_WINDOW,
-                max_halvings=MAX_HALVINGS,
-                limit_eps=LIMIT_EPS,
-            )[:4]
-    return _solve_numpy(stack, targets, R, p, q)
-
-
-def _solve_numpy(
-    stack: ChainStack,
-    targets: NDArray[np.float64],
-    R: NDArray[np.float64],
-    p: NDArray[np.float64],
-    q: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`_solve` in NumPy, all postures at once (the reference).
-
-    Every posture iterates on its own (they advance in lockstep only to share NumPy calls): a
-    limit-clamped WDLS step (:func:`~softgrasp.hand.kinematics._limited_steps`) on the stacked fingertip
-    errors, shortened by halving until the error norm decreases; it stops at an error <= REACH_TOL,
-    when stalled, when no step moves it or no halving decreases the error, or after MAX_ITER
-    iterations.
-    """
-    S, n = q.shape
-    lower = np.concatenate([np.full(6, -np.inf)] + [c.lower for c in stack.chains])
-    upper = np.concatenate([np.full(6, np.inf)] + [c.upper for c in stack.chains])
-    winv = np.ones(6 + n)
-    goal = targets.ravel()
-    out = [R.copy(), p.copy(), np.empty((S, 6 + n)), np.empty(S)]
-    x = np.concatenate([np.zeros((S, 6)), q], axis=1)  # palm step coordinates (0 at the current pose), q
-    E = local_transforms(stack, q, R, p)
-    e = goal - chain_product(E)[..., :3, 3].reshape(S, -1)
-    err = _errors(e)
-    J = _jacobian(stack, E, p, q)
-    history = np.empty((S, MAX_ITER + 1))  # history[s, i]: the error after i iterations
-    history[:, 0] = err
-    ids = np.arange(S)  # the postures still iterating (all at iteration i), rows of the state
-    state = [R.copy(), p.copy(), x, err, e, J, history, ids]
-
-    def retire(keep: NDArray[np.bool_]) -> None:
-        """Write the postures not kept to ``out`` and drop them from the state."""
-        done = state[7][~keep]
-        for k in range(4):
-            out[k][done] = state[k][~keep]
-        state[:] = [a[keep] for a in state]
-
-    for i in range(MAX_ITER):
-        R, p, x, err, e, J, history, ids = state
-        go = err > REACH_TOL
-        if i >= STALL_WINDOW:
-            # stalled short of the targets: a limit or the workspace's edge
-            go &= history[:, max(i - STALL_WINDOW - 1, 0)] - err >= STALL_FRACTION * err
-        if not go.all():
-            retire(go)
-            R, p, x, err, e, J, history, ids = state
-            if not ids.size:
-                break
-        norm = _norms(e)
-        dx = e * np.minimum(1.0, MAX_STEP / norm)[:, None]  # at most MAX_STEP long
-        dq = _limited_steps(J, dx, x, lower, upper, winv, DAMPING)
-        # Line search: the first of 1, 1/2, 1/4, ... that decreases the error norm, several
-        # halvings of every posture still searching at a time (about TRIAL_BUDGET trials at once).
-        moved = np.zeros(len(ids), dtype=bool)
-        todo = np.flatnonzero(dq.any(axis=1))
-        k0 = 0
-        E_moved = None
-        while todo.size and k0 < MAX_HALVINGS:
-            K = min(MAX_HALVINGS - k0, max(1, TRIAL_BUDGET // len(todo)))
-            src = todo.repeat(K)
-            step = (dq[todo][:, None, :] * _ALPHA[k0 : k0 + K, None]).reshape(-1, 6 + n)
-            k0 += K
-            x_try = np.clip(x[src] + step, lower, upper)  # the palm part is the step itself
-            p_try = p[src] + step[:, 0:3]
-            E = local_transforms(stack, x_try[:, 6:], _rotations(step[:, 3:6]) @ R[src], p_try)
-            e_try = goal - chain_product(E)[..., :3, 3].reshape(len(src), -1)
-            better = (_norms(e_try) < norm[src]).reshape(-1, K)
-            hit = better.any(axis=1)
-            pick = np.flatnonzero(hit) * K + better.argmax(axis=1)[hit]
-            dst = todo[hit]
-            if E_moved is None:
-                E_moved = np.empty((len(E), len(ids)) + E.shape[2:])
-            E_moved[:, dst] = E[:, pick]
-            p[dst], x[dst], e[dst] = p_try[pick], x_try[pick], e_try[pick]
-            moved[dst] = True
-            todo = todo[~hit]
-        if E_moved is not None:
-            x[:, :6] = 0.0
-            R[moved] = E_moved[0, moved, 0, :3, :3]
-            J[moved] = _jacobian(stack, E_moved[:, moved], p[moved], x[moved, 6:])
-            err[moved] = _errors(e[moved])
-        history[:, i + 1] = err
-        if not moved.all():
-            retire(moved)  # no step, or no shorter step decreased the error: stuck
-            if not state[7].size:
-                break
-    retire(np.zeros(len(state[7]), dtype=bool))
-    return out[0], out[1], out[2][:, 6:], out[3]
+    ``R``, ``p``, ``q`` and largest fingertip error ``(S,)`` of each
+    (:func:`softgrasp.hand.descent.solve` with this module's rules)."""
+    return descent.solve(
+        stack,
+        targets,
+        R,
+        p,
+        q,
+        reach_tol=REACH_TOL,
+        max_iter=MAX_ITER,
+        max_step=MAX_STEP,
+        damping=DAMPING,
+        stall_fraction=STALL_FRACTION,
+        stall_window=STALL_WINDOW,
+        max_halvings=MAX_HALVINGS,
+        limit_eps=LIMIT_EPS,
+    )[:4]
 
 
 def place_hand(

@@ -3,7 +3,7 @@ simulated in MuJoCo (physics softgrasp did not write), from a plan.
 
 * tactile sensing: each fingertip's normal contact force is the sum of the normal components of
   MuJoCo's contact forces on its sphere (what a pressure-sensing fingertip reads);
-* Cartesian fingertip commands go through softgrasp's WDLS (:func:`softgrasp.hand.kinematics.track`)
+* Cartesian fingertip commands go through softgrasp's WDLS (:func:`softgrasp.hand.ik.track`)
   to the joints' position servos, from the last commanded posture;
 * the base is the scene's arm (three stiff slide servos carrying the palm).
 """
@@ -19,7 +19,8 @@ from numpy.typing import NDArray
 from softgrasp.errors import ConfigError
 from softgrasp.execution.mujoco.scene import MujocoScene, load_scene
 from softgrasp.execution.mujoco.spec import SceneSpec
-from softgrasp.hand.kinematics import HandModel, track
+from softgrasp.hand.ik import track
+from softgrasp.hand.kinematics import HandModel
 from softgrasp.io.planfile import PlanFile
 from softgrasp.hand.placement import invert, transform
 

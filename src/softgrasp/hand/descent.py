@@ -1,13 +1,16 @@
-"""Compiled (Numba) floating-palm WDLS: the hand-placement solve of :mod:`softgrasp.hand.placement`.
+"""The clamped WDLS descent of the hand's inverse kinematics, compiled with Numba: the fingertips of
+one or more fingers driven to their targets by the joints, and by the palm when it floats (the hand
+placement, :mod:`softgrasp.hand.placement`) or with the palm fixed (one finger's IK,
+:mod:`softgrasp.hand.ik`).
 
-:func:`solve` returns what :func:`softgrasp.hand.placement._solve_numpy` returns (the NumPy reference)
-to round-off: the same iteration for every starting posture, written as plain loops over one
-posture at a time instead of NumPy calls shared by all of them. Per posture and iteration:
+:func:`solve` iterates every starting posture on its own, one after the other. Per posture and
+iteration:
 
 * the fingertip errors ``e = targets - tips`` ``(3 C,)`` and their Jacobian ``(3 C, 6 + n)`` with
   respect to the palm translation, a small palm rotation about world axes and the joints;
 * the step aims at ``e`` shortened to at most ``max_step`` [m]; the limit-clamped WDLS step
-  (:func:`softgrasp.hand.kinematics._limited_steps`) freezes every joint at a limit whose step points
+  (:func:`softgrasp.hand.wdls.limited_step`; the palm's six coordinates act as joints without
+  limits, or pinned at 0 when the palm is fixed) freezes every joint at a limit whose step points
   out of its range and recomputes, until none is left;
 * a line search takes the first of the step times 1, 1/2, 1/4, ... (``max_halvings`` of them) whose
   joints, clipped into their limits, decrease the error norm; the palm moves by the step's
@@ -18,31 +21,25 @@ posture at a time instead of NumPy calls shared by all of them. Per posture and 
 
 The kinematics are those of a :class:`~softgrasp.hand.kinematics.ChainStack` (revolute, prismatic and
 fixed or padding joints, mimic joints through ``column``, ``gain`` and ``offset``), evaluated as
-3 x 4 affine products root to tip; the damped system ``J W^-1 J^T + damping^2 I`` is solved by
-Gaussian elimination with partial pivoting. The NumPy reference multiplies the transforms pairwise
-and calls BLAS and LAPACK, which sum in other orders, so one iteration of the two agrees to
-round-off (about 1e-10 rad for a step of 0.5 rad near a singular posture), not bit for bit. Over a
-whole solve the iteration amplifies round-off as it amplifies any perturbation: postures that reach
-their targets end within about 1e-9 of the reference's; postures wandering short of unreachable
-targets can end far apart (the reference itself ends up to 1 rad elsewhere when a starting posture
-moves by one ulp), at much the same error.
+3 x 4 affine products root to tip. The iteration amplifies round-off as it amplifies any
+perturbation: postures that reach their targets are insensitive to it, but postures wandering
+short of unreachable targets can end far apart (up to 1 rad) when a starting posture moves by one
+ulp, at much the same error.
 
-Kernels are compiled with ``cache=True`` (on-disk cache: only the first run compiles),
-``fastmath=False`` and ``error_model="numpy"`` (a division by zero gives inf/nan like NumPy).
+The kernels are compiled as :mod:`softgrasp.hand.kinematics`'s (:data:`~softgrasp.hand.kinematics.jit`).
 """
 
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 from typing import NamedTuple
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.kinematics import ChainStack
+from softgrasp.hand.wdls import limited_step
+from softgrasp.hand.kinematics import ChainStack, forward, jit, joint_columns
 
 __all__ = [
     "STOP_REACHED",
@@ -51,7 +48,7 @@ __all__ = [
     "STOP_NO_DECREASE",
     "STOP_MAX_ITER",
     "Solves",
-    "supported",
+    "rotation",
     "solve",
 ]
 
@@ -66,59 +63,22 @@ STOP_NO_STEP = 2
 STOP_NO_DECREASE = 3
 STOP_MAX_ITER = 4
 
-_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+#: SHA-256 of the modules whose compiled code the cached kernels here inline (the forward
+#: kinematics and the WDLS step). Numba checks only a cached function's own file for changes, never
+#: the files of the functions it calls: an edit there must come with an edit here
+#: (tests/test_reach_kernel.py compares), or the descent would run the stale machine code of the
+#: earlier source.
+_INLINED_SOURCES_SHA256 = {
+    "kinematics.py": "e04e31ad38a6503d71fa2195e8734955a258b9ff204878c4f35b5c11e142013f",
+    "wdls.py": "af8a086e61b90a34ed7bc4138a3de65354daeb477108e21fb7d049563c1be597",
+}
 
 
-# ---------------------------------------------------------------------------------- kinematics
-@_jit
-def _compose(A, B, out):  # pragma: no cover - compiled
-    """The affine product ``A B`` of 3 x 4 transforms (implicit last row 0 0 0 1) into ``out``."""
-    for i in range(3):
-        a0 = A[i, 0]
-        a1 = A[i, 1]
-        a2 = A[i, 2]
-        for j in range(3):
-            out[i, j] = a0 * B[0, j] + a1 * B[1, j] + a2 * B[2, j]
-        out[i, 3] = a0 * B[0, 3] + a1 * B[1, 3] + a2 * B[2, 3] + A[i, 3]
-
-
-@_jit
-def _forward(basis, column, gain, offset, length, R, p, q, T, M, frames, tips):  # pragma: no cover
-    """Frames after every joint ``(C, L, 3, 4)`` (world, 3 x 4) and fingertips ``(C, 3)`` [m] of the
-    chains with palm rotation ``R`` (3, 3), origin ``p`` (3,) and joints ``q`` (n,). Joint ``(l, c)``
-    takes the value ``gain q[column] + offset``; its transform is ``cos(value) basis[l, c, 0] +
-    sin(value) basis[l, c, 1] + basis[l, c, 2] (+ value basis[l, c, 3])`` (rows 0-2 of the flat
-    4 x 4). Padding joints past ``length[c]`` are identities and skipped. ``T``, ``M``: scratch
-    (3, 4)."""
-    K = basis.shape[2]
-    for c in range(length.shape[0]):
-        for i in range(3):
-            for j in range(3):
-                T[i, j] = R[i, j]
-            T[i, 3] = p[i]
-        for l in range(length[c]):
-            value = gain[l, c] * q[column[l, c]] + offset[l, c]
-            cv = math.cos(value)
-            sv = math.sin(value)
-            for r in range(12):
-                v = cv * basis[l, c, 0, r] + sv * basis[l, c, 1, r] + basis[l, c, 2, r]
-                if K == 4:
-                    v += value * basis[l, c, 3, r]
-                M[r // 4, r % 4] = v
-            _compose(T, M, frames[c, l])
-            for i in range(3):
-                for j in range(4):
-                    T[i, j] = frames[c, l, i, j]
-        for i in range(3):
-            tips[c, i] = T[i, 3]
-
-
-@_jit
+@jit
 def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pragma: no cover
     """Jacobian ``J`` ``(3 C, 6 + n)`` of the fingertips with respect to the palm translation, a small
-    palm rotation about world axes and the joints, from the :func:`_forward` frames and tips of a
-    palm at ``p``. A revolute joint's column is ``a x (tip - o)``, a prismatic one's ``a`` (``a`` its
-    world axis, ``o`` its origin), times the joint's gain, added to its driving joint's column."""
+    palm rotation about world axes and the joints, from the :func:`forward` frames and tips of a
+    palm at ``p``: the joints' columns are :func:`~softgrasp.hand.kinematics.joint_columns`."""
     J[:, :] = 0.0
     for c in range(length.shape[0]):
         r0 = 3 * c
@@ -134,35 +94,13 @@ def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pra
         J[r0 + 1, 5] = rx
         J[r0 + 2, 3] = ry
         J[r0 + 2, 4] = -rx
-        for l in range(length[c]):
-            g = gain[l, c]
-            if g == 0.0:
-                continue  # a fixed joint (or a mimic joint with multiplier 0): no column
-            F = frames[c, l]
-            ax = F[0, 0] * axis[l, c, 0, 0] + F[0, 1] * axis[l, c, 1, 0] + F[0, 2] * axis[l, c, 2, 0]
-            ay = F[1, 0] * axis[l, c, 0, 0] + F[1, 1] * axis[l, c, 1, 0] + F[1, 2] * axis[l, c, 2, 0]
-            az = F[2, 0] * axis[l, c, 0, 0] + F[2, 1] * axis[l, c, 1, 0] + F[2, 2] * axis[l, c, 2, 0]
-            if prismatic[l, c]:
-                cx = ax
-                cy = ay
-                cz = az
-            else:
-                dx = F[0, 3] - tips[c, 0]
-                dy = F[1, 3] - tips[c, 1]
-                dz = F[2, 3] - tips[c, 2]
-                cx = az * dy - ay * dz
-                cy = ax * dz - az * dx
-                cz = ay * dx - ax * dy
-            k = 6 + column[l, c]
-            J[r0, k] += g * cx
-            J[r0 + 1, k] += g * cy
-            J[r0 + 2, k] += g * cz
+    joint_columns(axis, prismatic, column, gain, length, frames, tips, J, 6)
 
 
-@_jit
-def _rotation(wx, wy, wz, out):  # pragma: no cover - compiled
+@jit
+def rotation(wx, wy, wz, out):  # pragma: no cover - compiled
     """Rotation (3, 3) by the vector ``w`` (axis times angle) into ``out`` (the identity below 1e-15
-    rad), as :func:`softgrasp.hand.placement._rotations`."""
+    rad; Rodrigues' formula)."""
     a = math.sqrt(wx * wx + wy * wy + wz * wz)
     if a < 1e-15:
         for i in range(3):
@@ -187,7 +125,7 @@ def _rotation(wx, wy, wz, out):  # pragma: no cover - compiled
 
 
 # ---------------------------------------------------------------------------------- WDLS
-@_jit
+@jit
 def _norm(e):  # pragma: no cover - compiled
     """Euclidean norm of ``e``."""
     s = 0.0
@@ -196,7 +134,7 @@ def _norm(e):  # pragma: no cover - compiled
     return math.sqrt(s)
 
 
-@_jit
+@jit
 def _largest(e):  # pragma: no cover - compiled
     """Largest fingertip distance of the stacked fingertip errors ``e`` ``(3 C,)``."""
     worst = 0.0
@@ -207,87 +145,7 @@ def _largest(e):  # pragma: no cover - compiled
     return worst
 
 
-@_jit
-def _linear_solve(A, b, y):  # pragma: no cover - compiled
-    """Solve ``A y = b`` (``A`` (m, m), overwritten by its LU factors) by Gaussian elimination with
-    partial pivoting (the method of LAPACK's ``gesv``, which :func:`numpy.linalg.solve` calls)."""
-    m = A.shape[0]
-    for i in range(m):
-        y[i] = b[i]
-    for j in range(m):
-        piv = j
-        big = abs(A[j, j])
-        for i in range(j + 1, m):
-            if abs(A[i, j]) > big:
-                big = abs(A[i, j])
-                piv = i
-        if piv != j:
-            for k in range(m):
-                t = A[j, k]
-                A[j, k] = A[piv, k]
-                A[piv, k] = t
-            t = y[j]
-            y[j] = y[piv]
-            y[piv] = t
-        inv = 1.0 / A[j, j]
-        for i in range(j + 1, m):
-            A[i, j] *= inv
-        for i in range(j + 1, m):
-            f = A[i, j]
-            for k in range(j + 1, m):
-                A[i, k] -= f * A[j, k]
-    for i in range(m):
-        s = y[i]
-        for k in range(i):
-            s -= A[i, k] * y[k]
-        y[i] = s
-    for i in range(m - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, m):
-            s -= A[i, k] * y[k]
-        y[i] = s / A[i, i]
-
-
-@_jit
-def _limited_step(J, dx, x, lower, upper, winv, damping, limit_eps, w, outward, A, y, dq):  # pragma: no cover
-    """Limit-clamped WDLS step ``dq`` ``(N,)`` of :func:`softgrasp.hand.kinematics._limited_steps` for one
-    posture: ``dq = W^-1 J^T (J W^-1 J^T + damping^2 I)^-1 dx`` with the inverse weight of every
-    joint at a limit whose step points out of its range set to 0, recomputed until there is none.
-    Returns the number of recomputations. ``w``, ``outward`` (N,), ``A`` (m, m), ``y`` (m,): scratch."""
-    m, N = J.shape
-    for k in range(N):
-        at_lower = x[k] <= lower[k] + limit_eps
-        at_upper = x[k] >= upper[k] - limit_eps
-        w[k] = 0.0 if (at_lower and at_upper) else winv[k]  # a joint with lower == upper never moves
-        outward[k] = (1.0 if at_upper else 0.0) - (1.0 if at_lower else 0.0)
-    damp = damping * damping
-    rounds = 0
-    while True:
-        for i in range(m):
-            for j in range(i + 1):
-                s = 0.0
-                for k in range(N):
-                    s += J[i, k] * w[k] * J[j, k]
-                A[i, j] = s
-                A[j, i] = s
-            A[i, i] += damp
-        _linear_solve(A, dx, y)
-        for k in range(N):
-            s = 0.0
-            for i in range(m):
-                s += J[i, k] * w[k] * y[i]
-            dq[k] = s
-        blocked = False
-        for k in range(N):
-            if w[k] != 0.0 and dq[k] * outward[k] > 0.0:
-                w[k] = 0.0
-                blocked = True
-        if not blocked:
-            return rounds
-        rounds += 1
-
-
-@_jit
+@jit
 def _solve(
     basis,
     axis,
@@ -334,10 +192,6 @@ def _solve(
     frames = np.empty((C, L, 3, 4))
     tips = np.empty((C, 3))
     J = np.empty((m, N))
-    A = np.empty((m, m))
-    y = np.empty(m)
-    w = np.empty(N)
-    outward = np.empty(N)
     e = np.empty(m)
     e_try = np.empty(m)
     dx = np.empty(m)
@@ -361,7 +215,7 @@ def _solve(
             x[k] = 0.0  # palm step coordinates, 0 at the current pose
         for k in range(n):
             x[6 + k] = q0[s, k]
-        _forward(basis, column, gain, offset, length, R, p, x[6:], T, M, frames, tips)
+        forward(basis, column, gain, offset, length, R, p, x[6:], T, M, frames, tips)
         for i in range(m):
             e[i] = goal[i] - tips[i // 3, i % 3]
         err = _largest(e)
@@ -382,7 +236,8 @@ def _solve(
             scale = min(1.0, max_step / norm)  # at most max_step long
             for i in range(m):
                 dx[i] = e[i] * scale
-            clamps[s] += _limited_step(J, dx, x, lower, upper, winv, damping, limit_eps, w, outward, A, y, dq)
+            dq, rounds = limited_step(J, dx, x, lower, upper, winv, damping, limit_eps)
+            clamps[s] += rounds
             done = it + 1
             any_step = False
             for k in range(N):
@@ -398,11 +253,11 @@ def _solve(
                     x_try[k] = min(max(v, lower[k]), upper[k])
                 for i in range(3):
                     p_try[i] = p[i] + dq[i] * alpha
-                _rotation(dq[3] * alpha, dq[4] * alpha, dq[5] * alpha, turn)
+                rotation(dq[3] * alpha, dq[4] * alpha, dq[5] * alpha, turn)
                 for i in range(3):
                     for j in range(3):
                         R_try[i, j] = turn[i, 0] * R[0, j] + turn[i, 1] * R[1, j] + turn[i, 2] * R[2, j]
-                _forward(basis, column, gain, offset, length, R_try, p_try, x_try[6:], T, M, frames, tips)
+                forward(basis, column, gain, offset, length, R_try, p_try, x_try[6:], T, M, frames, tips)
                 for i in range(m):
                     e_try[i] = goal[i] - tips[i // 3, i % 3]
                 if _norm(e_try) < norm:
@@ -456,25 +311,6 @@ class Solves(NamedTuple):
     clamps: IntArray
 
 
-@lru_cache(maxsize=64)
-def _scatter_matches(stack: ChainStack) -> bool:
-    """Whether ``stack.select`` is exactly the scatter of ``gain`` to ``column`` (every joint adds
-    ``gain`` times its column to one joint's), which the kernel assumes."""
-    L, C = stack.column.shape
-    expected = np.zeros_like(stack.select)
-    for l in range(L):
-        for c in range(C):
-            expected[c, l, stack.column[l, c]] += stack.gain[l, c]
-    return bool(np.array_equal(expected, stack.select))
-
-
-def supported(stack: ChainStack, damping: float) -> bool:
-    """Whether :func:`solve` handles ``stack`` with this ``damping`` (> 0: the kernel has no
-    pseudo-inverse for the undamped step), i.e. any stack :func:`~softgrasp.hand.kinematics.chain_stack`
-    builds."""
-    return damping > 0.0 and stack.basis.shape[2] in (3, 4) and _scatter_matches(stack)
-
-
 def solve(
     stack: ChainStack,
     targets: Array,
@@ -482,6 +318,8 @@ def solve(
     p: Array,
     q: Array,
     *,
+    winv: Array | None = None,
+    palm_fixed: bool = False,
     reach_tol: float,
     max_iter: int,
     max_step: float,
@@ -491,14 +329,14 @@ def solve(
     max_halvings: int,
     limit_eps: float,
 ) -> Solves:
-    """Floating-palm WDLS towards the targets ``(C, 3)`` [m] from each of ``S`` starting postures (palm
+    """Clamped WDLS towards the targets ``(C, 3)`` [m] from each of ``S`` starting postures (palm
     rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)`` [m], joints ``q`` ``(S, n)``, inside their
-    limits); see :class:`Solves`.
+    limits); see :class:`Solves`. The palm floats unless ``palm_fixed``.
 
-    The rules are those of :func:`softgrasp.hand.placement._solve_numpy` (see the module docstring):
-    ``reach_tol`` [m], ``max_iter``, ``max_step`` [m], ``damping`` [m] (> 0, :func:`supported`),
-    ``stall_fraction`` over ``stall_window`` iterations, ``max_halvings`` and the limit tolerance
-    ``limit_eps`` [rad or m]. All joint weights are 1.
+    ``winv`` ``(n,)`` are the inverse joint weights (default 1; the palm's are 1). The rules are
+    those of the module docstring: ``reach_tol`` [m], ``max_iter``, ``max_step`` [m], ``damping``
+    [m] (>= 0; 0: the undamped, pseudo-inverse step), ``stall_fraction`` over ``stall_window``
+    iterations, ``max_halvings`` and the limit tolerance ``limit_eps`` [rad or m].
     """
     R0 = np.ascontiguousarray(R, dtype=np.float64)
     p0 = np.ascontiguousarray(p, dtype=np.float64)
@@ -511,9 +349,12 @@ def solve(
     goal = np.ascontiguousarray(targets, dtype=np.float64).ravel()
     if goal.shape != (3 * len(stack.chains),):
         raise ConfigError(f"solve needs targets ({len(stack.chains)}, 3); got {np.shape(targets)}")
-    inf = np.full(6, np.inf)
-    lower = np.concatenate([-inf] + [c.lower for c in stack.chains])
-    upper = np.concatenate([inf] + [c.upper for c in stack.chains])
+    palm = np.zeros(6) if palm_fixed else np.full(6, np.inf)
+    lower = np.concatenate([-palm] + [c.lower for c in stack.chains])
+    upper = np.concatenate([palm] + [c.upper for c in stack.chains])
+    weights = np.ones(6 + n)
+    if winv is not None:
+        weights[6:] = winv
     out = Solves(
         np.empty((S, 3, 3)),
         np.empty((S, 3)),
@@ -527,14 +368,14 @@ def solve(
         stack.basis,
         stack.axis,
         stack.prismatic,
-        stack.column.astype(np.int64, copy=False),
+        stack.column,
         stack.gain,
         stack.offset,
-        np.asarray(stack.length, dtype=np.int64),
+        stack.lengths,
         goal,
         lower,
         upper,
-        np.ones(6 + n),
+        weights,
         R0,
         p0,
         q0,
