@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import pathlib
 import re
+import subprocess
+import sys
 
 import pytest
 
@@ -42,9 +44,15 @@ def _modules() -> dict[str, int]:
 
 
 def test_layer_contract_is_kept() -> None:
-    importlinter_cli = pytest.importorskip("importlinter.cli")
-    code = importlinter_cli.lint_imports(config_filename=str(ROOT / "pyproject.toml"), no_cache=True)
-    assert code == 0, "an import crosses the layers of pyproject.toml's [tool.importlinter]; see above"
+    """import-linter runs in a child process: it reconfigures logging (disabling the loggers that
+    exist), which would silence softgrasp's loggers for the tests after this one."""
+    pytest.importorskip("importlinter.cli")
+    code = (
+        "from importlinter.cli import lint_imports; "
+        f"raise SystemExit(lint_imports(config_filename={str(ROOT / 'pyproject.toml')!r}, no_cache=True))"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, f"an import crosses the layers of [tool.importlinter]:\n{proc.stdout}"
 
 
 def test_modules_stay_under_the_size_limit() -> None:
