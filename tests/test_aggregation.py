@@ -11,12 +11,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from softgrasp import backend
 from softgrasp.physics.body import build_body
 from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box
 from softgrasp.linalg import solve as linsolve
-pytestmark = pytest.mark.skipif("numba" not in backend.available(), reason="Numba is not installed")
 
 
 def _cube(n: int):

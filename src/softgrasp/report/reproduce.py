@@ -1304,9 +1304,8 @@ def _render_html(blocks: Sequence[Block], base: Path) -> str:
 
 def _environment() -> dict[str, str]:
     import matplotlib
+    import numba
     import scipy
-
-    from softgrasp.backend import get_backend
 
     try:
         import mujoco
@@ -1322,7 +1321,7 @@ def _environment() -> dict[str, str]:
         "scipy": scipy.__version__,
         "matplotlib": matplotlib.__version__,
         "mujoco": mj,
-        "kernels": get_backend(),
+        "numba": numba.__version__,
         "linear solver": _linear_solver(),
     }
 

@@ -26,7 +26,6 @@ from numpy.typing import NDArray
 from softgrasp import backend
 from softgrasp.physics.body import Body
 from softgrasp.errors import NotConverged, SimulationUnstable
-from softgrasp.model.mesh.tetmesh import signed_volumes
 from softgrasp.linalg import pardiso
 from softgrasp.linalg.solve import (
     _SINGULAR,
@@ -141,12 +140,11 @@ def rigid_constraints(
 
 
 def _valid(body: Body, x: NDArray[np.float64]) -> bool:
-    """Whether every tet of ``body`` has a positive signed volume at ``x`` (the compiled count
-    where the compiled kernels are in use: the line search asks at every trial step)."""
-    if backend.compiled():
-        from softgrasp.physics import forces_compiled as elastic
-        return elastic.count_inverted(x, body.mesh.tets) == 0
-    return bool((signed_volumes(x, body.mesh.tets) > 0).all())
+    """Whether every tet of ``body`` has a positive signed volume at ``x`` (the compiled count:
+    the line search asks at every trial step)."""
+    from softgrasp.physics.volume import count_inverted
+
+    return count_inverted(x, body.mesh.tets) == 0
 
 
 def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:
@@ -582,13 +580,11 @@ def _force_threads(body: Body, cache: SolverCache) -> contextlib.AbstractContext
     """Numba's threads for a large body's force evaluations during a static solve (its sums run
     on the calling thread's: :meth:`softgrasp.physics.body.Body.internal_forces`): the assembly's, the idle
     cores on the multigrid path (:func:`~softgrasp.linalg.solve.assembly_threads`). Nothing is
-    changed for smaller bodies or without the compiled kernels."""
-    if not backend.compiled():
-        return contextlib.nullcontext()
+    changed for smaller bodies, or in a forked child whose Numba threads were lost."""
     from softgrasp.physics.forces_compiled import PARTITIONED_MIN_NODES
     from softgrasp.linalg.sparse import _Threads
 
-    if body.n_nodes < PARTITIONED_MIN_NODES:
+    if body.n_nodes < PARTITIONED_MIN_NODES or backend.forked():
         return contextlib.nullcontext()
     return _Threads(assembly_threads(3 * body.n_nodes, cache))
 

@@ -17,10 +17,10 @@ closest point.
 
 Broad phase: the surface nodes near each fingertip and the facets around them (a node-to-facet
 index computed once per mesh, :class:`FacetIndex`), so the cost grows with the boundary nodes at a
-few microseconds per thousand, not with F log F; without an index, a k-d tree of facet centroids.
-With an index and the compiled kernels selected (:mod:`softgrasp.backend`), :func:`detect` runs
-both phases in one compiled pass (:mod:`softgrasp.physics.fingertip.compiled`); the NumPy code here is the
-reference.
+few microseconds per thousand, not with F log F: with an index, :func:`detect` runs both phases in
+one compiled pass (:mod:`softgrasp.physics.fingertip.detect`); without one, a k-d tree of facet
+centroids and the vectorised narrow phase here (which :func:`pair_geometry` also follows given
+pairs with).
 """
 
 from __future__ import annotations
@@ -31,7 +31,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from softgrasp import backend
 from softgrasp.model.mesh.tetmesh import TetMesh
 
 __all__ = ["ContactPairs", "FacetIndex", "detect", "pair_geometry", "barycentric", "relative_velocity"]
@@ -213,7 +212,7 @@ def detect(
         each fingertip (cost ~ boundary nodes, a few microseconds per thousand) instead of
         building a k-d tree of all facet centroids (cost ~ F log F).
     """
-    if index is not None and backend.compiled():
+    if index is not None:
         return _detect_compiled(x, facets, centres, radii, closest, index)
     if index is None:
         fi, fj = _candidates_tree(x, facets, centres, radii)
@@ -293,9 +292,9 @@ def _detect_compiled(
     index: FacetIndex,
 ) -> ContactPairs:
     """:func:`detect` with the node-index broad phase, by the compiled kernel
-    (:mod:`softgrasp.physics.fingertip.compiled`): the same pairs in the same order, fields equal to
+    (:mod:`softgrasp.physics.fingertip.detect`): the same pairs in the same order, fields equal to
     round-off. The float fields are read-only views of one (k, 13) array."""
-    from softgrasp.physics.fingertip.compiled import detect_arrays
+    from softgrasp.physics.fingertip.detect import detect_arrays
 
     fi, fj, val = detect_arrays(
         x,
