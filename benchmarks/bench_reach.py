@@ -4,8 +4,8 @@ A default plan of the rubber sphere asks ``place_hand`` to place the Shadow-like
 four initial-grasp candidates (the hand refuses the first two or three: it reaches them only with
 joints inside the object). This script records those calls (their fingertip targets and the
 settled object) during one plan per mesh size, then replays each of them with the compiled kernels
-(``softgrasp.hand.placement_compiled``) and with the NumPy reference (``SOFTGRASP_KERNELS=numpy`` semantics,
-``softgrasp.backend.use_backend``), alternating, and prints per call the best and median times, the
+(``softgrasp.hand.placement_compiled``) and with the NumPy reference (what ``place_hand`` runs where
+:func:`softgrasp.backend.compiled` is false), alternating, and prints per call the best and median times, the
 ratio, and whether both gave the same outcome (the same refusal, or the same placement to 1e-9).
 
 Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_reach.py [--repeats N]``.
@@ -14,6 +14,7 @@ Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_reach.py [--repeats N
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
 import statistics
@@ -27,6 +28,21 @@ from softgrasp.physics.body import build_body
 from softgrasp.errors import InfeasibleGrasp
 from softgrasp.hand.placement import place_hand
 from softgrasp.model.objects import make_object
+
+@contextlib.contextmanager
+def _kernels(name: str):
+    """The compiled solve (``"numba"``) or the NumPy reference (``"numpy"``:
+    :func:`softgrasp.backend.compiled` false for the block)."""
+    if name == "numba":
+        yield
+        return
+    real = backend.compiled
+    backend.compiled = lambda: False
+    try:
+        yield
+    finally:
+        backend.compiled = real
+
 
 #: Sphere mesh sizes [m]: 549 and 2 196 nodes.
 SIZES = (0.014, 0.008)
@@ -75,22 +91,21 @@ def main() -> None:
     print(f"place_hand benchmark on {platform.machine()}, {os.cpu_count()} CPUs; kernels: compiled vs NumPy")
     print(" nodes  call  compiled best/median ms   NumPy best/median ms   ratio  same outcome")
     for h in SIZES:
-        with backend.use_backend("numba"):
-            calls = _recorded_calls(h)
+        calls = _recorded_calls(h)
         n_nodes = len(make_object("sphere", h)[0].points)
         total = {"numba": 0.0, "numpy": 0.0}
         for k, (model, targets, kw) in enumerate(calls):
             times: dict[str, list[float]] = {"numba": [], "numpy": []}
             results = {}
-            for backend in ("numba", "numpy"):  # one untimed call each: loading, caches
-                with backend.use_backend(backend):
-                    results[backend] = _outcome(model, targets, kw)
+            for name in ("numba", "numpy"):  # one untimed call each: loading, caches
+                with _kernels(name):
+                    results[name] = _outcome(model, targets, kw)
             for _ in range(args.repeats):
-                for backend in ("numba", "numpy"):
-                    with backend.use_backend(backend):
+                for name in ("numba", "numpy"):
+                    with _kernels(name):
                         t0 = time.perf_counter()
                         _outcome(model, targets, kw)
-                        times[backend].append(time.perf_counter() - t0)
+                        times[name].append(time.perf_counter() - t0)
             best = {b: 1e3 * min(t) for b, t in times.items()}
             med = {b: 1e3 * statistics.median(t) for b, t in times.items()}
             for b in total:

@@ -22,11 +22,10 @@ from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.geometry import (
     ContactPairs,
     FacetIndex,
-    _candidates_nodes,
+    broad_phase_reach,
     _empty,
     _narrow_phase,
     pair_geometry,
-    relative_velocity,
 )
 from softgrasp.physics.fingertip.laws import normal_force, normal_force_derivative, slip_force
 from softgrasp.physics.fingertip.state import FingerState, _Eval
@@ -34,10 +33,58 @@ from softgrasp.physics.fingertip.state import FingerState, _Eval
 from oracles.forces import OracleBody
 
 
+def candidates_nodes(
+    x: NDArray[np.float64], index: FacetIndex, centres, radii
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(finger, facet) candidates from the surface nodes near each fingertip, O(B) with a tiny
+    constant (see :func:`broad_phase_reach`)."""
+    xb = x[index.boundary_nodes]
+    reach = broad_phase_reach(index)
+    fi, fj = [], []
+    for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
+        d2 = np.einsum("ij,ij->i", xb - c, xb - c)
+        nodes = index.boundary_nodes[d2 < (R + reach) ** 2]
+        if nodes.size == 0:
+            continue
+        starts, ends = index.indptr[nodes], index.indptr[nodes + 1]
+        lens = ends - starts
+        offs = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
+        near = np.unique(index.indices[np.arange(lens.sum()) + offs])
+        fj.append(near)
+        fi.append(np.full(near.size, i, dtype=np.int64))
+    if not fj:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(fi), np.concatenate(fj)
+
+
+def relative_velocity(
+    pairs: ContactPairs,
+    facets: NDArray[np.int64],
+    v: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    velocities: NDArray[np.float64],
+    omegas: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Relative velocity of the fingertip with respect to the facet at each contact point.
+
+    ``V_finger(P) = V_c + Omega x (P - c)`` (Eq. 1); ``V_facet(P) = sum_i (A_i/A_G) V_Ni`` (Eq. 4);
+    ``V_r = V_finger - V_facet`` (Eq. 5); normal part ``(V_r·n) n`` (Eq. 6), tangential rest (Eq. 7).
+
+    Returns
+    -------
+    (V_r (k, 3), V_n (k, 3), V_t (k, 3)) [m/s]
+    """
+    vf = velocities[pairs.finger] + np.cross(omegas[pairs.finger], pairs.point - centres[pairs.finger])
+    vfacet = np.einsum("ki,kij->kj", pairs.bary, v[facets[pairs.facet]])
+    vr = vf - vfacet
+    vn = np.einsum("ij,ij->i", vr, pairs.normal)[:, None] * pairs.normal
+    return vr, vn, vr - vn
+
+
 def oracle_detect(x, facets, centres, radii, *, closest: bool, index: FacetIndex) -> ContactPairs:
     """The touching pairs by NumPy (the node-index broad phase, then the vectorised narrow phase
     of :mod:`softgrasp.physics.fingertip.geometry`), in the compiled detection's order."""
-    fi, fj = _candidates_nodes(x, index, centres, radii)
+    fi, fj = candidates_nodes(x, index, centres, radii)
     if fj.size == 0:
         return _empty()
     return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False)

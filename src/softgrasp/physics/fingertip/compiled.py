@@ -27,7 +27,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.physics.fingertip.detect import _detect, _geometry_args, _pinned_values
-from softgrasp.physics.fingertip.forces import _finger_powers, _pair_forces, _pair_table, _patch, _weight_depth
+from softgrasp.physics.fingertip.forces import (
+    _finger_powers,
+    _normal_force,
+    _pair_forces,
+    _pair_table,
+    _patch,
+    _weight_depth,
+)
 from softgrasp.physics.fingertip.friction import _stick, _tangential_stiffness
 
 __all__ = ["fingertip_forces", "fingertip_pair_laws", "fingertip_static_forces", "fingertip_update"]
@@ -175,8 +182,7 @@ def _update_pairs(
         f = finger[p]
         j = facet[p]
         w, depth = _weight_depth(p, f, val, deep, total, patch)
-        elastic = K[f] * (dnf[f] if patch else max(depth, 0.0) ** n_exp) if depth > 0.0 else 0.0
-        elastic = max(elastic, 0.0)
+        elastic = _normal_force(depth, dnf[f] if patch else max(depth, 0.0) ** n_exp, 0.0, K[f], 0.0, False)
         kt = ktf[f] if patch else _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
         sx, sy, sz, cont, ax, ay, az = _stick(
             p, f, j, val, x, facets, centres, active, anchor, offset, memory

@@ -19,11 +19,16 @@ import math
 import numba
 import numpy as np
 
+from softgrasp.physics.fingertip import laws
 from softgrasp.physics.fingertip.friction import _stick, _tangential_stiffness
 
 __all__: list[str] = []
 
 _jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+#: The normal force law, Eq. 9 (:func:`softgrasp.physics.fingertip.laws.normal_force_value`).
+_normal_force = _jit(laws.normal_force_value)
+#: Coulomb sliding, Eq. 15 (:func:`softgrasp.physics.fingertip.laws.coulomb_slip_value`).
+_coulomb_slip = _jit(laws.coulomb_slip_value)
 
 
 @_jit
@@ -116,12 +121,7 @@ def _pair_law(
     w, depth = _weight_depth(p, f, val, deep, total, patch)
     # normal force (Eq. 9), zero unless delta > 0, never pulling
     dn = dnf[f] if patch else max(depth, 0.0) ** n_exp
-    if hunt_crossley:
-        raw = dn * (K[f] + C[f] * rate)
-    else:
-        raw = K[f] * dn + C[f] * rate
-    raw = max(raw, 0.0) if depth > 0.0 else 0.0
-    fn = w * raw
+    fn = w * _normal_force(depth, dn, rate, K[f], C[f], hunt_crossley)
     ftx = 0.0
     fty = 0.0
     ftz = 0.0
@@ -148,9 +148,7 @@ def _pair_law(
             slipping = True
             speed = math.sqrt(vtx * vtx + vty * vty + vtz * vtz)
             if speed > 0.0:  # Coulomb slip (Eq. 15)
-                ftx = -mu * fn * (vtx / speed)
-                fty = -mu * fn * (vty / speed)
-                ftz = -mu * fn * (vtz / speed)
+                ftx, fty, ftz = _coulomb_slip(fn, vtx, vty, vtz, mu)
             else:
                 r = cap / mag
                 ftx *= r

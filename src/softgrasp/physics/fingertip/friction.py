@@ -13,9 +13,13 @@ from __future__ import annotations
 
 import numba
 
+from softgrasp.physics.fingertip import laws
+
 __all__: list[str] = []
 
 _jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+#: The normal stiffness law n K delta^(n-1) (:func:`softgrasp.physics.fingertip.laws.normal_stiffness_value`).
+_normal_stiffness = _jit(laws.normal_stiffness_value)
 
 
 @_jit
@@ -53,6 +57,7 @@ def _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory):  #
 
 @_jit
 def _tangential_stiffness(depth, radius, K, n_exp, ratio, min_depth_ratio):  # pragma: no cover
-    """k_t = ratio x d(K delta^n)/d delta at max(delta, min_depth_ratio R)."""
+    """k_t = ratio x d(K delta^n)/d delta (Mindlin's ratio of the normal stiffness,
+    :func:`softgrasp.physics.fingertip.laws.normal_stiffness_value`) at max(delta, min_depth_ratio R)."""
     d = max(max(depth, min_depth_ratio * radius), 0.0)
-    return ratio * (n_exp * K * d ** (n_exp - 1.0)) if d > 0.0 else 0.0
+    return ratio * _normal_stiffness(d, K, n_exp)

@@ -1,4 +1,4 @@
-"""Fingertip-facet contact detection (paper Sec. 3.1) and contact-point kinematics (Eq. 1-8).
+"""Fingertip-facet contact detection (paper Sec. 3.1) and the pairs' geometry (Eq. 14).
 
 A fingertip is a sphere of centre c and radius R. With the paper's test (``closest=False``) it
 touches boundary facet j when the projection P_j of c on the facet's plane lies inside the triangle
@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from softgrasp.model.mesh.tetmesh import TetMesh
 
-__all__ = ["ContactPairs", "FacetIndex", "detect", "pair_geometry", "barycentric", "relative_velocity"]
+__all__ = ["ContactPairs", "FacetIndex", "detect", "pair_geometry", "barycentric"]
 
 #: Tolerance on barycentric coordinates for "inside the triangle" (shared edges count for both).
 INSIDE_TOL = 1e-12
@@ -163,30 +163,6 @@ def _candidates_tree(
         near = np.asarray(tree.query_ball_point(c, R + extent), dtype=np.int64)
         fj.append(near)
         fi.append(np.full(near.size, i, dtype=np.int64))
-    return np.concatenate(fi), np.concatenate(fj)
-
-
-def _candidates_nodes(
-    x: NDArray[np.float64], index: FacetIndex, centres, radii
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """(finger, facet) candidates from the surface nodes near each fingertip, O(B) with a tiny
-    constant (see :func:`broad_phase_reach`)."""
-    xb = x[index.boundary_nodes]
-    reach = broad_phase_reach(index)
-    fi, fj = [], []
-    for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
-        d2 = np.einsum("ij,ij->i", xb - c, xb - c)
-        nodes = index.boundary_nodes[d2 < (R + reach) ** 2]
-        if nodes.size == 0:
-            continue
-        starts, ends = index.indptr[nodes], index.indptr[nodes + 1]
-        lens = ends - starts
-        offs = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
-        near = np.unique(index.indices[np.arange(lens.sum()) + offs])
-        fj.append(near)
-        fi.append(np.full(near.size, i, dtype=np.int64))
-    if not fj:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(fi), np.concatenate(fj)
 
 
@@ -326,27 +302,3 @@ def _empty() -> ContactPairs:
     z3 = np.zeros((0, 3))
     z = np.zeros(0)
     return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z)
-
-
-def relative_velocity(
-    pairs: ContactPairs,
-    facets: NDArray[np.int64],
-    v: NDArray[np.float64],
-    centres: NDArray[np.float64],
-    velocities: NDArray[np.float64],
-    omegas: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Relative velocity of the fingertip with respect to the facet at each contact point.
-
-    ``V_finger(P) = V_c + Omega x (P - c)`` (Eq. 1); ``V_facet(P) = sum_i (A_i/A_G) V_Ni`` (Eq. 4);
-    ``V_r = V_finger - V_facet`` (Eq. 5); normal part ``(V_r·n) n`` (Eq. 6), tangential rest (Eq. 7).
-
-    Returns
-    -------
-    (V_r (k, 3), V_n (k, 3), V_t (k, 3)) [m/s]
-    """
-    vf = velocities[pairs.finger] + np.cross(omegas[pairs.finger], pairs.point - centres[pairs.finger])
-    vfacet = np.einsum("ki,kij->kj", pairs.bary, v[facets[pairs.facet]])
-    vr = vf - vfacet
-    vn = np.einsum("ij,ij->i", vr, pairs.normal)[:, None] * pairs.normal
-    return vr, vn, vr - vn
