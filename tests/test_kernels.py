@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 from oracles import forces as ref
-from oracles.contact import OracleFingertipContact, oracle_detect, oracle_scene
+from oracles.contact import OracleFingertipContact, oracle_detect, oracle_scene, pair_geometry
 
 from softgrasp import backend
 from softgrasp.physics.body import build_body
@@ -443,6 +443,19 @@ def test_detect_agrees(contact_setup, closest, seed):
     fast = detect(x, mesh.facets, centres, radii, closest=closest, index=index)
     slow = oracle_detect(x, mesh.facets, centres, radii, closest=closest, index=index)
     _pairs_equal(fast, slow)
+    # The same pairs followed through a displacement (touching there or not), and found by the
+    # k-d tree broad phase with the compiled narrow phase.
+    from softgrasp.physics.fingertip.geometry import pair_geometry as follow
+
+    x2 = x + 3e-4 * np.random.default_rng(seed).standard_normal(x.shape)
+    _pairs_equal(
+        follow(x2, mesh.facets, centres, radii, slow.finger, slow.facet, closest=closest),
+        pair_geometry(x2, mesh.facets, centres, radii, slow.finger, slow.facet, closest=closest),
+    )
+    tree = detect(x, mesh.facets, centres, radii, closest=closest)
+    order = np.lexsort((tree.facet, tree.finger))
+    assert np.array_equal(tree.finger[order], slow.finger) and np.array_equal(tree.facet[order], slow.facet)
+    assert _rel(tree.depth[order], slow.depth) < TOL
     assert set(slow.finger.tolist()) >= {0, 1, 2}  # the fourth may sit in a convex edge's blind spot
     if closest:  # the closest point on an edge is exercised
         mine = (slow.finger == 3) & (slow.facet == f)
@@ -520,8 +533,6 @@ def test_static_and_pinned_forces_agree(contact_setup, params, shift):
     assert _rel(out["numpy"][1], out["numpy"][0]) < 1e-12  # pinned at the pairs' own state: the same
     # The cases are what they claim: some pinned pairs leave contact at x2; friction slips (or not).
     ref = fc.pairs(body, x1, t1)
-    from softgrasp.physics.fingertip.geometry import pair_geometry
-
     tips = fc.centres(t1), fc._radii()
     moved = pair_geometry(x2, mesh.facets, *tips, ref.finger, ref.facet, closest=True)
     ev = oc._evaluate(body, x1, None, t1, state, static=True)

@@ -20,17 +20,105 @@ from numpy.typing import NDArray
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.geometry import (
+    INSIDE_TOL,
     ContactPairs,
     FacetIndex,
-    broad_phase_reach,
     _empty,
-    _narrow_phase,
-    pair_geometry,
+    broad_phase_reach,
 )
 from softgrasp.physics.fingertip.laws import normal_force, normal_force_derivative, slip_force
 from softgrasp.physics.fingertip.state import FingerState, _Eval
 
 from oracles.forces import OracleBody
+
+
+def barycentric(
+    p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Barycentric coordinates of points p (k, 3) with respect to triangles (a, b, c), each (k, 3),
+    after projection on the triangles' planes; shape (k, 3), rows summing to 1."""
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    wb = (d11 * d20 - d01 * d21) / den
+    wc = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - wb - wc, wb, wc], axis=1)
+
+
+def closest_points(
+    p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Points of the triangles (a, b, c) (k, 3 each) closest to the points p (k, 3) whose
+    projections fall outside them: the nearest of the three edges' closest points (a later edge
+    wins only when strictly closer).
+    Returns (points (k, 3), their barycentric coordinates (k, 3))."""
+    verts = (a, b, c)
+    best = np.full(len(p), np.inf)
+    q = np.zeros_like(p)
+    bary = np.zeros_like(p)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        e = verts[j] - verts[i]
+        t = np.clip(np.einsum("ij,ij->i", p - verts[i], e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
+        qe = verts[i] + t[:, None] * e
+        d2 = np.einsum("ij,ij->i", p - qe, p - qe)
+        better = d2 < best
+        best[better] = d2[better]
+        q[better] = qe[better]
+        be = np.zeros_like(p)
+        be[:, i] = 1.0 - t
+        be[:, j] = t
+        bary[better] = be[better]
+    return q, bary
+
+
+def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool) -> ContactPairs:
+    """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``."""
+    tri = x[facets[fj]]  # (k, 3, 3) candidates only
+    a, b, c3 = tri[:, 0], tri[:, 1], tri[:, 2]
+    nrm = np.cross(b - a, c3 - a)
+    twice_area = np.linalg.norm(nrm, axis=1)
+    n = nrm / twice_area[:, None]
+    ctr = centres[fi]
+    d = np.einsum("ij,ij->i", ctr - a, n)
+    R = radii[fi]
+    point = ctr - d[:, None] * n
+    bary = barycentric(point, a, b, c3)
+    low = bary.min(axis=1)
+    if closest:
+        out = np.flatnonzero(low < 0)
+        if out.size:
+            point[out], bary[out] = closest_points(ctr[out], a[out], b[out], c3[out])
+        dist = np.linalg.norm(ctr - point, axis=1)
+        fac = np.clip(d / np.where(dist > 0, dist, 1.0), 0.0, 1.0)
+        ok = (d > 0) & (dist < R)
+    else:
+        dist = d
+        fac = np.ones(len(fj))
+        ok = (d > 0) & (d < R) & (low >= -INSIDE_TOL)
+    if keep_all:
+        ok = np.ones(len(fj), bool)
+    return ContactPairs(
+        finger=fi[ok],
+        facet=fj[ok],
+        bary=bary[ok],
+        point=point[ok],
+        normal=n[ok],
+        distance=dist[ok],
+        depth=R[ok] - dist[ok],
+        area=0.5 * twice_area[ok],
+        facing=fac[ok],
+    )
+
+
+def pair_geometry(x, facets, centres, radii, finger, facet, *, closest: bool = False) -> ContactPairs:
+    """:func:`softgrasp.physics.fingertip.geometry.pair_geometry` by NumPy."""
+    if len(facet) == 0:
+        return _empty()
+    return _narrow_phase(x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True)
 
 
 def candidates_nodes(

@@ -5,8 +5,8 @@ around them, through the mesh's :class:`~softgrasp.physics.fingertip.geometry.Fa
 narrow phase (contact point, barycentric coordinates, contact normal, distance, penetration
 ``delta = R - d``, area, facing factor; the paper's projection test or the sphere's overlap with the
 triangle, :mod:`softgrasp.physics.fingertip.geometry` describes both) in one pass. Pairs come out
-by fingertip, then by facet index. :func:`_pinned_values` follows given pairs to new positions
-(touching or not). A pair's values are one row of 13: bary 0-2, point 3-5, normal 6-8, distance 9,
+by fingertip, then by facet index. :func:`pair_values` runs the narrow phase on given pairs (the
+candidates of another broad phase, or pairs followed to new positions, touching or not). A pair's values are one row of 13: bary 0-2, point 3-5, normal 6-8, distance 9,
 depth 10, area 11, facing 12.
 """
 
@@ -18,7 +18,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["detect_arrays"]
+__all__ = ["detect_arrays", "pair_values"]
 
 _jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
 
@@ -250,11 +250,13 @@ def detect_arrays(
 
 
 @_jit
-def _pinned_values(x, facets, centres, radii, finger, facet, closest):  # pragma: no cover - compiled
-    """The values (k, 13) of the given (finger, facet) pairs at ``x`` (:func:`_pair_values` with
-    ``keep``), whether they touch there or not."""
+def _candidate_values(x, facets, centres, radii, finger, facet, closest, inside_tol, keep):  # pragma: no cover
+    """The narrow phase (:func:`_pair_values`) of the given (finger, facet) pairs at ``x``:
+    (whether each touches (k,), their values (k, 13)); with ``keep`` every pair's values, whether
+    it touches or not (all True)."""
     k = finger.shape[0]
-    val = np.empty((k, 13))
+    val = np.zeros((k, 13))
+    touch = np.zeros(k, np.bool_)
     tri = np.empty((3, 3))
     near = np.empty(3)
     for p in range(k):
@@ -266,5 +268,41 @@ def _pinned_values(x, facets, centres, radii, finger, facet, closest):  # pragma
             tri[r, 1] = x[node, 1]
             tri[r, 2] = x[node, 2]
         cx, cy, cz = centres[f, 0], centres[f, 1], centres[f, 2]
-        _pair_values(tri, cx, cy, cz, radii[f], closest, 0.0, True, near, val[p])
-    return val
+        touch[p] = _pair_values(tri, cx, cy, cz, radii[f], closest, inside_tol, keep, near, val[p])
+    return touch, val
+
+
+@_jit
+def _pinned_values(x, facets, centres, radii, finger, facet, closest):  # pragma: no cover - compiled
+    """The values (k, 13) of the given (finger, facet) pairs at ``x`` (:func:`_pair_values` with
+    ``keep``), whether they touch there or not."""
+    return _candidate_values(x, facets, centres, radii, finger, facet, closest, 0.0, True)[1]
+
+
+def pair_values(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    finger: NDArray[np.int64],
+    facet: NDArray[np.int64],
+    closest: bool,
+    inside_tol: float,
+    keep: bool,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """The narrow phase of given (fingertip, facet) pairs (finger (k,), facet (k,)): (whether each
+    touches (k,), its values (k, 13), columns as :func:`detect_arrays`'); with ``keep`` the values
+    of every pair, touching or not (a pinned pair followed through a displacement: depth may be
+    <= 0, the contact point outside the triangle with the paper's test)."""
+    f64, i64 = np.float64, np.int64
+    return _candidate_values(
+        np.ascontiguousarray(x, dtype=f64),
+        np.ascontiguousarray(facets, dtype=i64),
+        np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(radii, dtype=f64).ravel(),
+        np.ascontiguousarray(finger, dtype=i64),
+        np.ascontiguousarray(facet, dtype=i64),
+        bool(closest),
+        float(inside_tol),
+        bool(keep),
+    )
