@@ -9,6 +9,7 @@ damping forms, with and without friction, sticking and slipping pairs).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -19,17 +20,14 @@ from softgrasp import backend
 from softgrasp.physics.body import build_body
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.fingertip.geometry import FacetIndex, detect
+from softgrasp.physics import forces_compiled as elastic
+from softgrasp.physics import springs, volume
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.model.material import Linear, Material, Polynomial, Tabulated
 from softgrasp.model.mesh import box, signed_volumes
 from softgrasp.model.objects import make_object
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate, stable_time_step
-
-import numba  # noqa: E402
-
-from softgrasp.physics import forces_compiled as elastic  # noqa: E402
-from softgrasp.physics import springs, volume  # noqa: E402
 
 TOL = 1e-8
 

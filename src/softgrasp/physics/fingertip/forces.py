@@ -71,8 +71,11 @@ def _weight_depth(p, f, val, deep, total, patch):  # pragma: no cover - compiled
 
 @_jit
 def _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas):  # pragma: no cover
-    """Tangential relative velocity (3 floats) and the penetration rate d delta / dt of pair p
-    (Eq. 1-8)."""
+    """Tangential relative velocity V_t (3 floats) and the penetration rate d delta / dt of pair p
+    (Eq. 1-8): the fingertip's velocity at the contact point ``V_c + Omega x (P - c)`` (Eq. 1)
+    minus the facet's there, its nodes' velocities weighted by the shape functions
+    ``sum_l (A_l / A_G) V_Nl`` (Eq. 4), is the relative velocity V_r (Eq. 5); its normal part
+    ``(V_r . n) n`` (Eq. 6) closes the gap at ``d delta / dt = -V_r . n``, the rest is V_t (Eq. 7)."""
     nx = val[p, 6]
     ny = val[p, 7]
     nz = val[p, 8]
