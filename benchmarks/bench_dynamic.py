@@ -1,4 +1,4 @@
-"""Benchmark of explicit dynamics with fingertip contact: steps per second, NumPy vs Numba, per step vs fused.
+"""Benchmark of explicit dynamics with fingertip contact: steps per second, NumPy oracles vs Numba, per step vs fused.
 
 The scene: the default rubber sphere (radius 64 mm, 50 g, E = 79.3 kPa, nu = 0.45) meshed at 8 mm
 (~2 200 nodes) resting on the table (friction 0.5), one rigid fingertip (R = 8 mm) pressed 2 mm
@@ -7,10 +7,10 @@ In the same run it prints:
 
 * ``simulate(..., method=m)`` at the stable time step, steps/s (best and median of a few repeats),
   node-steps/s, force evaluations/s and the ratios to NumPy and to the per-step Numba path, for
-  semi-implicit Euler and RK4 on the NumPy reference kernels, on the compiled kernels step by
+  semi-implicit Euler and RK4 on the NumPy oracles of ``tests/oracles`` (``oracle_scene``), on the compiled kernels step by
   step (``fused=False``) and fused (:mod:`softgrasp.sim.fused.step`: many steps per compiled call)
   on one and on two threads. The blow-up monitor's work is included, as in every real run;
-* where a step goes: the parts of the per-step path (each measured alone, both backends), and the
+* where a step goes: the parts of the per-step path (each measured alone, compiled and oracle), and the
   compiled parts of a fused step (body forces on one and two threads, with and without the energy
   of the monitor's check, the node pass, the fingertip step: one detection, update and forces; the
   two-thread parts on Numba's threads, as RK4 runs them: a semi-implicit step on two threads runs
@@ -18,9 +18,9 @@ In the same run it prints:
 * an arithmetic bound: floating-point operations per force evaluation counted from the edges and
   tets, against two measured machine rates (a single-thread BLAS ``dgemm``, the best case for
   SIMD arithmetic, and a compiled scalar loop), and the steps/s each rate would allow;
-* ``--profile``: the top entries of a cProfile of per-step semi-implicit steps for each backend;
+* ``--profile``: the top entries of a cProfile of per-step semi-implicit steps, compiled and oracle;
 * ``--kernels``: ``Body.internal_forces`` / ``internal_jacobian`` at ~500, ~2 200, ~7 500 and
-  ~33 000 nodes for both backends;
+  ~33 000 nodes, compiled and oracle;
 * ``--compile``: cold (empty cache) and warm (cached) time to import softgrasp and evaluate the
   body's forces, energy and Jacobian once, and to compile the fused stepper, each in a fresh
   interpreter.
@@ -49,7 +49,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from softgrasp import backend
 from softgrasp.physics.body import Body, build_body
 from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.fingertip.contact import FingertipContact
@@ -61,6 +60,10 @@ from softgrasp.linalg import pardiso
 from softgrasp.sim.explicit import _FusedRun, make_integrator, simulate
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.stability import BlowupMonitor, stable_time_step
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))
+from oracles.contact import oracle_scene  # noqa: E402 - the NumPy oracles, for comparison
+from oracles.forces import OracleBody  # noqa: E402
 
 RADIUS = 0.008  #: fingertip radius [m]
 DEPTH = 0.002  #: initial penetration of the fingertip [m]
@@ -185,8 +188,9 @@ def bench_simulate(
     other runnable tasks seen while it ran."""
     out: dict[tuple[str, str], tuple[list[float], int]] = {}
     for label, method, backend, fused, threads in CASES:
-        if backend not in backend.available() or threads > (os.cpu_count() or 1):
+        if threads > (os.cpu_count() or 1):
             continue
+        sc = scene if backend == "numba" else oracle_scene(scene)
         if threads > 1 and others_running(settle=0.5) > 0:
             print(f"  {label} ({method}) skipped: another process is running (two threads would wait for it)")
             continue
@@ -194,13 +198,12 @@ def bench_simulate(
         n = fused_steps if fused else steps
         pardiso.set_threads(threads)
         try:
-            with backend.use_backend(backend):
-                kw = {"method": method, "dt": dt, "fused": fused}
-                final = simulate(scene, s0, 5 * dt, **kw)  # warm-up (and compile)
-                assert finger_pairs(scene, final) > 0
-                busy = others_running()
-                times = repeat(lambda kw=kw, n=n, dt=dt: simulate(scene, s0, n * dt, **kw), repeats)
-                busy = max(busy, others_running())
+            kw = {"method": method, "dt": dt, "fused": fused}
+            final = simulate(sc, s0, 5 * dt, **kw)  # warm-up (and compile)
+            assert finger_pairs(scene, final) > 0
+            busy = others_running()
+            times = repeat(lambda kw=kw, n=n, dt=dt, sc=sc: simulate(sc, s0, n * dt, **kw), repeats)
+            busy = max(busy, others_running())
         finally:
             pardiso.set_threads(None)
         out[(label, method)] = ([n / t for t in times], busy)
@@ -209,28 +212,27 @@ def bench_simulate(
 
 def step_breakdown(scene: Scene, s0: State) -> dict[str, dict[str, float]]:
     """Wall time [s] of the parts of one semi-implicit step of simulate(), each measured alone."""
-    body = scene.body
-    table_i, table = scene.interaction("table")
-    finger_i, finger = scene.interaction("fingers")
     x, v, t, c = s0.x, 1e-3 * np.random.default_rng(1).standard_normal(s0.x.shape), s0.t, s0.contacts
     state = s0.replace(v=v)
     integ = make_integrator("semi-implicit")
     dt = stable_time_step(scene, "semi-implicit")
     res: dict[str, dict[str, float]] = {}
-    for backend in backend.available()[::-1]:
-        with backend.use_backend(backend):
-            monitor = BlowupMonitor(scene, state, "semi-implicit")
-            res[backend] = {
-                "Body.internal_forces": per_call(lambda: body.internal_forces(x, v)),
-                "table.forces": per_call(lambda: table.forces(body, x, v, t, c[table_i])),
-                "fingers.forces": per_call(lambda: finger.forces(body, x, v, t, c[finger_i])),
-                "  of which detect": per_call(lambda: finger.pairs(body, x, t)),
-                "Scene.forces": per_call(lambda: scene.forces(x, v, t, c)),
-                "table.update": per_call(lambda: table.update(body, x, v, t, c[table_i])),
-                "fingers.update": per_call(lambda: finger.update(body, x, v, t, c[finger_i])),
-                "SemiImplicitEuler.step": per_call(lambda: integ.step(scene, state, dt)),
-                "monitor (power: contact forces again)": per_call(lambda m=monitor: m._power(state)),
-            }
+    for name, sc in (("numba", scene), ("numpy", oracle_scene(scene))):
+        body = sc.body
+        table_i, table = sc.interaction("table")
+        finger_i, finger = sc.interaction("fingers")
+        monitor = BlowupMonitor(sc, state, "semi-implicit")
+        res[name] = {
+            "Body.internal_forces": per_call(lambda: body.internal_forces(x, v)),
+            "table.forces": per_call(lambda: table.forces(body, x, v, t, c[table_i])),
+            "fingers.forces": per_call(lambda: finger.forces(body, x, v, t, c[finger_i])),
+            "  of which detect": per_call(lambda: finger.pairs(body, x, t)),
+            "Scene.forces": per_call(lambda: sc.forces(x, v, t, c)),
+            "table.update": per_call(lambda: table.update(body, x, v, t, c[table_i])),
+            "fingers.update": per_call(lambda: finger.update(body, x, v, t, c[finger_i])),
+            "SemiImplicitEuler.step": per_call(lambda: integ.step(sc, state, dt)),
+            "monitor (power: contact forces again)": per_call(lambda m=monitor: m._power(state)),
+        }
     return res
 
 
@@ -324,17 +326,16 @@ def profile(scene: Scene, s0: State, steps: int, top: int = 14) -> dict[str, str
     """cProfile of ``steps`` per-step semi-implicit steps per backend: the top entries by own time."""
     dt = stable_time_step(scene, "semi-implicit")
     out = {}
-    for backend in backend.available()[::-1]:
-        with backend.use_backend(backend):
-            simulate(scene, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
-            pr = cProfile.Profile()
-            pr.enable()
-            simulate(scene, s0, steps * dt, method="semi-implicit", dt=dt, fused=False)
-            pr.disable()
-            buf = io.StringIO()
-            st = pstats.Stats(pr, stream=buf)
-            st.strip_dirs().sort_stats("tottime").print_stats(top)
-            out[backend] = buf.getvalue()
+    for backend, sc in (("numba", scene), ("numpy", oracle_scene(scene))):
+        simulate(sc, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
+        pr = cProfile.Profile()
+        pr.enable()
+        simulate(sc, s0, steps * dt, method="semi-implicit", dt=dt, fused=False)
+        pr.disable()
+        buf = io.StringIO()
+        st = pstats.Stats(pr, stream=buf)
+        st.strip_dirs().sort_stats("tottime").print_stats(top)
+        out[backend] = buf.getvalue()
     return out
 
 
@@ -356,10 +357,9 @@ def bench_kernels() -> None:
         x = np.asarray(mesh.points) + 1e-4 * rng.standard_normal(mesh.points.shape)
         v = 1e-2 * rng.standard_normal(x.shape)
         t = {}
-        for backend in backend.available()[::-1]:
-            with backend.use_backend(backend):
-                t[backend, "f"] = per_call(lambda b=body, x=x, v=v: b.internal_forces(x, v), 1.0)
-                t[backend, "j"] = per_call(lambda b=body, x=x: b.internal_jacobian(x), 2.0)
+        for backend, b in (("numba", body), ("numpy", OracleBody.of(body))):
+            t[backend, "f"] = per_call(lambda b=b, x=x, v=v: b.internal_forces(x, v), 1.0)
+            t[backend, "j"] = per_call(lambda b=b, x=x: b.internal_jacobian(x), 2.0)
         fn, fb = t["numpy", "f"], t.get(("numba", "f"), float("nan"))
         jn, jb = t["numpy", "j"], t.get(("numba", "j"), float("nan"))
         print(
@@ -377,7 +377,8 @@ from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.model.material import Material
 from softgrasp.model.mesh import box
-from softgrasp.backend import elastic, contact
+from softgrasp.physics import forces_compiled, springs, volume
+from softgrasp.physics.fingertip import compiled
 t1 = time.perf_counter()
 body = build_body(box(0.02, 2), Material(1e5, 0.45, 50.0))
 x = np.asarray(body.mesh.points)
@@ -402,7 +403,7 @@ print(f"{t1 - t0:.3f} {t3 - t2:.3f} {t4 - t3:.3f} {t5 - t4:.3f}")
 def bench_compile() -> None:
     """Cold and warm import + first-call times in fresh interpreters."""
     with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache, SOFTGRASP_KERNELS="numba")
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
         print(
             "\nfresh interpreter [s]: import (softgrasp, numba, kernel modules); first body forces, energy, "
             "Jacobian; first fingertip update and forces; first fused simulate"
@@ -438,15 +439,14 @@ def main() -> None:
         f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, NumPy {np.__version__}, "
         f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, "
-        f"backends {', '.join(backend.available())}"
+        "kernels: compiled (the NumPy oracles of tests/oracles for comparison)"
     )
-    if "numba" in backend.available():
-        from softgrasp.sim.fused import step as k
-        print(
-            "fused body forces: "
-            + ("block kernels (eight elements a time)" if k.BLOCKS_DEFAULT else "scalar loops")
-            + " (SOFTGRASP_BLOCKS=0/1 chooses)"
-        )
+    from softgrasp.sim.fused import step as k
+    print(
+        "fused body forces: "
+        + ("block kernels (eight elements a time)" if k.BLOCKS_DEFAULT else "scalar loops")
+        + " (SOFTGRASP_BLOCKS=0/1 chooses)"
+    )
     if args.compile:
         bench_compile()
     scene, s0 = build_scene(args.mesh_size)
@@ -486,7 +486,7 @@ def main() -> None:
     print(f"{'':>38} " + " ".join(f"{b:>8}" for b in parts))
     for name in names:
         print(f"{name:>38} " + " ".join(f"{parts[b][name] * 1e6:>8.1f}" for b in parts))
-    fused = fused_breakdown(scene, s0) if "numba" in backend.available() else {}
+    fused = fused_breakdown(scene, s0)
     if fused:
         print(
             "\none fused semi-implicit step, its compiled parts measured alone [us] "
@@ -517,12 +517,11 @@ def main() -> None:
             f"{20000 * k * flops / 1e9:.1f} Gflop/s"
         )
     dt = stable_time_step(scene, "semi-implicit")
-    for backend in backend.available()[::-1]:
-        with backend.use_backend(backend):
-            print(
-                f"  body alone, semi-implicit, minimal Python loop ({backend}): "
-                f"{body_only_steps(body, dt):.0f} steps/s"
-            )
+    for backend, b in (("numba", body), ("numpy", OracleBody.of(body))):
+        print(
+            f"  body alone, semi-implicit, minimal Python loop ({backend}): "
+            f"{body_only_steps(b, dt):.0f} steps/s"
+        )
 
     if args.profile:
         for backend, text in profile(scene, s0, args.steps).items():

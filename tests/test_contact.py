@@ -16,7 +16,9 @@ import pytest
 
 from softgrasp.physics.body import build_body
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-from softgrasp.physics.fingertip.geometry import FacetIndex, detect, relative_velocity
+from oracles.contact import relative_velocity
+
+from softgrasp.physics.fingertip.geometry import FacetIndex, detect
 from softgrasp.physics.fingertip.laws import (
     HERTZ_PREFACTOR,
     contact_damping,
@@ -158,7 +160,8 @@ def test_detection_and_contact_kinematics_on_one_facet_by_hand():
     """Eq. 1-8 and 14 on one facet: distance, depth, area coordinates, relative velocity."""
     body, j = _one_tet_body()
     x = np.asarray(body.mesh.points)
-    pairs = detect(x, body.mesh.facets, _local_to_world(CENTRE_LOCAL)[None], np.array([R_HAND]))
+    centre = _local_to_world(CENTRE_LOCAL)[None]
+    pairs = detect(x, body.mesh.facets, centre, np.array([R_HAND]), index=FacetIndex.of(body.mesh))
     assert pairs.facet.tolist() == [j]  # the other three facets face away from the fingertip
     assert pairs.distance[0] == pytest.approx(D_HAND, rel=1e-12)
     # Eq. 14 up to its sign convention: the penetration is R - d (the printed formula gives d - R
@@ -188,6 +191,18 @@ def test_detection_and_contact_kinematics_on_one_facet_by_hand():
     assert vr[0] == pytest.approx(_vec(VR_LOCAL), abs=1e-14)
     assert vn[0] == pytest.approx(_vec(VN_LOCAL), abs=1e-14)
     assert vt[0] == pytest.approx(_vec(VT_LOCAL), abs=1e-14)
+    # The compiled kernel the contact forces run: tangential velocity and penetration rate.
+    from softgrasp.physics.fingertip.forces import _relative_velocity
+
+    val = np.column_stack(
+        [pairs.bary, pairs.point, pairs.normal, pairs.distance, pairs.depth, pairs.area, pairs.facing]
+    )
+    *vt_kernel, rate = _relative_velocity(
+        0, 0, j, val, _vec(V_NODES_LOCAL), body.mesh.facets, centre, _vec(V_FINGER_LOCAL)[None],
+        _vec(OMEGA_LOCAL)[None],
+    )  # fmt: skip
+    assert vt_kernel == pytest.approx(_vec(VT_LOCAL), abs=1e-14)
+    assert rate == pytest.approx(-float(_vec(VN_LOCAL) @ pairs.normal[0]), abs=1e-14)
 
 
 @pytest.mark.parametrize(("mu", "slips"), [(0.01, True), (0.8, False)])

@@ -10,7 +10,8 @@ import threading
 import numpy as np
 import pytest
 
-from softgrasp import backend
+from oracles.contact import oracle_scene
+
 from softgrasp.physics.body import build_body
 from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.fingertip.contact import FingertipContact
@@ -55,11 +56,11 @@ def pressed():
 
 
 def _contact_forces(scene, state) -> list[np.ndarray]:
-    with backend.use_backend("numpy"):
-        return [
-            inter.forces(scene.body, state.x, state.v, state.t, st)
-            for inter, st in zip(scene.interactions, state.contacts, strict=True)
-        ]
+    reference = oracle_scene(scene)
+    return [
+        inter.forces(reference.body, state.x, state.v, state.t, st)
+        for inter, st in zip(reference.interactions, state.contacts, strict=True)
+    ]
 
 
 def _assert_same(scene, s0, fast, slow) -> None:
@@ -81,18 +82,17 @@ def _assert_same(scene, s0, fast, slow) -> None:
 def test_fused_path_is_chosen_only_when_supported(pressed):
     scene, _ = pressed
     semi = make_integrator("semi-implicit")
-    with backend.use_backend("numba"):
-        assert fused_unsupported(scene, semi) is None
-        assert fused_unsupported(scene, make_integrator("rk4")) is None
-        assert "dopri" in fused_unsupported(scene, make_integrator("dopri"))
-        tabulated = build_body(
-            box(0.02, 1), Material(1e5, 0.45, 50.0, law=Tabulated([0.05, 0.1, 0.2], [5e3, 1e4, 2.1e4]))
-        )
-        assert "not a polynomial" in fused_unsupported(Scene(tabulated), semi)
-    with backend.use_backend("numpy"):
-        assert "numpy" in fused_unsupported(scene, semi)
-        with pytest.raises(ValueError, match="fused stepper cannot run"):
-            simulate(scene, scene.initial_state(), 1e-5, method="semi-implicit", fused=True)
+    assert fused_unsupported(scene, semi) is None
+    assert fused_unsupported(scene, make_integrator("rk4")) is None
+    assert "dopri" in fused_unsupported(scene, make_integrator("dopri"))
+    tabulated = build_body(
+        box(0.02, 1), Material(1e5, 0.45, 50.0, law=Tabulated([0.05, 0.1, 0.2], [5e3, 1e4, 2.1e4]))
+    )
+    assert "not a polynomial" in fused_unsupported(Scene(tabulated), semi)
+    reference = oracle_scene(scene)  # an interaction the fused loop does not know
+    assert "OracleFingertipContact" in fused_unsupported(reference, semi)
+    with pytest.raises(ValueError, match="fused stepper cannot run"):
+        simulate(reference, scene.initial_state(), 1e-5, method="semi-implicit", fused=True)
 
 
 @pytest.mark.parametrize("method", ["semi-implicit", "rk4"])
@@ -105,11 +105,9 @@ def test_fused_agrees_with_per_step_and_reference(pressed, method, blocks, monke
     dt = stable_time_step(scene, method)
     T = 200 * dt
     monkeypatch.setattr(step, "BLOCKS_DEFAULT", blocks)
-    with backend.use_backend("numba"):
-        fused = simulate(scene, s0, T, method=method, dt=dt)
-        per_step = simulate(scene, s0, T, method=method, dt=dt, fused=False)
-    with backend.use_backend("numpy"):
-        reference = simulate(scene, s0, T, method=method, dt=dt)
+    fused = simulate(scene, s0, T, method=method, dt=dt)
+    per_step = simulate(scene, s0, T, method=method, dt=dt, fused=False)
+    reference = simulate(oracle_scene(scene), s0, T, method=method, dt=dt)
     fingers = scene.interactions[1]
     assert len(fingers.pairs(scene.body, fused.x, fused.t)) > 0
     table_state = fused.contacts[0]
@@ -127,11 +125,10 @@ def test_callbacks_and_progress_match_per_step(pressed):
     runs = {}
     for fused in (True, False):
         calls, reports = [], []
-        with backend.use_backend("numba"):
-            out = simulate(
-                scene, s0, 57 * dt, method="semi-implicit", dt=dt, callback=calls.append, every=10,
-                progress=reports.append, fused=fused,
-            )  # fmt: skip
+        out = simulate(
+            scene, s0, 57 * dt, method="semi-implicit", dt=dt, callback=calls.append, every=10,
+            progress=reports.append, fused=fused,
+        )  # fmt: skip
         runs[fused] = (out, calls, reports)
     (a, ca, pa), (b, cb, pb) = runs[True], runs[False]
     assert [s.t for s in ca] == pytest.approx([s.t for s in cb], rel=1e-14, abs=1e-18)
@@ -159,9 +156,8 @@ def test_free_fall_of_the_centroid_to_round_off():
     )
     h = stable_time_step(scene, "semi-implicit")
     n = 400
-    with backend.use_backend("numba"):
-        assert fused_unsupported(scene, make_integrator("semi-implicit")) is None
-        out = simulate(scene, s0, n * h, method="semi-implicit", dt=h)
+    assert fused_unsupported(scene, make_integrator("semi-implicit")) is None
+    out = simulate(scene, s0, n * h, method="semi-implicit", dt=h)
     m = body.mass / body.total_mass
     com0, com = m @ s0.x, m @ out.x
     g = np.asarray(body.gravity)
@@ -201,7 +197,7 @@ def test_blow_up_raises_the_same_error(method, nu, factor, check_every, reason):
     dt = factor * stable_time_step(scene, method)
     errors = {}
     for fused in (True, False):
-        with backend.use_backend("numba"), pytest.raises(SimulationUnstable, match=reason) as err:
+        with pytest.raises(SimulationUnstable, match=reason) as err:
             simulate(
                 scene,
                 s0,
@@ -227,9 +223,8 @@ def test_energy_bookkeeping_with_plates_doing_work():
     scene = Scene(body, (table, plate))
     s0 = scene.initial_state()
     dt = stable_time_step(scene, "semi-implicit")
-    with backend.use_backend("numba"):
-        fast = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1)
-        slow = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1, fused=False)
+    fast = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1)
+    slow = simulate(scene, s0, 0.004, method="semi-implicit", dt=dt, check_every=1, fused=False)
     _assert_same(scene, s0, fast, slow)
     assert fast.x[:, 2].max() < 0.05 - 0.003
 

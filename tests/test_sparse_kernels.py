@@ -8,8 +8,8 @@ import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from oracles import without_parallel_kernels
 
-from softgrasp import backend
 from softgrasp.physics.body import build_body
 from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box
@@ -17,7 +17,6 @@ from softgrasp.linalg.multigrid import hierarchy
 from softgrasp.linalg.multigrid import krylov as mg_krylov
 from softgrasp.linalg.solve import SolverCache
 
-pytestmark = pytest.mark.skipif("numba" not in backend.available(), reason="Numba is not installed")
 
 
 def _cube_system(n: int = 6, local: bool = False):
@@ -138,8 +137,7 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     np.random.seed(7)
     np.random.random(3)
     state = np.random.get_state()
-    with backend.use_backend("numba"):
-        M = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
+    M = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
     after = np.random.get_state()
     assert np.array_equal(after[1], state[1]) and after[2:] == state[2:]
     assert len(M.ml.levels) == 3 and M._sweeps[0].parts == 2  # the coarse recursion, two blocks
@@ -148,16 +146,16 @@ def test_the_v_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two():
     Mu, Mv = M @ u, M @ v
     assert abs(u @ Mv - v @ Mu) <= 1e-12 * np.linalg.norm(u) * np.linalg.norm(Mv)
     results = []
-    with backend.use_backend("numba"):
-        for threads in (1, 2):
-            other = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
-            other.use(A, threads)
-            results.append(other @ u)
+    for threads in (1, 2):
+        other = mg_krylov.multigrid(A, x_nodes, SolverCache(method="amg"))
+        other.use(A, threads)
+        results.append(other @ u)
     assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], Mu)
 
 
 def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
-    """With the NumPy kernels the cycle keeps pyamg's Gauss-Seidel on every level: it is then
+    """Where the parallel kernels cannot run (a forked child whose Numba threads were lost,
+    :func:`softgrasp.backend.compiled` false) the cycle keeps pyamg's Gauss-Seidel on every level: it is then
     pyamg's own V-cycle (its preconditioner), to the rounding of the products, on a three-level
     hierarchy built while the compiled kernels were in use and kept for the next matrix (no
     compiled sweep of the earlier matrix left behind)."""
@@ -165,9 +163,8 @@ def test_the_v_cycle_with_pyamgs_smoothers_is_pyamgs_own():
     A2 = (A + 0.5 * sp.diags(A.diagonal())).tocsr()
     r = np.random.default_rng(6).standard_normal(A.shape[0])
     cache = SolverCache(method="amg")
-    with backend.use_backend("numba"):
-        mg_krylov.multigrid(A, x_nodes, cache)
-    with backend.use_backend("numpy"):
+    mg_krylov.multigrid(A, x_nodes, cache)
+    with without_parallel_kernels():
         M = mg_krylov.multigrid(A2, x_nodes, cache)
         got = M @ r
     assert len(M.ml.levels) == 3 and M.ml.levels[0].A is A2
@@ -341,12 +338,16 @@ def test_node_block_sweeps_and_products_are_their_definition_and_the_same_bits_o
         gs.sweep(np.zeros(A.shape[0], dtype=np.float32), b, forward=True)
 
 
-def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_backends():
+def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_numpy_oracles():
     """The compiled distinct node pairs (a counting sort) against ``np.unique`` of the pair keys,
     duplicates and empty rows included, and the body's Jacobian pattern built with either; bad
     input is refused."""
-    from softgrasp.physics.forces import BlockPattern, assemble_blocks, spring_pairs, volume_pairs
+    from oracles.forces import block_pattern_arrays
+
     from softgrasp.linalg.sparse import block_layout, unique_pairs
+    from softgrasp.physics.forces import BlockPattern, assemble_blocks
+    from softgrasp.physics.springs import spring_pairs
+    from softgrasp.physics.volume import volume_pairs
 
     rng = np.random.default_rng(14)
     for n, k in ((1, 5), (7, 0), (40, 3000)):
@@ -363,14 +364,14 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_same_on_both_ba
     # kernels.sparse.block_layout, against NumPy's): the same arrays, types and matrix.
     cases = [(body.n_nodes, rows, cols), (40, rng.integers(0, 30, 900), rng.integers(0, 40, 900))]
     for n, r, c in cases:
-        patterns = {}
-        for name in ("numba", "numpy"):
-            with backend.use_backend(name):
-                patterns[name] = BlockPattern(n, r, c)
+        pattern = BlockPattern(n, r, c)
+        base, stride, nnz, indptr, indices = block_pattern_arrays(n, r, c)
+        oracle = {"block_base": base, "block_stride": stride, "indptr": indptr, "indices": indices}
         for attr in ("block_base", "block_stride", "indptr", "indices"):
-            got, want = getattr(patterns["numba"], attr), getattr(patterns["numpy"], attr)
+            got, want = getattr(pattern, attr), oracle[attr]
             assert got.dtype == want.dtype and np.array_equal(got, want), attr
-        assert patterns["numba"].nnz == patterns["numpy"].nnz
+        assert pattern.nnz == nnz
+        patterns = {"numba": pattern}
         blocks = rng.standard_normal((len(r), 3, 3))
         want = assemble_blocks(n, r, c, blocks).toarray()
         np.testing.assert_allclose(patterns["numba"].assemble(blocks).toarray(), want, rtol=1e-14, atol=1e-14)

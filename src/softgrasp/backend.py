@@ -1,132 +1,28 @@
-"""Which implementation evaluates the body's forces: compiled Numba kernels or the NumPy reference.
+"""Numba's threads and ``fork()``: loading Intel TBB for Numba's threading layer, and telling a
+forked child whose Numba threads were lost.
 
-The NumPy functions of :mod:`softgrasp.physics.forces` are the reference; :mod:`softgrasp.physics.forces_compiled`
-holds compiled (Numba) kernels with the same signatures and results (to round-off, tested to
-1e-8 relative). :class:`softgrasp.physics.body.Body` asks :func:`compiled` on every call and uses the
-compiled kernels when it says so.
-
-Choosing the backend
---------------------
-* default: ``"numba"`` when Numba can be imported, else ``"numpy"`` (silently when Numba is not
-  installed, with a warning when it is installed but fails to import);
-* the environment variable ``SOFTGRASP_KERNELS=numba|numpy`` (read once, at the first query);
-  asking for ``numba`` when it cannot be used falls back to ``numpy`` with a warning;
-* :func:`set_backend` or the context manager :func:`use_backend` at run time (these raise
-  :class:`~softgrasp.errors.ConfigError` for an unknown name or a missing Numba).
-
-Numba itself is imported lazily, at the first compiled call, so importing softgrasp stays cheap;
-compiled code is cached on disk (``cache=True``), so only the very first run pays the compilation.
+softgrasp's force, contact and solver kernels are compiled with Numba (a hard dependency); some
+run on Numba's threads. GNU OpenMP's threading layer does not survive ``fork()``: a parallel
+kernel run in the child of a process that had started its threads terminates the child. This
+module makes TBB's fork-safe layer available to Numba (:func:`_load_tbb`, at import) and records
+whether this process is a child whose threads were lost (:func:`forked`); there the kernels that
+would run on Numba's threads run their serial form instead (:func:`compiled` is false for the
+solver code that then takes SciPy's and pyamg's routines).
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import os
-import warnings
 from collections.abc import Iterator
-from contextlib import contextmanager
 
-from softgrasp.errors import ConfigError
-
-__all__ = [
-    "BACKENDS",
-    "ENV_VAR",
-    "available",
-    "compiled",
-    "forked",
-    "get_backend",
-    "set_backend",
-    "use_backend",
-]
-
-#: Backend names.
-BACKENDS = ("numba", "numpy")
-#: Environment variable that selects the default backend.
-ENV_VAR = "SOFTGRASP_KERNELS"
-
-_backend: str | None = None  # resolved lazily by get_backend()
-
-
-_NOT_INSTALLED = "Numba is not installed (pip install numba)"
-
-
-@functools.cache
-def _numba_error() -> str | None:
-    """Why Numba cannot be used, or None when it imports."""
-    if importlib.util.find_spec("numba") is None:
-        return _NOT_INSTALLED
-    try:
-        import numba  # noqa: F401
-    except Exception as exc:  # a broken installation, e.g. built for another NumPy
-        return f"Numba is installed but cannot be imported ({type(exc).__name__}: {exc})"
-    return None
-
-
-def available() -> tuple[str, ...]:
-    """Backends usable in this environment (``numpy`` always; ``numba`` when it imports)."""
-    return BACKENDS if _numba_error() is None else ("numpy",)
-
-
-def _default() -> str:
-    requested = os.environ.get(ENV_VAR, "").strip().lower()
-    if requested and requested not in BACKENDS:
-        warnings.warn(
-            f"{ENV_VAR}={requested!r} is not a kernel backend ({', '.join(BACKENDS)}); using the default",
-            stacklevel=3,
-        )
-        requested = ""
-    if requested == "numpy":
-        return "numpy"
-    if "numba" in available():
-        return "numba"
-    error = _numba_error()
-    if requested == "numba" or error != _NOT_INSTALLED:  # asked for, or installed but broken
-        warnings.warn(f"{error}; using the NumPy kernels (several times slower)", stacklevel=3)
-    return "numpy"
-
-
-def get_backend() -> str:
-    """The current backend name, ``"numba"`` or ``"numpy"``."""
-    global _backend
-    if _backend is None:
-        _backend = _default()
-    return _backend
+__all__ = ["compiled", "forked"]
 
 
 def compiled() -> bool:
-    """Whether the compiled (Numba) kernels are in use: the ``numba`` backend, except in a
-    process forked from one whose Numba threads were GNU OpenMP's (:func:`forked`), where any
-    parallel kernel would terminate it: there the NumPy kernels, SciPy's and pyamg's run."""
-    return get_backend() == "numba" and not _FORKED
-
-
-def set_backend(name: str) -> None:
-    """Select the kernels: ``"numba"`` (compiled) or ``"numpy"`` (reference).
-
-    Raises
-    ------
-    ConfigError
-        Unknown name, or ``"numba"`` without Numba installed.
-    """
-    global _backend
-    key = str(name).strip().lower()
-    if key not in BACKENDS:
-        raise ConfigError(f"unknown kernel backend {name!r}; choose one of {', '.join(BACKENDS)}")
-    if key not in available():
-        raise ConfigError(f"the numba kernel backend is unavailable: {_numba_error()}")
-    _backend = key
-
-
-@contextmanager
-def use_backend(name: str) -> Iterator[None]:
-    """Context manager: run the block with backend ``name``, then restore the previous one."""
-    previous = get_backend()
-    set_backend(name)
-    try:
-        yield
-    finally:
-        set_backend(previous)
+    """Whether Numba's parallel kernels may run in this process: false only in a process forked
+    from one whose Numba threads were GNU OpenMP's (:func:`forked`), where any parallel kernel
+    would terminate it."""
+    return not _FORKED
 
 
 #: The shared library of Intel TBB that Numba's ``tbb`` threading layer links against.
@@ -179,7 +75,7 @@ def _load_tbb() -> str | None:
     survive ``fork()``: a parallel kernel run in the child of a process that had started its
     threads terminates the child ("fork() called from a process already using GNU OpenMP"), so a
     script that plans and then forks workers lost them. TBB's layer is fork-safe and thread-safe
-    and as fast here (the 27 749-node plan 9.7 s on either, alternating). Loading the library
+    and as fast. Loading the library
     once, globally, lets Numba's own choice (or ``NUMBA_THREADING_LAYER=tbb``, ``safe``...) find
     it; a TBB already in the process is used as it is, one too old for Numba is unloaded again.
     Linux only (elsewhere the loader finds pip's TBB, or Numba's other layers are fork-safe)."""
@@ -243,8 +139,9 @@ def forked() -> bool:
     """Whether this process is a fork of one whose Numba threads do not survive the fork. With
     GNU OpenMP as Numba's threading layer (TBB not installed, or ``NUMBA_THREADING_LAYER=omp``) a
     parallel kernel run in the child of a process that had started those threads terminates it
-    ("fork() called from a process already using GNU OpenMP"); there :func:`compiled` is false
-    and the NumPy kernels run (slower, the same results to round-off). With TBB (the default
+    ("fork() called from a process already using GNU OpenMP"); there the body's force and
+    Jacobian sums run their groups one after another on the calling thread (the same sums), and
+    :func:`compiled` is false for the solver code (SciPy's and pyamg's routines). With TBB (the default
     where it is installed) this is False. (TBB's layer resets itself in the child when the fork
     comes from the thread that started Numba's threads; from another thread Numba warns that
     the child's TBB may be in an invalid state.)"""

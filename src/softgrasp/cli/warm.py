@@ -31,7 +31,7 @@ __all__ = ["warm_up", "warm_up_in_background"]
 
 def warm_up() -> None:
     """Load (or compile) the kernels a static solve with a table and fingertips uses, by solving
-    a tiny such problem. Does nothing with the NumPy kernels."""
+    a tiny such problem. Does nothing in a forked child whose Numba threads were lost."""
     if not compiled():
         return
     from softgrasp.physics.body import build_body

@@ -1,7 +1,9 @@
 """The frozen mass-spring model of a soft object: lumped masses, edge springs, volume term, dampers.
 
 ``build_body(mesh, material)`` turns a tet mesh and a material into a :class:`Body`; forces on a
-body are computed by :mod:`softgrasp.physics.forces` and collected per scene by :mod:`softgrasp.scene`.
+body are computed by the compiled kernels of :mod:`softgrasp.physics.springs`,
+:mod:`softgrasp.physics.volume` and :mod:`softgrasp.physics.forces_compiled` and collected per scene by
+:mod:`softgrasp.sim.scene`.
 """
 
 from __future__ import annotations
@@ -17,17 +19,7 @@ from numpy.typing import NDArray
 
 from softgrasp import backend
 from softgrasp.errors import MaterialError
-from softgrasp.physics.forces import (
-    BlockPattern,
-    edge_damping_forces,
-    edge_damping_jacobian,
-    spring_forces,
-    spring_jacobian_blocks,
-    spring_pairs,
-    volume_forces,
-    volume_jacobian_blocks,
-    volume_pairs,
-)
+from softgrasp.physics.forces import BlockPattern
 from softgrasp.model.material import Material
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.network import NetworkCalibration, calibrate_network
@@ -104,66 +96,57 @@ class Body:
     def internal_forces(
         self, x: NDArray[np.float64], v: NDArray[np.float64] | None = None
     ) -> NDArray[np.float64]:
-        """Spring + volume (+ edge damping if ``v`` is given) forces on the nodes [N], (N, 3).
-
-        Compiled kernels when :func:`softgrasp.backend.compiled`, else the NumPy reference. A body
-        of at least :data:`~softgrasp.physics.forces_compiled.PARTITIONED_MIN_NODES` nodes sums them in the
+        """Spring + volume (+ edge damping if ``v`` is given) forces on the nodes [N], (N, 3)
+        (:func:`softgrasp.physics.forces_compiled.internal_forces`). A body of at least
+        :data:`~softgrasp.physics.forces_compiled.PARTITIONED_MIN_NODES` nodes sums them in the
         assembly's order on the calling thread's Numba threads (the static solver gives it the
         idle cores), the same to the bit on any number."""
-        if backend.compiled():
-            from softgrasp.physics import forces_compiled as elastic
-            damped = v is not None and self.damping_time > 0
-            forces = self._partitioned(x, v if damped else None, False)
-            if forces is not None:
-                return forces[0]
-            return elastic.internal_forces(
-                x,
-                v if damped else None,
-                self.edges,
-                self.rest_length,
-                self.stiffness,
-                self.damping if damped else None,
-                self.material.law,
-                self.mesh.tets,
-                self.mesh.volumes,
-                self.kappa,
-                self.barrier,
-            )
-        f, _ = spring_forces(x, self.edges, self.rest_length, self.stiffness, self.material.law)
-        if self.kappa != 0.0:
-            f += volume_forces(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)[0]
-        if v is not None and self.damping_time > 0:
-            f += edge_damping_forces(x, v, self.edges, self.damping)
-        return f
+        from softgrasp.physics import forces_compiled as elastic
+
+        damped = v is not None and self.damping_time > 0
+        forces = self._partitioned(x, v if damped else None, False)
+        if forces is not None:
+            return forces[0]
+        return elastic.internal_forces(
+            x,
+            v if damped else None,
+            self.edges,
+            self.rest_length,
+            self.stiffness,
+            self.damping if damped else None,
+            self.material.law,
+            self.mesh.tets,
+            self.mesh.volumes,
+            self.kappa,
+            self.barrier,
+        )
 
     def internal_energy(self, x: NDArray[np.float64]) -> float:
-        """Elastic energy of springs and volume term [J] (compiled kernels or NumPy reference, as
-        :meth:`internal_forces`)."""
-        if backend.compiled():
-            from softgrasp.physics import forces_compiled as elastic
-            summed = self._partitioned(x, None, True)
-            if summed is not None:
-                return summed[1]
-            return elastic.internal_energy(
-                x,
-                self.edges,
-                self.rest_length,
-                self.stiffness,
-                self.material.law,
-                self.mesh.tets,
-                self.mesh.volumes,
-                self.kappa,
-                self.barrier,
-            )
-        e = spring_forces(x, self.edges, self.rest_length, self.stiffness, self.material.law)[1]
-        if self.kappa != 0.0:
-            e += volume_forces(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)[1]
-        return e
+        """Elastic energy of springs and volume term [J], summed as :meth:`internal_forces`."""
+        from softgrasp.physics import forces_compiled as elastic
+
+        summed = self._partitioned(x, None, True)
+        if summed is not None:
+            return summed[1]
+        return elastic.internal_energy(
+            x,
+            self.edges,
+            self.rest_length,
+            self.stiffness,
+            self.material.law,
+            self.mesh.tets,
+            self.mesh.volumes,
+            self.kappa,
+            self.barrier,
+        )
 
     @cached_property
     def _jacobian_pattern(self) -> BlockPattern:
         """Sparsity of :meth:`internal_jacobian`, built once: the spring blocks, then the volume
         term's."""
+        from softgrasp.physics.springs import spring_pairs
+        from softgrasp.physics.volume import volume_pairs
+
         rows, cols = spring_pairs(self.edges)
         if self.kappa != 0.0:
             vr, vc = volume_pairs(self.mesh.tets)
@@ -175,6 +158,7 @@ class Body:
         """The elements in the compiled assembly's order
         (:func:`softgrasp.physics.forces_compiled.assembly_partition`)."""
         from softgrasp.physics import forces_compiled as elastic
+
         return elastic.assembly_partition(self.edges, self.mesh.tets, self.n_nodes)
 
     def _partitioned(
@@ -182,9 +166,11 @@ class Body:
     ) -> tuple[NDArray[np.float64], float] | None:
         """(forces, energy) summed in the assembly's order on Numba's threads
         (:func:`softgrasp.physics.forces_compiled.partitioned_forces`) for a large body's polynomial law;
-        None otherwise (the single-pass kernels then)."""
+        None otherwise, and in a process forked from one whose Numba threads did not survive the
+        fork (:func:`softgrasp.backend.forked`): the single-pass kernels then."""
         from softgrasp.physics import forces_compiled as elastic
-        if self.n_nodes < elastic.PARTITIONED_MIN_NODES:
+
+        if self.n_nodes < elastic.PARTITIONED_MIN_NODES or backend.forked():
             return None
         return elastic.partitioned_forces(
             x, v, self._force_elements, self.material.law, self.kappa, self.barrier, want_energy
@@ -195,6 +181,7 @@ class Body:
         """The force kernels' per-element arrays in the assembly's order, for a large body
         (:func:`softgrasp.physics.forces_compiled.partitioned_elements`)."""
         from softgrasp.physics import forces_compiled as elastic
+
         return elastic.partitioned_elements(
             self.edges, self.rest_length, self.stiffness, self.damping, self.mesh.tets, self.mesh.volumes,
             self._assembly_partition,
@@ -204,34 +191,31 @@ class Body:
         """``d f_internal / d x`` (negative stiffness), sparse (3N, 3N), assembled into the body's
         fixed sparsity pattern (the compiled kernels sum their blocks straight into its CSR data,
         on up to ``threads`` threads: the same sums on any number)."""
+        from softgrasp.physics import forces_compiled as elastic
+
         pattern = self._jacobian_pattern
-        if backend.compiled():
-            from softgrasp.physics import forces_compiled as elastic
-            data = elastic.internal_jacobian_data(
-                x,
-                self.edges,
-                self.rest_length,
-                self.stiffness,
-                self.material.law,
-                self.mesh.tets,
-                self.mesh.volumes,
-                self.kappa,
-                self.barrier,
-                pattern.block_base,
-                pattern.block_stride,
-                pattern.nnz,
-                self._assembly_partition,
-                threads,
-            )
-            return pattern.matrix(data)
-        blocks = spring_jacobian_blocks(x, self.edges, self.rest_length, self.stiffness, self.material.law)
-        if self.kappa != 0.0:
-            vb = volume_jacobian_blocks(x, self.mesh.tets, self.mesh.volumes, self.kappa, self.barrier)
-            blocks = np.concatenate([blocks, vb])
-        return pattern.assemble(blocks)
+        data = elastic.internal_jacobian_data(
+            x,
+            self.edges,
+            self.rest_length,
+            self.stiffness,
+            self.material.law,
+            self.mesh.tets,
+            self.mesh.volumes,
+            self.kappa,
+            self.barrier,
+            pattern.block_base,
+            pattern.block_stride,
+            pattern.nnz,
+            self._assembly_partition,
+            threads,
+        )
+        return pattern.matrix(data)
 
     def damping_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
         """``d f_damping / d v``, sparse (3N, 3N)."""
+        from softgrasp.physics.springs import edge_damping_jacobian
+
         return edge_damping_jacobian(x, self.edges, self.damping)
 
     @cached_property

@@ -148,9 +148,8 @@ class ReproductionResult:
 
 def _environment() -> dict[str, str]:
     import matplotlib
+    import numba
     import scipy
-
-    from softgrasp.backend import get_backend
 
     try:
         import mujoco
@@ -166,7 +165,7 @@ def _environment() -> dict[str, str]:
         "scipy": scipy.__version__,
         "matplotlib": matplotlib.__version__,
         "mujoco": mj,
-        "kernels": get_backend(),
+        "numba": numba.__version__,
         "linear solver": linear_solver(),
     }
 

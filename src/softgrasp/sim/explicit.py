@@ -10,12 +10,12 @@ accepted step it is advanced with :meth:`Scene.update_contacts` (the stick/slip 
 paper's Algorithm 1). :func:`simulate` drives an integrator to a final time with blow-up detection
 (:class:`~softgrasp.sim.stability.BlowupMonitor`); :func:`settle` runs until the body is at rest.
 
-With the compiled kernels selected (:mod:`softgrasp.backend`), :func:`simulate` runs semi-implicit
+:func:`simulate` runs semi-implicit
 Euler and RK4 on scenes of planes and fingertips in compiled chunks of many steps
 (:class:`softgrasp.sim.fused.step.FusedStepper`: the same trajectory to round-off, the same callbacks,
 progress reports and blow-up errors, several times faster than the per-step loop on the compiled
 kernels: ``benchmarks/bench_dynamic.py``);
-other methods, interactions and the NumPy kernels take the per-step loop.
+other methods and interactions take the per-step loop.
 
 Everything here is numerical: nothing is printed; ``progress`` callbacks let a front end draw bars.
 """
@@ -407,8 +407,7 @@ def simulate(
         Steps between the volume and energy checks of the blow-up monitor.
     fused:
         Whether to run the steps in compiled chunks (:mod:`softgrasp.sim.fused.step`): ``None``
-        (default) does so when it can -- compiled kernels selected (:mod:`softgrasp.backend`),
-        semi-implicit Euler or RK4 (fixed steps), only :class:`~softgrasp.physics.planes.PlaneContact` and
+        (default) does so when it can -- semi-implicit Euler or RK4 (fixed steps), only :class:`~softgrasp.physics.planes.PlaneContact` and
         :class:`~softgrasp.physics.fingertip.contact.FingertipContact` interactions (at most one of the
         latter), a polynomial stress-strain law; ``False`` never (the per-step path); ``True``
         requires it (``ValueError`` when it cannot). Both paths give the same trajectory to
@@ -472,9 +471,6 @@ FUSED_CHUNK = 2000
 def fused_unsupported(scene: Scene, integ: Integrator) -> str | None:
     """Why :func:`simulate` cannot run ``scene`` with ``integ`` in compiled chunks
     (:class:`softgrasp.sim.fused.step.FusedStepper`), or None when it can."""
-    from softgrasp import backend
-    if backend.get_backend() != "numba":
-        return f"the {backend.get_backend()} kernels are selected"
     if type(integ) not in (SemiImplicitEuler, RK4):
         return f"method {integ.method!r} (semi-implicit Euler and RK4 are fused)"
     from softgrasp.physics.fingertip.contact import FingertipContact

@@ -15,7 +15,6 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp import backend
 from softgrasp.errors import NotConverged
 from softgrasp.linalg.solve import (
     _SINGULAR,
@@ -24,7 +23,6 @@ from softgrasp.linalg.solve import (
     assembly_threads,
     solve_newton_system,
 )
-from softgrasp.model.mesh.tetmesh import signed_volumes
 from softgrasp.physics.body import Body
 from softgrasp.sim.newton_matrix import newton_matrix
 from softgrasp.sim.scene import Scene
@@ -70,12 +68,11 @@ FORCING_MAX = 1e-4
 
 
 def valid(body: Body, x: NDArray[np.float64]) -> bool:
-    """Whether every tet of ``body`` has a positive signed volume at ``x`` (the compiled count
-    where the compiled kernels are in use: the line search asks at every trial step)."""
-    if backend.compiled():
-        from softgrasp.physics import forces_compiled as elastic
-        return elastic.count_inverted(x, body.mesh.tets) == 0
-    return bool((signed_volumes(x, body.mesh.tets) > 0).all())
+    """Whether every tet of ``body`` has a positive signed volume at ``x`` (the compiled count:
+    the line search asks at every trial step)."""
+    from softgrasp.physics.volume import count_inverted
+
+    return count_inverted(x, body.mesh.tets) == 0
 
 
 def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:

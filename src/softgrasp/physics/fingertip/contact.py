@@ -31,7 +31,6 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp import backend
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.fingertip.geometry import (
@@ -40,133 +39,18 @@ from softgrasp.physics.fingertip.geometry import (
     FacetIndex,
     broad_phase_reach,
     detect,
-    pair_geometry,
-    relative_velocity,
 )
 from softgrasp.physics.fingertip.laws import (
     contact_damping,
     contact_stiffness,
     effective_modulus,
     mindlin_ratio,
-    normal_force,
     normal_force_derivative,
-    slip_force,
 )
 from softgrasp.errors import ContactError
-from softgrasp.physics.forces import assemble_blocks
+from softgrasp.physics.fingertip.state import FingerReport, FingerState, _Eval
 
 __all__ = ["FingertipContact", "FingerState", "FingerReport"]
-
-
-@dataclass(frozen=True)
-class FingerState:
-    """Contact state of all (fingertip, facet) pairs, arrays over (n_fingers, F).
-
-    Attributes
-    ----------
-    active: pair in contact at the last update, bool.
-    anchor: barycentric coordinates of the stick anchor X_a on the facet, a material point (the
-        pair's contact point when it started), (n_f, F, 3).
-    offset: the fingertip centre's position relative to the anchor when the pair was last in
-        equilibrium with its stick (its start, or its last slip) [m], (n_f, F, 3): the stick
-        displacement v of Eq. 16 is the tangential part of (c - X_a) - offset, how far the
-        fingertip has moved over the material since.
-    slip: accumulated slip displacement u [m], (n_f, F, 3).
-    memory: each finger's weighted mean stick displacement at the last update [m], (n_f, 3).
-    """
-
-    active: NDArray[np.bool_]
-    anchor: NDArray[np.float64]
-    offset: NDArray[np.float64]
-    slip: NDArray[np.float64]
-    memory: NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class FingerReport:
-    """Per-fingertip totals at one instant.
-
-    Attributes
-    ----------
-    force: force of each fingertip on the object [N], (n_f, 3).
-    moment: moment of those forces about each fingertip centre [N m], (n_f, 3).
-    normal: sum of the normal force magnitudes [N], (n_f,).
-    tangential: norm of the summed friction force [N], (n_f,).
-    contacts: number of touched facets, (n_f,).
-    depth: largest facet penetration delta [m], (n_f,).
-    """
-
-    force: NDArray[np.float64]
-    moment: NDArray[np.float64]
-    normal: NDArray[np.float64]
-    tangential: NDArray[np.float64]
-    contacts: NDArray[np.int64]
-    depth: NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class _Eval:
-    pairs: ContactPairs
-    fn: NDArray[np.float64]  # weighted normal force magnitude per pair [N]
-    ft: NDArray[np.float64]  # friction on the finger per pair [N], (k, 3)
-    w: NDArray[np.float64]
-    kt: NDArray[np.float64]
-    stick: NDArray[np.float64]  # tangential stick displacement per pair [m], (k, 3)
-    cap: NDArray[np.float64]
-    slipping: NDArray[np.bool_]
-
-
-def _pair_normal_forces(
-    tri: NDArray[np.float64],
-    centre: NDArray[np.float64],
-    radius: NDArray[np.float64],
-    coef: NDArray[np.float64],
-    n_exp: float,
-    closest: bool,
-) -> NDArray[np.float64]:
-    """Static normal forces on the three nodes of each facet, (k, 3, 3): ``-coef delta^n b_l n``
-    for triangles ``tri`` (k, 3, 3) and fingertip centres (k, 3), with each pair's contact point
-    (b), normal and penetration as :func:`~softgrasp.physics.fingertip.geometry.pair_geometry` follows them
-    (``closest`` as in :func:`~softgrasp.physics.fingertip.geometry.detect`)."""
-    k = tri.shape[0]
-    ids = np.arange(k)
-    own = np.arange(3 * k).reshape(k, 3)  # each pair its own triangle
-    pr = pair_geometry(tri.reshape(-1, 3), own, centre, radius, ids, ids, closest=closest)
-    mag = coef * np.where(pr.depth > 0, np.abs(pr.depth) ** n_exp, 0.0)
-    return -(mag[:, None, None] * pr.bary[:, :, None]) * pr.normal[:, None, :]
-
-
-def _normal_jacobian_blocks(
-    tri: NDArray[np.float64],
-    centre: NDArray[np.float64],
-    radius: NDArray[np.float64],
-    coef: NDArray[np.float64],
-    n_exp: float,
-    closest: bool,
-) -> NDArray[np.float64]:
-    """d(nodal normal forces)/d(node positions) per pair by central differences, symmetrised,
-    (k, 3, 3, 3, 3) indexed [pair, node_l, node_m, axis_l, axis_m]."""
-    k = tri.shape[0]
-    h = 1e-7 * np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1)  # (k,)
-    # All 18 perturbed copies (+-h on each node's axis) in one evaluation: (2, 3, 3, k, 3, 3)
-    # indexed [sign, node m, axis, pair, node, axis].
-    moved = np.broadcast_to(tri, (2, 3, 3, k, 3, 3)).copy()
-    for m in range(3):
-        for ax in range(3):
-            moved[0, m, ax, :, m, ax] += h
-            moved[1, m, ax, :, m, ax] -= h
-    reps = 18
-    F = _pair_normal_forces(
-        moved.reshape(-1, 3, 3),
-        np.tile(centre, (reps, 1)),
-        np.tile(radius, reps),
-        np.tile(coef, reps),
-        n_exp,
-        closest,
-    ).reshape(2, 3, 3, k, 3, 3)
-    dF = (F[0] - F[1]) / (2 * h)[None, None, :, None, None]  # [m, ax, pair, node l, axis l]
-    J = np.ascontiguousarray(dF.transpose(2, 3, 0, 4, 1))  # [pair, l, m, axis l, axis m]
-    return 0.5 * (J + J.transpose(0, 2, 1, 4, 3))
 
 
 @dataclass(frozen=True, eq=False)
@@ -268,78 +152,47 @@ class FingertipContact:
         off = np.where(cont[:, None], state.offset[pairs.finger, pairs.facet], fresh)
         return Xa, off, cont
 
-    def _stick(self, body: Body, x, pairs: ContactPairs, state: FingerState, t: float):
-        """Tangential stick displacement v of each pair [m], (k, 3) (Eq. 16), the anchors in
-        space and the mask of pairs that continue from the last update."""
-        Xa, off, cont = self._anchor_points(body, x, pairs, state, t)
-        s = self.centres(t)[pairs.finger] - Xa - off
-        return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, Xa, cont
-
-    def _tangential_stiffness(self, body: Body, pairs: ContactPairs, K) -> NDArray[np.float64]:
-        """k_t of each pair [N/m]: Mindlin's ratio times dF_n/d delta at the pair's penetration
-        (not below ``min_depth_ratio`` R)."""
-        p = self.params
-        depth = np.maximum(self._depths(pairs), p.min_depth_ratio * self._radii()[pairs.finger])
-        return self._ratio(body) * normal_force_derivative(depth, K, p.exponent)
-
     def _evaluate(
         self, body: Body, x, v, t: float, state: FingerState, static: bool, pairs: ContactPairs | None = None
     ) -> _Eval:
-        p = self.params
+        """Each touching pair's contact law at x (at rest with ``static``): one compiled call
+        (:func:`softgrasp.physics.fingertip.compiled.fingertip_pair_laws`, the per-pair values of
+        :meth:`forces`)."""
+        from softgrasp.physics.fingertip.compiled import fingertip_pair_laws
+
         if pairs is None:
             pairs = self.pairs(body, x, t)
-        K = self.stiffness(body)[pairs.finger]
-        C = self.damping()[pairs.finger]
-        n_exp = p.exponent
-        if static:
-            vt = np.zeros((len(pairs), 3))
-            rate = np.zeros(len(pairs))
-        else:
-            vr, _, vt = relative_velocity(
-                pairs,
-                body.mesh.facets,
-                v,
-                self.centres(t),
-                np.array([f.velocity for f in self.fingertips]),
-                np.array([f.omega for f in self.fingertips]),
-            )
-            rate = -np.einsum("ij,ij->i", vr, pairs.normal)  # d delta / dt
-        raw = normal_force(self._depths(pairs), rate, K, C, n_exp, damping=p.damping)
-        w = self._patch_weights(pairs)
-        fn = w * raw
-        ft = np.zeros((len(pairs), 3))
-        stick = np.zeros((len(pairs), 3))
-        cap = np.zeros(len(pairs))
-        slipping = np.zeros(len(pairs), bool)
-        kt = np.zeros(len(pairs))
-        if p.mu > 0 and len(pairs):
-            s, _, _ = self._stick(body, x, pairs, state, t)
-            stick = s
-            kt = self._tangential_stiffness(body, pairs, K)
-            ct = self._ratio(body) * C
-            trial = -(w * kt)[:, None] * s - (w * ct)[:, None] * vt
-            cap = p.mu * fn
-            mag = np.linalg.norm(trial, axis=1)
-            slipping = mag > cap
-            ft = trial.copy()
-            if slipping.any():
-                speed = np.linalg.norm(vt, axis=1)
-                moving = slipping & (speed > 0)
-                still = slipping & ~moving
-                ft[moving] = slip_force(fn[moving], vt[moving], p.mu)  # Eq. 15
-                ft[still] = trial[still] * (cap[still] / mag[still])[:, None]
-        return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping)
-
-    def _nodal(self, body: Body, x, ev: _Eval) -> NDArray[np.float64]:
-        """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20) at its contact point,
-        which lies in the triangle: the shape functions are >= 0, and the pair's force and moment
-        are exact."""
-        f = np.zeros_like(x)
-        if len(ev.pairs):
-            F = -ev.fn[:, None] * ev.pairs.normal - ev.ft  # on the object
-            fac = body.mesh.facets[ev.pairs.facet]
-            np.add.at(f, fac.ravel(), (ev.pairs.bary[:, :, None] * F[:, None, :]).reshape(-1, 3))
-        return f
+        val = np.column_stack(
+            [pairs.bary, pairs.point, pairs.normal, pairs.distance, pairs.depth, pairs.area, pairs.facing]
+        )
+        p = self.params
+        table, slipping = fingertip_pair_laws(
+            x,
+            None if static else v,
+            pairs.finger,
+            pairs.facet,
+            val,
+            body.mesh.facets,
+            self.centres(t),
+            self._radii(),
+            np.array([f.velocity for f in self.fingertips]),
+            np.array([f.omega for f in self.fingertips]),
+            self.stiffness(body),
+            self.damping(),
+            mu=p.mu,
+            exponent=p.exponent,
+            hunt_crossley=p.damping == "hunt-crossley",
+            patch=p.rule == "patch",
+            ratio=self._ratio(body),
+            min_depth_ratio=p.min_depth_ratio,
+            active=state.active,
+            anchor=state.anchor,
+            offset=state.offset,
+            memory=state.memory,
+        )
+        return _Eval(
+            pairs, table[:, 0], table[:, 1:4], table[:, 4], table[:, 5], table[:, 6:9], table[:, 9], slipping
+        )
 
     # ------------------------------------------------------------------ Interaction protocol
     def init_state(self, body: Body, x: NDArray[np.float64], t: float = 0.0) -> FingerState:
@@ -369,14 +222,9 @@ class FingertipContact:
                 )
 
     def forces(self, body: Body, x, v, t: float, state: FingerState) -> NDArray[np.float64]:
-        """Contact forces on the nodes during dynamics (Eq. 9-20).
-
-        With the compiled kernels selected (:mod:`softgrasp.backend`) the whole evaluation is one
-        compiled call (:func:`softgrasp.physics.fingertip.compiled.fingertip_forces`); the NumPy code of
-        :meth:`_evaluate` and :meth:`_nodal` is the reference."""
-        if backend.compiled():
-            return self._forces_compiled(body, x, v, t, state)
-        return self._nodal(body, x, self._evaluate(body, x, v, t, state, static=False))
+        """Contact forces on the nodes during dynamics (Eq. 9-20): one compiled call
+        (:func:`softgrasp.physics.fingertip.compiled.fingertip_forces`)."""
+        return self._forces_compiled(body, x, v, t, state)
 
     def _compiled_kwargs(self, body: Body, t: float) -> dict[str, Any]:
         """Geometry and parameters shared by the compiled forces and update."""
@@ -433,11 +281,9 @@ class FingertipContact:
         return replace(state, active=active, anchor=anchor, offset=offset, slip=slip, memory=memory)
 
     def static_forces(self, body: Body, x, t: float, state: FingerState) -> NDArray[np.float64]:
-        """Contact forces at rest with lagged weights, limits and k_t (one compiled call with the
-        compiled kernels selected; :meth:`_evaluate` and :meth:`_nodal` are the reference)."""
-        if backend.compiled():
-            return self._static_compiled(body, t, state)(x)
-        return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True))
+        """Contact forces at rest with lagged weights, limits and k_t: one compiled call
+        (:func:`softgrasp.physics.fingertip.compiled.fingertip_static_forces`)."""
+        return self._static_compiled(body, t, state)(x)
 
     def _static_compiled(
         self, body: Body, t: float, state: FingerState, pairs: ContactPairs | None = None
@@ -464,17 +310,7 @@ class FingertipContact:
         perturbation can cross a contact knife edge (a fingertip right over a vertex touches all
         the facets around it or none)."""
         ref = self.pairs(body, x_ref, t)
-        if backend.compiled():
-            return self._static_compiled(body, t, state, ref)
-        closest = self._closest()
-        finger, facet = np.array(ref.finger), np.array(ref.facet)
-        centres, radii = self.centres(t), self._radii()
-
-        def forces(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            pairs = pair_geometry(x, body.mesh.facets, centres, radii, finger, facet, closest=closest)
-            return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True, pairs=pairs))
-
-        return forces
+        return self._static_compiled(body, t, state, ref)
 
     def energy(self, body: Body, x, t: float, state: FingerState) -> float:
         """Elastic energy of the normal contact springs [J], sum of w K delta^(n+1) / (n+1).
@@ -489,62 +325,15 @@ class FingertipContact:
         return float(np.sum(self._patch_weights(pr) * K * self._depths(pr) ** (n + 1) / (n + 1)))
 
     def jacobian(self, body: Body, x, t: float, state: FingerState) -> sp.csr_matrix:
-        """``d f / d x`` at rest, symmetrised: the normal forces' per-pair derivative (central
-        differences of the 9 facet coordinates, so the facet's rotation and the moving contact
-        point are included; exact for the literal rule; for the patch rule with the weights w_j
-        held fixed, plus the magnitude's dependence on the deepest facet) and the friction
-        springs' ``w k_t H^T P_t H`` (or the slip tangent)."""
-        ev = self._evaluate(body, x, None, t, state, static=True)
-        N = body.n_nodes
-        if not len(ev.pairs):
-            return sp.csr_matrix((3 * N, 3 * N))
-        pr = ev.pairs
-        K = self.stiffness(body)[pr.finger]
-        fac = body.mesh.facets[pr.facet]
-        centres = self.centres(t)[pr.finger]
-        radii = self._radii()[pr.finger]
-        n_exp = self.params.exponent
-        patch = self.params.rule == "patch"
-        if patch:
-            # Pair force w_j K delta_max^n along its facet's normal at its contact point: their
-            # motion with the facet at fixed magnitude (central differences, exponent 0), plus the
-            # magnitude's dependence on the finger's deepest facet, d delta_max / d x_l =
-            # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
-            # slides on the surface at no first-order cost); the weights are lagged.
-            deep = self._deepest(pr)
-            dmax = pr.depth[deep]
-            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K * dmax**n_exp, 0.0, True)
-        else:
-            # Exact per-pair blocks (facet rotation and the moving contact point included).
-            Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K, n_exp, False)
-        blk_t = np.zeros((len(pr), 3, 3))
-        if self.params.mu > 0:
-            nn = pr.normal[:, :, None] * pr.normal[:, None, :]
-            Pt = np.eye(3)[None] - nn
-            s = np.linalg.norm(ev.stick, axis=1)
-            ktan = np.where(ev.slipping, ev.cap / np.maximum(s, 1e-300), ev.w * ev.kt)
-            blk_t = ktan[:, None, None] * Pt
-        bb = pr.bary[:, :, None] * pr.bary[:, None, :]  # (k, 3, 3)
-        blocks = Jn - bb[:, :, :, None, None] * blk_t[:, None, None, :, :]
-        rows = np.repeat(fac, 3, axis=1).ravel()
-        cols = np.tile(fac, (1, 3)).ravel()
-        blocks = blocks.reshape(-1, 3, 3)
-        if patch:
-            gap = centres - pr.point[deep]
-            gdir = gap / np.maximum(np.linalg.norm(gap, axis=1), 1e-300)[:, None]
-            g = ev.w * K * n_exp * dmax ** (n_exp - 1.0)
-            bd = pr.bary[deep]
-            cpl = (
-                -(g[:, None, None] * pr.bary[:, :, None] * bd[:, None, :])[:, :, :, None, None]
-                * (pr.normal[:, :, None] * gdir[:, None, :])[:, None, None, :, :]
-            )  # (k, own node, deep node, 3, 3)
-            r1 = np.repeat(fac, 3, axis=1).ravel()
-            c1 = np.tile(fac[deep], (1, 3)).ravel()
-            half = 0.5 * cpl.reshape(-1, 3, 3)
-            rows = np.concatenate([rows, r1, c1])
-            cols = np.concatenate([cols, c1, r1])
-            blocks = np.concatenate([blocks, half, half.transpose(0, 2, 1)])
-        return assemble_blocks(N, rows, cols, blocks)
+        """``d f / d x`` at rest, symmetrised
+        (:func:`softgrasp.physics.fingertip.stiffness.contact_jacobian`): the normal forces'
+        per-pair derivative (central differences of the 9 facet coordinates, so the facet's
+        rotation and the moving contact point are included; exact for the literal rule; for the
+        patch rule with the weights w_j held fixed, plus the magnitude's dependence on the deepest
+        facet) and the friction springs' ``w k_t H^T P_t H`` (or the slip tangent)."""
+        from softgrasp.physics.fingertip.stiffness import contact_jacobian
+
+        return contact_jacobian(self, body, x, t, state)
 
     def update(self, body: Body, x, v, t: float, state: FingerState) -> FingerState:
         """Advance the contact state after an accepted step or static solve (Algorithm 1).
@@ -554,46 +343,9 @@ class FingertipContact:
         dragged so that the stick force is exactly mu f_n and the drag is added to the slip
         displacement u; pairs that separate are reset.
 
-        One compiled call (:func:`softgrasp.physics.fingertip.compiled.fingertip_update`) with the compiled
-        kernels selected; the NumPy code below is the reference.
+        One compiled call (:func:`softgrasp.physics.fingertip.compiled.fingertip_update`).
         """
-        if backend.compiled():
-            return self._update_compiled(body, x, t, state)
-        p = self.params
-        pairs = self.pairs(body, x, t)
-        nf, F = state.active.shape
-        active = np.zeros((nf, F), bool)
-        anchor = np.zeros((nf, F, 3))
-        offset = np.zeros((nf, F, 3))
-        slip = np.zeros((nf, F, 3))
-        memory = np.zeros((nf, 3))
-        if len(pairs):
-            i, j = pairs.finger, pairs.facet
-            K = self.stiffness(body)[i]
-            w = self._patch_weights(pairs)
-            elastic = normal_force(self._depths(pairs), np.zeros(len(pairs)), K, 0.0, p.exponent)
-            kt = self._tangential_stiffness(body, pairs, K)
-            s, Xa, cont = self._stick(body, x, pairs, state, t)
-            u = np.where(cont[:, None], state.slip[i, j], 0.0)
-            if p.mu > 0:
-                lim = p.mu * w * elastic
-                s_norm = np.linalg.norm(s, axis=1)
-                keff = w * kt
-                over = keff * s_norm > lim
-                if over.any():
-                    new_s = s[over] * (lim[over] / (keff[over] * s_norm[over]))[:, None]
-                    u[over] += s[over] - new_s  # the stick is cut back: slip displacement
-                    s[over] = new_s
-            else:
-                s = np.zeros_like(s)
-            anchor[i, j] = np.where(cont[:, None], state.anchor[i, j], pairs.bary)
-            offset[i, j] = self.centres(t)[i] - Xa - s
-            active[i, j] = True
-            slip[i, j] = u
-            ws = np.bincount(i, weights=w, minlength=nf)
-            for k in range(3):
-                memory[:, k] = np.bincount(i, weights=w * s[:, k], minlength=nf) / np.maximum(ws, 1e-300)
-        return replace(state, active=active, anchor=anchor, offset=offset, slip=slip, memory=memory)
+        return self._update_compiled(body, x, t, state)
 
     def refresh(self, body: Body, x, t: float, state: FingerState) -> FingerState:
         """Light update between Newton steps of a static solve: continuing pairs keep their

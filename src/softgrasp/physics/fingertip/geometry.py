@@ -1,4 +1,4 @@
-"""Fingertip-facet contact detection (paper Sec. 3.1) and contact-point kinematics (Eq. 1-8).
+"""Fingertip-facet contact detection (paper Sec. 3.1) and the pairs' geometry (Eq. 14).
 
 A fingertip is a sphere of centre c and radius R. With the paper's test (``closest=False``) it
 touches boundary facet j when the projection P_j of c on the facet's plane lies inside the triangle
@@ -17,10 +17,10 @@ closest point.
 
 Broad phase: the surface nodes near each fingertip and the facets around them (a node-to-facet
 index computed once per mesh, :class:`FacetIndex`), so the cost grows with the boundary nodes at a
-few microseconds per thousand, not with F log F; without an index, a k-d tree of facet centroids.
-With an index and the compiled kernels selected (:mod:`softgrasp.backend`), :func:`detect` runs
-both phases in one compiled pass (:mod:`softgrasp.physics.fingertip.compiled`); the NumPy code here is the
-reference.
+few microseconds per thousand, not with F log F: with an index, :func:`detect` runs both phases in
+one compiled pass (:mod:`softgrasp.physics.fingertip.detect`); without one, a k-d tree of facet
+centroids, then the same compiled narrow phase (which :func:`pair_geometry` also follows given
+pairs with).
 """
 
 from __future__ import annotations
@@ -31,10 +31,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from softgrasp import backend
 from softgrasp.model.mesh.tetmesh import TetMesh
 
-__all__ = ["ContactPairs", "FacetIndex", "detect", "pair_geometry", "barycentric", "relative_velocity"]
+__all__ = ["ContactPairs", "FacetIndex", "detect", "pair_geometry"]
 
 #: Tolerance on barycentric coordinates for "inside the triangle" (shared edges count for both).
 INSIDE_TOL = 1e-12
@@ -71,49 +70,6 @@ class ContactPairs:
 
     def __len__(self) -> int:
         return int(self.finger.size)
-
-
-def barycentric(
-    p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Barycentric coordinates of points p (k, 3) with respect to triangles (a, b, c), each (k, 3),
-    after projection on the triangles' planes; shape (k, 3), rows summing to 1."""
-    v0, v1, v2 = b - a, c - a, p - a
-    d00 = np.einsum("ij,ij->i", v0, v0)
-    d01 = np.einsum("ij,ij->i", v0, v1)
-    d11 = np.einsum("ij,ij->i", v1, v1)
-    d20 = np.einsum("ij,ij->i", v2, v0)
-    d21 = np.einsum("ij,ij->i", v2, v1)
-    den = d00 * d11 - d01 * d01
-    wb = (d11 * d20 - d01 * d21) / den
-    wc = (d00 * d21 - d01 * d20) / den
-    return np.stack([1.0 - wb - wc, wb, wc], axis=1)
-
-
-def closest_points(
-    p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Points of the triangles (a, b, c) (k, 3 each) closest to the points p (k, 3) whose
-    projections fall outside them: the nearest of the three edges' closest points (a later edge
-    wins only when strictly closer).
-    Returns (points (k, 3), their barycentric coordinates (k, 3))."""
-    verts = (a, b, c)
-    best = np.full(len(p), np.inf)
-    q = np.zeros_like(p)
-    bary = np.zeros_like(p)
-    for i, j in ((0, 1), (1, 2), (2, 0)):
-        e = verts[j] - verts[i]
-        t = np.clip(np.einsum("ij,ij->i", p - verts[i], e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
-        qe = verts[i] + t[:, None] * e
-        d2 = np.einsum("ij,ij->i", p - qe, p - qe)
-        better = d2 < best
-        best[better] = d2[better]
-        q[better] = qe[better]
-        be = np.zeros_like(p)
-        be[:, i] = 1.0 - t
-        be[:, j] = t
-        bary[better] = be[better]
-    return q, bary
 
 
 @dataclass(frozen=True)
@@ -167,30 +123,6 @@ def _candidates_tree(
     return np.concatenate(fi), np.concatenate(fj)
 
 
-def _candidates_nodes(
-    x: NDArray[np.float64], index: FacetIndex, centres, radii
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """(finger, facet) candidates from the surface nodes near each fingertip, O(B) with a tiny
-    constant (see :func:`broad_phase_reach`)."""
-    xb = x[index.boundary_nodes]
-    reach = broad_phase_reach(index)
-    fi, fj = [], []
-    for i, (c, R) in enumerate(zip(centres, radii, strict=True)):
-        d2 = np.einsum("ij,ij->i", xb - c, xb - c)
-        nodes = index.boundary_nodes[d2 < (R + reach) ** 2]
-        if nodes.size == 0:
-            continue
-        starts, ends = index.indptr[nodes], index.indptr[nodes + 1]
-        lens = ends - starts
-        offs = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
-        near = np.unique(index.indices[np.arange(lens.sum()) + offs])
-        fj.append(near)
-        fi.append(np.full(near.size, i, dtype=np.int64))
-    if not fj:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(fi), np.concatenate(fj)
-
-
 def detect(
     x: NDArray[np.float64],
     facets: NDArray[np.int64],
@@ -213,12 +145,9 @@ def detect(
         each fingertip (cost ~ boundary nodes, a few microseconds per thousand) instead of
         building a k-d tree of all facet centroids (cost ~ F log F).
     """
-    if index is not None and backend.compiled():
+    if index is not None:
         return _detect_compiled(x, facets, centres, radii, closest, index)
-    if index is None:
-        fi, fj = _candidates_tree(x, facets, centres, radii)
-    else:
-        fi, fj = _candidates_nodes(x, index, centres, radii)
+    fi, fj = _candidates_tree(x, facets, centres, radii)
     if fj.size == 0:
         return _empty()
     return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False)
@@ -246,69 +175,22 @@ def pair_geometry(
 
 
 def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool) -> ContactPairs:
-    """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``."""
-    tri = x[facets[fj]]  # (k, 3, 3) candidates only
-    a, b, c3 = tri[:, 0], tri[:, 1], tri[:, 2]
-    nrm = np.cross(b - a, c3 - a)
-    twice_area = np.linalg.norm(nrm, axis=1)
-    n = nrm / twice_area[:, None]
-    ctr = centres[fi]
-    d = np.einsum("ij,ij->i", ctr - a, n)
-    R = radii[fi]
-    point = ctr - d[:, None] * n
-    bary = barycentric(point, a, b, c3)
-    low = bary.min(axis=1)
-    if closest:
-        out = np.flatnonzero(low < 0)
-        if out.size:
-            point[out], bary[out] = closest_points(ctr[out], a[out], b[out], c3[out])
-        dist = np.linalg.norm(ctr - point, axis=1)
-        fac = np.clip(d / np.where(dist > 0, dist, 1.0), 0.0, 1.0)
-        ok = (d > 0) & (dist < R)
-    else:
-        dist = d
-        fac = np.ones(len(fj))
-        ok = (d > 0) & (d < R) & (low >= -INSIDE_TOL)
-    if keep_all:
-        ok = np.ones(len(fj), bool)
-    return ContactPairs(
-        finger=fi[ok],
-        facet=fj[ok],
-        bary=bary[ok],
-        point=point[ok],
-        normal=n[ok],
-        distance=dist[ok],
-        depth=R[ok] - dist[ok],
-        area=0.5 * twice_area[ok],
-        facing=fac[ok],
-    )
+    """Pair geometry of the candidate pairs (fi, fj) by the compiled narrow phase
+    (:func:`softgrasp.physics.fingertip.detect.pair_values`); the touching ones only unless
+    ``keep_all``. The float fields are read-only views of one (k, 13) array."""
+    from softgrasp.physics.fingertip.detect import pair_values
+
+    fi = np.asarray(fi, dtype=np.int64)
+    fj = np.asarray(fj, dtype=np.int64)
+    touch, val = pair_values(x, facets, centres, radii, fi, fj, closest, INSIDE_TOL, keep_all)
+    if not keep_all:
+        fi, fj, val = fi[touch], fj[touch], val[touch]
+    return _pairs_of(fi, fj, val)
 
 
-def _detect_compiled(
-    x: NDArray[np.float64],
-    facets: NDArray[np.int64],
-    centres: NDArray[np.float64],
-    radii: NDArray[np.float64],
-    closest: bool,
-    index: FacetIndex,
-) -> ContactPairs:
-    """:func:`detect` with the node-index broad phase, by the compiled kernel
-    (:mod:`softgrasp.physics.fingertip.compiled`): the same pairs in the same order, fields equal to
-    round-off. The float fields are read-only views of one (k, 13) array."""
-    from softgrasp.physics.fingertip.compiled import detect_arrays
-
-    fi, fj, val = detect_arrays(
-        x,
-        facets,
-        index.boundary_nodes,
-        index.indptr,
-        index.indices,
-        broad_phase_reach(index),
-        centres,
-        radii,
-        closest,
-        INSIDE_TOL,
-    )
+def _pairs_of(fi: NDArray[np.int64], fj: NDArray[np.int64], val: NDArray[np.float64]) -> ContactPairs:
+    """:class:`ContactPairs` of fingers ``fi``, facets ``fj`` and their values (k, 13) (columns
+    as :func:`softgrasp.physics.fingertip.detect.detect_arrays`'), read-only views of ``val``."""
     val.flags.writeable = False
     return ContactPairs(
         finger=fi,
@@ -323,31 +205,35 @@ def _detect_compiled(
     )
 
 
+def _detect_compiled(
+    x: NDArray[np.float64],
+    facets: NDArray[np.int64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    closest: bool,
+    index: FacetIndex,
+) -> ContactPairs:
+    """:func:`detect` with the node-index broad phase, by the compiled kernel
+    (:mod:`softgrasp.physics.fingertip.detect`): the same pairs in the same order, fields equal to
+    round-off. The float fields are read-only views of one (k, 13) array."""
+    from softgrasp.physics.fingertip.detect import detect_arrays
+
+    fi, fj, val = detect_arrays(
+        x,
+        facets,
+        index.boundary_nodes,
+        index.indptr,
+        index.indices,
+        broad_phase_reach(index),
+        centres,
+        radii,
+        closest,
+        INSIDE_TOL,
+    )
+    return _pairs_of(fi, fj, val)
+
+
 def _empty() -> ContactPairs:
     z3 = np.zeros((0, 3))
     z = np.zeros(0)
     return ContactPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), z3, z3, z3, z, z, z, z)
-
-
-def relative_velocity(
-    pairs: ContactPairs,
-    facets: NDArray[np.int64],
-    v: NDArray[np.float64],
-    centres: NDArray[np.float64],
-    velocities: NDArray[np.float64],
-    omegas: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Relative velocity of the fingertip with respect to the facet at each contact point.
-
-    ``V_finger(P) = V_c + Omega x (P - c)`` (Eq. 1); ``V_facet(P) = sum_i (A_i/A_G) V_Ni`` (Eq. 4);
-    ``V_r = V_finger - V_facet`` (Eq. 5); normal part ``(V_r·n) n`` (Eq. 6), tangential rest (Eq. 7).
-
-    Returns
-    -------
-    (V_r (k, 3), V_n (k, 3), V_t (k, 3)) [m/s]
-    """
-    vf = velocities[pairs.finger] + np.cross(omegas[pairs.finger], pairs.point - centres[pairs.finger])
-    vfacet = np.einsum("ki,kij->kj", pairs.bary, v[facets[pairs.facet]])
-    vr = vf - vfacet
-    vn = np.einsum("ij,ij->i", vr, pairs.normal)[:, None] * pairs.normal
-    return vr, vn, vr - vn

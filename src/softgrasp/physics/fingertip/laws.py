@@ -1,6 +1,10 @@
 """Pure contact laws of the paper's Sec. 3.3: Hunt-Crossley normal force and Coulomb friction.
 
-All functions are vectorised over contacts and use SI units. Equation numbers are the paper's.
+SI units; equation numbers are the paper's. The per-contact laws are written once, as scalar
+functions (:func:`normal_force_value`, :func:`normal_stiffness_value`, :func:`coulomb_slip_value`)
+that the compiled contact kernels compile with Numba (:mod:`softgrasp.physics.fingertip.forces`,
+:mod:`softgrasp.physics.fingertip.friction`) and that :func:`normal_force`,
+:func:`normal_force_derivative` and :func:`slip_force` apply element by element to arrays.
 """
 
 from __future__ import annotations
@@ -13,6 +17,9 @@ from numpy.typing import ArrayLike, NDArray
 from softgrasp.errors import ContactError
 
 __all__ = [
+    "normal_force_value",
+    "normal_stiffness_value",
+    "coulomb_slip_value",
     "effective_modulus",
     "contact_stiffness",
     "contact_damping",
@@ -62,40 +69,59 @@ def contact_damping(radius: float, gamma: float) -> float:
     return 4.0 * math.pi * radius * gamma
 
 
+def normal_force_value(delta: float, delta_n: float, rate: float, K: float, C: float, hunt_crossley: bool) -> float:
+    """Normal contact force magnitude [N] of one contact (Eq. 9), given ``delta_n = max(delta, 0)^n``.
+
+    Linear damping (the paper): ``max(0, K delta^n + C delta_dot)``; Hunt and Crossley's form (no
+    force jump at first touch): ``max(0, delta^n (K + C delta_dot))``. Zero unless delta > 0.
+    """
+    raw = delta_n * (K + C * rate) if hunt_crossley else K * delta_n + C * rate
+    return max(raw, 0.0) if delta > 0.0 else 0.0
+
+
+def normal_stiffness_value(delta: float, K: float, n: float) -> float:
+    """d(K delta^n)/d delta = n K delta^(n-1) [N/m] of one contact; zero unless delta > 0."""
+    return n * K * delta ** (n - 1.0) if delta > 0.0 else 0.0
+
+
+def coulomb_slip_value(f_n: float, vx: float, vy: float, vz: float, mu: float) -> tuple[float, float, float]:
+    """Coulomb sliding friction on the finger, ``-mu f_n V_t / |V_t|`` (Eq. 15), of one contact
+    sliding at tangential velocity V_t = (vx, vy, vz) [m/s]; zero when it does not slide."""
+    speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if not speed > 0.0:
+        return 0.0, 0.0, 0.0
+    return -mu * f_n * (vx / speed), -mu * f_n * (vy / speed), -mu * f_n * (vz / speed)
+
+
 def normal_force(
     delta: ArrayLike,
     delta_rate: ArrayLike,
-    K: float,
-    C: float,
+    K: ArrayLike,
+    C: ArrayLike,
     n: float = 1.5,
     *,
     damping: str = "linear",
 ) -> NDArray[np.float64]:
-    """Normal contact force magnitude [N] (Eq. 9).
+    """Normal contact force magnitudes [N] (Eq. 9, :func:`normal_force_value`) over arrays.
 
     ``damping="linear"`` (the paper): f_n = max(0, K delta^n + C delta_dot);
     ``damping="hunt-crossley"`` (classic form, no force jump at first touch):
     f_n = max(0, K delta^n + C delta^n delta_dot), so that C plays the role of Hunt and Crossley's
     lambda [N s/m^(n+1)]. Zero where delta <= 0.
     """
-    d = np.asarray(delta, dtype=np.float64)
-    r = np.asarray(delta_rate, dtype=np.float64)
-    dp = np.maximum(d, 0.0)
-    dn = dp**n
-    if damping == "linear":
-        f = K * dn + C * r
-    elif damping == "hunt-crossley":
-        f = dn * (K + C * r)
-    else:
+    if damping not in ("linear", "hunt-crossley"):
         raise ContactError(f"unknown damping form {damping!r}; use 'linear' or 'hunt-crossley'")
-    return np.where(d > 0, np.maximum(f, 0.0), 0.0)
+    d = np.asarray(delta, dtype=np.float64)
+    dn = np.maximum(d, 0.0) ** n
+    law = np.vectorize(normal_force_value, otypes=[np.float64])
+    return law(d, dn, np.asarray(delta_rate, dtype=np.float64), K, C, damping == "hunt-crossley")
 
 
-def normal_force_derivative(delta: ArrayLike, K: float, n: float = 1.5) -> NDArray[np.float64]:
-    """d(K delta^n)/d delta = n K delta^(n-1) [N/m], the elastic normal contact stiffness."""
+def normal_force_derivative(delta: ArrayLike, K: ArrayLike, n: float = 1.5) -> NDArray[np.float64]:
+    """d(K delta^n)/d delta = n K delta^(n-1) [N/m], the elastic normal contact stiffness
+    (:func:`normal_stiffness_value`) over arrays."""
     d = np.maximum(np.asarray(delta, dtype=np.float64), 0.0)
-    with np.errstate(divide="ignore"):
-        return np.where(d > 0, n * K * d ** (n - 1.0), 0.0)
+    return np.vectorize(normal_stiffness_value, otypes=[np.float64])(d, K, n)
 
 
 def mindlin_ratio(nu: float) -> float:
@@ -104,15 +130,12 @@ def mindlin_ratio(nu: float) -> float:
 
 
 def slip_force(f_n: ArrayLike, v_t: NDArray[np.float64], mu: float) -> NDArray[np.float64]:
-    """Coulomb sliding friction on the finger, -mu f_n V_t / |V_t| (Eq. 15), shape (k, 3).
-
-    Zero where the sliding speed is zero.
-    """
-    fn = np.asarray(f_n, dtype=np.float64)
-    speed = np.linalg.norm(v_t, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        direction = np.where(speed[..., None] > 0, v_t / speed[..., None], 0.0)
-    return -mu * fn[..., None] * direction
+    """Coulomb sliding friction on the finger, -mu f_n V_t / |V_t| (Eq. 15,
+    :func:`coulomb_slip_value`), shape (k, 3). Zero where the sliding speed is zero."""
+    v = np.asarray(v_t, dtype=np.float64).reshape(-1, 3)
+    fn = np.broadcast_to(np.asarray(f_n, dtype=np.float64), v.shape[:1])
+    out = np.array([coulomb_slip_value(float(f), *map(float, w), mu) for f, w in zip(fn, v)]).reshape(-1, 3)
+    return out.reshape(np.shape(v_t))
 
 
 def restitution_hunt_crossley(beta_v_in: float) -> float:

@@ -1,0 +1,63 @@
+"""The compiled elastic-slider friction law of the fingertip contact (paper Eq. 15-16, Algorithm 1).
+
+Each touching (fingertip, facet) pair has a stick anchor X_a (a material point of the facet, in
+barycentric coordinates) and the fingertip centre's offset from it; its stick displacement v
+(Eq. 16) is the tangential part of ``(c - X_a) - offset`` (:func:`_stick`), its tangential stiffness
+``k_t = ratio x d(K delta^n)/d delta`` (:func:`_tangential_stiffness`). The stick force
+``-w (k_t v + c_t V_t)`` is capped by Coulomb's ``mu f_n`` (:mod:`softgrasp.physics.fingertip.forces`);
+after an accepted step Algorithm 1 cuts a slipping pair's stick back to the limit
+(:func:`softgrasp.physics.fingertip.compiled._update_pairs`).
+"""
+
+from __future__ import annotations
+
+import numba
+
+from softgrasp.physics.fingertip import laws
+
+__all__: list[str] = []
+
+_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+#: The normal stiffness law n K delta^(n-1) (:func:`softgrasp.physics.fingertip.laws.normal_stiffness_value`).
+_normal_stiffness = _jit(laws.normal_stiffness_value)
+
+
+@_jit
+def _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory):  # pragma: no cover
+    """Tangential stick displacement (Eq. 16) of pair p: (c - X_a) - o in the facet's plane, with
+    X_a the anchor (a material point of the facet) and o the centre's offset from it when it was
+    set; a new pair is anchored at its contact point with the finger's memory as its stick.
+    Returns (s_x, s_y, s_z, whether the pair continues, X_a's x, y, z)."""
+    cont = active[f, j]
+    if cont:
+        ax = 0.0
+        ay = 0.0
+        az = 0.0
+        for m in range(3):
+            node = facets[j, m]
+            ax += anchor[f, j, m] * x[node, 0]
+            ay += anchor[f, j, m] * x[node, 1]
+            az += anchor[f, j, m] * x[node, 2]
+        ox = offset[f, j, 0]
+        oy = offset[f, j, 1]
+        oz = offset[f, j, 2]
+    else:
+        ax = val[p, 3]
+        ay = val[p, 4]
+        az = val[p, 5]
+        ox = centres[f, 0] - ax - memory[f, 0]
+        oy = centres[f, 1] - ay - memory[f, 1]
+        oz = centres[f, 2] - az - memory[f, 2]
+    sx = centres[f, 0] - ax - ox
+    sy = centres[f, 1] - ay - oy
+    sz = centres[f, 2] - az - oz
+    sn = sx * val[p, 6] + sy * val[p, 7] + sz * val[p, 8]
+    return sx - sn * val[p, 6], sy - sn * val[p, 7], sz - sn * val[p, 8], cont, ax, ay, az
+
+
+@_jit
+def _tangential_stiffness(depth, radius, K, n_exp, ratio, min_depth_ratio):  # pragma: no cover
+    """k_t = ratio x d(K delta^n)/d delta (Mindlin's ratio of the normal stiffness,
+    :func:`softgrasp.physics.fingertip.laws.normal_stiffness_value`) at max(delta, min_depth_ratio R)."""
+    d = max(max(depth, min_depth_ratio * radius), 0.0)
+    return ratio * _normal_stiffness(d, K, n_exp)

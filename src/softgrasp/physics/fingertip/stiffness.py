@@ -1,0 +1,134 @@
+"""The fingertip contact's stiffness: ``d f / d x`` at rest for the Newton solvers (paper Eq. 9-20).
+
+The normal forces' per-pair derivative by central differences of the 9 facet coordinates (the
+facet's rotation and the moving contact point included), the friction springs' ``w k_t H^T P_t H``
+(or the slip tangent), symmetrised: :func:`contact_jacobian`, which
+:meth:`softgrasp.physics.fingertip.contact.FingertipContact.jacobian` returns.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from softgrasp.physics.body import Body
+from softgrasp.physics.fingertip.geometry import pair_geometry
+from softgrasp.physics.fingertip.state import FingerState
+from softgrasp.physics.forces import assemble_blocks
+
+__all__ = ["contact_jacobian"]
+
+
+def _pair_normal_forces(
+    tri: NDArray[np.float64],
+    centre: NDArray[np.float64],
+    radius: NDArray[np.float64],
+    coef: NDArray[np.float64],
+    n_exp: float,
+    closest: bool,
+) -> NDArray[np.float64]:
+    """Static normal forces on the three nodes of each facet, (k, 3, 3): ``-coef delta^n b_l n``
+    for triangles ``tri`` (k, 3, 3) and fingertip centres (k, 3), with each pair's contact point
+    (b), normal and penetration as :func:`~softgrasp.physics.fingertip.geometry.pair_geometry` follows them
+    (``closest`` as in :func:`~softgrasp.physics.fingertip.geometry.detect`)."""
+    k = tri.shape[0]
+    ids = np.arange(k)
+    own = np.arange(3 * k).reshape(k, 3)  # each pair its own triangle
+    pr = pair_geometry(tri.reshape(-1, 3), own, centre, radius, ids, ids, closest=closest)
+    mag = coef * np.where(pr.depth > 0, np.abs(pr.depth) ** n_exp, 0.0)
+    return -(mag[:, None, None] * pr.bary[:, :, None]) * pr.normal[:, None, :]
+
+
+def _normal_jacobian_blocks(
+    tri: NDArray[np.float64],
+    centre: NDArray[np.float64],
+    radius: NDArray[np.float64],
+    coef: NDArray[np.float64],
+    n_exp: float,
+    closest: bool,
+) -> NDArray[np.float64]:
+    """d(nodal normal forces)/d(node positions) per pair by central differences, symmetrised,
+    (k, 3, 3, 3, 3) indexed [pair, node_l, node_m, axis_l, axis_m]."""
+    k = tri.shape[0]
+    h = 1e-7 * np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1)  # (k,)
+    # All 18 perturbed copies (+-h on each node's axis) in one evaluation: (2, 3, 3, k, 3, 3)
+    # indexed [sign, node m, axis, pair, node, axis].
+    moved = np.broadcast_to(tri, (2, 3, 3, k, 3, 3)).copy()
+    for m in range(3):
+        for ax in range(3):
+            moved[0, m, ax, :, m, ax] += h
+            moved[1, m, ax, :, m, ax] -= h
+    reps = 18
+    F = _pair_normal_forces(
+        moved.reshape(-1, 3, 3),
+        np.tile(centre, (reps, 1)),
+        np.tile(radius, reps),
+        np.tile(coef, reps),
+        n_exp,
+        closest,
+    ).reshape(2, 3, 3, k, 3, 3)
+    dF = (F[0] - F[1]) / (2 * h)[None, None, :, None, None]  # [m, ax, pair, node l, axis l]
+    J = np.ascontiguousarray(dF.transpose(2, 3, 0, 4, 1))  # [pair, l, m, axis l, axis m]
+    return 0.5 * (J + J.transpose(0, 2, 1, 4, 3))
+
+
+def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float, state: FingerState) -> sp.csr_matrix:
+    """``d f / d x`` at rest, symmetrised: the normal forces' per-pair derivative (central
+    differences of the 9 facet coordinates, so the facet's rotation and the moving contact
+    point are included; exact for the literal rule; for the patch rule with the weights w_j
+    held fixed, plus the magnitude's dependence on the deepest facet) and the friction
+    springs' ``w k_t H^T P_t H`` (or the slip tangent)."""
+    ev = contact._evaluate(body, x, None, t, state, static=True)
+    N = body.n_nodes
+    if not len(ev.pairs):
+        return sp.csr_matrix((3 * N, 3 * N))
+    pr = ev.pairs
+    K = contact.stiffness(body)[pr.finger]
+    fac = body.mesh.facets[pr.facet]
+    centres = contact.centres(t)[pr.finger]
+    radii = contact._radii()[pr.finger]
+    n_exp = contact.params.exponent
+    patch = contact.params.rule == "patch"
+    if patch:
+        # Pair force w_j K delta_max^n along its facet's normal at its contact point: their
+        # motion with the facet at fixed magnitude (central differences, exponent 0), plus the
+        # magnitude's dependence on the finger's deepest facet, d delta_max / d x_l =
+        # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
+        # slides on the surface at no first-order cost); the weights are lagged.
+        deep = contact._deepest(pr)
+        dmax = pr.depth[deep]
+        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K * dmax**n_exp, 0.0, True)
+    else:
+        # Exact per-pair blocks (facet rotation and the moving contact point included).
+        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K, n_exp, False)
+    blk_t = np.zeros((len(pr), 3, 3))
+    if contact.params.mu > 0:
+        nn = pr.normal[:, :, None] * pr.normal[:, None, :]
+        Pt = np.eye(3)[None] - nn
+        s = np.linalg.norm(ev.stick, axis=1)
+        ktan = np.where(ev.slipping, ev.cap / np.maximum(s, 1e-300), ev.w * ev.kt)
+        blk_t = ktan[:, None, None] * Pt
+    bb = pr.bary[:, :, None] * pr.bary[:, None, :]  # (k, 3, 3)
+    blocks = Jn - bb[:, :, :, None, None] * blk_t[:, None, None, :, :]
+    rows = np.repeat(fac, 3, axis=1).ravel()
+    cols = np.tile(fac, (1, 3)).ravel()
+    blocks = blocks.reshape(-1, 3, 3)
+    if patch:
+        gap = centres - pr.point[deep]
+        gdir = gap / np.maximum(np.linalg.norm(gap, axis=1), 1e-300)[:, None]
+        g = ev.w * K * n_exp * dmax ** (n_exp - 1.0)
+        bd = pr.bary[deep]
+        cpl = (
+            -(g[:, None, None] * pr.bary[:, :, None] * bd[:, None, :])[:, :, :, None, None]
+            * (pr.normal[:, :, None] * gdir[:, None, :])[:, None, None, :, :]
+        )  # (k, own node, deep node, 3, 3)
+        r1 = np.repeat(fac, 3, axis=1).ravel()
+        c1 = np.tile(fac[deep], (1, 3)).ravel()
+        half = 0.5 * cpl.reshape(-1, 3, 3)
+        rows = np.concatenate([rows, r1, c1])
+        cols = np.concatenate([cols, c1, r1])
+        blocks = np.concatenate([blocks, half, half.transpose(0, 2, 1)])
+    return assemble_blocks(N, rows, cols, blocks)
