@@ -32,8 +32,6 @@ OVERSIZED = {
     "physics/forces_compiled.py": 757,
     "report/reproduce.py": 1478,
     "sim/explicit.py": 725,
-    "sim/fused/blocks.py": 594,
-    "sim/fused/step.py": 1870,
     "sim/static.py": 692,
     "viz/plots.py": 880,
     "viz/view.py": 888,
@@ -41,7 +39,6 @@ OVERSIZED = {
 
 #: Environment variables the package still reads (the thread count may stay; the rest are to go).
 ENV_VARIABLES = {
-    "SOFTGRASP_BLOCKS",
     "SOFTGRASP_FACTOR_PRECISION",
     "SOFTGRASP_FIGURES",
     "SOFTGRASP_KERNELS",

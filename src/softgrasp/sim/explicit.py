@@ -10,12 +10,11 @@ accepted step it is advanced with :meth:`Scene.update_contacts` (the stick/slip 
 paper's Algorithm 1). :func:`simulate` drives an integrator to a final time with blow-up detection
 (:class:`~softgrasp.sim.stability.BlowupMonitor`); :func:`settle` runs until the body is at rest.
 
-With the compiled kernels selected (:mod:`softgrasp.backend`), :func:`simulate` runs semi-implicit
-Euler and RK4 on scenes of planes and fingertips in compiled chunks of many steps
-(:class:`softgrasp.sim.fused.step.FusedStepper`: the same trajectory to round-off, the same callbacks,
-progress reports and blow-up errors, several times faster than the per-step loop on the compiled
-kernels: ``benchmarks/bench_dynamic.py``);
-other methods, interactions and the NumPy kernels take the per-step loop.
+With the compiled kernels selected (:mod:`softgrasp.backend`), :func:`simulate` runs RK4 on scenes
+of planes and fingertips in compiled chunks of many steps
+(:class:`softgrasp.sim.fused.step.FusedStepper`: the same trajectory to round-off, the same
+callbacks, progress reports and blow-up errors); other methods, interactions and the NumPy kernels
+take the per-step loop.
 
 Everything here is numerical: nothing is printed; ``progress`` callbacks let a front end draw bars.
 """
@@ -408,7 +407,7 @@ def simulate(
     fused:
         Whether to run the steps in compiled chunks (:mod:`softgrasp.sim.fused.step`): ``None``
         (default) does so when it can -- compiled kernels selected (:mod:`softgrasp.backend`),
-        semi-implicit Euler or RK4 (fixed steps), only :class:`~softgrasp.physics.planes.PlaneContact` and
+        RK4, only :class:`~softgrasp.physics.planes.PlaneContact` and
         :class:`~softgrasp.physics.fingertip.contact.FingertipContact` interactions (at most one of the
         latter), a polynomial stress-strain law; ``False`` never (the per-step path); ``True``
         requires it (``ValueError`` when it cannot). Both paths give the same trajectory to
@@ -475,8 +474,8 @@ def fused_unsupported(scene: Scene, integ: Integrator) -> str | None:
     from softgrasp import backend
     if backend.get_backend() != "numba":
         return f"the {backend.get_backend()} kernels are selected"
-    if type(integ) not in (SemiImplicitEuler, RK4):
-        return f"method {integ.method!r} (semi-implicit Euler and RK4 are fused)"
+    if type(integ) is not RK4:
+        return f"method {integ.method!r} (RK4 is fused)"
     from softgrasp.physics.fingertip.contact import FingertipContact
     from softgrasp.physics.planes import PlaneContact
 
@@ -498,14 +497,13 @@ class FusedThreads:
     depend on it: :data:`softgrasp.sim.fused.step.PARTS`).
 
     ``SOFTGRASP_THREADS`` (or :func:`softgrasp.linalg.pardiso.set_threads`) fixes the count. Otherwise
-    (``auto``) a chunk runs on two threads when two cores are idle
-    (:func:`softgrasp.linalg.pardiso.idle_cores`) or when the previous chunk ran well on two (a
-    semi-implicit chunk starts a worker thread of its own, RK4 uses Numba's threads). The
-    threads meet two or three times a step, so a thread waiting for a core another process holds
-    makes every step wait for the scheduler (measured here: 100x slower than one thread). Each
-    two-thread chunk is timed; one slower per step than 1.5x the best two-thread chunk so far means
-    the cores are shared now, and the rest of the run stays on one thread. Two-thread chunks are
-    kept short (:attr:`chunk_seconds`) so that such a slowdown costs little before it is seen.
+    (``auto``) a chunk runs on two of Numba's threads when two cores are idle
+    (:func:`softgrasp.linalg.pardiso.idle_cores`) or when the previous chunk ran well on two. The
+    threads meet at every force evaluation, so a thread waiting for a core another process holds
+    makes every step wait for the scheduler. Each two-thread chunk is timed; one slower per step
+    than 1.5x the best two-thread chunk so far means the cores are shared now, and the rest of the
+    run stays on one thread. Two-thread chunks are kept short (:attr:`chunk_seconds`) so that such a
+    slowdown costs little before it is seen.
     """
 
     #: Wall time [s] a two-thread chunk aims at (auto mode).
@@ -551,9 +549,7 @@ class FusedThreads:
 class _FusedRun:
     """A :class:`~softgrasp.sim.fused.step.FusedStepper` on a scene, read out as :class:`State`."""
 
-    def __init__(
-        self, scene: Scene, state: State, monitor: BlowupMonitor | None, method: str = "semi-implicit"
-    ) -> None:
+    def __init__(self, scene: Scene, state: State, monitor: BlowupMonitor | None, method: str = "rk4") -> None:
         from softgrasp.physics.fingertip.contact import FingertipContact
         from softgrasp.sim.fused.step import FusedStepper
 
@@ -609,7 +605,7 @@ def _simulate_fused(
     every: int,
     progress: Callable[[float], None] | None,
 ) -> State:
-    """:func:`simulate` for semi-implicit Euler or RK4 in compiled chunks: the same equal steps (the last
+    """:func:`simulate` for RK4 in compiled chunks: the same equal steps (the last
     one landing on ``t_end``), callbacks, progress reports and checks as the per-step loop, each
     chunk ending where the loop would call back or report."""
     t0, span = state.t, t_end - state.t
