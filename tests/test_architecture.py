@@ -31,7 +31,7 @@ OVERSIZED = {
     "physics/fingertip/contact.py": 693,
     "physics/forces_compiled.py": 757,
     "report/reproduce.py": 1478,
-    "sim/explicit.py": 725,
+    "sim/explicit.py": 530,
     "sim/static.py": 692,
     "viz/plots.py": 880,
     "viz/view.py": 888,

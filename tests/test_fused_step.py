@@ -358,7 +358,7 @@ def test_two_threads_stop_at_the_same_failure(nu, factor, check_every, status):
 
 def test_auto_threads_fall_back_when_two_threads_slow_down(monkeypatch):
     from softgrasp.linalg import pardiso
-    from softgrasp.sim.explicit import FusedThreads
+    from softgrasp.sim.fused.run import FusedThreads
 
     monkeypatch.setattr(pardiso, "_fixed_threads", None)
     monkeypatch.setattr(pardiso, "idle_cores", lambda: 2)
