@@ -95,8 +95,8 @@ def test_fused_path_is_chosen_only_when_supported(pressed):
         with pytest.raises(ValueError, match="fused stepper cannot run"):
             simulate(scene, scene.initial_state(), 1e-5, method="rk4", fused=True)
     with pytest.raises(ValueError, match="runs rk4"):
-        step.FusedStepper(scene.body, [], [], None, None, scene.body.mesh.points, 0 * scene.body.mesh.points, 0.0,
-                          method="semi-implicit")  # fmt: skip
+        x = scene.body.mesh.points
+        step.FusedStepper(scene.body, [], [], None, None, x, 0 * x, 0.0, method="semi-implicit")
 
 
 @pytest.mark.parametrize("method", ["rk4"])
@@ -397,7 +397,8 @@ def test_the_kernels_cache_is_keyed_by_every_source_they_inline():
                 if any(hasattr(f, "py_func") for f in names):  # a compiled function
                     called.add(node.module)
     assert called <= set(cache.INLINED_MODULES)
-    for kernel in (rk4.advance, rk4.forces_at, fused_body.body_forces, contacts.finger_step, monitor.after_step):
+    kernels = (rk4.advance, rk4.forces_at, fused_body.body_forces, contacts.finger_step, monitor.after_step)
+    for kernel in kernels:
         assert isinstance(kernel._cache, cache.SourceKeyedCache)
         assert kernel._cache.digest == cache.SOURCE_DIGEST == cache.source_digest()
     keyed = cache.SourceKeyedCache(rk4.advance.py_func)

@@ -172,7 +172,9 @@ def finger_forces(x, v, t, fingers, fstate, cur, x_ref, track, near, centres, ou
 
 
 @jit
-def finger_step(x, v, t, fingers, fstate, cur, x_ref, track, near, centres, out, want_power):  # pragma: no cover
+def finger_step(
+    x, v, t, fingers, fstate, cur, x_ref, track, near, centres, out, want_power
+):  # pragma: no cover - compiled
     """The fingertips after a step: friction states updated at (x, t) into the other buffer, then
     their forces at the new state added to ``out`` (one detection for both: the same state, the
     same pairs). Returns the new current buffer and the forces' power (0 unless ``want_power``)."""

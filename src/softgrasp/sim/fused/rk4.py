@@ -30,7 +30,9 @@ __all__ = ["advance", "forces_at"]
 
 
 @jit
-def forces_at(x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel):  # pragma: no cover
+def forces_at(
+    x, v, t, body, planes, pl_active, pl_anchor, fingers, fstate, cur, work, parallel
+):  # pragma: no cover - compiled
     """All forces at the state (x, v, t) into the workspace, with the friction states as they are
     (as :meth:`softgrasp.sim.scene.Scene.forces` on the state's contacts): before the first step
     and at each RK4 stage."""

@@ -74,8 +74,9 @@ PARTS = 2
 def supported(body: Any, planes: list[Any], fingers: list[Any]) -> str | None:
     """Why the fused stepper cannot run this body and these interactions, or None when it can.
 
-    It needs a polynomial stress-strain law (:func:`softgrasp.physics.forces_compiled.polynomial_coefficients`)
-    and at most one fingertip interaction.
+    It needs a polynomial stress-strain law
+    (:func:`softgrasp.physics.forces_compiled.polynomial_coefficients`) and at most one fingertip
+    interaction.
     """
     if polynomial_coefficients(body.material.law) is None:
         return f"stress-strain law {type(body.material.law).__name__} is not a polynomial"
@@ -284,10 +285,11 @@ class FusedStepper:
         if parallel:
             numba.set_num_threads(min(self.threads, self.parts, numba.config.NUMBA_NUM_THREADS))
         try:
+            land, end = t_end is not None, float(t_end if t_end is not None else 0.0)
             status, steps, t, cur, msteps = advance(
-                int(n_steps), float(dt), t_end is not None, float(t_end if t_end is not None else 0.0), self.t,
-                self.x, self.v, self._mass, self._grav, self._total_mass, self._body, self._pl, self.pl_active,
-                self.pl_anchor, self._fg, self._fstate, self._cur, self._work, self._have_forces, parallel,
+                int(n_steps), float(dt), land, end, self.t, self.x, self.v, self._mass, self._grav,
+                self._total_mass, self._body, self._pl, self.pl_active, self.pl_anchor, self._fg, self._fstate,
+                self._cur, self._work, self._have_forces, parallel,
                 mon is not None, self._mon, int(mon.steps if mon is not None else 0),
                 int(mon.check_every if mon is not None else 1), self._gvec, self._fail, self._rk,
             )  # fmt: skip
