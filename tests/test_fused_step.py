@@ -387,9 +387,12 @@ def test_the_kernels_cache_is_keyed_by_every_source_they_inline():
 
     from softgrasp.sim.fused import cache, monitor, rk4
 
-    package = pathlib.Path(cache.__file__).parent
+    import importlib.util
+
+    sources = list(pathlib.Path(cache.__file__).parent.glob("*.py"))
+    sources += [pathlib.Path(importlib.util.find_spec(m).origin) for m in cache.INLINED_MODULES]
     called = set()
-    for path in package.glob("*.py"):
+    for path in sources:  # the kernels' modules and the modules they call, one level further
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("softgrasp."):
                 module = __import__(node.module, fromlist=["_"])

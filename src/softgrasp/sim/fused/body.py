@@ -1,12 +1,13 @@
 """The body's internal forces in the fused stepper: springs, edge dashpots and volume term in parts.
 
-The forces are those of :mod:`softgrasp.physics.forces_compiled` (its kernels ``_springs`` and
-``_volumes`` are called here on the elements of each part, and ``_inverted``, the inverted-tet
-test of :func:`~softgrasp.physics.forces_compiled.count_inverted`, for the blow-up checks): the spring law,
-the dashpots and the volume term are written there once. :func:`pack_body` lays a body's
+The laws are those of :mod:`softgrasp.physics.forces_compiled`, called here on each part's
+elements: ``_springs`` (springs and dashpots), ``_volumes`` (volume term) and, for the blow-up
+checks, ``_inverted`` (the inverted-tet test of
+:func:`~softgrasp.physics.forces_compiled.count_inverted`). :func:`pack_body` lays a body's
 elements out for them once (the reciprocals of the rest lengths and volumes precomputed);
-:func:`body_forces` sums them in :data:`PARTS`-style parts, each into its own buffer, on as many
-of Numba's threads when asked and one after the other otherwise (the same sums either way).
+:func:`body_forces` computes them in parts (even shares of the edges and of the tets,
+:data:`softgrasp.sim.fused.step.PARTS` in the stepper), each into its own buffer, on as many of
+Numba's threads when asked and one after the other otherwise (the same sums either way).
 """
 
 from __future__ import annotations

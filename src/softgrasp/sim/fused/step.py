@@ -288,10 +288,10 @@ class FusedStepper:
             land, end = t_end is not None, float(t_end if t_end is not None else 0.0)
             status, steps, t, cur, msteps = advance(
                 int(n_steps), float(dt), land, end, self.t, self.x, self.v, self._mass, self._grav,
-                self._total_mass, self._body, self._pl, self.pl_active, self.pl_anchor, self._fg, self._fstate,
-                self._cur, self._work, self._have_forces, parallel,
-                mon is not None, self._mon, int(mon.steps if mon is not None else 0),
-                int(mon.check_every if mon is not None else 1), self._gvec, self._fail, self._rk,
+                self._total_mass, self._body, self._pl, self.pl_active, self.pl_anchor, self._fg,
+                self._fstate, self._cur, self._work, self._have_forces, parallel, mon is not None, self._mon,
+                int(mon.steps if mon is not None else 0), int(mon.check_every if mon is not None else 1),
+                self._gvec, self._fail, self._rk,
             )  # fmt: skip
         except BaseException:
             # positions, velocities and contact states moved on while the time and the state
