@@ -25,8 +25,8 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from softgrasp import backend
-from softgrasp.errors import ContactError
 from softgrasp.physics.body import Body
+from softgrasp.errors import ContactError
 from softgrasp.physics.forces import assemble_blocks
 
 __all__ = ["Plane", "PlaneContact", "PlaneState"]
