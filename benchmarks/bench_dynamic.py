@@ -1,4 +1,4 @@
-"""Benchmark of explicit dynamics with fingertip contact: steps per second, NumPy oracles vs Numba, per step vs fused.
+"""Benchmark of explicit dynamics with fingertip contact: steps per second, NumPy vs Numba, per step vs fused.
 
 The scene: the default rubber sphere (radius 64 mm, 50 g, E = 79.3 kPa, nu = 0.45) meshed at 8 mm
 (~2 200 nodes) resting on the table (friction 0.5), one rigid fingertip (R = 8 mm) pressed 2 mm
@@ -7,20 +7,20 @@ In the same run it prints:
 
 * ``simulate(..., method=m)`` at the stable time step, steps/s (best and median of a few repeats),
   node-steps/s, force evaluations/s and the ratios to NumPy and to the per-step Numba path, for
-  semi-implicit Euler and RK4 on the NumPy oracles of ``tests/oracles`` (``oracle_scene``), on the compiled kernels step by
-  step (``fused=False``) and fused (:mod:`softgrasp.sim.fused.step`: many steps per compiled call)
-  on one and on two threads. The blow-up monitor's work is included, as in every real run;
-* where a step goes: the parts of the per-step path (each measured alone, compiled and oracle), and the
-  compiled parts of a fused step (body forces on one and two threads, with and without the energy
-  of the monitor's check, the node pass, the fingertip step: one detection, update and forces; the
-  two-thread parts on Numba's threads, as RK4 runs them: a semi-implicit step on two threads runs
-  as a leader and a worker thread instead, its whole step is the "fused step, 2 threads" row);
+  semi-implicit Euler and RK4 on the NumPy reference kernels and on the compiled kernels step by
+  step (``fused=False``), and for RK4 fused (:mod:`softgrasp.sim.fused.step`: many steps per
+  compiled call) on one and on two threads. The blow-up monitor's work is included, as in every
+  real run;
+* where a step goes: the parts of the per-step path (each measured alone, both backends), and the
+  compiled parts of a fused RK4 step (body forces on one and two of Numba's threads, with and
+  without the energy and volumes of the monitor's check, the planes, the fingertip step: one
+  detection, update and forces);
 * an arithmetic bound: floating-point operations per force evaluation counted from the edges and
   tets, against two measured machine rates (a single-thread BLAS ``dgemm``, the best case for
   SIMD arithmetic, and a compiled scalar loop), and the steps/s each rate would allow;
-* ``--profile``: the top entries of a cProfile of per-step semi-implicit steps, compiled and oracle;
+* ``--profile``: the top entries of a cProfile of per-step semi-implicit steps for each backend;
 * ``--kernels``: ``Body.internal_forces`` / ``internal_jacobian`` at ~500, ~2 200, ~7 500 and
-  ~33 000 nodes, compiled and oracle;
+  ~33 000 nodes for both backends;
 * ``--compile``: cold (empty cache) and warm (cached) time to import softgrasp and evaluate the
   body's forces, energy and Jacobian once, and to compile the fused stepper, each in a fresh
   interpreter.
@@ -49,6 +49,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from softgrasp import backend
 from softgrasp.physics.body import Body, build_body
 from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.fingertip.contact import FingertipContact
@@ -57,13 +58,10 @@ from softgrasp.model.mesh import box
 from softgrasp.model.objects import make_object
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.linalg import pardiso
-from softgrasp.sim.explicit import _FusedRun, make_integrator, simulate
+from softgrasp.sim.explicit import make_integrator, simulate
+from softgrasp.sim.fused.run import FusedRun
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.stability import BlowupMonitor, stable_time_step
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))
-from oracles.contact import oracle_scene  # noqa: E402 - the NumPy oracles, for comparison
-from oracles.forces import OracleBody  # noqa: E402
 
 RADIUS = 0.008  #: fingertip radius [m]
 DEPTH = 0.002  #: initial penetration of the fingertip [m]
@@ -81,8 +79,6 @@ EVALS_PER_STEP = {"semi-implicit": 1, "rk4": 4}
 CASES = (
     ("NumPy", "semi-implicit", "numpy", False, 1),
     ("Numba per step", "semi-implicit", "numba", False, 1),
-    ("Numba fused, 1 thread", "semi-implicit", "numba", True, 1),
-    ("Numba fused, 2 threads", "semi-implicit", "numba", True, 2),
     ("NumPy", "rk4", "numpy", False, 1),
     ("Numba per step", "rk4", "numba", False, 1),
     ("Numba fused, 1 thread", "rk4", "numba", True, 1),
@@ -187,10 +183,9 @@ def bench_simulate(
     """steps/s of simulate() per case of :data:`CASES` (one list entry per repeat) and the most
     other runnable tasks seen while it ran."""
     out: dict[tuple[str, str], tuple[list[float], int]] = {}
-    for label, method, backend, fused, threads in CASES:
-        if threads > (os.cpu_count() or 1):
+    for label, method, kernels, fused, threads in CASES:
+        if kernels not in backend.available() or threads > (os.cpu_count() or 1):
             continue
-        sc = scene if backend == "numba" else oracle_scene(scene)
         if threads > 1 and others_running(settle=0.5) > 0:
             print(f"  {label} ({method}) skipped: another process is running (two threads would wait for it)")
             continue
@@ -198,12 +193,13 @@ def bench_simulate(
         n = fused_steps if fused else steps
         pardiso.set_threads(threads)
         try:
-            kw = {"method": method, "dt": dt, "fused": fused}
-            final = simulate(sc, s0, 5 * dt, **kw)  # warm-up (and compile)
-            assert finger_pairs(scene, final) > 0
-            busy = others_running()
-            times = repeat(lambda kw=kw, n=n, dt=dt, sc=sc: simulate(sc, s0, n * dt, **kw), repeats)
-            busy = max(busy, others_running())
+            with backend.use_backend(kernels):
+                kw = {"method": method, "dt": dt, "fused": fused}
+                final = simulate(scene, s0, 5 * dt, **kw)  # warm-up (and compile)
+                assert finger_pairs(scene, final) > 0
+                busy = others_running()
+                times = repeat(lambda kw=kw, n=n, dt=dt: simulate(scene, s0, n * dt, **kw), repeats)
+                busy = max(busy, others_running())
         finally:
             pardiso.set_threads(None)
         out[(label, method)] = ([n / t for t in times], busy)
@@ -212,93 +208,67 @@ def bench_simulate(
 
 def step_breakdown(scene: Scene, s0: State) -> dict[str, dict[str, float]]:
     """Wall time [s] of the parts of one semi-implicit step of simulate(), each measured alone."""
+    body = scene.body
+    table_i, table = scene.interaction("table")
+    finger_i, finger = scene.interaction("fingers")
     x, v, t, c = s0.x, 1e-3 * np.random.default_rng(1).standard_normal(s0.x.shape), s0.t, s0.contacts
     state = s0.replace(v=v)
     integ = make_integrator("semi-implicit")
     dt = stable_time_step(scene, "semi-implicit")
     res: dict[str, dict[str, float]] = {}
-    for name, sc in (("numba", scene), ("numpy", oracle_scene(scene))):
-        body = sc.body
-        table_i, table = sc.interaction("table")
-        finger_i, finger = sc.interaction("fingers")
-        monitor = BlowupMonitor(sc, state, "semi-implicit")
-        res[name] = {
-            "Body.internal_forces": per_call(lambda: body.internal_forces(x, v)),
-            "table.forces": per_call(lambda: table.forces(body, x, v, t, c[table_i])),
-            "fingers.forces": per_call(lambda: finger.forces(body, x, v, t, c[finger_i])),
-            "  of which detect": per_call(lambda: finger.pairs(body, x, t)),
-            "Scene.forces": per_call(lambda: sc.forces(x, v, t, c)),
-            "table.update": per_call(lambda: table.update(body, x, v, t, c[table_i])),
-            "fingers.update": per_call(lambda: finger.update(body, x, v, t, c[finger_i])),
-            "SemiImplicitEuler.step": per_call(lambda: integ.step(sc, state, dt)),
-            "monitor (power: contact forces again)": per_call(lambda m=monitor: m._power(state)),
-        }
+    for kernels in backend.available()[::-1]:
+        with backend.use_backend(kernels):
+            monitor = BlowupMonitor(scene, state, "semi-implicit")
+            res[kernels] = {
+                "Body.internal_forces": per_call(lambda: body.internal_forces(x, v)),
+                "table.forces": per_call(lambda: table.forces(body, x, v, t, c[table_i])),
+                "fingers.forces": per_call(lambda: finger.forces(body, x, v, t, c[finger_i])),
+                "  of which detect": per_call(lambda: finger.pairs(body, x, t)),
+                "Scene.forces": per_call(lambda: scene.forces(x, v, t, c)),
+                "table.update": per_call(lambda: table.update(body, x, v, t, c[table_i])),
+                "fingers.update": per_call(lambda: finger.update(body, x, v, t, c[finger_i])),
+                "SemiImplicitEuler.step": per_call(lambda: integ.step(scene, state, dt)),
+                "monitor (power: contact forces again)": per_call(lambda m=monitor: m._power(state)),
+            }
     return res
 
 
 def fused_breakdown(scene: Scene, s0: State) -> dict[str, float]:
-    """Wall time [s] of a fused semi-implicit step and of its compiled parts, each measured alone."""
+    """Wall time [s] of a fused RK4 step and of its compiled parts, each measured alone."""
     import numba
 
-    from softgrasp.sim.fused import step as k
-    dt = stable_time_step(scene, "semi-implicit")
-    state = simulate(scene, s0, 20 * dt, method="semi-implicit", dt=dt)
+    from softgrasp.sim.fused import body as fb
+    from softgrasp.sim.fused import contacts as fc
+
+    dt = stable_time_step(scene, "rk4")
+    state = simulate(scene, s0, 20 * dt, method="rk4", dt=dt)
     two = (os.cpu_count() or 1) >= 2 and others_running(settle=0.5) == 0
     res: dict[str, float] = {}
     for threads in (1, 2) if two else (1,):
-        run = _FusedRun(scene, state, BlowupMonitor(scene, state, "semi-implicit"))
+        run = FusedRun(scene, state, BlowupMonitor(scene, state, "rk4"))
         run.stepper.threads = threads
-        res[f"fused step, {threads} thread(s) (200 steps / 200)"] = (
-            per_call(lambda st=run.stepper: st.advance(200, dt)) / 200
+        res[f"fused RK4 step, {threads} thread(s) (50 steps / 50)"] = (
+            per_call(lambda st=run.stepper: st.advance(50, dt)) / 50
         )
         assert run.stepper.failure is None
     # the parts, on a stepper of their own (they overwrite its buffers)
-    st = _FusedRun(scene, state, None).stepper
+    st = FusedRun(scene, state, None).stepper
     st.advance(2, dt)
     x, v, t = st.x, st.v, st.t
-    fint, info, fplane, ffinger, centres, x_ref, track, p0, sums, near = st._work
-    fg, fs = st._fg, st._fstate
-    res["body forces, 1 thread"] = per_call(
-        lambda: k._body_forces(False, x, v, st._body, False, False, fint, info)
-    )
-    res["  with the check's energy and volumes"] = per_call(
-        lambda: k._body_forces(False, x, v, st._body, True, True, fint, info)
-    )
-    # the same evaluation on the other path (block kernels / scalar loops), for the ratio
-    other = k.pack_body(scene.body, blocks=not st._body[9])
-    label = "scalar loops" if st._body[9] else "block kernels"
-    res[f"  on the {label}"] = per_call(lambda: k._body_forces(False, x, v, other, False, False, fint, info))
-    res[f"  on the {label}, with the check"] = per_call(
-        lambda: k._body_forces(False, x, v, other, True, True, fint, info)
-    )
-    node_args = (
-        0.0,
-        x.copy(),
-        v.copy(),
-        st._mass,
-        st._grav,
-        fint,
-        fplane,
-        ffinger,
-        x_ref,
-        st._pl,
-        p0,
-        st.pl_active,
-    )
-    res["node pass (step, table, sums), 1 thread"] = per_call(
-        lambda: [k._node_part(q, k.PARTS, *node_args, st.pl_anchor, sums[q]) for q in range(k.PARTS)]
+    fint, info, fplane, ffinger, centres, x_ref, track, p0, near = st._work
+    for label, check in (("body forces, 1 thread", False), ("  with the check's energy and volumes", True)):
+        res[label] = per_call(lambda c=check: fb.body_forces(False, x, v, st._body, c, c, fint, info))
+    res["planes: update and forces"] = per_call(
+        lambda: fc.plane_step(x, v, t, st._pl, p0, st.pl_active.copy(), st.pl_anchor.copy(), True, fplane)
     )
     res["fingertip step (one detection, state update, forces)"] = per_call(
-        lambda: k._finger_step(x, v, t, fg, fs, 0, st._work, True)
+        lambda: fc.finger_step(x, v, t, st._fg, st._fstate, 0, x_ref, track, near, centres, ffinger, True)
     )
     if two:
         numba.set_num_threads(2)
         try:
-            res["body forces, 2 of Numba's threads (RK4's stages)"] = per_call(
-                lambda: k._body_forces(True, x, v, st._body, False, False, fint, info)
-            )
-            res["node pass, 2 of Numba's threads (RK4: not used)"] = per_call(
-                lambda: k._node_pass_parallel(*node_args, st.pl_anchor, sums)
+            res["body forces, 2 of Numba's threads"] = per_call(
+                lambda: fb.body_forces(True, x, v, st._body, False, False, fint, info)
             )
         finally:
             numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
@@ -326,16 +296,17 @@ def profile(scene: Scene, s0: State, steps: int, top: int = 14) -> dict[str, str
     """cProfile of ``steps`` per-step semi-implicit steps per backend: the top entries by own time."""
     dt = stable_time_step(scene, "semi-implicit")
     out = {}
-    for backend, sc in (("numba", scene), ("numpy", oracle_scene(scene))):
-        simulate(sc, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
-        pr = cProfile.Profile()
-        pr.enable()
-        simulate(sc, s0, steps * dt, method="semi-implicit", dt=dt, fused=False)
-        pr.disable()
-        buf = io.StringIO()
-        st = pstats.Stats(pr, stream=buf)
-        st.strip_dirs().sort_stats("tottime").print_stats(top)
-        out[backend] = buf.getvalue()
+    for kernels in backend.available()[::-1]:
+        with backend.use_backend(kernels):
+            simulate(scene, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
+            pr = cProfile.Profile()
+            pr.enable()
+            simulate(scene, s0, steps * dt, method="semi-implicit", dt=dt, fused=False)
+            pr.disable()
+            buf = io.StringIO()
+            st = pstats.Stats(pr, stream=buf)
+            st.strip_dirs().sort_stats("tottime").print_stats(top)
+            out[kernels] = buf.getvalue()
     return out
 
 
@@ -357,9 +328,10 @@ def bench_kernels() -> None:
         x = np.asarray(mesh.points) + 1e-4 * rng.standard_normal(mesh.points.shape)
         v = 1e-2 * rng.standard_normal(x.shape)
         t = {}
-        for backend, b in (("numba", body), ("numpy", OracleBody.of(body))):
-            t[backend, "f"] = per_call(lambda b=b, x=x, v=v: b.internal_forces(x, v), 1.0)
-            t[backend, "j"] = per_call(lambda b=b, x=x: b.internal_jacobian(x), 2.0)
+        for kernels in backend.available()[::-1]:
+            with backend.use_backend(kernels):
+                t[kernels, "f"] = per_call(lambda b=body, x=x, v=v: b.internal_forces(x, v), 1.0)
+                t[kernels, "j"] = per_call(lambda b=body, x=x: b.internal_jacobian(x), 2.0)
         fn, fb = t["numpy", "f"], t.get(("numba", "f"), float("nan"))
         jn, jb = t["numpy", "j"], t.get(("numba", "j"), float("nan"))
         print(
@@ -377,8 +349,6 @@ from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.model.material import Material
 from softgrasp.model.mesh import box
-from softgrasp.physics import forces_compiled, springs, volume
-from softgrasp.physics.fingertip import compiled
 t1 = time.perf_counter()
 body = build_body(box(0.02, 2), Material(1e5, 0.45, 50.0))
 x = np.asarray(body.mesh.points)
@@ -394,7 +364,7 @@ t4 = time.perf_counter()
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate
 scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), name="table"), fc))
-simulate(scene, scene.initial_state(), 1e-6, method="semi-implicit", dt=1e-7, fused=True)
+simulate(scene, scene.initial_state(), 1e-6, method="rk4", dt=1e-7, fused=True)
 t5 = time.perf_counter()
 print(f"{t1 - t0:.3f} {t3 - t2:.3f} {t4 - t3:.3f} {t5 - t4:.3f}")
 """
@@ -403,7 +373,7 @@ print(f"{t1 - t0:.3f} {t3 - t2:.3f} {t4 - t3:.3f} {t5 - t4:.3f}")
 def bench_compile() -> None:
     """Cold and warm import + first-call times in fresh interpreters."""
     with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, SOFTGRASP_KERNELS="numba")
         print(
             "\nfresh interpreter [s]: import (softgrasp, numba, kernel modules); first body forces, energy, "
             "Jacobian; first fingertip update and forces; first fused simulate"
@@ -439,13 +409,7 @@ def main() -> None:
         f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, NumPy {np.__version__}, "
         f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, "
-        "kernels: compiled (the NumPy oracles of tests/oracles for comparison)"
-    )
-    from softgrasp.sim.fused import step as k
-    print(
-        "fused body forces: "
-        + ("block kernels (eight elements a time)" if k.BLOCKS_DEFAULT else "scalar loops")
-        + " (SOFTGRASP_BLOCKS=0/1 chooses)"
+        f"backends {', '.join(backend.available())}"
     )
     if args.compile:
         bench_compile()
@@ -486,10 +450,10 @@ def main() -> None:
     print(f"{'':>38} " + " ".join(f"{b:>8}" for b in parts))
     for name in names:
         print(f"{name:>38} " + " ".join(f"{parts[b][name] * 1e6:>8.1f}" for b in parts))
-    fused = fused_breakdown(scene, s0)
+    fused = fused_breakdown(scene, s0) if "numba" in backend.available() else {}
     if fused:
         print(
-            "\none fused semi-implicit step, its compiled parts measured alone [us] "
+            "\none fused RK4 step, its compiled parts measured alone [us] "
             f"(busy {others_running()}):"
         )
         for name, sec in fused.items():
@@ -506,7 +470,7 @@ def main() -> None:
         f"  measured rates: dgemm {gemm / 1e9:.1f} Gflop/s, compiled scalar loop {scalar / 1e9:.1f} Gflop/s"
     )
     print(f"  compiled internal forces run at {flops / t_body / 1e9:.2f} Gflop/s ({t_body * 1e6:.0f} us)")
-    for name in ("body forces, 1 thread", "body forces, 2 of Numba's threads (RK4's stages)"):
+    for name in ("body forces, 1 thread", "body forces, 2 of Numba's threads"):
         if name in fused:
             print(f"  fused {name}: {flops / fused[name] / 1e9:.2f} Gflop/s ({fused[name] * 1e6:.0f} us)")
     for method in METHODS:
@@ -517,15 +481,16 @@ def main() -> None:
             f"{20000 * k * flops / 1e9:.1f} Gflop/s"
         )
     dt = stable_time_step(scene, "semi-implicit")
-    for backend, b in (("numba", body), ("numpy", OracleBody.of(body))):
-        print(
-            f"  body alone, semi-implicit, minimal Python loop ({backend}): "
-            f"{body_only_steps(b, dt):.0f} steps/s"
-        )
+    for kernels in backend.available()[::-1]:
+        with backend.use_backend(kernels):
+            print(
+                f"  body alone, semi-implicit, minimal Python loop ({kernels}): "
+                f"{body_only_steps(body, dt):.0f} steps/s"
+            )
 
     if args.profile:
-        for backend, text in profile(scene, s0, args.steps).items():
-            print(f"\ncProfile, {args.steps} semi-implicit steps, backend {backend}:")
+        for kernels, text in profile(scene, s0, args.steps).items():
+            print(f"\ncProfile, {args.steps} semi-implicit steps, backend {kernels}:")
             print("\n".join(line for line in text.splitlines() if line.strip())[:4000])
     if args.kernels:
         bench_kernels()

@@ -7,6 +7,10 @@ tangential spring from the node to an *anchor* fixed on the plane (stick displac
 ``mu f_n`` along the trial direction and the anchor is dragged along (slip displacement u). Anchors
 are created when a node touches the plane and dropped when it leaves.
 
+With the compiled kernels selected (:mod:`softgrasp.backend`), :meth:`PlaneContact.forces` and
+:meth:`PlaneContact.update` run the law of :mod:`softgrasp.physics.planes_compiled` (which the fused
+stepper calls too).
+
 Stiffnesses are per node and proportional to the node's own elastic stiffness
 (:attr:`softgrasp.physics.body.Body.node_stiffness`), so the contact is equally stiff on any mesh.
 """
@@ -20,11 +24,16 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp import backend
 from softgrasp.physics.body import Body
 from softgrasp.errors import ContactError
 from softgrasp.physics.forces import assemble_blocks
 
 __all__ = ["Plane", "PlaneContact", "PlaneState"]
+
+
+def _f64(a: NDArray) -> NDArray[np.float64]:
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -144,6 +153,15 @@ class PlaneContact:
     ) -> NDArray[np.float64]:
         """Contact forces on the nodes [N], (N, 3); slip is capped at ``mu f_n`` (Eq. 15-16)."""
         k, c, kt, ct = self._coeffs(body)
+        if backend.compiled():
+            from softgrasp.physics.planes_compiled import plane_forces
+
+            out = np.zeros((len(x), 3))
+            plane_forces(
+                _f64(x), _f64(v), self.plane.point_at(t), self.plane.normal, self.plane.velocity,
+                float(self.mu), k, c, kt, ct, _f64(state.anchor), 0, len(x), out,
+            )  # fmt: skip
+            return out
         p0, n, pen = self._geometry(x, t)
         touching = pen > 0
         vrel = v - self.plane.velocity
@@ -229,6 +247,16 @@ class PlaneContact:
         follows the node again).
         """
         k, _, kt, _ = self._coeffs(body)
+        if backend.compiled():
+            from softgrasp.physics.planes_compiled import plane_update
+
+            active = np.empty(len(x), np.bool_)
+            anchor = np.array(state.anchor, dtype=np.float64, order="C", copy=True)
+            plane_update(
+                _f64(x), self.plane.point_at(t), self.plane.normal, float(self.mu), k, kt, active, anchor,
+                0, len(x),
+            )  # fmt: skip
+            return replace(state, active=active, anchor=anchor)
         p0, n, pen = self._geometry(x, t)
         touching = pen > 0
         rel = x - p0

@@ -69,8 +69,8 @@ def _springs(
     energy = 0.0
     a2_3 = a2 / 3.0
     a3_4 = 0.25 * a3
-    for e in range(lo, hi):
-        i = np.uint64(edges[e, 0])  # unsigned: no negative-index wrap-around per access
+    for e in range(np.uint64(lo), np.uint64(hi)):  # unsigned: no negative-index wrap-around per access
+        i = np.uint64(edges[e, 0])
         j = np.uint64(edges[e, 1])
         dx = x[j, 0] - x[i, 0]
         dy = x[j, 1] - x[i, 1]

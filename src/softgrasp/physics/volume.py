@@ -42,8 +42,8 @@ def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, ou
     count = 0
     first = -1
     ck = -kappa / 6.0
-    for t in range(lo, hi):
-        p0 = np.uint64(tets[t, 0])  # unsigned: no negative-index wrap-around per access
+    for t in range(np.uint64(lo), np.uint64(hi)):  # unsigned: no negative-index wrap-around per access
+        p0 = np.uint64(tets[t, 0])
         p1 = np.uint64(tets[t, 1])
         p2 = np.uint64(tets[t, 2])
         p3 = np.uint64(tets[t, 3])
@@ -71,7 +71,7 @@ def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, ou
         det = ax * c1x + ay * c1y + az * c1z
         if check and not det / 6.0 > 0.0:  # signed_volumes(x, tets) <= 0
             if first < 0:
-                first = t
+                first = np.int64(t)
             count += 1
         J = det * inv6v0[t]
         if barrier:

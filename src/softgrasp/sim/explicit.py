@@ -10,12 +10,10 @@ accepted step it is advanced with :meth:`Scene.update_contacts` (the stick/slip 
 paper's Algorithm 1). :func:`simulate` drives an integrator to a final time with blow-up detection
 (:class:`~softgrasp.sim.stability.BlowupMonitor`); :func:`settle` runs until the body is at rest.
 
-:func:`simulate` runs semi-implicit
-Euler and RK4 on scenes of planes and fingertips in compiled chunks of many steps
-(:class:`softgrasp.sim.fused.step.FusedStepper`: the same trajectory to round-off, the same callbacks,
-progress reports and blow-up errors, several times faster than the per-step loop on the compiled
-kernels: ``benchmarks/bench_dynamic.py``);
-other methods and interactions take the per-step loop.
+:func:`simulate` runs RK4 on scenes of planes and fingertips in compiled chunks of many steps
+(:class:`softgrasp.sim.fused.step.FusedStepper`: the same trajectory to round-off, the same
+callbacks, progress reports and blow-up errors); other methods and interactions take the per-step
+loop.
 
 Everything here is numerical: nothing is printed; ``progress`` callbacks let a front end draw bars.
 """
@@ -24,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -33,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import NotConverged, SimulationUnstable
+from softgrasp.sim.fused.run import fused_unsupported, simulate_fused
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.stability import (
     BlowupMonitor,
@@ -46,7 +44,6 @@ __all__ = [
     "DormandPrince45",
     "Integrator",
     "SemiImplicitEuler",
-    "FusedThreads",
     "fused_unsupported",
     "make_integrator",
     "max_speed",
@@ -407,7 +404,7 @@ def simulate(
         Steps between the volume and energy checks of the blow-up monitor.
     fused:
         Whether to run the steps in compiled chunks (:mod:`softgrasp.sim.fused.step`): ``None``
-        (default) does so when it can -- semi-implicit Euler or RK4 (fixed steps), only :class:`~softgrasp.physics.planes.PlaneContact` and
+        (default) does so when it can -- RK4, only :class:`~softgrasp.physics.planes.PlaneContact` and
         :class:`~softgrasp.physics.fingertip.contact.FingertipContact` interactions (at most one of the
         latter), a polynomial stress-strain law; ``False`` never (the per-step path); ``True``
         requires it (``ValueError`` when it cannot). Both paths give the same trajectory to
@@ -436,7 +433,7 @@ def simulate(
         raise ValueError(f"the fused stepper cannot run this simulation: {reason}")
     monitor = BlowupMonitor(scene, state, integ.method, check_every=check_every)
     if reason is None:
-        return _simulate_fused(scene, state, integ.method, h, t_end, monitor, callback, every, progress)
+        return simulate_fused(scene, state, h, t_end, monitor, callback, every, progress)
     t0, span = state.t, t_end - state.t
     if callback is not None:
         callback(state)
@@ -457,196 +454,6 @@ def simulate(
     if steps:
         monitor.check(current, h)
     if callback is not None and steps and last_called != steps:
-        callback(current)
-    if progress is not None:
-        progress(1.0)
-    return current
-
-
-# ---------------------------------------------------------------------------------- fused path
-#: Most steps one compiled call takes (keeps Ctrl-C responsive: ~0.1 s at 20 000 steps/s).
-FUSED_CHUNK = 2000
-
-
-def fused_unsupported(scene: Scene, integ: Integrator) -> str | None:
-    """Why :func:`simulate` cannot run ``scene`` with ``integ`` in compiled chunks
-    (:class:`softgrasp.sim.fused.step.FusedStepper`), or None when it can."""
-    if type(integ) not in (SemiImplicitEuler, RK4):
-        return f"method {integ.method!r} (semi-implicit Euler and RK4 are fused)"
-    from softgrasp.physics.fingertip.contact import FingertipContact
-    from softgrasp.physics.planes import PlaneContact
-
-    planes, fingers = [], []
-    for inter in scene.interactions:
-        if type(inter) is PlaneContact:
-            planes.append(inter)
-        elif type(inter) is FingertipContact:
-            fingers.append(inter)
-        else:
-            return f"interaction {getattr(inter, 'name', '?')!r} of type {type(inter).__name__}"
-    from softgrasp.sim.fused.step import supported
-
-    return supported(scene.body, planes, fingers)
-
-
-class FusedThreads:
-    """How many threads the fused stepper computes on, chunk by chunk (the trajectory does not
-    depend on it: :data:`softgrasp.sim.fused.step.PARTS`).
-
-    ``SOFTGRASP_THREADS`` (or :func:`softgrasp.linalg.pardiso.set_threads`) fixes the count. Otherwise
-    (``auto``) a chunk runs on two threads when the thread count allows two
-    (:func:`softgrasp.linalg.pardiso.choose_threads`) or when the previous chunk ran well on two (a
-    semi-implicit chunk starts a worker thread of its own, RK4 uses Numba's threads). The
-    threads meet two or three times a step, so a thread waiting for a core another process holds
-    makes every step wait for the scheduler (measured here: 100x slower than one thread). Each
-    two-thread chunk is timed; one slower per step than 1.5x the best two-thread chunk so far means
-    the cores are shared now, and the rest of the run stays on one thread. Two-thread chunks are
-    kept short (:attr:`chunk_seconds`) so that such a slowdown costs little before it is seen.
-    """
-
-    #: Wall time [s] a two-thread chunk aims at (auto mode).
-    chunk_seconds = 0.02
-
-    def __init__(self) -> None:
-        from softgrasp.linalg import pardiso
-        self._pardiso = pardiso
-        self.fixed: int | None = pardiso.fixed_threads()
-        self.best = math.inf  # best seconds per step on two threads
-        self.fallback = False
-        self.last = 1
-
-    def choose(self) -> int:
-        """Threads for the next chunk."""
-        if self.fixed is not None:
-            self.last = max(1, self.fixed)
-        elif self.fallback:
-            self.last = 1
-        else:
-            fine = self.last >= 2 and math.isfinite(self.best)
-            self.last = 2 if fine or self._pardiso.choose_threads() >= 2 else 1
-        return self.last
-
-    def chunk(self, threads: int, longest: int) -> int:
-        """Most steps the next chunk on ``threads`` threads takes."""
-        if threads < 2 or self.fixed is not None:
-            return longest
-        if not math.isfinite(self.best):
-            return min(longest, 32)
-        return max(1, min(longest, int(self.chunk_seconds / self.best)))
-
-    def record(self, threads: int, steps: int, seconds: float) -> None:
-        """Account for a chunk of ``steps`` steps that took ``seconds`` on ``threads`` threads."""
-        if threads < 2 or self.fixed is not None or steps <= 0:
-            return
-        per = seconds / steps
-        if per > 1.5 * self.best:
-            self.fallback = True
-        self.best = min(self.best, per)
-
-
-class _FusedRun:
-    """A :class:`~softgrasp.sim.fused.step.FusedStepper` on a scene, read out as :class:`State`."""
-
-    def __init__(
-        self, scene: Scene, state: State, monitor: BlowupMonitor | None, method: str = "semi-implicit"
-    ) -> None:
-        from softgrasp.physics.fingertip.contact import FingertipContact
-        from softgrasp.sim.fused.step import FusedStepper
-
-        self.template = state
-        self.planes = [i for i, inter in enumerate(scene.interactions) if type(inter) is not FingertipContact]
-        fingers = [i for i, inter in enumerate(scene.interactions) if type(inter) is FingertipContact]
-        self.finger = fingers[0] if fingers else None
-        inter, contacts = scene.interactions, state.contacts
-        self.stepper = FusedStepper(
-            scene.body,
-            [inter[i] for i in self.planes],
-            [contacts[i] for i in self.planes],
-            None if self.finger is None else inter[self.finger],
-            None if self.finger is None else contacts[self.finger],
-            state.x,
-            state.v,
-            state.t,
-            monitor,
-            method=method,
-        )
-
-    def state(self) -> State:
-        """The current state (copies)."""
-        st = self.stepper
-        x, v, t = st.arrays()
-        contacts = list(self.template.contacts)
-        for i, ps in zip(self.planes, st.plane_states([contacts[i] for i in self.planes]), strict=True):
-            contacts[i] = ps
-        if self.finger is not None:
-            contacts[self.finger] = st.finger_state(contacts[self.finger])
-        return State(x, v, t, tuple(contacts))
-
-
-def _fused_error(monitor: BlowupMonitor, failure: Any) -> SimulationUnstable:
-    from softgrasp.sim.fused import step
-    if failure.status == step.STATUS_NONFINITE:
-        reason = "positions or velocities became non-finite"
-    elif failure.status == step.STATUS_INVERTED:
-        reason = monitor.inverted_reason(failure.count, failure.first)
-    else:
-        reason = monitor.energy_reason(failure.excess, failure.scale)
-    return monitor.error(failure.t, failure.dt, reason)
-
-
-def _simulate_fused(
-    scene: Scene,
-    state: State,
-    method: str,
-    dt: float,
-    t_end: float,
-    monitor: BlowupMonitor,
-    callback: Callable[[State], None] | None,
-    every: int,
-    progress: Callable[[float], None] | None,
-) -> State:
-    """:func:`simulate` for semi-implicit Euler or RK4 in compiled chunks: the same equal steps (the last
-    one landing on ``t_end``), callbacks, progress reports and checks as the per-step loop, each
-    chunk ending where the loop would call back or report."""
-    t0, span = state.t, t_end - state.t
-    if callback is not None:
-        callback(state)
-    if span <= 0:
-        if progress is not None:
-            progress(1.0)
-        return state
-    n = max(1, math.ceil(span / dt * (1.0 - 1e-12)))
-    h = span / n
-    run = _FusedRun(scene, state, monitor, method)
-    threads = FusedThreads()
-    done = 0
-    next_report = 0.0
-    last_called = 0
-    while done < n:
-        run.stepper.threads = threads.choose()
-        target = min(n, done + threads.chunk(run.stepper.threads, FUSED_CHUNK))
-        if callback is not None:
-            target = min(target, (done // every + 1) * every)
-        if progress is not None:
-            target = min(target, max(done + 1, math.ceil(next_report * n)))
-        start = time.perf_counter()
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            taken = run.stepper.advance(target - done, h, t_end if target == n else None)
-        threads.record(run.stepper.threads, taken, time.perf_counter() - start)
-        done += taken
-        if run.stepper.failure is not None:
-            raise _fused_error(monitor, run.stepper.failure)
-        if callback is not None and done % every == 0:
-            callback(run.state())
-            last_called = done
-        if progress is not None:
-            frac = min(1.0, (run.stepper.t - t0) / span)
-            if frac >= next_report:
-                progress(frac)
-                next_report = frac + 0.01
-    current = run.state()
-    monitor.check(current, dt)
-    if callback is not None and last_called != done:
         callback(current)
     if progress is not None:
         progress(1.0)
