@@ -274,19 +274,3 @@ def test_solve_rejects_mismatched_shapes() -> None:
         _compiled((stack, T, R, p, q[:, :-1]))
     with pytest.raises(ConfigError, match="solve needs targets"):
         _compiled((stack, T[:2], R, p, q))
-
-
-def test_descent_records_the_hash_of_every_module_it_inlines() -> None:
-    """The cached kernel of descent.py compiles in the forward kinematics and the WDLS step of other
-    modules; Numba checks only descent.py's own source for changes, so descent.py records the
-    others' hashes and an edit of one of them must renew its entry (and so descent.py's cache)."""
-    import hashlib
-    import re
-
-    src = Path(kernel.__file__)
-    imported = set(re.findall(r"^from softgrasp\.hand\.(\w+) import", src.read_text(), re.M))
-    assert {f"{m}.py" for m in imported} == set(kernel._INLINED_SOURCES_SHA256)
-    for name, recorded in kernel._INLINED_SOURCES_SHA256.items():
-        digest = hashlib.sha256((src.parent / name).read_bytes()).hexdigest()
-        fix = f"set descent._INLINED_SOURCES_SHA256[{name!r}] = {digest!r}"
-        assert recorded == digest, f"{name} changed: {fix}"

@@ -38,8 +38,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.wdls import limited_step
 from softgrasp.hand.kinematics import ChainStack, forward, jit, joint_columns
+from softgrasp.hand.wdls import limited_step
 
 __all__ = [
     "STOP_REACHED",
@@ -62,17 +62,6 @@ STOP_STALLED = 1
 STOP_NO_STEP = 2
 STOP_NO_DECREASE = 3
 STOP_MAX_ITER = 4
-
-#: SHA-256 of the modules whose compiled code the cached kernels here inline (the forward
-#: kinematics and the WDLS step). Numba checks only a cached function's own file for changes, never
-#: the files of the functions it calls: an edit there must come with an edit here
-#: (tests/test_reach_kernel.py compares), or the descent would run the stale machine code of the
-#: earlier source.
-_INLINED_SOURCES_SHA256 = {
-    "kinematics.py": "e04e31ad38a6503d71fa2195e8734955a258b9ff204878c4f35b5c11e142013f",
-    "wdls.py": "af8a086e61b90a34ed7bc4138a3de65354daeb477108e21fb7d049563c1be597",
-}
-
 
 @jit
 def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pragma: no cover

@@ -23,10 +23,10 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import NamedTuple
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from softgrasp import jitcache
 from softgrasp.errors import ConfigError
 from softgrasp.hand.urdf import FINGER_NAMES, FingerChain, Joint, packaged_urdf, read_urdf
 
@@ -44,7 +44,7 @@ __all__ = [
 ]
 
 #: The Numba compilation of softgrasp's hand kernels.
-jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+jit = jitcache.jit(fastmath=False, error_model="numpy")
 
 #: ``-[a]x = a @ _LEVI_CIVITA`` (reshaped to 3 x 3): the Levi-Civita symbol as ``eps[k, 3 i + j]``.
 _LEVI_CIVITA = np.zeros((3, 9))

@@ -4,14 +4,15 @@ couplings and the CSR layout of their 3 x 3 blocks, compiled (linear time, no so
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
+
+from softgrasp import jitcache
 
 __all__ = ["block_layout", "unique_pairs"]
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jitcache.jit(error_model="numpy")
 def _unique_pairs(rows, cols, n):  # pragma: no cover - compiled
     """:func:`unique_pairs` by a counting sort on the rows and, within a row, a mark per column."""
     K = rows.shape[0]
@@ -54,7 +55,7 @@ def _unique_pairs(rows, cols, n):  # pragma: no cover - compiled
     return urow[:nu].copy(), ucol[:nu].copy(), inv
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jitcache.jit(error_model="numpy")
 def _block_layout(
     brow, bcol, inv, n, block_base, block_stride, indptr, indices
 ):  # pragma: no cover - compiled

@@ -14,6 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp import jitcache
 from softgrasp.linalg.sparse import (
     BLOCK,
     MIN_BLOCK_FILL,
@@ -37,10 +38,10 @@ __all__ = [
 # The parallel kernels' loop iterations each write their own outputs; none sums across
 # iterations (a prange reduction): Numba keeps one partial sum per thread, and TBB, its threading
 # layer here, hands chunks to threads dynamically, so such a sum would change from run to run.
-_pjit = numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, error_model="numpy")
+_pjit = jitcache.jit(parallel=True, fastmath={"reassoc", "contract"}, error_model="numpy")
 # The block kernels' sums run in a fixed order (each row's six accumulators), multiply-adds fused.
-_bpjit = numba.njit(cache=True, parallel=True, fastmath={"contract"}, error_model="numpy")
-_bjit = numba.njit(cache=True, fastmath={"contract"}, error_model="numpy")
+_bpjit = jitcache.jit(parallel=True, fastmath={"contract"}, error_model="numpy")
+_bjit = jitcache.jit(fastmath={"contract"}, error_model="numpy")
 
 
 def _sweep_rhs(shape: tuple[int, int], x: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -90,7 +91,7 @@ def _l1_inverse_diagonal(indptr, indices, data, parts, out, cross):  # pragma: n
         cross[p] = count
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@jitcache.jit(parallel=True, error_model="numpy")
 def _hybrid_sweep(indptr, indices, data, dinv, x, b, x_old, parts, forward):  # pragma: no cover
     """One hybrid Gauss-Seidel sweep on ``x`` (in place): row blocks side by side, Gauss-Seidel
     within a block (forward or backward), the other blocks' unknowns as ``x_old`` holds them."""

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp import jitcache
 from softgrasp.linalg.pattern import block_layout, unique_pairs
 
 __all__ = [
@@ -41,10 +42,10 @@ __all__ = [
 # The parallel kernels' loop iterations each write their own outputs; none sums across
 # iterations (a prange reduction): Numba keeps one partial sum per thread, and TBB, its threading
 # layer here, hands chunks to threads dynamically, so such a sum would change from run to run.
-_pjit = numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, error_model="numpy")
+_pjit = jitcache.jit(parallel=True, fastmath={"reassoc", "contract"}, error_model="numpy")
 # The block kernels' sums run in a fixed order (each row's six accumulators), multiply-adds fused.
-_bpjit = numba.njit(cache=True, parallel=True, fastmath={"contract"}, error_model="numpy")
-_bjit = numba.njit(cache=True, fastmath={"contract"}, error_model="numpy")
+_bpjit = jitcache.jit(parallel=True, fastmath={"contract"}, error_model="numpy")
+_bjit = jitcache.jit(fastmath={"contract"}, error_model="numpy")
 
 
 @_pjit
@@ -57,7 +58,7 @@ def _csr_matvec(indptr, indices, data, x, out):  # pragma: no cover - compiled
         out[i] = s
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@jitcache.jit(parallel=True, error_model="numpy")
 def _csr_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
     """out[i] = the sum of row i's entries in column i (CSR arrays, ``indptr`` and ``indices``
     unsigned, the indices in any order)."""
@@ -70,7 +71,7 @@ def _csr_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
         out[i] = s
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@jitcache.jit(parallel=True, error_model="numpy")
 def _bsr33_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
     """out = the diagonal of a matrix of 3 x 3 blocks (BSR arrays, one block a column at most)."""
     for i in numba.prange(indptr.shape[0] - 1):

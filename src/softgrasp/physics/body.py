@@ -19,10 +19,10 @@ from numpy.typing import NDArray
 
 from softgrasp import backend
 from softgrasp.errors import MaterialError
-from softgrasp.physics.forces import BlockPattern
 from softgrasp.model.material import Material
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.network import NetworkCalibration, calibrate_network
+from softgrasp.physics.forces import BlockPattern
 
 __all__ = ["Body", "build_body", "STANDARD_GRAVITY", "DEFAULT_DAMPING_RATIO"]
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from softgrasp import backend
+from softgrasp import backend, jitcache
 from softgrasp.model.material import StressStrainLaw
 from softgrasp.physics.jit import Array, IntArray, f64, i64, jit
 from softgrasp.physics.springs import (
@@ -107,7 +107,7 @@ def partitioned_elements(
     )
 
 
-@numba.njit(cache=True, fastmath={"contract"}, error_model="numpy", parallel=True)
+@jitcache.jit(fastmath={"contract"}, error_model="numpy", parallel=True)
 def _partitioned_forces(
     x,
     v,
@@ -228,7 +228,7 @@ def _jacobian_group(
         _volume_blocks(x, tets, rest, kappa, barrier, base, stride, True, offset, out, to, tb[g], tb[g + 1])
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy", parallel=True)
+@jitcache.jit(fastmath=False, error_model="numpy", parallel=True)
 def _jacobian_groups(
     x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb
 ):  # pragma: no cover - compiled

@@ -11,17 +11,18 @@ infinity keep their meaning (the blow-up checks rely on them).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
+
+from softgrasp import jitcache
 
 __all__ = ["Array", "IntArray", "jit", "fjit", "f64", "i64", "NO_POS", "NO_ORDER"]
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
-fjit = numba.njit(cache=True, fastmath={"contract"}, error_model="numpy")
+jit = jitcache.jit(fastmath=False, error_model="numpy")
+fjit = jitcache.jit(fastmath={"contract"}, error_model="numpy")
 
 #: Placeholder block positions for kernels that write blocks one after another (``use_pos`` false).
 NO_POS = np.zeros(1, dtype=np.int64)

@@ -7,9 +7,8 @@ tangential spring from the node to an *anchor* fixed on the plane (stick displac
 ``mu f_n`` along the trial direction and the anchor is dragged along (slip displacement u). Anchors
 are created when a node touches the plane and dropped when it leaves.
 
-With the compiled kernels selected (:mod:`softgrasp.backend`), :meth:`PlaneContact.forces` and
-:meth:`PlaneContact.update` run the law of :mod:`softgrasp.physics.planes_compiled` (which the fused
-stepper calls too).
+:meth:`PlaneContact.forces` and :meth:`PlaneContact.update` run the law of
+:mod:`softgrasp.physics.planes_compiled`, which the fused stepper calls too.
 
 Stiffnesses are per node and proportional to the node's own elastic stiffness
 (:attr:`softgrasp.physics.body.Body.node_stiffness`), so the contact is equally stiff on any mesh.
@@ -24,9 +23,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp import backend
-from softgrasp.physics.body import Body
 from softgrasp.errors import ContactError
+from softgrasp.physics.body import Body
 from softgrasp.physics.forces import assemble_blocks
 
 __all__ = ["Plane", "PlaneContact", "PlaneState"]
@@ -144,41 +142,19 @@ class PlaneContact:
         pen = -(x - p0) @ n
         return p0, n, pen
 
-    def _tangential_stretch(self, x, p0, n, state: PlaneState, touching) -> NDArray[np.float64]:
-        s = np.where(touching[:, None], x - (p0 + state.anchor), 0.0)
-        return s - (s @ n)[:, None] * n
-
     def forces(
         self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState
     ) -> NDArray[np.float64]:
         """Contact forces on the nodes [N], (N, 3); slip is capped at ``mu f_n`` (Eq. 15-16)."""
         k, c, kt, ct = self._coeffs(body)
-        if backend.compiled():
-            from softgrasp.physics.planes_compiled import plane_forces
+        from softgrasp.physics.planes_compiled import plane_forces
 
-            out = np.zeros((len(x), 3))
-            plane_forces(
-                _f64(x), _f64(v), self.plane.point_at(t), self.plane.normal, self.plane.velocity,
-                float(self.mu), k, c, kt, ct, _f64(state.anchor), 0, len(x), out,
-            )  # fmt: skip
-            return out
-        p0, n, pen = self._geometry(x, t)
-        touching = pen > 0
-        vrel = v - self.plane.velocity
-        vn = vrel @ n
-        fn = np.where(touching, np.maximum(k * pen - c * vn, 0.0), 0.0)
-        f = fn[:, None] * n
-        if self.mu > 0:
-            s = self._tangential_stretch(x, p0, n, state, touching)
-            vt = vrel - vn[:, None] * n
-            ft = -kt[:, None] * s - ct[:, None] * vt
-            ft[~touching] = 0.0
-            mag = np.linalg.norm(ft, axis=1)
-            cap = self.mu * fn
-            over = mag > cap
-            ft[over] *= (cap[over] / np.maximum(mag[over], 1e-300))[:, None]
-            f += ft
-        return f
+        out = np.zeros((len(x), 3))
+        plane_forces(
+            _f64(x), _f64(v), self.plane.point_at(t), self.plane.normal, self.plane.velocity,
+            float(self.mu), k, c, kt, ct, _f64(state.anchor), 0, len(x), out,
+        )  # fmt: skip
+        return out
 
     def _static_touching(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
         """The touching nodes (the few a body stands on, not all N: only they carry force), their
@@ -247,31 +223,15 @@ class PlaneContact:
         follows the node again).
         """
         k, _, kt, _ = self._coeffs(body)
-        if backend.compiled():
-            from softgrasp.physics.planes_compiled import plane_update
+        from softgrasp.physics.planes_compiled import plane_update
 
-            active = np.empty(len(x), np.bool_)
-            anchor = np.array(state.anchor, dtype=np.float64, order="C", copy=True)
-            plane_update(
-                _f64(x), self.plane.point_at(t), self.plane.normal, float(self.mu), k, kt, active, anchor,
-                0, len(x),
-            )  # fmt: skip
-            return replace(state, active=active, anchor=anchor)
-        p0, n, pen = self._geometry(x, t)
-        touching = pen > 0
-        rel = x - p0
-        rel_t = rel - (rel @ n)[:, None] * n
-        anchor = np.where(touching[:, None], state.anchor, rel_t)
-        if self.mu > 0:
-            s = rel_t - anchor
-            s_norm = np.linalg.norm(s, axis=1)
-            limit = self.mu * k * np.maximum(pen, 0.0) / np.maximum(kt, 1e-300)
-            slip = touching & (s_norm > limit)
-            if slip.any():
-                anchor[slip] = rel_t[slip] - s[slip] * (limit[slip] / s_norm[slip])[:, None]
-        else:
-            anchor = rel_t
-        return replace(state, active=touching.copy(), anchor=anchor)
+        active = np.empty(len(x), np.bool_)
+        anchor = np.array(state.anchor, dtype=np.float64, order="C", copy=True)
+        plane_update(
+            _f64(x), self.plane.point_at(t), self.plane.normal, float(self.mu), k, kt, active, anchor,
+            0, len(x),
+        )  # fmt: skip
+        return replace(state, active=active, anchor=anchor)
 
     def static_update(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
         """State update of a static solve: free nodes carry their anchors along, so a node that

@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import math
 
-import numba
+from softgrasp import jitcache
 
 __all__ = ["plane_forces", "plane_update"]
 
-_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+_jit = jitcache.jit(fastmath=False, error_model="numpy")
 
 
 @_jit

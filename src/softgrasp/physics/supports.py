@@ -15,8 +15,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp.physics.body import Body
 from softgrasp.errors import ContactError
+from softgrasp.physics.body import Body
 from softgrasp.physics.forces import assemble_blocks
 
 __all__ = ["Tether"]

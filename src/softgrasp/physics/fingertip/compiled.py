@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from softgrasp import jitcache
 from softgrasp.physics.fingertip.detect import _detect, _geometry_args, _pinned_values
 from softgrasp.physics.fingertip.forces import (
     _finger_powers,
@@ -39,7 +39,7 @@ from softgrasp.physics.fingertip.friction import _stick, _tangential_stiffness
 
 __all__ = ["fingertip_forces", "fingertip_pair_laws", "fingertip_static_forces", "fingertip_update"]
 
-_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+_jit = jitcache.jit(fastmath=False, error_model="numpy")
 
 
 def _law_args(K, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio) -> tuple:

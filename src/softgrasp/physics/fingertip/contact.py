@@ -31,8 +31,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp.errors import ContactError
 from softgrasp.physics.body import Body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.fingertip.geometry import (
     INSIDE_TOL,
     ContactPairs,
@@ -47,7 +47,7 @@ from softgrasp.physics.fingertip.laws import (
     mindlin_ratio,
     normal_force_derivative,
 )
-from softgrasp.errors import ContactError
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.fingertip.state import FingerReport, FingerState, _Eval
 
 __all__ = ["FingertipContact", "FingerState", "FingerReport"]

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from softgrasp import jitcache
+
 __all__ = ["detect_arrays", "pair_values"]
 
-_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+_jit = jitcache.jit(fastmath=False, error_model="numpy")
 
 
 @_jit

@@ -16,15 +16,15 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from softgrasp import jitcache
 from softgrasp.physics.fingertip import laws
 from softgrasp.physics.fingertip.friction import _stick, _tangential_stiffness
 
 __all__: list[str] = []
 
-_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+_jit = jitcache.jit(fastmath=False, error_model="numpy")
 #: The normal force law, Eq. 9 (:func:`softgrasp.physics.fingertip.laws.normal_force_value`).
 _normal_force = _jit(laws.normal_force_value)
 #: Coulomb sliding, Eq. 15 (:func:`softgrasp.physics.fingertip.laws.coulomb_slip_value`).

@@ -11,13 +11,12 @@ after an accepted step Algorithm 1 cuts a slipping pair's stick back to the limi
 
 from __future__ import annotations
 
-import numba
-
+from softgrasp import jitcache
 from softgrasp.physics.fingertip import laws
 
 __all__: list[str] = []
 
-_jit = numba.njit(cache=True, fastmath=False, error_model="numpy")
+_jit = jitcache.jit(fastmath=False, error_model="numpy")
 #: The normal stiffness law n K delta^(n-1) (:func:`softgrasp.physics.fingertip.laws.normal_stiffness_value`).
 _normal_stiffness = _jit(laws.normal_stiffness_value)
 

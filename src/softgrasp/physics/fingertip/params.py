@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.physics.fingertip.laws import PAPER_PREFACTOR
 from softgrasp.errors import ContactError
+from softgrasp.physics.fingertip.laws import PAPER_PREFACTOR
 
 __all__ = ["Fingertip", "ContactParams"]
 

@@ -19,7 +19,9 @@ from typing import Any
 import numba
 import numpy as np
 
-from softgrasp.physics.forces_compiled import _inverted, _springs, _volumes, polynomial_coefficients
+from softgrasp.physics.forces_compiled import polynomial_coefficients
+from softgrasp.physics.springs import _springs
+from softgrasp.physics.volume import _inverted, _volumes
 from softgrasp.sim.fused.cache import jit, pjit
 
 __all__ = ["body_forces", "pack_body", "packed"]

@@ -29,11 +29,7 @@ FUSED_CHUNK = 2000
 def fused_unsupported(scene: Scene, integ: Any) -> str | None:
     """Why :func:`softgrasp.sim.explicit.simulate` cannot run ``scene`` with the integrator ``integ``
     in compiled chunks (:class:`softgrasp.sim.fused.step.FusedStepper`), or None when it can."""
-    from softgrasp import backend
-
-    if backend.get_backend() != "numba":
-        return f"the {backend.get_backend()} kernels are selected"
-    from softgrasp.sim.explicit import RK4
+    from softgrasp.sim.integrators import RK4
 
     if type(integ) is not RK4:
         return f"method {integ.method!r} (RK4 is fused)"

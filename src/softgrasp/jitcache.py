@@ -1,0 +1,85 @@
+"""Compiling softgrasp's kernels: Numba's on-disk cache, keyed by every kernel source.
+
+Kernels call compiled functions of other modules (the fingertip kernels call the contact laws,
+the fused stepper calls the spring, volume and plane laws, the placement calls the kinematics),
+and Numba compiles those callees into the caller's machine code. Numba's own cache checks only
+the caller's file for changes, so after an edit of a callee's module a cached caller would run
+the callee's earlier code. Every kernel of softgrasp is therefore compiled with :func:`jit`,
+whose cache index key also holds :data:`SOURCE_DIGEST`, the SHA-256 of the sources of all
+:data:`KERNEL_MODULES` (computed at import, about a millisecond): an edit of any of them compiles
+the kernels afresh, once; unchanged sources load from the cache as Numba's own cache does.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+from collections.abc import Callable
+from typing import Any
+
+import numba
+from numba.core.caching import FunctionCache
+
+__all__ = ["KERNEL_MODULES", "SOURCE_DIGEST", "SourceKeyedCache", "jit", "source_digest"]
+
+#: Every module that defines compiled kernels (with :func:`jit`); their sources key the cache.
+KERNEL_MODULES = (
+    "softgrasp.linalg.pattern",
+    "softgrasp.linalg.smoothers",
+    "softgrasp.linalg.sparse",
+    "softgrasp.physics.jit",
+    "softgrasp.physics.springs",
+    "softgrasp.physics.volume",
+    "softgrasp.physics.forces_compiled",
+    "softgrasp.physics.planes_compiled",
+    "softgrasp.physics.fingertip.laws",
+    "softgrasp.physics.fingertip.detect",
+    "softgrasp.physics.fingertip.forces",
+    "softgrasp.physics.fingertip.friction",
+    "softgrasp.physics.fingertip.compiled",
+    "softgrasp.hand.kinematics",
+    "softgrasp.hand.wdls",
+    "softgrasp.hand.descent",
+    "softgrasp.sim.fused.body",
+    "softgrasp.sim.fused.contacts",
+    "softgrasp.sim.fused.monitor",
+    "softgrasp.sim.fused.rk4",
+)
+
+
+def source_digest(modules: tuple[str, ...] = KERNEL_MODULES) -> str:
+    """SHA-256 over the source files of ``modules`` (found without importing them)."""
+    h = hashlib.sha256()
+    for name in modules:
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.origin is None:
+            raise ImportError(f"cannot find the source of {name}")
+        with open(spec.origin, "rb") as f:
+            h.update(name.encode() + b"\0" + f.read() + b"\0")
+    return h.hexdigest()
+
+
+#: :func:`source_digest` of :data:`KERNEL_MODULES`, at import.
+SOURCE_DIGEST = source_digest()
+
+
+class SourceKeyedCache(FunctionCache):
+    """Numba's cache of one function, its index key extended by a digest of the kernel sources."""
+
+    def __init__(self, py_func: Callable[..., Any], digest: str = SOURCE_DIGEST) -> None:
+        super().__init__(py_func)
+        self.digest = digest
+
+    def _index_key(self, sig: Any, codegen: Any) -> tuple:
+        return (*super()._index_key(sig, codegen), self.digest)
+
+
+def jit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
+    """``numba.njit(**options)``, cached on disk under :data:`SOURCE_DIGEST`."""
+
+    def decorate(func: Callable[..., Any]) -> Any:
+        dispatcher = numba.njit(cache=False, **options)(func)
+        dispatcher._cache = SourceKeyedCache(dispatcher.py_func)
+        return dispatcher
+
+    return decorate
