@@ -19,16 +19,16 @@ import time
 
 import numpy as np
 
-from softgrasp.physics.body import build_body
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.model.material import preset
 from softgrasp.model.mesh import box
+from softgrasp.physics.body import build_body
 from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.physics.supports import Tether
 from softgrasp.sim.explicit import RK4
-from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.stability import stable_time_step
 from softgrasp.sim.static import solve_static
-from softgrasp.physics.supports import Tether
 
 #: BCC box divisions giving about 500, 2 000, 8 000 and 32 000 nodes.
 DIVISIONS = {500: 5, 2000: 8, 8000: 14, 32000: 24}

@@ -21,12 +21,12 @@ import time
 
 import numpy as np
 
-from softgrasp.physics.body import build_body
-from softgrasp.physics.fingertip.params import Fingertip
-from softgrasp.physics.fingertip.geometry import FacetIndex, detect
-from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.experiments.indentation import indentation_test, surface_height
 from softgrasp.model.objects import CUBE_SIZE, make_object
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.geometry import FacetIndex, detect
+from softgrasp.physics.fingertip.params import Fingertip
 
 #: Sphere mesh sizes [m] of part (a).
 SPHERE_SIZES = (0.016, 0.008, 0.006, 0.004)

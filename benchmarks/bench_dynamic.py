@@ -1,4 +1,4 @@
-"""Benchmark of explicit dynamics with fingertip contact: steps per second, NumPy vs Numba, per step vs fused.
+"""Benchmark of explicit dynamics with fingertip contact: steps/s, NumPy oracle vs compiled, per step, fused.
 
 The scene: the default rubber sphere (radius 64 mm, 50 g, E = 79.3 kPa, nu = 0.45) meshed at 8 mm
 (~2 200 nodes) resting on the table (friction 0.5), one rigid fingertip (R = 8 mm) pressed 2 mm
@@ -6,21 +6,23 @@ into its top and moving down at 5 mm/s, so that the fingertip-facet contact is a
 In the same run it prints:
 
 * ``simulate(..., method=m)`` at the stable time step, steps/s (best and median of a few repeats),
-  node-steps/s, force evaluations/s and the ratios to NumPy and to the per-step Numba path, for
-  semi-implicit Euler and RK4 on the NumPy reference kernels and on the compiled kernels step by
-  step (``fused=False``), and for RK4 fused (:mod:`softgrasp.sim.fused.step`: many steps per
-  compiled call) on one and on two threads. The blow-up monitor's work is included, as in every
-  real run;
-* where a step goes: the parts of the per-step path (each measured alone, both backends), and the
-  compiled parts of a fused RK4 step (body forces on one and two of Numba's threads, with and
-  without the energy and volumes of the monitor's check, the planes, the fingertip step: one
-  detection, update and forces);
+  node-steps/s, force evaluations/s and the ratios to the NumPy oracle and to the per-step compiled
+  path, for semi-implicit Euler and RK4 on the NumPy oracles of the tests (``tests/oracles``: the
+  body and fingertips of :func:`oracles.contact.oracle_scene`, the planes of :mod:`oracles.planes`)
+  and on the compiled kernels step by step (``fused=False``), and for RK4 fused
+  (:mod:`softgrasp.sim.fused.step`: many steps per compiled call) on one and on two threads. The
+  blow-up monitor's work is included, as in every real run;
+* where a step goes: the parts of the per-step path (each measured alone, compiled and on the
+  NumPy oracles), and the compiled parts of a fused RK4 step (body forces on one and two of
+  Numba's threads, with and without the energy and volumes of the monitor's check, the planes, the
+  fingertip step: one detection, update and forces);
 * an arithmetic bound: floating-point operations per force evaluation counted from the edges and
   tets, against two measured machine rates (a single-thread BLAS ``dgemm``, the best case for
   SIMD arithmetic, and a compiled scalar loop), and the steps/s each rate would allow;
-* ``--profile``: the top entries of a cProfile of per-step semi-implicit steps for each backend;
+* ``--profile``: the top entries of a cProfile of per-step semi-implicit steps, compiled and on the
+  NumPy oracles;
 * ``--kernels``: ``Body.internal_forces`` / ``internal_jacobian`` at ~500, ~2 200, ~7 500 and
-  ~33 000 nodes for both backends;
+  ~33 000 nodes, compiled and on the NumPy oracle (:class:`oracles.forces.OracleBody`);
 * ``--compile``: cold (empty cache) and warm (cached) time to import softgrasp and evaluate the
   body's forces, energy and Jacobian once, and to compile the fused stepper, each in a fresh
   interpreter.
@@ -36,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import dataclasses
 import io
 import os
 import platform
@@ -46,22 +49,27 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
-from softgrasp import backend
-from softgrasp.physics.body import Body, build_body
-from softgrasp.physics.fingertip.params import Fingertip
-from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.experiments.indentation import surface_height
+from softgrasp.linalg import pardiso
 from softgrasp.model.mesh import box
 from softgrasp.model.objects import make_object
+from softgrasp.physics.body import Body, build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.planes import Plane, PlaneContact
-from softgrasp.linalg import pardiso
 from softgrasp.sim.explicit import make_integrator, simulate
 from softgrasp.sim.fused.run import FusedRun
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.stability import BlowupMonitor, stable_time_step
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from oracles import planes as oracle_planes  # noqa: E402 - the tests' directory first
+from oracles.contact import oracle_scene  # noqa: E402
+from oracles.forces import OracleBody  # noqa: E402
 
 RADIUS = 0.008  #: fingertip radius [m]
 DEPTH = 0.002  #: initial penetration of the fingertip [m]
@@ -75,14 +83,16 @@ FLOPS_PER_EDGE = 30 + 11
 FLOPS_PER_TET = 79
 METHODS = ("semi-implicit", "rk4")
 EVALS_PER_STEP = {"semi-implicit": 1, "rk4": 4}
-#: The simulate() cases: (label, method, backend, fused, threads).
+#: The laws a case runs on: the compiled kernels, or the NumPy oracles of the tests.
+COMPILED, ORACLE = "compiled", "NumPy oracle"
+#: The simulate() cases: (label, method, laws, fused, threads).
 CASES = (
-    ("NumPy", "semi-implicit", "numpy", False, 1),
-    ("Numba per step", "semi-implicit", "numba", False, 1),
-    ("NumPy", "rk4", "numpy", False, 1),
-    ("Numba per step", "rk4", "numba", False, 1),
-    ("Numba fused, 1 thread", "rk4", "numba", True, 1),
-    ("Numba fused, 2 threads", "rk4", "numba", True, 2),
+    (ORACLE, "semi-implicit", ORACLE, False, 1),
+    ("compiled per step", "semi-implicit", COMPILED, False, 1),
+    (ORACLE, "rk4", ORACLE, False, 1),
+    ("compiled per step", "rk4", COMPILED, False, 1),
+    ("compiled fused, 1 thread", "rk4", COMPILED, True, 1),
+    ("compiled fused, 2 threads", "rk4", COMPILED, True, 2),
 )
 #: Mesh sizes [m] of the sphere and the BCC box division of the --kernels table.
 KERNEL_SIZES = (("sphere", 0.014), ("sphere", 0.008), ("sphere", 0.005), ("box", 24))
@@ -108,6 +118,19 @@ def finger_pairs(scene: Scene, state: State) -> int:
     """Touching (fingertip, facet) pairs in ``state``."""
     _, fingers = scene.interaction("fingers")
     return len(fingers.pairs(scene.body, state.x, state.t))
+
+
+def on_laws(scene: Scene) -> tuple[tuple[str, Scene], ...]:
+    """The compiled ``scene`` and its NumPy oracle twin: the body and fingertips of
+    :func:`oracles.contact.oracle_scene`, the planes :class:`OraclePlaneContact`."""
+    oracle = oracle_scene(scene)
+    inters = tuple(
+        oracle_planes.OraclePlaneContact(**{f.name: getattr(i, f.name) for f in dataclasses.fields(i)})
+        if type(i) is PlaneContact
+        else i
+        for i in oracle.interactions
+    )
+    return (COMPILED, scene), (ORACLE, dataclasses.replace(oracle, interactions=inters))
 
 
 # ----------------------------------------------------------------------------- timing helpers
@@ -183,8 +206,9 @@ def bench_simulate(
     """steps/s of simulate() per case of :data:`CASES` (one list entry per repeat) and the most
     other runnable tasks seen while it ran."""
     out: dict[tuple[str, str], tuple[list[float], int]] = {}
-    for label, method, kernels, fused, threads in CASES:
-        if kernels not in backend.available() or threads > (os.cpu_count() or 1):
+    scenes = dict(on_laws(scene))
+    for label, method, laws, fused, threads in CASES:
+        if threads > (os.cpu_count() or 1):
             continue
         if threads > 1 and others_running(settle=0.5) > 0:
             print(f"  {label} ({method}) skipped: another process is running (two threads would wait for it)")
@@ -192,14 +216,14 @@ def bench_simulate(
         dt = stable_time_step(scene, method)
         n = fused_steps if fused else steps
         pardiso.set_threads(threads)
+        sc = scenes[laws]
         try:
-            with backend.use_backend(kernels):
-                kw = {"method": method, "dt": dt, "fused": fused}
-                final = simulate(scene, s0, 5 * dt, **kw)  # warm-up (and compile)
-                assert finger_pairs(scene, final) > 0
-                busy = others_running()
-                times = repeat(lambda kw=kw, n=n, dt=dt: simulate(scene, s0, n * dt, **kw), repeats)
-                busy = max(busy, others_running())
+            kw = {"method": method, "dt": dt, "fused": fused}
+            final = simulate(sc, s0, 5 * dt, **kw)  # warm-up (and compile)
+            assert finger_pairs(scene, final) > 0
+            busy = others_running()
+            times = repeat(lambda kw=kw, n=n, dt=dt, sc=sc: simulate(sc, s0, n * dt, **kw), repeats)
+            busy = max(busy, others_running())
         finally:
             pardiso.set_threads(None)
         out[(label, method)] = ([n / t for t in times], busy)
@@ -207,29 +231,33 @@ def bench_simulate(
 
 
 def step_breakdown(scene: Scene, s0: State) -> dict[str, dict[str, float]]:
-    """Wall time [s] of the parts of one semi-implicit step of simulate(), each measured alone."""
-    body = scene.body
-    table_i, table = scene.interaction("table")
-    finger_i, finger = scene.interaction("fingers")
+    """Wall time [s] of the parts of one semi-implicit step of simulate(), each measured alone,
+    compiled and on the NumPy oracles."""
     x, v, t, c = s0.x, 1e-3 * np.random.default_rng(1).standard_normal(s0.x.shape), s0.t, s0.contacts
     state = s0.replace(v=v)
     integ = make_integrator("semi-implicit")
     dt = stable_time_step(scene, "semi-implicit")
     res: dict[str, dict[str, float]] = {}
-    for kernels in backend.available()[::-1]:
-        with backend.use_backend(kernels):
-            monitor = BlowupMonitor(scene, state, "semi-implicit")
-            res[kernels] = {
-                "Body.internal_forces": per_call(lambda: body.internal_forces(x, v)),
-                "table.forces": per_call(lambda: table.forces(body, x, v, t, c[table_i])),
-                "fingers.forces": per_call(lambda: finger.forces(body, x, v, t, c[finger_i])),
-                "  of which detect": per_call(lambda: finger.pairs(body, x, t)),
-                "Scene.forces": per_call(lambda: scene.forces(x, v, t, c)),
-                "table.update": per_call(lambda: table.update(body, x, v, t, c[table_i])),
-                "fingers.update": per_call(lambda: finger.update(body, x, v, t, c[finger_i])),
-                "SemiImplicitEuler.step": per_call(lambda: integ.step(scene, state, dt)),
-                "monitor (power: contact forces again)": per_call(lambda m=monitor: m._power(state)),
-            }
+
+    def parts(sc: Scene) -> dict[str, float]:
+        body = sc.body
+        table_i, table = sc.interaction("table")
+        finger_i, finger = sc.interaction("fingers")
+        monitor = BlowupMonitor(sc, state, "semi-implicit")
+        return {
+            "Body.internal_forces": per_call(lambda: body.internal_forces(x, v)),
+            "table.forces": per_call(lambda: table.forces(body, x, v, t, c[table_i])),
+            "fingers.forces": per_call(lambda: finger.forces(body, x, v, t, c[finger_i])),
+            "  of which detect": per_call(lambda: finger.pairs(body, x, t)),
+            "Scene.forces": per_call(lambda: sc.forces(x, v, t, c)),
+            "table.update": per_call(lambda: table.update(body, x, v, t, c[table_i])),
+            "fingers.update": per_call(lambda: finger.update(body, x, v, t, c[finger_i])),
+            "SemiImplicitEuler.step": per_call(lambda: integ.step(sc, state, dt)),
+            "monitor (power: contact forces again)": per_call(lambda: monitor._power(state)),
+        }
+
+    for laws, sc in on_laws(scene):
+        res[laws] = parts(sc)
     return res
 
 
@@ -293,28 +321,29 @@ def body_only_steps(body: Body, dt: float, steps: int = 300) -> float:
 
 
 def profile(scene: Scene, s0: State, steps: int, top: int = 14) -> dict[str, str]:
-    """cProfile of ``steps`` per-step semi-implicit steps per backend: the top entries by own time."""
+    """cProfile of ``steps`` per-step semi-implicit steps, compiled and on the NumPy oracles: the
+    top entries by own time."""
     dt = stable_time_step(scene, "semi-implicit")
     out = {}
-    for kernels in backend.available()[::-1]:
-        with backend.use_backend(kernels):
-            simulate(scene, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
-            pr = cProfile.Profile()
-            pr.enable()
-            simulate(scene, s0, steps * dt, method="semi-implicit", dt=dt, fused=False)
-            pr.disable()
-            buf = io.StringIO()
-            st = pstats.Stats(pr, stream=buf)
-            st.strip_dirs().sort_stats("tottime").print_stats(top)
-            out[kernels] = buf.getvalue()
+    for laws, sc in on_laws(scene):
+        simulate(sc, s0, 5 * dt, method="semi-implicit", dt=dt, fused=False)
+        pr = cProfile.Profile()
+        pr.enable()
+        simulate(sc, s0, steps * dt, method="semi-implicit", dt=dt, fused=False)
+        pr.disable()
+        buf = io.StringIO()
+        st = pstats.Stats(pr, stream=buf)
+        st.strip_dirs().sort_stats("tottime").print_stats(top)
+        out[laws] = buf.getvalue()
     return out
 
 
 def bench_kernels() -> None:
-    """Body.internal_forces / internal_jacobian per backend at four sizes."""
+    """Body.internal_forces / internal_jacobian at four sizes, on the NumPy oracle
+    (:class:`oracles.forces.OracleBody`) and compiled."""
     print(
-        f"\n{'mesh':>14} {'nodes':>6} {'edges':>7} {'tets':>7} | {'forces numpy':>12} {'numba':>9} {'x':>5} "
-        f"| {'jacobian numpy':>14} {'numba':>9} {'x':>5}"
+        f"\n{'mesh':>14} {'nodes':>6} {'edges':>7} {'tets':>7} | {'forces oracle':>13} {'compiled':>9} "
+        f"{'x':>5} | {'jacobian oracle':>15} {'compiled':>9} {'x':>5}"
     )
     for kind, size in KERNEL_SIZES:
         if kind == "sphere":
@@ -328,15 +357,14 @@ def bench_kernels() -> None:
         x = np.asarray(mesh.points) + 1e-4 * rng.standard_normal(mesh.points.shape)
         v = 1e-2 * rng.standard_normal(x.shape)
         t = {}
-        for kernels in backend.available()[::-1]:
-            with backend.use_backend(kernels):
-                t[kernels, "f"] = per_call(lambda b=body, x=x, v=v: b.internal_forces(x, v), 1.0)
-                t[kernels, "j"] = per_call(lambda b=body, x=x: b.internal_jacobian(x), 2.0)
-        fn, fb = t["numpy", "f"], t.get(("numba", "f"), float("nan"))
-        jn, jb = t["numpy", "j"], t.get(("numba", "j"), float("nan"))
+        for laws, b in ((COMPILED, body), (ORACLE, OracleBody.of(body))):
+            t[laws, "f"] = per_call(lambda b=b, x=x, v=v: b.internal_forces(x, v), 1.0)
+            t[laws, "j"] = per_call(lambda b=b, x=x: b.internal_jacobian(x), 2.0)
+        fn, fb = t[ORACLE, "f"], t[COMPILED, "f"]
+        jn, jb = t[ORACLE, "j"], t[COMPILED, "j"]
         print(
-            f"{label:>14} {mesh.n_nodes:>6} {len(mesh.edges):>7} {mesh.n_tets:>7} | {fn * 1e3:>9.3f} ms "
-            f"{fb * 1e3:>6.3f} ms {fn / fb:>5.1f} | {jn * 1e3:>11.2f} ms {jb * 1e3:>6.2f} ms {jn / jb:>5.1f}"
+            f"{label:>14} {mesh.n_nodes:>6} {len(mesh.edges):>7} {mesh.n_tets:>7} | {fn * 1e3:>10.3f} ms "
+            f"{fb * 1e3:>6.3f} ms {fn / fb:>5.1f} | {jn * 1e3:>12.2f} ms {jb * 1e3:>6.2f} ms {jn / jb:>5.1f}"
         )
 
 
@@ -373,7 +401,7 @@ print(f"{t1 - t0:.3f} {t3 - t2:.3f} {t4 - t3:.3f} {t5 - t4:.3f}")
 def bench_compile() -> None:
     """Cold and warm import + first-call times in fresh interpreters."""
     with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache, SOFTGRASP_KERNELS="numba")
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
         print(
             "\nfresh interpreter [s]: import (softgrasp, numba, kernel modules); first body forces, energy, "
             "Jacobian; first fingertip update and forces; first fused simulate"
@@ -401,15 +429,17 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=300, help="steps per step-by-step run (default 300)")
     ap.add_argument("--fused-steps", type=int, default=3000, help="steps per fused run (default 3000)")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per case (default 3)")
-    ap.add_argument("--profile", action="store_true", help="cProfile semi-implicit steps per backend")
+    ap.add_argument(
+        "--profile", action="store_true", help="cProfile semi-implicit steps, compiled and NumPy oracle"
+    )
     ap.add_argument("--kernels", action="store_true", help="internal forces/Jacobian at four sizes")
     ap.add_argument("--compile", action="store_true", help="cold and warm compile times")
     args = ap.parse_args()
     print(
         f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, NumPy {np.__version__}, "
-        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, "
-        f"backends {', '.join(backend.available())}"
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; "
+        f"the compiled kernels against the NumPy oracles of tests/oracles"
     )
     if args.compile:
         bench_compile()
@@ -428,12 +458,12 @@ def main() -> None:
     )
     print(
         f"{'method':>14} {'dt [s]':>9} {'path':>23} {'steps/s':>15} {'node-steps/s':>13} "
-        f"{'evals/s':>8} {'x NumPy':>8} {'x per step':>10} {'busy':>5}"
+        f"{'evals/s':>8} {'x oracle':>8} {'x per step':>10} {'busy':>5}"
     )
     for method in METHODS:
         dt = stable_time_step(scene, method)
-        base = max(rates[("NumPy", method)][0])
-        per_step = max(rates[("Numba per step", method)][0]) if ("Numba per step", method) in rates else base
+        base = max(rates[(ORACLE, method)][0])
+        per_step = max(rates[("compiled per step", method)][0])
         for (label, m), (r, busy) in rates.items():
             if m != method:
                 continue
@@ -450,18 +480,15 @@ def main() -> None:
     print(f"{'':>38} " + " ".join(f"{b:>8}" for b in parts))
     for name in names:
         print(f"{name:>38} " + " ".join(f"{parts[b][name] * 1e6:>8.1f}" for b in parts))
-    fused = fused_breakdown(scene, s0) if "numba" in backend.available() else {}
+    fused = fused_breakdown(scene, s0)
     if fused:
-        print(
-            "\none fused RK4 step, its compiled parts measured alone [us] "
-            f"(busy {others_running()}):"
-        )
+        print(f"\none fused RK4 step, its compiled parts measured alone [us] (busy {others_running()}):")
         for name, sec in fused.items():
             print(f"{name:>46} {sec * 1e6:>8.1f}")
 
     flops = flops_per_eval(body)
     gemm, scalar = machine_rates()
-    t_body = parts.get("numba", parts["numpy"])["Body.internal_forces"]
+    t_body = parts[COMPILED]["Body.internal_forces"]
     print(
         f"\narithmetic bound: {flops / 1e6:.2f} Mflop per force evaluation ({FLOPS_PER_EDGE} per edge, "
         f"{FLOPS_PER_TET} per tet)"
@@ -481,16 +508,14 @@ def main() -> None:
             f"{20000 * k * flops / 1e9:.1f} Gflop/s"
         )
     dt = stable_time_step(scene, "semi-implicit")
-    for kernels in backend.available()[::-1]:
-        with backend.use_backend(kernels):
-            print(
-                f"  body alone, semi-implicit, minimal Python loop ({kernels}): "
-                f"{body_only_steps(body, dt):.0f} steps/s"
-            )
+    for laws, b in ((COMPILED, body), (ORACLE, OracleBody.of(body))):
+        print(
+            f"  body alone, semi-implicit, minimal Python loop ({laws}): {body_only_steps(b, dt):.0f} steps/s"
+        )
 
     if args.profile:
-        for kernels, text in profile(scene, s0, args.steps).items():
-            print(f"\ncProfile, {args.steps} semi-implicit steps, backend {kernels}:")
+        for laws, text in profile(scene, s0, args.steps).items():
+            print(f"\ncProfile, {args.steps} semi-implicit steps, {laws}:")
             print("\n".join(line for line in text.splitlines() if line.strip())[:4000])
     if args.kernels:
         bench_kernels()

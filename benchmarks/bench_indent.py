@@ -118,18 +118,18 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import brentq
 
-from softgrasp.physics.body import STANDARD_GRAVITY, Body, build_body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import NotConverged, SoftgraspError
-from softgrasp.experiments.indentation import indentation_test, surface_height
 from softgrasp.execution.mujoco.indent import IndentSpec, load_indent_scene
+from softgrasp.experiments.indentation import indentation_test, surface_height
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.model.material import Material
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.objects import SPHERE_RADIUS, make_object
+from softgrasp.physics.body import STANDARD_GRAVITY, Body, build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import implicit_euler_step
-from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_static
 

@@ -45,8 +45,8 @@ WARM_REPEATS = 3
 def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover - child process
     from softgrasp.grasp.planner import PlanConfig, plan_grasp
     from softgrasp.linalg.solve import SolverCache
-    from softgrasp.physics.body import build_body
     from softgrasp.model.objects import make_object
+    from softgrasp.physics.body import build_body
 
     t0 = time.perf_counter()
     mesh, mat, mass = make_object("sphere", h)

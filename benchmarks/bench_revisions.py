@@ -62,7 +62,7 @@ def _setpoints(out: pathlib.Path) -> list[float]:
 
 
 def _agree(a: list[float], b: list[float], rtol: float = 1e-6) -> bool:
-    return len(a) == len(b) and all(abs(x - y) <= rtol * max(abs(x), abs(y), 1e-12) for x, y in zip(a, b))
+    return len(a) == len(b) and all(abs(x - y) <= rtol * max(abs(x), abs(y), 1e-12) for x, y in zip(a, b, strict=True))
 
 
 def main() -> None:

@@ -19,12 +19,12 @@ import time
 
 import numpy as np
 
-from softgrasp.physics.body import build_body
 from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.settle import settle_on_table
-from softgrasp.model.objects import make_object
-from softgrasp.sim import newton, static
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
+from softgrasp.sim import newton, static
 
 SIZES = (0.008, 0.0075, 0.006, 0.0055, 0.005)
 QUICK = (0.008, 0.0075)

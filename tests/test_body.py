@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
 from softgrasp.errors import MaterialError
 from softgrasp.experiments.compression import compression_test
 from softgrasp.model.material import Material
 from softgrasp.model.mesh import box, sphere
+from softgrasp.physics.body import build_body
 
 
 def _isotropic_tensor(E: float, nu: float) -> np.ndarray:

@@ -9,9 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
 from softgrasp.cli import main
-from softgrasp.physics.fingertip.params import ContactParams
 from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.experiments.calibration import (
     fit_compression,
@@ -22,9 +20,11 @@ from softgrasp.experiments.calibration import (
 )
 from softgrasp.experiments.compression import compression_test
 from softgrasp.experiments.indentation import indentation_test
-from softgrasp.model.material import Material, Polynomial
 from softgrasp.io.materialfile import read_material_file, write_material_file
+from softgrasp.model.material import Material, Polynomial
 from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams
 
 #: The specimen of the fits: the 50 mm cube, coarse.
 H_FIT = 0.0125

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
 from softgrasp.errors import ConfigError
 from softgrasp.experiments.compression import compression_test
 from softgrasp.model.material import Material, Polynomial
 from softgrasp.model.mesh import box
 from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
 
 
 def _force_at(res, strain: float) -> float:

@@ -14,10 +14,14 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from oracles.contact import relative_velocity
-
+from softgrasp.errors import ContactError
+from softgrasp.linalg.solve import SolverCache
+from softgrasp.model.material import Material, preset
+from softgrasp.model.mesh import TetMesh, box
+from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.geometry import FacetIndex, detect
 from softgrasp.physics.fingertip.laws import (
     HERTZ_PREFACTOR,
@@ -29,14 +33,9 @@ from softgrasp.physics.fingertip.laws import (
     restitution_hunt_crossley,
     slip_force,
 )
-from softgrasp.physics.fingertip.contact import FingertipContact
-from softgrasp.errors import ContactError
-from softgrasp.model.material import Material, preset
-from softgrasp.model.mesh import TetMesh, box
-from softgrasp.model.objects import make_object
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.explicit import simulate
-from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_static
 

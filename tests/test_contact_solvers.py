@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.model.material import Material
 from softgrasp.model.mesh import box
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.supports import Tether
 from softgrasp.sim.explicit import simulate
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
-from softgrasp.physics.supports import Tether
 
 
 @pytest.mark.slow

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
 from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.model.material import Material
 from softgrasp.model.mesh import TetMesh, box, signed_volumes
+from softgrasp.physics.body import build_body
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import (
     RK4,

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
-from softgrasp.physics.springs import edge_damping_forces, spring_forces
 from softgrasp.model.material import Linear, Material, Polynomial, Tabulated
 from softgrasp.model.mesh import box, signed_volumes
+from softgrasp.physics.body import build_body
+from softgrasp.physics.springs import edge_damping_forces, spring_forces
 
 LAWS = {
     "linear": Linear(),

@@ -1,6 +1,6 @@
 """The fused stepper's body forces (:mod:`softgrasp.sim.fused.body` on the layout of its
-:func:`~softgrasp.sim.fused.body.pack_body`) against the NumPy reference (:mod:`softgrasp.physics.forces`
-through ``Body.internal_forces`` / ``internal_energy`` with the NumPy backend) on perturbed
+:func:`~softgrasp.sim.fused.body.pack_body`) against the NumPy reference (the oracle
+:mod:`oracles.forces`: ``body_internal_forces`` / ``body_internal_energy``) on perturbed
 states: forces, energy, inverted tets; with and without the volume term, the barrier and the
 quadratic volume law, damped and undamped, split in one to five parts."""
 
@@ -11,7 +11,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from softgrasp import backend
+from oracles import forces as ref
 from softgrasp.model.material import Material, Polynomial
 from softgrasp.model.mesh import TetMesh, box, signed_volumes
 from softgrasp.model.objects import make_object
@@ -58,8 +58,7 @@ def _fused(body, x, v, want_energy: bool, check: bool, parts: int = 2, parallel:
 
 
 def _reference(body, x, v):
-    with backend.use_backend("numpy"):
-        return body.internal_forces(x, v), body.internal_energy(x)
+    return ref.body_internal_forces(body, x, v), ref.body_internal_energy(body, x)
 
 
 @pytest.mark.parametrize("name", ["sphere", "cube"])
@@ -119,8 +118,7 @@ def test_undamped_forces_match_the_reference(sphere, law):
     if law == "quadratic":
         body = dataclasses.replace(body, kappa=-abs(body.kappa))
     x, v = _state(body, seed=3)
-    with backend.use_backend("numpy"):
-        f_ref, e_ref = body.internal_forces(x), body.internal_energy(x)
+    f_ref, e_ref = ref.body_internal_forces(body, x), ref.body_internal_energy(body, x)
     for check in (False, True):
         f, e, count, first = _fused(body, x, v, check, check)
         assert _rel(f, f_ref) < TOL and (count, first) == (0, -1)
@@ -152,9 +150,9 @@ def test_inverted_tets_are_counted_when_checked(sphere, kappa):
 
 def test_nearly_flat_tets_are_found_inverted_as_the_reference_finds_them():
     """Without the volume term the fused pass counts inverted tets with the unfused triple product
-    of :func:`softgrasp.physics.forces_compiled._inverted` (the reference of ``count_inverted``): on
-    20 000 nearly flat tets, whose sign is decided by the last bits, the same tets."""
-    from softgrasp.physics import forces_compiled as elastic
+    of :func:`softgrasp.physics.volume._inverted` (the kernel of ``count_inverted``): on 20 000
+    nearly flat tets, whose sign is decided by the last bits, the same tets."""
+    from softgrasp.physics import volume as elastic
 
     rng = np.random.default_rng(0)
     M = 20_000

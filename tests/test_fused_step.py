@@ -1,22 +1,27 @@
 """The fused compiled stepper (:mod:`softgrasp.sim.fused.step`) against the per-step path of
-``simulate`` (RK4) and the NumPy reference: same trajectory, contact states and contact forces (to
-1e-8), same callbacks and progress reports, same blow-up errors, the same result on one thread or
-two; free fall to round-off; the compiled kernels' cache keyed by the sources they inline."""
+``simulate`` (RK4) on the compiled kernels and the NumPy reference (the oracles of
+``tests/oracles``: :func:`oracles.contact.oracle_scene`'s body and fingertips, the planes of
+:mod:`oracles.planes`): same trajectory, contact states and contact forces (to 1e-8), same
+callbacks and progress reports, same blow-up errors, the same result on one thread or two; free
+fall to round-off; the compiled kernels' cache keyed by the sources they inline."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
-from softgrasp import backend
-from softgrasp.physics.body import build_body
-from softgrasp.physics.fingertip.params import Fingertip
-from softgrasp.physics.fingertip.contact import FingertipContact
+from oracles import planes as oracle_planes
+from oracles.contact import oracle_scene
 from softgrasp.errors import SimulationUnstable
 from softgrasp.experiments.indentation import surface_height
 from softgrasp.model.material import Material, Tabulated
 from softgrasp.model.mesh import box
 from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate, stable_time_step
 from softgrasp.sim.explicit import fused_unsupported, make_integrator
@@ -53,12 +58,26 @@ def pressed():
     return scene, scene.initial_state(v=v0)
 
 
+def _reference(scene):
+    """``scene`` on the NumPy oracles: its body and fingertips (:func:`oracle_scene`) and its planes
+    (:class:`OraclePlaneContact`)."""
+    reference = oracle_scene(scene)
+    inters = tuple(
+        oracle_planes.OraclePlaneContact(**{f.name: getattr(i, f.name) for f in dataclasses.fields(i)})
+        if type(i) is PlaneContact
+        else i
+        for i in reference.interactions
+    )
+    return dataclasses.replace(reference, interactions=inters)
+
+
 def _contact_forces(scene, state) -> list[np.ndarray]:
-    with backend.use_backend("numpy"):
-        return [
-            inter.forces(scene.body, state.x, state.v, state.t, st)
-            for inter, st in zip(scene.interactions, state.contacts, strict=True)
-        ]
+    """The contact forces of ``state`` by the NumPy reference (the oracles)."""
+    reference = _reference(scene)
+    return [
+        inter.forces(reference.body, state.x, state.v, state.t, st)
+        for inter, st in zip(reference.interactions, state.contacts, strict=True)
+    ]
 
 
 def _assert_same(scene, s0, fast, slow) -> None:
@@ -80,20 +99,21 @@ def _assert_same(scene, s0, fast, slow) -> None:
 def test_fused_path_is_chosen_only_when_supported(pressed):
     scene, _ = pressed
     rk4 = make_integrator("rk4")
-    with backend.use_backend("numba"):
-        assert fused_unsupported(scene, rk4) is None
-        assert "semi-implicit" in fused_unsupported(scene, make_integrator("semi-implicit"))
-        assert "dopri" in fused_unsupported(scene, make_integrator("dopri"))
-        tabulated = build_body(
-            box(0.02, 1), Material(1e5, 0.45, 50.0, law=Tabulated([0.05, 0.1, 0.2], [5e3, 1e4, 2.1e4]))
-        )
-        assert "not a polynomial" in fused_unsupported(Scene(tabulated), rk4)
-        with pytest.raises(ValueError, match="fused stepper cannot run"):
-            simulate(scene, scene.initial_state(), 1e-5, method="semi-implicit", fused=True)
-    with backend.use_backend("numpy"):
-        assert "numpy" in fused_unsupported(scene, rk4)
-        with pytest.raises(ValueError, match="fused stepper cannot run"):
-            simulate(scene, scene.initial_state(), 1e-5, method="rk4", fused=True)
+    assert fused_unsupported(scene, rk4) is None
+    assert "semi-implicit" in fused_unsupported(scene, make_integrator("semi-implicit"))
+    assert "dopri" in fused_unsupported(scene, make_integrator("dopri"))
+    tabulated = build_body(
+        box(0.02, 1), Material(1e5, 0.45, 50.0, law=Tabulated([0.05, 0.1, 0.2], [5e3, 1e4, 2.1e4]))
+    )
+    assert "not a polynomial" in fused_unsupported(Scene(tabulated), rk4)
+    with pytest.raises(ValueError, match="fused stepper cannot run"):
+        simulate(scene, scene.initial_state(), 1e-5, method="semi-implicit", fused=True)
+    # the NumPy oracles' interactions: ones the fused loop does not know
+    assert "OracleFingertipContact" in fused_unsupported(oracle_scene(scene), rk4)
+    reference = _reference(scene)
+    assert "OraclePlaneContact" in fused_unsupported(reference, rk4)
+    with pytest.raises(ValueError, match="fused stepper cannot run"):
+        simulate(reference, scene.initial_state(), 1e-5, method="rk4", fused=True)
     with pytest.raises(ValueError, match="runs rk4"):
         x = scene.body.mesh.points
         step.FusedStepper(scene.body, [], [], None, None, x, 0 * x, 0.0, method="semi-implicit")
@@ -106,11 +126,9 @@ def test_fused_agrees_with_per_step_and_reference(pressed, method):
     scene, s0 = pressed
     dt = stable_time_step(scene, method)
     T = 200 * dt
-    with backend.use_backend("numba"):
-        fused = simulate(scene, s0, T, method=method, dt=dt)
-        per_step = simulate(scene, s0, T, method=method, dt=dt, fused=False)
-    with backend.use_backend("numpy"):
-        reference = simulate(scene, s0, T, method=method, dt=dt)
+    fused = simulate(scene, s0, T, method=method, dt=dt)
+    per_step = simulate(scene, s0, T, method=method, dt=dt, fused=False)
+    reference = simulate(_reference(scene), s0, T, method=method, dt=dt, fused=False)
     fingers = scene.interactions[1]
     assert len(fingers.pairs(scene.body, fused.x, fused.t)) > 0
     table_state = fused.contacts[0]
@@ -128,11 +146,10 @@ def test_callbacks_and_progress_match_per_step(pressed):
     runs = {}
     for fused in (True, False):
         calls, reports = [], []
-        with backend.use_backend("numba"):
-            out = simulate(
-                scene, s0, 57 * dt, method="rk4", dt=dt, callback=calls.append, every=10,
-                progress=reports.append, fused=fused,
-            )  # fmt: skip
+        out = simulate(
+            scene, s0, 57 * dt, method="rk4", dt=dt, callback=calls.append, every=10,
+            progress=reports.append, fused=fused,
+        )  # fmt: skip
         runs[fused] = (out, calls, reports)
     (a, ca, pa), (b, cb, pb) = runs[True], runs[False]
     assert [s.t for s in ca] == pytest.approx([s.t for s in cb], rel=1e-14, abs=1e-18)
@@ -159,9 +176,8 @@ def test_free_fall_of_the_centroid_to_round_off():
     )
     h = stable_time_step(scene, "rk4")
     n = 400
-    with backend.use_backend("numba"):
-        assert fused_unsupported(scene, make_integrator("rk4")) is None
-        out = simulate(scene, s0, n * h, method="rk4", dt=h)
+    assert fused_unsupported(scene, make_integrator("rk4")) is None
+    out = simulate(scene, s0, n * h, method="rk4", dt=h)
     m = body.mass / body.total_mass
     com0, com = m @ s0.x, m @ out.x
     g = np.asarray(body.gravity)
@@ -191,7 +207,7 @@ def test_blow_up_raises_the_same_error(method, nu, factor, check_every, reason):
     dt = factor * stable_time_step(scene, method)
     errors = {}
     for fused in (True, False):
-        with backend.use_backend("numba"), pytest.raises(SimulationUnstable, match=reason) as err:
+        with pytest.raises(SimulationUnstable, match=reason) as err:
             simulate(
                 scene,
                 s0,
@@ -217,9 +233,8 @@ def test_energy_bookkeeping_with_plates_doing_work():
     scene = Scene(body, (table, plate))
     s0 = scene.initial_state()
     dt = stable_time_step(scene, "rk4")
-    with backend.use_backend("numba"):
-        fast = simulate(scene, s0, 0.004, method="rk4", dt=dt, check_every=1)
-        slow = simulate(scene, s0, 0.004, method="rk4", dt=dt, check_every=1, fused=False)
+    fast = simulate(scene, s0, 0.004, method="rk4", dt=dt, check_every=1)
+    slow = simulate(scene, s0, 0.004, method="rk4", dt=dt, check_every=1, fused=False)
     _assert_same(scene, s0, fast, slow)
     assert fast.x[:, 2].max() < 0.05 - 0.003
 
@@ -376,17 +391,18 @@ def test_fused_threads_follow_the_thread_setting_not_the_load(monkeypatch):
 
 def test_the_kernels_cache_is_keyed_by_every_source_they_inline():
     """Numba's cache checks only a kernel's own file; the fused kernels' index keys also hold the
-    digest of every module whose compiled functions they call (cache.INLINED_MODULES): an edit of
-    one of those gives another key, so the kernels compile afresh instead of running stale code."""
+    digest of every module whose compiled functions they call (among jitcache.KERNEL_MODULES): an
+    edit of one of those gives another key, so the kernels compile afresh instead of running stale
+    code."""
     import ast
+    import importlib.util
     import pathlib
 
+    from softgrasp import jitcache
     from softgrasp.sim.fused import cache, monitor, rk4
 
-    import importlib.util
-
     sources = list(pathlib.Path(cache.__file__).parent.glob("*.py"))
-    sources += [pathlib.Path(importlib.util.find_spec(m).origin) for m in cache.INLINED_MODULES]
+    sources += [pathlib.Path(importlib.util.find_spec(m).origin) for m in jitcache.KERNEL_MODULES]
     called = set()
     for path in sources:  # the kernels' modules and the modules they call, one level further
         for node in ast.walk(ast.parse(path.read_text())):
@@ -395,13 +411,13 @@ def test_the_kernels_cache_is_keyed_by_every_source_they_inline():
                 names = [getattr(module, a.name, None) for a in node.names]
                 if any(hasattr(f, "py_func") for f in names):  # a compiled function
                     called.add(node.module)
-    assert called <= set(cache.INLINED_MODULES)
+    assert called <= set(jitcache.KERNEL_MODULES)
     kernels = (rk4.advance, rk4.forces_at, fused_body.body_forces, contacts.finger_step, monitor.after_step)
     for kernel in kernels:
-        assert isinstance(kernel._cache, cache.SourceKeyedCache)
-        assert kernel._cache.digest == cache.SOURCE_DIGEST == cache.source_digest()
-    keyed = cache.SourceKeyedCache(rk4.advance.py_func)
-    other = cache.SourceKeyedCache(rk4.advance.py_func, digest="0" * 64)
+        assert isinstance(kernel._cache, jitcache.SourceKeyedCache)
+        assert kernel._cache.digest == jitcache.SOURCE_DIGEST == jitcache.source_digest()
+    keyed = jitcache.SourceKeyedCache(rk4.advance.py_func)
+    other = jitcache.SourceKeyedCache(rk4.advance.py_func, digest="0" * 64)
     sig, codegen = ("a signature",), rk4.advance.targetctx.codegen()
     assert keyed._index_key(sig, codegen) != other._index_key(sig, codegen)
     assert keyed._index_key(sig, codegen)[:-1] == other._index_key(sig, codegen)[:-1]

@@ -12,11 +12,11 @@ import sys
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
 from softgrasp.cli import main
 from softgrasp.errors import ConfigError
 from softgrasp.experiments.indentation import indentation_test, read_force_curve
 from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
 
 HEADER = ["time_s", "penetration_m", "force_N", "normal_force_N", "tangential_force_N", "contacts"]
 #: A coarse cube (4 x 4 x 4 cells) and a short path keep the CLI runs at about a second each.

@@ -13,19 +13,19 @@ import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
+
 from oracles import forces as ref
 from oracles.contact import OracleFingertipContact, oracle_detect, oracle_scene, pair_geometry
-
 from softgrasp import backend
-from softgrasp.physics.body import build_body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-from softgrasp.physics.fingertip.geometry import FacetIndex, detect
-from softgrasp.physics import forces_compiled as elastic
-from softgrasp.physics import springs, volume
-from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.model.material import Linear, Material, Polynomial, Tabulated
 from softgrasp.model.mesh import box, signed_volumes
 from softgrasp.model.objects import make_object
+from softgrasp.physics import forces_compiled as elastic
+from softgrasp.physics import springs, volume
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.geometry import FacetIndex, detect
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim import Scene, simulate, stable_time_step
 

@@ -14,18 +14,17 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from softgrasp.physics.body import build_body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-from softgrasp.physics.fingertip.contact import FingertipContact
-from softgrasp.model.material import preset
-from softgrasp.model.mesh.generate import box
-from softgrasp.physics.planes import Plane, PlaneContact
-from softgrasp.linalg import pardiso
-from softgrasp.linalg import factored, krylov
+from softgrasp.linalg import factored, krylov, pardiso
 from softgrasp.linalg import solve as linsolve
 from softgrasp.linalg.multigrid import cycle, hierarchy
 from softgrasp.linalg.multigrid import krylov as mg_krylov
 from softgrasp.linalg.solve import SolverCache, solve_newton_system
+from softgrasp.model.material import preset
+from softgrasp.model.mesh.generate import box
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
 
@@ -1003,7 +1002,6 @@ def test_hierarchies_built_by_threads_at_once_are_those_built_alone():
     for each build they drew from each other's sequence."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from softgrasp.linalg import solve as linsolve
     A0, A1, x = _table_then_plate(5)
     alone = [hierarchy.hierarchy(A, x) for A in (A0, A1)]
     with ThreadPoolExecutor(4) as pool:
@@ -1021,7 +1019,6 @@ def test_a_child_forked_while_a_thread_builds_a_hierarchy_builds_its_own(finishe
     parent's, held at the fork, would never be released there: the build would wait forever)."""
     import multiprocessing
 
-    from softgrasp.linalg import solve as linsolve
     A0, _, x = _table_then_plate(3)
     ctx = multiprocessing.get_context("fork")
     with hierarchy._GLOBAL_RNG:  # held, as by another thread building, when the child is forked

@@ -512,8 +512,8 @@ def test_gmsh_meshes_come_numbered_locally(default_sphere: TetMesh) -> None:
 def test_body_forces_do_not_depend_on_the_numbering() -> None:
     """The body built from the renumbered mesh has the same masses, internal forces and
     Jacobian (permuted) at a deformed state: the numbering is bookkeeping, not physics."""
-    from softgrasp.physics.body import build_body
     from softgrasp.model.material import preset
+    from softgrasp.physics.body import build_body
 
     mesh = sphere(R, 0.024, on_table=False)
     rng = np.random.default_rng(3)

@@ -15,7 +15,6 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import STANDARD_GRAVITY
 from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.execution.mujoco.indent import (
     INDENT_TIP,
@@ -26,6 +25,7 @@ from softgrasp.execution.mujoco.indent import (
 )
 from softgrasp.execution.mujoco.options import OBJECT_NAME, SOLVER
 from softgrasp.model.objects import SPHERE_RADIUS, make_object
+from softgrasp.physics.body import STANDARD_GRAVITY
 
 RADIUS = 0.008
 

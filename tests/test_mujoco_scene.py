@@ -20,7 +20,6 @@ import numpy as np
 import pytest
 
 import softgrasp
-from softgrasp.physics.body import STANDARD_GRAVITY
 from softgrasp.errors import ConfigError, MaterialError, MeshError
 from softgrasp.execution.mujoco.mjcf import build_mjcf
 from softgrasp.execution.mujoco.options import DEFAULT_TIMESTEP
@@ -29,6 +28,7 @@ from softgrasp.execution.mujoco.spec import SceneSpec
 from softgrasp.hand.kinematics import HandModel
 from softgrasp.model.mesh.tetmesh import signed_volumes
 from softgrasp.model.objects import SPHERE_RADIUS, make_object
+from softgrasp.physics.body import STANDARD_GRAVITY
 
 HAND = HandModel.default()
 FINGERS = ("thumb", "first", "middle")

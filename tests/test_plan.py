@@ -10,19 +10,19 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
 from softgrasp.cli import main
-from softgrasp.physics.fingertip.params import ContactParams
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged
 from softgrasp.grasp.closure import is_force_closure
 from softgrasp.grasp.initial import HandLayout, initial_grasp
 from softgrasp.grasp.planner import PlanConfig, plan_grasp
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.model.material import preset
 from softgrasp.model.mesh.generate import box, sphere
 from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.implicit import simulate_implicit
-from softgrasp.linalg.solve import SolverCache
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import solve_static
 

@@ -20,8 +20,8 @@ import pytest
 
 from oracles import hand as oracle
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand import placement as reach
 from softgrasp.hand import descent as kernel
+from softgrasp.hand import placement as reach
 from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack
 
 #: Agreement of the compiled solve and the NumPy oracle: absolute [m, rad] and relative.

@@ -15,9 +15,11 @@ import pytest
 from softgrasp.cli import main
 from softgrasp.errors import ConfigError, InfeasibleGrasp, NotConverged
 from softgrasp.grasp.force_control import hold_setpoints
-from softgrasp.io.options import PLAN_DEFAULTS, contact_params, load_body, plan_config
 from softgrasp.grasp.planner import plan_grasp
+from softgrasp.io.atomic import write_json
+from softgrasp.io.options import PLAN_DEFAULTS, contact_params, load_body, plan_config
 from softgrasp.io.plan_document import plan_document
+from softgrasp.io.planfile import load_plan_grasp
 from softgrasp.sweep.robust import (
     _unholdable,
     nominal_values,
@@ -25,8 +27,6 @@ from softgrasp.sweep.robust import (
     robust_setpoints,
     sample_requirements,
 )
-from softgrasp.io.planfile import load_plan_grasp
-from softgrasp.io.atomic import write_json
 
 NOMINAL = {"mu": 0.8, "E": 80e3, "nu": 0.45, "density": 1000.0, "mass": 0.05, "a2": 0.0, "a3": 0.0}
 

@@ -8,15 +8,14 @@ import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from oracles import without_parallel_kernels
 
-from softgrasp.physics.body import build_body
-from softgrasp.model.material import preset
-from softgrasp.model.mesh.generate import box
+from oracles import without_parallel_kernels
 from softgrasp.linalg.multigrid import hierarchy
 from softgrasp.linalg.multigrid import krylov as mg_krylov
 from softgrasp.linalg.solve import SolverCache
-
+from softgrasp.model.material import preset
+from softgrasp.model.mesh.generate import box
+from softgrasp.physics.body import build_body
 
 
 def _cube_system(n: int = 6, local: bool = False):
@@ -290,13 +289,13 @@ def test_node_block_sweeps_and_products_are_their_definition_and_the_same_bits_o
     solved densely; the same bits on one thread or two; repeated symmetric sweeps converge (the
     l1 term keeps M + M^T - A positive definite). A matrix that is not made of full node blocks
     keeps the row-wise sweeps."""
-    from softgrasp.linalg.sparse import node_blocks
     from softgrasp.linalg.smoothers import (
         SWEEP_PARTS,
         HybridBlockGaussSeidel,
         HybridGaussSeidel,
         fine_smoother,
     )
+    from softgrasp.linalg.sparse import node_blocks
 
     A, _ = _cube_system(5, local=True)
     blocks = node_blocks(A)
@@ -343,7 +342,6 @@ def test_unique_pairs_is_numpys_unique_and_the_block_pattern_the_numpy_oracles()
     duplicates and empty rows included, and the body's Jacobian pattern built with either; bad
     input is refused."""
     from oracles.forces import block_pattern_arrays
-
     from softgrasp.linalg.sparse import block_layout, unique_pairs
     from softgrasp.physics.forces import BlockPattern, assemble_blocks
     from softgrasp.physics.springs import spring_pairs
@@ -391,8 +389,8 @@ def test_a_node_block_that_is_not_positive_definite_is_left_alone():
     """As the row-wise sweep leaves a row whose l1 diagonal is not positive, the node-block sweep
     leaves a node whose (l1) diagonal block is not positive definite: its unknowns unchanged, the
     others updated."""
-    from softgrasp.linalg.sparse import node_blocks
     from softgrasp.linalg.smoothers import HybridBlockGaussSeidel
+    from softgrasp.linalg.sparse import node_blocks
 
     D = np.diag([2.0, 2.0, 2.0, -1.0, -1.0, -1.0, 3.0, 3.0, 3.0])
     D[0, 1] = D[1, 0] = 0.5
@@ -412,8 +410,8 @@ def test_the_compiled_diagonal_is_scipys_with_duplicates_and_unsorted_indices():
     reads each Newton matrix's diagonal to find the nodes contacts stiffened) against SciPy's
     ``diagonal()``: duplicate entries summed, each row's entries in reverse order, rows without a
     diagonal entry 0."""
-    from softgrasp.linalg.sparse import diagonal
     from softgrasp.linalg.smoothers import HybridBlockGaussSeidel, HybridGaussSeidel, fine_smoother
+    from softgrasp.linalg.sparse import diagonal
 
     A, _ = _cube_system(5)
     assert np.array_equal(diagonal(A), A.diagonal())

@@ -8,24 +8,24 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from softgrasp.physics.body import build_body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import NotConverged
-from softgrasp.physics.forces import assemble_blocks
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.model.material import Material, preset
 from softgrasp.model.mesh import box
 from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.forces import assemble_blocks
 from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.physics.supports import Tether
 from softgrasp.sim import newton
-from softgrasp.sim.implicit import Inertia
 from softgrasp.sim.explicit import settle
-from softgrasp.linalg.solve import SolverCache
-from softgrasp.sim.scene import Scene
+from softgrasp.sim.implicit import Inertia
 from softgrasp.sim.newton import cycle_period
 from softgrasp.sim.newton_matrix import newton_matrix
+from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import extrapolated, solve_increment, solve_static
-from softgrasp.physics.supports import Tether
 
 G = 9.80665
 

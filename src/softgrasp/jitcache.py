@@ -20,6 +20,8 @@ from typing import Any
 import numba
 from numba.core.caching import FunctionCache
 
+from softgrasp import backend  # noqa: F401 - Intel TBB made loadable for Numba's threads first
+
 __all__ = ["KERNEL_MODULES", "SOURCE_DIGEST", "SourceKeyedCache", "jit", "source_digest"]
 
 #: Every module that defines compiled kernels (with :func:`jit`); their sources key the cache.

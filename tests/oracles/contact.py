@@ -17,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from oracles.forces import OracleBody
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.geometry import (
@@ -28,8 +29,6 @@ from softgrasp.physics.fingertip.geometry import (
 )
 from softgrasp.physics.fingertip.laws import normal_force, normal_force_derivative, slip_force
 from softgrasp.physics.fingertip.state import FingerState, _Eval
-
-from oracles.forces import OracleBody
 
 
 def barycentric(

@@ -20,6 +20,7 @@ from softgrasp.physics.forces import assemble_blocks
 from softgrasp.physics.springs import spring_pairs
 from softgrasp.physics.volume import volume_pairs
 
+
 def scatter_add(n_nodes: int, index: NDArray[np.int64], values: NDArray[np.float64]) -> NDArray[np.float64]:
     """Sum of the rows of ``values`` (K, 3) at the nodes ``index`` (K,): (n_nodes, 3). The same as
     ``np.add.at`` on zeros, by three ``bincount`` calls (several times faster)."""
@@ -291,7 +292,7 @@ class OracleBody(Body):
     NumPy laws of this module."""
 
     @classmethod
-    def of(cls, body: Body) -> "OracleBody":
+    def of(cls, body: Body) -> OracleBody:
         """The oracle twin of ``body`` (the same fields)."""
         return cls(**{f.name: getattr(body, f.name) for f in dataclasses.fields(body)})
 

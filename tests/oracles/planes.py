@@ -64,3 +64,13 @@ def plane_update(contact: PlaneContact, body, x, v, t: float, state: PlaneState)
     else:
         anchor = rel_t
     return replace(state, active=touching.copy(), anchor=anchor)
+
+
+class OraclePlaneContact(PlaneContact):
+    """A :class:`PlaneContact` whose forces and friction update are this module's NumPy law."""
+
+    def forces(self, body, x, v, t, state):
+        return plane_forces(self, body, x, v, t, state)
+
+    def update(self, body, x, v, t, state):
+        return plane_update(self, body, x, v, t, state)

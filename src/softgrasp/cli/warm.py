@@ -34,14 +34,14 @@ def warm_up() -> None:
     a tiny such problem. Does nothing in a forked child whose Numba threads were lost."""
     if not compiled():
         return
-    from softgrasp.physics.body import build_body
-    from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-    from softgrasp.physics.fingertip.contact import FingertipContact
-    from softgrasp.physics import forces_compiled as elastic
+    from softgrasp.linalg.solve import SolverCache
     from softgrasp.model.material import preset
     from softgrasp.model.mesh.generate import box
+    from softgrasp.physics import forces_compiled as elastic
+    from softgrasp.physics.body import build_body
+    from softgrasp.physics.fingertip.contact import FingertipContact
+    from softgrasp.physics.fingertip.params import ContactParams, Fingertip
     from softgrasp.physics.planes import Plane, PlaneContact
-    from softgrasp.linalg.solve import SolverCache
     from softgrasp.sim.scene import Scene
     from softgrasp.sim.static import solve_static
 

@@ -30,9 +30,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.io.planfile import PlanFile
 from softgrasp.execution.protocol import Hand
 from softgrasp.hand.placement import invert, transform
+from softgrasp.io.planfile import PlanFile
 
 __all__ = ["ClosingLine", "ExecuteConfig", "ExecutionResult", "closing_lines", "execute_plan", "PHASES"]
 

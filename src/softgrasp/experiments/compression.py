@@ -21,13 +21,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull
 
-from softgrasp.physics.body import Body
 from softgrasp.errors import ConfigError
-from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.physics.body import Body
+from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.physics.supports import Tether
 from softgrasp.sim.scene import Scene
 from softgrasp.sim.static import extrapolated, solve_increment, solve_static
-from softgrasp.physics.supports import Tether
 
 __all__ = ["CompressionResult", "compression_test", "outline_area"]
 

@@ -42,13 +42,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.physics.body import Body
-from softgrasp.physics.fingertip.params import ContactParams, Fingertip
-from softgrasp.physics.fingertip.contact import FingerReport, FingertipContact
 from softgrasp.errors import ConfigError, ContactError, NotConverged
 from softgrasp.experiments.measured import read_table
-from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.physics.body import Body
+from softgrasp.physics.fingertip.contact import FingerReport, FingertipContact
+from softgrasp.physics.fingertip.params import ContactParams, Fingertip
+from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import extrapolated, solve_increment, solve_static
 

@@ -27,15 +27,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.physics.body import Body
-from softgrasp.physics.fingertip.params import Fingertip
-from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.errors import ConfigError, NotConverged
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.hold import check_hold, cone_usage
+from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.setup import closing_setup
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.physics.body import Body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_increment
 

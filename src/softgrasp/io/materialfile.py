@@ -12,11 +12,11 @@ import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from softgrasp.physics.fingertip.params import ContactParams
 from softgrasp.errors import ConfigError, ContactError, MaterialError
-from softgrasp.model.material import Linear, Material, Polynomial, StressStrainLaw
 from softgrasp.io.atomic import write_text
 from softgrasp.io.tomlfile import read_toml
+from softgrasp.model.material import Linear, Material, Polynomial, StressStrainLaw
+from softgrasp.physics.fingertip.params import ContactParams
 
 __all__ = ["MaterialFile", "read_material_file", "write_material_file", "is_material_file"]
 

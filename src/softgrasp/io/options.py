@@ -16,13 +16,12 @@ from typing import TYPE_CHECKING
 
 from softgrasp.errors import ConfigError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
-
 from softgrasp.model.material import Material
 
 if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help stays quick
+    from softgrasp.grasp.planner import PlanConfig
     from softgrasp.physics.body import Body
     from softgrasp.physics.fingertip.params import ContactParams
-    from softgrasp.grasp.planner import PlanConfig
 
 __all__ = [
     "PLAN_DEFAULTS",
@@ -81,9 +80,9 @@ def load_body(
     A material given with its own density or mass decides the mass; a preset, or a file or
     :class:`Material` without a density, keeps a built-in object's mass.
     """
-    from softgrasp.physics.body import build_body
     from softgrasp.model.material import Polynomial, parse_material
     from softgrasp.model.objects import make_object
+    from softgrasp.physics.body import build_body
 
     mesh, mat, mass = make_object(object_name, mesh_size, reorient=reorient, scale=scale)
     if isinstance(material, Material):

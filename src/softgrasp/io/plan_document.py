@@ -8,9 +8,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.physics.body import Body
 from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.planner import GraspPlan
+from softgrasp.physics.body import Body
 
 __all__ = ["SCHEMA", "plan_document", "history_rows", "HISTORY_HEADER", "plan_table", "hand_polylines"]
 

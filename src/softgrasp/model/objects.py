@@ -14,9 +14,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from softgrasp.model.memory import release_freed_memory
 from softgrasp.errors import MeshError
 from softgrasp.model.material import Material, preset
+from softgrasp.model.memory import release_freed_memory
 from softgrasp.model.mesh.placement import rest_on_table
 from softgrasp.model.mesh.tetmesh import TetMesh
 

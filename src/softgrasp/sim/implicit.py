@@ -20,10 +20,10 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from softgrasp.physics.body import Body
 from softgrasp.errors import ConfigError
-from softgrasp.physics.forces import assemble_blocks
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.physics.body import Body
+from softgrasp.physics.forces import assemble_blocks
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import solve_static
 

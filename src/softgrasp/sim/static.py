@@ -157,8 +157,8 @@ def _force_threads(body: Body, cache: SolverCache) -> contextlib.AbstractContext
     on the calling thread's: :meth:`softgrasp.physics.body.Body.internal_forces`): the assembly's, the idle
     cores on the multigrid path (:func:`~softgrasp.linalg.solve.assembly_threads`). Nothing is
     changed for smaller bodies, or in a forked child whose Numba threads were lost."""
-    from softgrasp.physics.forces_compiled import PARTITIONED_MIN_NODES
     from softgrasp.linalg.sparse import _Threads
+    from softgrasp.physics.forces_compiled import PARTITIONED_MIN_NODES
 
     if body.n_nodes < PARTITIONED_MIN_NODES or backend.forked():
         return contextlib.nullcontext()

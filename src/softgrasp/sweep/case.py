@@ -95,8 +95,8 @@ def run_case(
     or the message), ``error_type`` (the exception's class: ``InfeasibleGrasp``, ``NotConverged``
     ...), and the figures (NaN where a failed case has none).
     """
-    from softgrasp.io.options import contact_params, load_body, material_file, plan_config
     from softgrasp.grasp.planner import plan_grasp
+    from softgrasp.io.options import contact_params, load_body, material_file, plan_config
     from softgrasp.sweep.spec import split_options
 
     t0 = time.perf_counter()
@@ -169,13 +169,13 @@ def _hold(body, config, setpoints: Sequence[float]) -> dict[str, object]:
 
 def _execute(plan, body) -> dict[str, object]:
     """Execute a plan on the simulated hand: through a plan file, as ``softgrasp execute`` does."""
-    from softgrasp.io.plan_document import plan_document
     from softgrasp.execution.controller import ExecuteConfig, closing_lines, execute_plan
     from softgrasp.execution.mujoco.hand import MujocoHand
+    from softgrasp.io.atomic import write_json
+    from softgrasp.io.plan_document import plan_document
     from softgrasp.io.planfile import load_plan_file
     from softgrasp.model.mesh.io import save_mesh
     from softgrasp.model.mesh.tetmesh import TetMesh
-    from softgrasp.io.atomic import write_json
 
     with tempfile.TemporaryDirectory(prefix="softgrasp-case-") as tmp:
         d = Path(tmp)

@@ -21,8 +21,8 @@ from softgrasp.execution.mujoco.scene import MujocoScene, load_scene
 from softgrasp.execution.mujoco.spec import SceneSpec
 from softgrasp.hand.ik import track
 from softgrasp.hand.kinematics import HandModel
-from softgrasp.io.planfile import PlanFile
 from softgrasp.hand.placement import invert, transform
+from softgrasp.io.planfile import PlanFile
 
 __all__ = ["MujocoHand", "hand_model_of", "scene_spec_of"]
 
