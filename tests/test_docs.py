@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import ast
 import pathlib
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -73,3 +75,31 @@ def test_the_performance_page_shows_the_benchmarks_table():
     bench = (ROOT / "benchmarks" / "README.md").read_text(encoding="utf-8")
     page = (ROOT / "docs" / "performance.md").read_text(encoding="utf-8")
     assert _table(page) == _table(bench)
+
+
+@pytest.mark.slow
+def test_readme_python_example_runs_as_written(tmp_path: Path) -> None:
+    """The README's Python example, run as written in a fresh interpreter: its set-points are the
+    command line's default plan's, and the executed plan lifts the sphere."""
+    import json
+    import re
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    first, second = proc.stdout.strip().splitlines()[-2:]
+    setpoints = ast.literal_eval(first)
+    cli = subprocess.run(
+        [sys.executable, "-m", "softgrasp.cli", "plan", "--out", str(tmp_path / "cli")],
+        capture_output=True,
+        text=True,
+    )
+    assert cli.returncode == 0, cli.stderr[-3000:]
+    doc = json.loads((tmp_path / "cli" / "plan.json").read_text())
+    want = {f["name"]: f["normal_force_N"] for f in doc["fingers"]}
+    assert setpoints.keys() == want.keys()
+    for name, value in want.items():
+        assert setpoints[name] == pytest.approx(value, rel=1e-6)
+    assert (tmp_path / "out" / "plan.json").is_file()
+    assert re.match(r"True ", second), second
