@@ -23,6 +23,7 @@ from softgrasp.errors import ConfigError, InfeasibleGrasp
 from softgrasp.hand import descent as kernel
 from softgrasp.hand import placement as reach
 from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack
+from softgrasp.hand.wdls import LIMIT_EPS
 
 #: Agreement of the compiled solve and the NumPy oracle: absolute [m, rad] and relative.
 TOL = 1e-9
@@ -98,7 +99,7 @@ def _compiled(problem: Problem) -> kernel.Solves:
         stall_fraction=reach.STALL_FRACTION,
         stall_window=reach.STALL_WINDOW,
         max_halvings=reach.MAX_HALVINGS,
-        limit_eps=reach.LIMIT_EPS,
+        limit_eps=LIMIT_EPS,
     )
 
 

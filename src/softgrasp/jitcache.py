@@ -39,7 +39,7 @@ KERNEL_MODULES = (
     "softgrasp.physics.fingertip.forces",
     "softgrasp.physics.fingertip.friction",
     "softgrasp.physics.fingertip.compiled",
-    "softgrasp.hand.kinematics",
+    "softgrasp.hand.fk",
     "softgrasp.hand.wdls",
     "softgrasp.hand.descent",
     "softgrasp.sim.fused.body",

@@ -26,7 +26,7 @@ perturbation: postures that reach their targets are insensitive to it, but postu
 short of unreachable targets can end far apart (up to 1 rad) when a starting posture moves by one
 ulp, at much the same error.
 
-The kernels are compiled as :mod:`softgrasp.hand.kinematics`'s (:data:`~softgrasp.hand.kinematics.jit`).
+The kernels are compiled as :mod:`softgrasp.hand.fk`'s (:data:`~softgrasp.hand.fk.jit`).
 """
 
 from __future__ import annotations
@@ -38,7 +38,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.kinematics import ChainStack, forward, jit, joint_columns
+from softgrasp.hand.fk import forward, jit, joint_columns
+from softgrasp.hand.kinematics import ChainStack
 from softgrasp.hand.wdls import limited_step
 
 __all__ = [
@@ -67,7 +68,7 @@ STOP_MAX_ITER = 4
 def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pragma: no cover
     """Jacobian ``J`` ``(3 C, 6 + n)`` of the fingertips with respect to the palm translation, a small
     palm rotation about world axes and the joints, from the :func:`forward` frames and tips of a
-    palm at ``p``: the joints' columns are :func:`~softgrasp.hand.kinematics.joint_columns`."""
+    palm at ``p``: the joints' columns are :func:`~softgrasp.hand.fk.joint_columns`."""
     J[:, :] = 0.0
     for c in range(length.shape[0]):
         r0 = 3 * c

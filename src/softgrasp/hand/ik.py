@@ -12,9 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand import descent
 from softgrasp.hand.kinematics import FingerChain, HandModel, _kinematics, chain_stack
-from softgrasp.hand.wdls import LIMIT_EPS, _weights
 
 __all__ = ["LINE_TOLERANCE", "solve_ik", "track", "follow_line"]
 
@@ -50,6 +48,9 @@ def _descend(
 ) -> tuple[NDArray[np.float64], float]:
     """Clamped WDLS iterations from ``q`` (inside the limits, joint weights ``w``) towards the
     fingertip ``target`` (palm frame); returns the last ``q`` and its error [m]."""
+    from softgrasp.hand import descent  # compiled: loaded at the first solve
+    from softgrasp.hand.wdls import LIMIT_EPS
+
     out = descent.solve(
         chain_stack((chain,)),
         target[None],
@@ -85,6 +86,8 @@ def _mm(p: NDArray[np.float64]) -> str:
 def _ik_options(
     model: HandModel, finger: str, q0: ArrayLike, damping: float, weights: ArrayLike | None
 ) -> tuple[FingerChain, NDArray[np.float64], NDArray[np.float64], float]:
+    from softgrasp.hand.wdls import _weights
+
     chain, q = model._q(finger, q0)
     lam = float(damping)
     if not (math.isfinite(lam) and lam >= 0.0):

@@ -27,10 +27,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
-from softgrasp.hand import descent
 from softgrasp.hand.ik import follow_line
 from softgrasp.hand.kinematics import ChainStack, HandModel, chain_stack, stack_kinematics
-from softgrasp.hand.wdls import LIMIT_EPS
 
 __all__ = ["HandPlacement", "place_hand", "closing_paths", "transform", "invert"]
 
@@ -92,6 +90,8 @@ def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _rotation(w: NDArray[np.float64]) -> NDArray[np.float64]:
     """Rotation by the vector ``w`` (axis times angle)."""
+    from softgrasp.hand import descent  # compiled: loaded at the first placement
+
     out = np.empty((3, 3))
     descent.rotation(float(w[0]), float(w[1]), float(w[2]), out)
     return out
@@ -203,6 +203,9 @@ def _solve(
     rotations ``R`` ``(S, 3, 3)``, origins ``p`` ``(S, 3)``, joints ``q`` ``(S, n)``); returns the last
     ``R``, ``p``, ``q`` and largest fingertip error ``(S,)`` of each
     (:func:`softgrasp.hand.descent.solve` with this module's rules)."""
+    from softgrasp.hand import descent
+    from softgrasp.hand.wdls import LIMIT_EPS
+
     return descent.solve(
         stack,
         targets,

@@ -5,7 +5,7 @@ Chiaverini's WDLS), compiled with Numba; every caller uses it: :func:`wdls_step`
 arguments) and the limit-clamped step :func:`limited_step` of every IK iteration
 (:mod:`softgrasp.hand.descent`: the fingers' IK and the floating-palm placement).
 
-The kernels are compiled as :mod:`softgrasp.hand.kinematics`'s (:data:`~softgrasp.hand.kinematics.jit`).
+The kernels are compiled as :mod:`softgrasp.hand.fk`'s (:data:`~softgrasp.hand.fk.jit`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.kinematics import jit
+from softgrasp.hand.fk import jit
 
 __all__ = ["LIMIT_EPS", "wdls", "limited_step", "wdls_step"]
 
