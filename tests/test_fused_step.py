@@ -375,18 +375,17 @@ def test_fused_threads_follow_the_thread_setting_not_the_load(monkeypatch):
     """The fused stepper's thread count is the one thread setting, capped at the body's parts:
     never a reading of how busy the machine is."""
     from softgrasp.linalg import threads
-    from softgrasp.sim.fused.run import FusedThreads
+    from softgrasp.sim.fused.run import fused_threads
 
     monkeypatch.setattr(threads, "_fixed", None)
     monkeypatch.setattr(threads, "cores", lambda: 8)
-    assert FusedThreads().choose() == step.PARTS
+    assert fused_threads() == step.PARTS
     monkeypatch.setattr(threads, "cores", lambda: 1)
-    assert FusedThreads().choose() == 1
+    assert fused_threads() == 1
     monkeypatch.setattr(threads, "_fixed", 2)
-    th = FusedThreads()
-    assert th.choose() == 2 and th.chunk(2, 2000) == 2000
+    assert fused_threads() == 2
     monkeypatch.setattr(threads, "_fixed", 1)
-    assert FusedThreads().choose() == 1
+    assert fused_threads() == 1
 
 
 def test_the_kernels_cache_is_keyed_by_every_source_they_inline():

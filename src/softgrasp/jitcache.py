@@ -13,8 +13,8 @@ the kernels afresh, once; unchanged sources load from the cache as Numba's own c
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numba
@@ -50,14 +50,13 @@ KERNEL_MODULES = (
 
 
 def source_digest(modules: tuple[str, ...] = KERNEL_MODULES) -> str:
-    """SHA-256 over the source files of ``modules`` (found without importing them)."""
+    """SHA-256 over the source files of ``modules`` (softgrasp's own, read from the package folder
+    without importing them or their packages)."""
+    root = Path(__file__).resolve().parent
     h = hashlib.sha256()
     for name in modules:
-        spec = importlib.util.find_spec(name)
-        if spec is None or spec.origin is None:
-            raise ImportError(f"cannot find the source of {name}")
-        with open(spec.origin, "rb") as f:
-            h.update(name.encode() + b"\0" + f.read() + b"\0")
+        path = root.joinpath(*name.split(".")[1:]).with_suffix(".py")
+        h.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()
 
 

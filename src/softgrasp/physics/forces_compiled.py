@@ -27,10 +27,8 @@ from softgrasp.physics.springs import (
     _springs,
     polynomial_coefficients,
 )
-from softgrasp.physics.volume import J_FLOOR as _J_FLOOR  # noqa: F401 - the fused stepper's floor
 from softgrasp.physics.volume import (
     _tet_volumes,
-    _triple_product,  # noqa: F401 - the fused stepper's inversion test
     _volume_blocks,
     _volumes,
     count_inverted,

@@ -3,8 +3,7 @@
 :func:`simulate_fused` takes the same equal steps as the per-step loop in compiled chunks of at
 most :data:`FUSED_CHUNK` steps (:class:`softgrasp.sim.fused.step.FusedStepper`), each chunk ending
 where the loop would call back or report progress; :func:`fused_unsupported` says when it cannot
-run a simulation; :class:`FusedThreads` chooses the threads of
-each chunk; :class:`FusedRun` reads the stepper out as :class:`~softgrasp.sim.scene.State`. Numba is
+run a simulation; :func:`fused_threads` chooses its threads; :class:`FusedRun` reads the stepper out as :class:`~softgrasp.sim.scene.State`. Numba is
 imported with the stepper, at the first fused run.
 """
 
@@ -20,7 +19,7 @@ from softgrasp.errors import SimulationUnstable
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.stability import BlowupMonitor
 
-__all__ = ["FUSED_CHUNK", "FusedRun", "FusedThreads", "fused_unsupported", "simulate_fused"]
+__all__ = ["FUSED_CHUNK", "FusedRun", "fused_threads", "fused_unsupported", "simulate_fused"]
 
 #: Most steps one compiled call takes (keeps Ctrl-C responsive: ~0.1 s at 20 000 steps/s).
 FUSED_CHUNK = 2000
@@ -49,26 +48,16 @@ def fused_unsupported(scene: Scene, integ: Any) -> str | None:
     return supported(scene.body, planes, fingers)
 
 
-class FusedThreads:
+def fused_threads() -> int:
     """How many of Numba's threads the fused stepper computes on: the one thread setting
     (:func:`softgrasp.linalg.threads.choose_threads`: ``SOFTGRASP_THREADS`` or the cores this
-    process may use), at most the body's :data:`softgrasp.sim.fused.step.PARTS`. The trajectory does
-    not depend on it (the parts and their sums are the same on one thread or two), and neither
-    does the choice depend on how busy the machine is."""
+    process may use), at most :data:`softgrasp.sim.fused.step.PARTS`. The trajectory does not
+    depend on it (the parts and their sums are the same on one thread or two), and neither does
+    the choice depend on how busy the machine is."""
+    from softgrasp.linalg.threads import choose_threads
+    from softgrasp.sim.fused.step import PARTS
 
-    def __init__(self) -> None:
-        from softgrasp.linalg.threads import choose_threads
-        from softgrasp.sim.fused.step import PARTS
-
-        self.last = max(1, min(PARTS, choose_threads()))
-
-    def choose(self) -> int:
-        """Threads for the next chunk."""
-        return self.last
-
-    def chunk(self, threads: int, longest: int) -> int:
-        """Most steps the next chunk takes."""
-        return longest
+    return max(1, min(PARTS, choose_threads()))
 
 
 class FusedRun:
@@ -143,13 +132,12 @@ def simulate_fused(
     n = max(1, math.ceil(span / dt * (1.0 - 1e-12)))
     h = span / n
     run = FusedRun(scene, state, monitor)
-    threads = FusedThreads()
     done = 0
     next_report = 0.0
     last_called = 0
+    run.stepper.threads = fused_threads()
     while done < n:
-        run.stepper.threads = threads.choose()
-        target = min(n, done + threads.chunk(run.stepper.threads, FUSED_CHUNK))
+        target = min(n, done + FUSED_CHUNK)
         if callback is not None:
             target = min(target, (done // every + 1) * every)
         if progress is not None:
