@@ -283,7 +283,8 @@ class OracleFingertipContact(FingertipContact):
                 still = slipping & ~moving
                 ft[moving] = slip_force(fn[moving], vt[moving], p.mu)  # Eq. 15
                 ft[still] = trial[still] * (cap[still] / mag[still])[:, None]
-        return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping)
+        deep = self._deepest(pairs) if p.rule == "patch" and len(pairs) else np.arange(len(pairs))
+        return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping, self._depths(pairs), deep)
 
     def _nodal(self, body: Body, x, ev: _Eval) -> NDArray[np.float64]:
         """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20) at its contact point,

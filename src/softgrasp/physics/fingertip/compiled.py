@@ -416,13 +416,14 @@ def fingertip_pair_laws(
     """The contact law of the pairs (finger (k,), facet (k,), their detection values (k, 13) as
     :func:`~softgrasp.physics.fingertip.detect.detect_arrays` gives them), evaluated as
     :func:`fingertip_forces` does (``v`` None: at rest, as :func:`fingertip_static_forces`):
-    (table (k, 10): f_n [N] 0, friction on the finger [N] 1-3, weight w 4, k_t [N/m] 5, stick
-    displacement [m] 6-8, Coulomb cap mu f_n [N] 9; slipping (k,))."""
+    (table (k, 12): f_n [N] 0, friction on the finger [N] 1-3, weight w 4, k_t [N/m] 5, stick
+    displacement [m] 6-8, Coulomb cap mu f_n [N] 9, penetration the normal law is evaluated at [m]
+    10, the pair it is measured on 11; slipping (k,))."""
     f64, i64 = np.float64, np.int64
     x = np.ascontiguousarray(x, dtype=f64)
     static = v is None
     finger = np.ascontiguousarray(finger, dtype=i64)
-    table = np.zeros((finger.shape[0], 10))
+    table = np.zeros((finger.shape[0], 12))
     slipping = np.zeros(finger.shape[0], np.bool_)
     centres = np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3)
     _pair_table(

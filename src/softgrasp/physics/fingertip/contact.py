@@ -114,30 +114,6 @@ class FingertipContact:
         return detect(x, body.mesh.facets, centres, radii, closest=self._closest(), index=index)
 
     # ------------------------------------------------------------------ core evaluation
-    def _patch_weights(self, pairs: ContactPairs) -> NDArray[np.float64]:
-        if self.params.rule == "facet" or len(pairs) == 0:
-            return np.ones(len(pairs))
-        nf = len(self.fingertips)
-        a = pairs.area * pairs.depth * pairs.facing
-        return a / np.bincount(pairs.finger, weights=a, minlength=nf)[pairs.finger]
-
-    def _deepest(self, pairs: ContactPairs) -> NDArray[np.int64]:
-        """Index of each pair's finger's deepest pair (largest depth), (k,)."""
-        deep = np.zeros(len(pairs), np.int64)
-        for i in np.unique(pairs.finger):
-            idx = np.flatnonzero(pairs.finger == i)
-            deep[idx] = idx[np.argmax(pairs.depth[idx])]
-        return deep
-
-    def _depths(self, pairs: ContactPairs) -> NDArray[np.float64]:
-        """Penetration at which each pair's normal law is evaluated [m], (k,): the pair's own
-        delta_j (literal rule), or its fingertip's overlap with the surface, max_j (R - |c - Q_j|)
-        = R - dist(c, surface) (patch rule: the fingertip's elastic normal force is
-        K delta_max^n, shared among its facets by the weights w_j)."""
-        if self.params.rule == "facet" or len(pairs) == 0:
-            return pairs.depth
-        return pairs.depth[self._deepest(pairs)]
-
     def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState, t: float):
         """Stick anchors in space (k, 3), the centre's offsets from them (k, 3) and the mask of
         continuing pairs: kept for continuing pairs; a new pair is anchored at its contact point,
@@ -191,7 +167,16 @@ class FingertipContact:
             memory=state.memory,
         )
         return _Eval(
-            pairs, table[:, 0], table[:, 1:4], table[:, 4], table[:, 5], table[:, 6:9], table[:, 9], slipping
+            pairs,
+            table[:, 0],
+            table[:, 1:4],
+            table[:, 4],
+            table[:, 5],
+            table[:, 6:9],
+            table[:, 9],
+            slipping,
+            table[:, 10],
+            table[:, 11].astype(np.int64),
         )
 
     # ------------------------------------------------------------------ Interaction protocol
@@ -317,12 +302,12 @@ class FingertipContact:
 
         Friction is dissipative and the patch rule's weights depend on the configuration, so the
         contact is not a potential: the static solver does not use this for its line search."""
-        pr = self.pairs(body, x, t)
-        if not len(pr):
+        ev = self._evaluate(body, x, None, t, state, static=True)
+        if not len(ev.pairs):
             return 0.0
-        K = self.stiffness(body)[pr.finger]
+        K = self.stiffness(body)[ev.pairs.finger]
         n = self.params.exponent
-        return float(np.sum(self._patch_weights(pr) * K * self._depths(pr) ** (n + 1) / (n + 1)))
+        return float(np.sum(ev.w * K * ev.depth ** (n + 1) / (n + 1)))
 
     def jacobian(self, body: Body, x, t: float, state: FingerState) -> sp.csr_matrix:
         """``d f / d x`` at rest, symmetrised
@@ -434,7 +419,7 @@ class FingertipContact:
             moment[:, k] = np.bincount(pr.finger, weights=M[:, k], minlength=nf)
         depth = np.zeros(nf)
         if len(pr):
-            np.maximum.at(depth, pr.finger, self._depths(pr))
+            np.maximum.at(depth, pr.finger, ev.depth)
         return FingerReport(
             force=force,
             moment=moment,

@@ -197,9 +197,10 @@ def _pair_table(
     finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley,
     patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, table, slipping,
 ):  # pragma: no cover - compiled
-    """Each pair's law (:func:`_pair_law`) into ``table`` (k, 10): f_n 0, friction on the finger
-    1-3, weight w 4, k_t 5, stick displacement 6-8, cap mu f_n 9; whether it slips into
-    ``slipping`` (k,)."""
+    """Each pair's law (:func:`_pair_law`) into ``table`` (k, 12): f_n 0, friction on the finger
+    1-3, weight w 4, k_t 5, stick displacement 6-8, cap mu f_n 9, the penetration delta the normal
+    law is evaluated at 10 and the pair it is measured on 11 (its finger's deepest pair under the
+    patch rule, itself under the literal one); whether it slips into ``slipping`` (k,)."""
     deep, total = _patch(finger, val, centres.shape[0])
     dnf, ktf = _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio)
     for p in range(finger.shape[0]):
@@ -218,4 +219,7 @@ def _pair_table(
         table[p, 7] = sy
         table[p, 8] = sz
         table[p, 9] = cap
+        at = deep[finger[p]] if patch else p
+        table[p, 10] = val[at, 10]
+        table[p, 11] = at
         slipping[p] = slips

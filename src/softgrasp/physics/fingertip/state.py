@@ -68,3 +68,5 @@ class _Eval:
     stick: NDArray[np.float64]  # tangential stick displacement per pair [m], (k, 3)
     cap: NDArray[np.float64]
     slipping: NDArray[np.bool_]
+    depth: NDArray[np.float64]  # penetration the pair's normal law is evaluated at [m], (k,)
+    deep: NDArray[np.int64]  # the pair that penetration is measured on, (k,)

@@ -98,8 +98,8 @@ def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float,
         # magnitude's dependence on the finger's deepest facet, d delta_max / d x_l =
         # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
         # slides on the surface at no first-order cost); the weights are lagged.
-        deep = contact._deepest(pr)
-        dmax = pr.depth[deep]
+        deep = ev.deep
+        dmax = ev.depth
         Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K * dmax**n_exp, 0.0, True)
     else:
         # Exact per-pair blocks (facet rotation and the moving contact point included).
