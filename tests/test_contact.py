@@ -106,6 +106,9 @@ VT_LOCAL = np.array([0.0072, -0.0911, 0.0])  # Eq. 7
 RATE_HAND = 0.06  # d delta / dt = -V_r . n: the finger approaches the facet at 6 cm/s
 
 
+#: The paper's normal law K delta^n (Eq. 9-11), which the by-hand checks below follow.
+PAPER = ContactParams(law="paper")
+
 # --------------------------------------------------------------------------- 1. equations by hand
 
 
@@ -119,10 +122,10 @@ def test_effective_modulus_stiffness_and_damping_by_hand():
     assert contact_damping(R_HAND, 10.0) == pytest.approx(0.6157521601, rel=1e-9)
     # The interaction uses the same constants for its fingertip and body.
     body, _ = _one_tet_body()
-    fc = FingertipContact((_fingertip_on_tet(),))
+    fc = FingertipContact((_fingertip_on_tet(),), PAPER)
     assert fc.stiffness(body)[0] == pytest.approx(K_HAND, rel=1e-12)
     assert fc.damping()[0] == pytest.approx(C_HAND, rel=1e-12)
-    hertz = FingertipContact((_fingertip_on_tet(),), ContactParams(prefactor=4.0 / 3.0))
+    hertz = FingertipContact((_fingertip_on_tet(),), ContactParams(law="paper", prefactor=4.0 / 3.0))
     assert hertz.stiffness(body)[0] == pytest.approx(62222.2222, rel=1e-9)
 
 
@@ -216,7 +219,7 @@ def test_nodal_forces_on_one_facet_by_hand(mu, slips):
     body, j = _one_tet_body()
     x = np.asarray(body.mesh.points)
     finger = _fingertip_on_tet(velocity=_vec(V_FINGER_LOCAL), omega=_vec(OMEGA_LOCAL))
-    fc = FingertipContact((finger,), ContactParams(mu=mu, gamma=10.0, damping="linear"))
+    fc = FingertipContact((finger,), ContactParams(law="paper", mu=mu, gamma=10.0, damping="linear"))
     state = fc.init_state(body, x, 0.0)
     f = fc.forces(body, x, _vec(V_NODES_LOCAL), 0.0, state)
 
@@ -246,7 +249,7 @@ def test_stick_spring_by_hand():
     x = np.asarray(body.mesh.points)
     step = 2e-5
     finger = _fingertip_on_tet(velocity=_vec([1.0, 0.0, 0.0]))
-    fc = FingertipContact((finger,), ContactParams(mu=0.8))
+    fc = FingertipContact((finger,), ContactParams(law="paper", mu=0.8))
     state = fc.init_state(body, x, 0.0)
     f = fc.static_forces(body, x, step, state)
     kt = (1.5 / 1.75) * 1.5 * K_HAND * math.sqrt(DELTA_HAND)
@@ -352,7 +355,7 @@ def test_rigid_flat_surface_force_is_exactly_K_delta_n(where):
     for delta in (1e-4, 5e-4, 2e-3):
         finger = Fingertip(R, centre=[px, py, 0.02 + R - delta])
         for rule, factor in (("patch", 1), ("facet", k)):
-            fc = FingertipContact((finger,), ContactParams(rule=rule))
+            fc = FingertipContact((finger,), ContactParams(law="paper", rule=rule))
             state = fc.init_state(body, x)
             rep = fc.report(body, x, np.zeros_like(x), 0.0, state, static=True)
             # the literal rule touches the k facets around the point; the patch rule also the
@@ -398,7 +401,7 @@ def test_patch_weights_on_a_dented_surface_by_hand():
     assert np.ptp(depth) > 0.05 * depth.mean()  # different depths: the weights matter
     w = area * depth / (area * depth).sum()
     for rule, f_facet in (("patch", w * K * depth.max() ** 1.5), ("facet", K * depth**1.5)):
-        fc = FingertipContact((Fingertip(R, centre=c),), ContactParams(rule=rule))
+        fc = FingertipContact((Fingertip(R, centre=c),), ContactParams(law="paper", rule=rule))
         state = fc.init_state(body, x)
         rep = fc.report(body, x, np.zeros_like(x), 0.0, state, static=True)
         assert rep.contacts.tolist() == [4]
@@ -539,7 +542,7 @@ def test_stuck_fingertip_holds_until_mu_fn_then_slides_at_mu_and_dissipates():
     facet edges; dragged back to its start it traces a hysteresis loop that absorbs work, the
     elastic-perfectly-plastic amount W = mu f_n (2 L - 5/2 s_y) with s_y = mu f_n / k_t."""
     body, table = _stiff_block()
-    params = ContactParams(mu=MU)
+    params = ContactParams(law="paper", mu=MU)
     depth = 1e-3
     start, direction = np.array([-0.0125, -0.0045, 0.02 + 0.008]), np.array([1.0, 0.3, 0.0])
     state, centre = _press(body, table, start, depth, params)
@@ -598,7 +601,7 @@ def test_contact_state_resets_when_the_fingertip_leaves():
     """Algorithm 1: u and v are reset on loss of contact. After a slide, lifting the fingertip
     clears every pair; pressing again at the same place starts from a fresh, unloaded stick."""
     body, table = _stiff_block()
-    params = ContactParams(mu=MU)
+    params = ContactParams(law="paper", mu=MU)
     start = np.array([0.0052, 0.0017, 0.028])
     state, centre = _press(body, table, start, 1e-3, params)
     fc, recs = _drag(body, table, state, centre, [1.0, 0.0, 0.0], [1e-3, 2e-3], params)
@@ -648,23 +651,24 @@ def test_fingertip_on_compliant_foam_does_not_slip_below_the_coulomb_limit():
 
 
 @functools.cache
-def _indentation(n: int, rule: str, where: str, travel: float) -> tuple[float, int]:
+def _indentation(n: int, rule: str, where: str, travel: float, law: str = "paper") -> tuple[float, int]:
     """Vertical force [N] on a frictionless rigid fingertip (R = 8 mm) pushed ``travel`` into the
     top of the foam cube box(0.05, n) standing on a rough table, in three static increments, and
     the number of facets it touches. ``where``: over the grid node at the top centre (n even; 8
     facets share it) or inside a facet, at the same place relative to the cell for every n.
 
-    The fingertip is frictionless so that the result does not depend on the loading path."""
+    The fingertip is frictionless so that the result does not depend on the loading path. ``law``:
+    the paper's normal law (whose recorded behaviour the tests below describe) or the resolved one."""
     h = 0.05 / n
     xy = {"node": (0.0, 0.0), "facet": (h / 2, h / 6)}[where]
     body = build_body(box(0.05, n), preset("foam"), mass=0.0125)
     table = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.8, name="table")
     finger = Fingertip(0.008, centre=[xy[0], xy[1], 0.058], velocity=[0, 0, -1.0])
-    fc = FingertipContact((finger,), ContactParams(mu=0.0, rule=rule))
+    fc = FingertipContact((finger,), ContactParams(law=law, mu=0.0, rule=rule))
     scene = Scene(body, (table, fc))
     state = scene.initial_state()
     cache = SolverCache()
-    for t in np.linspace(0, travel, 4)[1:]:
+    for t in np.linspace(0, travel, 4 if law == "paper" else 3)[1:]:
         state, _ = solve_static(scene, state, t=float(t), cache=cache)
     rep = fc.report(body, state.x, state.v, state.t, state.contacts[1], static=True)
     return float(-rep.force[0, 2]), int(rep.contacts[0])
@@ -730,18 +734,52 @@ def test_force_depends_on_where_the_fingertip_lands_on_a_coarse_mesh():
     assert f_node["patch"][0] / base == pytest.approx(0.77, abs=0.05)
 
 
+def test_paper_law_counts_the_object_compliance_twice():
+    """Recorded behaviour of the paper's law (Hertz's K delta^n with the object's own E, in series
+    with the meshed body, which deforms too): at 1.5 mm over a facet the force falls by more than
+    10 % per refinement (n = 6, 8, 10), away from Hertz's sphere on a half-space, as the mesh
+    resolves more of the compliance the law already contains."""
+    forces = np.array([_indentation(n, "patch", "facet", 1.5e-3)[0] for n in (6, 8, 10)])
+    assert (np.diff(forces) < 0).all() and (_changes(forces) > 0.10).all(), forces
+    assert forces[-1] < 0.8 * _hertz_force(1.5e-3)
+
+
+def _hertz_force(depth: float, R: float = 0.008) -> float:
+    """Hertz's rigid sphere on the foam's half-space: 4/3 E* sqrt(R) delta^1.5 [N]."""
+    mat = preset("foam")
+    return 4.0 / 3.0 * mat.E / (1.0 - mat.nu**2) * math.sqrt(R) * depth**1.5
+
+
+@pytest.mark.parametrize("where", ["facet", "node"])
+def test_resolved_law_follows_hertz_under_refinement(where):
+    """The default law counts the object's compliance once (Hertz's law less what the mesh
+    resolves): 0.5 mm into the foam cube the force is within 10 % of Hertz's (a closed form the
+    code does not use: the cube is 6 fingertip radii wide and deep, nearly a half-space) over a
+    facet on the default mesh (n = 6) and two refinements, changing by less than 5 % per
+    refinement (the paper's law: 0.77 to 0.54 of Hertz's over the same range), and over a node on
+    the default mesh and one refinement. Measured: facet 1.03, 1.02, 1.00; node 1.05, 0.97 (the
+    finer meshes over a node: the xfail below)."""
+    sizes = (6, 8, 10) if where == "facet" else (6, 8)
+    forces = np.array([_indentation(n, "patch", where, 5e-4, "resolved")[0] for n in sizes])
+    ratio = forces / _hertz_force(5e-4)
+    assert (np.abs(ratio - 1.0) < 0.10).all(), ratio
+    if where == "facet":
+        assert (_changes(forces) < 0.05).all(), ratio
+
+
+@pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
     reason=(
-        "not mesh-converged in this range: at 1.5 mm over a facet the force drops 11-12 % per "
-        "refinement (31.0, 27.6, 24.9 N for n = 6, 8, 10; 23.1 N at n = 12, 7.5 %): the contact "
-        "patch (radius ~3.8 mm) is no larger than the elements, the load sits on a few nodes and "
-        "the discrete body keeps softening under that near-point load"
+        "over a node of the finer cubes (n = 10, 12: cells 5 and 4.2 mm) the resolved law is 10 "
+        "and 16 % softer than Hertz at 0.5 mm (0.90, 0.84): as the node sinks the sphere's closest point moves into the "
+        "facets, its shape functions spread and the law credits the mesh with less compliance "
+        "than the spread load (already counted in the contact radius) takes"
     ),
 )
-def test_patch_rule_force_over_a_facet_converges_at_small_indentation():
-    forces = [_indentation(n, "patch", "facet", 1.5e-3)[0] for n in (6, 8, 10)]
-    assert (_changes(forces) < 0.10).all(), forces
+def test_resolved_law_over_a_node_of_finer_meshes():
+    forces = np.array([_indentation(n, "patch", "node", 5e-4, "resolved")[0] for n in (10, 12)])
+    assert (np.abs(forces / _hertz_force(5e-4) - 1.0) < 0.10).all()
 
 
 # --------------------------------------------------------------------------- 7. misses and errors
@@ -781,7 +819,7 @@ def test_overlap_near_a_convex_edge():
     K = 2.0 * mat.E / (1.0 - mat.nu**2) * math.sqrt(R)
     centre = np.array([0.01 + 0.0005, 0.0025, 0.02 + R - 0.001])
     overlap = R - math.hypot(0.0005, R - 0.001)
-    fc = FingertipContact((Fingertip(R, centre=centre),))
+    fc = FingertipContact((Fingertip(R, centre=centre),), PAPER)
     state = fc.init_state(body, x)
     rep = fc.report(body, x, np.zeros_like(x), 0.0, state, static=True)
     assert rep.contacts[0] >= 1
@@ -789,12 +827,12 @@ def test_overlap_near_a_convex_edge():
     assert rep.normal[0] == pytest.approx(K * overlap**1.5, rel=1e-12)
     assert rep.force[0, 2] < 0 and rep.force[0, 0] < 0  # down, and off the edge
     assert (fc.pairs(body, x, 0.0).facing < 1).all()
-    literal = FingertipContact((Fingertip(R, centre=centre),), ContactParams(rule="facet"))
+    literal = FingertipContact((Fingertip(R, centre=centre),), ContactParams(law="paper", rule="facet"))
     st = literal.init_state(body, x)
     assert literal.report(body, x, np.zeros_like(x), 0.0, st).contacts.tolist() == [0]
     assert not literal.static_forces(body, x, 0.0, st).any()
     c_far = centre + [0.0025, 0, 0]
-    far = FingertipContact((Fingertip(R, centre=c_far),))
+    far = FingertipContact((Fingertip(R, centre=c_far),), PAPER)
     rep = far.report(body, x, np.zeros_like(x), 0.0, far.init_state(body, x), static=True)
     edge_point = np.array([0.01, 0.0025, 0.02])
     overlap = R - np.linalg.norm(c_far - edge_point)
@@ -820,7 +858,7 @@ def test_a_tangent_fingertip_on_a_convex_mesh_has_no_phantom_contact():
     for j in range(0, len(mesh.facets), 37):
         p = tri[j].mean(axis=0)
         for delta in (-1e-9, 1e-4):
-            fc = FingertipContact((Fingertip(R, centre=p + (R - delta) * nrm[j]),))
+            fc = FingertipContact((Fingertip(R, centre=p + (R - delta) * nrm[j]),), PAPER)
             rep = fc.report(body, x, np.zeros_like(x), 0.0, fc.init_state(body, x), static=True)
             if delta < 0:
                 assert rep.contacts[0] == 0

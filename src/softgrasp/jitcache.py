@@ -35,6 +35,7 @@ KERNEL_MODULES = (
     "softgrasp.physics.forces_compiled",
     "softgrasp.physics.planes_compiled",
     "softgrasp.physics.fingertip.laws",
+    "softgrasp.physics.fingertip.resolved",
     "softgrasp.physics.fingertip.detect",
     "softgrasp.physics.fingertip.forces",
     "softgrasp.physics.fingertip.friction",

@@ -27,7 +27,8 @@ from softgrasp.physics.fingertip.geometry import (
     _empty,
     broad_phase_reach,
 )
-from softgrasp.physics.fingertip.laws import normal_force, normal_force_derivative, slip_force
+from softgrasp.physics.fingertip.laws import normal_force_value, slip_force
+from softgrasp.physics.fingertip.resolved import elastic_normal_value
 from softgrasp.physics.fingertip.state import FingerState, _Eval
 
 
@@ -230,12 +231,37 @@ class OracleFingertipContact(FingertipContact):
         s = self.centres(t)[pairs.finger] - Xa - off
         return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, Xa, cont
 
-    def _tangential_stiffness(self, body: Body, pairs: ContactPairs, K) -> NDArray[np.float64]:
+    def _resolution(self, body: Body, x, pairs: ContactPairs) -> NDArray[np.float64]:
+        """Resolution length of each pair's normal law [m], (k,): (pi / 2) over the body's
+        compliance sum b_l b_m / r_lm to a unit load at the contact point (r_ll the law's ratio
+        times the facet's size), at the pair (literal rule) or its finger's deepest pair (patch)."""
+        kappa = self.law_table(body)[pairs.finger, 2]
+        pts = x[body.mesh.facets[pairs.facet]]  # (k, 3, 3)
+        r = np.linalg.norm(pts[:, :, None, :] - pts[:, None, :, :], axis=-1)
+        own = kappa * np.sqrt(4.0 * pairs.area / np.sqrt(3.0))
+        r[:, np.arange(3), np.arange(3)] = own[:, None]
+        S = np.einsum("ki,kj,kij->k", pairs.bary, pairs.bary, 1.0 / r)
+        h = np.where(kappa > 0, 0.5 * np.pi / S, 0.0)
+        if self.params.rule == "facet" or len(pairs) == 0:
+            return h
+        return h[self._deepest(pairs)]
+
+    def _law(self, body: Body, x, pairs: ContactPairs, depth: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The elastic normal law (force, slope, energy) of each pair at ``depth``, (k, 3)."""
+        law = self.law_table(body)[pairs.finger]
+        h = self._resolution(body, x, pairs)
+        R = self._radii()[pairs.finger]
+        n = self.params.exponent
+        out = [elastic_normal_value(float(d), float(r), float(l[0]), n, float(l[1]), float(hh))
+               for d, r, l, hh in zip(depth, R, law, h)]  # fmt: skip
+        return np.array(out, dtype=np.float64).reshape(-1, 3)
+
+    def _tangential_stiffness(self, body: Body, x, pairs: ContactPairs) -> NDArray[np.float64]:
         """k_t of each pair [N/m]: Mindlin's ratio times dF_n/d delta at the pair's penetration
         (not below ``min_depth_ratio`` R)."""
         p = self.params
         depth = np.maximum(self._depths(pairs), p.min_depth_ratio * self._radii()[pairs.finger])
-        return self._ratio(body) * normal_force_derivative(depth, K, p.exponent)
+        return self._ratio(body) * self._law(body, x, pairs, depth)[:, 1]
 
     def _evaluate(
         self, body: Body, x, v, t: float, state: FingerState, static: bool, pairs: ContactPairs | None = None
@@ -259,7 +285,11 @@ class OracleFingertipContact(FingertipContact):
                 np.array([f.omega for f in self.fingertips]),
             )
             rate = -np.einsum("ij,ij->i", vr, pairs.normal)  # d delta / dt
-        raw = normal_force(self._depths(pairs), rate, K, C, n_exp, damping=p.damping)
+        depth = self._depths(pairs)
+        law = self._law(body, x, pairs, depth)
+        dn = np.maximum(depth, 0.0) ** n_exp
+        vec = np.vectorize(normal_force_value, otypes=[np.float64])
+        raw = vec(depth, law[:, 0], dn, rate, C, p.damping == "hunt-crossley") if len(pairs) else np.zeros(0)
         w = self._patch_weights(pairs)
         fn = w * raw
         ft = np.zeros((len(pairs), 3))
@@ -270,7 +300,7 @@ class OracleFingertipContact(FingertipContact):
         if p.mu > 0 and len(pairs):
             s, _, _ = self._stick(body, x, pairs, state, t)
             stick = s
-            kt = self._tangential_stiffness(body, pairs, K)
+            kt = self._tangential_stiffness(body, x, pairs)
             ct = self._ratio(body) * C
             trial = -(w * kt)[:, None] * s - (w * ct)[:, None] * vt
             cap = p.mu * fn
@@ -284,7 +314,7 @@ class OracleFingertipContact(FingertipContact):
                 ft[moving] = slip_force(fn[moving], vt[moving], p.mu)  # Eq. 15
                 ft[still] = trial[still] * (cap[still] / mag[still])[:, None]
         deep = self._deepest(pairs) if p.rule == "patch" and len(pairs) else np.arange(len(pairs))
-        return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping, self._depths(pairs), deep)
+        return _Eval(pairs, fn, ft, w, kt, stick, cap, slipping, depth, deep, law[:, 0], law[:, 1], law[:, 2])
 
     def _nodal(self, body: Body, x, ev: _Eval) -> NDArray[np.float64]:
         """Forces on the nodes [N], (N, 3): H^T f_pj per pair (Eq. 17-20) at its contact point,
@@ -330,10 +360,9 @@ class OracleFingertipContact(FingertipContact):
         memory = np.zeros((nf, 3))
         if len(pairs):
             i, j = pairs.finger, pairs.facet
-            K = self.stiffness(body)[i]
             w = self._patch_weights(pairs)
-            elastic = normal_force(self._depths(pairs), np.zeros(len(pairs)), K, 0.0, p.exponent)
-            kt = self._tangential_stiffness(body, pairs, K)
+            elastic = self._law(body, x, pairs, self._depths(pairs))[:, 0]
+            kt = self._tangential_stiffness(body, x, pairs)
             s, Xa, cont = self._stick(body, x, pairs, state, t)
             u = np.where(cont[:, None], state.slip[i, j], 0.0)
             if p.mu > 0:

@@ -68,6 +68,8 @@ def plan_options(given: Mapping[str, object], config_file: str | Path | None = N
         if default is not None and not isinstance(value, type(default)):
             raise ConfigError(f"option {key} must be a {type(default).__name__}, got {value!r}")
         merged[key] = value
+    if merged["contact_law"] not in ("resolved", "paper"):
+        raise ConfigError(f"contact_law must be resolved or paper, got {merged['contact_law']!r}")
     if merged["solver"] not in ("quasistatic", "dynamic"):
         raise ConfigError(f"solver must be quasistatic or dynamic, got {merged['solver']!r}")
     return merged
@@ -255,6 +257,7 @@ def plan(
     max_squeeze: float = 0.5,
     refine: int = 3,
     grasp: str | Path | None = None,
+    contact_law: str = "resolved",
     progress: Callable[[float], None] | None = None,
 ) -> Plan:
     """Plan a three-finger grasp of ``obj`` and its force set-points.
@@ -285,6 +288,9 @@ def plan(
     grasp:
         An earlier ``plan.json`` whose initial grasp (contacts, closing lines) is closed from
         instead of searching for one.
+    contact_law:
+        ``resolved`` (the object's compliance counted once: Hertz's law less what the mesh
+        resolves) or ``paper`` (the paper's K delta^n in series with the meshed body).
     progress:
         Called with the fraction of the plan done.
     """
@@ -311,10 +317,13 @@ def plan(
         "refine": int(refine),
         "hand": str(hand_name),
         "grasp": None if grasp is None else str(grasp),
+        "contact_law": contact_law,
     }
     if solver not in ("quasistatic", "dynamic"):
         raise ConfigError(f"solver must be quasistatic or dynamic, got {solver!r}")
-    contact = contact_params(obj.material_file, mu)
+    if contact_law not in ("resolved", "paper"):
+        raise ConfigError(f"contact_law must be resolved or paper, got {contact_law!r}")
+    contact = contact_params(obj.material_file, mu, law=contact_law)
     options["mu"] = contact.mu
     if hand is None or isinstance(hand, str):
         config = plan_config(options, contact)

@@ -34,6 +34,13 @@ def add_parser(sub) -> None:
         "over --config's",
     )
     pl.add_argument(
+        "--contact-law",
+        choices=("resolved", "paper"),
+        default=None,
+        help="fingertip normal law: resolved (default; Hertz's, the object's compliance counted once "
+        "with its mesh) or paper (the paper's K delta^n in series with the meshed body, Eq. 9-11)",
+    )
+    pl.add_argument(
         "--fingertip-radius",
         type=positive("--fingertip-radius"),
         default=None,
@@ -156,6 +163,7 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
             max_squeeze=args.max_squeeze,
             refine=args.refine,
             grasp=args.grasp,
+            contact_law=args.contact_law,
             progress=update,
         )
     finally:

@@ -48,6 +48,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "refine": 3,
     "hand": "shadow_like",
     "grasp": None,
+    "contact_law": "resolved",
     "out": "softgrasp-out/plan",
     "reorient": False,
 }

@@ -28,24 +28,25 @@ from numpy.typing import NDArray
 from softgrasp import jitcache
 from softgrasp.physics.fingertip.detect import _detect, _geometry_args, _pinned_values
 from softgrasp.physics.fingertip.forces import (
-    _finger_powers,
+    _finger_laws,
     _normal_force,
     _pair_forces,
     _pair_table,
+    _pair_normal_law,
     _patch,
     _weight_depth,
 )
-from softgrasp.physics.fingertip.friction import _stick, _tangential_stiffness
+from softgrasp.physics.fingertip.friction import _stick
 
 __all__ = ["fingertip_forces", "fingertip_pair_laws", "fingertip_static_forces", "fingertip_update"]
 
 _jit = jitcache.jit(fastmath=False, error_model="numpy")
 
 
-def _law_args(K, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio) -> tuple:
+def _law_args(law, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio) -> tuple:
     """The contact law's arguments of the compiled kernels, as the types they are compiled for."""
     return (
-        np.ascontiguousarray(K, dtype=np.float64).ravel(),
+        np.ascontiguousarray(law, dtype=np.float64).reshape(-1, 3),
         bool(closest),
         float(inside_tol),
         float(mu),
@@ -79,7 +80,7 @@ def _fingertip_forces(
     radii,
     velocities,
     omegas,
-    K,
+    law,
     C,
     closest,
     inside_tol,
@@ -101,7 +102,7 @@ def _fingertip_forces(
         x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
     _pair_forces(
-        finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley,
+        finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
         patch, ratio, min_depth_ratio, active, anchor, offset, memory, False, out,
     )  # fmt: skip
     return finger.shape[0]
@@ -109,7 +110,7 @@ def _fingertip_forces(
 
 @_jit
 def _static_forces(
-    x, facets, boundary, indptr, indices, reach, centres, radii, K, closest, inside_tol, mu, n_exp, patch,
+    x, facets, boundary, indptr, indices, reach, centres, radii, law, closest, inside_tol, mu, n_exp, patch,
     ratio, min_depth_ratio, active, anchor, offset, memory, pinned, finger, facet, out,
 ):  # pragma: no cover - compiled
     """Contact forces at rest added to ``out`` (N, 3), of the touching pairs (detected), or with
@@ -120,10 +121,10 @@ def _static_forces(
         finger, facet, val = _detect(
             x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
         )
-    # At rest (static=True) the loop reads no velocities: x, centres and K stand in for v, the
+    # At rest (static=True) the loop reads no velocities: x, centres and radii stand in for v, the
     # fingertips' velocities and spins, and C (which only multiplies the zero penetration rate).
     _pair_forces(
-        finger, facet, val, x, x, facets, centres, radii, centres, centres, K, K, mu, n_exp, False, patch,
+        finger, facet, val, x, x, facets, centres, radii, centres, centres, law, radii, mu, n_exp, False, patch,
         ratio, min_depth_ratio, active, anchor, offset, memory, True, out,
     )  # fmt: skip
 
@@ -138,7 +139,7 @@ def _fingertip_update(
     reach,
     centres,
     radii,
-    K,
+    law,
     closest,
     inside_tol,
     mu,
@@ -162,28 +163,28 @@ def _fingertip_update(
         x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
     return _update_pairs(
-        finger, facet, val, x, facets, centres, radii, K, mu, n_exp, patch, ratio, min_depth_ratio, active,
+        finger, facet, val, x, facets, centres, radii, law, mu, n_exp, patch, ratio, min_depth_ratio, active,
         anchor, offset, slip, memory, new_active, new_anchor, new_offset, new_slip, new_memory,
     )  # fmt: skip
 
 
 @_jit
 def _update_pairs(
-    finger, facet, val, x, facets, centres, radii, K, mu, n_exp, patch, ratio, min_depth_ratio, active,
+    finger, facet, val, x, facets, centres, radii, law, mu, n_exp, patch, ratio, min_depth_ratio, active,
     anchor, offset, slip, memory, new_active, new_anchor, new_offset, new_slip, new_memory,
 ):  # fmt: skip  # pragma: no cover - compiled
     """:func:`_fingertip_update` on the touching pairs ``finger, facet, val`` found by :func:`_detect`
     (the fused stepper detects once for the update and the forces at the same state)."""
     nf = centres.shape[0]
     deep, total = _patch(finger, val, nf)
-    dnf, ktf = _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio)
+    fl = _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio)
     wsum = np.zeros(nf)
     for p in range(finger.shape[0]):
         f = finger[p]
         j = facet[p]
         w, depth = _weight_depth(p, f, val, deep, total, patch)
-        elastic = _normal_force(depth, dnf[f] if patch else max(depth, 0.0) ** n_exp, 0.0, K[f], 0.0, False)
-        kt = ktf[f] if patch else _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
+        F, _, _, dn, kt = _pair_normal_law(p, f, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl)
+        elastic = _normal_force(depth, F, dn, 0.0, 0.0, False)
         sx, sy, sz, cont, ax, ay, az = _stick(
             p, f, j, val, x, facets, centres, active, anchor, offset, memory
         )
@@ -243,7 +244,7 @@ def fingertip_forces(
     radii: NDArray[np.float64],
     velocities: NDArray[np.float64],
     omegas: NDArray[np.float64],
-    K: NDArray[np.float64],
+    law: NDArray[np.float64],
     C: NDArray[np.float64],
     *,
     closest: bool,
@@ -260,8 +261,9 @@ def fingertip_forces(
     memory: NDArray[np.float64],
 ) -> NDArray[np.float64]:
     """Contact forces on the nodes [N], (N, 3), of fingertips (centres, radii, velocities, omegas,
-    stiffness K [N/m^n] and damping C [N s/m] per fingertip) with friction state (active (n_f, F),
-    anchor (n_f, F, 3), offset (n_f, F, 3) [m], memory (n_f, 3) [m]); parameters as in
+    normal law ``law`` (n_f, 3): K [N/m^n], resolved share r and resolution ratio (the law of
+    :mod:`softgrasp.physics.fingertip.resolved`), damping C [N s/m]) with friction state (active
+    (n_f, F), anchor (n_f, F, 3), offset (n_f, F, 3) [m], memory (n_f, 3) [m]); parameters as in
     :class:`softgrasp.physics.fingertip.params.ContactParams` (``ratio`` = k_t / k_n)."""
     f64 = np.float64
     geometry = _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii)
@@ -272,7 +274,7 @@ def fingertip_forces(
         *geometry[1:],
         np.ascontiguousarray(velocities, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(omegas, dtype=f64).reshape(-1, 3),
-        np.ascontiguousarray(K, dtype=f64).ravel(),
+        np.ascontiguousarray(law, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(C, dtype=f64).ravel(),
         bool(closest),
         float(inside_tol),
@@ -300,7 +302,7 @@ def fingertip_static_forces(
     reach: float,
     centres: NDArray[np.float64],
     radii: NDArray[np.float64],
-    K: NDArray[np.float64],
+    law: NDArray[np.float64],
     *,
     closest: bool,
     inside_tol: float,
@@ -327,7 +329,7 @@ def fingertip_static_forces(
     finger, facet = (np.zeros(0, i64), np.zeros(0, i64)) if pairs is None else pairs
     _static_forces(
         *geometry,
-        *_law_args(K, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio),
+        *_law_args(law, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio),
         *_state_args(active, anchor, offset),
         np.ascontiguousarray(memory, dtype=f64),
         pairs is not None,
@@ -347,7 +349,7 @@ def fingertip_update(
     reach: float,
     centres: NDArray[np.float64],
     radii: NDArray[np.float64],
-    K: NDArray[np.float64],
+    law: NDArray[np.float64],
     *,
     closest: bool,
     inside_tol: float,
@@ -375,7 +377,7 @@ def fingertip_update(
     new_memory = np.zeros(memory.shape)
     _fingertip_update(
         *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
-        *_law_args(K, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio),
+        *_law_args(law, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio),
         *_state_args(active, anchor, offset),
         np.ascontiguousarray(slip, dtype=f64),
         np.ascontiguousarray(memory, dtype=f64),
@@ -399,7 +401,7 @@ def fingertip_pair_laws(
     radii: NDArray[np.float64],
     velocities: NDArray[np.float64],
     omegas: NDArray[np.float64],
-    K: NDArray[np.float64],
+    law: NDArray[np.float64],
     C: NDArray[np.float64],
     *,
     mu: float,
@@ -416,14 +418,15 @@ def fingertip_pair_laws(
     """The contact law of the pairs (finger (k,), facet (k,), their detection values (k, 13) as
     :func:`~softgrasp.physics.fingertip.detect.detect_arrays` gives them), evaluated as
     :func:`fingertip_forces` does (``v`` None: at rest, as :func:`fingertip_static_forces`):
-    (table (k, 12): f_n [N] 0, friction on the finger [N] 1-3, weight w 4, k_t [N/m] 5, stick
+    (table (k, 15): f_n [N] 0, friction on the finger [N] 1-3, weight w 4, k_t [N/m] 5, stick
     displacement [m] 6-8, Coulomb cap mu f_n [N] 9, penetration the normal law is evaluated at [m]
-    10, the pair it is measured on 11; slipping (k,))."""
+    10, the pair it is measured on 11, the unweighted elastic force [N] 12, its derivative [N/m]
+    13 and energy [J] 14 there; slipping (k,))."""
     f64, i64 = np.float64, np.int64
     x = np.ascontiguousarray(x, dtype=f64)
     static = v is None
     finger = np.ascontiguousarray(finger, dtype=i64)
-    table = np.zeros((finger.shape[0], 12))
+    table = np.zeros((finger.shape[0], 15))
     slipping = np.zeros(finger.shape[0], np.bool_)
     centres = np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3)
     _pair_table(
@@ -437,7 +440,7 @@ def fingertip_pair_laws(
         np.ascontiguousarray(radii, dtype=f64).ravel(),
         np.ascontiguousarray(velocities, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(omegas, dtype=f64).reshape(-1, 3),
-        np.ascontiguousarray(K, dtype=f64).ravel(),
+        np.ascontiguousarray(law, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(C, dtype=f64).ravel(),
         float(mu),
         float(exponent),

@@ -23,6 +23,7 @@ Algorithm 1 is applied (:meth:`FingertipContact.update`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
@@ -45,7 +46,7 @@ from softgrasp.physics.fingertip.laws import (
     contact_stiffness,
     effective_modulus,
     mindlin_ratio,
-    normal_force_derivative,
+    resolved_share,
 )
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.fingertip.state import FingerReport, FingerState, _Eval
@@ -86,6 +87,20 @@ class FingertipContact:
                 for f in self.fingertips
             ]
         )
+
+    def law_table(self, body: Body) -> NDArray[np.float64]:
+        """The normal law of each fingertip as the compiled kernels take it, (n_f, 3): K
+        [N/m^n] (Eq. 11), the share r of the pair's Hertz compliance that the object's mesh
+        resolves (0 under the paper's law) and the resolution ratio
+        (:mod:`softgrasp.physics.fingertip.resolved`)."""
+        m, p = body.material, self.params
+        table = np.zeros((len(self.fingertips), 3))
+        table[:, 0] = self.stiffness(body)
+        if p.law == "resolved":
+            obj = effective_modulus(math.inf, 0.0, m.E, m.nu)
+            table[:, 1] = [resolved_share(effective_modulus(f.E, f.nu, m.E, m.nu), obj) for f in self.fingertips]
+            table[:, 2] = p.resolution
+        return table
 
     def damping(self) -> NDArray[np.float64]:
         """C of each fingertip [N s/m] (Eq. 13)."""
@@ -153,7 +168,7 @@ class FingertipContact:
             self._radii(),
             np.array([f.velocity for f in self.fingertips]),
             np.array([f.omega for f in self.fingertips]),
-            self.stiffness(body),
+            self.law_table(body),
             self.damping(),
             mu=p.mu,
             exponent=p.exponent,
@@ -177,6 +192,9 @@ class FingertipContact:
             slipping,
             table[:, 10],
             table[:, 11].astype(np.int64),
+            table[:, 12],
+            table[:, 13],
+            table[:, 14],
         )
 
     # ------------------------------------------------------------------ Interaction protocol
@@ -224,7 +242,7 @@ class FingertipContact:
             "reach": broad_phase_reach(index),
             "centres": self.centres(t),
             "radii": self._radii(),
-            "K": self.stiffness(body),
+            "law": self.law_table(body),
             "closest": self._closest(),
             "inside_tol": INSIDE_TOL,
             "mu": p.mu,
@@ -298,16 +316,13 @@ class FingertipContact:
         return self._static_compiled(body, t, state, ref)
 
     def energy(self, body: Body, x, t: float, state: FingerState) -> float:
-        """Elastic energy of the normal contact springs [J], sum of w K delta^(n+1) / (n+1).
+        """Elastic energy of the normal contact springs [J], the sum over pairs of w times the
+        normal law's energy (K delta^(n+1) / (n+1) under the paper's law).
 
         Friction is dissipative and the patch rule's weights depend on the configuration, so the
         contact is not a potential: the static solver does not use this for its line search."""
         ev = self._evaluate(body, x, None, t, state, static=True)
-        if not len(ev.pairs):
-            return 0.0
-        K = self.stiffness(body)[ev.pairs.finger]
-        n = self.params.exponent
-        return float(np.sum(ev.w * K * ev.depth ** (n + 1) / (n + 1)))
+        return float(np.sum(ev.w * ev.energy))
 
     def jacobian(self, body: Body, x, t: float, state: FingerState) -> sp.csr_matrix:
         """``d f / d x`` at rest, symmetrised
@@ -352,9 +367,18 @@ class FingertipContact:
         return replace(state, active=active, anchor=anchor, offset=offset, slip=slip)
 
     def stiffness_bound(self, body: Body) -> NDArray[np.float64]:
-        """Largest contact stiffness a node may see [N/m] (at a penetration of half the radius)."""
-        K = self.stiffness(body)
-        kmax = float(np.max(normal_force_derivative(0.5 * self._radii(), K, self.params.exponent)))
+        """Largest contact stiffness a node may see [N/m]: the normal law's slope at a penetration
+        of half the radius, at the resolution of the mesh's smallest boundary facet."""
+        from softgrasp.physics.fingertip.resolved import elastic_normal_value
+
+        pts = np.asarray(body.mesh.points)[body.mesh.facets]
+        area = 0.5 * np.linalg.norm(np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0]), axis=1)
+        h = 0.5 * math.pi * math.sqrt(4.0 * float(area.min()) / math.sqrt(3.0))  # a node's own
+        law = self.law_table(body)
+        kmax = max(
+            elastic_normal_value(0.5 * R, R, law[i, 0], self.params.exponent, law[i, 1], law[i, 2] * h)[1]
+            for i, R in enumerate(self._radii())
+        )
         if self.params.rule == "facet":
             kmax *= 6.0  # a node shares its force with up to ~6 touched facets
         return np.full(body.n_nodes, kmax * (1.0 + self._ratio(body)))

@@ -4,7 +4,7 @@ For each pair (as :mod:`softgrasp.physics.fingertip.detect` finds it), :func:`_p
 evaluates the relative velocity at the contact point (Eq. 1-8, :func:`_relative_velocity`), the
 normal force ``f_n = w max(0, K delta^n + C delta_dot)`` (or Hunt-Crossley's ``delta^n (K + C
 delta_dot)``) along the facet's inward normal (Eq. 9-14) with the patch rule's weight w and the
-finger's deepest penetration (:func:`_patch`, :func:`_finger_powers`, :func:`_weight_depth`) or the
+finger's deepest penetration (:func:`_patch`, :func:`_finger_laws`, :func:`_weight_depth`) or the
 literal per-facet rule, the elastic-slider friction ``-w (k_t v + c_t V_t)`` capped by Coulomb's
 ``mu f_n`` (Eq. 15-16, Algorithm 1, :mod:`softgrasp.physics.fingertip.friction`; sliding along
 ``-V_t`` when moving, the stick force scaled to the cap at rest), and spreads the pair's force on
@@ -20,7 +20,7 @@ import numpy as np
 
 from softgrasp import jitcache
 from softgrasp.physics.fingertip import laws
-from softgrasp.physics.fingertip.friction import _stick, _tangential_stiffness
+from softgrasp.physics.fingertip.friction import _elastic, _stick, _tangential_stiffness
 
 __all__: list[str] = []
 
@@ -29,6 +29,12 @@ _jit = jitcache.jit(fastmath=False, error_model="numpy")
 _normal_force = _jit(laws.normal_force_value)
 #: Coulomb sliding, Eq. 15 (:func:`softgrasp.physics.fingertip.laws.coulomb_slip_value`).
 _coulomb_slip = _jit(laws.coulomb_slip_value)
+
+
+@_jit
+def _facet_size(area):  # pragma: no cover - compiled
+    """The edge [m] of the equilateral triangle of area ``area`` [m^2]: a facet's size."""
+    return math.sqrt(4.0 * area / math.sqrt(3.0))
 
 
 @_jit
@@ -46,19 +52,79 @@ def _patch(finger, val, nf):  # pragma: no cover - compiled
 
 
 @_jit
-def _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio):  # pragma: no cover - compiled
-    """Per finger, ``max(delta, 0)^n`` and k_t at its deepest pair's depth (0 without pairs): the
-    patch rule evaluates every pair of a finger there, so the powers are taken once a finger
-    instead of once a pair (the same values)."""
+def _load_compliance(p, q, wp, wq, facet, val, x, facets, kappa):  # pragma: no cover - compiled
+    """sum over the nodes l of pair p's facet and m of pair q's of (w_p b_l)(w_q b_m) / r_lm [1/m]:
+    the half-space's 1 / r between distinct nodes, ``kappa x`` the facet size for a node's own."""
+    total = 0.0
+    jp = facet[p]
+    jq = facet[q]
+    self_r = kappa * 0.5 * (_facet_size(val[p, 11]) + _facet_size(val[q, 11]))
+    for m in range(3):
+        a = facets[jp, m]
+        for k in range(3):
+            b = facets[jq, k]
+            if a == b:
+                r = self_r
+            else:
+                dx = x[a, 0] - x[b, 0]
+                dy = x[a, 1] - x[b, 1]
+                dz = x[a, 2] - x[b, 2]
+                r = math.sqrt(dx * dx + dy * dy + dz * dz)
+            total += wp * val[p, m] * wq * val[q, k] / r
+    return total
+
+
+@_jit
+def _resolution_length(p, facet, val, x, facets, kappa):  # pragma: no cover - compiled
+    """The mesh's resolution length h [m] under a load at pair p's contact point, spread on its
+    facet's nodes by the shape functions b (Eq. 17-20): the radius of the disc whose Hertz
+    compliance 1 / (2 E* h) equals the body's compliance to that nodal load,
+    ``sum_lm b_l b_m / (pi E* r_lm)``, with the half-space's 1 / r between distinct nodes and
+    ``r_ll = kappa x`` the facet's size for a node's own deflection (:func:`_load_compliance`):
+    ``h = (pi / 2) / sum_lm b_l b_m / r_lm``. Continuous as the point crosses an edge or a vertex
+    (the shape functions of the nodes left behind vanish there)."""
+    if not kappa > 0.0:
+        return 0.0
+    return 0.5 * math.pi / _load_compliance(p, p, 1.0, 1.0, facet, val, x, facets, kappa)
+
+
+@_jit
+def _law_values(depth, f, h, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover - compiled
+    """Finger f's normal law at ``depth`` with resolution length ``h``: (elastic force F [N],
+    dF/d delta [N/m], energy [J], ``max(delta, 0)^n``, k_t [N/m])."""
+    F, slope, W = _elastic(depth, f, h, radii, law, n_exp)
+    kt = _tangential_stiffness(depth, f, h, radii, law, n_exp, ratio, min_depth_ratio)
+    return F, slope, W, max(depth, 0.0) ** n_exp, kt
+
+
+@_jit
+def _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover
+    """Per finger (n_f, 5), its normal law (:func:`_law_values`) at its deepest pair's depth and
+    resolution length (:func:`_resolution_length`), zeros without pairs: the patch rule evaluates
+    every pair of a finger there, so the law is evaluated once a finger instead of once a pair."""
     nf = deep.shape[0]
-    dn = np.zeros(nf)
-    kt = np.zeros(nf)
+    fl = np.zeros((nf, 5))
     for f in range(nf):
-        if deep[f] >= 0:
-            d = val[deep[f], 10]
-            dn[f] = max(d, 0.0) ** n_exp
-            kt[f] = _tangential_stiffness(d, radii[f], K[f], n_exp, ratio, min_depth_ratio)
-    return dn, kt
+        p = deep[f]
+        if p >= 0:
+            h = _resolution_length(p, facet, val, x, facets, law[f, 2])
+            F, slope, W, dn, kt = _law_values(val[p, 10], f, h, radii, law, n_exp, ratio, min_depth_ratio)
+            fl[f, 0] = F
+            fl[f, 1] = slope
+            fl[f, 2] = W
+            fl[f, 3] = dn
+            fl[f, 4] = kt
+    return fl
+
+
+@_jit
+def _pair_normal_law(p, f, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl):  # pragma: no cover
+    """Pair p's normal law values (:func:`_law_values`): its finger's (``fl``) under the patch rule,
+    at its own depth and resolution length under the literal one."""
+    if patch:
+        return fl[f, 0], fl[f, 1], fl[f, 2], fl[f, 3], fl[f, 4]
+    h = _resolution_length(p, facet, val, x, facets, law[f, 2])
+    return _law_values(val[p, 10], f, h, radii, law, n_exp, ratio, min_depth_ratio)
 
 
 @_jit
@@ -100,16 +166,17 @@ def _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas):  #
 
 @_jit
 def _pair_law(
-    p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley,
-    patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, deep, total, dnf, ktf,
+    p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
+    patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, deep, total, fl,
 ):  # pragma: no cover - compiled
     """The contact law of pair p: its normal force f_n (Eq. 9-14: the patch rule's weight w times
-    ``max(0, K delta^n + C delta_dot)``, or Hunt-Crossley's ``delta^n (K + C delta_dot)``, zero
+    ``max(0, F_e + C delta_dot)``, or Hunt-Crossley's ``F_e + C delta^n delta_dot``, with F_e the
+    elastic law (:mod:`softgrasp.physics.fingertip.resolved`; K delta^n for the paper's), zero
     unless delta > 0, never pulling) and its friction on the finger (Eq. 15-16, Algorithm 1: the
     elastic slider ``-w (k_t v + c_t V_t)`` with ``c_t = ratio C``, capped by ``mu f_n``: Coulomb
     sliding ``-mu f_n V_t / |V_t|`` when moving, the stick force scaled to the cap at rest).
-    ``deep, total, dnf, ktf``: each finger's deepest pair, weight sum, ``delta^n`` and k_t
-    (:func:`_patch`, :func:`_finger_powers`). ``static``: no relative velocity.
+    ``deep, total, fl``: each finger's deepest pair, weight sum and law values (:func:`_patch`,
+    :func:`_finger_laws`). ``static``: no relative velocity.
 
     Returns (f_n, friction x, y, z, w, k_t, stick displacement x, y, z, mu f_n, slipping); k_t,
     the stick and the cap are 0 without friction."""
@@ -123,8 +190,8 @@ def _pair_law(
         vtx, vty, vtz, rate = _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas)
     w, depth = _weight_depth(p, f, val, deep, total, patch)
     # normal force (Eq. 9), zero unless delta > 0, never pulling
-    dn = dnf[f] if patch else max(depth, 0.0) ** n_exp
-    fn = w * _normal_force(depth, dn, rate, K[f], C[f], hunt_crossley)
+    elastic, _, _, dn, kt_law = _pair_normal_law(p, f, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl)
+    fn = w * _normal_force(depth, elastic, dn, rate, C[f], hunt_crossley)
     ftx = 0.0
     fty = 0.0
     ftz = 0.0
@@ -136,10 +203,7 @@ def _pair_law(
     slipping = False
     if mu > 0.0:
         sx, sy, sz, _, _, _, _ = _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory)
-        if patch:
-            kt = ktf[f]
-        else:
-            kt = _tangential_stiffness(depth, radii[f], K[f], n_exp, ratio, min_depth_ratio)
+        kt = kt_law
         a = -(w * kt)
         b = w * (ratio * C[f])
         ftx = a * sx - b * vtx
@@ -162,7 +226,7 @@ def _pair_law(
 
 @_jit
 def _pair_forces(
-    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley,
+    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
     patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, out,
 ):  # pragma: no cover - compiled
     """Forces of the pairs (finger, facet, val) (as :func:`_detect` gives them) added to ``out``
@@ -173,12 +237,12 @@ def _pair_forces(
     :meth:`softgrasp.physics.fingertip.contact.FingertipContact.static_forces`; ``v``, ``velocities`` and
     ``omegas`` are then not read."""
     deep, total = _patch(finger, val, centres.shape[0])
-    dnf, ktf = _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio)
+    fl = _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio)
     for p in range(finger.shape[0]):
         fn, ftx, fty, ftz, _, _, _, _, _, _, _ = _pair_law(
-            p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp,
+            p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
             hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, deep, total,
-            dnf, ktf,
+            fl,
         )  # fmt: skip
         # the pair's force on the object, spread by the shape functions (Eq. 17-20)
         Fx = -fn * val[p, 6] - ftx
@@ -194,20 +258,21 @@ def _pair_forces(
 
 @_jit
 def _pair_table(
-    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp, hunt_crossley,
+    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
     patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, table, slipping,
 ):  # pragma: no cover - compiled
-    """Each pair's law (:func:`_pair_law`) into ``table`` (k, 12): f_n 0, friction on the finger
+    """Each pair's law (:func:`_pair_law`) into ``table`` (k, 15): f_n 0, friction on the finger
     1-3, weight w 4, k_t 5, stick displacement 6-8, cap mu f_n 9, the penetration delta the normal
     law is evaluated at 10 and the pair it is measured on 11 (its finger's deepest pair under the
-    patch rule, itself under the literal one); whether it slips into ``slipping`` (k,)."""
+    patch rule, itself under the literal one), the elastic law's force F_e 12, dF_e/d delta 13
+    and energy 14 there (unweighted); whether it slips into ``slipping`` (k,)."""
     deep, total = _patch(finger, val, centres.shape[0])
-    dnf, ktf = _finger_powers(deep, val, radii, K, n_exp, ratio, min_depth_ratio)
+    fl = _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio)
     for p in range(finger.shape[0]):
         fn, ftx, fty, ftz, w, kt, sx, sy, sz, cap, slips = _pair_law(
-            p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, K, C, mu, n_exp,
+            p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
             hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, deep, total,
-            dnf, ktf,
+            fl,
         )  # fmt: skip
         table[p, 0] = fn
         table[p, 1] = ftx
@@ -222,4 +287,10 @@ def _pair_table(
         at = deep[finger[p]] if patch else p
         table[p, 10] = val[at, 10]
         table[p, 11] = at
+        F, slope, W, _, _ = _pair_normal_law(
+            p, finger[p], facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl
+        )
+        table[p, 12] = F
+        table[p, 13] = slope
+        table[p, 14] = W
         slipping[p] = slips

@@ -3,7 +3,7 @@
 Each touching (fingertip, facet) pair has a stick anchor X_a (a material point of the facet, in
 barycentric coordinates) and the fingertip centre's offset from it; its stick displacement v
 (Eq. 16) is the tangential part of ``(c - X_a) - offset`` (:func:`_stick`), its tangential stiffness
-``k_t = ratio x d(K delta^n)/d delta`` (:func:`_tangential_stiffness`). The stick force
+``k_t = ratio x dF_n/d delta`` of the normal law (:func:`_tangential_stiffness`). The stick force
 ``-w (k_t v + c_t V_t)`` is capped by Coulomb's ``mu f_n`` (:mod:`softgrasp.physics.fingertip.forces`);
 after an accepted step Algorithm 1 cuts a slipping pair's stick back to the limit
 (:func:`softgrasp.physics.fingertip.compiled._update_pairs`).
@@ -12,13 +12,21 @@ after an accepted step Algorithm 1 cuts a slipping pair's stick back to the limi
 from __future__ import annotations
 
 from softgrasp import jitcache
-from softgrasp.physics.fingertip import laws
+from softgrasp.physics.fingertip import resolved
 
 __all__: list[str] = []
 
 _jit = jitcache.jit(fastmath=False, error_model="numpy")
-#: The normal stiffness law n K delta^(n-1) (:func:`softgrasp.physics.fingertip.laws.normal_stiffness_value`).
-_normal_stiffness = _jit(laws.normal_stiffness_value)
+#: The elastic normal law (:func:`softgrasp.physics.fingertip.resolved.elastic_normal_value`).
+_elastic_normal = resolved.elastic_normal_value
+
+
+@_jit
+def _elastic(depth, f, h, radii, law, n_exp):  # pragma: no cover - compiled
+    """Finger f's elastic normal law at penetration ``depth`` and resolution length ``h``: (F [N],
+    dF/d delta [N/m], energy [J]). ``law`` (n_f, 3): K, the resolved share r and the resolution
+    ratio per finger (:mod:`softgrasp.physics.fingertip.resolved`)."""
+    return _elastic_normal(depth, radii[f], law[f, 0], n_exp, law[f, 1], h)
 
 
 @_jit
@@ -55,8 +63,8 @@ def _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory):  #
 
 
 @_jit
-def _tangential_stiffness(depth, radius, K, n_exp, ratio, min_depth_ratio):  # pragma: no cover
-    """k_t = ratio x d(K delta^n)/d delta (Mindlin's ratio of the normal stiffness,
-    :func:`softgrasp.physics.fingertip.laws.normal_stiffness_value`) at max(delta, min_depth_ratio R)."""
-    d = max(max(depth, min_depth_ratio * radius), 0.0)
-    return ratio * _normal_stiffness(d, K, n_exp)
+def _tangential_stiffness(depth, f, h, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover
+    """k_t = ratio x dF_n/d delta (Mindlin's ratio of the normal law's stiffness, :func:`_elastic`)
+    at max(delta, min_depth_ratio R)."""
+    d = max(max(depth, min_depth_ratio * radii[f]), 0.0)
+    return ratio * _elastic(d, f, h, radii, law, n_exp)[1]

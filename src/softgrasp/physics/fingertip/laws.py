@@ -30,12 +30,30 @@ __all__ = [
     "restitution_hunt_crossley",
     "PAPER_PREFACTOR",
     "HERTZ_PREFACTOR",
+    "RESOLUTION",
+    "MAX_SHARE",
+    "resolved_share",
 ]
 
 #: K = 2 Psi sqrt(R) (Eq. 11).
 PAPER_PREFACTOR = 2.0
 #: Hertz's sphere-on-half-space K = 4/3 E* sqrt(R).
 HERTZ_PREFACTOR = 4.0 / 3.0
+#: The radius, over its facet's size (the edge of the equilateral triangle of its area), of the
+#: disc whose half-space deflection equals a boundary node's own deflection under a point load on
+#: it: the mesh's resolution at a contact for the default law
+#: (:mod:`softgrasp.physics.fingertip.resolved`), a property of the discretisation.
+RESOLUTION = 0.2
+#: Largest share of the pair's Hertz compliance the mesh may take over (the default law keeps at
+#: least 2 % of Hertz's tangent compliance: its stiffness stays below 50x Hertz's).
+MAX_SHARE = 0.98
+
+
+def resolved_share(psi_pair: float, psi_object: float) -> float:
+    """r = E*_pair / E*_object (Eq. 12), capped at :data:`MAX_SHARE`: the share of the pair's
+    Hertz compliance that is the object's (1 for a rigid fingertip) and that the mesh resolves
+    as far as its resolution allows (:mod:`softgrasp.physics.fingertip.resolved`)."""
+    return min(psi_pair / psi_object, MAX_SHARE)
 
 
 def effective_modulus(E1: float, nu1: float, E2: float, nu2: float) -> float:
@@ -69,13 +87,16 @@ def contact_damping(radius: float, gamma: float) -> float:
     return 4.0 * math.pi * radius * gamma
 
 
-def normal_force_value(delta: float, delta_n: float, rate: float, K: float, C: float, hunt_crossley: bool) -> float:
-    """Normal contact force magnitude [N] of one contact (Eq. 9), given ``delta_n = max(delta, 0)^n``.
+def normal_force_value(
+    delta: float, elastic: float, delta_n: float, rate: float, C: float, hunt_crossley: bool
+) -> float:
+    """Normal contact force magnitude [N] of one contact (Eq. 9), given its elastic force
+    ``elastic`` (K delta^n for the paper's law) and ``delta_n = max(delta, 0)^n``.
 
-    Linear damping (the paper): ``max(0, K delta^n + C delta_dot)``; Hunt and Crossley's form (no
-    force jump at first touch): ``max(0, delta^n (K + C delta_dot))``. Zero unless delta > 0.
+    Linear damping (the paper): ``max(0, F_e + C delta_dot)``; Hunt and Crossley's form (no
+    force jump at first touch): ``max(0, F_e + C delta^n delta_dot)``. Zero unless delta > 0.
     """
-    raw = delta_n * (K + C * rate) if hunt_crossley else K * delta_n + C * rate
+    raw = elastic + C * delta_n * rate if hunt_crossley else elastic + C * rate
     return max(raw, 0.0) if delta > 0.0 else 0.0
 
 
@@ -114,7 +135,7 @@ def normal_force(
     d = np.asarray(delta, dtype=np.float64)
     dn = np.maximum(d, 0.0) ** n
     law = np.vectorize(normal_force_value, otypes=[np.float64])
-    return law(d, dn, np.asarray(delta_rate, dtype=np.float64), K, C, damping == "hunt-crossley")
+    return law(d, np.asarray(K) * dn, dn, np.asarray(delta_rate, dtype=np.float64), C, damping == "hunt-crossley")
 
 
 def normal_force_derivative(delta: ArrayLike, K: ArrayLike, n: float = 1.5) -> NDArray[np.float64]:

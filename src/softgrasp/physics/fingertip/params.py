@@ -5,7 +5,11 @@ Defaults for what the paper does not give (DESIGN.md §4), each with its source:
 * ``mu = 0.8`` — silicone elastomer fingertip skin on rubber or polyurethane foam: dry
   rubber-on-rubber friction is typically 0.6-1.0.
 * ``exponent = 1.5`` — Hertz's exponent, the only one for which K's units (Eq. 11) work.
-* ``prefactor = 2`` — the paper's K = 2 Psi sqrt(R) (Eq. 11); Hertz's sphere has 4/3.
+* ``law = "resolved"`` — the object's compliance counted once: Hertz's law for a sphere less the
+  part of the object's compliance its mesh resolves (:mod:`softgrasp.physics.fingertip.resolved`);
+  ``"paper"`` is the paper's K delta^n in series with the meshed body (Eq. 9-11), for reproducing it.
+* ``prefactor`` — Hertz's 4/3 under the resolved law; the paper's K = 2 Psi sqrt(R) (Eq. 11) under
+  its own.
 * ``gamma = 10 N s/m^2`` — C = 4 pi R gamma is then 1.0 N s/m for an 8 mm fingertip: 5 mN of
   damping force at the paper's 5 mm/s closing speed, small next to the elastic force, enough to damp
   contact chatter in explicit runs.
@@ -24,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ContactError
-from softgrasp.physics.fingertip.laws import PAPER_PREFACTOR
+from softgrasp.physics.fingertip.laws import HERTZ_PREFACTOR, PAPER_PREFACTOR, RESOLUTION
 
 __all__ = ["Fingertip", "ContactParams"]
 
@@ -89,12 +93,13 @@ class ContactParams:
     Attributes
     ----------
     mu: Coulomb friction coefficient.
-    exponent: n of K delta^n (Eq. 9).
-    prefactor: c of K = c Psi sqrt(R) (Eq. 11): 2 (paper) or 4/3 (Hertz).
+    exponent: n of K delta^n (Eq. 9); 1.5 under the resolved law.
+    prefactor: c of K = c Psi sqrt(R) (Eq. 11); default (None) the law's: 4/3 (Hertz) for the
+        resolved law, 2 for the paper's.
     gamma: gamma of C = 4 pi R gamma (Eq. 13) [N s/m^2].
     damping: ``"linear"`` (paper: K delta^n + C delta_dot) or ``"hunt-crossley"``
         (K delta^n + C delta^n delta_dot, with C then read as lambda).
-    rule: ``"patch"`` (default): a fingertip's elastic normal force is K delta_max^n, with
+    rule: ``"patch"`` (default): a fingertip's elastic normal force is F(delta_max), with
         delta_max = R - dist(centre, surface) its overlap with the surface, shared among every
         facet the sphere overlaps by weights w_j proportional to A_j cos_j delta_j (delta_j =
         R - |c - Q_j|, Q_j the facet's point closest to the centre, cos_j the cosine between the
@@ -108,24 +113,36 @@ class ContactParams:
         total grows with the number of facets touched).
     tangential_ratio: k_t / k_n; ``None`` for Mindlin's 2(1 - nu)/(2 - nu) of the object.
     min_depth_ratio: k_t is evaluated at a penetration of at least this fraction of R.
+    law: ``"resolved"`` (default): the fingertip's elastic normal force is Hertz's less the share
+        of the object's compliance that its mesh resolves, so the compliance is counted once
+        (:mod:`softgrasp.physics.fingertip.resolved`); ``"paper"``: K delta^n (Eq. 9-11).
+    resolution: the mesh's resolution length at a contact over the patch's facet size (resolved
+        law; :data:`softgrasp.physics.fingertip.laws.RESOLUTION`).
     """
 
     mu: float = 0.8
     exponent: float = 1.5
-    prefactor: float = PAPER_PREFACTOR
+    prefactor: float | None = None
     gamma: float = 10.0
     damping: str = "linear"
     rule: str = "patch"
     tangential_ratio: float | None = None
     min_depth_ratio: float = 0.01
+    law: str = "resolved"
+    resolution: float = RESOLUTION
 
     def __post_init__(self) -> None:
+        if self.law not in ("resolved", "paper"):
+            raise ContactError(f"contact law must be 'resolved' or 'paper', got {self.law!r}")
+        if self.prefactor is None:
+            object.__setattr__(self, "prefactor", HERTZ_PREFACTOR if self.law == "resolved" else PAPER_PREFACTOR)
         checks = {
             "mu": self.mu >= 0,
             "exponent": self.exponent >= 1.0,
             "prefactor": self.prefactor > 0,
             "gamma": self.gamma >= 0,
             "min_depth_ratio": 0 < self.min_depth_ratio < 1,
+            "resolution": self.resolution >= 0,
         }
         for k, ok in checks.items():
             v = getattr(self, k)
@@ -137,6 +154,11 @@ class ContactParams:
             raise ContactError(f"rule must be 'patch' or 'facet', got {self.rule!r}")
         if self.tangential_ratio is not None and not self.tangential_ratio > 0:
             raise ContactError(f"tangential_ratio = {self.tangential_ratio} must be > 0")
+        if self.law == "resolved" and self.exponent != 1.5:
+            raise ContactError(
+                f"the resolved contact law is Hertz's (exponent 1.5), got exponent = {self.exponent}; "
+                "use the paper's law (law='paper', --contact-law paper) for another exponent"
+            )
 
     def describe(self) -> dict[str, object]:
         return {
@@ -148,4 +170,6 @@ class ContactParams:
             "rule": self.rule,
             "tangential_ratio": self.tangential_ratio,
             "min_depth_ratio": self.min_depth_ratio,
+            "law": self.law,
+            "resolution": self.resolution,
         }

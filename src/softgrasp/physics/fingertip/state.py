@@ -70,3 +70,6 @@ class _Eval:
     slipping: NDArray[np.bool_]
     depth: NDArray[np.float64]  # penetration the pair's normal law is evaluated at [m], (k,)
     deep: NDArray[np.int64]  # the pair that penetration is measured on, (k,)
+    elastic: NDArray[np.float64]  # the normal law's elastic force there, unweighted [N], (k,)
+    slope: NDArray[np.float64]  # its derivative d F_e / d delta [N/m], (k,)
+    energy: NDArray[np.float64]  # its energy, unweighted [J], (k,)

@@ -27,7 +27,7 @@ def _pair_normal_forces(
     centre: NDArray[np.float64],
     radius: NDArray[np.float64],
     coef: NDArray[np.float64],
-    n_exp: float,
+    n_exp: NDArray[np.float64],
     closest: bool,
 ) -> NDArray[np.float64]:
     """Static normal forces on the three nodes of each facet, (k, 3, 3): ``-coef delta^n b_l n``
@@ -47,11 +47,12 @@ def _normal_jacobian_blocks(
     centre: NDArray[np.float64],
     radius: NDArray[np.float64],
     coef: NDArray[np.float64],
-    n_exp: float,
+    n_exp: NDArray[np.float64],
     closest: bool,
 ) -> NDArray[np.float64]:
     """d(nodal normal forces)/d(node positions) per pair by central differences, symmetrised,
-    (k, 3, 3, 3, 3) indexed [pair, node_l, node_m, axis_l, axis_m]."""
+    (k, 3, 3, 3, 3) indexed [pair, node_l, node_m, axis_l, axis_m]; the magnitude
+    ``coef delta^n`` per pair (exponent ``n_exp`` (k,))."""
     k = tri.shape[0]
     h = 1e-7 * np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1)  # (k,)
     # All 18 perturbed copies (+-h on each node's axis) in one evaluation: (2, 3, 3, k, 3, 3)
@@ -67,7 +68,7 @@ def _normal_jacobian_blocks(
         np.tile(centre, (reps, 1)),
         np.tile(radius, reps),
         np.tile(coef, reps),
-        n_exp,
+        np.tile(n_exp, reps),
         closest,
     ).reshape(2, 3, 3, k, 3, 3)
     dF = (F[0] - F[1]) / (2 * h)[None, None, :, None, None]  # [m, ax, pair, node l, axis l]
@@ -86,24 +87,25 @@ def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float,
     if not len(ev.pairs):
         return sp.csr_matrix((3 * N, 3 * N))
     pr = ev.pairs
-    K = contact.stiffness(body)[pr.finger]
     fac = body.mesh.facets[pr.facet]
     centres = contact.centres(t)[pr.finger]
     radii = contact._radii()[pr.finger]
-    n_exp = contact.params.exponent
     patch = contact.params.rule == "patch"
     if patch:
-        # Pair force w_j K delta_max^n along its facet's normal at its contact point: their
+        # Pair force w_j F(delta_max) along its facet's normal at its contact point: their
         # motion with the facet at fixed magnitude (central differences, exponent 0), plus the
         # magnitude's dependence on the finger's deepest facet, d delta_max / d x_l =
         # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
         # slides on the surface at no first-order cost); the weights are lagged.
         deep = ev.deep
-        dmax = ev.depth
-        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K * dmax**n_exp, 0.0, True)
+        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic, np.zeros(len(pr)), True)
     else:
-        # Exact per-pair blocks (facet rotation and the moving contact point included).
-        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * K, n_exp, False)
+        # Exact per-pair blocks (facet rotation and the moving contact point included), the
+        # normal law written locally as the power law with its value and slope at the pair's
+        # penetration (the same first derivative).
+        d = np.maximum(ev.depth, 1e-300)
+        m = np.where(ev.elastic > 0, ev.slope * d / np.maximum(ev.elastic, 1e-300), 1.0)
+        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic / d**m, m, False)
     blk_t = np.zeros((len(pr), 3, 3))
     if contact.params.mu > 0:
         nn = pr.normal[:, :, None] * pr.normal[:, None, :]
@@ -119,7 +121,7 @@ def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float,
     if patch:
         gap = centres - pr.point[deep]
         gdir = gap / np.maximum(np.linalg.norm(gap, axis=1), 1e-300)[:, None]
-        g = ev.w * K * n_exp * dmax ** (n_exp - 1.0)
+        g = ev.w * ev.slope
         bd = pr.bary[deep]
         cpl = (
             -(g[:, None, None] * pr.bary[:, :, None] * bd[:, None, :])[:, :, :, None, None]

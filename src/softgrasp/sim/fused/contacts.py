@@ -162,10 +162,10 @@ def finger_forces(x, v, t, fingers, fstate, cur, x_ref, track, near, centres, ou
     added to ``out`` (:func:`softgrasp.physics.fingertip.compiled._fingertip_forces`)."""
     reach, n_near = finger_reach(x, t, fingers, x_ref, track, near, centres)
     active, anchor, _, memory, offset = fstate
-    (_, facets, _, indptr, indices, _, _, vel, omega, radii, K, C, closest, inside_tol, mu, n_exp,
+    (_, facets, _, indptr, indices, _, _, vel, omega, radii, law, C, closest, inside_tol, mu, n_exp,
      hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
     _fingertip_forces(
-        x, v, facets, near[:n_near], indptr, indices, reach, centres, radii, vel, omega, K, C, closest,
+        x, v, facets, near[:n_near], indptr, indices, reach, centres, radii, vel, omega, law, C, closest,
         inside_tol, mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active[cur], anchor[cur],
         offset[cur], memory[cur], out,
     )  # fmt: skip
@@ -179,7 +179,7 @@ def finger_step(
     their forces at the new state added to ``out`` (one detection for both: the same state, the
     same pairs). Returns the new current buffer and the forces' power (0 unless ``want_power``)."""
     reach, n_near = finger_reach(x, t, fingers, x_ref, track, near, centres)
-    (_, facets, _, indptr, indices, _, _, vel, omega, radii, K, C, closest, inside_tol, mu, n_exp,
+    (_, facets, _, indptr, indices, _, _, vel, omega, radii, law, C, closest, inside_tol, mu, n_exp,
      hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
     active, anchor, slip, memory, offset = fstate
     finger, facet, val = _detect(
@@ -188,13 +188,13 @@ def finger_step(
     nxt = 1 - cur
     _clear_finger(active[nxt], anchor[nxt], offset[nxt], slip[nxt], memory[nxt])
     _update_pairs(
-        finger, facet, val, x, facets, centres, radii, K, mu, n_exp, patch, ratio, min_depth_ratio,
+        finger, facet, val, x, facets, centres, radii, law, mu, n_exp, patch, ratio, min_depth_ratio,
         active[cur], anchor[cur], offset[cur], slip[cur], memory[cur], active[nxt], anchor[nxt], offset[nxt],
         slip[nxt], memory[nxt],
     )  # fmt: skip
     cur = nxt
     _pair_forces(
-        finger, facet, val, x, v, facets, centres, radii, vel, omega, K, C, mu, n_exp, hunt_crossley, patch,
+        finger, facet, val, x, v, facets, centres, radii, vel, omega, law, C, mu, n_exp, hunt_crossley, patch,
         ratio, min_depth_ratio, active[cur], anchor[cur], offset[cur], memory[cur], False, out,
     )  # fmt: skip
     power = 0.0

@@ -114,7 +114,7 @@ def _finger_arrays(fingers: Any, body: Any) -> tuple:
         _f64([f.velocity for f in tips], (nf, 3)),
         _f64([f.omega for f in tips], (nf, 3)),
         _f64(kw["radii"], (nf,)),
-        _f64(kw["K"], (nf,)),
+        _f64(kw["law"], (nf, 3)),
         _f64(fingers.damping(), (nf,)),
         bool(kw["closest"]),
         float(kw["inside_tol"]),
@@ -130,7 +130,7 @@ def _finger_arrays(fingers: Any, body: Any) -> tuple:
 #: The fingertip tuple of a scene without fingertips (the same compiled signature).
 _NO_FINGERS = (
     False, np.zeros((1, 3), np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
-    0.0, np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1), np.zeros(1), np.zeros(1),
+    0.0, np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3)), np.zeros(1),
     False, 0.0, 0.0, 1.0, False, False, 0.0, 0.0,
 )  # fmt: skip
 
