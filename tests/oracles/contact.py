@@ -231,37 +231,47 @@ class OracleFingertipContact(FingertipContact):
         s = self.centres(t)[pairs.finger] - Xa - off
         return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, Xa, cont
 
-    def _resolution(self, body: Body, x, pairs: ContactPairs) -> NDArray[np.float64]:
-        """Resolution length of each pair's normal law [m], (k,): (pi / 2) over the body's
-        compliance sum b_l b_m / r_lm to a unit load at the contact point (r_ll the law's ratio
-        times the facet's size), at the pair (literal rule) or its finger's deepest pair (patch)."""
-        kappa = self.law_table(body)[pairs.finger, 2]
-        pts = x[body.mesh.facets[pairs.facet]]  # (k, 3, 3)
-        r = np.linalg.norm(pts[:, :, None, :] - pts[:, None, :, :], axis=-1)
-        own = kappa * np.sqrt(4.0 * pairs.area / np.sqrt(3.0))
-        r[:, np.arange(3), np.arange(3)] = own[:, None]
-        S = np.einsum("ki,kj,kij->k", pairs.bary, pairs.bary, 1.0 / r)
-        h = np.where(kappa > 0, 0.5 * np.pi / S, 0.0)
-        if self.params.rule == "facet" or len(pairs) == 0:
-            return h
-        return h[self._deepest(pairs)]
+    def _resolution(self, body: Body, pairs: ContactPairs, t: float) -> NDArray[np.float64]:
+        """The mesh's resolution under each pair's finger (h_node, h_land, facet size) [m],
+        (k, 3): at the point of the whole rest surface closest to the fingertip centre, (pi / 2)
+        over the body's compliance sum b_l b_m / r_lm to a unit load there (r_ll the law's ratio
+        times the facet's size); h_node of a load on one node."""
+        nf = len(self.fingertips)
+        kappa = self.params.resolution
+        out = np.zeros((nf, 3))
+        if self.params.law == "resolved" and kappa > 0:
+            pts = np.asarray(body.mesh.points)
+            tri = pts[body.mesh.facets]  # (F, 3, 3)
+            for i, c in enumerate(self.centres(t)):
+                cc = np.broadcast_to(c, (len(tri), 3))
+                bary = barycentric(cc, tri[:, 0], tri[:, 1], tri[:, 2])
+                inside = (bary >= 0).all(axis=1)
+                q_out, b_out = closest_points(cc, tri[:, 0], tri[:, 1], tri[:, 2])
+                bary = np.where(inside[:, None], bary, b_out)
+                q = np.einsum("ki,kij->kj", bary, tri)
+                j = int(np.argmin(np.linalg.norm(cc - q, axis=1)))
+                size = np.sqrt(4.0 * 0.5 * np.linalg.norm(np.cross(tri[j, 1] - tri[j, 0], tri[j, 2] - tri[j, 0])) / np.sqrt(3.0))
+                r = np.linalg.norm(tri[j][:, None, :] - tri[j][None, :, :], axis=-1)
+                r[np.arange(3), np.arange(3)] = kappa * size
+                out[i] = (0.5 * np.pi * kappa * size, 0.5 * np.pi / (bary[j] @ (1.0 / r) @ bary[j]), size)
+        return out[pairs.finger]
 
-    def _law(self, body: Body, x, pairs: ContactPairs, depth: NDArray[np.float64]) -> NDArray[np.float64]:
+    def _law(self, body: Body, pairs: ContactPairs, depth: NDArray[np.float64], t: float) -> NDArray[np.float64]:
         """The elastic normal law (force, slope, energy) of each pair at ``depth``, (k, 3)."""
-        law = self.law_table(body)[pairs.finger]
-        h = self._resolution(body, x, pairs)
-        R = self._radii()[pairs.finger]
+        law = self.law_table(body, t)[pairs.finger]
+        h = self._resolution(body, pairs, t)
+        R = law[:, 5]
         n = self.params.exponent
-        out = [elastic_normal_value(float(d), float(r), float(l[0]), n, float(l[1]), float(hh))
+        out = [elastic_normal_value(float(d), float(r), float(l[0]), n, float(l[1]), *map(float, hh))
                for d, r, l, hh in zip(depth, R, law, h)]  # fmt: skip
         return np.array(out, dtype=np.float64).reshape(-1, 3)
 
-    def _tangential_stiffness(self, body: Body, x, pairs: ContactPairs) -> NDArray[np.float64]:
+    def _tangential_stiffness(self, body: Body, pairs: ContactPairs, t: float) -> NDArray[np.float64]:
         """k_t of each pair [N/m]: Mindlin's ratio times dF_n/d delta at the pair's penetration
         (not below ``min_depth_ratio`` R)."""
         p = self.params
         depth = np.maximum(self._depths(pairs), p.min_depth_ratio * self._radii()[pairs.finger])
-        return self._ratio(body) * self._law(body, x, pairs, depth)[:, 1]
+        return self._ratio(body) * self._law(body, pairs, depth, t)[:, 1]
 
     def _evaluate(
         self, body: Body, x, v, t: float, state: FingerState, static: bool, pairs: ContactPairs | None = None
@@ -286,7 +296,7 @@ class OracleFingertipContact(FingertipContact):
             )
             rate = -np.einsum("ij,ij->i", vr, pairs.normal)  # d delta / dt
         depth = self._depths(pairs)
-        law = self._law(body, x, pairs, depth)
+        law = self._law(body, pairs, depth, t)
         dn = np.maximum(depth, 0.0) ** n_exp
         vec = np.vectorize(normal_force_value, otypes=[np.float64])
         raw = vec(depth, law[:, 0], dn, rate, C, p.damping == "hunt-crossley") if len(pairs) else np.zeros(0)
@@ -300,7 +310,7 @@ class OracleFingertipContact(FingertipContact):
         if p.mu > 0 and len(pairs):
             s, _, _ = self._stick(body, x, pairs, state, t)
             stick = s
-            kt = self._tangential_stiffness(body, x, pairs)
+            kt = self._tangential_stiffness(body, pairs, t)
             ct = self._ratio(body) * C
             trial = -(w * kt)[:, None] * s - (w * ct)[:, None] * vt
             cap = p.mu * fn
@@ -361,8 +371,8 @@ class OracleFingertipContact(FingertipContact):
         if len(pairs):
             i, j = pairs.finger, pairs.facet
             w = self._patch_weights(pairs)
-            elastic = self._law(body, x, pairs, self._depths(pairs))[:, 0]
-            kt = self._tangential_stiffness(body, x, pairs)
+            elastic = self._law(body, pairs, self._depths(pairs), t)[:, 0]
+            kt = self._tangential_stiffness(body, pairs, t)
             s, Xa, cont = self._stick(body, x, pairs, state, t)
             u = np.where(cont[:, None], state.slip[i, j], 0.0)
             if p.mu > 0:

@@ -261,6 +261,7 @@ def indent(
     steps: int | None = None,
     mu: float | None = None,
     rule: str = "patch",
+    contact_law: str = "resolved",
     data: str | Path | ForceCurve | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> Indentation:
@@ -269,7 +270,8 @@ def indent(
     quasi-statically after the object settled on the table.
 
     ``mu``: fingertip friction (default the material file's, else 0.8). ``rule``: ``patch`` or
-    ``facet`` (the paper's literal rule). ``data``: a measured force-penetration curve to compare
+    ``facet`` (the paper's literal rule). ``contact_law``: ``resolved`` (the object's compliance
+    counted once) or ``paper`` (K delta^n, Eq. 9-11). ``data``: a measured force-penetration curve to compare
     with (:func:`read_force_curve`, or its file).
     """
     from softgrasp.experiments.indentation import default_steps, indentation_test, mean_abs_force_error
@@ -279,7 +281,9 @@ def indent(
     check_indent(mu, steps)
     if not isinstance(obj, SoftObject):
         obj = load_object(obj)
-    params = contact_params(obj.material_file, mu, rule=rule)
+    if contact_law not in ("resolved", "paper"):
+        raise ConfigError(f"contact_law must be resolved or paper, got {contact_law!r}")
+    params = contact_params(obj.material_file, mu, rule=rule, law=contact_law)
     measured = read_force_curve(data, depth_m) if isinstance(data, str | Path) else data
     n = steps if steps is not None else default_steps(depth_m)
     res = indentation_test(

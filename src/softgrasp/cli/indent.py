@@ -49,6 +49,13 @@ def add_parser(sub) -> None:
         "whose force jumps as facets enter contact, so static solves may fail)",
     )
     i.add_argument(
+        "--contact-law",
+        choices=("resolved", "paper"),
+        default="resolved",
+        help="fingertip normal law: resolved (default; Hertz's, the object's compliance counted once "
+        "with its mesh) or paper (K delta^n in series with the meshed body, Eq. 9-11)",
+    )
+    i.add_argument(
         "--data",
         default=None,
         metavar="FILE",
@@ -79,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
             steps=args.steps,
             mu=args.mu,
             rule=args.rule,
+            contact_law=args.contact_law,
             data=measured,
             progress=update,
         )
@@ -89,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"finger   R = {args.radius * 1e3:.3g} mm, depth {args.depth * 1e3:.3g} mm in {test.steps} "
         "increments, "
-        f"mu = {test.contact.mu:g}, {args.rule} rule"
+        f"mu = {test.contact.mu:g}, {args.rule} rule, {test.contact.law} law"
     )
     if res.point_shift_m > 0:
         print(

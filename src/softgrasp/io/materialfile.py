@@ -2,7 +2,8 @@
 
 A TOML file with an optional ``[material]`` table (``E_Pa``, ``nu``, ``density_kg_m3``, ``name``,
 ``law = "linear" | "polynomial"`` with ``a2``, ``a3``) and an optional ``[contact]`` table
-(``mu``, ``exponent``, ``stiffness_prefactor``, ``gamma_N_s_m2``, ``damping``). ``softgrasp
+(``contact_law = "resolved" | "paper"``, ``mu``, ``exponent``, ``stiffness_prefactor``,
+``gamma_N_s_m2``, ``damping``). ``softgrasp
 calibrate`` writes one; ``plan``, ``indent``, ``compress`` and ``execute`` read it.
 """
 
@@ -27,6 +28,7 @@ _CONTACT_KEYS = {
     "stiffness_prefactor": "prefactor",
     "gamma_N_s_m2": "gamma",
     "damping": "damping",
+    "contact_law": "law",
 }
 
 
@@ -130,7 +132,8 @@ def read_material_file(path: str | Path) -> MaterialFile:
                 f"material file {name}: unknown [contact] key(s) {unknown}; known: {sorted(_CONTACT_KEYS)}"
             )
         for k, v in c.items():
-            contact[_CONTACT_KEYS[k]] = str(v) if k == "damping" else _number(name, "contact", k, v)
+            text = k in ("damping", "contact_law")
+            contact[_CONTACT_KEYS[k]] = str(v) if text else _number(name, "contact", k, v)
         try:
             ContactParams(**contact)  # type: ignore[arg-type]
         except ContactError as exc:
@@ -169,6 +172,7 @@ def write_material_file(
     if contact is not None:
         lines += [
             "[contact]",
+            f"contact_law = {_toml_value(contact.law)}",
             f"mu = {_toml_value(contact.mu)}",
             f"exponent = {_toml_value(contact.exponent)}",
             f"stiffness_prefactor = {_toml_value(contact.prefactor)}",

@@ -37,6 +37,7 @@ from softgrasp.physics.fingertip.forces import (
     _weight_depth,
 )
 from softgrasp.physics.fingertip.friction import _stick
+from softgrasp.physics.fingertip.laws import LAW_COLUMNS
 
 __all__ = ["fingertip_forces", "fingertip_pair_laws", "fingertip_static_forces", "fingertip_update"]
 
@@ -46,7 +47,7 @@ _jit = jitcache.jit(fastmath=False, error_model="numpy")
 def _law_args(law, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio) -> tuple:
     """The contact law's arguments of the compiled kernels, as the types they are compiled for."""
     return (
-        np.ascontiguousarray(law, dtype=np.float64).reshape(-1, 3),
+        np.ascontiguousarray(law, dtype=np.float64).reshape(-1, LAW_COLUMNS),
         bool(closest),
         float(inside_tol),
         float(mu),
@@ -102,8 +103,8 @@ def _fingertip_forces(
         x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
     _pair_forces(
-        finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
-        patch, ratio, min_depth_ratio, active, anchor, offset, memory, False, out,
+        finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
+        hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, False, out,
     )  # fmt: skip
     return finger.shape[0]
 
@@ -124,8 +125,8 @@ def _static_forces(
     # At rest (static=True) the loop reads no velocities: x, centres and radii stand in for v, the
     # fingertips' velocities and spins, and C (which only multiplies the zero penetration rate).
     _pair_forces(
-        finger, facet, val, x, x, facets, centres, radii, centres, centres, law, radii, mu, n_exp, False, patch,
-        ratio, min_depth_ratio, active, anchor, offset, memory, True, out,
+        finger, facet, val, x, x, facets, centres, radii, centres, centres, law, radii, mu, n_exp, False,
+        patch, ratio, min_depth_ratio, active, anchor, offset, memory, True, out,
     )  # fmt: skip
 
 
@@ -177,13 +178,13 @@ def _update_pairs(
     (the fused stepper detects once for the update and the forces at the same state)."""
     nf = centres.shape[0]
     deep, total = _patch(finger, val, nf)
-    fl = _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio)
+    fl = _finger_laws(deep, val, radii, law, n_exp, ratio, min_depth_ratio)
     wsum = np.zeros(nf)
     for p in range(finger.shape[0]):
         f = finger[p]
         j = facet[p]
         w, depth = _weight_depth(p, f, val, deep, total, patch)
-        F, _, _, dn, kt = _pair_normal_law(p, f, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl)
+        F, _, _, dn, kt = _pair_normal_law(p, f, val, radii, law, n_exp, ratio, min_depth_ratio, patch, fl)
         elastic = _normal_force(depth, F, dn, 0.0, 0.0, False)
         sx, sy, sz, cont, ax, ay, az = _stick(
             p, f, j, val, x, facets, centres, active, anchor, offset, memory
@@ -261,8 +262,9 @@ def fingertip_forces(
     memory: NDArray[np.float64],
 ) -> NDArray[np.float64]:
     """Contact forces on the nodes [N], (N, 3), of fingertips (centres, radii, velocities, omegas,
-    normal law ``law`` (n_f, 3): K [N/m^n], resolved share r and resolution ratio (the law of
-    :mod:`softgrasp.physics.fingertip.resolved`), damping C [N s/m]) with friction state (active
+    normal law ``law`` (n_f, 6) as
+    :meth:`softgrasp.physics.fingertip.contact.FingertipContact.law_table` gives it, damping C
+    [N s/m]) with friction state (active
     (n_f, F), anchor (n_f, F, 3), offset (n_f, F, 3) [m], memory (n_f, 3) [m]); parameters as in
     :class:`softgrasp.physics.fingertip.params.ContactParams` (``ratio`` = k_t / k_n)."""
     f64 = np.float64
@@ -274,7 +276,7 @@ def fingertip_forces(
         *geometry[1:],
         np.ascontiguousarray(velocities, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(omegas, dtype=f64).reshape(-1, 3),
-        np.ascontiguousarray(law, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(law, dtype=f64).reshape(-1, LAW_COLUMNS),
         np.ascontiguousarray(C, dtype=f64).ravel(),
         bool(closest),
         float(inside_tol),
@@ -440,7 +442,7 @@ def fingertip_pair_laws(
         np.ascontiguousarray(radii, dtype=f64).ravel(),
         np.ascontiguousarray(velocities, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(omegas, dtype=f64).reshape(-1, 3),
-        np.ascontiguousarray(law, dtype=f64).reshape(-1, 3),
+        np.ascontiguousarray(law, dtype=f64).reshape(-1, LAW_COLUMNS),
         np.ascontiguousarray(C, dtype=f64).ravel(),
         float(mu),
         float(exponent),

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -47,6 +47,7 @@ from softgrasp.physics.fingertip.laws import (
     effective_modulus,
     mindlin_ratio,
     resolved_share,
+    LAW_COLUMNS,
 )
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.fingertip.state import FingerReport, FingerState, _Eval
@@ -72,10 +73,13 @@ class FingertipContact:
     #: patch rule's weights are not a potential): Newton solvers multiply by the exact derivative
     #: through :meth:`static_forces` (finite differences along the direction) where it matters.
     symmetric_jacobian: ClassVar[bool] = False
+    #: The last :meth:`law_table` (its body, t and table).
+    _law_cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.fingertips:
             raise ContactError("a fingertip contact needs at least one fingertip")
+
 
     # ------------------------------------------------------------------ constants
     def stiffness(self, body: Body) -> NDArray[np.float64]:
@@ -88,18 +92,40 @@ class FingertipContact:
             ]
         )
 
-    def law_table(self, body: Body) -> NDArray[np.float64]:
-        """The normal law of each fingertip as the compiled kernels take it, (n_f, 3): K
-        [N/m^n] (Eq. 11), the share r of the pair's Hertz compliance that the object's mesh
-        resolves (0 under the paper's law) and the resolution ratio
-        (:mod:`softgrasp.physics.fingertip.resolved`)."""
+    def law_table(self, body: Body, t: float) -> NDArray[np.float64]:
+        """The normal law of each fingertip at time t as the compiled kernels take it, (n_f, 6):
+        K [N/m^n] (Eq. 11), the share r of the pair's Hertz compliance that the object's mesh
+        resolves (0 under the paper's law), the mesh's resolution under the fingertip, h_node,
+        h_land and the facet size [m], and Hertz's radius [m]: the fingertip's under the paper's
+        law; under the resolved law the pair's effective radius, 1 / R_eff = 1 / R + the object's
+        curvature where the fingertip lands (:mod:`softgrasp.physics.fingertip.landing`,
+        :mod:`softgrasp.physics.fingertip.resolved`), with K of R_eff. The last table is kept: a
+        static solve or a step asks for it many times at one t."""
+        cache = self._law_cache
+        if cache.get("body") is body and cache.get("t") == float(t):
+            return cache["table"]
         m, p = body.material, self.params
-        table = np.zeros((len(self.fingertips), 3))
+        table = np.zeros((len(self.fingertips), LAW_COLUMNS))
         table[:, 0] = self.stiffness(body)
+        table[:, 5] = self._radii()
         if p.law == "resolved":
+            from softgrasp.physics.fingertip.landing import facet_curvatures, landing_resolution
+
+            points = np.asarray(body.mesh.points, dtype=np.float64)
+            if cache.get("body") is not body:
+                cache.clear()
+                cache.update(body=body, curvature=facet_curvatures(points, body.mesh.facets))
             obj = effective_modulus(math.inf, 0.0, m.E, m.nu)
+            land = landing_resolution(points, body.mesh.facets, cache["curvature"], self.centres(t), p.resolution)
+            R = self._radii()
+            # a dent conforming to the fingertip: R_eff at most 10 R
+            reff = 1.0 / np.maximum(1.0 / R + land[:, 3], 0.1 / R)
+            table[:, 0] *= np.sqrt(reff / R)
             table[:, 1] = [resolved_share(effective_modulus(f.E, f.nu, m.E, m.nu), obj) for f in self.fingertips]
-            table[:, 2] = p.resolution
+            table[:, 2:5] = land[:, :3]
+            table[:, 5] = reff
+        table.flags.writeable = False
+        cache.update(t=float(t), table=table)
         return table
 
     def damping(self) -> NDArray[np.float64]:
@@ -168,7 +194,7 @@ class FingertipContact:
             self._radii(),
             np.array([f.velocity for f in self.fingertips]),
             np.array([f.omega for f in self.fingertips]),
-            self.law_table(body),
+            self.law_table(body, t),
             self.damping(),
             mu=p.mu,
             exponent=p.exponent,
@@ -242,7 +268,7 @@ class FingertipContact:
             "reach": broad_phase_reach(index),
             "centres": self.centres(t),
             "radii": self._radii(),
-            "law": self.law_table(body),
+            "law": self.law_table(body, t),
             "closest": self._closest(),
             "inside_tol": INSIDE_TOL,
             "mu": p.mu,
@@ -373,12 +399,13 @@ class FingertipContact:
 
         pts = np.asarray(body.mesh.points)[body.mesh.facets]
         area = 0.5 * np.linalg.norm(np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0]), axis=1)
-        h = 0.5 * math.pi * math.sqrt(4.0 * float(area.min()) / math.sqrt(3.0))  # a node's own
-        law = self.law_table(body)
-        kmax = max(
-            elastic_normal_value(0.5 * R, R, law[i, 0], self.params.exponent, law[i, 1], law[i, 2] * h)[1]
-            for i, R in enumerate(self._radii())
-        )
+        size = math.sqrt(4.0 * float(area.min()) / math.sqrt(3.0))
+        law = self.law_table(body, 0.0)
+        kmax = 0.0
+        for i, R in enumerate(self._radii()):
+            h = 0.5 * math.pi * self.params.resolution * size  # a load on one node: least resolved
+            F = elastic_normal_value(0.5 * R, law[i, 5], law[i, 0], self.params.exponent, law[i, 1], h, h, size)
+            kmax = max(kmax, F[1])
         if self.params.rule == "facet":
             kmax *= 6.0  # a node shares its force with up to ~6 touched facets
         return np.full(body.n_nodes, kmax * (1.0 + self._ratio(body)))

@@ -52,53 +52,16 @@ def _patch(finger, val, nf):  # pragma: no cover - compiled
 
 
 @_jit
-def _load_compliance(p, q, wp, wq, facet, val, x, facets, kappa):  # pragma: no cover - compiled
-    """sum over the nodes l of pair p's facet and m of pair q's of (w_p b_l)(w_q b_m) / r_lm [1/m]:
-    the half-space's 1 / r between distinct nodes, ``kappa x`` the facet size for a node's own."""
-    total = 0.0
-    jp = facet[p]
-    jq = facet[q]
-    self_r = kappa * 0.5 * (_facet_size(val[p, 11]) + _facet_size(val[q, 11]))
-    for m in range(3):
-        a = facets[jp, m]
-        for k in range(3):
-            b = facets[jq, k]
-            if a == b:
-                r = self_r
-            else:
-                dx = x[a, 0] - x[b, 0]
-                dy = x[a, 1] - x[b, 1]
-                dz = x[a, 2] - x[b, 2]
-                r = math.sqrt(dx * dx + dy * dy + dz * dz)
-            total += wp * val[p, m] * wq * val[q, k] / r
-    return total
-
-
-@_jit
-def _resolution_length(p, facet, val, x, facets, kappa):  # pragma: no cover - compiled
-    """The mesh's resolution length h [m] under a load at pair p's contact point, spread on its
-    facet's nodes by the shape functions b (Eq. 17-20): the radius of the disc whose Hertz
-    compliance 1 / (2 E* h) equals the body's compliance to that nodal load,
-    ``sum_lm b_l b_m / (pi E* r_lm)``, with the half-space's 1 / r between distinct nodes and
-    ``r_ll = kappa x`` the facet's size for a node's own deflection (:func:`_load_compliance`):
-    ``h = (pi / 2) / sum_lm b_l b_m / r_lm``. Continuous as the point crosses an edge or a vertex
-    (the shape functions of the nodes left behind vanish there)."""
-    if not kappa > 0.0:
-        return 0.0
-    return 0.5 * math.pi / _load_compliance(p, p, 1.0, 1.0, facet, val, x, facets, kappa)
-
-
-@_jit
-def _law_values(depth, f, h, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover - compiled
-    """Finger f's normal law at ``depth`` with resolution length ``h``: (elastic force F [N],
-    dF/d delta [N/m], energy [J], ``max(delta, 0)^n``, k_t [N/m])."""
-    F, slope, W = _elastic(depth, f, h, radii, law, n_exp)
-    kt = _tangential_stiffness(depth, f, h, radii, law, n_exp, ratio, min_depth_ratio)
+def _law_values(depth, f, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover - compiled
+    """Finger f's normal law at ``depth``: (elastic force F [N], dF/d delta [N/m], energy [J],
+    ``max(delta, 0)^n``, k_t [N/m])."""
+    F, slope, W = _elastic(depth, f, radii, law, n_exp)
+    kt = _tangential_stiffness(depth, f, radii, law, n_exp, ratio, min_depth_ratio)
     return F, slope, W, max(depth, 0.0) ** n_exp, kt
 
 
 @_jit
-def _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover
+def _finger_laws(deep, val, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover
     """Per finger (n_f, 5), its normal law (:func:`_law_values`) at its deepest pair's depth and
     resolution length (:func:`_resolution_length`), zeros without pairs: the patch rule evaluates
     every pair of a finger there, so the law is evaluated once a finger instead of once a pair."""
@@ -107,8 +70,7 @@ def _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_dept
     for f in range(nf):
         p = deep[f]
         if p >= 0:
-            h = _resolution_length(p, facet, val, x, facets, law[f, 2])
-            F, slope, W, dn, kt = _law_values(val[p, 10], f, h, radii, law, n_exp, ratio, min_depth_ratio)
+            F, slope, W, dn, kt = _law_values(val[p, 10], f, radii, law, n_exp, ratio, min_depth_ratio)
             fl[f, 0] = F
             fl[f, 1] = slope
             fl[f, 2] = W
@@ -118,13 +80,12 @@ def _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_dept
 
 
 @_jit
-def _pair_normal_law(p, f, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl):  # pragma: no cover
+def _pair_normal_law(p, f, val, radii, law, n_exp, ratio, min_depth_ratio, patch, fl):  # pragma: no cover
     """Pair p's normal law values (:func:`_law_values`): its finger's (``fl``) under the patch rule,
     at its own depth and resolution length under the literal one."""
     if patch:
         return fl[f, 0], fl[f, 1], fl[f, 2], fl[f, 3], fl[f, 4]
-    h = _resolution_length(p, facet, val, x, facets, law[f, 2])
-    return _law_values(val[p, 10], f, h, radii, law, n_exp, ratio, min_depth_ratio)
+    return _law_values(val[p, 10], f, radii, law, n_exp, ratio, min_depth_ratio)
 
 
 @_jit
@@ -166,8 +127,8 @@ def _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas):  #
 
 @_jit
 def _pair_law(
-    p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
-    patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, deep, total, fl,
+    p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
+    hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, deep, total, fl,
 ):  # pragma: no cover - compiled
     """The contact law of pair p: its normal force f_n (Eq. 9-14: the patch rule's weight w times
     ``max(0, F_e + C delta_dot)``, or Hunt-Crossley's ``F_e + C delta^n delta_dot``, with F_e the
@@ -190,7 +151,7 @@ def _pair_law(
         vtx, vty, vtz, rate = _relative_velocity(p, f, j, val, v, facets, centres, velocities, omegas)
     w, depth = _weight_depth(p, f, val, deep, total, patch)
     # normal force (Eq. 9), zero unless delta > 0, never pulling
-    elastic, _, _, dn, kt_law = _pair_normal_law(p, f, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl)
+    elastic, _, _, dn, kt_law = _pair_normal_law(p, f, val, radii, law, n_exp, ratio, min_depth_ratio, patch, fl)
     fn = w * _normal_force(depth, elastic, dn, rate, C[f], hunt_crossley)
     ftx = 0.0
     fty = 0.0
@@ -226,8 +187,8 @@ def _pair_law(
 
 @_jit
 def _pair_forces(
-    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
-    patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, out,
+    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
+    hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, out,
 ):  # pragma: no cover - compiled
     """Forces of the pairs (finger, facet, val) (as :func:`_detect` gives them) added to ``out``
     (N, 3) (or wider: columns 0-2): each pair's law (:func:`_pair_law`: normal force, Eq. 9-14,
@@ -237,7 +198,7 @@ def _pair_forces(
     :meth:`softgrasp.physics.fingertip.contact.FingertipContact.static_forces`; ``v``, ``velocities`` and
     ``omegas`` are then not read."""
     deep, total = _patch(finger, val, centres.shape[0])
-    fl = _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio)
+    fl = _finger_laws(deep, val, radii, law, n_exp, ratio, min_depth_ratio)
     for p in range(finger.shape[0]):
         fn, ftx, fty, ftz, _, _, _, _, _, _, _ = _pair_law(
             p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
@@ -258,8 +219,8 @@ def _pair_forces(
 
 @_jit
 def _pair_table(
-    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp, hunt_crossley,
-    patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, table, slipping,
+    finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
+    hunt_crossley, patch, ratio, min_depth_ratio, active, anchor, offset, memory, static, table, slipping,
 ):  # pragma: no cover - compiled
     """Each pair's law (:func:`_pair_law`) into ``table`` (k, 15): f_n 0, friction on the finger
     1-3, weight w 4, k_t 5, stick displacement 6-8, cap mu f_n 9, the penetration delta the normal
@@ -267,7 +228,7 @@ def _pair_table(
     patch rule, itself under the literal one), the elastic law's force F_e 12, dF_e/d delta 13
     and energy 14 there (unweighted); whether it slips into ``slipping`` (k,)."""
     deep, total = _patch(finger, val, centres.shape[0])
-    fl = _finger_laws(deep, facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio)
+    fl = _finger_laws(deep, val, radii, law, n_exp, ratio, min_depth_ratio)
     for p in range(finger.shape[0]):
         fn, ftx, fty, ftz, w, kt, sx, sy, sz, cap, slips = _pair_law(
             p, finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
@@ -288,7 +249,7 @@ def _pair_table(
         table[p, 10] = val[at, 10]
         table[p, 11] = at
         F, slope, W, _, _ = _pair_normal_law(
-            p, finger[p], facet, val, x, facets, radii, law, n_exp, ratio, min_depth_ratio, patch, fl
+            p, finger[p], val, radii, law, n_exp, ratio, min_depth_ratio, patch, fl
         )
         table[p, 12] = F
         table[p, 13] = slope

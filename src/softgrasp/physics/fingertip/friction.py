@@ -22,11 +22,12 @@ _elastic_normal = resolved.elastic_normal_value
 
 
 @_jit
-def _elastic(depth, f, h, radii, law, n_exp):  # pragma: no cover - compiled
-    """Finger f's elastic normal law at penetration ``depth`` and resolution length ``h``: (F [N],
-    dF/d delta [N/m], energy [J]). ``law`` (n_f, 3): K, the resolved share r and the resolution
-    ratio per finger (:mod:`softgrasp.physics.fingertip.resolved`)."""
-    return _elastic_normal(depth, radii[f], law[f, 0], n_exp, law[f, 1], h)
+def _elastic(depth, f, radii, law, n_exp):  # pragma: no cover - compiled
+    """Finger f's elastic normal law at penetration ``depth``: (F [N], dF/d delta [N/m], energy
+    [J]). ``law`` (n_f, 6) per finger: K, the resolved share r, the mesh's resolution under its
+    load (h_node, h_land, facet size [m]) and Hertz's radius [m]
+    (:meth:`softgrasp.physics.fingertip.contact.FingertipContact.law_table`)."""
+    return _elastic_normal(depth, law[f, 5], law[f, 0], n_exp, law[f, 1], law[f, 2], law[f, 3], law[f, 4])
 
 
 @_jit
@@ -63,8 +64,8 @@ def _stick(p, f, j, val, x, facets, centres, active, anchor, offset, memory):  #
 
 
 @_jit
-def _tangential_stiffness(depth, f, h, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover
+def _tangential_stiffness(depth, f, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover
     """k_t = ratio x dF_n/d delta (Mindlin's ratio of the normal law's stiffness, :func:`_elastic`)
     at max(delta, min_depth_ratio R)."""
     d = max(max(depth, min_depth_ratio * radii[f]), 0.0)
-    return ratio * _elastic(d, f, h, radii, law, n_exp)[1]
+    return ratio * _elastic(d, f, radii, law, n_exp)[1]

@@ -32,6 +32,7 @@ __all__ = [
     "HERTZ_PREFACTOR",
     "RESOLUTION",
     "MAX_SHARE",
+    "LAW_COLUMNS",
     "resolved_share",
 ]
 
@@ -47,6 +48,12 @@ RESOLUTION = 0.2
 #: Largest share of the pair's Hertz compliance the mesh may take over (the default law keeps at
 #: least 2 % of Hertz's tangent compliance: its stiffness stays below 50x Hertz's).
 MAX_SHARE = 0.98
+
+
+#: Columns of the per-finger normal law table the compiled kernels take: K, the resolved share r,
+#: the mesh's resolution under the fingertip (h_node, h_land, the facet size [m]) and Hertz's
+#: radius [m] (:meth:`softgrasp.physics.fingertip.contact.FingertipContact.law_table`).
+LAW_COLUMNS = 6
 
 
 def resolved_share(psi_pair: float, psi_object: float) -> float:

@@ -42,6 +42,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from softgrasp import jitcache
 
 __all__ = ["elastic_normal_value", "contact_radius_value"]
@@ -49,63 +51,73 @@ __all__ = ["elastic_normal_value", "contact_radius_value"]
 _jit = jitcache.jit(fastmath=False, error_model="numpy")
 
 
-@_jit
-def _phi(a: float, h: float) -> float:  # pragma: no cover - compiled
-    """a sqrt(a^2 + h^2) - h^2 asinh(a / h) = h^2 (2/3 x^3 - 1/5 x^5 + ...), x = a / h."""
-    if h <= 0.0:
-        return a * a
-    x = a / h
-    if x < 0.1:
-        x2 = x * x
-        return h * h * x * x2 * (2.0 / 3.0 - x2 * (0.2 - x2 * (3.0 / 28.0 - x2 * 5.0 / 72.0)))
-    return a * math.sqrt(a * a + h * h) - h * h * math.asinh(x)
+#: Gauss-Legendre nodes and weights on [-1, 1] for the law's integrals over the contact radius.
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 
 
 @_jit
-def _psi(a: float, h: float) -> float:
-    """Integral of t^5 / sqrt(t^2 + h^2) over t from 0 to a."""
-    if h <= 0.0:
-        return a**5 / 5.0
-    x = a / h
-    if x < 0.5:
-        # h^5 sum_k binom(-1/2, k) x^(6 + 2k) / (6 + 2k)
-        x2 = x * x
-        term = 1.0
-        p = x2 * x2 * x2
-        total = 0.0
-        for k in range(40):
-            total += term * p / (6.0 + 2.0 * k)
-            term *= -(k + 0.5) / (k + 1.0)
-            p *= x2
-        return h**5 * total
-    u = a * a + h * h
-    su = math.sqrt(u)
-    h2 = h * h
-    return 0.5 * (0.4 * (u * u * su - h2 * h2 * h) - (4.0 / 3.0) * h2 * (u * su - h2 * h) + 2.0 * h2 * h2 * (su - h))
+def _spread2(t: float, h_node: float, h_land: float, size: float) -> float:
+    """h(t)^2 [m^2]: the squared resolution length at contact radius t, from the landing point's
+    ``h_land`` while the patch is smaller than the facet (of size ``size``, circumradius
+    ``rho = size / sqrt(3)``) to a node's ``h_node`` once it covers it:
+    ``h_node^2 + (h_land^2 - h_node^2) rho^2 / (rho^2 + t^2)``."""
+    s2 = size * size / 3.0
+    return h_node * h_node + (h_land * h_land - h_node * h_node) * s2 / (s2 + t * t)
 
 
 @_jit
-def contact_radius_value(delta: float, radius: float, share: float, h: float) -> float:
+def _moments(a: float, h_node: float, h_land: float, size: float) -> tuple[float, float]:
+    """The integrals of t^2 / s(t) and t^5 / s(t) over t from 0 to a, s = sqrt(t^2 + h(t)^2)
+    (Gauss-Legendre on [0, min(a, 8 h)] and on the rest, where the integrands are smooth)."""
+    split = min(a, 8.0 * max(h_node, h_land))
+    i2 = 0.0
+    i5 = 0.0
+    for part in range(2):
+        lo = 0.0 if part == 0 else split
+        hi = split if part == 0 else a
+        if hi <= lo:
+            continue
+        mid = 0.5 * (hi + lo)
+        half = 0.5 * (hi - lo)
+        for k in range(_GL_X.shape[0]):
+            t = mid + half * _GL_X[k]
+            w = half * _GL_W[k] / math.sqrt(t * t + _spread2(t, h_node, h_land, size))
+            t2 = t * t
+            i2 += w * t2
+            i5 += w * t2 * t2 * t
+    return i2, i5
+
+
+@_jit
+def _sharpness(a: float, share: float, h_node: float, h_land: float, size: float) -> float:
+    """1 - share a / s(a): the law's tangent compliance over Hertz's at contact radius a."""
+    return 1.0 - share * a / math.sqrt(a * a + _spread2(a, h_node, h_land, size))
+
+
+@_jit
+def contact_radius_value(
+    delta: float, radius: float, share: float, h_node: float, h_land: float, size: float
+) -> float:
     """The Hertz contact radius a [m] at which the law's penetration is ``delta`` [m] (> 0):
-    the root of ``(a^2 - share phi(a)) / R = delta`` between ``sqrt(R delta)`` and
-    ``sqrt(R delta / (1 - share))`` (safeguarded Newton)."""
+    the root of ``(a^2 - 2 share I2(a)) / R = delta`` (I2 = integral of t^2 / s(t)) between
+    ``sqrt(R delta)`` and ``sqrt(R delta / (1 - share))`` (safeguarded Newton)."""
     lo = math.sqrt(radius * delta)
     if share <= 0.0:
         return lo
     hi = math.sqrt(radius * delta / (1.0 - share))
     a = lo
     for _ in range(100):
-        g = (a * a - share * _phi(a, h)) / radius - delta
+        i2, _ = _moments(a, h_node, h_land, size)
+        g = (a * a - 2.0 * share * i2) / radius - delta
         if g > 0.0:
             hi = a
         else:
             lo = a
-        dg = 2.0 * a / radius * (1.0 - share * a / math.sqrt(a * a + h * h))
-        step = g / dg if dg > 0.0 else 0.0
-        nxt = a - step
+        dg = 2.0 * a / radius * _sharpness(a, share, h_node, h_land, size)
+        nxt = a - g / dg if dg > 0.0 else 0.5 * (lo + hi)
         if not (lo < nxt < hi):
             nxt = 0.5 * (lo + hi)
-        if abs(nxt - a) <= 1e-14 * nxt:
+        if abs(nxt - a) <= 1e-13 * nxt or hi - lo <= 1e-13 * hi:
             return nxt
         a = nxt
     return a
@@ -113,22 +125,23 @@ def contact_radius_value(delta: float, radius: float, share: float, h: float) ->
 
 @_jit
 def elastic_normal_value(
-    delta: float, radius: float, K: float, n: float, share: float, h: float
+    delta: float, radius: float, K: float, n: float, share: float, h_node: float, h_land: float, size: float
 ) -> tuple[float, float, float]:
     """Elastic normal force F [N], its derivative dF/d delta [N/m] and its energy (integral of F
     over the penetration) [J] of one fingertip at penetration ``delta`` [m]; zeros unless delta > 0.
 
     ``share = 0``: the paper's law ``K delta^n`` (Eq. 9-11). ``share > 0`` (then n = 3/2): the
-    Hertz law less the object's compliance that the mesh resolves at resolution length ``h`` [m]
-    (module docstring)."""
+    Hertz law less the object's compliance that the mesh resolves, with resolution lengths
+    ``h_node`` and ``h_land`` [m] on a facet of size ``size`` [m] (module docstring)."""
     if not delta > 0.0:
         return 0.0, 0.0, 0.0
     if share <= 0.0:
         dn = delta**n
         return K * dn, n * K * dn / delta, K * dn * delta / (n + 1.0)
-    a = contact_radius_value(delta, radius, share, h)
+    a = contact_radius_value(delta, radius, share, h_node, h_land, size)
     rs = math.sqrt(radius)
     F = K * a * a * a / (radius * rs)
-    slope = 1.5 * K * a / rs / (1.0 - share * a / math.sqrt(a * a + h * h))
-    W = 2.0 * K / (radius * radius * rs) * (a**5 / 5.0 - share * _psi(a, h))
+    slope = 1.5 * K * a / rs / _sharpness(a, share, h_node, h_land, size)
+    _, i5 = _moments(a, h_node, h_land, size)
+    W = 2.0 * K / (radius * radius * rs) * (a**5 / 5.0 - share * i5)
     return F, slope, W

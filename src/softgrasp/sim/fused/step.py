@@ -28,6 +28,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from softgrasp.physics.fingertip.laws import LAW_COLUMNS
 from softgrasp.physics.forces_compiled import polynomial_coefficients
 from softgrasp.sim.fused.body import packed
 from softgrasp.sim.fused.contacts import max_facet_edge
@@ -114,7 +115,7 @@ def _finger_arrays(fingers: Any, body: Any) -> tuple:
         _f64([f.velocity for f in tips], (nf, 3)),
         _f64([f.omega for f in tips], (nf, 3)),
         _f64(kw["radii"], (nf,)),
-        _f64(kw["law"], (nf, 3)),
+        _f64(kw["law"], (nf, LAW_COLUMNS)),
         _f64(fingers.damping(), (nf,)),
         bool(kw["closest"]),
         float(kw["inside_tol"]),
@@ -130,7 +131,7 @@ def _finger_arrays(fingers: Any, body: Any) -> tuple:
 #: The fingertip tuple of a scene without fingertips (the same compiled signature).
 _NO_FINGERS = (
     False, np.zeros((1, 3), np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
-    0.0, np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3)), np.zeros(1),
+    0.0, np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1), np.zeros((1, LAW_COLUMNS)), np.zeros(1),
     False, 0.0, 0.0, 1.0, False, False, 0.0, 0.0,
 )  # fmt: skip
 
