@@ -211,7 +211,7 @@ def hold_setpoints(
     checked = check_hold(body, setup.table, fc, state, 1.0, cfg, cache)
     if isinstance(checked, str):
         return result(s, forces, increments, False, checked)
-    held, fixed, drift = checked
+    held, fixed, drift, _ = checked
     rep = fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True)
     margin = float(1.0 - cone_usage(rep, cfg.contact.mu).max())
     return result(s, forces, increments, True, "held", drift, margin, rep.normal.copy())

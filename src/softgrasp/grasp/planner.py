@@ -83,8 +83,7 @@ def _plan_grasp(
     setup = closing_setup(body, cfg, cache)  # step 1
     ig, placement, start, first = setup.grasp, setup.placement, setup.start, setup.first_touch
     closing = Closing(body, cfg, setup, cache, progress)  # step 2
-    state, t = closing.until_the_grasp_test()
-    t_final, (held_state, fixed, drift) = closing.until_held(state, t)
+    t_final, (held_state, fixed, drift, slip) = closing.until_held(closing.until_the_grasp_test())
     rows, frames = closing.rows, closing.frames
     # The set-points: the held state's forces.
     hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
