@@ -221,9 +221,13 @@ class Closing:
             # finger's first touch (on the settled object) where that lies inside the bracket.
             t0 = min(max(lo[0], touch), hi[0]) if lo[2] == math.inf else lo[0]
             w = float(np.clip((t0 + g_lo / (g_lo - g_hi) * (hi[0] - t0) - lo[0]) / (hi[0] - lo[0]), 0.02, 0.98))
-            # Newton starts from the bracket's ends interpolated.
-            guess = lo[1].x + w * (hi[1].x - lo[1].x) if lo[2] < math.inf else None
-            pt = self._further(lo[1], lo[0] + w * (hi[0] - lo[0]), guess)
+            try:
+                pt = self.close(lo[1], lo[0] + w * (hi[0] - lo[0]), self._between(lo, hi, w))
+            except NotConverged:
+                # No rest found there (a contact flickering on and off at the touch): halfway to
+                # the passing end instead.
+                w = 0.5 * (1.0 + w)
+                pt = self._further(lo[1], lo[0] + w * (hi[0] - lo[0]), self._between(lo, hi, w))
             if pt[2] <= 1.0:
                 hi, g_hi = pt, g(pt[2])
                 g_lo *= 0.5 if side == 1 else 1.0
@@ -233,6 +237,12 @@ class Closing:
                 g_hi *= 0.5 if side == -1 else 1.0
                 side = -1
         return hi
+
+    @staticmethod
+    def _between(lo: Point, hi: Point, w: float) -> NDArray | None:
+        """Newton's start for the travel a fraction w from ``lo`` to ``hi``: their positions
+        interpolated, or None (from ``lo`` at rest) while a finger does not touch at ``lo``."""
+        return lo[1].x + w * (hi[1].x - lo[1].x) if lo[2] < math.inf else None
 
     def _checked(self, pt: Point) -> Held | str:
         """The hold check at ``pt`` (its Newton systems counted apart), recorded in ``checks``."""
@@ -269,7 +279,7 @@ class Closing:
         for _ in range(cfg.refine):
             if hi[3] <= (1.0 + cfg.force_tol) * lo[3] or hi[0] - lo[0] < TRAVEL_FLOOR:
                 break
-            mid = self._further(lo[1], 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1].x + hi[1].x))
+            mid = self._further(lo[1], 0.5 * (lo[0] + hi[0]), self._between(lo, hi, 0.5))
             out = self._checked(mid)
             if isinstance(out, str):
                 lo = mid
