@@ -257,15 +257,19 @@ def test_default_plan_thumb_carries_the_largest_force_and_forces_are_minimal(def
     assert 1.0 / 3.0 < plan.rigid_utilisation <= 1.0
     assert normal.sum() >= plan.rigid_normal_forces.sum() * (1 - 1e-9)
     assert (normal <= 3.0 * plan.rigid_normal_forces).all(), (normal, plan.rigid_normal_forces)
-    # The closing stopped at the first whole step whose grasp test passed, then solved for the
-    # least passing travel within that step: every finer increment lies inside it.
-    coarse = np.isclose(plan.travel / 0.0005, np.round(plan.travel / 0.0005))
-    passed = plan.feasible[coarse]
-    assert passed.any() and not passed[: int(np.argmax(passed))].any()
-    assert passed.sum() == 1  # held at the grasp test's least passing travel
-    first_pass = plan.travel[coarse][int(np.argmax(passed))]
-    fine = plan.travel[~coarse]
-    assert 1 <= len(fine) <= 6 and (fine > first_pass - 0.0005).all() and (fine < first_pass).all()
+    # The closing approached in whole steps to just before the first touch, then squeezed in
+    # increments that double the travel past the touch (from 1 % of the fingertip radius, at most
+    # a step) until the grasp test passed, then solved within the last increment for the least
+    # passing travel: the plan's squeeze is that of the first passing travel there.
+    order = np.argsort(plan.travel, kind="stable")
+    touch = plan.first_contact_travel.min()
+    path = [t for t in plan.travel[order] if t <= touch - 1e-7 + 1e-12]
+    assert np.allclose(np.diff([0.0, *path])[:-1], 0.0005) and path[-1] == pytest.approx(touch - 1e-7)
+    held_travel = plan.fingers[0].penetration + plan.first_contact_travel[0]
+    assert plan.feasible.sum() >= 1 and held_travel == pytest.approx(plan.travel[plan.feasible].min())
+    squeeze = [t for t in plan.travel if t > touch]
+    assert squeeze[0] == pytest.approx(touch - 1e-7 + 0.00008, abs=1e-12)
+    assert 3 <= len(squeeze) <= 10
 
 
 def test_default_plan_history_is_monotone_and_penetration_from_first_contact(default_plan):

@@ -1,6 +1,8 @@
 """Paper step 2 (Sec. 2 and 4.3.2), the closing: from the initial grasp the three fingertips
 advance together in increments along straight lines towards the centroid of the contact triangle,
-the object coming to rest after each. Within the first increment at which the grasp test passes,
+the object coming to rest after each: whole steps up to the first touch, then increments that
+double the squeeze (:meth:`Closing.until_the_grasp_test`). Within the first increment at which
+the grasp test passes,
 the travel where it first passes is solved for to a force tolerance; from there the hold is
 verified (:func:`~softgrasp.grasp.hold.check_hold`): where the object is not held, the fingers
 squeeze further by growing amounts until it is, and the travel where it is first held is again
@@ -27,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import InfeasibleGrasp, NotConverged
-from softgrasp.grasp.config import FIRST_GROWTH, STEP_RTOL, TRAVEL_FLOOR, PlanConfig
+from softgrasp.grasp.config import CONTACT_START, FIRST_GROWTH, STEP_RTOL, TOUCH_GAP, TRAVEL_FLOOR, PlanConfig
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import Held, check_hold
 from softgrasp.grasp.initial import FINGER_NAMES
@@ -182,20 +184,34 @@ class Closing:
             )
 
     def until_the_grasp_test(self) -> Point:
-        """Whole steps until the grasp test passes, then, within the last step, the least travel
-        that passes it, to the force tolerance (:meth:`_least_passing`). Returns its
-        :data:`Point`."""
+        """Increments until the grasp test passes, then the least travel that passes it, to the
+        force tolerance (:meth:`_least_passing`). Returns its :data:`Point`.
+
+        The fingertips approach in whole steps up to ``TOUCH_GAP`` before the first one touches;
+        from there each increment at most doubles the travel past that touch (at least
+        ``CONTACT_START`` times the fingertip radius, at most a whole step). The squeeze so
+        passes through the same travels whatever the step, until the increments reach it: the
+        friction anchors of the stick-slip contacts, set along that path, depend on the physics
+        rather than on the step."""
         cfg = self.cfg
-        k = 0
+        touch = float(self.setup.first_touch.min())
+        approach = touch - TOUCH_GAP
+        start = CONTACT_START * cfg.fingertip_radius
         before, earlier, now = self.last, self.last, self.last
         while not now[2] <= 1.0:
-            k += 1
-            self.too_far(k * cfg.step)
+            t = now[0]
+            if t < approach:
+                t_new = min(t + cfg.step, approach)
+            else:
+                t_new = t + min(cfg.step, max(t - touch, start))
+            self.too_far(t_new)
             earlier, before = before, now
-            # Newton starts from the last two increments' positions extrapolated (equal steps of
-            # travel): about one iteration fewer per increment than from the last rest.
-            guess = None if k < 2 else extrapolated(before[1].x, earlier[1].x)
-            now = self._further(before[1], k * cfg.step, guess)
+            # Newton starts from the last two increments' positions extrapolated: about one
+            # iteration fewer per increment than from the last rest.
+            guess = None
+            if earlier is not before and before[0] > earlier[0]:
+                guess = extrapolated(before[1].x, earlier[1].x, (t_new - before[0]) / (before[0] - earlier[0]))
+            now = self._further(before[1], t_new, guess)
         return self._least_passing(before, now)
 
     def _least_passing(self, lo: Point, hi: Point) -> Point:
@@ -212,8 +228,8 @@ class Closing:
         def g(s: float) -> float:
             return (s ** (-2.0 / 3.0) if 0.0 < s < math.inf else 0.0) - 1.0 - aim
 
-        g_lo, g_hi, side = g(lo[2]), g(hi[2]), 0
         touch = float(self.setup.first_touch.max())
+        g_lo, g_hi, side = g(lo[2]), g(hi[2]), 0
         for _ in range(cfg.refine):
             if hi[2] >= accept or hi[0] - lo[0] < TRAVEL_FLOOR:
                 break

@@ -29,6 +29,8 @@ __all__ = [
     "SETTLED",
     "TRAVEL_FLOOR",
     "FIRST_GROWTH",
+    "TOUCH_GAP",
+    "CONTACT_START",
 ]
 
 #: The closing's solvers: a static solve per increment, or explicit dynamics through it first.
@@ -85,6 +87,14 @@ TRAVEL_FLOOR = 1e-9
 #: (then doubled after each failure): ten times the default force tolerance, so that a hold a
 #: little past the grasp test is bracketed in one or two checks and split in three or four.
 FIRST_GROWTH = 0.1
+#: Gap from the object's surface [m] at which the closing's approach ends, just before the first
+#: fingertip touches: a tenth of a micrometre, far below any squeeze that holds, and clear of
+#: tangency (where round-off would decide whether a facet touches).
+TOUCH_GAP = 1e-7
+#: First squeeze increment past the touch, as a fraction of the fingertip radius (80 um for the
+#: default 8 mm): the increments then double the squeeze, so that stick-slip friction is followed
+#: along the same travels whatever the step (a stiff object may pass the grasp test within it).
+CONTACT_START = 0.01
 
 
 @dataclass(frozen=True)
