@@ -150,6 +150,7 @@ def _plan_grasp(
         config=cfg,
         wall_time=time.perf_counter() - t0,
         hold_checks=tuple(closing.checks),
+        slip=slip,
         frames=PlanFrames(
             travel=np.array([f[0] for f in frames]),
             positions=np.array([f[1] for f in frames]),

@@ -75,6 +75,9 @@ class GraspPlan:
         held there: which fingertip slid how far in the object, which finger lost contact, or where
         the object slid out of the fingers with no equilibrium), so that a user can see what made
         the fingers close further.
+    slip: how far each fingertip slid as a whole in the object from the table's removal to the
+        held state [m], (3,) (:func:`~softgrasp.grasp.hold.finger_slip`, summed over the check's
+        steps; at most ``max_slip`` times the object's size).
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
     solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
@@ -113,6 +116,7 @@ class GraspPlan:
     config: PlanConfig
     wall_time: float
     hold_checks: tuple[tuple[float, str], ...] = ()
+    slip: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     frames: PlanFrames | None = None
     solver_stats: dict[str, int] = field(default_factory=dict)
 
