@@ -39,7 +39,9 @@ def test_a_fingertip_slides_as_a_whole_only_when_every_pair_slips():
     patch anchors it (partial slip), pairs not in contact before and after do not count."""
     active = np.zeros((3, 4), bool)
     active[0, :3] = active[1, :2] = True
-    before = FingerState(active, np.zeros((3, 4, 3)), np.zeros((3, 4, 3)), np.zeros((3, 4, 3)), np.zeros((3, 3)))
+    before = FingerState(
+        active, np.zeros((3, 4, 3)), np.zeros((3, 4, 3)), np.zeros((3, 4, 3)), np.zeros((3, 3))
+    )
     slip = np.zeros((3, 4, 3))
     slip[0, :3, 2] = [-1e-4, -2e-4, -3e-4]  # the thumb's whole patch slips down
     slip[1, 0, 2] = -5e-4  # the first finger's rim pair slips, its other pair sticks
@@ -84,7 +86,9 @@ def test_set_points_fall_with_friction_and_too_little_friction_is_infeasible():
         totals.append(_total(plan))
     assert (np.diff(totals) <= 0).all(), totals
     assert totals[0] > 3 * totals[-1]  # friction matters: mg / mu sets the squeeze
-    with pytest.raises(InfeasibleGrasp, match=r"mu = 0.05 cannot hold .*needs at least \d+\.\d+ N of normal force"):
+    with pytest.raises(
+        InfeasibleGrasp, match=r"mu = 0.05 cannot hold .*needs at least \d+\.\d+ N of normal force"
+    ):
         plan_grasp(body, PlanConfig(contact=ContactParams(mu=0.05)))
 
 

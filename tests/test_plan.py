@@ -311,6 +311,7 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     from softgrasp.grasp import closing
     from softgrasp.grasp.settle import settle_on_table
     from softgrasp.linalg import pardiso
+
     in_hold_checks, in_increments = [], []
     real_check, real_advance = closing.check_hold, closing._advance
 
@@ -375,7 +376,9 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
     np.testing.assert_allclose(default_plan.travel, tight.travel, rtol=1e-6)
     np.testing.assert_array_equal(default_plan.feasible, tight.feasible)
     assert [w for _, w in default_plan.hold_checks] == [w for _, w in tight.hold_checks]
-    np.testing.assert_allclose([t for t, _ in default_plan.hold_checks], [t for t, _ in tight.hold_checks], rtol=1e-6)
+    np.testing.assert_allclose(
+        [t for t, _ in default_plan.hold_checks], [t for t, _ in tight.hold_checks], rtol=1e-6
+    )
     np.testing.assert_allclose(default_plan.force_norm, tight.force_norm, rtol=1e-4)
     stats, tight_stats = default_plan.solver_stats, tight.solver_stats
     assert stats["closing_systems"] < tight_stats["closing_systems"]
@@ -498,6 +501,7 @@ def test_on_its_stable_facet_a_sphere_started_lowered_settles_where_started_leve
     from softgrasp.grasp.config import HELD_RTOL
     from softgrasp.grasp.settle import lowered_start, stable_pose, table_under
     from softgrasp.linalg import pardiso
+
     mesh, material, mass = make_object("sphere", 0.007)
     body = build_body(mesh, material, mass=mass)
     x = stable_pose(body, np.asarray(mesh.points))
@@ -633,6 +637,7 @@ def test_the_fine_sphere_settles_on_the_table_without_being_kicked_along_its_rol
 
     from softgrasp.grasp.settle import settle_on_table
     from softgrasp.linalg import pardiso
+
     if not pardiso.available():
         pytest.skip("the failure was on PARDISO's path (MKL not installed)")
     mesh, material, mass = make_object("sphere", 0.0036)

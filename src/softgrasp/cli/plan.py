@@ -67,7 +67,8 @@ def add_parser(sub) -> None:
         "--refine",
         type=int,
         default=None,
-        help="most iterations of the solves for the least squeeze that holds, to a force tolerance of 1 %% (default 12)",
+        help="most iterations of the solves for the least squeeze that holds "
+        "(each to a force tolerance of 1 %%; default 12)",
     )
     pl.add_argument(
         "--hand",

@@ -210,7 +210,9 @@ class Closing:
             # iteration fewer per increment than from the last rest.
             guess = None
             if earlier is not before and before[0] > earlier[0]:
-                guess = extrapolated(before[1].x, earlier[1].x, (t_new - before[0]) / (before[0] - earlier[0]))
+                guess = extrapolated(
+                    before[1].x, earlier[1].x, (t_new - before[0]) / (before[0] - earlier[0])
+                )
             now = self._further(before[1], t_new, guess)
         return self._least_passing(before, now)
 
@@ -236,7 +238,9 @@ class Closing:
             # While a finger does not touch at the lower end, the forces start from the last
             # finger's first touch (on the settled object) where that lies inside the bracket.
             t0 = min(max(lo[0], touch), hi[0]) if lo[2] == math.inf else lo[0]
-            w = float(np.clip((t0 + g_lo / (g_lo - g_hi) * (hi[0] - t0) - lo[0]) / (hi[0] - lo[0]), 0.02, 0.98))
+            w = float(
+                np.clip((t0 + g_lo / (g_lo - g_hi) * (hi[0] - t0) - lo[0]) / (hi[0] - lo[0]), 0.02, 0.98)
+            )
             try:
                 pt = self.close(lo[1], lo[0] + w * (hi[0] - lo[0]), self._between(lo, hi, w))
             except NotConverged:
@@ -264,7 +268,9 @@ class Closing:
         """The hold check at ``pt`` (its Newton systems counted apart), recorded in ``checks``."""
         cache = self.cache
         before = cache.stats["systems"]
-        out = check_hold(self.body, self.setup.table, self.fingers, pt[1], pt[0] * self.scale, self.cfg, cache)
+        out = check_hold(
+            self.body, self.setup.table, self.fingers, pt[1], pt[0] * self.scale, self.cfg, cache
+        )
         cache.stats["hold_check_systems"] += cache.stats["systems"] - before
         self.checks.append((pt[0], out if isinstance(out, str) else "held"))
         return out

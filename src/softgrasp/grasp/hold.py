@@ -132,7 +132,9 @@ def check_hold(
             try:
                 st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache, guess=guess, rtol=rtol)
             except (NotConverged, SimulationUnstable) as exc:
-                raise _NotHeld(f"the object slides out of the fingers {when} (no equilibrium: {exc})") from exc
+                raise _NotHeld(
+                    f"the object slides out of the fingers {when} (no equilibrium: {exc})"
+                ) from exc
             track.step(st.contacts[0], when)
             drift = max(drift, float(np.linalg.norm(centre_of_mass(body, st.x) - c0)))
         start = State(st.x, np.zeros_like(st.x), 0.0, (st.contacts[0],))
@@ -141,7 +143,9 @@ def check_hold(
         try:
             held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache, rtol=HELD_RTOL)
         except (NotConverged, SimulationUnstable) as exc:
-            raise _NotHeld(f"the object slides out of the fingers after the hold (no equilibrium: {exc})") from exc
+            raise _NotHeld(
+                f"the object slides out of the fingers after the hold (no equilibrium: {exc})"
+            ) from exc
         track.step(held.contacts[0], "at the held equilibrium")
     except _NotHeld as why:
         return str(why)
@@ -159,7 +163,9 @@ def cone_usage(rep: FingerReport, mu: float) -> NDArray[np.float64]:
     return rep.tangential / np.maximum(mu * rep.normal, 1e-300)
 
 
-def _simulate_hold(body: Body, scene: Scene, state: State, duration: float, cache: SolverCache, track: _Tracker) -> State:
+def _simulate_hold(
+    body: Body, scene: Scene, state: State, duration: float, cache: SolverCache, track: _Tracker
+) -> State:
     """``duration`` seconds of backward Euler from ``state``: steps of ``HOLD_DT``, doubled after
     every step in which the centre of mass moved less than ``SETTLED`` (the object has come to
     rest: larger steps then cost nothing in accuracy), halved where a step finds no solution (a

@@ -5,13 +5,15 @@ forces of the *held* state (table removed) as the force set-points.
 1. :func:`~softgrasp.grasp.setup.closing_setup`: the object at rest on the table
    (:mod:`softgrasp.grasp.settle`), the best force-closure initial grasp the hand reaches, and the
    fingertips' closing lines.
-2. :class:`~softgrasp.grasp.closing.Closing`: whole closing increments until the grasp test
-   passes, then the least travel that passes it, solved for within that step to ``force_tol`` of
-   the force; the hold check (:func:`~softgrasp.grasp.hold.check_hold`) there, the fingers
-   squeezing further by growing shares of force until the object is held, and the least travel
-   held solved for to ``force_tol`` again. Past ``max_squeeze`` (a fraction of the shortest finger-to-centroid distance,
-   travelled beyond the last finger's first contact) the object would be crushed:
-   :class:`InfeasibleGrasp`.
+2. :class:`~softgrasp.grasp.closing.Closing`: whole steps up to the first touch, then increments
+   doubling the squeeze until the grasp test passes, then the least travel that passes it,
+   solved for within the last increment to ``force_tol`` of the force; the hold check
+   (:func:`~softgrasp.grasp.hold.check_hold`) there, the fingers squeezing further by growing
+   shares of force until the object is held, and the least travel held solved for to
+   ``force_tol`` again. Past ``max_squeeze`` (a fraction of the shortest finger-to-centroid
+   distance, travelled beyond the last finger's first contact) the object would be crushed:
+   :class:`InfeasibleGrasp`. Friction too low to hold before a squeeze that finds no rest is
+   :class:`InfeasibleGrasp` too, with the rigid-body least normal force.
 3. The held state's finger forces, their balance (Eq. 21-22) and friction margin: the
    :class:`GraspPlan`.
 """
