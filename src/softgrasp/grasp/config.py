@@ -24,6 +24,7 @@ __all__ = [
     "STEP_RTOL",
     "HELD_RTOL",
     "RELEASE_STEPS",
+    "RELEASE_MAX_ITER",
     "HOLD_DT",
     "MAX_HALVINGS",
     "SETTLED",
@@ -72,6 +73,11 @@ HELD_RTOL = 1e-9
 #: Static load steps in which the table's support is taken away before the holding simulation:
 #: the weight passes to the fingers quasi-statically, as in a slow lift.
 RELEASE_STEPS = 4
+#: Newton iterations a release step is given before the object counts as sliding out of the
+#: fingers: converged release steps took at most 9 (the foam cube; 2-7 on the spheres, from 5 kPa
+#: and mu = 0.15 up), while one whose object slides meets ever more singular systems (no stiffness
+#: along the slide) and spent 10-20 s on them at low friction.
+RELEASE_MAX_ITER = 20
 #: First time step of the implicit holding simulation [s]: a twentieth of the default hold.
 HOLD_DT = 0.05
 #: Halvings of the holding simulation's step allowed when a step's Newton solve fails: a sudden

@@ -24,6 +24,7 @@ from softgrasp.grasp.config import (
     HELD_RTOL,
     HOLD_DT,
     MAX_HALVINGS,
+    RELEASE_MAX_ITER,
     RELEASE_STEPS,
     SETTLED,
     STEP_RTOL,
@@ -100,7 +101,8 @@ def check_hold(
     rest on the table, with the fingertips fixed: the table's forces on the object, applied as a
     dead load, ramp down to zero over ``RELEASE_STEPS`` static load steps (the weight passes to the
     fingers quasi-statically, as in a slow lift, friction sticking or slipping pair by pair); then
-    ``hold_time`` seconds of implicit dynamics (:func:`_simulate_hold`) from that released state;
+    ``hold_time`` seconds of implicit dynamics (:func:`_simulate_hold`) from that released state
+    (a release step that needs more than ``RELEASE_MAX_ITER`` Newton iterations finds none);
     then the held state's static equilibrium in the fingers alone. After every step each finger
     must touch the object and each fingertip's slip so far (:func:`finger_slip`, summed) must stay
     within ``cfg.max_slip`` times the object's size (:func:`object_size`). A step that finds no
@@ -130,7 +132,15 @@ def check_hold(
             rtol = STEP_RTOL if k < RELEASE_STEPS else HELD_RTOL  # the last: where the hold starts
             when = f"with the table's support down to {1 - k / RELEASE_STEPS:.0%}"
             try:
-                st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache, guess=guess, rtol=rtol)
+                st, _ = solve_static(
+                    release,
+                    st,
+                    t=k / RELEASE_STEPS,
+                    cache=cache,
+                    guess=guess,
+                    rtol=rtol,
+                    max_iter=RELEASE_MAX_ITER,
+                )
             except (NotConverged, SimulationUnstable) as exc:
                 raise _NotHeld(
                     f"the object slides out of the fingers {when} (no equilibrium: {exc})"
