@@ -2,11 +2,11 @@
 advance together in increments along straight lines towards the centroid of the contact triangle,
 the object coming to rest after each: whole steps up to the first touch, then increments that
 double the squeeze (:meth:`Closing.until_the_grasp_test`). Within the first increment at which
-the grasp test passes,
-the travel where it first passes is solved for to a force tolerance; from there the hold is
-verified (:func:`~softgrasp.grasp.hold.check_hold`): where the object is not held, the fingers
-squeeze further by growing amounts until it is, and the travel where it is first held is again
-solved for to that force tolerance. The set-points so depend on the physics, not on the step.
+the grasp test passes, the travel where it first passes is solved for to a force tolerance; from
+there the hold is verified (:func:`~softgrasp.grasp.hold.check_hold`): where the object is not
+held, the fingers squeeze further by growing amounts until it is, and the travel where it is
+first held is again solved for to that force tolerance. The set-points so depend on the physics,
+not on the step.
 
 Per increment: the object, standing on the table, is brought to static equilibrium with its
 fingertip contacts (quasi-static: :func:`softgrasp.sim.static.solve_increment`; dynamic: explicit
