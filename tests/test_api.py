@@ -16,7 +16,7 @@ from softgrasp.cli import main
 from softgrasp.model.material import Material as ModelMaterial
 
 #: ``softgrasp plan``'s default normal-force set-points [N] (thumb, first, middle).
-DEFAULT_NORMAL_N = {"thumb": 0.340, "first": 0.221, "middle": 0.222}
+DEFAULT_NORMAL_N = {"thumb": 0.311, "first": 0.206, "middle": 0.205}
 
 
 @pytest.fixture(scope="module")

@@ -255,7 +255,7 @@ def plan(
     safety_factor: float = 1.0,
     hold_time_s: float = 1.0,
     max_squeeze: float = 0.5,
-    refine: int = 3,
+    refine: int = 12,
     grasp: str | Path | None = None,
     contact_law: str = "resolved",
     progress: Callable[[float], None] | None = None,
@@ -284,7 +284,8 @@ def plan(
     max_squeeze:
         Largest finger travel past first contact, as a fraction of its reach.
     refine:
-        Bisections of the last step for the smallest squeeze that holds.
+        The most iterations of the solves for the least squeeze that passes the grasp test and
+        that holds, each to a force tolerance of 1 % (a bound: the tolerance ends them first).
     grasp:
         An earlier ``plan.json`` whose initial grasp (contacts, closing lines) is closed from
         instead of searching for one.

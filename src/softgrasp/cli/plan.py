@@ -74,7 +74,8 @@ def add_parser(sub) -> None:
         "--refine",
         type=int,
         default=None,
-        help="bisections of the last step for the smallest holding squeeze (default 3: step / 8)",
+        help="most iterations of the solves for the least squeeze that holds "
+        "(each to a force tolerance of 1 %%; default 12)",
     )
     pl.add_argument(
         "--hand",

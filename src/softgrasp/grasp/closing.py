@@ -1,20 +1,27 @@
 """Paper step 2 (Sec. 2 and 4.3.2), the closing: from the initial grasp the three fingertips
 advance together in increments along straight lines towards the centroid of the contact triangle,
-the object coming to rest after each; the first increment at which the grasp test passes is
-bisected for the smallest travel that passes it, and from there the hold is verified
-(:func:`~softgrasp.grasp.hold.check_hold`), the fingers closing further until it holds.
+the object coming to rest after each: whole steps up to the first touch, then increments that
+double the squeeze (:meth:`Closing.until_the_grasp_test`). Within the first increment at which
+the grasp test passes, the travel where it first passes is solved for to a force tolerance; from
+there the hold is verified (:func:`~softgrasp.grasp.hold.check_hold`): where the object is not
+held, the fingers squeeze further by growing amounts until it is, and the travel where it is
+first held is again solved for to that force tolerance. The set-points so depend on the physics,
+not on the step.
 
 Per increment: the object, standing on the table, is brought to static equilibrium with its
 fingertip contacts (quasi-static: :func:`softgrasp.sim.static.solve_increment`; dynamic: explicit
 RK4 through the increment at the closing speed, then that static solve). Then the grasp test of
 Sec. 3.5 (Eq. 21-22 with friction cones, :func:`~softgrasp.grasp.equilibrium.squeeze_utilisation`):
-can normal forces no larger than each finger's current one, with friction inside the cones
-|f_t| <= mu f_n, hold ``safety_factor`` times the weight in force and torque? (On the table the
-fingers' normal forces need not balance among themselves; lifted, the object shifts until they do.)
+the least fraction s of each finger's current normal force that, with friction inside the cones
+|f_t| <= mu f_n, holds ``safety_factor`` times the weight in force and torque; the test passes at
+s <= 1. (On the table the fingers' normal forces need not balance among themselves; lifted, the
+object shifts until they do.) Since s scales the forces, a travel with s >= 1 / (1 + force_tol)
+squeezes at most ``force_tol`` harder than the least squeeze that passes.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -22,9 +29,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import InfeasibleGrasp, NotConverged
-from softgrasp.grasp.config import STEP_RTOL, PlanConfig
-from softgrasp.grasp.equilibrium import squeeze_utilisation
-from softgrasp.grasp.hold import check_hold
+from softgrasp.grasp.config import CONTACT_START, FIRST_GROWTH, STEP_RTOL, TOUCH_GAP, TRAVEL_FLOOR, PlanConfig
+from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
+from softgrasp.grasp.hold import Held, check_hold
 from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.grasp.setup import ClosingSetup
@@ -41,6 +48,10 @@ __all__ = ["Closing"]
 #: One closing increment at rest: (travel [m], penetration per finger [m], force norm, normal and
 #: tangential force per finger [N], whether the grasp test passed).
 Row = tuple[float, NDArray, NDArray, NDArray, NDArray, bool]
+
+#: A travel at rest on the table: (travel [m], the state there, its grasp test's s, the fingers'
+#: summed normal force [N]).
+Point = tuple[float, State, float, float]
 
 
 class Closing:
@@ -87,17 +98,18 @@ class Closing:
             (0.0, xs.copy(), self.fingers.centres(0.0), np.zeros((3, 3)))
         ]
         self.checks: list[tuple[float, str]] = []
+        self.last: Point = (0.0, self.start, math.inf, 0.0)
 
-    def close(self, start: State, t: float, guess: NDArray | None = None) -> tuple[State, bool]:
+    def close(self, start: State, t: float, guess: NDArray | None = None) -> Point:
         """Close to travel t from ``start``, record the increment and apply the grasp test (the
-        squeeze-utilisation LP). Returns (state at rest, whether the test passes)."""
+        squeeze-utilisation LP). Returns the :data:`Point` at rest there."""
         body, cfg, fc, s = self.body, self.cfg, self.fingers, self.scale
         st = _advance(self.scene, start, t * s, cfg, self.cache, guess)
         rep = fc.report(body, st.x, None, t * s, st.contacts[1], static=True)
-        feasible = False
+        need = math.inf
         if (rep.contacts > 0).all():
             pts, push, fn = fc.contact_frames(body, st.x, t * s, st.contacts[1])
-            s_need = squeeze_utilisation(
+            need = squeeze_utilisation(
                 pts,
                 push,
                 fn,
@@ -106,7 +118,6 @@ class Closing:
                 cfg.safety_factor * body.total_mass,
                 body.gravity,
             )
-            feasible = s_need <= 1.0
         self.rows.append(
             (
                 t,
@@ -114,13 +125,47 @@ class Closing:
                 np.linalg.norm(rep.force, axis=1),
                 rep.normal.copy(),
                 rep.tangential.copy(),
-                feasible,
+                need <= 1.0,
             )
         )
         self.frames.append((t, st.x.copy(), fc.centres(t * s), rep.force.copy()))
         if self.progress is not None:
             self.progress(min(t / self.setup.max_travel, 1.0))
-        return st, feasible
+        self.last = (t, st, need, float(rep.normal.sum()))
+        return self.last
+
+    def _further(self, start: State, t: float, guess: NDArray | None = None) -> Point:
+        """:meth:`close`, where a closing that finds no equilibrium ends the plan: the fingers
+        cannot squeeze the object harder (they slide on it, or it buckles) before it is held."""
+        try:
+            return self.close(start, t, guess)
+        except NotConverged as exc:
+            raise InfeasibleGrasp(
+                f"mu = {self.cfg.contact.mu:g} cannot hold the object: the closing found no equilibrium of "
+                f"the squeezed object at {t * 1e3:.3g} mm of travel before it was held ({exc})"
+                f"{self._rigid_need()}; raise the friction coefficient, or grasp a lighter or stiffer object"
+            ) from exc
+
+    def _rigid_need(self) -> str:
+        """What the rigid-body LP (:func:`~softgrasp.grasp.equilibrium.minimum_normal_forces`)
+        says of the last increment's contacts: the least normal force in all that holds the
+        object (times the safety factor) if it were rigid, and what the fingers reached."""
+        t, st, _, total = self.last
+        body, cfg = self.body, self.cfg
+        pts, push, fn = self.fingers.contact_frames(body, st.x, t * self.scale, st.contacts[1])
+        if (fn <= 0).any():
+            return ""
+        mu = cfg.contact.mu
+        try:
+            need = minimum_normal_forces(
+                pts, push, mu, centre_of_mass(body, st.x), cfg.safety_factor * body.total_mass, body.gravity
+            ).sum()
+        except InfeasibleGrasp:
+            return f"; with mu = {mu:g} no normal forces at these contacts would hold even a rigid object"
+        return (
+            f"; mu = {mu:g} needs at least {need:.2f} N of normal force in all to hold even a rigid object "
+            f"at these contacts, the fingers reached {total:.2f} N"
+        )
 
     def too_far(self, t: float) -> None:
         """Raise :class:`InfeasibleGrasp` if travel ``t`` [m] is past the largest allowed (the
@@ -133,62 +178,136 @@ class Closing:
                 f"no hold before the maximum squeeze ({(max_travel - first.max()) * 1e3:.1f} mm past "
                 f"first contact, {cfg.max_squeeze:.0%} of the fingers' reach): finger forces reached "
                 f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {cfg.contact.mu:g}"
-                + (f" (last hold check at {checks[-1][0] * 1e3:.2f} mm: {checks[-1][1]})" if checks else "")
+                + (f" (last hold check at {checks[-1][0] * 1e3:.3g} mm: {checks[-1][1]})" if checks else "")
+                + (self._rigid_need() if self.rows else "")
                 + "; raise the friction coefficient, or grasp a lighter or stiffer object"
             )
 
-    def until_the_grasp_test(self) -> tuple[State, float]:
-        """Whole steps until the grasp test passes, then the last step bisected ``refine`` times
-        on that test for the smallest travel that passes it (stiff objects gain force fast within
-        one step). Returns (the state there, its travel [m])."""
+    def until_the_grasp_test(self) -> Point:
+        """Increments until the grasp test passes, then the least travel that passes it, to the
+        force tolerance (:meth:`_least_passing`). Returns its :data:`Point`.
+
+        The fingertips approach in whole steps up to ``TOUCH_GAP`` before the first one touches;
+        from there each increment at most doubles the travel past that touch (at least
+        ``CONTACT_START`` times the fingertip radius, at most a whole step). The squeeze so
+        passes through the same travels whatever the step, until the increments reach it: the
+        friction anchors of the stick-slip contacts, set along that path, depend on the physics
+        rather than on the step."""
         cfg = self.cfg
-        k = 0
-        feasible, before, earlier, state = False, self.start, self.start, self.start
-        while not feasible:
-            k += 1
-            self.too_far(k * cfg.step)
-            earlier, before = before, state
-            # Newton starts from the last two increments' positions extrapolated (equal steps of
-            # travel): about one iteration fewer per increment than from the last rest.
-            guess = None if k < 2 else extrapolated(before.x, earlier.x)
-            state, feasible = self.close(before, k * cfg.step, guess)
-        t_hi = k * cfg.step
-        if k > 1:
-            lo, lo_state = (k - 1) * cfg.step, before
-            for _ in range(cfg.refine):
-                mid = 0.5 * (lo + t_hi)
-                # Newton starts from the bracket's midpoint.
-                st, ok = self.close(lo_state, mid, 0.5 * (lo_state.x + state.x))
-                if ok:
-                    t_hi, state = mid, st
-                else:
-                    lo, lo_state = mid, st
-        return state, t_hi
+        touch = float(self.setup.first_touch.min())
+        approach = touch - TOUCH_GAP
+        start = CONTACT_START * cfg.fingertip_radius
+        before, earlier, now = self.last, self.last, self.last
+        while not now[2] <= 1.0:
+            t = now[0]
+            if t < approach:
+                t_new = min(t + cfg.step, approach)
+            else:
+                t_new = t + min(cfg.step, max(t - touch, start))
+            self.too_far(t_new)
+            earlier, before = before, now
+            # Newton starts from the last two increments' positions extrapolated: about one
+            # iteration fewer per increment than from the last rest.
+            guess = None
+            if earlier is not before and before[0] > earlier[0]:
+                guess = extrapolated(
+                    before[1].x, earlier[1].x, (t_new - before[0]) / (before[0] - earlier[0])
+                )
+            now = self._further(before[1], t_new, guess)
+        return self._least_passing(before, now)
 
-    def until_held(self, state: State, t: float) -> tuple[float, tuple[State, FingertipContact, float]]:
-        """From ``state`` at travel ``t``, remove the table and verify the hold there (the
-        expensive check: implicit dynamics). Where the object is not held, the fingers close
-        further, by the refined resolution at first and by doubling amounts up to a whole step,
-        until it is. Returns (the travel held at [m], :func:`~softgrasp.grasp.hold.check_hold`'s
-        held state, fixed fingers and drift)."""
-        cfg, cache = self.cfg, self.cache
-        t_final, extra = t, cfg.step / 2**cfg.refine
+    def _least_passing(self, lo: Point, hi: Point) -> Point:
+        """Between ``lo`` (the grasp test fails) and ``hi`` (it passes), the travel where it first
+        passes, to the force tolerance: regula falsi (Illinois) on g(t) = s(t)^(-2/3) - 1, aimed
+        a half tolerance on the passing side (s^(-2/3) is nearly linear in travel where the forces
+        grow as its 3/2 power, as Hertz's do), until the passing end's s >= 1 / (1 + force_tol),
+        the bracket is narrower than ``TRAVEL_FLOOR`` or ``refine`` iterations are spent.
+        Returns the passing end."""
+        cfg = self.cfg
+        accept = 1.0 / (1.0 + cfg.force_tol)
+        aim = (1.0 + 0.5 * cfg.force_tol) ** (2.0 / 3.0) - 1.0
 
-        def checked(t: float) -> tuple[State, FingertipContact, float] | str:
-            before = cache.stats["systems"]
-            out = check_hold(self.body, self.setup.table, self.fingers, state, t, cfg, cache)
-            cache.stats["hold_check_systems"] += cache.stats["systems"] - before
-            return out
+        def g(s: float) -> float:
+            return (s ** (-2.0 / 3.0) if 0.0 < s < math.inf else 0.0) - 1.0 - aim
 
-        cache.stats["hold_check_systems"] = 0
-        while isinstance(held := checked(t_final * self.scale), str):
-            self.checks.append((t_final, held))
-            t_final += extra
-            self.too_far(t_final)
-            state, _ = self.close(state, t_final)
-            extra = min(2.0 * extra, cfg.step)
-        self.checks.append((t_final, "held"))
-        return t_final, held
+        touch = float(self.setup.first_touch.max())
+        g_lo, g_hi, side = g(lo[2]), g(hi[2]), 0
+        for _ in range(cfg.refine):
+            if hi[2] >= accept or hi[0] - lo[0] < TRAVEL_FLOOR:
+                break
+            # While a finger does not touch at the lower end, the forces start from the last
+            # finger's first touch (on the settled object) where that lies inside the bracket.
+            t0 = min(max(lo[0], touch), hi[0]) if lo[2] == math.inf else lo[0]
+            w = float(
+                np.clip((t0 + g_lo / (g_lo - g_hi) * (hi[0] - t0) - lo[0]) / (hi[0] - lo[0]), 0.02, 0.98)
+            )
+            try:
+                pt = self.close(lo[1], lo[0] + w * (hi[0] - lo[0]), self._between(lo, hi, w))
+            except NotConverged:
+                # No rest found there (a contact flickering on and off at the touch): halfway to
+                # the passing end instead.
+                w = 0.5 * (1.0 + w)
+                pt = self._further(lo[1], lo[0] + w * (hi[0] - lo[0]), self._between(lo, hi, w))
+            if pt[2] <= 1.0:
+                hi, g_hi = pt, g(pt[2])
+                g_lo *= 0.5 if side == 1 else 1.0
+                side = 1
+            else:
+                lo, g_lo = pt, g(pt[2])
+                g_hi *= 0.5 if side == -1 else 1.0
+                side = -1
+        return hi
+
+    @staticmethod
+    def _between(lo: Point, hi: Point, w: float) -> NDArray | None:
+        """Newton's start for the travel a fraction w from ``lo`` to ``hi``: their positions
+        interpolated, or None (from ``lo`` at rest) while a finger does not touch at ``lo``."""
+        return lo[1].x + w * (hi[1].x - lo[1].x) if lo[2] < math.inf else None
+
+    def _checked(self, pt: Point) -> Held | str:
+        """The hold check at ``pt`` (its Newton systems counted apart), recorded in ``checks``."""
+        cache = self.cache
+        before = cache.stats["systems"]
+        out = check_hold(
+            self.body, self.setup.table, self.fingers, pt[1], pt[0] * self.scale, self.cfg, cache
+        )
+        cache.stats["hold_check_systems"] += cache.stats["systems"] - before
+        self.checks.append((pt[0], out if isinstance(out, str) else "held"))
+        return out
+
+    def until_held(self, pt: Point) -> tuple[float, Held]:
+        """From ``pt`` (the grasp test's least passing travel), remove the table and verify the
+        hold there (the expensive check: implicit dynamics). Where the object is not held, the
+        fingers squeeze further, each time by the travel that raises their force by
+        ``FIRST_GROWTH`` and then by doubling shares (at most a whole step; Hertz's 3/2 power from
+        the last finger's first touch), until it is; then the bracket between the last travel not
+        held and the first held is halved until their forces differ by at most ``force_tol``.
+        Returns (the travel held at [m], :func:`~softgrasp.grasp.hold.check_hold`'s held state)."""
+        cfg = self.cfg
+        self.cache.stats["hold_check_systems"] = 0
+        held = self._checked(pt)
+        if not isinstance(held, str):
+            return pt[0], held
+        lo, growth, touch = pt, FIRST_GROWTH, float(self.setup.first_touch.max())
+        while True:
+            past = max(lo[0] - touch, 1e-6)
+            t = lo[0] + min(past * ((1.0 + growth) ** (2.0 / 3.0) - 1.0), cfg.step)
+            self.too_far(t)
+            hi = self._further(lo[1], t)
+            held = self._checked(hi)
+            if not isinstance(held, str):
+                break
+            lo, growth = hi, 2.0 * growth
+        for _ in range(cfg.refine):
+            if hi[3] <= (1.0 + cfg.force_tol) * lo[3] or hi[0] - lo[0] < TRAVEL_FLOOR:
+                break
+            mid = self._further(lo[1], 0.5 * (lo[0] + hi[0]), self._between(lo, hi, 0.5))
+            out = self._checked(mid)
+            if isinstance(out, str):
+                lo = mid
+            else:
+                hi, held = mid, out
+        return hi[0], held
 
 
 def _advance(

@@ -11,8 +11,9 @@ of the travel that brings its normal force (the tactile sensor's reading) to its
 and the object comes to static equilibrium (the fingers push the object on the table and each
 other's forces change with it). The closing ends when every finger is within ``tolerance`` of
 its set-point. Then the table is taken away and the object held for ``hold_time`` seconds
-(:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when the centre of mass moves
-less than ``max_drift`` and no fingertip slides.
+(:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when every step finds its
+equilibrium, every finger keeps contact and no fingertip slides in the object by more than
+``max_slip`` times its size.
 
 This answers "do these set-points hold this object?" for any material and friction, which is what
 robust set-points (:mod:`softgrasp.sweep.robust`) are checked with.
@@ -211,7 +212,7 @@ def hold_setpoints(
     checked = check_hold(body, setup.table, fc, state, 1.0, cfg, cache)
     if isinstance(checked, str):
         return result(s, forces, increments, False, checked)
-    held, fixed, drift = checked
+    held, fixed, drift, _ = checked
     rep = fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True)
     margin = float(1.0 - cone_usage(rep, cfg.contact.mu).max())
     return result(s, forces, increments, True, "held", drift, margin, rep.normal.copy())

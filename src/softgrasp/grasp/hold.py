@@ -1,8 +1,15 @@
 """The hold check (paper Sec. 4.3.2): with the fingertips fixed where the closing stopped, the
 table is taken away and the fingers alone must hold the object: the table's support ramps down in
-static load steps (a slow lift), then implicit dynamics over the holding time must keep the centre
-of mass within ``max_drift`` of where it stood, and the held state is brought to static
-equilibrium with every fingertip sticking.
+static load steps (a slow lift), then implicit dynamics over the holding time, then the held
+state is brought to static equilibrium. The object is held when every step finds its
+equilibrium, every finger keeps contact and no fingertip slides in the object by more than
+``max_slip`` times the object's size.
+
+A fingertip slides *as a whole* only when every pair of its contact patch slips (Algorithm 1's
+slip displacement u grows on each): its slip over one step is the least slip increment among its
+pairs in contact before and after (a patch with one sticking pair does not slide; rim pairs slip
+in partial slip, as in Mindlin's contact). The elastic deformation of the object, its sag in the
+fingers included, moves no anchor and is no slip.
 """
 
 from __future__ import annotations
@@ -17,10 +24,10 @@ from softgrasp.grasp.config import (
     HELD_RTOL,
     HOLD_DT,
     MAX_HALVINGS,
+    RELEASE_MAX_ITER,
     RELEASE_STEPS,
     SETTLED,
     STEP_RTOL,
-    STICK_TOLERANCE,
     PlanConfig,
 )
 from softgrasp.grasp.initial import FINGER_NAMES
@@ -28,13 +35,57 @@ from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingerReport, FingertipContact
+from softgrasp.physics.fingertip.state import FingerState
 from softgrasp.physics.planes import PlaneContact
 from softgrasp.sim.implicit import implicit_euler_step
 from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import extrapolated, solve_static
 
-__all__ = ["check_hold", "cone_usage"]
+__all__ = ["Held", "check_hold", "cone_usage", "finger_slip", "object_size"]
+
+#: A held state: (state at rest in the fingers, the fixed fingers, the centre of mass's largest
+#: motion from the table [m], each fingertip's slip in the object [m] (3,)).
+Held = tuple[State, FingertipContact, float, NDArray[np.float64]]
+
+
+class _NotHeld(Exception):
+    """The hold check's verdict, raised where it is found."""
+
+
+def object_size(x: NDArray[np.float64]) -> float:
+    """The object's size [m]: the largest extent of its nodes ``x`` along a world axis."""
+    return float(np.ptp(x, axis=0).max())
+
+
+def finger_slip(before: FingerState, after: FingerState) -> NDArray[np.float64]:
+    """How far each fingertip slid as a whole between two contact states [m], (n_f,): the least
+    slip increment |du| among its pairs in contact in both (0 where it has none)."""
+    both = before.active & after.active
+    du = np.linalg.norm(after.slip - before.slip, axis=2)
+    least = np.where(both, du, np.inf).min(axis=1)
+    return np.where(np.isfinite(least), least, 0.0)
+
+
+class _Tracker:
+    """Each fingertip's slip summed over the steps of one hold check, and the verdicts on it."""
+
+    def __init__(self, limit: float, size: float, fs: FingerState) -> None:
+        self.limit, self.size, self.last = limit, size, fs
+        self.slip = np.zeros(fs.active.shape[0])
+
+    def step(self, fs: FingerState, when: str) -> None:
+        self.slip += finger_slip(self.last, fs)
+        self.last = fs
+        touching = fs.active.any(axis=1)
+        if not touching.all():
+            raise _NotHeld(f"the {FINGER_NAMES[int(np.argmin(touching))]} finger lost contact {when}")
+        if self.slip.max() > self.limit:
+            j = int(np.argmax(self.slip))
+            raise _NotHeld(
+                f"the {FINGER_NAMES[j]} fingertip slid {self.slip[j] * 1e3:.2f} mm in the object {when} "
+                f"(limit {self.limit * 1e3:.2f} mm, {self.limit / self.size:.1%} of its size)"
+            )
 
 
 def check_hold(
@@ -45,15 +96,18 @@ def check_hold(
     t: float,
     cfg: PlanConfig,
     cache: SolverCache,
-) -> tuple[State, FingertipContact, float] | str:
+) -> Held | str:
     """Remove the table and verify that the fingers hold the object. From the squeezed state at
     rest on the table, with the fingertips fixed: the table's forces on the object, applied as a
     dead load, ramp down to zero over ``RELEASE_STEPS`` static load steps (the weight passes to the
     fingers quasi-statically, as in a slow lift, friction sticking or slipping pair by pair); then
     ``hold_time`` seconds of implicit dynamics (:func:`_simulate_hold`) from that released state
-    must keep the centre of mass within ``max_drift`` of where it was on the table; the held state
-    is then brought to static equilibrium in the fingers alone. Returns (held state, fixed fingers,
-    drift) or, when the object is not held, why not (a sentence)."""
+    (a release step that needs more than ``RELEASE_MAX_ITER`` Newton iterations finds none);
+    then the held state's static equilibrium in the fingers alone. After every step each finger
+    must touch the object and each fingertip's slip so far (:func:`finger_slip`, summed) must stay
+    within ``cfg.max_slip`` times the object's size (:func:`object_size`). A step that finds no
+    equilibrium means the object slides out of the fingers. Returns the :data:`Held` state or,
+    when the object is not held, why not (a sentence)."""
     fixed = FingertipContact(
         tuple(replace(f, centre=f.centre_at(t), velocity=np.zeros(3)) for f in fc.fingertips),
         fc.params,
@@ -63,6 +117,9 @@ def check_hold(
     release = Scene(body, (fixed, support))
     scene = Scene(body, (fixed,))
     c0 = centre_of_mass(body, state.x)
+    size = object_size(state.x)
+    track = _Tracker(cfg.max_slip * size, size, state.contacts[1])
+    drift = 0.0
     try:
         st = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1], None))
         cache.scene_changed()  # the table's stiffness is gone from the Newton matrices
@@ -73,36 +130,37 @@ def check_hold(
             guess = None if prev is None else extrapolated(st.x, prev)
             prev = st.x
             rtol = STEP_RTOL if k < RELEASE_STEPS else HELD_RTOL  # the last: where the hold starts
-            st, _ = solve_static(release, st, t=k / RELEASE_STEPS, cache=cache, guess=guess, rtol=rtol)
-            if (d := float(np.linalg.norm(centre_of_mass(body, st.x) - c0))) >= cfg.max_drift:
-                return _moved(d, cfg, f"with the table's support down to {1 - k / RELEASE_STEPS:.0%}")
-        released = float(np.linalg.norm(centre_of_mass(body, st.x) - c0))
+            when = f"with the table's support down to {1 - k / RELEASE_STEPS:.0%}"
+            try:
+                st, _ = solve_static(
+                    release,
+                    st,
+                    t=k / RELEASE_STEPS,
+                    cache=cache,
+                    guess=guess,
+                    rtol=rtol,
+                    max_iter=RELEASE_MAX_ITER,
+                )
+            except (NotConverged, SimulationUnstable) as exc:
+                raise _NotHeld(
+                    f"the object slides out of the fingers {when} (no equilibrium: {exc})"
+                ) from exc
+            track.step(st.contacts[0], when)
+            drift = max(drift, float(np.linalg.norm(centre_of_mass(body, st.x) - c0)))
         start = State(st.x, np.zeros_like(st.x), 0.0, (st.contacts[0],))
-        end = _simulate_hold(body, scene, start, cfg.hold_time, cache, cfg.max_drift, origin=c0)
-        if end is None:
-            return _moved(cfg.max_drift, cfg, f"during the {cfg.hold_time:g} s hold")
-        moved = float(np.linalg.norm(centre_of_mass(body, end.x) - c0))
-        held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache, rtol=HELD_RTOL)
-    except (NotConverged, SimulationUnstable) as exc:
-        return f"the release or the hold found no equilibrium ({exc})"
-    drift = max(released, moved, float(np.linalg.norm(centre_of_mass(body, held.x) - c0)))
-    if drift >= cfg.max_drift:
-        return _moved(drift, cfg, "at the held equilibrium")
-    rep = fixed.report(body, held.x, None, 0.0, held.contacts[0], static=True)
-    if rep.contacts.min() == 0:
-        return f"the {FINGER_NAMES[int(np.argmin(rep.contacts))]} finger lost contact"
-    usage = cone_usage(rep, cfg.contact.mu)
-    if usage.max() >= 1.0 - STICK_TOLERANCE:  # a finger slides: not held
-        return f"the {FINGER_NAMES[int(np.argmax(usage))]} finger slides (its friction at the Coulomb limit)"
-    return held, fixed, drift
-
-
-def _moved(drift: float, cfg: PlanConfig, when: str) -> str:
-    """Why a hold check failed on the centre of mass's motion."""
-    return (
-        f"the centre of mass moved {'at least ' if drift <= cfg.max_drift else ''}{drift * 1e3:.2f} mm "
-        f"{when} (limit {cfg.max_drift * 1e3:.2f} mm)"
-    )
+        end = _simulate_hold(body, scene, start, cfg.hold_time, cache, track)
+        drift = max(drift, float(np.linalg.norm(centre_of_mass(body, end.x) - c0)))
+        try:
+            held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache, rtol=HELD_RTOL)
+        except (NotConverged, SimulationUnstable) as exc:
+            raise _NotHeld(
+                f"the object slides out of the fingers after the hold (no equilibrium: {exc})"
+            ) from exc
+        track.step(held.contacts[0], "at the held equilibrium")
+    except _NotHeld as why:
+        return str(why)
+    drift = max(drift, float(np.linalg.norm(centre_of_mass(body, held.x) - c0)))
+    return held, fixed, drift, track.slip
 
 
 def cone_usage(rep: FingerReport, mu: float) -> NDArray[np.float64]:
@@ -116,34 +174,27 @@ def cone_usage(rep: FingerReport, mu: float) -> NDArray[np.float64]:
 
 
 def _simulate_hold(
-    body: Body,
-    scene: Scene,
-    state: State,
-    duration: float,
-    cache: SolverCache,
-    max_drift: float = np.inf,
-    origin: NDArray[np.float64] | None = None,
-) -> State | None:
+    body: Body, scene: Scene, state: State, duration: float, cache: SolverCache, track: _Tracker
+) -> State:
     """``duration`` seconds of backward Euler from ``state``: steps of ``HOLD_DT``, doubled after
     every step in which the centre of mass moved less than ``SETTLED`` (the object has come to
-    rest: larger steps then cost nothing in accuracy). None as soon as the centre of mass has
-    moved ``max_drift`` from ``origin`` (default: where it starts; the object is not held: no need
-    to simulate on)."""
+    rest: larger steps then cost nothing in accuracy), halved where a step finds no solution (a
+    sudden slip), down to ``HOLD_DT / 2**MAX_HALVINGS``: below that the object slides out of the
+    fingers. ``track`` follows the fingertips' slip after every step (and ends the check as soon
+    as the object is not held)."""
     dt = HOLD_DT
-    c0 = centre_of_mass(body, state.x) if origin is None else origin
     while state.t < duration - 1e-12:
         h = min(dt, duration - state.t)
         before = centre_of_mass(body, state.x)
+        when = f"{state.t + h:.3g} s into the {duration:g} s hold"
         try:
             state = implicit_euler_step(scene, state, h, cache=cache)
-        except NotConverged:
+        except (NotConverged, SimulationUnstable) as exc:
             if h <= HOLD_DT / 2**MAX_HALVINGS:
-                raise
+                raise _NotHeld(f"the object slides out of the fingers {when} (no solution: {exc})") from exc
             dt = h / 2.0  # a sudden slip or release: resolve it in shorter steps
             continue
-        c = centre_of_mass(body, state.x)
-        if np.linalg.norm(c - c0) >= max_drift:
-            return None
-        if np.linalg.norm(c - before) < SETTLED:
+        track.step(state.contacts[0], when)
+        if np.linalg.norm(centre_of_mass(body, state.x) - before) < SETTLED:
             dt *= 2.0
     return state

@@ -5,13 +5,15 @@ forces of the *held* state (table removed) as the force set-points.
 1. :func:`~softgrasp.grasp.setup.closing_setup`: the object at rest on the table
    (:mod:`softgrasp.grasp.settle`), the best force-closure initial grasp the hand reaches, and the
    fingertips' closing lines.
-2. :class:`~softgrasp.grasp.closing.Closing`: whole closing increments until the grasp test
-   passes, the last one bisected ``refine`` times on that test; then the hold check
-   (:func:`~softgrasp.grasp.hold.check_hold`) at the smallest travel that passes it, the fingers
-   closing further by step / 2^refine at first and by doubling amounts up to a whole step, with a
-   check after each. Past ``max_squeeze`` (a fraction of the shortest finger-to-centroid distance,
-   travelled beyond the last finger's first contact) the object would be crushed:
-   :class:`InfeasibleGrasp`.
+2. :class:`~softgrasp.grasp.closing.Closing`: whole steps up to the first touch, then increments
+   doubling the squeeze until the grasp test passes, then the least travel that passes it,
+   solved for within the last increment to ``force_tol`` of the force; the hold check
+   (:func:`~softgrasp.grasp.hold.check_hold`) there, the fingers squeezing further by growing
+   shares of force until the object is held, and the least travel held solved for to
+   ``force_tol`` again. Past ``max_squeeze`` (a fraction of the shortest finger-to-centroid
+   distance, travelled beyond the last finger's first contact) the object would be crushed:
+   :class:`InfeasibleGrasp`. Friction too low to hold before a squeeze that finds no rest is
+   :class:`InfeasibleGrasp` too, with the rigid-body least normal force.
 3. The held state's finger forces, their balance (Eq. 21-22) and friction margin: the
    :class:`GraspPlan`.
 """
@@ -68,7 +70,8 @@ def plan_grasp(
     Raises
     ------
     InfeasibleGrasp: no reachable force-closure grasp, or no hold before the maximum squeeze.
-    NotConverged: an increment found no static equilibrium even when split.
+    NotConverged: an increment between two at rest found no static equilibrium even when split
+        (one past them that finds none is an InfeasibleGrasp: the object cannot be squeezed harder).
     """
     with pardiso.blas_one_thread():
         return _plan_grasp(body, config, progress, SolverCache() if cache is None else cache)
@@ -83,8 +86,7 @@ def _plan_grasp(
     setup = closing_setup(body, cfg, cache)  # step 1
     ig, placement, start, first = setup.grasp, setup.placement, setup.start, setup.first_touch
     closing = Closing(body, cfg, setup, cache, progress)  # step 2
-    state, t = closing.until_the_grasp_test()
-    t_final, (held_state, fixed, drift) = closing.until_held(state, t)
+    t_final, (held_state, fixed, drift, slip) = closing.until_held(closing.until_the_grasp_test())
     rows, frames = closing.rows, closing.frames
     # The set-points: the held state's forces.
     hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
@@ -119,7 +121,7 @@ def _plan_grasp(
         joint_paths = closing_paths(cfg.hand, placement, lines, max(1, int(np.ceil(t_final / cfg.step))))
     if progress is not None:
         progress(1.0)
-    rows.sort(key=lambda r: r[0])  # the bisection's increments among the others, by travel
+    rows.sort(key=lambda r: r[0])  # the solves' increments among the others, by travel
     frames.sort(key=lambda f: f[0])
     return GraspPlan(
         initial=ig,
@@ -150,6 +152,7 @@ def _plan_grasp(
         config=cfg,
         wall_time=time.perf_counter() - t0,
         hold_checks=tuple(closing.checks),
+        slip=slip,
         frames=PlanFrames(
             travel=np.array([f[0] for f in frames]),
             positions=np.array([f[1] for f in frames]),

@@ -46,10 +46,11 @@ class GraspPlan:
     friction_margin: 1 - the largest ratio |f_t| / (mu f_n) among the fingers in the held state,
         with each finger's resultant friction and normal forces: the share of its Coulomb cone
         left (> 0: every fingertip sticks; rim pairs of a contact patch may slip).
-    com_drift: centre-of-mass motion from the release over the holding time, or to the held
-        state if that is farther [m]; hold_time: that time [s].
-    increments: closing increments simulated (the bisection's included).
-    travel: fingertip travel at each increment [m], (K,), increasing (the bisection's increments
+    com_drift: the centre of mass's largest motion from the table over the release, the holding
+        time and the held state [m] (elastic sag included; the hold is judged on the fingertips'
+        slip); hold_time: that time [s].
+    increments: closing increments simulated (the solves' for the least travel included).
+    travel: fingertip travel at each increment [m], (K,), increasing (the solves' increments
         sorted in among the regular ones).
     penetration, force_norm, normal_force, tangential_force: per increment and finger, (K, 3).
     feasible: whether the grasp test passed at each increment, (K,).
@@ -71,8 +72,12 @@ class GraspPlan:
         (ceil(travel / step) + 1, dof) (None without a hand model).
     config: the configuration used.  wall_time: seconds.
     hold_checks: every hold verification, in order: (travel [m], "held" or why the object was not
-        held there: how far it moved during the release or the hold, which finger slid, or the
-        solve that failed), so that a user can see what made the fingers close further.
+        held there: which fingertip slid how far in the object, which finger lost contact, or where
+        the object slid out of the fingers with no equilibrium), so that a user can see what made
+        the fingers close further.
+    slip: how far each fingertip slid as a whole in the object from the table's removal to the
+        held state [m], (3,) (:func:`~softgrasp.grasp.hold.finger_slip`, summed over the check's
+        steps; at most ``max_slip`` times the object's size).
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
     solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
@@ -111,6 +116,7 @@ class GraspPlan:
     config: PlanConfig
     wall_time: float
     hold_checks: tuple[tuple[float, str], ...] = ()
+    slip: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     frames: PlanFrames | None = None
     solver_stats: dict[str, int] = field(default_factory=dict)
 

@@ -45,7 +45,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "safety_factor": 1.0,
     "hold_time": 1.0,
     "max_squeeze": 0.5,
-    "refine": 3,
+    "refine": 12,
     "hand": "shadow_like",
     "grasp": None,
     "contact_law": "resolved",

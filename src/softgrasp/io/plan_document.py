@@ -96,6 +96,7 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
         },
         "hold": {
             "com_drift_m": plan.com_drift,
+            "slip_m": [float(v) for v in plan.slip],
             "duration_s": plan.hold_time,
             "checks": [{"travel_m": t, "result": r} for t, r in plan.hold_checks],
         },

@@ -1,0 +1,106 @@
+"""The closing's set-points and the hold check as physics: the set-points do not depend on the
+closing step or on the bound of its solves, they fall with friction and never below what a rigid
+object needs, friction too low ends in InfeasibleGrasp with the reason, and soft objects that
+sag in the fingers are held."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from softgrasp.errors import InfeasibleGrasp
+from softgrasp.grasp.hold import finger_slip
+from softgrasp.grasp.planner import PlanConfig, plan_grasp
+from softgrasp.model.objects import make_object
+from softgrasp.physics.body import build_body
+from softgrasp.physics.fingertip.params import ContactParams
+from softgrasp.physics.fingertip.state import FingerState
+
+
+def _body(name: str, E: float | None = None):
+    mesh, material, mass = make_object(name)
+    if E is not None:
+        material = dataclasses.replace(material, E=E)
+    return build_body(mesh, material, mass=mass)
+
+
+def _total(plan) -> float:
+    return float(sum(f.force_norm for f in plan.fingers))
+
+
+def _normal(plan) -> np.ndarray:
+    return np.array([f.normal_force for f in plan.fingers])
+
+
+def test_a_fingertip_slides_as_a_whole_only_when_every_pair_slips():
+    """The fingertip's slip over a step is its least-slipping pair's: one sticking pair of the
+    patch anchors it (partial slip), pairs not in contact before and after do not count."""
+    active = np.zeros((3, 4), bool)
+    active[0, :3] = active[1, :2] = True
+    before = FingerState(
+        active, np.zeros((3, 4, 3)), np.zeros((3, 4, 3)), np.zeros((3, 4, 3)), np.zeros((3, 3))
+    )
+    slip = np.zeros((3, 4, 3))
+    slip[0, :3, 2] = [-1e-4, -2e-4, -3e-4]  # the thumb's whole patch slips down
+    slip[1, 0, 2] = -5e-4  # the first finger's rim pair slips, its other pair sticks
+    slip[2, 3, 2] = -1e-3  # a pair of the middle finger not in contact before
+    after_active = active.copy()
+    after_active[2, 3] = True
+    after = dataclasses.replace(before, active=after_active, slip=slip)
+    np.testing.assert_allclose(finger_slip(before, after), [1e-4, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("name", ["sphere", "cube"])
+def test_set_points_do_not_depend_on_the_step_or_the_bound_of_the_solves(name):
+    """Closing steps of 0.25, 0.5 and 1 mm and solves bounded at 4 or 30 iterations give the
+    default's set-points, finger by finger, within 3 % (the squeeze passes through the same
+    travels whatever the step, and the grasp test's travel is solved to a force tolerance of 1 %,
+    not to a fraction of the step); on the stiff foam cube every one stays within 5 % above the
+    least sum of normal forces that holds a rigid object at its contacts."""
+    body = _body(name)
+    ref = plan_grasp(body, PlanConfig())
+    for kw in ({"step": 0.00025}, {"step": 0.001}, {"refine": 4}, {"refine": 30}):
+        plan = plan_grasp(body, PlanConfig(**kw))
+        assert _normal(plan) == pytest.approx(_normal(ref), rel=0.03), kw
+        assert _total(plan) == pytest.approx(_total(ref), rel=0.03), kw
+        rigid = plan.rigid_normal_forces.sum()
+        assert rigid * (1 - 1e-9) <= _normal(plan).sum()
+        if name == "cube":
+            assert _normal(plan).sum() <= 1.05 * rigid, kw
+
+
+@pytest.mark.slow
+def test_set_points_fall_with_friction_and_too_little_friction_is_infeasible():
+    """From mu = 0.15 to 1 every plan holds, with a total force that does not grow with mu and a
+    sum of normal forces at least the rigid-body minimum at its contacts; mu = 0.05 ends in
+    InfeasibleGrasp naming mu and the normal force a rigid object would need, not a solver
+    error."""
+    body = _body("sphere")
+    totals = []
+    for mu in (0.15, 0.2, 0.3, 0.5, 1.0):
+        plan = plan_grasp(body, PlanConfig(contact=ContactParams(mu=mu)))
+        assert "held" in [w for _, w in plan.hold_checks]
+        assert _normal(plan).sum() >= plan.rigid_normal_forces.sum() * (1 - 1e-9), mu
+        totals.append(_total(plan))
+    assert (np.diff(totals) <= 0).all(), totals
+    assert totals[0] > 3 * totals[-1]  # friction matters: mg / mu sets the squeeze
+    with pytest.raises(
+        InfeasibleGrasp, match=r"mu = 0.05 cannot hold .*needs at least \d+\.\d+ N of normal force"
+    ):
+        plan_grasp(body, PlanConfig(contact=ContactParams(mu=0.05)))
+
+
+@pytest.mark.parametrize("E", [5e3, 20e3])
+def test_soft_spheres_that_sag_in_the_fingers_are_held(E):
+    """Rubber spheres of E = 5 and 20 kPa plan: held in static equilibrium with every fingertip
+    slipping less than 1 % of the object's size, while the centre of mass sinks by more than a
+    millimetre as the sphere sags (elastic deformation, no slip)."""
+    body = _body("sphere", E)
+    plan = plan_grasp(body, PlanConfig())
+    W = body.total_mass * 9.81
+    assert plan.force_residual < 0.02 * W
+    assert "held" in [w for _, w in plan.hold_checks]
+    assert plan.com_drift > 1e-3
+    assert _normal(plan).sum() >= 0.9 * plan.rigid_normal_forces.sum()
