@@ -164,6 +164,18 @@ def fit_compression(
     # The edge-law and ratio simulations reach beyond the data (a test's last increments are its
     # least accurate); only the data's range is used.
     reach = min(1.2 * top, MAX_STRAIN)
+    reach_now = [reach]
+
+    def lubricated(E: float, nu_: float, edge_law):
+        # beyond the data a lubricated specimen may fail to converge: then stop at the data's end
+        try:
+            return run(E, nu_, edge_law, 0.0, reach_now[0])
+        except NotConverged:
+            if reach_now[0] == top:
+                raise
+            reach_now[0] = top
+            return run(E, nu_, edge_law, 0.0, top)
+
     nu_now = nu
     nu_sd = math.nan
     R = np.ones_like(eps)
@@ -191,11 +203,11 @@ def fit_compression(
         for _ in range(MAX_ROUNDS):
             vals, cov = fit_specimen_law(eps, F, A * R)
             E, c2, c3 = vals
-            edge = edge_law_for(lambda lw, E=E, n=nu_now: run(E, n, lw, 0.0, reach), c2, c3, top, start=edge)
+            edge = edge_law_for(lambda lw, E=E, n=nu_now: lubricated(E, n, lw), c2, c3, top, start=edge)
             lub = edge.lubricated
             R_new = np.ones_like(eps)
             if plate_friction > 0:
-                stuck = run(E, nu_now, edge.law, plate_friction, reach)
+                stuck = run(E, nu_now, edge.law, plate_friction, reach_now[0])
                 R_new = curve_at(d, stuck.displacement_m[1:], stuck.force_N[1:] / lub.force_N[1:])
             nu_new = nu_now
             if fit_nu:
@@ -213,7 +225,7 @@ def fit_compression(
                 "not converged)"
             )
         final = Material(vals[0], nu_now, density, edge.law, name="calibrated")
-        res = run(vals[0], nu_now, edge.law, plate_friction, reach)
+        res = run(vals[0], nu_now, edge.law, plate_friction, reach_now[0])
     if not converged:
         notes.append(f"the fit's rounds did not settle in {MAX_ROUNDS}; its values are not reliable")
     names = ["E_Pa", "c2", "c3"][: len(vals)]
