@@ -40,6 +40,7 @@ __all__ = [
     "specimen_stress",
     "EdgeLaw",
     "edge_law_for",
+    "specimen_modulus",
 ]
 
 #: Relative force below which a point's weight stops growing (a fraction of the largest force):
@@ -135,6 +136,16 @@ def _slope(strain: NDArray[np.float64], stress: NDArray[np.float64], upto: float
     return float(strain[sel] @ stress[sel] / (strain[sel] @ strain[sel]))
 
 
+def specimen_modulus(res: CompressionResult, c2: float, c3: float) -> float:
+    """E of the specimen law (c2, c3) whose initial slope matches the simulated test ``res``
+    (slopes through the origin up to ``res.fit_strain``): the body's own specimen modulus, which
+    differs from its Material's E by the spring network's small-strain error."""
+    eps = res.strain[1:]
+    return _slope(res.strain, res.stress_Pa, res.fit_strain) / _slope(
+        eps, specimen_stress(eps, c2, c3), res.fit_strain
+    )
+
+
 @dataclass(frozen=True)
 class EdgeLaw:
     """An edge law found by :func:`edge_law_for`.
@@ -169,7 +180,9 @@ def _table(nodes: NDArray[np.float64], values: NDArray[np.float64], c2: float, c
     top = nodes[-1] * np.array([1.25, 1.5])
     ext = values[-1] * specimen_stress(top, c2, c3) / float(specimen_stress(nodes[-1:], c2, c3)[0])
     if not (np.diff(ext) > 0).all() or ext[0] <= values[-1]:
-        ext = values[-1] + (values[-1] - values[-2]) / (nodes[-1] - nodes[-2]) * (top - nodes[-1])
+        # the end slope, kept positive (a law whose stress stops growing is not a stable one)
+        slope = max((values[-1] - values[-2]) / (nodes[-1] - nodes[-2]), 1e-3 * values[-1] / nodes[-1])
+        ext = values[-1] + slope * (top - nodes[-1])
     e = np.concatenate([[e0], nodes, top])
     v = np.concatenate([[e0], values, ext])
     return Tabulated(-e, -v)
@@ -213,7 +226,8 @@ def edge_law_for(
         target = specimen_stress(eps, c2, c3)
         if nodes is None or values is None or nodes.shape != eps.shape or not np.allclose(nodes, eps):
             # the first run only fixes the strain levels: restart from the specimen law on them
-            nodes, values = eps.copy(), target.copy()
+            nodes = eps.copy()
+            values = np.maximum.accumulate(target) + 1e-12 * np.arange(len(target))
             continue
         inside = eps <= strain * (1 + 1e-9)
         got = res.stress_Pa[1:] / _slope(res.strain, res.stress_Pa, res.fit_strain)
