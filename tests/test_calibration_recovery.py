@@ -36,8 +36,8 @@ def _analytic(strain, rng):
 
 def test_lubricated_platens_recover_E_of_an_analytic_uniaxial_law(tmp_path, cube):
     """Lubricated platens give uniaxial stress, so the data are the analytic law itself. The
-    specimen's E within 2 % and within 3 reported deviations; c2 near 2; the calibrated body, simulated, follows the
-    data; its material file loads with the same law."""
+    specimen's E within 2 % and within 3 reported deviations; c2 near 2; the calibrated body,
+    simulated, follows the data; its material file loads with the same law."""
     mesh, mass = cube
     H, A = specimen_geometry(mesh)
     F = A * _analytic(STRAIN, np.random.default_rng(11))
