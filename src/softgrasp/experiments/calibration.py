@@ -1,10 +1,11 @@
 """Fitting the model to measurements (paper Sec. 4.2-4.3, Figs. 9 and 11).
 
 *Compression* (:func:`fit_compression`): a measured force-displacement (or stress-strain) curve of
-a specimen squeezed between plates is matched by softgrasp's own compression test
-(:func:`softgrasp.experiments.compression.compression_test`) of a mesh of the specimen, by
-bounded non-linear least squares over Young's modulus E, the polynomial law's a2 and a3
-(:class:`softgrasp.model.material.Polynomial`) and, when the file has lateral strains, Poisson's ratio.
+a specimen squeezed between plates gives the specimen's uniaxial law sigma = E (epsilon + c2
+epsilon^2 + c3 epsilon^3) (:mod:`softgrasp.experiments.uniaxial`), the platens' friction taken from
+softgrasp's own compression test (:func:`softgrasp.experiments.compression.compression_test`) of a
+mesh of the specimen, and, when the file has lateral strains, Poisson's ratio; the calibrated
+material's edge law is the one whose simulated specimen follows the fitted law.
 
 *Indentation* (:func:`fit_indentation`): a measured force-penetration curve of one fingertip
 pressed into the object is matched by softgrasp's indentation test
@@ -29,9 +30,11 @@ from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
 
 from softgrasp.errors import ConfigError, MaterialError, NotConverged, SoftgraspError
 from softgrasp.experiments.calibration_data import (
+    MAX_STRAIN,
     CompressionData,
     IndentationData,
     read_compression_data,
@@ -49,6 +52,13 @@ from softgrasp.experiments.fitting import (
     solve_fit,
 )
 from softgrasp.experiments.indentation import indentation_test
+from softgrasp.experiments.uniaxial import (
+    EDGE_LAW_TOLERANCE,
+    edge_law_for,
+    fit_linear,
+    fit_specimen_law,
+    specimen_modulus,
+)
 from softgrasp.model.material import Material, Polynomial
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.physics.body import Body, build_body
@@ -67,39 +77,16 @@ __all__ = [
     "fit_indentation",
 ]
 
-#: Bounds of the polynomial law's a2 in a fit, and of its excess b = a3 - a2^2 / 3 (> 0 keeps the
-#: law increasing at every strain: its slope 1 + 2 a2 e + 3 a3 e^2 then has no real root).
-A2_BOUNDS = (-4.0, 4.0)
-B_BOUNDS = (1e-3, 20.0)
+#: Largest change of the platens' stiffening ratio (relative) at which the fit stops iterating.
+RATIO_TOLERANCE = 2e-4
+#: Rounds of the fit's outer iteration (specimen law, edge law, platens' ratio, nu).
+MAX_ROUNDS = 8
 
 
-def _law(vals: dict[str, float]) -> Polynomial:
-    """The polynomial law of fit values a2 and b = a3 - a2^2 / 3."""
-    a2 = vals.get("a2", 0.0)
-    return Polynomial(a2, vals.get("b", 0.0) + a2 * a2 / 3.0)
-
-
-def _with_a3(params: dict[str, Parameter], cov: dict[tuple[str, str], float]) -> dict[str, Parameter]:
-    """Replace the fit's b by a3 = b + a2^2 / 3, its variance from the fit's covariance (first
-    order; b is fitted in log space), its status judged on its own deviation."""
-    out = dict(params)
-    b, a2 = out.pop("b"), out["a2"]
-    a3 = b.value + a2.value**2 / 3.0
-    if b.status == "fixed":
-        out["a3"] = Parameter("a3", a3, math.nan, "fixed", a3, a3, a3)
-        return out
-    g = {"b": b.value, "a2": 2.0 * a2.value / 3.0}  # d a3 / d(log b), d a3 / d a2
-    var = sum(g[m] * g[n] * cov.get((m, n), math.nan) for m in g for n in g)
-    sd = math.sqrt(var) if math.isfinite(var) and var >= 0 else math.nan
-    if b.status == "not identified":
-        status = "not identified"
-    elif b.status == "at bound":
-        status = "at bound"  # b at its floor: a3 = a2^2 / 3, the least that keeps the law increasing
-    else:
-        status = "fitted" if sd <= UNIDENTIFIED * abs(a3) else "poorly determined"
-    start = b.start + a2.start**2 / 3.0
-    out["a3"] = Parameter("a3", a3, sd, status, start, math.nan, math.nan)
-    return out
+def _parameter(name: str, value: float, sd: float, start: float) -> Parameter:
+    """A fitted parameter, flagged poorly determined when its deviation exceeds its value."""
+    ok = math.isfinite(sd) and sd <= UNIDENTIFIED * abs(value)
+    return Parameter(name, value, sd, "fitted" if ok else "poorly determined", start, -math.inf, math.inf)
 
 
 def fit_compression(
@@ -116,8 +103,18 @@ def fit_compression(
     steps: int = 12,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[Material, CalibrationFit]:
-    """Fit E, the polynomial law (a2, a3) and, with lateral data, nu to a compression curve by
-    simulating the compression test of ``mesh`` (paper Sec. 4.2, Fig. 9).
+    """Fit the specimen's uniaxial law (E, c2, c3 of :mod:`softgrasp.experiments.uniaxial`) and,
+    with lateral data, nu to a compression curve, and give the body the edge law that reproduces
+    it (paper Sec. 4.2, Fig. 9).
+
+    The force model is A E (epsilon + c2 epsilon^2 + c3 epsilon^3) R(epsilon), R the platens'
+    stiffening ratio simulated with the body (1 for lubricated platens, ``plate_friction`` 0):
+    given R, a weighted linear least-squares problem (:func:`~softgrasp.experiments.uniaxial.fit_linear`).
+    The rounds alternate that fit, the edge law whose simulated lubricated specimen follows the
+    fitted law (:func:`~softgrasp.experiments.uniaxial.edge_law_for`), R from the simulated tests
+    with and without friction, and nu (a one-parameter fit of the simulated lateral strains), until
+    R and nu settle. With ``law="linear"`` the springs are Hookean and the simulated test itself is
+    the model, with E its only (linear) parameter.
 
     Parameters
     ----------
@@ -125,8 +122,8 @@ def fit_compression(
     data: the measured curve (:func:`read_compression_data`).
     nu: Poisson's ratio: the fixed value, or the start when it is fitted.
     density, mass: the specimen's density [kg/m^3] or mass [kg] (gravity only; one is needed).
-    E_start: starting E [Pa]; default from the data's slope.
-    law: ``polynomial`` (fit a2, a3) or ``linear`` (E only).
+    E_start: E [Pa] of the first simulations of a linear fit; default from the data's slope.
+    law: ``polynomial`` (fit the specimen law's E, c2, c3) or ``linear`` (Hookean springs, E only).
     fit_nu: fit nu (default: when the data have lateral strains).
     plate_friction: friction coefficient between plates and specimen (0.5: dry platens).
     steps: load increments of each simulated test.
@@ -134,7 +131,12 @@ def fit_compression(
 
     Returns
     -------
-    (the fitted Material with a Polynomial law, the fit).
+    (the fitted Material: E, nu and the edge law, Tabulated for ``polynomial``; the fit). For
+    ``polynomial`` the fit's ``E_specimen_Pa`` is the specimen law's E and ``E_Pa`` the Material's:
+    the former over the ratio of the body's simulated small-strain specimen modulus to its
+    Material's E (the spring network's small-strain error, ~2 % on a coarse mesh), so that the
+    calibrated body reproduces the data. A note flags a simulated lubricated specimen whose force
+    drops within the data (unstable: no specimen law describes it there).
     """
     if law not in ("polynomial", "linear"):
         raise ConfigError(f"law must be 'polynomial' or 'linear', got {law!r}")
@@ -150,112 +152,171 @@ def fit_compression(
             "initial width) to the compression data, or give --nu"
         )
     t0 = time.perf_counter()
-    H = data.height_m
-    strain = float(data.displacement_m.max()) / H
-    Fscale = float(data.force_N.max())
-    lat_scale = float(np.abs(data.lateral_strain).max()) if data.lateral_strain is not None else 1.0
-    lat_scale = lat_scale if lat_scale > 0 else 1.0
-    last: dict[str, object] = {}
+    H, A = data.height_m, data.area_m2
+    d, F = data.displacement_m, data.force_N
+    eps = d / H
+    top = float(eps.max())
+    count = [0]
+    notes: list[str] = []
 
-    def simulate(vals: dict[str, float]):
+    def run(E: float, nu_: float, edge, friction: float, strain: float):
+        count[0] += 1
+        if progress is not None:
+            progress(count[0])
         try:
-            mat = Material(
-                E=vals["E_Pa"],
-                nu=vals["nu"],
-                density=density,
-                law=_law(vals),
-                name="calibrated",
-            )
-            body = build_body(mesh, mat, mass=mass)
-            return compression_test(body, strain=strain, steps=steps, plate_friction=plate_friction)
-        except SoftgraspError:  # a trial point the model cannot take (law, solve): a failed step
-            return None
-
-    def residual(vals: dict[str, float]) -> NDArray[np.float64]:
-        res = simulate(vals)
-        n = len(data.force_N) + (len(data.force_N) if fit_nu else 0)
-        if res is None:
-            return np.full(n, np.nan)
-        F = curve_at(data.displacement_m, res.displacement_m, res.force_N)
-        last["F"] = F
-        r = (F - data.force_N) / Fscale
-        if fit_nu:
-            assert data.lateral_strain is not None
-            lat = curve_at(data.displacement_m, res.displacement_m, res.lateral_strain)
-            last["lat"] = lat
-            r = np.concatenate([r, (lat - data.lateral_strain) / lat_scale])
-        return r
-
-    # Starting E: one linear simulation at a trial modulus, scaled (forces are nearly
-    # proportional to E: only the specimen's weight is not).
-    E0 = E_start
-    if E0 is None:
-        e = data.displacement_m / H
-        sel = data.displacement_m > 0
-        E_trial = float((e[sel] @ (data.force_N[sel] / data.area_m2)) / (e[sel] @ e[sel]))
-        trial = simulate({"E_Pa": E_trial, "nu": nu})
-        if trial is None:
+            body = build_body(mesh, Material(E, nu_, density, edge, name="calibrated"), mass=mass)
+            return compression_test(body, strain=strain, steps=steps, plate_friction=friction)
+        except SoftgraspError as exc:
             raise NotConverged(
-                "the simulated compression test failed at the starting modulus; check the mesh"
+                f"the simulated compression test failed during the fit ({exc}); try another --mesh-size "
+                "or --steps"
+            ) from None
+
+    # The edge-law and ratio simulations reach beyond the data (a test's last increments are its
+    # least accurate); only the data's range is used.
+    reach = min(1.2 * top, MAX_STRAIN)
+    reach_now = [reach]
+
+    def lubricated(E: float, nu_: float, edge_law):
+        # beyond the data a lubricated specimen may fail to converge: then stop at the data's end
+        try:
+            return run(E, nu_, edge_law, 0.0, reach_now[0])
+        except NotConverged:
+            if reach_now[0] == top:
+                raise
+            reach_now[0] = top
+            return run(E, nu_, edge_law, 0.0, top)
+
+    nu_now = nu
+    nu_sd = math.nan
+    R = np.ones_like(eps)
+    edge = None
+    res = None
+    converged = False
+    specimen: tuple[float, float] | None = None
+    if law == "linear":
+        spring = Polynomial(0.0, 0.0)
+        sel = d > 0
+        E = E_start or float((eps[sel] @ (F[sel] / A)) / (eps[sel] @ eps[sel]))
+        for _ in range(MAX_ROUNDS):
+            res = run(E, nu_now, spring, plate_friction, top)
+            per_E = curve_at(d, res.displacement_m, res.force_N) / E  # force per unit modulus
+            lf = fit_linear(per_E[:, None], F)
+            E_new = float(lf.p[0])
+            done = abs(E_new / E - 1.0) < RATIO_TOLERANCE
+            E = E_new
+            if done:
+                converged = True
+                break
+        vals, cov = [E], lf.cov
+        final = Material(E, nu_now, density, spring, name="calibrated")
+        res = run(E, nu_now, spring, plate_friction, top)
+    else:
+        for _ in range(MAX_ROUNDS):
+            vals, cov = fit_specimen_law(eps, F, A * R)
+            E, c2, c3 = vals
+            edge = edge_law_for(lambda lw, E=E, n=nu_now: lubricated(E, n, lw), c2, c3, top, start=edge)
+            lub = edge.lubricated
+            R_new = np.ones_like(eps)
+            if plate_friction > 0:
+                stuck = run(E, nu_now, edge.law, plate_friction, reach_now[0])
+                R_new = curve_at(d, stuck.displacement_m[1:], stuck.force_N[1:] / lub.force_N[1:])
+            nu_new = nu_now
+            if fit_nu:
+                nu_new, nu_sd = _fit_nu(run, data, E, edge.law, nu_now, plate_friction, top)
+            change = float(np.abs(R_new / R - 1.0).max())
+            R = R_new
+            if change < RATIO_TOLERANCE and abs(nu_new - nu_now) < 1e-4:
+                converged = True
+                break
+            nu_now = nu_new
+        assert edge is not None
+        # The body's specimen modulus is the spring network's, a little off its Material's E: the
+        # Material whose body follows the fitted law has E scaled by their ratio.
+        specimen = (vals[0], math.sqrt(cov[0, 0]) if cov[0, 0] >= 0 else math.nan)
+        scale = vals[0] / specimen_modulus(edge.lubricated, vals[1], vals[2])
+        vals = [vals[0] * scale, *vals[1:]]
+        cov = np.diag([scale, 1.0, 1.0]) @ cov @ np.diag([scale, 1.0, 1.0])
+        lub = edge.lubricated
+        inside = lub.strain <= top * (1 + 1e-9)
+        drop = np.flatnonzero(np.diff(lub.force_N[inside]) <= 0)
+        if drop.size:
+            notes.append(
+                f"the simulated lubricated specimen loses stability (its force drops) at strain "
+                f"{lub.strain[drop[0] + 1]:.3g}: no specimen law describes the body beyond it"
             )
-        Fs = curve_at(data.displacement_m, trial.displacement_m, trial.force_N)
-        # the initial part of the curve, where the law is nearly linear
-        n0 = max(2, int(np.searchsorted(e, 0.1 * e.max())))
-        E0 = E_trial * float(Fs[:n0] @ data.force_N[:n0]) / float(Fs[:n0] @ Fs[:n0])
-    specs = [FitSpec("E_Pa", E0, E0 / 20.0, E0 * 20.0, log=True)]
-    fixed = {}
-    if law == "polynomial":
-        specs += [FitSpec("a2", 0.0, *A2_BOUNDS), FitSpec("b", 0.01, *B_BOUNDS, log=True)]
-    else:
-        fixed.update({"a2": 0.0, "b": 0.0})
+        if edge.deviation > 10 * EDGE_LAW_TOLERANCE:
+            notes.append(
+                f"the body follows the fitted specimen law only within {edge.deviation:.1%} (edge law "
+                "not converged)"
+            )
+        final = Material(vals[0], nu_now, density, edge.law, name="calibrated")
+        res = run(vals[0], nu_now, edge.law, plate_friction, reach_now[0])
+    if not converged:
+        notes.append(f"the fit's rounds did not settle in {MAX_ROUNDS}; its values are not reliable")
+    names = ["E_Pa", "c2", "c3"][: len(vals)]
+    params: dict[str, Parameter] = {}
+    starts = {"E_Pa": vals[0], "c2": 0.0, "c3": 0.0}
+    for k, name in enumerate(names):
+        sd = math.sqrt(cov[k, k]) if cov[k, k] >= 0 else math.nan
+        params[name] = _parameter(name, vals[k], sd, starts[name])
+        if params[name].status == "poorly determined":
+            notes.append(f"{name} poorly determined: {vals[k]:.4g} +- {sd:.3g} (consistent with zero)")
+    for name in ("c2", "c3"):
+        params.setdefault(name, Parameter(name, 0.0, math.nan, "fixed", 0.0, 0.0, 0.0))
+    if specimen is not None:
+        params["E_specimen_Pa"] = _parameter("E_specimen_Pa", specimen[0], specimen[1], specimen[0])
     if fit_nu:
-        specs.append(FitSpec("nu", min(max(nu, -0.9), 0.49), -0.9, 0.49))
+        params["nu"] = _parameter("nu", nu_now, nu_sd, nu)
     else:
-        fixed["nu"] = nu
-    n_force = len(data.force_N)
-    blocks = [n_force, n_force] if fit_nu else None
-    solution = solve_fit(residual, specs, fixed, progress, blocks=blocks, quiet=("b",))
-    count, notes = solution.evaluations, list(solution.notes)
-    final = {k: p.value for k, p in solution.params.items()}
-    params = _with_a3(solution.params, solution.cov)
-    for name in ("a3",):
-        p = params[name]
-        if p.status == "poorly determined":
-            notes.append(f"a3 poorly determined: {p.value:.4g} +- {p.stderr:.3g}")
-        elif p.status == "at bound":
-            notes.append(f"a3 = a2^2/3 = {p.value:.4g}: the law's least stiffening in tension allowed")
-    final["a3"] = params["a3"].value
-    res = simulate(final)
-    if res is None:
-        raise NotConverged("the simulated compression test failed at the fitted parameters")
-    F = curve_at(data.displacement_m, res.displacement_m, res.force_N)
-    lat = curve_at(data.displacement_m, res.displacement_m, res.lateral_strain) if fit_nu else None
-    mat = Material(
-        E=final["E_Pa"],
-        nu=final["nu"],
-        density=density,
-        law=Polynomial(final["a2"], final["a3"]),
-        name="calibrated",
-    )
-    err = F - data.force_N
+        params["nu"] = Parameter("nu", nu_now, math.nan, "fixed", nu_now, nu_now, nu_now)
+    Fs = curve_at(d, res.displacement_m, res.force_N)
+    lat = curve_at(d, res.displacement_m, res.lateral_strain) if fit_nu else None
+    err = Fs - F
+    Fscale = float(F.max())
+    covd = {(a, b): float(cov[i, j]) for i, a in enumerate(names) for j, b in enumerate(names)}
     fit = CalibrationFit(
         kind="compression",
         parameters=params,
-        x=data.displacement_m,
-        measured=data.force_N,
-        fitted=F,
+        x=d,
+        measured=F,
+        fitted=Fs,
         lateral_measured=data.lateral_strain if fit_nu else None,
         lateral_fitted=lat,
         residual_rms_N=float(np.sqrt(np.mean(err**2))),
         mean_abs_error_N=float(np.mean(np.abs(err))),
         relative_rms=float(np.sqrt(np.mean(err**2)) / Fscale),
-        simulations=count + 2,
+        simulations=count[0],
         wall_time_s=time.perf_counter() - t0,
         notes=tuple(notes),
-        converged=solution.converged,
-        correlation=correlation(solution.cov),
+        converged=converged,
+        correlation=correlation(covd),
     )
-    return mat, fit
+    return final, fit
+
+
+def _fit_nu(run, data: CompressionData, E: float, edge, nu: float, friction: float, top: float):
+    """nu (and its deviation) by least squares of the simulated lateral strains (the material's
+    other parameters fixed), and the deviation from the residual variance and a central-difference
+    slope."""
+    assert data.lateral_strain is not None
+    d, lat = data.displacement_m, data.lateral_strain
+
+    def residual(u: NDArray[np.float64]) -> NDArray[np.float64]:
+        r = run(E, float(u[0]), edge, friction, top)
+        return curve_at(d, r.displacement_m, r.lateral_strain) - lat
+
+    sol = least_squares(
+        residual, [min(max(nu, -0.9), 0.49)], bounds=([-0.9], [0.49]), diff_step=1e-3, max_nfev=20
+    )
+    n_hat = float(sol.x[0])
+    h = 1e-3
+    J = (residual(np.array([min(n_hat + h, 0.49)])) - residual(np.array([max(n_hat - h, -0.9)]))) / (
+        min(n_hat + h, 0.49) - max(n_hat - h, -0.9)
+    )
+    s2 = float(sol.fun @ sol.fun) / max(len(d) - 1, 1)
+    sd = math.sqrt(s2 / float(J @ J)) if float(J @ J) > 0 else math.nan
+    return n_hat, sd
 
 
 # ---------------------------------------------------------------------- indentation

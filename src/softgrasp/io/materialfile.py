@@ -1,9 +1,10 @@
 """Material/contact files: the calibrated parameters that ``--material FILE`` accepts.
 
 A TOML file with an optional ``[material]`` table (``E_Pa``, ``nu``, ``density_kg_m3``, ``name``,
-``law = "linear" | "polynomial"`` with ``a2``, ``a3``) and an optional ``[contact]`` table
-(``contact_law = "resolved" | "paper"``, ``mu``, ``exponent``, ``stiffness_prefactor``,
-``gamma_N_s_m2``, ``damping``). ``softgrasp
+``law = "linear" | "polynomial" | "tabulated"`` with ``a2``, ``a3`` for the polynomial, the arrays
+``strain`` and ``stress_Pa`` for the table, e.g. a calibrated edge law) and an optional
+``[contact]`` table (``contact_law = "resolved" | "paper"``, ``mu``, ``exponent``,
+``stiffness_prefactor``, ``gamma_N_s_m2``, ``damping``). ``softgrasp
 calibrate`` writes one; ``plan``, ``indent``, ``compress`` and ``execute`` read it.
 """
 
@@ -16,12 +17,12 @@ from pathlib import Path
 from softgrasp.errors import ConfigError, ContactError, MaterialError
 from softgrasp.io.atomic import write_text
 from softgrasp.io.tomlfile import read_toml
-from softgrasp.model.material import Linear, Material, Polynomial, StressStrainLaw
+from softgrasp.model.material import Linear, Material, Polynomial, StressStrainLaw, Tabulated
 from softgrasp.physics.fingertip.params import ContactParams
 
 __all__ = ["MaterialFile", "read_material_file", "write_material_file", "is_material_file"]
 
-_MATERIAL_KEYS = {"E_Pa", "nu", "density_kg_m3", "name", "law", "a2", "a3"}
+_MATERIAL_KEYS = {"E_Pa", "nu", "density_kg_m3", "name", "law", "a2", "a3", "strain", "stress_Pa"}
 _CONTACT_KEYS = {
     "mu": "mu",
     "exponent": "exponent",
@@ -96,7 +97,21 @@ def read_material_file(path: str | Path) -> MaterialFile:
                 raise ConfigError(f"material file {name}: [material] lacks {k}")
         kind = m.get("law", "polynomial" if ("a2" in m or "a3" in m) else "linear")
         law: StressStrainLaw
-        if kind == "linear":
+        if kind != "tabulated" and ("strain" in m or "stress_Pa" in m):
+            raise ConfigError(f'material file {name}: strain/stress_Pa need law = "tabulated"')
+        if kind == "tabulated":
+            for k in ("strain", "stress_Pa"):
+                v = m.get(k)
+                if not isinstance(v, list):
+                    raise ConfigError(f"material file {name}: a tabulated law needs an array {k} = [...]")
+            try:
+                law = Tabulated(
+                    [_number(name, "material", "strain", v) for v in m["strain"]],
+                    [_number(name, "material", "stress_Pa", v) for v in m["stress_Pa"]],
+                )
+            except MaterialError as exc:
+                raise MaterialError(f"material file {name}: {exc}") from None
+        elif kind == "linear":
             if "a2" in m or "a3" in m:
                 raise ConfigError(
                     f'material file {name}: [material] law = "linear" takes no a2/a3; '
@@ -110,7 +125,8 @@ def read_material_file(path: str | Path) -> MaterialFile:
             )
         else:
             raise ConfigError(
-                f"material file {name}: [material] law must be 'linear' or 'polynomial', got {kind!r}"
+                f"material file {name}: [material] law must be 'linear', 'polynomial' or 'tabulated', "
+                f"got {kind!r}"
             )
         density = m.get("density_kg_m3")
         try:
@@ -166,6 +182,10 @@ def write_material_file(
             ]
         elif law["kind"] == "linear":
             lines.append('law = "linear"')
+        elif law["kind"] == "tabulated":
+            lines.append('law = "tabulated"')
+            for key in ("strain", "stress_Pa"):
+                lines.append(f"{key} = [{', '.join(_toml_value(v) for v in law[key])}]")
         else:
             raise ConfigError(f"a {law['kind']} law cannot be written to a material file")
         lines.append("")
