@@ -109,7 +109,7 @@ def test_indentation_data_errors(tmp_path):
 # ---------------------------------------------------------------------- material files
 def test_material_file_round_trip(tmp_path):
     m = Material(1.2e5, 0.31, 95.0, Polynomial(-1.2, 2.5), name="foam batch 7")
-    c = ContactParams(mu=0.6, exponent=1.4, prefactor=1.7, gamma=3.0)
+    c = ContactParams(law="paper", mu=0.6, exponent=1.4, prefactor=1.7, gamma=3.0)
     f = write_material_file(tmp_path / "m.toml", m, c, comment="test")
     back = read_material_file(f)
     assert back.material is not None
@@ -219,23 +219,42 @@ def test_indentation_fit_recovers_the_contact_law(cube):
     reported as known."""
     mesh, mass = cube
     body = build_body(mesh, Material(4.9284e6, 0.39, None), mass=mass)
-    true = ContactParams(prefactor=1.2, exponent=1.3)
+    true = ContactParams(law="paper", prefactor=1.2, exponent=1.3)
     res = indentation_test(body, depth=0.005, steps=20, params=true)
     rng = np.random.default_rng(1)
     F = res.force_N[1:] * (1 + 0.005 * rng.standard_normal(len(res.force_N) - 1))
     from softgrasp.experiments.calibration import IndentationData
 
     data = IndentationData(res.penetration_m[1:], F, None, "synthetic")
-    params, fit = fit_indentation(body, data, fit=("stiffness_prefactor", "exponent"))
+    paper = ContactParams(law="paper")
+    params, fit = fit_indentation(body, data, params=paper, fit=("stiffness_prefactor", "exponent"))
     assert params.prefactor == pytest.approx(1.2, rel=0.10)
     assert params.exponent == pytest.approx(1.3, rel=0.10)
     assert fit.mean_abs_error_N < 0.01 * F.max()
     # gamma free too: its force (~mN) is far below the noise (~0.1 N); the fit must not claim it
-    params_g, fit_g = fit_indentation(body, data)
+    params_g, fit_g = fit_indentation(body, data, params=paper)
     gamma = fit_g.parameters["gamma_N_s_m2"]
     assert gamma.status in ("poorly determined", "at bound")
     assert any(n.startswith("gamma_N_s_m2") for n in fit_g.notes)
     assert params_g.exponent == pytest.approx(1.3, rel=0.10)
+
+
+def test_indentation_fit_of_the_resolved_law(cube):
+    """Under the default (resolved, Hertz's) law the fit is of its prefactor (and gamma): data made
+    with 1.2 times Hertz's 4/3, 0.5 % noise, give it back within 5 %; the exponent is Hertz's and
+    asking to fit it is refused with the way out."""
+    mesh, mass = cube
+    body = build_body(mesh, Material(4.9284e6, 0.39, None), mass=mass)
+    res = indentation_test(body, depth=0.003, steps=12, params=ContactParams(prefactor=1.6))
+    rng = np.random.default_rng(2)
+    F = res.force_N[1:] * (1 + 0.005 * rng.standard_normal(len(res.force_N) - 1))
+    from softgrasp.experiments.calibration import IndentationData
+
+    data = IndentationData(res.penetration_m[1:], F, None, "synthetic")
+    params, fit = fit_indentation(body, data, fit=("stiffness_prefactor",))
+    assert params.law == "resolved" and params.prefactor == pytest.approx(1.6, rel=0.05)
+    with pytest.raises(ConfigError, match="fit the exponent with the paper's law"):
+        fit_indentation(body, data, fit=("exponent",))
 
 
 # ---------------------------------------------------------------------- the command

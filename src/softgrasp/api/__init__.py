@@ -7,7 +7,7 @@ tests; each result has ``to_dict()`` and ``save(dir)``, which writes the files o
 >>> obj = sg.load_object("sphere")
 >>> plan = sg.plan(obj, hand=sg.load_hand("shadow_like"), mu=0.8)
 >>> plan.setpoints_N  # doctest: +SKIP
-{'thumb': 0.310..., 'first': 0.205..., 'middle': 0.205...}
+{'thumb': 0.310..., 'first': 0.202..., 'middle': 0.209...}
 """
 
 from softgrasp.api.calibration import Calibration, calibrate

@@ -327,7 +327,7 @@ def fit_indentation(
     params: ContactParams = ContactParams(),  # noqa: B008 - frozen dataclass
     radius: float = 0.008,
     speed: float = 0.005,
-    fit: Sequence[str] = ("stiffness_prefactor", "exponent", "gamma_N_s_m2"),
+    fit: Sequence[str] | None = None,
     steps: int = 12,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[ContactParams, CalibrationFit]:
@@ -340,7 +340,9 @@ def fit_indentation(
     data: the measured curve (:func:`read_indentation_data`).
     params: the contact parameters to start from (and to keep for what is not fitted).
     radius: fingertip radius [m].  speed: fingertip speed of the measurement [m/s].
-    fit: names of the parameters to fit; ``mu`` is added when the data have tangential forces.
+    fit: names of the parameters to fit; default ``stiffness_prefactor`` and ``gamma_N_s_m2``, and
+        ``exponent`` under the paper's law (the resolved law is Hertz's, n = 3/2); ``mu`` is added
+        when the data have tangential forces.
     steps: increments of each simulated test.
     progress: called with the number of simulated tests so far.
 
@@ -349,9 +351,14 @@ def fit_indentation(
     (the fitted ContactParams, the fit); the fit's ``mean_abs_error_N`` is the paper's measure.
     """
     known = {"stiffness_prefactor", "exponent", "gamma_N_s_m2", "mu"}
+    if fit is None:
+        fit = ("stiffness_prefactor", "exponent", "gamma_N_s_m2") if params.law == "paper" else (
+            "stiffness_prefactor", "gamma_N_s_m2")
     bad = [f for f in fit if f not in known]
     if bad:
         raise ConfigError(f"cannot fit {bad}; contact parameters are {sorted(known)}")
+    if "exponent" in fit and params.law != "paper":
+        raise ConfigError("the resolved contact law is Hertz's (exponent 1.5): fit the exponent with the paper's law")
     if not (radius > 0 and math.isfinite(radius)):
         raise ConfigError(f"fingertip radius = {radius} m is invalid: it must be > 0")
     if not (speed > 0 and math.isfinite(speed)):
