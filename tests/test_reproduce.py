@@ -183,8 +183,10 @@ def test_indentation_and_grasp_numbers(run):
     assert depths == pytest.approx([0.001, 0.002, 0.003])
     forces = [a["force_N"] for a in ind["at_depths"]]
     assert forces == sorted(forces) and forces[0] > 0
-    # Travel = contact-law depth + the body's own deformation: below the law's force, and curved.
-    assert all(a["force_N"] < a["contact_law_force_N"] for a in ind["at_depths"])
+    # The default law counts the cube's compliance once: Hertz's half-space within 10 % (the
+    # paper's law, K = 2 Psi sqrt(R) in series with the mesh, would count it twice).
+    ratios = [a["force_N"] / a["hertz_half_space_force_N"] for a in ind["at_depths"]]
+    assert all(abs(r - 1.0) < 0.10 for r in ratios), ratios
     assert 1.05 < ind["exponent"] < 1.5
     grasp = steps["grasp_sphere"]["results"]
     assert [f["name"] for f in grasp["fingers"]] == ["thumb", "first", "middle"]

@@ -95,13 +95,17 @@ def test_force_control_reaches_its_setpoints_and_holds_the_nominal_plan(sphere, 
 
 
 def test_force_control_penetration_scales_with_stiffness_between_hertz_and_a_linear_body():
-    """Run as a sweep's hold case, so that the case's E reaches the body: the same set-points on
-    a sphere four times stiffer need less penetration, by a factor between 4^(2/3) = 2.52 (Hertz
-    contact alone, delta ~ E^(-2/3)) and 4 (the linear elastic body alone, delta ~ 1/E)."""
+    """Run as a sweep's hold case, so that the case's E (and contact law) reach the body: the same
+    set-points on a sphere four times stiffer need less penetration, by a factor between
+    4^(2/3) = 2.52 (Hertz contact alone, delta ~ E^(-2/3)) and 4 (the linear elastic body alone,
+    delta ~ 1/E). The paper's law, whose contact part is exactly K delta^1.5 in series with the
+    body: the default law credits the mesh with a share of the compliance that depends on the
+    contact radius, and so on E, and its penetrations fall by 2.38-2.51 (its departure from
+    Hertz's scaling, within the 10 % of Hertz it keeps to)."""
     from softgrasp.sweep.case import run_case
 
     setpoints = (0.34, 0.22, 0.23)
-    soft, stiff = (run_case({"E": E}, hold=setpoints) for E in (40e3, 160e3))
+    soft, stiff = (run_case({"E": E, "contact_law": "paper"}, hold=setpoints) for E in (40e3, 160e3))
     for row in (soft, stiff):
         assert row["status"] == "ok" and row["held"] is True, row["error"] or row["hold_reason"]
     for f in ("thumb", "first", "middle"):

@@ -231,6 +231,12 @@ class OracleFingertipContact(FingertipContact):
         s = self.centres(t)[pairs.finger] - Xa - off
         return s - np.einsum("ij,ij->i", s, pairs.normal)[:, None] * pairs.normal, Xa, cont
 
+    def frozen(self, body: Body, t: float) -> OracleFingertipContact:
+        """Held at time t, as the contact's own: the landing computed here at t, kept."""
+        out = super().frozen(body, t)
+        object.__setattr__(out, "_frozen_t", float(t))
+        return out
+
     def _resolution(self, body: Body, pairs: ContactPairs, t: float) -> NDArray[np.float64]:
         """The mesh's resolution under each pair's finger (h_node, h_land, facet size) [m],
         (k, 3): at the point of the whole rest surface closest to the fingertip centre, (pi / 2)
@@ -238,6 +244,7 @@ class OracleFingertipContact(FingertipContact):
         times the facet's size); h_node of a load on one node."""
         nf = len(self.fingertips)
         kappa = self.params.resolution
+        t = getattr(self, "_frozen_t", t)
         out = np.zeros((nf, 3))
         if self.params.law == "resolved" and kappa > 0:
             pts = np.asarray(body.mesh.points)

@@ -1,14 +1,16 @@
 """Reproduction step: one-finger indentation of the foam cube (paper Sec. 4.3.1, Fig. 11), and
-its report section: the force-penetration curve, forces at a few depths next to the contact law's
-and Hertz's, and the fitted exponent of F ~ delta^n."""
+its report section: the force-penetration curve, forces at a few depths next to Hertz's and the
+paper's law's, and the fitted exponent of F ~ delta^n."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
 from softgrasp.experiments.indentation import default_steps, indentation_test
+from softgrasp.physics.fingertip.laws import PAPER_PREFACTOR, contact_stiffness, effective_modulus
 from softgrasp.report.context import Context, Progress, hertz_force, linear_solver, object_of, power_fit
 from softgrasp.report.document import Block, figures, fmt, object_rows, params_table, status_line
 
@@ -43,6 +45,7 @@ def run_indentation(ctx: Context, rec: dict[str, Any], progress: Progress) -> No
     )
     d, F = res.penetration_m, res.force_N
     m = body.material
+    paper_K = contact_stiffness(effective_modulus(math.inf, 0.0, m.E, m.nu), radius, PAPER_PREFACTOR)
     depths = np.array([q for q in (0.001, 0.002, 0.003, 0.005) if q <= depth + 1e-12])
     rec["parameters"].update(
         {
@@ -65,7 +68,7 @@ def run_indentation(ctx: Context, rec: dict[str, Any], progress: Progress) -> No
             {
                 "penetration_m": float(q),
                 "force_N": float(np.interp(q, d, F)),
-                "contact_law_force_N": float(res.K_N_m1_5 * q**params.exponent),
+                "paper_law_force_N": float(paper_K * q**1.5),
                 "hertz_half_space_force_N": float(hertz_force(m.E, m.nu, radius, q)),
             }
             for q in depths
@@ -115,7 +118,7 @@ def indentation_section(st: dict[str, Any] | None) -> list[Block]:
             [
                 fmt(a["penetration_m"], "g", 1e3),
                 fmt(a["force_N"], ".3g"),
-                fmt(a["contact_law_force_N"], ".3g"),
+                fmt(a["paper_law_force_N"], ".3g"),
                 fmt(a["hertz_half_space_force_N"], ".3g"),
             ]
             for a in r["at_depths"]
@@ -127,7 +130,7 @@ def indentation_section(st: dict[str, Any] | None) -> list[Block]:
                 [
                     "penetration [mm]",
                     "softgrasp force [N]",
-                    "contact law alone, K δ^1.5 [N]",
+                    "the paper's law alone, 2 Ψ √R δ^1.5 [N]",
                     "Hertz, rigid sphere on a half-space [N]",
                 ],
                 rows,
@@ -149,8 +152,11 @@ def indentation_section(st: dict[str, Any] | None) -> list[Block]:
                     "The fingertip's travel is the contact law's own depth "
                     f"({fmt(r['contact_depth_at_end_m'], '.3g', 1e3)} mm of the "
                     f"{fmt(p.get('depth_m'), 'g', 1e3)} mm at the end) plus the deformation of the meshed "
-                    "cube under the finger, which is nearly linear in the force: in series they grow with "
-                    "an exponent between 1 and 1.5 — clearly non-linear, the paper's point against linear "
+                    "cube under the finger. The default law supplies only the part of the cube's "
+                    "compliance that its mesh does not resolve, so the force follows Hertz's half-space "
+                    "(the cube, 50 mm, is deeper than the contact is wide; its finite size softens it "
+                    "at depth); the paper's law, in series with the mesh, counts the cube's compliance "
+                    "twice. Either way the curve is clearly non-linear, the paper's point against linear "
                     "models.",
                     "The paper's text quotes a mean force error of 0.3 N, '15 % of typical contact "
                     "forces', i.e. forces of about 2 N. With Table 1's E = 4.93 MPa softgrasp's cube "

@@ -189,6 +189,7 @@ def simulate(
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
     integ = make_integrator(method, **options)
+    scene = scene.frozen(state.t)  # time-dependent contact data held through the run
     h = _check_time_step(scene, integ, dt, check_dt)
     reason = fused_unsupported(scene, integ) if fused is not False else "disabled"
     if fused and reason is not None:

@@ -88,6 +88,12 @@ class Scene:
     body: Body
     interactions: tuple[Interaction, ...] = ()
 
+    def frozen(self, t: float) -> Scene:
+        """The scene with each interaction's time-dependent data held at time t, for interactions
+        that have any (a ``frozen(body, t)`` method: the fingertips' contact law)."""
+        inter = tuple(i.frozen(self.body, t) if hasattr(i, "frozen") else i for i in self.interactions)
+        return replace(self, interactions=inter)
+
     def initial_state(
         self, x: NDArray[np.float64] | None = None, v: NDArray[np.float64] | None = None, t: float = 0.0
     ) -> State:

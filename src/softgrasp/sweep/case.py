@@ -114,7 +114,8 @@ def run_case(
             overrides=material,
         )
         mu = plan_opts["mu"] if "mu" in options or mf is None or "mu" not in mf.contact else None
-        config = plan_config(plan_opts, contact_params(mf, mu))  # type: ignore[arg-type]
+        law = str(plan_opts.get("contact_law", "resolved"))
+        config = plan_config(plan_opts, contact_params(mf, mu, law=law))  # type: ignore[arg-type]
         if hold is not None:
             row.update(_hold(body, config, hold))
             row["wall_time_s"] = time.perf_counter() - t0

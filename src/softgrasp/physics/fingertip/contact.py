@@ -73,6 +73,8 @@ class FingertipContact:
     #: patch rule's weights are not a potential): Newton solvers multiply by the exact derivative
     #: through :meth:`static_forces` (finite differences along the direction) where it matters.
     symmetric_jacobian: ClassVar[bool] = False
+    #: The normal law held fixed (:meth:`frozen`): what :meth:`law_table` returns at every t.
+    frozen_law: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
     #: The last :meth:`law_table` (its body, t and table).
     _law_cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
@@ -101,6 +103,8 @@ class FingertipContact:
         curvature where the fingertip lands (:mod:`softgrasp.physics.fingertip.landing`,
         :mod:`softgrasp.physics.fingertip.resolved`), with K of R_eff. The last table is kept: a
         static solve or a step asks for it many times at one t."""
+        if self.frozen_law is not None:
+            return self.frozen_law
         cache = self._law_cache
         if cache.get("body") is body and cache.get("t") == float(t):
             return cache["table"]
@@ -127,6 +131,11 @@ class FingertipContact:
         table.flags.writeable = False
         cache.update(t=float(t), table=table)
         return table
+
+    def frozen(self, body: Body, t: float) -> FingertipContact:
+        """This contact with its normal law held at its value at time t (where the fingertips land
+        then): a dynamic run integrates one law through its steps, whichever stepper runs it."""
+        return replace(self, frozen_law=self.law_table(body, t))
 
     def damping(self) -> NDArray[np.float64]:
         """C of each fingertip [N s/m] (Eq. 13)."""
