@@ -258,6 +258,8 @@ def plan(
     refine: int = 12,
     grasp: str | Path | None = None,
     contact_law: str = "resolved",
+    max_pressure_Pa: float | None = None,
+    max_strain: float | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> Plan:
     """Plan a three-finger grasp of ``obj`` and its force set-points.
@@ -292,6 +294,9 @@ def plan(
     contact_law:
         ``resolved`` (the object's compliance counted once: Hertz's law less what the mesh
         resolves) or ``paper`` (the paper's K delta^n in series with the meshed body).
+    max_pressure_Pa, max_strain:
+        Limits on the held grasp's peak contact pressure [Pa] and the object's peak principal
+        strain; a plan whose least squeeze that holds exceeds one raises ``InfeasibleGrasp``.
     progress:
         Called with the fraction of the plan done.
     """
@@ -319,6 +324,8 @@ def plan(
         "hand": str(hand_name),
         "grasp": None if grasp is None else str(grasp),
         "contact_law": contact_law,
+        "max_pressure": max_pressure_Pa,
+        "max_strain": max_strain,
     }
     if solver not in ("quasistatic", "dynamic"):
         raise ConfigError(f"solver must be quasistatic or dynamic, got {solver!r}")

@@ -41,6 +41,20 @@ def add_parser(sub) -> None:
         "with its mesh) or paper (the paper's K delta^n in series with the meshed body, Eq. 9-11)",
     )
     pl.add_argument(
+        "--max-pressure",
+        type=positive("--max-pressure"),
+        default=None,
+        metavar="PA",
+        help="largest peak contact pressure the grasp may put on the object [Pa] (Hertz's peak; "
+        "fruit bruises at tens to hundreds of kPa); a plan above it fails",
+    )
+    pl.add_argument(
+        "--max-strain",
+        type=positive("--max-strain"),
+        default=None,
+        help="largest principal strain the grasp may cause in the object; a plan above it fails",
+    )
+    pl.add_argument(
         "--fingertip-radius",
         type=positive("--fingertip-radius"),
         default=None,
@@ -165,6 +179,8 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
             refine=args.refine,
             grasp=args.grasp,
             contact_law=args.contact_law,
+            max_pressure_Pa=args.max_pressure,
+            max_strain=args.max_strain,
             progress=update,
         )
     finally:
@@ -178,6 +194,12 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
         f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
         f"{g.com_drift * 1e3:.2f} mm in {g.hold_time:g} s"
     )
+    if g.damage is not None:
+        j = int(g.damage.pressure.argmax())
+        print(
+            f"load on the object: peak contact pressure {g.damage.pressure[j] / 1e3:.3g} kPa "
+            f"({g.fingers[j].name}), peak strain {g.damage.strain:.3g}"
+        )
     for travel, why in g.hold_checks[:-1]:
         print(f"not held at {travel * 1e3:.2f} mm of travel: {why}; closed further")
     if uncertain:

@@ -134,6 +134,9 @@ class PlanConfig:
         for free fingertips (the layout alone limits the grasp).
     grasp: an initial grasp to close from instead of searching for one (the contacts of an
         earlier plan: the same closing lines for another material or friction); ``None``: search.
+    max_pressure: largest peak contact pressure the held grasp may put on the object [Pa]
+        (:mod:`softgrasp.grasp.damage`); ``None``: no limit.
+    max_strain: largest principal strain the held grasp may cause in the object; ``None``: no limit.
     """
 
     contact: ContactParams = field(default_factory=ContactParams)
@@ -151,6 +154,8 @@ class PlanConfig:
     layout: HandLayout = field(default_factory=HandLayout)
     hand: HandModel | None = field(default_factory=HandModel.default)
     grasp: InitialGrasp | None = None
+    max_pressure: float | None = None
+    max_strain: float | None = None
 
     def __post_init__(self) -> None:
         checks = {
@@ -169,6 +174,10 @@ class PlanConfig:
             v = getattr(self, name)
             if not (ok and math.isfinite(v)):
                 raise ConfigError(f"plan parameter {name} = {v} is invalid")
+        for name in ("max_pressure", "max_strain"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"plan parameter {name} = {v} is invalid: it must be > 0")
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.hand is not None:
@@ -203,4 +212,6 @@ class PlanConfig:
             "hand_layout": self.layout.describe(),
             "hand": None if self.hand is None else self.hand.source,
             "grasp": "given" if self.grasp is not None else "searched",
+            "max_pressure_Pa": self.max_pressure,
+            "max_strain": self.max_strain,
         }

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from softgrasp.errors import InfeasibleGrasp
 from softgrasp.grasp.closing import Closing
 from softgrasp.grasp.config import PlanConfig
+from softgrasp.grasp.damage import check_limits, grasp_damage
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import cone_usage
 from softgrasp.grasp.initial import FINGER_NAMES
@@ -102,6 +103,8 @@ def _plan_grasp(
     except InfeasibleGrasp:
         rigid = np.full(3, np.nan)
     utilisation = squeeze_utilisation(pts, push, fn, mu, com, body.total_mass, body.gravity)
+    damage = grasp_damage(body, fixed, held_state.x, hrep.normal)
+    check_limits(damage, cfg.max_pressure, cfg.max_strain)
     fingers = tuple(
         FingerResult(
             name=FINGER_NAMES[j],
@@ -153,6 +156,7 @@ def _plan_grasp(
         wall_time=time.perf_counter() - t0,
         hold_checks=tuple(closing.checks),
         slip=slip,
+        damage=damage,
         frames=PlanFrames(
             travel=np.array([f[0] for f in frames]),
             positions=np.array([f[1] for f in frames]),

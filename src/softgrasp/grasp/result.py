@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.grasp.config import PlanConfig
+from softgrasp.grasp.damage import Damage
 from softgrasp.grasp.initial import InitialGrasp
 from softgrasp.hand.placement import HandPlacement
 
@@ -78,6 +79,7 @@ class GraspPlan:
     slip: how far each fingertip slid as a whole in the object from the table's removal to the
         held state [m], (3,) (:func:`~softgrasp.grasp.hold.finger_slip`, summed over the check's
         steps; at most ``max_slip`` times the object's size).
+    damage: the held grasp's peak contact pressures and peak strain (:mod:`softgrasp.grasp.damage`).
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
     solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
@@ -117,6 +119,7 @@ class GraspPlan:
     wall_time: float
     hold_checks: tuple[tuple[float, str], ...] = ()
     slip: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    damage: Damage | None = None
     frames: PlanFrames | None = None
     solver_stats: dict[str, int] = field(default_factory=dict)
 

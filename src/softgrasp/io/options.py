@@ -49,6 +49,8 @@ PLAN_DEFAULTS: dict[str, object] = {
     "hand": "shadow_like",
     "grasp": None,
     "contact_law": "resolved",
+    "max_pressure": None,
+    "max_strain": None,
     "out": "softgrasp-out/plan",
     "reorient": False,
 }
@@ -171,4 +173,6 @@ def plan_config(options: Mapping[str, object], contact: ContactParams) -> PlanCo
         refine=int(options["refine"]),  # type: ignore[call-overload]
         hand=hand_model(str(options["hand"])),
         grasp=None if options.get("grasp") is None else load_plan_grasp(str(options["grasp"])),
+        max_pressure=None if options.get("max_pressure") is None else float(options["max_pressure"]),  # type: ignore[arg-type]
+        max_strain=None if options.get("max_strain") is None else float(options["max_strain"]),  # type: ignore[arg-type]
     )

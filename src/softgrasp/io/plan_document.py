@@ -100,6 +100,11 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             "duration_s": plan.hold_time,
             "checks": [{"travel_m": t, "result": r} for t, r in plan.hold_checks],
         },
+        "damage": None if plan.damage is None else {
+            **plan.damage.describe(),
+            "max_pressure_Pa": plan.config.max_pressure,
+            "max_strain": plan.config.max_strain,
+        },
         "hand": _hand_section(plan),
         "increments": plan.increments,
         "wall_time_s": plan.wall_time,

@@ -1,0 +1,110 @@
+"""Grasp without crushing: the held grasp's peak contact pressure and peak strain, and the limits a
+user sets on them (fruit and tissue bruise above a pressure or a strain).
+
+* **Peak contact pressure** of each fingertip: Hertz's, ``p0 = 3 F / (2 pi a^2)`` with the contact
+  radius ``a = (3 F R_eff / (4 E*))^(1/3)`` of its normal force F, the pair's effective modulus E*
+  (Eq. 12) and radius ``R_eff`` (the fingertip's, with the object's curvature where it lands under
+  the resolved law). It is the continuum's, independent of the mesh.
+* **Peak strain** of the object: the largest principal engineering strain ``|lambda - 1|`` of any
+  tetrahedron in the held state (lambda the principal stretches of its deformation gradient),
+  compression or tension: resolved at the mesh's scale (a coarse mesh spreads a contact's strain
+  over its elements).
+
+The planner finds the least squeeze that holds the object; if that squeeze already exceeds a
+limit, no squeeze of these contacts holds within it: :func:`check_limits` raises
+:class:`~softgrasp.errors.InfeasibleGrasp` naming the limit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from softgrasp.errors import InfeasibleGrasp
+from softgrasp.grasp.initial import FINGER_NAMES
+from softgrasp.physics.body import Body
+from softgrasp.physics.fingertip.contact import FingertipContact
+from softgrasp.physics.fingertip.laws import effective_modulus
+
+__all__ = ["Damage", "hertz_peak_pressure", "peak_strain", "grasp_damage", "check_limits"]
+
+
+@dataclass(frozen=True)
+class Damage:
+    """The held grasp's load on the object.
+
+    Attributes
+    ----------
+    pressure: each finger's peak contact pressure [Pa], (3,).
+    contact_radius: each finger's Hertz contact radius [m], (3,).
+    strain: the object's peak principal strain (dimensionless, >= 0).
+    strain_tet: the tetrahedron where it is.
+    """
+
+    pressure: NDArray[np.float64]
+    contact_radius: NDArray[np.float64]
+    strain: float
+    strain_tet: int
+
+    def describe(self) -> dict[str, object]:
+        return {
+            "peak_pressure_Pa": dict(zip(FINGER_NAMES, map(float, self.pressure), strict=True)),
+            "contact_radius_m": dict(zip(FINGER_NAMES, map(float, self.contact_radius), strict=True)),
+            "peak_strain": self.strain,
+        }
+
+
+def hertz_peak_pressure(
+    normal_N: NDArray[np.float64], radius_m: NDArray[np.float64], E_star_Pa: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Hertz's peak pressure [Pa] and contact radius [m] of spheres of radius ``radius_m`` pressed
+    with ``normal_N`` on a half-space of effective modulus ``E_star_Pa`` (element-wise):
+    ``a = (3 F R / (4 E*))^(1/3)``, ``p0 = 3 F / (2 pi a^2)``; zeros where F = 0."""
+    F = np.maximum(np.asarray(normal_N, dtype=np.float64), 0.0)
+    a = np.cbrt(3.0 * F * np.asarray(radius_m, dtype=np.float64) / (4.0 * np.asarray(E_star_Pa, dtype=np.float64)))
+    p0 = np.divide(3.0 * F, 2.0 * math.pi * a * a, out=np.zeros_like(F), where=a > 0)
+    return p0, a
+
+
+def peak_strain(body: Body, x: NDArray[np.float64]) -> tuple[float, int]:
+    """The largest principal engineering strain ``|lambda - 1|`` over the body's tetrahedra at
+    positions ``x`` [m] (lambda: the singular values of each deformation gradient), and its tet."""
+    rest = np.asarray(body.mesh.points, dtype=np.float64)[body.mesh.tets]
+    now = np.asarray(x, dtype=np.float64)[body.mesh.tets]
+    Dm = np.stack([rest[:, k] - rest[:, 0] for k in (1, 2, 3)], axis=2)
+    Ds = np.stack([now[:, k] - now[:, 0] for k in (1, 2, 3)], axis=2)
+    stretch = np.linalg.svd(Ds @ np.linalg.inv(Dm), compute_uv=False)
+    strain = np.abs(stretch - 1.0).max(axis=1)
+    k = int(np.argmax(strain))
+    return float(strain[k]), k
+
+
+def grasp_damage(body: Body, fingers: FingertipContact, x: NDArray[np.float64], normal_N: NDArray[np.float64]) -> Damage:
+    """The load of the held grasp (fixed ``fingers``, positions ``x``, normal forces ``normal_N``)."""
+    m = body.material
+    E_star = np.array([effective_modulus(f.E, f.nu, m.E, m.nu) for f in fingers.fingertips])
+    radius = fingers.law_table(body, 0.0)[:, 5]
+    p0, a = hertz_peak_pressure(normal_N, radius, E_star)
+    strain, tet = peak_strain(body, x)
+    return Damage(p0, a, strain, tet)
+
+
+def check_limits(damage: Damage, max_pressure_Pa: float | None, max_strain: float | None) -> None:
+    """Raise :class:`InfeasibleGrasp` when the least squeeze that holds exceeds a limit."""
+    if max_pressure_Pa is not None and damage.pressure.max() > max_pressure_Pa:
+        j = int(np.argmax(damage.pressure))
+        raise InfeasibleGrasp(
+            f"the least squeeze that holds the object presses the {FINGER_NAMES[j]} fingertip at "
+            f"{damage.pressure[j] / 1e3:.3g} kPa (Hertz's peak), above --max-pressure "
+            f"{max_pressure_Pa / 1e3:.3g} kPa: no squeeze of these contacts holds within it; use larger "
+            "fingertips, more friction, or a softer fingertip skin"
+        )
+    if max_strain is not None and damage.strain > max_strain:
+        raise InfeasibleGrasp(
+            f"the least squeeze that holds the object strains it by {damage.strain:.3g} (the largest "
+            f"principal strain, tetrahedron {damage.strain_tet}), above --max-strain {max_strain:g}: "
+            "no squeeze of these contacts holds within it; use larger fingertips or more friction"
+        )
