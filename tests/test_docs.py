@@ -80,7 +80,7 @@ def test_the_performance_page_shows_the_benchmarks_table():
 @pytest.mark.slow
 def test_readme_python_example_runs_as_written(tmp_path: Path) -> None:
     """The README's Python example, run as written in a fresh interpreter: its set-points are the
-    command line's default plan's, and the executed plan lifts the sphere."""
+    command line's plan with the same safety factor, and the executed plan lifts the sphere."""
     import json
     import re
 
@@ -91,7 +91,7 @@ def test_readme_python_example_runs_as_written(tmp_path: Path) -> None:
     first, second = proc.stdout.strip().splitlines()[-2:]
     setpoints = ast.literal_eval(first)
     cli = subprocess.run(
-        [sys.executable, "-m", "softgrasp.cli", "plan", "--out", str(tmp_path / "cli")],
+        [sys.executable, "-m", "softgrasp.cli", "plan", "--safety-factor", "1.2", "--out", str(tmp_path / "cli")],
         capture_output=True,
         text=True,
     )

@@ -31,6 +31,8 @@ __all__ = ["PardisoError", "available", "blas_one_thread", "call", "library", "r
 
 #: MKL's code for its Intel OpenMP threading layer (``MKL_Set_Threading_Layer``).
 MKL_THREADING_INTEL = 0
+#: MKL's conditional numerical reproducibility on the code branch it picks (``MKL_CBWR_Set``).
+MKL_CBWR_AUTO = 2
 
 _ERRORS = {
     -1: "input inconsistent",
@@ -106,6 +108,10 @@ def library() -> ctypes.CDLL | None:
             # Intel's OpenMP runtime (shipped with MKL) whatever was loaded before: MKL otherwise
             # takes GNU OpenMP where another library (gmsh) loaded it. Before any other MKL call.
             lib.MKL_Set_Threading_Layer(ctypes.c_int(MKL_THREADING_INTEL))
+        # Reproducible from run to run on a fixed thread count (MKL's conditional numerical
+        # reproducibility): MKL keeps to the threads it is given, and its code branch is fixed.
+        lib.MKL_Set_Dynamic(ctypes.c_int(0))
+        lib.MKL_CBWR_Set(ctypes.c_int(MKL_CBWR_AUTO))
         lib.pardiso.restype = None
         return lib
     return None

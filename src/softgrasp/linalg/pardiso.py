@@ -155,6 +155,7 @@ class PardisoFactor:
         iparm[17] = -1  # report the factor's non-zeros in iparm[17]
         iparm[18] = -1  # report the factorisation's Mflop count in iparm[18]
         iparm[34] = 1  # zero-based indices
+        iparm[33] = choose_threads()  # reproducible results on this many threads (MKL's CNR mode)
         return iparm
 
     def _analysed(self, key: tuple[int, bool]) -> None:
