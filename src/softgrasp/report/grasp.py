@@ -77,6 +77,11 @@ def run_grasp(ctx: Context, rec: dict[str, Any], progress: Progress) -> None:
         "increments": plan.increments,
         "plan_file": "grasp/plan.json",
     }
+    from softgrasp.model.objects import SPHERE_RADIUS
+    from softgrasp.report.table2 import consistent_runs
+
+    rec["results"]["table2_consistent"] = consistent_runs(body, plan, PAPER_TABLE2, SPHERE_RADIUS)
+    progress(0.8)
     rec["curve"] = {
         "travel_m": plan.travel,
         "penetration_m": plan.penetration,
@@ -204,11 +209,12 @@ def grasp_section(st: dict[str, Any] | None) -> list[Block]:
                 f"{r['paper_total_force_N'] / r['weight_N']:.0f} times the weight: its stopping test "
                 "('equilibrium conditions are satisfied') is not specified further, its friction "
                 "coefficient and fingertip size are not given, and its BioTac fingertips are soft. "
-                "The penetrations are much smaller also because softgrasp's contact law is Hertz's with "
-                "the object's own E in series with the meshed body. A lower μ or a larger "
+                "The penetrations are much smaller also because softgrasp's fingertips are rigid and its "
+                "contact law counts the sphere's compliance once. A lower μ or a larger "
                 "`safety_factor` gives larger forces; nothing here is tuned to match.",
             )
         )
+        blocks += _consistent_blocks(r.get("table2_consistent"))
     blocks += figures(
         st,
         {
@@ -225,4 +231,32 @@ def grasp_section(st: dict[str, Any] | None) -> list[Block]:
         params = object_rows(st["object"])
         params.update(st.get("parameters", {}))
         blocks += params_table("Parameters", params)
+    return blocks
+
+
+def _consistent_blocks(t: dict[str, Any] | None) -> list[Block]:
+    """Table 2 with the parameters that make it consistent (:mod:`softgrasp.report.table2`)."""
+    if not t:
+        return []
+    E = t["implied_E_Pa"]
+    blocks: list[Block] = [
+        (
+            "p",
+            "**What would make Table 2 consistent.** Hertz's rigid 8 mm sphere on the 64 mm sphere needs "
+            + ", ".join(f"{n} {v / 1e3:.1f} kPa" for n, v in E.items())
+            + f" (mean {t['implied_E_mean_Pa'] / 1e3:.1f} kPa, {79.3e3 / t['implied_E_mean_Pa']:.0f} times "
+            "softer than Table 1's 79.3 kPa) to press the paper's penetrations with its forces, and three "
+            f"fingers need {t['paper_total_force_N']:.1f} N in all at these contacts only with μ = "
+            f"{t['implied_mu']:.2f}. The sphere planned again on the same contacts with those values:",
+        )
+    ]
+    rows = []
+    for run in t["runs"]:
+        if "fingers" in run:
+            cells = [f"{f['penetration_m'] * 1e3:.1f} mm, {f['force_N']:.2f} N" for f in run["fingers"]]
+        else:
+            cells = [f"no plan: {run['failed']}", "", ""]
+        rows.append([f"{run['label']} (E = {run['E_Pa'] / 1e3:.1f} kPa, μ = {run['mu']:.2f})", *cells])
+    rows.append(["the paper (Table 2)", "20 mm, 2.2 N", "15 mm, 1.6 N", "12 mm, 1.3 N"])
+    blocks.append(("table", ["run", "thumb", "first", "middle"], rows, "llll"))
     return blocks
