@@ -6,6 +6,8 @@ failure tests run single steps with an experiment function replaced by one that 
 
 from __future__ import annotations
 
+import math
+
 import base64
 import json
 import re
@@ -193,6 +195,19 @@ def test_indentation_and_grasp_numbers(run):
     assert [f["paper_force_N"] for f in grasp["fingers"]] == [2.2, 1.6, 1.3]
     assert grasp["equilibrium"]["satisfied"] and grasp["thumb_largest"]
     assert grasp["total_normal_force_N"] >= grasp["rigid_minimum_total_normal_force_N"] * (1 - 1e-6)
+    # Table 2 made consistent: Hertz's rigid 8 mm sphere on the 64 mm one (R_eff = 8 x 64 / 72 mm)
+    # presses the paper's penetrations with its forces only if E = 3 F (1 - nu^2) / (4 sqrt(R_eff)
+    # delta^1.5): 5.5, 6.2 and 7.0 kPa, an order of magnitude below Table 1's 79.3 kPa.
+    t2 = grasp["table2_consistent"]
+    r_eff = 0.008 * 0.064 / 0.072
+    for name, (F, d) in {"thumb": (2.2, 0.020), "first": (1.6, 0.015), "middle": (1.3, 0.012)}.items():
+        E = 3.0 * F * (1.0 - 0.45**2) / (4.0 * math.sqrt(r_eff) * d**1.5)
+        assert t2["implied_E_Pa"][name] == pytest.approx(E, rel=1e-9)
+        assert 5e3 < E < 8e3
+    assert 0.05 < t2["implied_mu"] < 0.3 and [r["label"] for r in t2["runs"]] == [
+        "implied E, the plan's mu",
+        "implied E and mu",
+    ]
 
 
 @pytest.mark.skipif(not HAVE_MUJOCO, reason="MuJoCo is not installed")

@@ -7,7 +7,7 @@ sqrt(R_eff) delta^1.5)``, an order of magnitude below Table 1's 79.3 kPa (:func:
 20 mm is beyond Hertz's small strains too). And the paper's 5.1 N in all is what three fingers
 need at these contacts only with a friction coefficient near 0.13 (:func:`implied_friction`: the
 rigid-body least normal forces, Eq. 21-22 with friction cones, that sum to it). The reproduction
-plans the sphere again with those values, on the same contacts, beside the Table 1 run.
+plans the sphere again with those values beside the Table 1 run.
 """
 
 from __future__ import annotations
@@ -62,9 +62,10 @@ def implied_friction(
 
 
 def consistent_runs(body: Any, plan: Any, paper: dict[str, dict[str, float]], object_R: float) -> dict[str, Any]:
-    """The implied E (per finger and their mean) and mu, and plans of the sphere on ``plan``'s
-    contacts with the mean E at the plan's mu and with both implied values: set-points and
-    penetrations, or why the plan failed."""
+    """The implied E (per finger and their mean) and mu (at ``plan``'s contacts), and plans of the
+    sphere with the mean E at the plan's mu and with both implied values (the softer sphere sags
+    on the table: its grasp is searched again): set-points and penetrations, or why the plan
+    failed."""
     from softgrasp.grasp.planner import plan_grasp
     from softgrasp.model.material import Material
     from softgrasp.physics.body import build_body
@@ -83,7 +84,7 @@ def consistent_runs(body: Any, plan: Any, paper: dict[str, dict[str, float]], ob
     soft = build_body(body.mesh, Material(E_mean, m.nu, m.density, m.law, f"{m.name}, E from Table 2"), mass=body.total_mass)
     runs = []
     for label, mu_run in (("implied E, the plan's mu", cfg.contact.mu), ("implied E and mu", mu)):
-        c = replace(cfg, contact=replace(cfg.contact, mu=mu_run), grasp=plan.initial)
+        c = replace(cfg, contact=replace(cfg.contact, mu=mu_run))
         run: dict[str, Any] = {"label": label, "E_Pa": E_mean, "mu": mu_run}
         try:
             p = plan_grasp(soft, c)
