@@ -32,12 +32,6 @@ _coulomb_slip = _jit(laws.coulomb_slip_value)
 
 
 @_jit
-def _facet_size(area):  # pragma: no cover - compiled
-    """The edge [m] of the equilateral triangle of area ``area`` [m^2]: a facet's size."""
-    return math.sqrt(4.0 * area / math.sqrt(3.0))
-
-
-@_jit
 def _patch(finger, val, nf):  # pragma: no cover - compiled
     """Each finger's deepest pair (the first of largest depth; -1 without pairs) and the sum of
     its pairs' patch weights ``area x depth x facing``."""
@@ -62,9 +56,9 @@ def _law_values(depth, f, radii, law, n_exp, ratio, min_depth_ratio):  # pragma:
 
 @_jit
 def _finger_laws(deep, val, radii, law, n_exp, ratio, min_depth_ratio):  # pragma: no cover
-    """Per finger (n_f, 5), its normal law (:func:`_law_values`) at its deepest pair's depth and
-    resolution length (:func:`_resolution_length`), zeros without pairs: the patch rule evaluates
-    every pair of a finger there, so the law is evaluated once a finger instead of once a pair."""
+    """Per finger (n_f, 5), its normal law (:func:`_law_values`) at its deepest pair's depth, zeros
+    without pairs: the patch rule evaluates every pair of a finger there, so the law is evaluated
+    once a finger instead of once a pair."""
     nf = deep.shape[0]
     fl = np.zeros((nf, 5))
     for f in range(nf):
@@ -82,7 +76,7 @@ def _finger_laws(deep, val, radii, law, n_exp, ratio, min_depth_ratio):  # pragm
 @_jit
 def _pair_normal_law(p, f, val, radii, law, n_exp, ratio, min_depth_ratio, patch, fl):  # pragma: no cover
     """Pair p's normal law values (:func:`_law_values`): its finger's (``fl``) under the patch rule,
-    at its own depth and resolution length under the literal one."""
+    at its own depth under the literal one."""
     if patch:
         return fl[f, 0], fl[f, 1], fl[f, 2], fl[f, 3], fl[f, 4]
     return _law_values(val[p, 10], f, radii, law, n_exp, ratio, min_depth_ratio)

@@ -18,24 +18,20 @@ the Hertz compliance of the pair minus the share ``r = E*_pair / E*_object`` of 
 the object (1 for a rigid fingertip, less for a soft one, whose own compliance the mesh never
 resolves) as far as the mesh resolves it. Integrated over a (``dF = 3 K' a^2 da / R``):
 
-    delta(a) = (a^2 - r phi(a)) / R,    phi(a) = a sqrt(a^2 + h^2) - h^2 asinh(a / h),
+    delta(a) = (a^2 - 2 r I2(a)) / R,    I2(a) = integral of t^2 / sqrt(t^2 + h(t)^2) over (0, a)
 
-increasing in a for every r < 1. On a coarse mesh (h >> a) it is Hertz's law (the mesh is stiff
+(Gauss-Legendre), increasing in a for every r < 1. On a coarse mesh (h >> a) it is Hertz's law (the mesh is stiff
 at the patch's scale and the contact supplies the local compliance); as the mesh resolves the
 patch (h << a) the law becomes a stiff penalty and the mesh's own deformation is the indentation.
-``r`` is capped at :data:`~softgrasp.physics.fingertip.laws.MAX_SHARE`: the law keeps at least 2 % of Hertz's tangent compliance,
-which bounds its stiffness at 50x Hertz's (the fully resolved limit is reached within ~3 % of
-force) and keeps the root for a bracketed.
+``r`` is capped at :data:`~softgrasp.physics.fingertip.laws.MAX_SHARE`: the law keeps at least
+2 % of Hertz's tangent compliance, which bounds its stiffness at 50x Hertz's (the fully resolved
+limit is reached within ~3 % of force) and brackets the root for a.
 
-The resolution length ``h`` is the radius of the disc whose Hertz compliance ``1 / (2 E* h)``
-equals the body's compliance to the contact load as the shape functions put it on the nodes of
-the facet under the fingertip's deepest point (Eq. 17-20): ``h = (pi / 2) / sum_lm b_l b_m /
-r_lm``, the half-space's ``1 / r`` between distinct nodes and, for a node's own deflection,
-``r_ll = RESOLUTION x`` the facet's size (:data:`~softgrasp.physics.fingertip.laws.RESOLUTION`, a
-property of the discretisation: linear tetrahedra, the calibrated spring network).
-:func:`softgrasp.physics.fingertip.forces._resolution_length` computes it; it is continuous as the
-point crosses an edge or a vertex. A load on one node is less resolved (smaller h) than one
-spread on a facet's three.
+The resolution length ``h`` is the mesh's where the fingertip lands
+(:mod:`softgrasp.physics.fingertip.landing`): the radius of the disc whose Hertz compliance
+``1 / (2 E* h)`` equals the body's compliance to the load as the shape functions put it on the
+nodes, ``h_land`` while the contact patch is smaller than the facet, moving to a single node's
+``h_node`` as the patch covers it (:func:`_spread2`); the object's curvature there enters R_eff.
 """
 
 from __future__ import annotations
