@@ -260,6 +260,7 @@ def plan(
     contact_law: str = "resolved",
     max_pressure_Pa: float | None = None,
     max_strain: float | None = None,
+    margin: bool = False,
     progress: Callable[[float], None] | None = None,
 ) -> Plan:
     """Plan a three-finger grasp of ``obj`` and its force set-points.
@@ -297,6 +298,10 @@ def plan(
     max_pressure_Pa, max_strain:
         Limits on the held grasp's peak contact pressure [Pa] and the object's peak principal
         strain; a plan whose least squeeze that holds exceeds one raises ``InfeasibleGrasp``.
+    margin:
+        Also find the critical scale of the set-points, below which the object is no longer held
+        (:func:`softgrasp.grasp.margin.critical_scale`; a few hold checks, seconds): written as
+        ``margin`` in ``plan.json``.
     progress:
         Called with the fraction of the plan done.
     """
@@ -339,4 +344,8 @@ def plan(
         config = replace(plan_config({**options, "hand": "none"}, contact), hand=hand)
     g = plan_grasp(obj.body, config, progress=progress)
     doc = plan_document(g, obj.body, obj.name)
+    if margin:
+        from softgrasp.grasp.margin import critical_scale
+
+        doc["margin"] = critical_scale(obj.body, g).describe()
     return Plan(obj, g, config, options, doc, _started=started)

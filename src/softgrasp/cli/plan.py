@@ -41,6 +41,12 @@ def add_parser(sub) -> None:
         "with its mesh) or paper (the paper's K delta^n in series with the meshed body, Eq. 9-11)",
     )
     pl.add_argument(
+        "--margin",
+        action="store_true",
+        help="also find the critical scale of the set-points, below which the object is no longer "
+        "held in softgrasp's model (a few more hold checks): plan.json 'margin'",
+    )
+    pl.add_argument(
         "--max-pressure",
         type=positive("--max-pressure"),
         default=None,
@@ -181,6 +187,7 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
             contact_law=args.contact_law,
             max_pressure_Pa=args.max_pressure,
             max_strain=args.max_strain,
+            margin=args.margin,
             progress=update,
         )
     finally:
@@ -194,6 +201,12 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
         f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
         f"{g.com_drift * 1e3:.2f} mm in {g.hold_time:g} s"
     )
+    if "margin" in doc:
+        mg = doc["margin"]
+        print(
+            f"margin: held down to {mg['critical_scale']:.2f} x the set-points, not at "
+            f"{mg['not_held_scale']:.2f} (softgrasp's model; execute with a margin above it)"
+        )
     if g.damage is not None:
         j = int(g.damage.pressure.argmax())
         print(
