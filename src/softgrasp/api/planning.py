@@ -177,6 +177,7 @@ class Plan:
             names,
             out / "forces.png",
             setpoints=[f.force_norm for f in g.fingers],
+            held_at=g.held_increment,
         )
         figures.draw(
             "plot_plan_force_penetration", g.penetration, g.force_norm, names, out / "force_penetration.png"

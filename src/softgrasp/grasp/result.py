@@ -123,6 +123,16 @@ class GraspPlan:
     frames: PlanFrames | None = None
     solver_stats: dict[str, int] = field(default_factory=dict)
 
+    @property
+    def held_increment(self) -> int:
+        """Index of the increment (in :attr:`travel`) the object was held at: the last hold
+        check's travel (increments past it only bracketed the least squeeze that holds)."""
+        if not len(self.travel):
+            return 0
+        if not self.hold_checks:
+            return len(self.travel) - 1
+        return int(np.argmin(np.abs(self.travel - self.hold_checks[-1][0])))
+
 
 @dataclass(frozen=True)
 class PlanFrames:

@@ -99,6 +99,7 @@ def run_grasp(ctx: Context, rec: dict[str, Any], progress: Progress) -> None:
         names,
         ctx.out / figs["forces"],
         setpoints=[f.force_norm for f in plan.fingers],
+        held_at=plan.held_increment,
         title="Grasping forces per closing increment (cf. paper Fig. 13)",
     )
     progress(0.85)

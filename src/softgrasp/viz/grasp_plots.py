@@ -22,6 +22,7 @@ def plot_plan_forces(
     path: str | Path,
     *,
     setpoints: Sequence[float] | None = None,
+    held_at: int | None = None,
     title: str = "Grasping forces applied by the fingers",
 ) -> Path:
     """Force norm on each finger against the closing increment (paper Fig. 13 style).
@@ -35,6 +36,8 @@ def plot_plan_forces(
     setpoints: each finger's force [N] in the held state (the table removed, the fingers carrying
         the weight), drawn one step after the last increment and named in the legend: the closing
         ends on the table, so its last forces are not the set-points.
+    held_at: the increment (index) the object was held from, where the dotted line to the
+        set-points starts (default the last: increments past it bracketed the least squeeze).
     title: figure title.
 
     Raises
@@ -54,7 +57,8 @@ def plot_plan_forces(
         ax.plot(x, f[:, i], marker=marker, ms=4.0, lw=1.6, color=colour, label=label)
         if held is not None:
             if len(x):
-                ax.plot([x[-1], x_held], [f[-1, i], held[i]], lw=1.0, ls=":", color=colour)
+                k = len(x) - 1 if held_at is None else int(held_at)
+                ax.plot([x[k], x_held], [f[k, i], held[i]], lw=1.0, ls=":", color=colour)
             ax.plot([x_held], [held[i]], marker="*", ms=11.0, color=colour, ls="none")
     if np.all(x == np.round(x)):
         from matplotlib.ticker import MaxNLocator
