@@ -286,7 +286,6 @@ class OracleFingertipContact(FingertipContact):
         p = self.params
         if pairs is None:
             pairs = self.pairs(body, x, t)
-        K = self.stiffness(body)[pairs.finger]
         C = self.damping()[pairs.finger]
         n_exp = p.exponent
         if static:

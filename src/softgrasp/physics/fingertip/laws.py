@@ -1,10 +1,10 @@
 """Pure contact laws of the paper's Sec. 3.3: Hunt-Crossley normal force and Coulomb friction.
 
 SI units; equation numbers are the paper's. The per-contact laws are written once, as scalar
-functions (:func:`normal_force_value`, :func:`normal_stiffness_value`, :func:`coulomb_slip_value`)
-that the compiled contact kernels compile with Numba (:mod:`softgrasp.physics.fingertip.forces`,
-:mod:`softgrasp.physics.fingertip.friction`) and that :func:`normal_force`,
-:func:`normal_force_derivative` and :func:`slip_force` apply element by element to arrays.
+functions (:func:`normal_force_value`, :func:`coulomb_slip_value`) that the compiled contact
+kernels compile with Numba (:mod:`softgrasp.physics.fingertip.forces`) and that
+:func:`normal_force` and :func:`slip_force` apply element by element to arrays. The elastic
+normal law itself is :mod:`softgrasp.physics.fingertip.resolved`.
 """
 
 from __future__ import annotations
@@ -18,13 +18,11 @@ from softgrasp.errors import ContactError
 
 __all__ = [
     "normal_force_value",
-    "normal_stiffness_value",
     "coulomb_slip_value",
     "effective_modulus",
     "contact_stiffness",
     "contact_damping",
     "normal_force",
-    "normal_force_derivative",
     "mindlin_ratio",
     "slip_force",
     "restitution_hunt_crossley",
@@ -107,11 +105,6 @@ def normal_force_value(
     return max(raw, 0.0) if delta > 0.0 else 0.0
 
 
-def normal_stiffness_value(delta: float, K: float, n: float) -> float:
-    """d(K delta^n)/d delta = n K delta^(n-1) [N/m] of one contact; zero unless delta > 0."""
-    return n * K * delta ** (n - 1.0) if delta > 0.0 else 0.0
-
-
 def coulomb_slip_value(f_n: float, vx: float, vy: float, vz: float, mu: float) -> tuple[float, float, float]:
     """Coulomb sliding friction on the finger, ``-mu f_n V_t / |V_t|`` (Eq. 15), of one contact
     sliding at tangential velocity V_t = (vx, vy, vz) [m/s]; zero when it does not slide."""
@@ -143,13 +136,6 @@ def normal_force(
     dn = np.maximum(d, 0.0) ** n
     law = np.vectorize(normal_force_value, otypes=[np.float64])
     return law(d, np.asarray(K) * dn, dn, np.asarray(delta_rate, dtype=np.float64), C, damping == "hunt-crossley")
-
-
-def normal_force_derivative(delta: ArrayLike, K: ArrayLike, n: float = 1.5) -> NDArray[np.float64]:
-    """d(K delta^n)/d delta = n K delta^(n-1) [N/m], the elastic normal contact stiffness
-    (:func:`normal_stiffness_value`) over arrays."""
-    d = np.maximum(np.asarray(delta, dtype=np.float64), 0.0)
-    return np.vectorize(normal_stiffness_value, otypes=[np.float64])(d, K, n)
 
 
 def mindlin_ratio(nu: float) -> float:
