@@ -96,13 +96,20 @@ class Calibration:
         return dict(self.document)
 
     def save(self, out: str | Path, *, started: float | None = None) -> Path:
-        """Write a figure per fit, ``material.toml`` and ``calibration.json`` into ``out``, in that
-        order, after every fit: a failed fit leaves the folder as it was."""
+        """Write a figure per fit, ``material.toml`` and ``calibration.json`` into ``out``,
+        replacing the folder's earlier ones whole (:mod:`softgrasp.io.runfolder`: a failure or an
+        interrupt leaves them as they were)."""
+        from softgrasp.io.runfolder import run_folder
+
+        with run_folder(out, "calibrate") as folder:
+            self._write(folder.stage, started)
+        return Path(out)
+
+    def _write(self, out: Path, started: float | None) -> None:
         from softgrasp.io.atomic import write_json
         from softgrasp.io.materialfile import write_material_file
         from softgrasp.viz.plots import plot_calibration
 
-        out = Path(out)
         for kind, fit in self.fits.items():
             lateral = None
             if kind == "compression":
@@ -132,7 +139,6 @@ class Calibration:
         wall = time.perf_counter() - (self._started if started is None else started)
         doc = {**self.document, "wall_time_s": wall}
         write_json(out / "calibration.json", doc)
-        return out
 
 
 def calibrate(

@@ -118,14 +118,20 @@ class Execution:
 
     def save(self, out: str | Path) -> list[str]:
         """Write ``execute.json``, ``execute.csv``, ``execute_forces.png`` and a picture per event
-        (``frame_start.png`` ...) into ``out``; return the pictures' names."""
+        (``frame_start.png`` ...) into ``out``, replacing the folder's earlier ones whole
+        (:mod:`softgrasp.io.runfolder`); return the pictures' names."""
+        from softgrasp.io.runfolder import run_folder
+
+        with run_folder(out, "execute") as folder:
+            return self._write(folder.stage)
+
+    def _write(self, out: Path) -> list[str]:
         import numpy as np
 
         from softgrasp.execution.controller import PHASES
         from softgrasp.io.atomic import write_json, write_text
         from softgrasp.viz.plots import EXECUTION_FRAME_TITLES, plot_execution_forces, plot_execution_frame
 
-        out = Path(out)
         res, names = self.result, [f.name for f in self.plan.fingers]
         ser = res.series
         buf = io.StringIO()

@@ -81,11 +81,19 @@ class Compression:
         }
 
     def save(self, out: str | Path, *, started: float | None = None) -> Path:
-        """Write ``compress.csv``, ``compress.json`` and ``compress.png`` into ``out``."""
+        """Write ``compress.csv``, ``compress.json`` and ``compress.png`` into ``out``, replacing the
+        folder's earlier ones whole (:mod:`softgrasp.io.runfolder`)."""
+        from softgrasp.io.runfolder import run_folder
+
+        with run_folder(out, "compress") as folder:
+            self._write(folder.stage, started)
+        return Path(out)
+
+    def _write(self, out: Path, started: float | None) -> None:
         from softgrasp.io.atomic import write_json, write_text
         from softgrasp.viz.plots import plot_stress_strain
 
-        out, res = Path(out), self.result
+        res = self.result
         rows = zip(res.displacement_m, res.force_N, res.strain, res.stress_Pa, strict=True)
         header = ["displacement_m", "force_N", "strain", "stress_Pa"]
         write_text(out / "compress.csv", _csv(header, ([f"{v:.9g}" for v in row] for row in rows)))
@@ -98,7 +106,6 @@ class Compression:
             title=f"Compression of the {self.object.source} ({self.object.material.name})",
             linear_E_Pa=self.object.material.E,
         )
-        return out
 
 
 def compress(
@@ -220,11 +227,19 @@ class Indentation:
         return report
 
     def save(self, out: str | Path, *, started: float | None = None) -> Path:
-        """Write ``indent.csv``, ``indent.json`` and ``indent.png`` into ``out``."""
+        """Write ``indent.csv``, ``indent.json`` and ``indent.png`` into ``out``, replacing the
+        folder's earlier ones whole (:mod:`softgrasp.io.runfolder`)."""
+        from softgrasp.io.runfolder import run_folder
+
+        with run_folder(out, "indent") as folder:
+            self._write(folder.stage, started)
+        return Path(out)
+
+    def _write(self, out: Path, started: float | None) -> None:
         from softgrasp.io.atomic import write_json, write_text
         from softgrasp.viz.plots import plot_force_penetration
 
-        out, res = Path(out), self.result
+        res = self.result
         header = ["time_s", "penetration_m", "force_N", "normal_force_N", "tangential_force_N", "contacts"]
         cols = (res.time_s, res.penetration_m, res.force_N, res.normal_force_N, res.tangential_force_N)
         rows = ([*(f"{v:.9g}" for v in vals), int(n)] for *vals, n in zip(*cols, res.contacts, strict=True))
@@ -241,7 +256,6 @@ class Indentation:
             measured=measured,
             mean_abs_error_N=self.mean_abs_error_N,
         )
-        return out
 
 
 def check_indent(mu: float | None, steps: int | None) -> None:

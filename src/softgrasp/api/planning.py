@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import io
-import shutil
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -26,7 +25,7 @@ if TYPE_CHECKING:
     from softgrasp.hand.kinematics import HandModel
     from softgrasp.viz.worker import FigureWorker
 
-__all__ = ["Plan", "plan", "plan_options", "PLAN_FILES", "ROBUST_OUTPUTS"]
+__all__ = ["Plan", "plan", "plan_options", "PLAN_FILES"]
 
 #: The files :meth:`Plan.save` (``softgrasp plan --out DIR``) writes.
 PLAN_FILES = (
@@ -38,8 +37,6 @@ PLAN_FILES = (
     "force_penetration.png",
     "grasp.png",
 )
-#: What robust set-points (``plan --uncertain``) write besides the plan.
-ROBUST_OUTPUTS = ("robust.json", "robust.png", "robust", ".robust-partial")
 
 
 def plan_options(given: Mapping[str, object], config_file: str | Path | None = None) -> dict[str, object]:
@@ -132,22 +129,26 @@ class Plan:
 
     def write_plan_file(self, out: str | Path) -> Path:
         """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu``, into
-        ``out``; return the path of ``plan.json``."""
+        ``out`` (the two together, :mod:`softgrasp.io.runfolder`); return the path of ``plan.json``."""
         from softgrasp.io.atomic import write_json
+        from softgrasp.io.runfolder import run_folder
         from softgrasp.model.mesh.io import save_mesh
         from softgrasp.model.mesh.tetmesh import TetMesh
 
-        out = Path(out)
         mesh = self.object.body.mesh
-        save_mesh(TetMesh(self.grasp.placed, mesh.tets, name=mesh.name), out / "object.vtu")
-        self.document["object"]["mesh_file"] = "object.vtu"
-        return write_json(out / "plan.json", self.document)
+        with run_folder(out, "plan", complete=False) as folder:
+            save_mesh(TetMesh(self.grasp.placed, mesh.tets, name=mesh.name), folder.stage / "object.vtu")
+            self.document["object"]["mesh_file"] = "object.vtu"
+            write_json(folder.stage / "plan.json", self.document)
+        return folder.path / "plan.json"
 
     def save(
         self, out: str | Path, *, figures: FigureWorker | None = None, started: float | None = None
     ) -> Path:
-        """Write the files of ``softgrasp plan --out DIR`` (:data:`PLAN_FILES`) into ``out``, and
-        remove an earlier robust run's outputs there; return ``out``.
+        """Write the files of ``softgrasp plan --out DIR`` (:data:`PLAN_FILES`) into ``out``,
+        replacing the folder's earlier plan files whole (:mod:`softgrasp.io.runfolder`: a failure
+        or an interrupt leaves them as they were; files of an earlier plan this one does not
+        write, such as robust set-points, are removed; no other file is touched); return ``out``.
 
         ``figures`` draws the PNGs (default: a worker started here); ``plan.json``'s ``wall_time_s``
         counts from ``started`` (a :func:`time.perf_counter` value; default when :func:`plan` began).
@@ -157,12 +158,20 @@ class Plan:
 
             with FigureWorker() as worker:
                 return self.save(out, figures=worker, started=started)
+        from softgrasp.io.runfolder import run_folder
+
+        with run_folder(out, "plan") as folder:
+            self._write(folder.stage, figures, started)
+        self.directory = Path(out)
+        return Path(out)
+
+    def _write(self, out: Path, figures: FigureWorker, started: float | None) -> None:
+        """Write the plan's files into ``out`` (a staging folder)."""
         import numpy as np
 
         from softgrasp.io.atomic import write_text
         from softgrasp.io.plan_document import HISTORY_HEADER, hand_polylines, history_rows
 
-        out = Path(out)
         g, body, doc = self.grasp, self.object.body, self.document
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -199,22 +208,9 @@ class Plan:
         )
         write_text(out / "history.csv", buf.getvalue())
         _write_frames(out / "frames.npz", g, body.mesh.facets)
-        remove_robust_outputs(out)  # an earlier robust run's, which no longer belong to this plan
         doc["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
         self.write_plan_file(out)
         figures.finish()
-        self.directory = out
-        return out
-
-
-def remove_robust_outputs(out: Path) -> None:
-    """Remove the outputs of robust set-points (:data:`ROBUST_OUTPUTS`) from ``out``."""
-    for name in ROBUST_OUTPUTS:
-        path = out / name
-        if path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
-        elif path.exists():
-            path.unlink()
 
 
 def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:

@@ -10,6 +10,7 @@ ones kept beside them).
 
 from __future__ import annotations
 
+import copy
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -66,12 +67,15 @@ def robust_plan(
     progress: Callable[[str, int, int], None] | None = None,
 ) -> Any:
     """Robust set-points around ``plan``, already saved (:meth:`Plan.save`): every sample closes
-    from the contacts of its ``plan.json``; the stages' tables go to ``robust/`` (built aside and
-    moved there whole); ``robust.json``, ``robust.png`` and the updated ``plan.json`` follow.
+    from the contacts of its ``plan.json``; the stages' tables go to ``robust/``, with
+    ``robust.json``, ``robust.png`` and the updated ``plan.json``: all of them replace the folder's
+    earlier ones together once complete (:mod:`softgrasp.io.runfolder`), so a failed or
+    interrupted run leaves the earlier robust set-points as they were.
     Returns the :class:`~softgrasp.sweep.robust.RobustResult` (its stages in ``robust/``)."""
     import numpy as np
 
     from softgrasp.io.atomic import write_json
+    from softgrasp.io.runfolder import run_folder
     from softgrasp.sweep.robust import robust_setpoints
     from softgrasp.viz.plots import plot_robust
 
@@ -84,13 +88,17 @@ def robust_plan(
     for key in ("object", "material", "hand"):  # files named for the workers wherever they run
         if isinstance(options[key], str) and Path(options[key]).is_file():
             options[key] = str(Path(options[key]).resolve())
-    work = out / ".robust-partial"
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
-    try:
+    with run_folder(out, "plan", complete=False) as folder:
+        stage = folder.stage
+        # The plan saved in this run (inside ``softgrasp plan``, not moved into place yet), else
+        # the one in the folder.
+        nominal = stage / "plan.json" if (stage / "plan.json").is_file() else out / "plan.json"
+        work = stage / "robust"
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir(parents=True)
         res = robust_setpoints(
             options,
-            (out / "plan.json").resolve(),
+            nominal.resolve(),
             [f.normal_force for f in plan.grasp.fingers],
             list(uncertain),
             work,
@@ -101,35 +109,33 @@ def robust_plan(
             scheduler=scheduler,
             progress=progress,
         )
-    except BaseException:
-        shutil.rmtree(work, ignore_errors=True)
-        raise
-    final = out / "robust"
-    shutil.rmtree(final, ignore_errors=True)
-    work.rename(final)
-    res = replace(res, stages={k: str(final / Path(v).name) for k, v in res.stages.items()})
-    summary = res.describe()
-    per_sample = summary.pop("per_sample")
-    doc = plan.document
-    for j, f in enumerate(doc["fingers"]):
-        f["nominal_normal_force_N"] = f["normal_force_N"]
-        f["normal_force_N"] = float(res.setpoints[j])
-    doc["setpoints"] = "robust" if res.achieved else "robust (goal not met)"
-    doc["robust"] = {
-        **summary,
-        "note": "each finger's normal_force_N is the robust set-point; its other fields (force, "
-        "penetration, final position) and the equilibrium are the nominal plan's held state",
-    }
-    write_json(out / "robust.json", {"schema": "softgrasp.robust/1", **summary, "per_sample": per_sample})
-    write_json(out / "plan.json", doc)
-    plot_robust(
-        out / "robust.png",
-        {u.name: np.array([s[u.name] for s in res.samples]) for u in res.uncertain},
-        res.required.sum(axis=1),
-        res.nominal_held,
-        robust_total=float(res.setpoints.sum()),
-        nominal_total=float(res.nominal.sum()),
-        title=f"Robust set-points over {len(res.samples)} samples"
-        + ("" if res.quantile is None else f" ({res.quantile:.0%} to hold)"),
-    )
+        res = replace(res, stages={k: str(out / "robust" / Path(v).name) for k, v in res.stages.items()})
+        summary = res.describe()
+        per_sample = summary.pop("per_sample")
+        doc = copy.deepcopy(plan.document)
+        for j, f in enumerate(doc["fingers"]):
+            f["nominal_normal_force_N"] = f["normal_force_N"]
+            f["normal_force_N"] = float(res.setpoints[j])
+        doc["setpoints"] = "robust" if res.achieved else "robust (goal not met)"
+        doc["robust"] = {
+            **summary,
+            "note": "each finger's normal_force_N is the robust set-point; its other fields (force, "
+            "penetration, final position) and the equilibrium are the nominal plan's held state",
+        }
+        write_json(
+            stage / "robust.json", {"schema": "softgrasp.robust/1", **summary, "per_sample": per_sample}
+        )
+        write_json(stage / "plan.json", doc)
+        plot_robust(
+            stage / "robust.png",
+            {u.name: np.array([s[u.name] for s in res.samples]) for u in res.uncertain},
+            res.required.sum(axis=1),
+            res.nominal_held,
+            robust_total=float(res.setpoints.sum()),
+            nominal_total=float(res.nominal.sum()),
+            title=f"Robust set-points over {len(res.samples)} samples"
+            + ("" if res.quantile is None else f" ({res.quantile:.0%} to hold)"),
+        )
+    plan.document.clear()
+    plan.document.update(doc)
     return res

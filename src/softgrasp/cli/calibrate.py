@@ -63,6 +63,14 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.io.runfolder import run_folder
+
+    out = args.out if args.out is not None else "softgrasp-out/calibrate"
+    with run_folder(out, "calibrate"):  # checked and locked before any work
+        return _run(args, Path(out))
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
     from softgrasp.api.calibration import calibrate, check_calibrate, read_indentation
 
     t0 = time.perf_counter()
@@ -71,7 +79,6 @@ def run(args: argparse.Namespace) -> int:
     ind_data = read_indentation(args.indentation) if args.indentation else None
     material_file(args)
     obj = load(args)
-    out = Path(args.out or "softgrasp-out/calibrate")
     cal = calibrate(
         obj,
         compression=args.compression,

@@ -29,11 +29,18 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.io.runfolder import run_folder
+
+    out = args.out if args.out is not None else "softgrasp-out/compress"
+    with run_folder(out, "compress"):  # checked and locked before any work
+        return _run(args, Path(out))
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
     from softgrasp.api.experiments import compress
 
     t0 = time.perf_counter()
     obj = load(args)
-    out = Path(args.out or "softgrasp-out/compress")
     print(f"object   {obj.summary()}")
     m = obj.material
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}, density = {m.density:.4g} kg/m^3")

@@ -45,6 +45,13 @@ def _execute_material(args: argparse.Namespace, plan):
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.io.runfolder import run_folder
+
+    with run_folder(args.out, "execute"):  # checked and locked before any work
+        return _run(args, Path(args.out))
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
     import math
 
     from softgrasp.api.execution import execute
@@ -56,7 +63,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--lift must be a height > 0 m, got {args.lift}")
     planned = load_plan_file(args.plan)
     plan = _execute_material(args, planned)
-    out = Path(str(args.out))
     print(
         f"executing {args.plan} on {args.backend}: set-points "
         + ", ".join(f"{f.name} {args.scale * f.normal_force:.3f} N" for f in plan.fingers)

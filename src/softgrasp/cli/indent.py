@@ -65,6 +65,14 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.io.runfolder import run_folder
+
+    out = args.out if args.out is not None else "softgrasp-out/indent"
+    with run_folder(out, "indent"):  # checked and locked before any work
+        return _run(args, Path(out))
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
     from softgrasp.api.experiments import check_indent, indent, read_force_curve
 
     t0 = time.perf_counter()
@@ -72,7 +80,6 @@ def run(args: argparse.Namespace) -> int:
     material_file(args)  # a bad material file is reported before the data and the meshing
     measured = read_force_curve(args.data, args.depth) if args.data else None
     obj = load(args)
-    out = Path(args.out or "softgrasp-out/indent")
     print(f"object   {obj.summary()}")
     m = obj.material
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}, density = {m.density:.4g} kg/m^3")

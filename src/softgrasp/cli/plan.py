@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -146,11 +147,11 @@ def run(args: argparse.Namespace) -> int:
 
     # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
     # files are written.
-    with FigureWorker() as figures:
-        return _plan(args, figures)
+    with FigureWorker() as figures, ExitStack() as folder:
+        return _plan(args, figures, folder)
 
 
-def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
+def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) -> int:
     from softgrasp.cli.warm import warm_up_in_background
 
     warm_up_in_background()  # the compiled kernels load while the object is meshed
@@ -161,8 +162,12 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
     mu_given = args.mu
     opts = plan_options(vars(args), args.config)
     args = argparse.Namespace(**{**vars(args), **opts})
-    obj = load(args)
+    from softgrasp.io.runfolder import run_folder
+
+    # The folder is checked and locked before any work; the files replace its earlier ones at the end.
+    folder.enter_context(run_folder(str(args.out), "plan"))
     out = Path(str(args.out))
+    obj = load(args)
     m = obj.material
     print(f"object   {obj.summary()}")
     print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")

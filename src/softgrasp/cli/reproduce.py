@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from softgrasp.cli.args import progress_bar
 
@@ -24,7 +23,7 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from softgrasp.report.reproduce import reproduce
 
-    out = Path(args.out or "softgrasp-out/reproduce")
+    out = args.out if args.out is not None else "softgrasp-out/reproduce"
     bar, update = progress_bar("reproduce")
 
     def progress(fraction: float, step: str) -> None:

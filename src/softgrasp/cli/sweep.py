@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from softgrasp.cli.args import counting_bar
@@ -23,13 +24,19 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softgrasp.sweep.engine import run_sweep
-    from softgrasp.sweep.report import sweep_figures
+    from softgrasp.io.runfolder import run_folder
     from softgrasp.sweep.spec import read_sweep, sweep_cases
 
     spec = read_sweep(args.sweep)
-    cases = sweep_cases(spec)
-    out = Path(args.out or "softgrasp-out/sweep")
+    out = args.out if args.out is not None else "softgrasp-out/sweep"
+    with run_folder(out, "sweep") as folder:  # checked and locked before any work
+        return _run(args, spec, sweep_cases(spec), Path(out), folder.stage)
+
+
+def _run(args: argparse.Namespace, spec, cases: list, out: Path, stage: Path) -> int:
+    from softgrasp.sweep.engine import run_sweep
+    from softgrasp.sweep.report import sweep_figures
+
     where = args.scheduler or f"a local Dask cluster of {args.workers} worker process(es)"
     print(
         f"sweep {args.sweep}: {len(cases)} cases ({spec.mode} over {', '.join(spec.varied)}) on {where}"
@@ -45,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             progress=lambda done, total: update(done),
         )
-    figures = sweep_figures(spec, res.rows, out)
+    figures = sweep_figures(spec, res.rows, stage)
     per_min = 60.0 * res.ran / res.wall_time_s if res.wall_time_s > 0 else float("nan")
     print(
         f"{len(res.rows)} cases: {len(res.rows) - res.failed} planned, {res.failed} failed"
@@ -57,4 +64,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"  case {r['case']} failed: {r['error']}")
     names = ", ".join(["results.csv", "results.parquet", "sweep.json", *(f.name for f in figures)])
     print(f"wrote {out}/{names}")
+    if res.failed:
+        print(
+            f"softgrasp: error: {res.failed} of {len(res.rows)} cases failed (their errors above and in "
+            "results.csv)",
+            file=sys.stderr,
+        )
+        return 1
     return 0

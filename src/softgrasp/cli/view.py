@@ -17,8 +17,11 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.io.runfolder import check_out_file
     from softgrasp.viz.view import write_view
 
+    if args.out is not None:
+        check_out_file(args.out)
     path = write_view(args.run_dir, args.out)
     print(f"wrote {path} (open it in a browser; it needs no network)")
     return 0

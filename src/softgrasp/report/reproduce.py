@@ -15,7 +15,8 @@ It writes into the output folder ``report.md`` (figures referenced by relative p
 ``figures/``), ``report.html`` (the same report, self-contained: CSS inline, figures embedded as
 base64 data URIs, nothing fetched from the network), ``reproduce.json`` (every number, keys with
 their SI units) and ``grasp/plan.json`` + ``grasp/object.vtu`` (the plan, which ``softgrasp
-execute`` also reads). Every file is written atomically.
+execute`` also reads). The files replace the folder's earlier ones whole, once every step has run
+(:mod:`softgrasp.io.runfolder`): an interrupted run leaves them as they were.
 
 A step that fails (``NotConverged``, ``InfeasibleGrasp``, any error) is recorded as failed with
 its message and the run continues; the execution is *skipped*, with the reason, when MuJoCo
@@ -214,10 +215,22 @@ def reproduce(
     ConfigError: an unknown experiment name. A failing experiment does not raise: it is recorded
     as failed (with its message) in the result and the report, and the run continues.
     """
-    t_start = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    from softgrasp.io.runfolder import run_folder
+
     names = _selection(experiments)
+    with run_folder(out, "reproduce") as folder:
+        return _reproduce(folder.stage, Path(out), quick, progress, names)
+
+
+def _reproduce(
+    out: Path,
+    final: Path,
+    quick: bool,
+    progress: Callable[[float, str], None] | None,
+    names: list[str],
+) -> ReproductionResult:
+    """:func:`reproduce` writing into ``out`` (a staging folder) what ends up in ``final``."""
+    t_start = time.perf_counter()
     ctx = Context(out, Settings.of(quick))
     total = sum(_WEIGHTS[n] for n in names) + _WEIGHTS["report"]
     done = 0.0
@@ -274,7 +287,9 @@ def reproduce(
             step_doc["traceback"] = tb
         step_docs.append(step_doc)
         records.append(
-            StepRecord(name, EXPERIMENTS[name], status, wall, message, tuple(out / f for f in figs.values()))
+            StepRecord(
+                name, EXPERIMENTS[name], status, wall, message, tuple(final / f for f in figs.values())
+            )
         )
         done += w
         report_progress(done / total, name)
@@ -304,18 +319,18 @@ def reproduce(
     doc["run"]["report_wall_time_s"] = time.perf_counter() - t_report
     doc["run"]["wall_time_s"] = time.perf_counter() - t_start
     blocks = report_blocks(doc)
-    md_path = write_text(out / "report.md", render_markdown(blocks))
-    html_path = write_text(out / "report.html", render_html(blocks, out))
-    json_path = write_json(out / "reproduce.json", jsonable(doc))
+    write_text(out / "report.md", render_markdown(blocks))
+    write_text(out / "report.html", render_html(blocks, out))
+    write_json(out / "reproduce.json", jsonable(doc))
     wall = time.perf_counter() - t_start
     report_progress(1.0, "report")
     return ReproductionResult(
-        out=out,
+        out=final,
         quick=bool(quick),
         steps=tuple(records),
-        report_md=md_path,
-        report_html=html_path,
-        data_json=json_path,
+        report_md=final / "report.md",
+        report_html=final / "report.html",
+        data_json=final / "reproduce.json",
         wall_time_s=wall,
         document=doc,
     )

@@ -5,13 +5,17 @@ talking TCP on the loopback interface) by default, or an existing cluster at ``s
 (``tcp://host:port``), whose workers need softgrasp installed. Each finished case is appended at
 once to ``results.csv`` (flushed: a killed sweep keeps every row it finished), and
 ``results.parquet`` is rewritten atomically as rows arrive and at the end, sorted by case.
-``resume=True`` reads the finished rows back and runs only the missing cases.
+``resume=True`` reads the finished rows back (one per case) and runs only the missing cases, after
+checking that ``sweep.json`` records the same sweep (the digest of its normalised spec). The output
+folder is locked while the sweep runs; its figures and the files of other commands are replaced
+whole (:mod:`softgrasp.io.runfolder`).
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import json
 import logging
 import math
 import time
@@ -25,7 +29,7 @@ from typing import Any
 from softgrasp.errors import ConfigError
 from softgrasp.io.atomic import atomic_write, write_json
 from softgrasp.sweep.case import output_columns, run_case
-from softgrasp.sweep.spec import Case, SweepSpec, describe_spec
+from softgrasp.sweep.spec import Case, SweepSpec, describe_spec, spec_digest
 
 __all__ = ["SweepResult", "run_sweep", "dask_client", "read_rows", "columns"]
 
@@ -179,6 +183,33 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
             cluster.close()
 
 
+def _resumable(
+    out: Path, json_path: Path, csv_path: Path, spec: SweepSpec, cases: Sequence[Case], cols: Sequence[str]
+) -> list[dict[str, object]]:
+    """The finished rows of the sweep in ``out`` to keep, one per case, or ConfigError when that
+    sweep was made by another sweep file (its ``sweep.json`` records the digest of its spec)."""
+    try:
+        made = json.loads(json_path.read_text(encoding="utf-8"))
+        recorded = made.get("spec_sha256") or spec_digest(made)
+    except (FileNotFoundError, ValueError, AttributeError, KeyError, TypeError):
+        raise ConfigError(
+            f"{out} holds results.csv but no readable sweep.json naming the sweep that made it, so --resume "
+            "cannot check it is this sweep's; give another --out"
+        ) from None
+    if recorded != spec_digest(spec):
+        raise ConfigError(
+            f"--resume: {out} was made by another sweep file ({made.get('source', '?')}: its cases differ "
+            f"from {spec.source}'s); resume with that file, or give another --out"
+        )
+    ids = {c.index: c.id for c in cases}
+    kept: dict[int, dict[str, object]] = {}
+    for r in read_rows(csv_path, cols):
+        i = r["case"]
+        if isinstance(i, int) and ids.get(i) == r["case_id"] and i not in kept:
+            kept[i] = r  # one row per case: a case written twice counts once
+    return [kept[i] for i in sorted(kept)]
+
+
 def run_sweep(
     spec: SweepSpec,
     cases: Sequence[Case],
@@ -195,48 +226,68 @@ def run_sweep(
     Parameters
     ----------
     spec, cases: the sweep and its cases (:func:`softgrasp.sweep.spec.sweep_cases`).
-    out: the output folder.
+    out: the output folder, locked while the sweep runs (:mod:`softgrasp.io.runfolder`).
     scheduler: address of a running Dask scheduler (``tcp://host:port``); None: a local cluster.
     workers: worker processes of the local cluster.
-    resume: keep the finished rows of ``out/results.csv`` and run only the missing cases;
-        without it, existing results are an error (never silently overwritten).
+    resume: keep the finished rows of ``out/results.csv`` (one per case) and run only the missing
+        cases; without it, existing results are an error (never silently overwritten).
     progress: called with (finished cases, all cases) as rows arrive.
     client: a Dask client to run the cases on (:func:`dask_client`; ``scheduler`` and ``workers``
         are then not used); None: one is made for this sweep and closed at its end.
 
     Raises
     ------
-    ConfigError: results exist without ``resume``, or belong to another sweep; no scheduler there.
+    ConfigError: results exist without ``resume``, or were made by another sweep file (the digest
+    of the spec in ``sweep.json``); another run is writing ``out``; no scheduler there.
     """
+    from softgrasp.io.runfolder import run_folder
+
     if client is None and not 1 <= workers <= 256:
         raise ConfigError(f"--workers must be from 1 to 256, got {workers}")
+    with run_folder(out, "sweep") as folder:
+        return _run(spec, cases, folder, scheduler, workers, resume, progress, client)
+
+
+def _run(
+    spec: SweepSpec,
+    cases: Sequence[Case],
+    folder: Any,
+    scheduler: str | None,
+    workers: int,
+    resume: bool,
+    progress: Callable[[int, int], None] | None,
+    client: Any,
+) -> SweepResult:
     t0 = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     cols = columns(spec)
-    csv_path, pq_path = out / "results.csv", out / "results.parquet"
+    # The table grows in place as cases finish (what --resume continues from).
+    csv_path, pq_path = folder.live("results.csv"), folder.live("results.parquet")
+    json_path = folder.live("sweep.json")
     done: list[dict[str, object]] = []
     if csv_path.exists():
         if not resume:
-            raise ConfigError(f"{csv_path} exists: add --resume to finish that sweep, or give another --out")
-        by_id = {c.id for c in cases}
-        done = [r for r in read_rows(csv_path, cols) if r["case_id"] in by_id]
-    _write_csv(csv_path, cols, done)  # the finished rows, clean, then appended to
-    write_json(
-        out / "sweep.json", {"schema": "softgrasp.sweep/1", **describe_spec(spec), "cases": len(cases)}
-    )
-    finished = {str(r["case_id"]) for r in done}
-    todo = [c for c in cases if c.id not in finished]
+            raise ConfigError(
+                f"{folder.path / 'results.csv'} exists: add --resume to finish that sweep, "
+                "or give another --out"
+            )
+        done = _resumable(folder.path, json_path, csv_path, spec, cases, cols)
+    finished = {int(r["case"]) for r in done}  # type: ignore[call-overload]
+    todo = [c for c in cases if c.index not in finished]
     rows = list(done)
-    if progress is not None:
-        progress(len(rows), len(cases))
     n_workers, address = 0, ""
-    if todo:
-        from dask.distributed import as_completed
+    own = client is None and bool(todo)
+    cluster = None
+    if own:
+        client, cluster = _client(scheduler, workers)  # reached before the folder changes
+    try:
+        _write_csv(csv_path, cols, done)  # the finished rows, clean, then appended to
+        doc = {"schema": "softgrasp.sweep/1", **describe_spec(spec), "cases": len(cases)}
+        write_json(json_path, {**doc, "spec_sha256": spec_digest(spec)})
+        if progress is not None:
+            progress(len(rows), len(cases))
+        if todo:
+            from dask.distributed import as_completed
 
-        own = client is None
-        client, cluster = _client(scheduler, workers) if own else (client, None)
-        try:
             info = client.scheduler_info()
             n_workers, address = len(info.get("workers", {})), str(info.get("address", ""))
             token = uuid.uuid4().hex[:8]  # keys unique on a client shared by several sweeps
@@ -246,7 +297,7 @@ def run_sweep(
                     c.options,
                     spec.execute,
                     spec.hold,
-                    key=f"softgrasp-case-{c.id}-{token}",
+                    key=f"softgrasp-case-{c.id}-{c.index}-{token}",
                     pure=False,
                 ): c
                 for c in todo
@@ -273,11 +324,11 @@ def run_sweep(
                     if time.perf_counter() - last_pq > PARQUET_EVERY:
                         _write_parquet(pq_path, cols, rows)
                         last_pq = time.perf_counter()
-        finally:
-            if own:
-                client.close()
-            if cluster is not None:
-                cluster.close()
+    finally:
+        if own:
+            client.close()
+        if cluster is not None:
+            cluster.close()
     rows.sort(key=lambda r: int(r["case"]))  # type: ignore[call-overload]
     _write_parquet(pq_path, cols, rows)
     return SweepResult(
@@ -285,8 +336,8 @@ def run_sweep(
         ran=len(todo),
         resumed=len(done),
         failed=sum(r["status"] == "failed" for r in rows),
-        csv_path=csv_path,
-        parquet_path=pq_path,
+        csv_path=folder.path / "results.csv",
+        parquet_path=folder.path / "results.parquet",
         wall_time_s=time.perf_counter() - t0,
         workers=n_workers,
         scheduler=address,

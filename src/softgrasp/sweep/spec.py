@@ -52,7 +52,12 @@ __all__ = [
     "case_id",
     "split_options",
     "describe_spec",
+    "spec_digest",
+    "MAX_CASES",
 ]
+
+#: The most cases a sweep may have (grid or random).
+MAX_CASES = 1_000_000
 
 #: Options a sweep may set (plan options and material parameters).
 OPTIONS: tuple[str, ...] = (
@@ -160,8 +165,10 @@ def read_sweep(path: str | Path) -> SweepSpec:
     if mode not in ("grid", "random"):
         raise ConfigError(f"sweep file {source}: [sweep] mode must be 'grid' or 'random', got {mode!r}")
     samples, seed, execute = head.get("samples", 16), head.get("seed", 0), head.get("execute", False)
-    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 1_000_000:
-        raise ConfigError(f"sweep file {source}: [sweep] samples must be an integer from 1, got {samples!r}")
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_CASES:
+        raise ConfigError(
+            f"sweep file {source}: [sweep] samples must be an integer from 1 to {MAX_CASES}, got {samples!r}"
+        )
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError(f"sweep file {source}: [sweep] seed must be an integer, got {seed!r}")
     if not isinstance(execute, bool):
@@ -183,6 +190,13 @@ def read_sweep(path: str | Path) -> SweepSpec:
         if not grid:
             raise ConfigError(
                 f"sweep file {source}: a grid sweep needs a [grid] table with at least one option"
+            )
+        n = math.prod(len(v) for v in grid.values())
+        if n > MAX_CASES:
+            sizes = " x ".join(f"{len(v)} {k}" for k, v in grid.items())
+            raise ConfigError(
+                f"sweep file {source}: the [grid] makes {n} cases ({sizes}), more than {MAX_CASES}; "
+                "use fewer values or a random sweep"
             )
     else:
         if "grid" in doc:
@@ -267,3 +281,24 @@ def describe_spec(spec: SweepSpec) -> dict[str, object]:
         "source": spec.source,
         "hold_setpoints_N": None if spec.hold is None else list(spec.hold),
     }
+
+
+def spec_digest(spec: SweepSpec | Mapping[str, object]) -> str:
+    """SHA-256 of a sweep's normalised spec (or of its :func:`describe_spec` as ``sweep.json``
+    records it): what decides its cases, not how the file spells it (the file's name, the order of
+    ``[base]``, the number formats). ``--resume`` continues only the sweep of the same digest."""
+    d = describe_spec(spec) if isinstance(spec, SweepSpec) else spec
+    base = d.get("base") or {}
+    grid = d.get("grid") or {}
+    rand = d.get("random") or {}
+    norm = {
+        "mode": d["mode"],
+        "samples": d.get("samples") if d["mode"] == "random" else None,
+        "seed": d.get("seed") if d["mode"] == "random" else None,
+        "execute": bool(d.get("execute")),
+        "base": sorted([k, v] for k, v in base.items()),  # type: ignore[union-attr]
+        "grid": [[k, v] for k, v in grid.items()],  # type: ignore[union-attr]
+        "random": [[k, v] for k, v in rand.items()],  # type: ignore[union-attr]
+        "hold": d.get("hold_setpoints_N"),
+    }
+    return hashlib.sha256(json.dumps(norm, sort_keys=True, default=str).encode()).hexdigest()
