@@ -45,7 +45,8 @@ def test_compress_writes_csv_json_png(tmp_path):
     assert data["object"]["material"]["E_Pa"] == 4.9284e6
     assert data["object"]["nodes"] > 0 and data["apparent_E_Pa"] > 0
     assert (out / "compress.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
+    # no temporary files left: of the hidden ones, only the manifest of the files softgrasp wrote
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == [".softgrasp-manifest.json"]
 
 
 @pytest.mark.parametrize(

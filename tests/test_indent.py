@@ -74,7 +74,8 @@ def test_cli_writes_csv_json_png(default_cube_run):
     assert data["peak_force_N"] == pytest.approx(max(float(r["force_N"]) for r in rows))
     assert len(data["contact_depth_m"]) == len(rows)
     assert (out / "indent.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
+    # no temporary files left: of the hidden ones, only the manifest of the files softgrasp wrote
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == [".softgrasp-manifest.json"]
 
 
 def test_default_cube_force_rises_monotonically_and_non_linearly(default_cube_run):

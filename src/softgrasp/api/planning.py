@@ -153,15 +153,15 @@ class Plan:
         ``figures`` draws the PNGs (default: a worker started here); ``plan.json``'s ``wall_time_s``
         counts from ``started`` (a :func:`time.perf_counter` value; default when :func:`plan` began).
         """
-        if figures is None:
-            from softgrasp.viz.worker import FigureWorker
-
-            with FigureWorker() as worker:
-                return self.save(out, figures=worker, started=started)
         from softgrasp.io.runfolder import run_folder
+        from softgrasp.viz.worker import FigureWorker
 
         with run_folder(out, "plan") as folder:
-            self._write(folder.stage, figures, started)
+            if figures is None:  # (stopped before the folder is committed or cleared)
+                with FigureWorker() as worker:
+                    self._write(folder.stage, worker, started)
+            else:
+                self._write(folder.stage, figures, started)
         self.directory = Path(out)
         return Path(out)
 

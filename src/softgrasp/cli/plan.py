@@ -147,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
 
     # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
     # files are written.
-    with FigureWorker() as figures, ExitStack() as folder:
+    # (The worker stops before the folder is committed or cleared: no figure lands after.)
+    with ExitStack() as folder, FigureWorker() as figures:
         return _plan(args, figures, folder)
 
 

@@ -307,7 +307,7 @@ def _sigterm_interrupts() -> Iterator[None]:
     """SIGTERM stops the run as Ctrl-C does (its staging folder removed), where nothing else
     handles it."""
     if threading.current_thread() is not threading.main_thread() or (
-        signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
+        signal.getsignal(signal.SIGTERM) != signal.SIG_DFL
     ):
         yield
         return

@@ -10,6 +10,7 @@ softgrasp imports without it.
 from __future__ import annotations
 
 import itertools
+import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -97,6 +98,7 @@ def gmsh_session(mesh_size: float) -> Iterator[ModuleType]:
         owner = not gmsh.isInitialized()
         if owner:
             gmsh.initialize(["softgrasp", "-nopopup"], readConfigFiles=False, interruptible=False)
+            _keep_signal_handlers()
             saved: dict[str, float] = {}
             previous_model = ""
         else:
@@ -114,6 +116,17 @@ def gmsh_session(mesh_size: float) -> Iterator[ModuleType]:
             raise MeshError(f"gmsh failed: {exc}") from exc
         finally:
             _close(gmsh, owner, model, previous_model, saved)
+
+
+def _keep_signal_handlers() -> None:
+    """Give the interpreter's SIGINT and SIGTERM handlers back: gmsh's library installs its own
+    at start-up, which end the process at once instead of letting the run clean up."""
+    if threading.current_thread() is not threading.main_thread():
+        return  # handlers are set from the main thread only
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(sig)
+        if handler is not None:
+            signal.signal(sig, handler)
 
 
 def _close(gmsh: ModuleType, owner: bool, model: str, previous: str, saved: dict[str, float]) -> None:
