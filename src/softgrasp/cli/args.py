@@ -61,7 +61,12 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--reorient", action="store_true", help="flip inverted tets of a mesh file instead of refusing it"
     )
-    p.add_argument("--out", default=None, metavar="DIR", help="output folder")
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="output folder; its earlier files of this command are replaced whole at the end",
+    )
 
 
 def progress_bar(desc: str, total: int = 1000):

@@ -19,7 +19,11 @@ def add_parser(sub) -> None:
     )
     sw.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
     sw.add_argument("--out", default=None, metavar="DIR", help="output folder (default softgrasp-out/sweep)")
-    sw.add_argument("--resume", action="store_true", help="keep the finished rows in DIR, run the rest")
+    sw.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the finished rows in DIR (one per case; the same sweep file only), run the rest",
+    )
     sw.set_defaults(func=run)
 
 
