@@ -97,8 +97,9 @@ class Plan:
 
     @property
     def setpoints_N(self) -> dict[str, float]:
-        """Each finger's force set-point: its normal force in the held state [N]."""
-        return {f["name"]: float(f["normal_force_N"]) for f in self.document["fingers"]}
+        """Each finger's force set-point [N]: the normal force its force controller closes to
+        (``safety_factor`` times the least that holds in softgrasp's model)."""
+        return {f["name"]: float(f["setpoint_N"]) for f in self.document["fingers"]}
 
     @property
     def forces_N(self) -> dict[str, float]:
@@ -182,11 +183,13 @@ class Plan:
         figures.draw(
             "plot_plan_forces",
             np.arange(1.0, g.increments + 1.0),
-            g.force_norm,
+            g.normal_force,
             names,
             out / "forces.png",
-            setpoints=[f.force_norm for f in g.fingers],
+            setpoints=g.setpoints,
             held_at=g.held_increment,
+            title="Normal forces of the fingers and their set-points",
+            quantity="normal force",
         )
         figures.draw(
             "plot_plan_force_penetration", g.penetration, g.force_norm, names, out / "force_penetration.png"
@@ -249,7 +252,7 @@ def plan(
     fingertip_radius_m: float = 0.008,
     step_m: float = 0.0005,
     solver: str = "quasistatic",
-    safety_factor: float = 1.0,
+    safety_factor: float = 1.25,
     hold_time_s: float = 1.0,
     max_squeeze: float = 0.5,
     refine: int = 12,
@@ -257,7 +260,6 @@ def plan(
     contact_law: str = "resolved",
     max_pressure_Pa: float | None = None,
     max_strain: float | None = None,
-    margin: bool = False,
     progress: Callable[[float], None] | None = None,
 ) -> Plan:
     """Plan a three-finger grasp of ``obj`` and its force set-points.
@@ -278,7 +280,9 @@ def plan(
         ``quasistatic`` (a static Newton solve per increment) or ``dynamic`` (explicit
         Runge-Kutta through each increment).
     safety_factor:
-        The grasp test must hold this multiple of the weight.
+        The set-points are this multiple (>= 1) of the least normal forces that hold the object
+        under force control in softgrasp's model (the critical scale, ``margin`` in
+        ``plan.json``).
     hold_time_s:
         Simulated holding time of the grasp test [s].
     max_squeeze:
@@ -295,10 +299,6 @@ def plan(
     max_pressure_Pa, max_strain:
         Limits on the held grasp's peak contact pressure [Pa] and the object's peak principal
         strain; a plan whose least squeeze that holds exceeds one raises ``InfeasibleGrasp``.
-    margin:
-        Also find the critical scale of the set-points, below which the object is no longer held
-        (:func:`softgrasp.grasp.margin.critical_scale`; a few hold checks, seconds): written as
-        ``margin`` in ``plan.json``.
     progress:
         Called with the fraction of the plan done.
     """
@@ -341,8 +341,4 @@ def plan(
         config = replace(plan_config({**options, "hand": "none"}, contact), hand=hand)
     g = plan_grasp(obj.body, config, progress=progress)
     doc = plan_document(g, obj.body, obj.name)
-    if margin:
-        from softgrasp.grasp.margin import critical_scale
-
-        doc["margin"] = critical_scale(obj.body, g).describe()
     return Plan(obj, g, config, options, doc, _started=started)

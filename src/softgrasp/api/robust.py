@@ -99,7 +99,7 @@ def robust_plan(
         res = robust_setpoints(
             options,
             nominal.resolve(),
-            [f.normal_force for f in plan.grasp.fingers],
+            [float(v) for v in plan.grasp.setpoints],
             list(uncertain),
             work,
             samples=samples,
@@ -114,12 +114,12 @@ def robust_plan(
         per_sample = summary.pop("per_sample")
         doc = copy.deepcopy(plan.document)
         for j, f in enumerate(doc["fingers"]):
-            f["nominal_normal_force_N"] = f["normal_force_N"]
-            f["normal_force_N"] = float(res.setpoints[j])
+            f["nominal_setpoint_N"] = f["setpoint_N"]
+            f["setpoint_N"] = doc["setpoints_N"][f["name"]] = float(res.setpoints[j])
         doc["setpoints"] = "robust" if res.achieved else "robust (goal not met)"
         doc["robust"] = {
             **summary,
-            "note": "each finger's normal_force_N is the robust set-point; its other fields (force, "
+            "note": "setpoints_N and each finger's setpoint_N are the robust set-points; the fingers' other fields (force, "
             "penetration, final position) and the equilibrium are the nominal plan's held state",
         }
         write_json(

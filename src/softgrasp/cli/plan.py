@@ -42,12 +42,6 @@ def add_parser(sub) -> None:
         "with its mesh) or paper (the paper's K delta^n in series with the meshed body, Eq. 9-11)",
     )
     pl.add_argument(
-        "--margin",
-        action="store_true",
-        help="also find the critical scale of the set-points, below which the object is no longer "
-        "held in softgrasp's model (a few more hold checks): plan.json 'margin'",
-    )
-    pl.add_argument(
         "--max-pressure",
         type=positive("--max-pressure"),
         default=None,
@@ -80,7 +74,8 @@ def add_parser(sub) -> None:
         "--safety-factor",
         type=float,
         default=None,
-        help="the grasp test must hold this multiple of the weight (default 1)",
+        help="set-points are this multiple (>= 1) of the least normal forces that hold the object under "
+        "force control in softgrasp's model (default 1.25)",
     )
     pl.add_argument(
         "--hold-time", type=float, default=None, help="simulated holding time of the check [s] (default 1)"
@@ -193,7 +188,6 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
             contact_law=args.contact_law,
             max_pressure_Pa=args.max_pressure,
             max_strain=args.max_strain,
-            margin=args.margin,
             progress=update,
         )
     finally:
@@ -207,12 +201,11 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
         f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
         f"{g.com_drift * 1e3:.2f} mm in {g.hold_time:g} s"
     )
-    if "margin" in doc:
-        mg = doc["margin"]
-        print(
-            f"margin: held down to {mg['critical_scale']:.2f} x the set-points, not at "
-            f"{mg['not_held_scale']:.2f} (softgrasp's model; execute with a margin above it)"
-        )
+    mg = doc["margin"]
+    print(
+        f"margin: set-points {mg['safety_factor']:g} x the least that holds: held down to "
+        f"{mg['critical_scale']:.2f} x the set-points, not at {mg['not_held_scale']:.2f} (softgrasp's model)"
+    )
     if g.damage is not None:
         j = int(g.damage.pressure.argmax())
         print(
@@ -227,9 +220,8 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
         return robust(args, result, uncertain, out, t0)
     if eq["friction_margin"] < 0.05:
         print(
-            f"note: held at the friction limit (margin {eq['friction_margin']:.1%}): the least squeeze "
-            "that holds; for a real hand, whose forces and friction vary, plan with --safety-factor 1.5 "
-            "or more"
+            f"note: held at the friction limit (friction margin {eq['friction_margin']:.1%}): for a real "
+            "hand, whose forces and friction vary, plan with a larger --safety-factor"
         )
     print(
         f"wrote {out}/plan.json, history.csv, object.vtu, frames.npz, forces.png, force_penetration.png, "

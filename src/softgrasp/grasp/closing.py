@@ -13,7 +13,7 @@ fingertip contacts (quasi-static: :func:`softgrasp.sim.static.solve_increment`; 
 RK4 through the increment at the closing speed, then that static solve). Then the grasp test of
 Sec. 3.5 (Eq. 21-22 with friction cones, :func:`~softgrasp.grasp.equilibrium.squeeze_utilisation`):
 the least fraction s of each finger's current normal force that, with friction inside the cones
-|f_t| <= mu f_n, holds ``safety_factor`` times the weight in force and torque; the test passes at
+|f_t| <= mu f_n, holds the weight in force and torque; the test passes at
 s <= 1. (On the table the fingers' normal forces need not balance among themselves; lifted, the
 object shifts until they do.) Since s scales the forces, a travel with s >= 1 / (1 + force_tol)
 squeezes at most ``force_tol`` harder than the least squeeze that passes.
@@ -115,7 +115,7 @@ class Closing:
                 fn,
                 cfg.contact.mu,
                 centre_of_mass(body, st.x),
-                cfg.safety_factor * body.total_mass,
+                body.total_mass,
                 body.gravity,
             )
         self.rows.append(
@@ -149,7 +149,7 @@ class Closing:
     def _rigid_need(self) -> str:
         """What the rigid-body LP (:func:`~softgrasp.grasp.equilibrium.minimum_normal_forces`)
         says of the last increment's contacts: the least normal force in all that holds the
-        object (times the safety factor) if it were rigid, and what the fingers reached."""
+        object if it were rigid, and what the fingers reached."""
         t, st, _, total = self.last
         body, cfg = self.body, self.cfg
         pts, push, fn = self.fingers.contact_frames(body, st.x, t * self.scale, st.contacts[1])
@@ -158,7 +158,7 @@ class Closing:
         mu = cfg.contact.mu
         try:
             need = minimum_normal_forces(
-                pts, push, mu, centre_of_mass(body, st.x), cfg.safety_factor * body.total_mass, body.gravity
+                pts, push, mu, centre_of_mass(body, st.x), body.total_mass, body.gravity
             ).sum()
         except InfeasibleGrasp:
             return f"; with mu = {mu:g} no normal forces at these contacts would hold even a rigid object"

@@ -115,7 +115,8 @@ class PlanConfig:
     solver: ``quasistatic`` (static equilibrium per increment) or ``dynamic`` (the paper's
         explicit Runge-Kutta through each increment at ``closing_speed``, then static settling).
     closing_speed: fingertip speed of the dynamic solver [m/s].
-    safety_factor: the grasp test must hold this multiple of the weight (>= 1).
+    safety_factor: the set-points are this multiple (>= 1) of the least normal forces that hold
+        under force control (:mod:`softgrasp.grasp.margin`).
     hold_time: simulated holding time of the verification [s].
     max_slip: largest slip of a fingertip in the object, as a whole, from the table's removal to
         the held state, as a fraction of the object's size (its largest extent): beyond it the
@@ -144,7 +145,7 @@ class PlanConfig:
     step: float = 0.0005
     solver: str = "quasistatic"
     closing_speed: float = 0.05
-    safety_factor: float = 1.0
+    safety_factor: float = 1.25
     hold_time: float = 1.0
     max_slip: float = 0.01
     max_squeeze: float = 0.5

@@ -1,20 +1,23 @@
-"""The plan's margin: the scale of its set-points below which the object is no longer held.
+"""The critical scale: the least multiple of the held state's normal forces that still holds.
 
-The fingers close under force control to ``s`` times the set-points and the hold check runs
-(:func:`~softgrasp.grasp.force_control.hold_setpoints`, the same check as the plan's, on the
-plan's contacts); the critical scale is where held turns into not held, found by bisection. A
-plan made with ``safety_factor`` > 1 carries that factor's margin above it; a real hand's forces
-and friction vary, and an independent engine (MuJoCo) needs a few per cent more.
+The fingers close under force control to ``s`` times the normal forces of the closing's held
+state and the hold check runs (:func:`~softgrasp.grasp.force_control.hold_setpoints`, the same
+check as the closing's, on the same initial grasp); the critical scale is where held turns into
+not held, found by bisection. The planner's set-points are ``safety_factor`` times the normal
+forces at the critical scale (:func:`~softgrasp.grasp.planner.plan_grasp`), so a plan's margin
+is its safety factor over the least force that holds in softgrasp's model.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
+from numpy.typing import NDArray
+
+from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.force_control import hold_setpoints
-from softgrasp.grasp.result import GraspPlan
 from softgrasp.physics.body import Body
 
 __all__ = ["Margin", "critical_scale"]
@@ -22,7 +25,7 @@ __all__ = ["Margin", "critical_scale"]
 
 @dataclass(frozen=True)
 class Margin:
-    """The critical scale of a plan's set-points.
+    """The critical scale of the held state's normal forces.
 
     Attributes
     ----------
@@ -37,21 +40,33 @@ class Margin:
     tolerance: float
     checks: tuple[tuple[float, bool], ...]
 
-    def describe(self) -> dict[str, object]:
+    def relative_to(self, factor: float) -> dict[str, object]:
+        """The margin as ``plan.json`` states it: scales relative to set-points that are
+        ``factor`` times the critical scale's forces (so its critical scale is 1 / factor)."""
+        k = 1.0 / (factor * self.scale)
         return {
-            "critical_scale": self.scale,
-            "not_held_scale": self.not_held,
-            "tolerance": self.tolerance,
-            "checks": [{"scale": s, "held": h} for s, h in self.checks],
+            "critical_scale": self.scale * k,
+            "not_held_scale": self.not_held * k,
+            "tolerance": self.tolerance * k,
+            "safety_factor": factor,
+            "checks": [{"scale": s * k, "held": h} for s, h in self.checks],
         }
 
 
-def critical_scale(body: Body, plan: GraspPlan, *, lowest: float = 0.5, tolerance: float = 0.02) -> Margin:
-    """Bisect the scale of ``plan``'s normal-force set-points between ``lowest`` and 1 for the
-    least that the object is held at (the hold check of the plan, under force control on the
-    plan's contacts), to ``tolerance``."""
-    cfg = replace(plan.config, grasp=plan.initial)
-    setpoints = np.array([f.normal_force for f in plan.fingers])
+def critical_scale(
+    body: Body,
+    config: PlanConfig,
+    normal_N: NDArray[np.float64],
+    *,
+    lowest: float = 0.5,
+    tolerance: float = 0.02,
+) -> Margin:
+    """Bisect the scale of the normal forces ``normal_N`` [N] (3,) between ``lowest`` and 1 for
+    the least that the object is held at under force control (``config``, whose ``grasp`` names
+    the initial grasp to close from), to ``tolerance``; above 1 (up to 2) when force control
+    does not hold at 1 (scale ``inf`` when not even at 2)."""
+    cfg = config
+    setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: list[tuple[float, bool]] = []
 
     def held(s: float) -> bool:
@@ -59,16 +74,17 @@ def critical_scale(body: Body, plan: GraspPlan, *, lowest: float = 0.5, toleranc
         checks.append((s, ok))
         return ok
 
-    hi = 1.0
-    if not held(hi):  # force control ends elsewhere than the position-controlled closing
-        hi = min(2.0, 1.0 / 0.9)
-        while not held(hi):
+    lo, hi = lowest, 1.0  # lo: the largest scale not held, once one is found
+    if held(hi):
+        if held(lo):
+            return Margin(lo, 0.0, tolerance, tuple(checks))
+    else:  # force control ends elsewhere than the position-controlled closing
+        while True:
+            lo, hi = hi, min(2.0, hi / 0.9)
+            if held(hi):
+                break
             if hi >= 2.0:
                 return Margin(float("inf"), hi, tolerance, tuple(checks))
-            hi = min(2.0, hi / 0.9)
-    lo = lowest
-    if held(lo):
-        return Margin(lo, 0.0, tolerance, tuple(checks))
     while hi - lo > tolerance:
         mid = 0.5 * (lo + hi)
         if held(mid):

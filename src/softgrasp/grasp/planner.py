@@ -14,14 +14,17 @@ forces of the *held* state (table removed) as the force set-points.
    distance, travelled beyond the last finger's first contact) the object would be crushed:
    :class:`InfeasibleGrasp`. Friction too low to hold before a squeeze that finds no rest is
    :class:`InfeasibleGrasp` too, with the rigid-body least normal force.
-3. The held state's finger forces, their balance (Eq. 21-22) and friction margin: the
-   :class:`GraspPlan`.
+3. The held state's finger forces, their balance (Eq. 21-22) and friction margin.
+4. The set-points: the critical scale of the held state's normal forces, the least multiple
+   that holds under force control (:func:`~softgrasp.grasp.margin.critical_scale`), times the
+   ``safety_factor``: the :class:`GraspPlan`.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +36,7 @@ from softgrasp.grasp.damage import check_limits, grasp_damage
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import cone_usage
 from softgrasp.grasp.initial import FINGER_NAMES
+from softgrasp.grasp.margin import critical_scale
 from softgrasp.grasp.result import FingerResult, GraspPlan, PlanFrames
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.grasp.setup import ClosingSetup, closing_setup
@@ -117,6 +121,14 @@ def _plan_grasp(
         )
         for j in range(3)
     )
+    normal = np.array([f.normal_force for f in fingers])
+    margin_ = critical_scale(body, replace(cfg, grasp=ig), normal)
+    if not np.isfinite(margin_.scale):
+        raise InfeasibleGrasp(
+            f"force control to the held state's normal forces ({_forces(normal)} N), and to up to "
+            f"{margin_.not_held:g} times them, does not hold the object (the fingers end elsewhere than "
+            "the closing); raise the friction coefficient or move the grasp (--grasp)"
+        )
     joint_paths = None
     if placement is not None:
         assert cfg.hand is not None
@@ -157,6 +169,8 @@ def _plan_grasp(
         hold_checks=tuple(closing.checks),
         slip=slip,
         damage=damage,
+        setpoints=cfg.safety_factor * margin_.scale * normal,
+        margin=margin_,
         frames=PlanFrames(
             travel=np.array([f[0] for f in frames]),
             positions=np.array([f[1] for f in frames]),
@@ -170,6 +184,10 @@ def _plan_grasp(
             - cache.stats["hold_check_systems"],
         ),
     )
+
+
+def _forces(f: NDArray[np.float64]) -> str:
+    return ", ".join(f"{v:.3g}" for v in f)
 
 
 def _torque_residual(rep: FingerReport, centres, com) -> NDArray[np.float64]:

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.damage import Damage
 from softgrasp.grasp.initial import InitialGrasp
+from softgrasp.grasp.margin import Margin
 from softgrasp.hand.placement import HandPlacement
 
 __all__ = ["FingerResult", "GraspPlan", "PlanFrames"]
@@ -80,6 +81,9 @@ class GraspPlan:
         held state [m], (3,) (:func:`~softgrasp.grasp.hold.finger_slip`, summed over the check's
         steps; at most ``max_slip`` times the object's size).
     damage: the held grasp's peak contact pressures and peak strain (:mod:`softgrasp.grasp.damage`).
+    setpoints: the force set-points [N], (3,): the normal forces the fingers close to under force
+        control, ``safety_factor`` times the critical scale times the held state's normal forces.
+    margin: the critical scale of the held state's normal forces (:mod:`softgrasp.grasp.margin`).
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
     solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
@@ -121,6 +125,8 @@ class GraspPlan:
     slip: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     damage: Damage | None = None
     frames: PlanFrames | None = None
+    setpoints: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.nan))
+    margin: Margin | None = None
     solver_stats: dict[str, int] = field(default_factory=dict)
 
     @property

@@ -42,7 +42,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "fingertip_radius": 0.008,
     "step": 0.0005,
     "solver": "quasistatic",
-    "safety_factor": 1.0,
+    "safety_factor": 1.25,
     "hold_time": 1.0,
     "max_squeeze": 0.5,
     "refine": 12,

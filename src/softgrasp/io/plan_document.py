@@ -58,6 +58,8 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             },
         },
         "parameters": plan.config.describe(),
+        "setpoints_N": {f.name: float(plan.setpoints[j]) for j, f in enumerate(plan.fingers)},
+        "margin": None if plan.margin is None else plan.margin.relative_to(plan.config.safety_factor),
         "initial_grasp": {
             "criterion": "Ferrari-Canny epsilon on 8-edge friction cones, grasp plane through the "
             "centre of mass",
@@ -78,6 +80,7 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
                 "penetration_m": f.penetration,
                 "force_N": _v(f.force),
                 "force_norm_N": f.force_norm,
+                "setpoint_N": float(plan.setpoints[j]),
                 "normal_force_N": f.normal_force,
                 "tangential_force_N": f.tangential_force,
                 "rigid_minimum_normal_force_N": float(plan.rigid_normal_forces[j]),
@@ -150,12 +153,16 @@ def history_rows(plan: GraspPlan) -> list[tuple[object, ...]]:
 
 
 def plan_table(plan: GraspPlan) -> str:
-    """The paper's Table 2 for this plan: finger, penetration [mm], force [N]."""
-    lines = [f"{'finger':<8} {'penetration mm':>15} {'force N':>9} {'normal N':>9} {'friction N':>11}"]
-    for f in plan.fingers:
+    """The paper's Table 2 for this plan: finger, set-point [N] (the normal force the force
+    controller closes to), and the held state's penetration [mm] and forces [N]."""
+    lines = [
+        f"{'finger':<8} {'set-point N':>12} {'penetration mm':>15} {'force N':>9} {'normal N':>9} "
+        f"{'friction N':>11}"
+    ]
+    for j, f in enumerate(plan.fingers):
         lines.append(
-            f"{f.name:<8} {f.penetration * 1e3:>15.2f} {f.force_norm:>9.3f} {f.normal_force:>9.3f} "
-            f"{f.tangential_force:>11.3f}"
+            f"{f.name:<8} {plan.setpoints[j]:>12.3f} {f.penetration * 1e3:>15.2f} {f.force_norm:>9.3f} "
+            f"{f.normal_force:>9.3f} {f.tangential_force:>11.3f}"
         )
     return "\n".join(lines)
 

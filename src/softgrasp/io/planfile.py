@@ -195,7 +195,7 @@ def load_plan_file(path: str | Path) -> PlanFile:
                 name=name,
                 start=start,
                 final=final,
-                normal_force=_number(named, f"{where}.normal_force_N", lo=0.0),
+                normal_force=_number(named, f"{where}.setpoint_N", lo=0.0),
                 q_start=qa,
             )
         )

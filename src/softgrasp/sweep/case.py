@@ -131,11 +131,11 @@ def run_case(
             force_residual_N=float(plan.force_residual),
             hold_drift_m=float(plan.com_drift),
         )
-        for name, f in zip(FINGERS, plan.fingers, strict=True):
-            row[f"setpoint_{name}_N"] = float(f.normal_force)
+        for name, f, sp in zip(FINGERS, plan.fingers, plan.setpoints, strict=True):
+            row[f"setpoint_{name}_N"] = float(sp)
             row[f"force_{name}_N"] = float(math.sqrt(float(f.force @ f.force)))
             row[f"penetration_{name}_m"] = float(f.penetration)
-        row["setpoint_sum_N"] = float(sum(f.normal_force for f in plan.fingers))
+        row["setpoint_sum_N"] = float(plan.setpoints.sum())
         if execute:
             te = time.perf_counter()
             row.update(_execute(plan, body))

@@ -24,21 +24,23 @@ def plot_plan_forces(
     setpoints: Sequence[float] | None = None,
     held_at: int | None = None,
     title: str = "Grasping forces applied by the fingers",
+    quantity: str = "force",
 ) -> Path:
-    """Force norm on each finger against the closing increment (paper Fig. 13 style).
+    """A force on each finger against the closing increment (paper Fig. 13 style).
 
     Parameters
     ----------
     increments: closing increments (step numbers or closing parameter), shape (K,).
-    force_norms: norm [N] of the contact force on each finger at each increment, shape (K, n_f).
+    force_norms: the force [N] on each finger at each increment (its norm, or its normal
+        component), shape (K, n_f).
     names: one label per finger (``thumb``, ``first``, ``middle`` ...).
     path: PNG file to write.
-    setpoints: each finger's force [N] in the held state (the table removed, the fingers carrying
-        the weight), drawn one step after the last increment and named in the legend: the closing
-        ends on the table, so its last forces are not the set-points.
+    setpoints: each finger's set-point [N] (from the held state: the table removed, the fingers
+        carrying the weight), drawn one step after the last increment and named in the legend:
+        the closing ends on the table, so its last forces are not the set-points.
     held_at: the increment (index) the object was held from, where the dotted line to the
         set-points starts (default the last: increments past it bracketed the least squeeze).
-    title: figure title.
+    title: figure title.  quantity: what the forces are, for the y axis's label.
 
     Raises
     ------
@@ -78,7 +80,7 @@ def plot_plan_forces(
     ax.set_xlabel(
         "closing increment" if held is None else "closing increment, then held with the table removed (★)"
     )
-    ax.set_ylabel("force [N]")
+    ax.set_ylabel(f"{quantity} [N]")
     ax.set_title(title)
     out = save_curve(plt, fig, ax, path, legend_loc="upper left")
     return out
