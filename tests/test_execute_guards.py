@@ -351,3 +351,37 @@ def test_ctrl_c_in_a_sweep_stops_the_workers_quietly(tmp_path):
         return results.is_file() and len(results.read_text().splitlines()) >= 2
 
     _assert_interrupted(_interrupt(["sweep", "s.toml", "--out", "sw"], tmp_path, running))
+
+
+# ----------------------------------------------------------------------- the drop's advice
+def _run(reached: bool, measured: float):
+    from types import SimpleNamespace
+
+    res = SimpleNamespace(
+        reached=reached,
+        fingers=("thumb", "first"),
+        measured={"thumb": measured, "first": measured},
+        setpoints={"thumb": 0.3, "first": 0.2},
+    )
+    return SimpleNamespace(result=res, config=ExecuteConfig())
+
+
+@pytest.mark.parametrize(
+    ("reached", "measured", "material", "scale", "needle"),
+    [
+        (False, 0.0, None, 1.0, "the fingers never pressed the object"),
+        (False, 0.1, None, 1.0, "did not reach their set-points in 6 s of closing (thumb 0.100 of 0.300 N"),
+        (True, 0.3, "o.toml", 1.0, "plan for it (softgrasp plan --material o.toml)"),
+        (True, 0.3, None, 0.25, "the set-points scaled by 0.25 do not hold it: raise --scale"),
+        (True, 0.3, None, 1.0, "raise the set-points (plan with --safety-factor)"),
+    ],
+)
+def test_a_drop_is_explained_by_its_cause(reached, measured, material, scale, needle):
+    from types import SimpleNamespace
+
+    from softgrasp.cli.execute import _drop_advice
+
+    advice = _drop_advice(SimpleNamespace(material=material, scale=scale), _run(reached, measured))
+    assert needle in advice
+    if not reached or material is not None:
+        assert "raise the set-points" not in advice
