@@ -36,3 +36,15 @@ def finished_ok():
         return not alive and child.exitcode == 0
 
     return check
+
+
+@pytest.fixture(scope="session")
+def planned_sphere(tmp_path_factory):
+    """A folder holding ``plan.json`` and ``object.vtu`` of the default sphere, planned once per
+    test session by ``softgrasp plan --safety-factor 1.2`` (MuJoCo's contact needs a few per cent
+    more squeeze than softgrasp's least one)."""
+    from softgrasp.cli import main
+
+    out = tmp_path_factory.mktemp("planned-sphere")
+    assert main(["plan", "--safety-factor", "1.2", "--out", str(out)]) == 0
+    return out

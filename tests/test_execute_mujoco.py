@@ -17,12 +17,10 @@ from softgrasp.io.planfile import load_plan_file
 
 
 @pytest.fixture(scope="module")
-def plan_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("plan")
+def plan_dir(planned_sphere) -> Path:
     # The least squeeze that holds in softgrasp's model (safety factor 1) sits at the edge of
-    # holding; MuJoCo's contact needs a few per cent more: execute with a margin.
-    assert main(["plan", "--safety-factor", "1.2", "--out", str(out)]) == 0
-    return out
+    # holding; MuJoCo's contact needs a few per cent more: the plan has a margin (conftest).
+    return planned_sphere
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +83,7 @@ def _write(tmp_path: Path, doc: dict, plan_dir: Path) -> Path:
             "schema 'softgrasp.plan/0' is not 'softgrasp.plan/1'",
         ),
         (lambda d: d["object"].pop("mass_kg"), "missing field 'object.mass_kg'"),
-        (lambda d: d["object"].update(mass_kg=-0.05), "'object.mass_kg' = -0.05 is not physical"),
+        (lambda d: d["object"].update(mass_kg=-0.05), "'object.mass_kg' = -0.05 kg is not physical"),
         (lambda d: d["object"]["material"].update(nu=0.5), "'object.material.nu' = 0.5 is not physical"),
         (
             lambda d: d["object"]["material"].update(E_Pa="soft"),
@@ -95,7 +93,7 @@ def _write(tmp_path: Path, doc: dict, plan_dir: Path) -> Path:
             lambda d: d["fingers"][0].update(normal_force_N=float("nan")),
             "normal_force_N' must be a finite number",
         ),
-        (lambda d: d["fingers"][1].update(normal_force_N=0.0), "normal_force_N' = 0 is not physical"),
+        (lambda d: d["fingers"][1].update(normal_force_N=0.0), "normal_force_N' = 0 N is not physical"),
         (lambda d: d["fingers"][2].pop("start_position_m"), r"missing field 'fingers\[2\].start_position_m'"),
         (lambda d: d.update(hand=None), "made without a hand model"),
         (lambda d: d["hand"].update(palm_pose=np.diag([2.0, 1, 1, 1]).tolist()), "not a rigid transform"),
@@ -121,4 +119,4 @@ def test_execute_refuses_bad_options_and_missing_files(tmp_path, capsys):
     assert main(["execute", str(tmp_path / "p.json")]) == 2
     assert "not readable JSON" in capsys.readouterr().err
     assert main(["execute", str(tmp_path / "p.json"), "--scale", "-1"]) == 2
-    assert "--scale must be a number > 0" in capsys.readouterr().err
+    assert "--scale = -1 is not physical: it must be 0 < --scale <= 10" in capsys.readouterr().err

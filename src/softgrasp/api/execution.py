@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from softgrasp.execution.controller import ClosingLine, ExecuteConfig, ExecutionResult
     from softgrasp.io.planfile import PlanFile
 
-__all__ = ["Execution", "execute", "with_material_file", "EXECUTE_SCHEMA"]
+__all__ = ["Execution", "execute", "check_options", "with_material_file", "EXECUTE_SCHEMA"]
 
 EXECUTE_SCHEMA = "softgrasp.execute/1"
 
@@ -36,13 +36,36 @@ def with_material_file(plan: PlanFile, path: str) -> tuple[PlanFile, dict[str, f
 
     if not is_material_file(path):
         raise ConfigError(f"execute --material takes a material file (.toml), got {path!r}")
+    from softgrasp.io.limits import PLAN_RANGES
+
     mf = read_material_file(path)
     changes: dict[str, float] = {}
     if mf.material is not None:
         changes.update(E=mf.material.E, nu=mf.material.nu)
     if "mu" in mf.contact:
-        changes["mu"] = float(mf.contact["mu"])  # type: ignore[arg-type]
+        changes["mu"] = mf.contact["mu"]  # type: ignore[assignment]
+    where = {"E": "object.material.E_Pa", "nu": "object.material.nu", "mu": "parameters.contact.mu"}
+    for key, value in changes.items():
+        changes[key] = PLAN_RANGES[where[key]].check(value, key, f"execute --material {path}: ")
     return replace(plan, **changes), changes
+
+
+def check_options(plan: PlanFile, lift_m: float, scale: float, backend: str) -> None:
+    """Refuse an option of :func:`execute` outside its physical range
+    (:data:`~softgrasp.io.limits.EXECUTE_RANGES`), or a scaled set-point above
+    :data:`~softgrasp.io.limits.MAX_SETPOINT_N`, naming the option."""
+    from softgrasp.io.limits import EXECUTE_RANGES, MAX_SETPOINT_N
+
+    EXECUTE_RANGES["--lift"].check(lift_m, "--lift")
+    EXECUTE_RANGES["--scale"].check(scale, "--scale")
+    if backend != "mujoco":
+        raise ConfigError(f"backend must be mujoco, got {backend!r}")
+    for f in plan.fingers:
+        if scale * f.normal_force > MAX_SETPOINT_N:
+            raise ConfigError(
+                f"--scale {scale:g} asks the {f.name} to press {scale * f.normal_force:.3g} N, more than "
+                f"the {MAX_SETPOINT_N:g} N a fingertip is driven to: lower --scale"
+            )
 
 
 @dataclass(eq=False)
@@ -194,16 +217,11 @@ def execute(
     A :class:`Plan` not saved yet is executed from a temporary copy of its ``plan.json`` and
     ``object.vtu`` (the run's document then names no plan file).
     """
-    import math
-
+    from softgrasp.io.limits import EXECUTE_RANGES
     from softgrasp.io.planfile import load_plan_file
 
-    if not (math.isfinite(scale) and scale > 0):
-        raise ConfigError(f"--scale must be a number > 0, got {scale}")
-    if not (math.isfinite(lift_m) and lift_m > 0):
-        raise ConfigError(f"--lift must be a height > 0 m, got {lift_m}")
-    if backend != "mujoco":
-        raise ConfigError(f"backend must be mujoco, got {backend!r}")
+    EXECUTE_RANGES["--lift"].check(lift_m, "--lift")
+    EXECUTE_RANGES["--scale"].check(scale, "--scale")
     if isinstance(plan, Plan):
         if plan.directory is not None:
             return execute(
@@ -237,9 +255,10 @@ def _execute(
     from softgrasp.model.mesh.io import load_mesh
 
     t0 = time.perf_counter()
+    check_options(plan, lift_m, scale, backend)
     if material is not None:
         plan, _ = with_material_file(plan, material)
-    hand = MujocoHand.from_plan(plan)
+    hand = MujocoHand.from_plan(plan)  # the plan's parts checked to agree first
     facets = load_mesh(plan.mesh_file).facets
     lines = closing_lines(plan, scale)
     cfg = ExecuteConfig(lift=float(lift_m))

@@ -7,17 +7,46 @@ import sys
 from pathlib import Path
 
 from softgrasp.cli.args import progress_bar
-from softgrasp.errors import ConfigError
+from softgrasp.io.limits import EXECUTE_RANGES, MAX_SETPOINT_N
 
 __all__ = ["add_parser", "run"]
 
 
+def _number(name: str):
+    def conv(s: str) -> float:
+        try:
+            return float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {s!r}") from None
+
+    return conv
+
+
 def add_parser(sub) -> None:
-    ex = sub.add_parser("execute", help="execute a plan under force control on a simulated hand and lift")
+    ex = sub.add_parser(
+        "execute",
+        help="execute a plan under force control on a simulated hand and lift",
+        description="Execute a plan under force control on a simulated hand and lift. Before "
+        "simulating, every number read from the plan is checked against its physical range and the "
+        "plan's parts against each other (fingers, object.vtu, hand and palm pose); a simulation "
+        "that blows up or runs past its time bound stops with an error.",
+    )
     ex.add_argument("plan", metavar="PLAN.json", help="a plan written by softgrasp plan")
     ex.add_argument("--backend", choices=("mujoco",), default="mujoco", help="the hand (default: mujoco)")
-    ex.add_argument("--lift", type=float, default=0.10, help="lift height [m] (default 0.10)")
-    ex.add_argument("--scale", type=float, default=1.0, help="multiply the set-points (default 1)")
+    lift, scale = EXECUTE_RANGES["--lift"], EXECUTE_RANGES["--scale"]
+    ex.add_argument(
+        "--lift",
+        type=_number("--lift"),
+        default=0.10,
+        help=f"lift height [m] (default 0.10; {lift.describe('LIFT')})",
+    )
+    ex.add_argument(
+        "--scale",
+        type=_number("--scale"),
+        default=1.0,
+        help=f"multiply the set-points (default 1; {scale.describe('SCALE')}, each scaled set-point "
+        f"<= {MAX_SETPOINT_N:g} N)",
+    )
     ex.add_argument(
         "--material",
         default=None,
@@ -44,6 +73,31 @@ def _execute_material(args: argparse.Namespace, plan):
     return plan
 
 
+def _drop_advice(args: argparse.Namespace, run) -> str:
+    """Why the object dropped, and what to change: set-points not reached are not cured by
+    raising them; another object than planned needs its own plan."""
+    res, cfg = run.result, run.config
+    if not res.reached:
+        short = [f"{n} {res.measured[n]:.3f} of {res.setpoints[n]:.3f} N" for n in res.fingers]
+        if all(res.measured[n] <= 0 for n in res.fingers):
+            return (
+                f"the fingers never pressed the object in {cfg.max_close_time:g} s of closing: their "
+                "closing lines miss it; check that the plan and its object.vtu belong together, or re-plan"
+            )
+        return (
+            f"the fingers did not reach their set-points in {cfg.max_close_time:g} s of closing "
+            f"({', '.join(short)}): the hand could not press that hard along its closing lines; re-plan"
+        )
+    if args.material is not None:
+        return (
+            f"the object of {args.material} slipped out at the set-points planned for another "
+            f"material: plan for it (softgrasp plan --material {args.material}) or raise --scale"
+        )
+    if args.scale < 1:
+        return f"the set-points scaled by {args.scale:g} do not hold it: raise --scale"
+    return "raise the set-points (plan with --safety-factor)"
+
+
 def run(args: argparse.Namespace) -> int:
     from softgrasp.io.runfolder import run_folder
 
@@ -52,17 +106,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, out: Path) -> int:
-    import math
-
-    from softgrasp.api.execution import execute
+    from softgrasp.api.execution import check_options, execute
+    from softgrasp.execution.plan_check import check_plan
     from softgrasp.io.planfile import load_plan_file
 
-    if not (math.isfinite(args.scale) and args.scale > 0):
-        raise ConfigError(f"--scale must be a number > 0, got {args.scale}")
-    if not (math.isfinite(args.lift) and args.lift > 0):
-        raise ConfigError(f"--lift must be a height > 0 m, got {args.lift}")
+    EXECUTE_RANGES["--lift"].check(args.lift, "--lift")
+    EXECUTE_RANGES["--scale"].check(args.scale, "--scale")
     planned = load_plan_file(args.plan)
+    check_options(planned, args.lift, args.scale, args.backend)
     plan = _execute_material(args, planned)
+    check_plan(plan)
     print(
         f"executing {args.plan} on {args.backend}: set-points "
         + ", ".join(f"{f.name} {args.scale * f.normal_force:.3f} N" for f in plan.fingers)
@@ -96,8 +149,6 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     )
     print(f"wrote {out}/execute.json, execute.csv, execute_forces.png, {', '.join(pictures)}")
     if res.dropped:
-        print(
-            "softgrasp: the object dropped: raise the set-points (plan with --safety-factor)", file=sys.stderr
-        )
+        print(f"softgrasp: the object dropped: {_drop_advice(args, run)}", file=sys.stderr)
         return 1
     return 0

@@ -59,6 +59,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"softgrasp: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        import signal
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not break the exit
         print("softgrasp: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # a bug: keep it to one line unless asked

@@ -23,20 +23,36 @@ has risen less than half the lift.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.errors import ConfigError
+from softgrasp.errors import ConfigError, SimulationUnstable
 from softgrasp.execution.protocol import Hand
 from softgrasp.hand.placement import invert, transform
 from softgrasp.io.planfile import PlanFile
 
-__all__ = ["ClosingLine", "ExecuteConfig", "ExecutionResult", "closing_lines", "execute_plan", "PHASES"]
+__all__ = [
+    "ClosingLine",
+    "ExecuteConfig",
+    "ExecutionResult",
+    "closing_lines",
+    "execute_plan",
+    "PHASES",
+    "MAX_SIMULATED_TIME",
+]
 
 PHASES = ("settle", "close", "lift", "hold")
+#: Longest execution [s] of hand time (settle, closing, lift and hold together).
+MAX_SIMULATED_TIME = 300.0
+#: The default wall-clock bound of an execution: this many seconds ...
+WALL_TIME_BASE = 60.0
+#: ... plus this many times its longest hand time (MuJoCo runs the 388-node sphere ~6x slower
+#: than real time on one core).
+WALL_TIME_FACTOR = 100.0
 
 
 @dataclass(frozen=True)
@@ -92,6 +108,9 @@ class ExecuteConfig:
         tolerance to end the closing.  max_close_time: [s] before giving up on the set-points.
     speed: largest fingertip speed of the force controller [m/s].  gain: relative force error at
         which it is reached.  control_dt: controller period [s].
+    max_wall_time: wall-clock bound of the whole execution [s]; None: :data:`WALL_TIME_BASE` +
+        :data:`WALL_TIME_FACTOR` x :attr:`duration`. Past it the execution stops with
+        :class:`~softgrasp.errors.SimulationUnstable`.
     force_control_in_lift: keep regulating each finger's force during the lift and the hold. Off
         by default: once the set-points are reached the fingers hold their posture (the paper's
         lift). Three independent force loops cannot hold the object's position: when the weight
@@ -111,6 +130,7 @@ class ExecuteConfig:
     gain: float = 2.0
     control_dt: float = 0.002
     force_control_in_lift: bool = False
+    max_wall_time: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("lift", "hold_time", "settle_time"):
@@ -129,6 +149,27 @@ class ExecuteConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"execute parameter {name} = {v} must be finite and > 0")
+        w = self.max_wall_time
+        if w is not None and not (math.isfinite(w) and w > 0):
+            raise ConfigError(f"execute parameter max_wall_time = {w} s must be finite and > 0 (or None)")
+        if self.duration > MAX_SIMULATED_TIME:
+            raise ConfigError(
+                f"the execution would last {self.duration:g} s (settle, closing, lift at "
+                f"{self.lift_speed:g} m/s, hold), more than {MAX_SIMULATED_TIME:g} s: lower the lift "
+                "height or the hold time"
+            )
+
+    @property
+    def duration(self) -> float:
+        """Longest hand time of an execution [s]: settle, the whole closing time, lift and hold."""
+        return self.settle_time + self.max_close_time + self.lift / self.lift_speed + self.hold_time
+
+    @property
+    def wall_limit(self) -> float:
+        """Wall-clock bound of an execution [s] (:attr:`max_wall_time` or its default)."""
+        if self.max_wall_time is not None:
+            return self.max_wall_time
+        return WALL_TIME_BASE + WALL_TIME_FACTOR * self.duration
 
     def describe(self) -> dict[str, float | bool]:
         return {
@@ -143,6 +184,7 @@ class ExecuteConfig:
             "gain": self.gain,
             "control_dt_s": self.control_dt,
             "force_control_in_lift": self.force_control_in_lift,
+            "wall_limit_s": self.wall_limit,
         }
 
 
@@ -232,6 +274,24 @@ def execute_plan(
     events: dict[str, float] = {}
     base = np.zeros(3)
     planned = cfg.settle_time + cfg.max_close_time / 3 + cfg.lift / cfg.lift_speed + cfg.hold_time
+    wall0, wall_limit = time.perf_counter(), cfg.wall_limit
+
+    def step() -> None:
+        """One control period on the hand, with the guards that bound every execution."""
+        t = hand.time
+        hand.step(dt)
+        if not hand.time > t:
+            raise SimulationUnstable(
+                f"the hand's clock did not advance in a control period (t = {t:g} s, then {hand.time:g} s): "
+                "its simulation or driver is stuck"
+            )
+        wall = time.perf_counter() - wall0
+        if wall > wall_limit:
+            raise SimulationUnstable(
+                f"the execution took {wall:.3g} s of wall-clock time for {hand.time:.3g} s of hand time "
+                f"(limit {wall_limit:.3g} s for at most {cfg.duration:.3g} s): the simulation is too "
+                "slow; plan on a coarser mesh (a larger --mesh-size)"
+            )
 
     def command() -> None:
         hand.command_fingertips({f: lines[f].start + travel[f] * lines[f].direction for f in names})
@@ -267,7 +327,7 @@ def execute_plan(
     events["settle"] = hand.time
     last = hand.fingertip_normal_forces()  # the tactile reading after the latest step
     while hand.time < t_end - 1e-12:
-        hand.step(dt)
+        step()
         last = hand.fingertip_normal_forces()
         record(0, last)
     if on_event is not None:
@@ -297,7 +357,7 @@ def execute_plan(
             inside_since = None
         control(forces)
         command()
-        hand.step(dt)
+        step()
         last = hand.fingertip_normal_forces()
         record(1, last)
     measured = dict(last)
@@ -316,7 +376,7 @@ def execute_plan(
             if cfg.force_control_in_lift:
                 control(last)
                 command()
-            hand.step(dt)
+            step()
             last = hand.fingertip_normal_forces()
             record(phase, last)
 

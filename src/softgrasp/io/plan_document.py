@@ -12,7 +12,15 @@ from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.planner import GraspPlan
 from softgrasp.physics.body import Body
 
-__all__ = ["SCHEMA", "plan_document", "history_rows", "HISTORY_HEADER", "plan_table", "hand_polylines"]
+__all__ = [
+    "SCHEMA",
+    "mesh_digest",
+    "plan_document",
+    "history_rows",
+    "HISTORY_HEADER",
+    "plan_table",
+    "hand_polylines",
+]
 
 SCHEMA = "softgrasp.plan/1"
 #: Equilibrium is "satisfied" when the held state's residuals are below this fraction of the weight.
@@ -29,6 +37,20 @@ HISTORY_HEADER = (
 
 def _v(a: np.ndarray) -> list[float]:
     return [float(x) for x in np.asarray(a).ravel()]
+
+
+def mesh_digest(points: NDArray[np.float64], tets: NDArray[np.int64]) -> str:
+    """SHA-256 of a mesh's node coordinates (float64) and tetrahedra (int64), little-endian, as
+    ``"sha256:<hex>"``: the fingerprint ``plan.json`` records of the placed object, which
+    ``execute`` compares with ``object.vtu``."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a, dtype in ((points, "<f8"), (tets, "<i8")):
+        arr = np.ascontiguousarray(np.asarray(a), dtype=dtype)
+        h.update(str(arr.shape).encode())
+        h.update(arr.tobytes())
+    return "sha256:" + h.hexdigest()
 
 
 def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, Any]:
@@ -49,6 +71,7 @@ def plan_document(plan: GraspPlan, body: Body, object_name: str) -> dict[str, An
             "mass_kg": body.total_mass,
             "nodes": int(body.n_nodes),
             "tets": int(len(body.mesh.tets)),
+            "mesh_sha256": mesh_digest(plan.placed, body.mesh.tets),
             "material": {
                 "name": m.name,
                 "E_Pa": m.E,

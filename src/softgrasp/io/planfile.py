@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.grasp.initial import InitialGrasp
+from softgrasp.grasp.initial import FINGER_NAMES, InitialGrasp
+from softgrasp.io.limits import PLAN_RANGES
 from softgrasp.io.plan_document import SCHEMA
 
 __all__ = ["PlanFinger", "PlanFile", "load_plan_file", "load_plan_grasp", "SCHEMA"]
@@ -49,6 +50,7 @@ class PlanFile:
     palm_pose: NDArray[np.float64]
     fingers: tuple[PlanFinger, ...]
     document: dict[str, Any]
+    mesh_sha256: str = ""
 
 
 def _get(doc: Any, path: str) -> Any:
@@ -74,6 +76,12 @@ def _number(
         bounds = " and ".join(filter(None, (lo_s, hi_s)))
         raise ConfigError(f"plan file: field {path!r} = {v:g} is not physical (must be {bounds})")
     return v
+
+
+def _ranged(doc: Any, path: str, key: str | None = None) -> float:
+    """The number at ``path``, inside the physical range :data:`PLAN_RANGES` of ``key`` (default
+    ``path``)."""
+    return PLAN_RANGES[key or path].check(_get(doc, path), f"'{path}'", "plan file: field ")
 
 
 def _vector(doc: Any, path: str, n: int = 3) -> NDArray[np.float64]:
@@ -174,11 +182,20 @@ def load_plan_file(path: str | Path) -> PlanFile:
     if not isinstance(fingers_doc, list) or not fingers_doc:
         raise ConfigError("plan file: field 'fingers' must be a non-empty list")
     fingers = []
+    seen: set[str] = set()
     for k, f in enumerate(fingers_doc):
         where = f"fingers[{k}]"
         name = f.get("name") if isinstance(f, dict) else None
-        if not isinstance(name, str):
+        if not isinstance(name, str) or not name:
             raise ConfigError(f"plan file: field '{where}.name' must be a finger name")
+        if name not in FINGER_NAMES:
+            raise ConfigError(
+                f"plan file: field '{where}.name' = {name!r} is not a finger softgrasp plans "
+                f"({', '.join(FINGER_NAMES)})"
+            )
+        if name in seen:
+            raise ConfigError(f"plan file: field '{where}.name': finger {name!r} appears twice in 'fingers'")
+        seen.add(name)
         q = _get(doc, f"hand.fingers.{name}.q_start_rad")
         qa = np.asarray(q, dtype=np.float64) if isinstance(q, list) else np.zeros((0, 0))
         if qa.ndim != 1 or not np.all(np.isfinite(qa)):
@@ -195,7 +212,7 @@ def load_plan_file(path: str | Path) -> PlanFile:
                 name=name,
                 start=start,
                 final=final,
-                normal_force=_number(named, f"{where}.setpoint_N", lo=0.0),
+                normal_force=_ranged(named, f"{where}.setpoint_N", "setpoint_N"),
                 q_start=qa,
             )
         )
@@ -203,14 +220,38 @@ def load_plan_file(path: str | Path) -> PlanFile:
         path=p,
         object_name=str(_get(doc, "object.name")),
         mesh_file=mesh_file,
-        mass=_number(doc, "object.mass_kg", lo=0.0),
-        E=_number(doc, "object.material.E_Pa", lo=0.0),
-        nu=_number(doc, "object.material.nu", lo=-1.0, hi=0.5),
-        mu=_number(doc, "parameters.contact.mu", lo=0.0),
-        fingertip_radius=_number(doc, "parameters.fingertip_radius_m", lo=0.0),
-        table_mu=_number(doc, "parameters.table_mu", lo=0.0, open_lo=False),
-        hand_source=str(_get(doc, "hand.model")),
+        mass=_ranged(doc, "object.mass_kg"),
+        E=_ranged(doc, "object.material.E_Pa"),
+        nu=_ranged(doc, "object.material.nu"),
+        mu=_ranged(doc, "parameters.contact.mu"),
+        fingertip_radius=_ranged(doc, "parameters.fingertip_radius_m"),
+        table_mu=_ranged(doc, "parameters.table_mu"),
+        hand_source=_text(doc, "hand.model"),
         palm_pose=pose,
         fingers=tuple(fingers),
         document=doc,
+        mesh_sha256=_digest(doc),
     )
+
+
+def _text(doc: Any, path: str) -> str:
+    v = _get(doc, path)
+    if not isinstance(v, str) or not v:
+        raise ConfigError(f"plan file: field {path!r} must be a non-empty string, got {v!r}")
+    return v
+
+
+def _digest(doc: Any) -> str:
+    """The recorded fingerprint of the placed object mesh (``object.mesh_sha256``)."""
+    obj = _get(doc, "object")
+    if "mesh_sha256" not in obj:
+        raise ConfigError(
+            "plan file: missing field 'object.mesh_sha256' (the object mesh's fingerprint; "
+            "written by an earlier softgrasp): re-plan it"
+        )
+    v = obj["mesh_sha256"]
+    if not (isinstance(v, str) and v.startswith("sha256:") and len(v) == 71):
+        raise ConfigError(
+            f"plan file: field 'object.mesh_sha256' must be the mesh's 'sha256:<64 hex digits>', got {v!r}"
+        )
+    return v

@@ -146,8 +146,48 @@ def _write_parquet(path: Path, cols: Sequence[str], rows: Sequence[dict[str, obj
     atomic_write(path, lambda p: pq.write_table(table, p))
 
 
+@contextmanager
+def _sigint_held() -> Iterator[None]:
+    """SIGINT ignored in this block and a Ctrl-C pressed meanwhile delivered at its end.
+
+    Processes started in the block (Dask's workers) inherit the ignored SIGINT, so a Ctrl-C at
+    the terminal, which reaches every process of the group, interrupts only this one, which then
+    shuts the cluster down: no worker prints a traceback or outlives the sweep. The signal is
+    also blocked in this thread meanwhile, which keeps a Ctrl-C pending (Linux does not discard
+    a blocked signal) until the handler is back. A cluster being shut down is not interrupted
+    halfway either."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def _close(client: Any, cluster: Any) -> None:
+    """Close a client (and the local cluster it ran on) without being interrupted halfway."""
+    with _sigint_held():
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def _client(scheduler: str | None, workers: int):
-    """A Dask client: of the cluster at ``scheduler``, or of a new local one (TCP on loopback)."""
+    """A Dask client: of the cluster at ``scheduler``, or of a new local one (TCP on loopback)
+    whose worker processes never see SIGINT (:func:`_sigint_held`)."""
+    with _sigint_held():
+        return _start_client(scheduler, workers)
+
+
+def _start_client(scheduler: str | None, workers: int):
     from dask.distributed import Client, LocalCluster
 
     if not 1 <= workers <= 256:
@@ -178,9 +218,7 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
     try:
         yield client
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        _close(client, cluster)
 
 
 def _resumable(
@@ -325,10 +363,7 @@ def _run(
                         _write_parquet(pq_path, cols, rows)
                         last_pq = time.perf_counter()
     finally:
-        if own:
-            client.close()
-        if cluster is not None:
-            cluster.close()
+        _close(client if own else None, cluster)
     rows.sort(key=lambda r: int(r["case"]))  # type: ignore[call-overload]
     _write_parquet(pq_path, cols, rows)
     return SweepResult(

@@ -11,39 +11,29 @@ simulated in MuJoCo (physics softgrasp did not write), from a plan.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.errors import ConfigError
 from softgrasp.execution.mujoco.scene import MujocoScene, load_scene
 from softgrasp.execution.mujoco.spec import SceneSpec
+from softgrasp.execution.plan_check import check_plan, hand_model_of
 from softgrasp.hand.ik import track
 from softgrasp.hand.kinematics import HandModel
 from softgrasp.hand.placement import invert, transform
 from softgrasp.io.planfile import PlanFile
+from softgrasp.model.mesh.tetmesh import TetMesh
 
 __all__ = ["MujocoHand", "hand_model_of", "scene_spec_of"]
 
 
-def hand_model_of(plan: PlanFile) -> HandModel:
-    """The hand a plan was made with: its URDF file, or the packaged Shadow-like hand when the
-    plan names that one (a plan written elsewhere carries another install's path)."""
-    src = Path(plan.hand_source)
-    if src.is_file():
-        return HandModel.from_urdf(src)
-    if src.name == "shadow_like.urdf":
-        return HandModel.default()
-    raise ConfigError(f"plan file: the hand model {src} is not found; put the URDF back at that path")
-
-
-def scene_spec_of(plan: PlanFile, hand: HandModel) -> SceneSpec:
-    """The MuJoCo scene of a plan: its object (mesh as placed on the table, mass, E, nu), table and
-    friction, the hand at the planned palm pose with the fingers at their starting joints."""
+def scene_spec_of(plan: PlanFile, hand: HandModel, mesh: TetMesh | None = None) -> SceneSpec:
+    """The MuJoCo scene of a plan: its object (``mesh``, default the plan's mesh file, as placed on
+    the table; mass, E, nu), table and friction, the hand at the planned palm pose with the fingers
+    at their starting joints."""
     from softgrasp.model.mesh.io import load_mesh
 
-    mesh = load_mesh(plan.mesh_file)
+    mesh = load_mesh(plan.mesh_file) if mesh is None else mesh
     pts = np.asarray(mesh.points, dtype=np.float64)
     return SceneSpec(
         hand=hand,
@@ -74,9 +64,10 @@ class MujocoHand:
 
     @classmethod
     def from_plan(cls, plan: PlanFile) -> MujocoHand:
-        """The scene of ``plan`` with the hand at its starting posture."""
-        hand = hand_model_of(plan)
-        return cls(load_scene(scene_spec_of(plan, hand)), tuple(f.name for f in plan.fingers))
+        """The scene of ``plan`` with the hand at its starting posture, once
+        :func:`~softgrasp.execution.plan_check.check_plan` has found its parts in agreement."""
+        hand, mesh = check_plan(plan)
+        return cls(load_scene(scene_spec_of(plan, hand, mesh)), tuple(f.name for f in plan.fingers))
 
     # -- the Hand protocol
     @property

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from softgrasp.errors import ConfigError
+from softgrasp.errors import ConfigError, SimulationUnstable
 from softgrasp.execution.mujoco.elements import (
     actuator_name,
     add_table,
@@ -43,7 +43,7 @@ from softgrasp.execution.mujoco.options import (
     OBJECT_NAME,
     TIP_BIT,
 )
-from softgrasp.execution.mujoco.scene import contact_force, import_mujoco
+from softgrasp.execution.mujoco.scene import blow_up, contact_force, import_mujoco
 from softgrasp.execution.mujoco.spec import SceneSpec, positive
 from softgrasp.hand.kinematics import HandModel
 
@@ -266,7 +266,14 @@ class IndentScene:
         """Advance the simulation by ``n`` time steps."""
         if isinstance(n, bool) or int(n) != n or n < 1:
             raise ConfigError(f"n = {n} must be an integer >= 1")
+        t = float(self.data.time)
         self._mj.mj_step(self.model, self.data, nstep=int(n))
+        what = blow_up(self.model, self.data, t)
+        if what is not None:
+            raise SimulationUnstable(
+                f"MuJoCo's indentation became unstable after t = {t:.3f} s ({what}) with the object's "
+                f"E = {self.spec.young:g} Pa and mass {self.spec.mass:g} kg: check the material"
+            )
 
 
 def load_indent_scene(spec: IndentSpec) -> IndentScene:

@@ -20,13 +20,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from softgrasp.errors import ConfigError
+from softgrasp.errors import ConfigError, SimulationUnstable
 from softgrasp.execution.mujoco.elements import actuator_name, tip_geom_name
 from softgrasp.execution.mujoco.mjcf import build_mjcf
 from softgrasp.execution.mujoco.options import ARM_JOINTS, OBJECT_NAME
 from softgrasp.execution.mujoco.spec import SceneSpec, rigid_transform
 
-__all__ = ["MUJOCO_MISSING", "MujocoScene", "contact_force", "import_mujoco", "load_scene"]
+__all__ = ["MUJOCO_MISSING", "MujocoScene", "blow_up", "contact_force", "import_mujoco", "load_scene"]
 
 #: Message of the :class:`ConfigError` raised when MuJoCo cannot be imported.
 MUJOCO_MISSING = (
@@ -35,13 +35,48 @@ MUJOCO_MISSING = (
 )
 
 
+def _log_warning(message: str) -> None:
+    import logging
+
+    logging.getLogger("softgrasp.mujoco").debug("MuJoCo: %s", message)
+
+
 def import_mujoco() -> Any:
-    """The ``mujoco`` module; :class:`ConfigError` (:data:`MUJOCO_MISSING`) if it is not installed."""
+    """The ``mujoco`` module; :class:`ConfigError` (:data:`MUJOCO_MISSING`) if it is not installed.
+
+    MuJoCo's warnings go to the ``softgrasp.mujoco`` logger (DEBUG) instead of stderr and a
+    ``MUJOCO_LOG.TXT`` in the working folder; the scenes read them from ``data.warning``."""
     try:
         import mujoco
     except ImportError:
         raise ConfigError(MUJOCO_MISSING) from None
+    if mujoco.get_mju_user_warning() is not _log_warning:
+        mujoco.set_mju_user_warning(_log_warning)
     return mujoco
+
+
+#: MuJoCo's warnings that it reset the simulation after a non-finite or huge state.
+_BLOWUPS = {"mjWARN_BADQACC": "accelerations", "mjWARN_BADQVEL": "velocities", "mjWARN_BADQPOS": "positions"}
+
+
+def blow_up(model: Any, data: Any, t_before: float) -> str | None:
+    """What went wrong if MuJoCo met a NaN, Inf or huge value in the state during the steps
+    since ``t_before`` [s] (it then resets the simulation to time 0 and goes on, so a run driven
+    by the simulated time would never end), or the state is not finite; None if nothing did."""
+    mujoco = import_mujoco()
+    for name, what in _BLOWUPS.items():
+        w = data.warning[getattr(mujoco.mjtWarning, name)]
+        if w.number > 0:
+            dof, where = int(w.lastinfo), ""
+            if 0 <= dof < model.nv:
+                body = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.dof_bodyid[dof]))
+                where = f" of body {body}" if body else ""
+            return f"NaN, Inf or huge {what}{where}"
+    if not (np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))):
+        return "non-finite positions or velocities"
+    if data.time < t_before:
+        return "the simulation was reset"
+    return None
 
 
 def contact_force(model: Any, data: Any, geom: int) -> NDArray[np.float64]:
@@ -197,7 +232,17 @@ class MujocoScene:
         """Advance the simulation by ``n`` time steps."""
         if isinstance(n, bool) or int(n) != n or n < 1:
             raise ConfigError(f"n = {n} must be an integer >= 1")
+        t = float(self.data.time)
         self._mj.mj_step(self.model, self.data, nstep=int(n))
+        what = blow_up(self.model, self.data, t)
+        if what is not None:
+            sp = self.spec
+            raise SimulationUnstable(
+                f"MuJoCo's simulation became unstable after t = {t:.3f} s ({what}) with the object's "
+                f"E = {sp.young:g} Pa, mass {sp.mass:g} kg and fingertip mu = {sp.mu:g}: check the plan's "
+                "object.material.E_Pa, object.mass_kg and parameters.contact.mu (or --material) "
+                "and re-plan with physical values"
+            )
 
 
 def load_scene(spec: SceneSpec) -> MujocoScene:
