@@ -87,9 +87,13 @@ def test_api_plan_defaults_are_the_command_lines(api_plan, cli_plan):
     """``sg.plan(sg.load_object("sphere"), hand=sg.load_hand("shadow_like"), mu=0.8)`` gives the
     set-points of ``softgrasp plan`` with every default."""
     doc = json.loads((cli_plan / "plan.json").read_text())
-    cli = {f["name"]: f["normal_force_N"] for f in doc["fingers"]}
+    cli = doc["setpoints_N"]
     assert api_plan.setpoints_N == pytest.approx(cli, rel=1e-9)
-    assert api_plan.setpoints_N == pytest.approx(DEFAULT_NORMAL_N, abs=5e-4)
+    held = {f.name: f.normal_force for f in api_plan.grasp.fingers}
+    assert held == pytest.approx(DEFAULT_NORMAL_N, abs=5e-4)
+    # the set-points: the default safety factor over the least multiple of them that holds
+    s = api_plan.grasp.margin.scale
+    assert api_plan.setpoints_N == pytest.approx({n: 1.25 * s * v for n, v in held.items()}, rel=1e-12)
     assert list(api_plan.setpoints_N) == ["thumb", "first", "middle"]
     assert sg.plan().setpoints_N == pytest.approx(cli, rel=1e-9)  # every argument's default
 
@@ -104,7 +108,7 @@ def test_plan_save_writes_the_files_of_the_command(api_plan, cli_plan, tmp_path)
         doc["parameters"].pop("hand")  # the packaged URDF's path: the same file in each
     assert a == b
     assert (out / "history.csv").read_text() == (cli_plan / "history.csv").read_text()
-    assert api_plan.directory == out and api_plan.to_dict()["schema"] == "softgrasp.plan/1"
+    assert api_plan.directory == out and api_plan.to_dict()["schema"] == "softgrasp.plan/2"
 
 
 def test_load_object_scales_mesh_files_by_their_units(tmp_path):

@@ -80,7 +80,7 @@ def _write(tmp_path: Path, doc: dict, plan_dir: Path) -> Path:
     [
         (
             lambda d: d.update(schema="softgrasp.plan/0"),
-            "schema 'softgrasp.plan/0' is not 'softgrasp.plan/1'",
+            "schema 'softgrasp.plan/0' is not 'softgrasp.plan/2'",
         ),
         (lambda d: d["object"].pop("mass_kg"), "missing field 'object.mass_kg'"),
         (lambda d: d["object"].update(mass_kg=-0.05), "'object.mass_kg' = -0.05 kg is not physical"),
@@ -90,10 +90,10 @@ def _write(tmp_path: Path, doc: dict, plan_dir: Path) -> Path:
             "'object.material.E_Pa' must be a finite number",
         ),
         (
-            lambda d: d["fingers"][0].update(normal_force_N=float("nan")),
-            "normal_force_N' must be a finite number",
+            lambda d: d["fingers"][0].update(setpoint_N=float("nan")),
+            "setpoint_N' must be a finite number",
         ),
-        (lambda d: d["fingers"][1].update(normal_force_N=0.0), "normal_force_N' = 0 N is not physical"),
+        (lambda d: d["fingers"][1].update(setpoint_N=0.0), "setpoint_N' = 0 N is not physical"),
         (lambda d: d["fingers"][2].pop("start_position_m"), r"missing field 'fingers\[2\].start_position_m'"),
         (lambda d: d.update(hand=None), "made without a hand model"),
         (lambda d: d["hand"].update(palm_pose=np.diag([2.0, 1, 1, 1]).tolist()), "not a rigid transform"),

@@ -296,17 +296,31 @@ def test_quasistatic_and_dynamic_closing_agree(sphere_body, default_plan):
 
 
 def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_plan, monkeypatch):
-    """``GraspPlan.solver_stats`` counts the Newton systems of the whole plan (the settle, the
-    closing, the hold check), as a wrapper around the static solver's linear solve counts them;
-    the default plan's repeat solves the same number."""
+    """``GraspPlan.solver_stats`` counts the Newton systems of the plan's closing (the settle, the
+    closing, the hold check; not the critical scale's force-controlled checks), as a wrapper around
+    the static solver's linear solve counts them; the default plan's repeat solves the same
+    number."""
+    from softgrasp.grasp import planner
     from softgrasp.sim import newton
 
     calls = []
     real = newton.solve_newton_system
+    counting = [True]
 
     def counted(*args, **kw):
-        calls.append(1)
+        if counting[0]:
+            calls.append(1)
         return real(*args, **kw)
+
+    def uncounted_margin(*args, **kw):
+        counting[0] = False
+        try:
+            return real_margin(*args, **kw)
+        finally:
+            counting[0] = True
+
+    real_margin = planner.critical_scale
+    monkeypatch.setattr(planner, "critical_scale", uncounted_margin)
 
     from softgrasp.grasp import closing
     from softgrasp.grasp.settle import settle_on_table
@@ -365,6 +379,16 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
             release_rtols.append(kw["rtol"])
         return real_solve(scene, state, **kw)
 
+    from softgrasp.grasp import planner
+
+    def closing_only(body, cfg, normal):  # the critical scale's own hold checks not recorded
+        n = len(release_rtols)
+        out = real_margin(body, cfg, normal)
+        del release_rtols[n:]
+        return out
+
+    real_margin = planner.critical_scale
+    monkeypatch.setattr(planner, "critical_scale", closing_only)
     monkeypatch.setattr(hold, "solve_static", recorded)
     again = plan_grasp(sphere_body, PlanConfig())
     assert release_rtols == [1e-4] * (config.RELEASE_STEPS - 1) + [1e-9]
@@ -415,14 +439,14 @@ def test_implicit_euler_free_fall_matches_the_closed_form():
 
 
 def test_plan_cli_with_a_config_file_writes_everything(tmp_path):
-    """``softgrasp plan --config``: the TOML keys are used, and plan.json (schema softgrasp.plan/1),
+    """``softgrasp plan --config``: the TOML keys are used, and plan.json (schema softgrasp.plan/2),
     history.csv and the three figures are written."""
     cfg = tmp_path / "plan.toml"
     cfg.write_text('mu = 0.8\nhold_time = 0.2\nstep = 0.0005\nsolver = "quasistatic"\n')
     out = tmp_path / "out"
     assert main(["plan", "--config", str(cfg), "--out", str(out)]) == 0
     doc = json.loads((out / "plan.json").read_text())
-    assert doc["schema"] == "softgrasp.plan/1"
+    assert doc["schema"] == "softgrasp.plan/2"
     assert doc["object"]["name"] == "sphere" and doc["object"]["mass_kg"] == pytest.approx(0.05)
     assert set(doc["object"]["material"]) >= {"E_Pa", "nu"}
     assert doc["parameters"]["hold_time_s"] == 0.2 and doc["parameters"]["contact"]["mu"] == 0.8

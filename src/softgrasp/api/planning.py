@@ -83,7 +83,7 @@ class Plan:
         per-increment history, held state, hand posture).
     config: the planner configuration used.
     options: the plan options (as ``softgrasp plan`` names them; SI units).
-    document: the ``plan.json`` document (schema ``softgrasp.plan/1``).
+    document: the ``plan.json`` document (schema ``softgrasp.plan/2``).
     directory: the folder :meth:`save` last wrote, or None.
     """
 

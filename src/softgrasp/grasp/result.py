@@ -86,7 +86,7 @@ class GraspPlan:
     margin: the critical scale of the held state's normal forces (:mod:`softgrasp.grasp.margin`).
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
-    solver_stats: what the plan's linear algebra did (:attr:`SolverCache.stats
+    solver_stats: what the closing's linear algebra did (the critical scale's checks apart) (:attr:`SolverCache.stats
         <softgrasp.linalg.solve.SolverCache>`): Newton systems, factorisations, multigrid V-cycles
         ... (machine-independent measures of its cost); the Newton systems also by phase:
         ``settle_systems`` (the object coming to rest on the table), ``closing_systems`` (the

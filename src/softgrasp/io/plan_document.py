@@ -1,4 +1,4 @@
-"""A planned grasp as plain data: the ``softgrasp.plan/1`` JSON document, the per-increment
+"""A planned grasp as plain data: the ``softgrasp.plan/2`` JSON document, the per-increment
 history rows and the people-facing table (no file I/O here)."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ __all__ = [
     "hand_polylines",
 ]
 
-SCHEMA = "softgrasp.plan/1"
+SCHEMA = "softgrasp.plan/2"
 #: Equilibrium is "satisfied" when the held state's residuals are below this fraction of the weight.
 EQUILIBRIUM_TOL = 0.02
 HISTORY_HEADER = (

@@ -1,4 +1,4 @@
-"""Reading a ``plan.json`` (schema ``softgrasp.plan/1``) for execution, with every field the
+"""Reading a ``plan.json`` (schema ``softgrasp.plan/2``) for execution, with every field the
 executor uses checked: a file of another schema, with missing fields or non-physical values is
 refused with a message naming the field."""
 
