@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from softgrasp import __version__
 from softgrasp.cli import calibrate, compress, execute, indent, plan, reproduce, sweep, view
 from softgrasp.cli.args import Parser
-from softgrasp.errors import ConfigError, SoftgraspError
+from softgrasp.errors import SoftgraspError
 
 __all__ = ["build_parser", "main"]
 
@@ -52,8 +52,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "verbose", False):
         _log_progress()
     try:
-        if getattr(args, "plate_friction", 0.0) < 0:
-            raise ConfigError(f"--plate-friction must be >= 0, got {args.plate_friction}")
         return int(args.func(args))
     except SoftgraspError as exc:
         print(f"softgrasp: error: {exc}", file=sys.stderr)

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from softgrasp.cli.args import add_common, load, material_file, positive, progress_bar
+from softgrasp.cli.args import add_common, limits, load, material_file, number, progress_bar, scheduler
 from softgrasp.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -28,10 +28,10 @@ def add_parser(sub) -> None:
             action.help = f"{action.help} (default: softgrasp-out/plan)"
     pl.add_argument(
         "--mu",
-        type=float,
+        type=number("mu"),
         default=None,
-        help="fingertip friction coefficient (default 0.8); wins over a --material file's, which wins "
-        "over --config's",
+        help=f"fingertip friction coefficient, {limits('mu')} (default 0.8); wins over a --material "
+        "file's, which wins over --config's",
     )
     pl.add_argument(
         "--contact-law",
@@ -48,26 +48,31 @@ def add_parser(sub) -> None:
     )
     pl.add_argument(
         "--max-pressure",
-        type=positive("--max-pressure"),
+        type=number("max_pressure"),
         default=None,
         metavar="PA",
-        help="largest peak contact pressure the grasp may put on the object [Pa] (Hertz's peak; "
-        "fruit bruises at tens to hundreds of kPa); a plan above it fails",
+        help=f"largest peak contact pressure the grasp may put on the object [Pa], "
+        f"{limits('max_pressure')} (Hertz's peak; fruit bruises at tens to hundreds of kPa); a plan "
+        "above it fails",
     )
     pl.add_argument(
         "--max-strain",
-        type=positive("--max-strain"),
+        type=number("max_strain"),
         default=None,
-        help="largest principal strain the grasp may cause in the object; a plan above it fails",
+        help=f"largest principal strain the grasp may cause in the object, {limits('max_strain')}; a "
+        "plan above it fails",
     )
     pl.add_argument(
         "--fingertip-radius",
-        type=positive("--fingertip-radius"),
+        type=number("fingertip_radius"),
         default=None,
-        help="fingertip radius [m] (default 0.008)",
+        help=f"fingertip radius, {limits('fingertip_radius')} (default 0.008)",
     )
     pl.add_argument(
-        "--step", type=positive("--step"), default=None, help="closing increment [m] (default 0.0005)"
+        "--step",
+        type=number("step"),
+        default=None,
+        help=f"closing increment, {limits('step')}, below the fingertip radius (default 0.0005)",
     )
     pl.add_argument(
         "--solver",
@@ -77,25 +82,29 @@ def add_parser(sub) -> None:
     )
     pl.add_argument(
         "--safety-factor",
-        type=float,
+        type=number("safety_factor"),
         default=None,
-        help="the grasp test must hold this multiple of the weight (default 1)",
+        help=f"the grasp test must hold this multiple of the weight, {limits('safety_factor')} (default 1)",
     )
     pl.add_argument(
-        "--hold-time", type=float, default=None, help="simulated holding time of the check [s] (default 1)"
+        "--hold-time",
+        type=number("hold_time"),
+        default=None,
+        help=f"simulated holding time of the check, {limits('hold_time')} (default 1)",
     )
     pl.add_argument(
         "--max-squeeze",
-        type=float,
+        type=number("max_squeeze"),
         default=None,
-        help="largest finger travel past first contact, fraction of its reach (default 0.5)",
+        help=f"largest finger travel past first contact, fraction of its reach, {limits('max_squeeze')} "
+        "(default 0.5)",
     )
     pl.add_argument(
         "--refine",
-        type=int,
+        type=number("refine"),
         default=None,
         help="most iterations of the solves for the least squeeze that holds "
-        "(each to a force tolerance of 1 %%; default 12)",
+        f"(each to a force tolerance of 1 %%), {limits('refine')} (default 12)",
     )
     pl.add_argument(
         "--hand",
@@ -126,18 +135,35 @@ def add_parser(sub) -> None:
         "(e.g. --uncertain mu=0.4..0.8 --uncertain E=±20%%)",
     )
     rb.add_argument(
-        "--samples", type=int, default=None, help="parameter sets sampled over the ranges (default 64)"
+        "--samples",
+        type=number("samples"),
+        default=None,
+        help=f"parameter sets sampled over the ranges, {limits('samples')} (default 64)",
     )
     rb.add_argument(
         "--quantile",
-        type=float,
+        type=number("quantile"),
         default=None,
-        help="hold this share of the samples (e.g. 0.9) instead of every one",
+        help=f"hold this share of the samples (e.g. 0.9) instead of every one, {limits('quantile')}",
     )
-    rb.add_argument("--seed", type=int, default=None, help="seed of the samples' draw (default 0)")
-    rb.add_argument("--workers", type=int, default=None, help="local Dask worker processes (default 2)")
     rb.add_argument(
-        "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
+        "--seed",
+        type=number("seed"),
+        default=None,
+        help=f"seed of the samples' draw, {limits('seed')} (default 0)",
+    )
+    rb.add_argument(
+        "--workers",
+        type=number("workers"),
+        default=None,
+        help=f"local Dask worker processes, {limits('workers')} (default 2)",
+    )
+    rb.add_argument(
+        "--scheduler",
+        type=scheduler,
+        default=None,
+        metavar="ADDRESS",
+        help="a running Dask scheduler (tcp://host:port)",
     )
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from softgrasp.cli.args import counting_bar
+from softgrasp.cli.args import counting_bar, limits, number, scheduler
 
 __all__ = ["add_parser", "run"]
 
@@ -14,9 +14,18 @@ def add_parser(sub) -> None:
     sw = sub.add_parser("sweep", help="plan many cases (grid or random over any plan option) on Dask")
     sw.add_argument("sweep", metavar="SWEEP.toml", help="the sweep: [sweep], [base], [grid] or [random]")
     sw.add_argument(
-        "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
+        "--scheduler",
+        type=scheduler,
+        default=None,
+        metavar="ADDRESS",
+        help="a running Dask scheduler (tcp://host:port)",
     )
-    sw.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    sw.add_argument(
+        "--workers",
+        type=number("workers"),
+        default=2,
+        help=f"local worker processes, {limits('workers')} (default 2)",
+    )
     sw.add_argument("--out", default=None, metavar="DIR", help="output folder (default softgrasp-out/sweep)")
     sw.add_argument("--resume", action="store_true", help="keep the finished rows in DIR, run the rest")
     sw.set_defaults(func=run)

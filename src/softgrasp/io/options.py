@@ -2,6 +2,7 @@
 configuration: one mapping shared by the command line, ``--config`` files and sweeps.
 
 Options are plain values: ``object`` (built-in name, shape or mesh file), ``mesh_size`` [m],
+``units`` (the length unit of a mesh file's coordinates or a shape's sizes: ``m``, ``cm``, ``mm``),
 ``material`` (preset, ``key=value`` list or a ``.toml`` material file), the planner's settings
 (:data:`PLAN_DEFAULTS`; ``grasp`` names a ``plan.json`` whose initial grasp is closed from instead
 of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDES`: ``E`` [Pa],
@@ -17,6 +18,7 @@ from typing import TYPE_CHECKING
 from softgrasp.errors import ConfigError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
 from softgrasp.model.material import Material
+from softgrasp.model.ranges import RANGES, check_units
 
 if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help stays quick
     from softgrasp.grasp.planner import PlanConfig
@@ -26,6 +28,9 @@ if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help
 __all__ = [
     "PLAN_DEFAULTS",
     "MATERIAL_OVERRIDES",
+    "TEXT_OPTIONS",
+    "check_option",
+    "scheduler_address",
     "load_body",
     "hand_model",
     "contact_params",
@@ -38,6 +43,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "object": "sphere",
     "material": None,
     "mesh_size": None,
+    "units": "m",
     "mu": 0.8,
     "fingertip_radius": 0.008,
     "step": 0.0005,
@@ -57,6 +63,58 @@ PLAN_DEFAULTS: dict[str, object] = {
 
 #: Material parameters a sweep may set over the object's material.
 MATERIAL_OVERRIDES = ("E", "nu", "density", "mass", "a2", "a3")
+
+#: Plan options whose values are text, and what each names (the others are numbers, but
+#: ``reorient``, a boolean).
+TEXT_OPTIONS: dict[str, str] = {
+    "object": "a built-in object, a shape such as box:0.04x0.03x0.02, or a mesh file",
+    "material": "a preset (foam, rubber), E=..,nu=..,density=.. or a .toml material file",
+    "units": "m, cm or mm",
+    "solver": "quasistatic or dynamic",
+    "hand": "shadow_like, none or a URDF file",
+    "grasp": "a plan.json file",
+    "contact_law": "resolved or paper",
+    "out": "a folder",
+}
+
+
+def check_option(key: str, value: object, name: str | None = None) -> object:
+    """The value of the plan option or material parameter ``key`` checked for its kind (text, a
+    boolean, a number) and its physical range (:data:`~softgrasp.model.ranges.RANGES`); None
+    stays None where the option is optional. ConfigError names ``name`` (default ``key``), the
+    kind or range expected and the value."""
+    label = key if name is None else name
+    if value is None and key in PLAN_DEFAULTS and PLAN_DEFAULTS[key] is None:
+        return None
+    if key in TEXT_OPTIONS:
+        if not isinstance(value, str):
+            raise ConfigError(f"{label} must be text ({TEXT_OPTIONS[key]}), got {value!r}")
+        if key == "units":
+            check_units(value, label)
+        return value
+    if key == "reorient":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{label} must be true or false, got {value!r}")
+        return value
+    if key not in RANGES:
+        raise ConfigError(f"unknown option {label}")
+    return RANGES[key].check(label, value)
+
+
+def scheduler_address(text: str) -> str:
+    """``text`` when it reads as a Dask scheduler's address, ``[PROTOCOL://]HOST:PORT`` (protocol
+    tcp, tls, ucx, ws or wss; port 1-65535), or ``inproc://...``; ConfigError otherwise."""
+    import re
+
+    addr = str(text).strip()
+    if re.fullmatch(r"inproc://\S+", addr):
+        return addr
+    m = re.fullmatch(r"(?:(tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(\d{1,5})", addr)
+    if not m or not 1 <= int(m.group(3)) <= 65535:
+        raise ConfigError(
+            f"--scheduler must be a Dask scheduler's address tcp://HOST:PORT (or HOST:PORT), got {text!r}"
+        )
+    return addr
 
 
 def material_file(spec: str | None) -> MaterialFile | None:
@@ -117,7 +175,7 @@ def load_body(
         unknown = sorted(set(overrides) - set(MATERIAL_OVERRIDES))
         if unknown:
             raise ConfigError(f"unknown material parameter(s) {unknown}; known: {list(MATERIAL_OVERRIDES)}")
-        ov = {k: float(v) for k, v in overrides.items()}
+        ov = {k: float(check_option(k, v)) for k, v in overrides.items()}  # type: ignore[arg-type]
         law = mat.law
         if "a2" in ov or "a3" in ov:
             base = law.describe() if isinstance(law, Polynomial) else {}

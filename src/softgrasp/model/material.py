@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import MaterialError
+from softgrasp.model.ranges import RANGES
 
 __all__ = [
     "StressStrainLaw",
@@ -31,6 +32,10 @@ __all__ = [
 
 #: Strain interval over which a non-linear law must be strictly increasing.
 CHECK_RANGE = (-0.8, 0.8)
+
+
+def _is_number(x: object) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
 
 
 @runtime_checkable
@@ -288,16 +293,25 @@ class Material:
         return self.density
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.E, (int, float)) and math.isfinite(self.E) and self.E > 0):
-            raise MaterialError(f"Young's modulus E = {self.E} Pa is invalid: it must be > 0 Pa")
-        if not (math.isfinite(self.nu) and -1.0 < self.nu < 0.5):
+        E_range, rho_range = RANGES["E"], RANGES["density"]
+        if not (_is_number(self.E) and math.isfinite(self.E) and E_range.contains(self.E)):
+            raise MaterialError(
+                f"Young's modulus E = {self.E} Pa is invalid: it must lie in {E_range.text} "
+                f"({E_range.why})"
+            )
+        if not (_is_number(self.nu) and math.isfinite(self.nu) and -1.0 < self.nu < 0.5):
             raise MaterialError(
                 f"Poisson's ratio nu = {self.nu} is invalid: it must lie in (-1, 0.5) "
                 "(0.5 is perfectly incompressible, which a mass-spring body cannot represent; "
                 "use e.g. 0.49)"
             )
-        if self.density is not None and not (math.isfinite(self.density) and self.density > 0):
-            raise MaterialError(f"density = {self.density} kg/m^3 is invalid: it must be > 0")
+        if self.density is not None and not (
+            _is_number(self.density) and math.isfinite(self.density) and rho_range.contains(self.density)
+        ):
+            raise MaterialError(
+                f"density = {self.density} kg/m^3 is invalid: it must lie in {rho_range.text} "
+                f"({rho_range.why})"
+            )
         if not isinstance(self.law, StressStrainLaw):
             raise MaterialError(f"law must provide stress/tangent/describe, got {type(self.law).__name__}")
 
@@ -385,9 +399,12 @@ def parse_material(spec: str) -> tuple[Material, float | None]:
         except ValueError:
             raise MaterialError(f"material value {k}={v!r} is not a number") from None
         if k == "mass":
-            if not (math.isfinite(val) and val > 0):
-                raise MaterialError(f"mass = {val} kg is invalid: it must be > 0")
+            r = RANGES["mass"]
+            if not (math.isfinite(val) and r.contains(val)):
+                raise MaterialError(f"mass = {val} kg is invalid: it must lie in {r.text} ({r.why})")
             mass = val
+        elif k in ("a2", "a3"):
+            base[k] = RANGES[k].check(f"material {k}", val, MaterialError)
         elif k in _KEYS:
             base[k] = val
         else:
