@@ -203,7 +203,8 @@ def calibrate(
     say = echo if echo is not None else (lambda line: None)
     stage = progress if progress is not None else (lambda desc: nullcontext(None))
     check_calibrate(
-        compression, indentation, nu, plate_friction, steps=steps, radius_m=radius_m, speed_m_s=speed_m_s, mu=mu
+        compression, indentation, nu, plate_friction, steps=steps, radius_m=radius_m, speed_m_s=speed_m_s,
+        mu=mu,
     )
     ind_data = read_indentation(indentation) if isinstance(indentation, str | Path) else indentation
     if not isinstance(obj, SoftObject):

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from softgrasp.api.objects import SoftObject, load_object
-from softgrasp.errors import ConfigError
-from softgrasp.io.options import PLAN_DEFAULTS, check_option
+from softgrasp.errors import ConfigError, SoftgraspError
+from softgrasp.io.options import PLAN_DEFAULTS, check_inputs, check_option
 
 if TYPE_CHECKING:
     from softgrasp.grasp.planner import GraspPlan, PlanConfig
@@ -59,13 +59,21 @@ def plan_options(given: Mapping[str, object], config_file: str | Path | None = N
                 f"known: {', '.join(sorted(PLAN_DEFAULTS))}"
             )
     merged: dict[str, object] = {}
+    from_config = set()
     for key, default in PLAN_DEFAULTS.items():
         value = given.get(key)
         name = f"--{key.replace('_', '-')}"
         if value is None or value is False:  # (0.0 == False: test identity, not equality)
             value = conf.get(key, default)
             name = f"config file {config_file}: {key}" if key in conf else key
+            from_config |= {key} & set(conf)
         merged[key] = check_option(key, value, name)
+    try:
+        check_inputs(merged)
+    except SoftgraspError as exc:  # the object or material of a config file: name the file
+        if from_config & {"object", "units", "material"}:
+            raise type(exc)(f"config file {config_file}: {exc}") from None
+        raise
     if merged["contact_law"] not in ("resolved", "paper"):
         raise ConfigError(f"contact_law must be resolved or paper, got {merged['contact_law']!r}")
     if merged["solver"] not in ("quasistatic", "dynamic"):

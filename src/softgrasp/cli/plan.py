@@ -168,8 +168,12 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.api.planning import plan_options
     from softgrasp.viz.worker import FigureWorker
 
+    # Every option (given, or from --config) is checked before any work starts.
+    opts = plan_options(vars(args), args.config)
+    args = argparse.Namespace(**{**vars(args), **opts, "mu_given": args.mu})
     # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
     # files are written.
     with FigureWorker() as figures:
@@ -180,13 +184,11 @@ def _plan(args: argparse.Namespace, figures: FigureWorker) -> int:
     from softgrasp.cli.warm import warm_up_in_background
 
     warm_up_in_background()  # the compiled kernels load while the object is meshed
-    from softgrasp.api.planning import plan, plan_options
+    from softgrasp.api.planning import plan
     from softgrasp.io.options import contact_params
 
     t0 = time.perf_counter()
-    mu_given = args.mu
-    opts = plan_options(vars(args), args.config)
-    args = argparse.Namespace(**{**vars(args), **opts})
+    mu_given = args.mu_given
     obj = load(args)
     out = Path(str(args.out))
     m = obj.material

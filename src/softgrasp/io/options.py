@@ -11,11 +11,12 @@ of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDE
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from softgrasp.errors import ConfigError
+from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
 from softgrasp.model.material import Material
 from softgrasp.model.ranges import RANGES, check_units
@@ -30,6 +31,7 @@ __all__ = [
     "MATERIAL_OVERRIDES",
     "TEXT_OPTIONS",
     "check_option",
+    "check_inputs",
     "scheduler_address",
     "load_body",
     "hand_model",
@@ -101,6 +103,22 @@ def check_option(key: str, value: object, name: str | None = None) -> object:
     return RANGES[key].check(label, value)
 
 
+def check_inputs(options: Mapping[str, object]) -> None:
+    """What can be checked of merged plan ``options`` without meshing: the object (units on a
+    built-in object, a shape's text and size) and the material (a preset or key=value list
+    parsed, a material file read), each error naming the value."""
+    from softgrasp.model.material import parse_material
+    from softgrasp.model.objects import check_object
+
+    check_object(str(options["object"]), check_units(options.get("units", "m")))
+    spec = options.get("material")
+    if isinstance(spec, str):
+        if is_material_file(spec):
+            read_material_file(spec)
+        else:
+            parse_material(spec)
+
+
 def scheduler_address(text: str) -> str:
     """``text`` when it reads as a Dask scheduler's address, ``[PROTOCOL://]HOST:PORT`` (protocol
     tcp, tls, ucx, ws or wss; port 1-65535), or ``inproc://...``; ConfigError otherwise."""
@@ -141,7 +159,7 @@ def load_body(
     A material given with its own density or mass decides the mass; a preset, or a file or
     :class:`Material` without a density, keeps a built-in object's mass.
     """
-    from softgrasp.model.material import Polynomial, parse_material
+    from softgrasp.model.material import Polynomial, check_given, parse_material
     from softgrasp.model.objects import make_object
     from softgrasp.physics.body import build_body
 
@@ -175,7 +193,14 @@ def load_body(
         unknown = sorted(set(overrides) - set(MATERIAL_OVERRIDES))
         if unknown:
             raise ConfigError(f"unknown material parameter(s) {unknown}; known: {list(MATERIAL_OVERRIDES)}")
-        ov = {k: float(check_option(k, v)) for k, v in overrides.items()}  # type: ignore[arg-type]
+        ov: dict[str, float] = {}
+        for k, v in overrides.items():
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise ConfigError(f"material parameter {k} must be a number, got {v!r}")
+            ov[k] = float(v)
+        for k in ("mass", "a2", "a3"):  # (the material checks E, nu and density itself)
+            if k in ov:
+                RANGES[k].check(f"material parameter {k}", ov[k], MaterialError)
         law = mat.law
         if "a2" in ov or "a3" in ov:
             base = law.describe() if isinstance(law, Polynomial) else {}
@@ -188,6 +213,15 @@ def load_body(
             mass = None
         if "mass" in ov:
             mass = ov["mass"]
+    check_given(mat)
+    rho = mat.density if mass is None else mass / mesh.volume
+    r = RANGES["density"]
+    if rho is not None and not r.contains(rho):
+        given = "density" if mass is None else f"mass {mass:.4g} kg in its {mesh.volume * 1e6:.4g} cm^3"
+        raise MaterialError(
+            f"the object's {given} is a mean density of {rho:.4g} kg/m^3, outside {r.text} ({r.why}); "
+            "give a density or mass in range"
+        )
     return build_body(mesh, mat, mass=mass)
 
 

@@ -28,6 +28,7 @@ __all__ = [
     "PRESETS",
     "preset",
     "parse_material",
+    "check_given",
 ]
 
 #: Strain interval over which a non-linear law must be strictly increasing.
@@ -293,12 +294,8 @@ class Material:
         return self.density
 
     def __post_init__(self) -> None:
-        E_range, rho_range = RANGES["E"], RANGES["density"]
-        if not (_is_number(self.E) and math.isfinite(self.E) and E_range.contains(self.E)):
-            raise MaterialError(
-                f"Young's modulus E = {self.E} Pa is invalid: it must lie in {E_range.text} "
-                f"({E_range.why})"
-            )
+        if not (_is_number(self.E) and math.isfinite(self.E) and self.E > 0):
+            raise MaterialError(f"Young's modulus E = {self.E} Pa is invalid: it must be > 0 Pa")
         if not (_is_number(self.nu) and math.isfinite(self.nu) and -1.0 < self.nu < 0.5):
             raise MaterialError(
                 f"Poisson's ratio nu = {self.nu} is invalid: it must lie in (-1, 0.5) "
@@ -306,12 +303,9 @@ class Material:
                 "use e.g. 0.49)"
             )
         if self.density is not None and not (
-            _is_number(self.density) and math.isfinite(self.density) and rho_range.contains(self.density)
+            _is_number(self.density) and math.isfinite(self.density) and self.density > 0
         ):
-            raise MaterialError(
-                f"density = {self.density} kg/m^3 is invalid: it must lie in {rho_range.text} "
-                f"({rho_range.why})"
-            )
+            raise MaterialError(f"density = {self.density} kg/m^3 is invalid: it must be > 0")
         if not isinstance(self.law, StressStrainLaw):
             raise MaterialError(f"law must provide stress/tangent/describe, got {type(self.law).__name__}")
 
@@ -351,6 +345,23 @@ PRESETS: dict[str, Material] = {
     "foam": Material(E=4.9284e6, nu=0.39, density=100.0, name="foam"),
     "rubber": Material(E=0.0793e6, nu=0.45, density=0.05 / (4.0 / 3.0 * math.pi * 0.064**3), name="rubber"),
 }
+
+
+def check_given(material: Material, where: str = "") -> Material:
+    """``material`` when its Young's modulus and density (if it has one) lie in their physical
+    ranges (:data:`~softgrasp.model.ranges.RANGES`: a soft object's, where a user gives one);
+    MaterialError otherwise, prefixed by ``where``. (A :class:`Material` itself takes any
+    positive value: fits and bodies derive materials inside softgrasp.)"""
+    for key, value, unit, label in (
+        ("E", material.E, "Pa", "Young's modulus E"),
+        ("density", material.density, "kg/m^3", "density"),
+    ):
+        r = RANGES[key]
+        if value is not None and not r.contains(float(value)):
+            raise MaterialError(
+                f"{where}{label} = {float(value):g} {unit} is invalid: it must lie in {r.text} ({r.why})"
+            )
+    return material
 
 
 def preset(name: str) -> Material:
@@ -417,4 +428,4 @@ def parse_material(spec: str) -> tuple[Material, float | None]:
         law = Polynomial(base.get("a2", 0.0), base.get("a3", 0.0))
     if "density" not in base and mass is None:
         raise MaterialError(f"material spec {spec!r} needs density=.. [kg/m^3] or mass=.. [kg]")
-    return Material(base["E"], base["nu"], base.get("density"), law, name), mass
+    return check_given(Material(base["E"], base["nu"], base.get("density"), law, name)), mass

@@ -22,7 +22,7 @@ from softgrasp.model.mesh.placement import rest_on_table
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.ranges import RANGES, check_object_size
 
-__all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object"]
+__all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object", "check_object"]
 
 #: Edge of the default foam cube [m].
 CUBE_SIZE = 0.05
@@ -74,11 +74,8 @@ def _make_object(
         RANGES["mesh_size"].check("mesh size", mesh_size, MeshError)
     if not (math.isfinite(scale) and scale > 0):
         raise MeshError(f"scale must be positive and finite, got {scale!r}")
+    check_object(name_or_path, scale)
     if name_or_path in OBJECTS:
-        if scale != 1.0:
-            raise MeshError(
-                f"units apply to mesh files and shapes; the built-in {name_or_path!r} has its own size"
-            )
         spec = OBJECTS[name_or_path]
         return _generated(name_or_path, mesh_size), preset(spec.material), spec.mass
     if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
@@ -92,6 +89,19 @@ def _make_object(
 
     mesh = load_mesh(path, mesh_size=mesh_size, reorient=reorient, scale=scale, check_size=True)
     return rest_on_table(mesh), preset("rubber"), None
+
+
+def check_object(name_or_path: str, scale: float = 1.0) -> None:
+    """Refuse, before any meshing, units (``scale`` metres per unit, 1 for metres) given with a
+    built-in object, and a shape that cannot be read or whose size lies outside
+    :data:`~softgrasp.model.ranges.OBJECT_SIZE_M`. A mesh file is checked when it is read."""
+    if name_or_path in OBJECTS and scale != 1.0:
+        raise MeshError(
+            f"units apply to mesh files and shapes; the built-in {name_or_path!r} has its own size "
+            "in metres: leave --units at m"
+        )
+    if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
+        _shape_sizes(name_or_path, scale)
 
 
 @functools.lru_cache(maxsize=GENERATED_KEPT)
@@ -138,11 +148,9 @@ SHAPES = {
 }
 
 
-def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
-    """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
-    ``ball:0.03``; the sizes times ``scale`` in metres), meshed with about four elements across
-    its smallest dimension by default."""
-    from softgrasp.model.mesh import generate
+def _shape_sizes(spec: str, scale: float) -> tuple[str, list[float]]:
+    """The kind of a shape and its sizes [m] (its numbers times ``scale``), checked: readable,
+    positive and finite, and an object of :data:`~softgrasp.model.ranges.OBJECT_SIZE_M`."""
     kind, _, dims = spec.partition(":")
     try:
         vals = [float(v) * scale for v in dims.lower().split("x")]
@@ -151,11 +159,21 @@ def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
     want = {"box": (1, 3), "cylinder": (2,), "ball": (1,)}[kind]
     if len(vals) not in want or not all(v > 0 and v < float("inf") for v in vals):
         raise MeshError(
-            f"cannot read the shape {spec!r}; give {SHAPES[kind]} (sizes in --units, default metres), "
+            f"cannot read the shape {spec!r}; give {SHAPES[kind]} (sizes in metres, or in --units), "
             "every size > 0"
         )
     extent = {"box": vals * 3 if len(vals) == 1 else vals, "cylinder": [vals[0]] * 2 + vals[1:]}
     check_object_size(extent.get(kind, [2 * vals[0]] * 3), f"the shape {spec}", scale)
+    return kind, vals
+
+
+def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
+    """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
+    ``ball:0.03``; the sizes times ``scale`` in metres), meshed with about four elements across
+    its smallest dimension by default."""
+    from softgrasp.model.mesh import generate
+
+    kind, vals = _shape_sizes(spec, scale)
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
         h = min(size) / 4 if mesh_size is None else mesh_size

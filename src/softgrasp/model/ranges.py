@@ -87,6 +87,8 @@ class Range:
         if not (math.isfinite(v) and self.contains(v)):
             shown = _g(v) + (f" {self.unit}" if self.unit else "")
             why = f" ({self.why})" if self.why else ""
+            if self.unit == "m" and v > self.high and self.contains(v * 1e-3):
+                why += f"; lengths are in metres: for {_g(v)} mm write {_g(v * 1e-3)}"
             raise error(f"{name} must be {self.expected}, got {shown}{why}")
         return int(value) if self.integer else v  # type: ignore[return-value]
 
@@ -167,7 +169,8 @@ def check_object_size(extent_m: Sequence[float], what: str, scale: float | None 
         fits = [u for u in ("mm", "cm", "m") if UNITS[u] != scale and _fits([r * UNITS[u] for r in raw])]
         current = next((u for u, f in UNITS.items() if f == scale), None)
         if fits:
-            msg += f"; its numbers read as {fits[0]} would fit: give --units {fits[0]} (API: units={fits[0]!r})"
+            u = fits[0]
+            msg += f"; its numbers read as {u} would fit: give --units {u} (API: units={u!r})"
         elif current is not None:
             msg += f"; its numbers were read in {current} (--units m, cm or mm)"
     raise MeshError(msg)
