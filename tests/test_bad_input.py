@@ -585,3 +585,12 @@ def test_the_mesh_reader_refuses_every_broken_variant_of_a_valid_mesh(
         cells.append((extra, np.arange(k)[None]))
     path = tmp_path_factory.mktemp("mesh") / "m.vtu"
     _read_back(path, points * factor, cells, reorient, True)
+
+
+def test_the_guide_states_every_range() -> None:
+    """docs/guide.md's table of physical ranges says what the code checks."""
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "guide.md").read_text(encoding="utf-8")
+    table = guide.split("## Physical ranges", 1)[1].split("\n## ", 1)[0]
+    for key, rng in RANGES.items():
+        assert f"| {rng.text} |" in table, (key, rng.text)
+    assert "1 mm to 0.5 m" in table
