@@ -87,6 +87,11 @@ SWEEPS = {
     "density_zero": "[grid]\ndensity = [0.0]\n",
     "mass_huge": "[grid]\nmass = [1e9]\n",
     "safety_text": '[grid]\nsafety_factor = ["high"]\n',
+    "seed_negative": "[sweep]\nseed = -1\n[random]\nmu = [0.3, 0.9]\n",
+    "samples_zero": "[sweep]\nsamples = 0\n[random]\nmu = [0.3, 0.9]\n",
+    "mu_random_huge": "[random]\nmu = [0.3, 1e300]\n",
+    "law_int": "[grid]\ncontact_law = [1]\n",
+    "pressure_zero": "[grid]\nmax_pressure = [0.0]\n",
 }
 
 

@@ -154,8 +154,7 @@ def read_sweep(path: str | Path) -> SweepSpec:
     samples, seed, execute = head.get("samples", 16), head.get("seed", 0), head.get("execute", False)
     if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 1_000_000:
         raise ConfigError(f"sweep file {source}: [sweep] samples must be an integer from 1, got {samples!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ConfigError(f"sweep file {source}: [sweep] seed must be an integer, got {seed!r}")
+    check_option("seed", seed, f"sweep file {source}: [sweep] seed")
     if not isinstance(execute, bool):
         raise ConfigError(f"sweep file {source}: [sweep] execute must be true or false, got {execute!r}")
     base: dict[str, object] = {}
