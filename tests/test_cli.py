@@ -57,13 +57,13 @@ def test_compress_writes_csv_json_png(tmp_path):
         (["--material", "E=1e5,nu=0.3,mass=-1"], "mass = -1.0 kg is invalid"),
         (["--object", "no/such/file.msh"], "file.msh"),
         (["--object", "teapot"], "unknown object 'teapot'"),
-        (["--strain", "0.95"], "strain = 0.95 is invalid"),
-        (["--mesh-size", "-1"], "--mesh-size must be > 0"),
+        (["--strain", "0.95"], "--strain must be a number in (0, 0.8], got 0.95"),
+        (["--mesh-size", "-1"], "--mesh-size must be a number in [1e-05, 0.25] m, got -1 m"),
         (["--mesh-size", "0.04"], "fewer than two cells across its thinnest edge (50 mm)"),
         (["--object", "box:0.04x0.04x0.02", "--mesh-size", "8"], "for 8 mm write 0.008"),
         (["--object", "ball:0.03", "--mesh-size", "5"], "for 5 mm write 0.005"),
-        (["--object", "ball:0.003", "--mesh-size", "5"], "use mesh_size <= 0.003 m"),
-        (["--plate-friction", "-0.2"], "--plate-friction must be >= 0"),
+        (["--object", "ball:0.003", "--mesh-size", "0.005"], "use mesh_size <= 0.003 m"),
+        (["--plate-friction", "-0.2"], "--plate-friction must be a number in [0, 5], got -0.2"),
     ],
 )
 def test_compress_bad_input_one_line_nonzero(tmp_path, args, needle):

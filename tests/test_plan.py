@@ -213,11 +213,12 @@ def test_no_hold_before_the_maximum_squeeze_fails_with_the_reason(sphere_body):
 @pytest.mark.parametrize(
     "kw, needle",
     [
-        ({"step": 0.0}, "step = 0.0"),
-        ({"safety_factor": 0.5}, "safety_factor = 0.5"),
+        ({"step": 0.0}, r"plan parameter step must be a number in \[1e-06, 0.01\] m, got 0 m"),
+        ({"safety_factor": 0.5}, r"safety_factor must be a number in \[1, 20\], got 0.5"),
+        ({"hold_time": 1e300}, r"hold_time must be a number in \(0, 60\] s, got 1e\+300 s"),
         ({"solver": "euler"}, "solver must be one of"),
         ({"step": 0.01}, "must be smaller than the fingertip radius"),
-        ({"max_squeeze": 1.5}, "max_squeeze = 1.5"),
+        ({"max_squeeze": 1.5}, r"max_squeeze must be a number in \(0, 1\), got 1.5"),
     ],
 )
 def test_bad_plan_parameters_raise_config_error(kw, needle):
@@ -476,7 +477,7 @@ def test_plan_cli_with_a_config_file_writes_everything(tmp_path):
     "content, needle",
     [
         ("mu = 0.8\nsqueeze = 2\n", "unknown key(s) squeeze"),
-        ("mu = 'high'\n", "option mu must be a float"),
+        ("mu = 'high'\n", "mu must be a number in [0, 5], got 'high'"),
         ("mu = [\n", "is not valid TOML"),
     ],
 )

@@ -41,16 +41,31 @@ def fit_summary(fit: CalibrationFit) -> str:
 
 
 def check_calibrate(
-    compression: object, indentation: object, nu: float | None, plate_friction: float = 0.5
+    compression: object,
+    indentation: object,
+    nu: float | None,
+    plate_friction: float = 0.5,
+    *,
+    steps: int = 16,
+    radius_m: float = 0.008,
+    speed_m_s: float = 0.005,
+    mu: float | None = None,
 ) -> None:
-    """Refuse a calibration without data, a Poisson's ratio outside (-1, 0.5) and negative
-    platen friction."""
+    """Refuse a calibration without data, and settings outside their physical ranges
+    (:data:`~softgrasp.model.ranges.RANGES`): a Poisson's ratio outside (-1, 0.5), platen or
+    fingertip friction outside [0, 5], steps, fingertip radius or speed out of range."""
+    from softgrasp.model.ranges import check
+
     if compression is None and indentation is None:
         raise ConfigError("give measured data to fit: --compression DATA.csv and/or --indentation DATA.csv")
-    if nu is not None and not -1.0 < nu < 0.5:
-        raise ConfigError(f"--nu must lie in (-1, 0.5), got {nu}")
-    if not plate_friction >= 0:
-        raise ConfigError(f"--plate-friction must be >= 0, got {plate_friction}")
+    if nu is not None:
+        check("nu", nu, "--nu")
+    check("plate_friction", plate_friction, "--plate-friction")
+    check("compress_steps", steps, "--steps")
+    check("radius", radius_m, "--radius")
+    check("speed", speed_m_s, "--speed")
+    if mu is not None:
+        check("mu", mu, "--mu")
 
 
 def read_indentation(path: str | Path) -> IndentationData:
@@ -193,7 +208,10 @@ def calibrate(
     started = time.perf_counter()
     say = echo if echo is not None else (lambda line: None)
     stage = progress if progress is not None else (lambda desc: nullcontext(None))
-    check_calibrate(compression, indentation, nu, plate_friction)
+    check_calibrate(
+        compression, indentation, nu, plate_friction, steps=steps, radius_m=radius_m, speed_m_s=speed_m_s,
+        mu=mu,
+    )
     ind_data = read_indentation(indentation) if isinstance(indentation, str | Path) else indentation
     if not isinstance(obj, SoftObject):
         obj = load_object(obj)

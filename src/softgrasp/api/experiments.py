@@ -122,8 +122,11 @@ def compress(
     from softgrasp.experiments.compression import compression_test
 
     started = time.perf_counter()
-    if not plate_friction >= 0:
-        raise ConfigError(f"--plate-friction must be >= 0, got {plate_friction}")
+    from softgrasp.model.ranges import check
+
+    check("plate_friction", plate_friction, "--plate-friction")
+    check("compress_steps", steps, "--steps")
+    check("strain", strain, "--strain")
     if not isinstance(obj, SoftObject):
         obj = load_object(obj)
     res = compression_test(
@@ -258,12 +261,25 @@ class Indentation:
         )
 
 
-def check_indent(mu: float | None, steps: int | None) -> None:
-    """Refuse a negative friction coefficient and a step count outside 1..100000."""
-    if mu is not None and not mu >= 0:
-        raise ConfigError(f"--mu must be >= 0, got {mu}")
-    if steps is not None and not 1 <= steps <= 100_000:
-        raise ConfigError(f"--steps must be an integer from 1 to 100000, got {steps}")
+def check_indent(
+    mu: float | None,
+    steps: int | None,
+    *,
+    depth_m: float = 0.005,
+    radius_m: float = 0.008,
+    speed_m_s: float = 0.005,
+) -> None:
+    """Refuse settings outside their physical ranges (:data:`~softgrasp.model.ranges.RANGES`):
+    friction outside [0, 5], a step count outside 1..100000, depth, radius or speed out of range."""
+    from softgrasp.model.ranges import check
+
+    if mu is not None:
+        check("mu", mu, "--mu")
+    if steps is not None:
+        check("indent_steps", steps, "--steps")
+    check("depth", depth_m, "--depth")
+    check("radius", radius_m, "--radius")
+    check("speed", speed_m_s, "--speed")
 
 
 def indent(
@@ -292,7 +308,7 @@ def indent(
     from softgrasp.io.options import contact_params
 
     started = time.perf_counter()
-    check_indent(mu, steps)
+    check_indent(mu, steps, depth_m=depth_m, radius_m=radius_m, speed_m_s=speed_m_s)
     if not isinstance(obj, SoftObject):
         obj = load_object(obj)
     if contact_law not in ("resolved", "paper"):

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from softgrasp.api.objects import SoftObject, load_object
-from softgrasp.errors import ConfigError
-from softgrasp.io.options import PLAN_DEFAULTS
+from softgrasp.errors import ConfigError, SoftgraspError
+from softgrasp.io.options import PLAN_DEFAULTS, check_inputs, check_option
 
 if TYPE_CHECKING:
     from softgrasp.grasp.planner import GraspPlan, PlanConfig
@@ -42,7 +42,7 @@ PLAN_FILES = (
 def plan_options(given: Mapping[str, object], config_file: str | Path | None = None) -> dict[str, object]:
     """The plan options (every key of :data:`~softgrasp.io.options.PLAN_DEFAULTS`): the ``given``
     ones (None or False: not given) over a TOML ``config_file``'s over the defaults, each checked
-    for its type."""
+    for its kind and physical range (:func:`~softgrasp.io.options.check_option`)."""
     conf: dict[str, object] = {}
     if config_file is not None:
         from softgrasp.io.tomlfile import read_toml
@@ -56,15 +56,21 @@ def plan_options(given: Mapping[str, object], config_file: str | Path | None = N
                 f"known: {', '.join(sorted(PLAN_DEFAULTS))}"
             )
     merged: dict[str, object] = {}
+    from_config = set()
     for key, default in PLAN_DEFAULTS.items():
         value = given.get(key)
+        name = f"--{key.replace('_', '-')}"
         if value is None or value is False:  # (0.0 == False: test identity, not equality)
             value = conf.get(key, default)
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if default is not None and not isinstance(value, type(default)):
-            raise ConfigError(f"option {key} must be a {type(default).__name__}, got {value!r}")
-        merged[key] = value
+            name = f"config file {config_file}: {key}" if key in conf else key
+            from_config |= {key} & set(conf)
+        merged[key] = check_option(key, value, name)
+    try:
+        check_inputs(merged)
+    except SoftgraspError as exc:  # the object or material of a config file: name the file
+        if from_config & {"object", "units", "material"}:
+            raise type(exc)(f"config file {config_file}: {exc}") from None
+        raise
     if merged["contact_law"] not in ("resolved", "paper"):
         raise ConfigError(f"contact_law must be resolved or paper, got {merged['contact_law']!r}")
     if merged["solver"] not in ("quasistatic", "dynamic"):
@@ -315,6 +321,7 @@ def plan(
         "object": obj.source,
         "material": obj.material_spec,
         "mesh_size": obj.mesh_size_m,
+        "units": obj.units,
         "reorient": obj.reorient,
         "fingertip_radius": float(fingertip_radius_m),
         "step": float(step_m),

@@ -82,8 +82,8 @@ def robust_plan(
     if plan.directory is None:
         raise ConfigError("robust set-points start from a saved plan: call plan.save(DIR) first")
     out = plan.directory
-    if not isinstance(plan.options["material"], str | None) or plan.object.units != "m":
-        raise ConfigError("robust set-points need the object and material named as text (a file in metres)")
+    if not isinstance(plan.options["material"], str | None):
+        raise ConfigError("robust set-points need the object and material named as text")
     options = {k: v for k, v in plan.options.items() if k not in ("out", "grasp")}
     for key in ("object", "material", "hand"):  # files named for the workers wherever they run
         if isinstance(options[key], str) and Path(options[key]).is_file():

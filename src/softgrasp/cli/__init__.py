@@ -4,8 +4,10 @@ and no file formats here.
 One module per command (``compress``, ``indent``, ``plan``, ``calibrate``, ``execute``, ``view``,
 ``reproduce``, ``sweep``), the parser and dispatch in :mod:`softgrasp.cli.main`, shared options in
 :mod:`softgrasp.cli.args`. Every deliberate error (:class:`softgrasp.errors.SoftgraspError`)
-becomes one line on stderr and exit status 2; an interrupted run exits 130. Lengths are given in
-metres on the command line and printed in millimetres for people.
+becomes one line on stderr and exit status 2, and so does every option outside its physical range
+(:mod:`softgrasp.model.ranges`, stated in ``--help``), refused before any work; an interrupted run
+exits 130. Lengths are given in metres on the command line (a mesh file's coordinates and a
+shape's sizes in ``--units``) and printed in millimetres for people.
 """
 
 from __future__ import annotations

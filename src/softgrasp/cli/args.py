@@ -13,7 +13,18 @@ if TYPE_CHECKING:
     from softgrasp.api.objects import SoftObject
     from softgrasp.io.materialfile import MaterialFile
 
-__all__ = ["Parser", "positive", "add_common", "progress_bar", "counting_bar", "material_file", "load"]
+__all__ = [
+    "Parser",
+    "positive",
+    "number",
+    "scheduler",
+    "limits",
+    "add_common",
+    "progress_bar",
+    "counting_bar",
+    "material_file",
+    "load",
+]
 
 
 class Parser(argparse.ArgumentParser):
@@ -38,13 +49,61 @@ def positive(name: str) -> Callable[[str], float]:
     return conv
 
 
+def number(key: str, flag: str | None = None) -> Callable[[str], float]:
+    """An argument type: a number (an integer where the range says so) in the physical range
+    ``RANGES[key]`` (:mod:`softgrasp.model.ranges`), refused naming the option ``flag`` (default
+    ``--key`` with dashes) before any work."""
+    from softgrasp.errors import ConfigError
+    from softgrasp.model.ranges import RANGES
+
+    rng = RANGES[key]
+    name = flag or "--" + key.replace("_", "-")
+
+    def conv(s: str) -> float:
+        try:
+            v = int(s) if rng.integer else float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be {rng.expected}, got {s!r}") from None
+        try:
+            return rng.check(name, v)
+        except ConfigError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    return conv
+
+
+def scheduler(text: str) -> str:
+    """An argument type: a Dask scheduler's address (``tcp://HOST:PORT``), refused when it does
+    not read as one."""
+    from softgrasp.errors import ConfigError
+    from softgrasp.io.options import scheduler_address
+
+    try:
+        return scheduler_address(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def limits(key: str) -> str:
+    """The physical range of option ``key`` for its ``--help`` text: ``in (0, 60] s``."""
+    from softgrasp.model.ranges import RANGES
+
+    return RANGES[key].expected.replace("a number ", "").replace("an integer ", "")
+
+
 def add_common(p: argparse.ArgumentParser) -> None:
-    """The options naming the object, its material and mesh, and the output folder."""
+    """The options naming the object, its length unit, material and mesh, and the output folder."""
     p.add_argument(
         "--object",
         default="sphere",
-        help="built-in object (cube, sphere), a shape (box:WxDxH, cylinder:DxH, ball:R; metres) "
-        "or a mesh file (.msh .vtk .vtu .stl .obj ..., metres)",
+        help="built-in object (cube, sphere), a shape (box:WxDxH, cylinder:DxH, ball:R; in --units) "
+        "or a mesh file (.msh .vtk .vtu .stl .obj ..., in --units); 1 mm to 0.5 m across",
+    )
+    p.add_argument(
+        "--units",
+        choices=("m", "cm", "mm"),
+        default=None,
+        help="length unit of the mesh file's coordinates or the shape's sizes (default m)",
     )
     p.add_argument(
         "--material",
@@ -53,10 +112,10 @@ def add_common(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--mesh-size",
-        type=positive("--mesh-size"),
+        type=number("mesh_size"),
         default=None,
         metavar="M",
-        help="target element size [m]",
+        help=f"target element size [m], {limits('mesh_size')}, at most half the object's thinnest side",
     )
     p.add_argument(
         "--reorient", action="store_true", help="flip inverted tets of a mesh file instead of refusing it"
@@ -122,12 +181,13 @@ def material_file(args: argparse.Namespace) -> MaterialFile | None:
 
 
 def load(args: argparse.Namespace) -> SoftObject:
-    """The object of --object, --material, --mesh-size and --reorient."""
+    """The object of --object, --units, --material, --mesh-size and --reorient."""
     from softgrasp.api.objects import load_object
 
     mf = material_file(args)
     return load_object(
         args.object,
+        units=getattr(args, "units", None) or "m",
         material=mf if mf is not None else args.material,
         mesh_size_m=args.mesh_size,
         reorient=args.reorient,

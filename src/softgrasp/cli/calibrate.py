@@ -7,7 +7,7 @@ import argparse
 import time
 from pathlib import Path
 
-from softgrasp.cli.args import add_common, counting_bar, load, material_file, positive
+from softgrasp.cli.args import add_common, counting_bar, limits, load, material_file, number
 
 __all__ = ["add_parser", "run"]
 
@@ -32,7 +32,10 @@ def add_parser(sub) -> None:
         help="force-penetration curve: penetration_m|penetration_mm,force_N (optional tangential_force_N)",
     )
     ca.add_argument(
-        "--nu", type=float, default=None, help="Poisson's ratio when not fitted (default: the material's)"
+        "--nu",
+        type=number("nu"),
+        default=None,
+        help=f"Poisson's ratio when not fitted, {limits('nu')} (default: the material's)",
     )
     ca.add_argument(
         "--law",
@@ -41,23 +44,35 @@ def add_parser(sub) -> None:
         help="spring law to fit (default polynomial)",
     )
     ca.add_argument(
-        "--plate-friction", type=float, default=0.5, help="friction of the compression platens (default 0.5)"
+        "--plate-friction",
+        type=number("plate_friction"),
+        default=0.5,
+        help=f"friction of the compression platens, {limits('plate_friction')} (default 0.5)",
     )
     ca.add_argument(
-        "--steps", type=int, default=16, help="increments of each simulated compression (default 16)"
+        "--steps",
+        type=number("compress_steps", "--steps"),
+        default=16,
+        help=f"increments of each simulated compression, {limits('compress_steps')} (default 16)",
     )
     ca.add_argument(
-        "--radius", type=positive("--radius"), default=0.008, help="fingertip radius [m] (default 0.008)"
+        "--radius",
+        type=number("radius"),
+        default=0.008,
+        help=f"fingertip radius, {limits('radius')} (default 0.008)",
     )
     ca.add_argument(
-        "--speed", type=positive("--speed"), default=0.005, help="indentation speed [m/s] (default 0.005)"
+        "--speed",
+        type=number("speed"),
+        default=0.005,
+        help=f"indentation speed, {limits('speed')} (default 0.005)",
     )
     ca.add_argument(
         "--mu",
-        type=float,
+        type=number("mu"),
         default=None,
-        help="fingertip friction coefficient (default 0.8, or the material file's); fitted instead when "
-        "the indentation data have tangential_force_N",
+        help=f"fingertip friction coefficient, {limits('mu')} (default 0.8, or the material file's); "
+        "fitted instead when the indentation data have tangential_force_N",
     )
     ca.set_defaults(func=run)
 

@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from softgrasp.cli.args import add_common, load, positive, progress_bar
+from softgrasp.cli.args import add_common, limits, load, number, progress_bar
 
 __all__ = ["add_parser", "run"]
 
@@ -15,15 +15,24 @@ def add_parser(sub) -> None:
     c = sub.add_parser("compress", help="compression test between rigid plates (paper Fig. 8-9)")
     add_common(c)
     c.add_argument(
-        "--strain", type=positive("--strain"), default=0.3, help="final compressive strain (default 0.3)"
+        "--strain",
+        type=number("strain"),
+        default=0.3,
+        help=f"final compressive strain, {limits('strain')} (default 0.3)",
     )
-    c.add_argument("--steps", type=int, default=30, help="load increments (default 30)")
+    c.add_argument(
+        "--steps",
+        type=number("compress_steps", "--steps"),
+        default=30,
+        help=f"load increments, {limits('compress_steps')} (default 30)",
+    )
     c.add_argument(
         "--plate-friction",
-        type=float,
+        type=number("plate_friction"),
         default=0.5,
-        help="plate friction coefficient (default 0.5, rubber on steel platens; faces stick at rest). "
-        "0 is a lubricated test, whose free sliding and rolling only weak tethers hold",
+        help=f"plate friction coefficient, {limits('plate_friction')} (default 0.5, rubber on steel "
+        "platens; faces stick at rest). 0 is a lubricated test, whose free sliding and rolling only "
+        "weak tethers hold",
     )
     c.set_defaults(func=run)
 

@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from softgrasp.cli.args import add_common, load, material_file, positive, progress_bar
+from softgrasp.cli.args import add_common, limits, load, material_file, number, progress_bar
 
 __all__ = ["add_parser", "run"]
 
@@ -22,24 +22,35 @@ def add_parser(sub) -> None:
             action.help = f"{action.help} (default: softgrasp-out/indent)"
     i.add_argument(
         "--depth",
-        type=positive("--depth"),
+        type=number("depth"),
         default=0.005,
-        help="penetration beyond first contact [m] (default 0.005)",
+        help=f"penetration beyond first contact, {limits('depth')}, below the object's height "
+        "(default 0.005)",
     )
     i.add_argument(
-        "--radius", type=positive("--radius"), default=0.008, help="fingertip radius [m] (default 0.008)"
+        "--radius",
+        type=number("radius"),
+        default=0.008,
+        help=f"fingertip radius, {limits('radius')} (default 0.008)",
     )
     i.add_argument(
-        "--speed", type=positive("--speed"), default=0.005, help="fingertip speed [m/s] (default 0.005)"
+        "--speed",
+        type=number("speed"),
+        default=0.005,
+        help=f"fingertip speed, {limits('speed')} (default 0.005)",
     )
     i.add_argument(
-        "--steps", type=int, default=None, metavar="N", help="load increments (default: ~0.25 mm each, >= 10)"
+        "--steps",
+        type=number("indent_steps", "--steps"),
+        default=None,
+        metavar="N",
+        help=f"load increments, {limits('indent_steps')} (default: ~0.25 mm each, >= 10)",
     )
     i.add_argument(
         "--mu",
-        type=float,
+        type=number("mu"),
         default=None,
-        help="fingertip friction coefficient (default 0.8, or the material file's)",
+        help=f"fingertip friction coefficient, {limits('mu')} (default 0.8, or the material file's)",
     )
     i.add_argument(
         "--rule",

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from softgrasp import __version__
 from softgrasp.cli import calibrate, compress, execute, indent, plan, reproduce, sweep, view
 from softgrasp.cli.args import Parser
-from softgrasp.errors import ConfigError, SoftgraspError
+from softgrasp.errors import SoftgraspError
 
 __all__ = ["build_parser", "main"]
 
@@ -43,17 +43,19 @@ def _log_progress() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``softgrasp`` command."""
+    """Entry point of the ``softgrasp`` command; returns its exit status (2: a refused argument,
+    option or input; 0 after ``--help``)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or an argument refused in one line
+        return exc.code if isinstance(exc.code, int) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
     if getattr(args, "verbose", False):
         _log_progress()
     try:
-        if getattr(args, "plate_friction", 0.0) < 0:
-            raise ConfigError(f"--plate-friction must be >= 0, got {args.plate_friction}")
         return int(args.func(args))
     except SoftgraspError as exc:
         print(f"softgrasp: error: {exc}", file=sys.stderr)

@@ -9,7 +9,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from softgrasp.cli.args import add_common, load, material_file, positive, progress_bar
+from softgrasp.cli.args import add_common, limits, load, material_file, number, progress_bar, scheduler
 from softgrasp.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -29,10 +29,10 @@ def add_parser(sub) -> None:
             action.help = f"{action.help} (default: softgrasp-out/plan)"
     pl.add_argument(
         "--mu",
-        type=float,
+        type=number("mu"),
         default=None,
-        help="fingertip friction coefficient (default 0.8); wins over a --material file's, which wins "
-        "over --config's",
+        help=f"fingertip friction coefficient, {limits('mu')} (default 0.8); wins over a --material "
+        "file's, which wins over --config's",
     )
     pl.add_argument(
         "--contact-law",
@@ -43,26 +43,31 @@ def add_parser(sub) -> None:
     )
     pl.add_argument(
         "--max-pressure",
-        type=positive("--max-pressure"),
+        type=number("max_pressure"),
         default=None,
         metavar="PA",
-        help="largest peak contact pressure the grasp may put on the object [Pa] (Hertz's peak; "
-        "fruit bruises at tens to hundreds of kPa); a plan above it fails",
+        help=f"largest peak contact pressure the grasp may put on the object [Pa], "
+        f"{limits('max_pressure')} (Hertz's peak; fruit bruises at tens to hundreds of kPa); a plan "
+        "above it fails",
     )
     pl.add_argument(
         "--max-strain",
-        type=positive("--max-strain"),
+        type=number("max_strain"),
         default=None,
-        help="largest principal strain the grasp may cause in the object; a plan above it fails",
+        help=f"largest principal strain the grasp may cause in the object, {limits('max_strain')}; a "
+        "plan above it fails",
     )
     pl.add_argument(
         "--fingertip-radius",
-        type=positive("--fingertip-radius"),
+        type=number("fingertip_radius"),
         default=None,
-        help="fingertip radius [m] (default 0.008)",
+        help=f"fingertip radius, {limits('fingertip_radius')} (default 0.008)",
     )
     pl.add_argument(
-        "--step", type=positive("--step"), default=None, help="closing increment [m] (default 0.0005)"
+        "--step",
+        type=number("step"),
+        default=None,
+        help=f"closing increment, {limits('step')}, below the fingertip radius (default 0.0005)",
     )
     pl.add_argument(
         "--solver",
@@ -72,26 +77,30 @@ def add_parser(sub) -> None:
     )
     pl.add_argument(
         "--safety-factor",
-        type=float,
+        type=number("safety_factor"),
         default=None,
-        help="set-points are this multiple (>= 1) of the least normal forces that hold the object under "
-        "force control in softgrasp's model (default 1.25)",
+        help=f"set-points are this multiple of the least normal forces that hold the object under "
+        f"force control in softgrasp's model, {limits('safety_factor')} (default 1.25)",
     )
     pl.add_argument(
-        "--hold-time", type=float, default=None, help="simulated holding time of the check [s] (default 1)"
+        "--hold-time",
+        type=number("hold_time"),
+        default=None,
+        help=f"simulated holding time of the check, {limits('hold_time')} (default 1)",
     )
     pl.add_argument(
         "--max-squeeze",
-        type=float,
+        type=number("max_squeeze"),
         default=None,
-        help="largest finger travel past first contact, fraction of its reach (default 0.5)",
+        help=f"largest finger travel past first contact, fraction of its reach, {limits('max_squeeze')} "
+        "(default 0.5)",
     )
     pl.add_argument(
         "--refine",
-        type=int,
+        type=number("refine"),
         default=None,
         help="most iterations of the solves for the least squeeze that holds "
-        "(each to a force tolerance of 1 %%; default 12)",
+        f"(each to a force tolerance of 1 %%), {limits('refine')} (default 12)",
     )
     pl.add_argument(
         "--hand",
@@ -122,24 +131,45 @@ def add_parser(sub) -> None:
         "(e.g. --uncertain mu=0.4..0.8 --uncertain E=±20%%)",
     )
     rb.add_argument(
-        "--samples", type=int, default=None, help="parameter sets sampled over the ranges (default 64)"
+        "--samples",
+        type=number("samples"),
+        default=None,
+        help=f"parameter sets sampled over the ranges, {limits('samples')} (default 64)",
     )
     rb.add_argument(
         "--quantile",
-        type=float,
+        type=number("quantile"),
         default=None,
-        help="hold this share of the samples (e.g. 0.9) instead of every one",
+        help=f"hold this share of the samples (e.g. 0.9) instead of every one, {limits('quantile')}",
     )
-    rb.add_argument("--seed", type=int, default=None, help="seed of the samples' draw (default 0)")
-    rb.add_argument("--workers", type=int, default=None, help="local Dask worker processes (default 2)")
     rb.add_argument(
-        "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
+        "--seed",
+        type=number("seed"),
+        default=None,
+        help=f"seed of the samples' draw, {limits('seed')} (default 0)",
+    )
+    rb.add_argument(
+        "--workers",
+        type=number("workers"),
+        default=None,
+        help=f"local Dask worker processes, {limits('workers')} (default 2)",
+    )
+    rb.add_argument(
+        "--scheduler",
+        type=scheduler,
+        default=None,
+        metavar="ADDRESS",
+        help="a running Dask scheduler (tcp://host:port)",
     )
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.api.planning import plan_options
     from softgrasp.viz.worker import FigureWorker
 
+    # Every option (given, or from --config) is checked before any work starts.
+    opts = plan_options(vars(args), args.config)
+    args = argparse.Namespace(**{**vars(args), **opts, "mu_given": args.mu})
     # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
     # files are written.
     # (The worker stops before the folder is committed or cleared: no figure lands after.)
@@ -151,13 +181,11 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
     from softgrasp.cli.warm import warm_up_in_background
 
     warm_up_in_background()  # the compiled kernels load while the object is meshed
-    from softgrasp.api.planning import plan, plan_options
+    from softgrasp.api.planning import plan
     from softgrasp.io.options import contact_params
 
     t0 = time.perf_counter()
-    mu_given = args.mu
-    opts = plan_options(vars(args), args.config)
-    args = argparse.Namespace(**{**vars(args), **opts})
+    mu_given = args.mu_given
     from softgrasp.io.runfolder import run_folder
 
     # The folder is checked and locked before any work; the files replace its earlier ones at the end.

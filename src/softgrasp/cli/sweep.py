@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from softgrasp.cli.args import counting_bar
+from softgrasp.cli.args import counting_bar, limits, number, scheduler
 
 __all__ = ["add_parser", "run"]
 
@@ -15,9 +15,18 @@ def add_parser(sub) -> None:
     sw = sub.add_parser("sweep", help="plan many cases (grid or random over any plan option) on Dask")
     sw.add_argument("sweep", metavar="SWEEP.toml", help="the sweep: [sweep], [base], [grid] or [random]")
     sw.add_argument(
-        "--scheduler", default=None, metavar="ADDRESS", help="a running Dask scheduler (tcp://host:port)"
+        "--scheduler",
+        type=scheduler,
+        default=None,
+        metavar="ADDRESS",
+        help="a running Dask scheduler (tcp://host:port)",
     )
-    sw.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    sw.add_argument(
+        "--workers",
+        type=number("workers"),
+        default=2,
+        help=f"local worker processes, {limits('workers')} (default 2)",
+    )
     sw.add_argument("--out", default=None, metavar="DIR", help="output folder (default softgrasp-out/sweep)")
     sw.add_argument(
         "--resume",

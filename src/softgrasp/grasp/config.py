@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from softgrasp.errors import ConfigError
 from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp
 from softgrasp.hand.kinematics import HandModel
+from softgrasp.model.ranges import RANGES
 from softgrasp.physics.fingertip.params import ContactParams
 
 __all__ = [
@@ -159,17 +160,15 @@ class PlanConfig:
     max_strain: float | None = None
 
     def __post_init__(self) -> None:
+        for name in ("fingertip_radius", "step", "safety_factor", "max_squeeze", "refine"):
+            RANGES[name].check(f"plan parameter {name}", getattr(self, name))
+        if self.hold_time != 0:  # 0: the grasp test alone, without the holding simulation
+            RANGES["hold_time"].check("plan parameter hold_time", self.hold_time)
         checks = {
-            "fingertip_radius": self.fingertip_radius > 0,
-            "step": self.step > 0,
             "closing_speed": self.closing_speed > 0,
-            "safety_factor": self.safety_factor >= 1.0,
-            "hold_time": self.hold_time >= 0,
             "max_slip": 0 < self.max_slip < 1,
             "force_tol": 0 < self.force_tol < 1,
-            "max_squeeze": 0 < self.max_squeeze < 1,
             "table_mu": self.table_mu >= 0,
-            "refine": 1 <= self.refine <= 60,
         }
         for name, ok in checks.items():
             v = getattr(self, name)
@@ -177,8 +176,8 @@ class PlanConfig:
                 raise ConfigError(f"plan parameter {name} = {v} is invalid")
         for name in ("max_pressure", "max_strain"):
             v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and v > 0):
-                raise ConfigError(f"plan parameter {name} = {v} is invalid: it must be > 0")
+            if v is not None:
+                RANGES[name].check(f"plan parameter {name}", v)
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.hand is not None:

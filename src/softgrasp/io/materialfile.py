@@ -17,7 +17,8 @@ from pathlib import Path
 from softgrasp.errors import ConfigError, ContactError, MaterialError
 from softgrasp.io.atomic import write_text
 from softgrasp.io.tomlfile import read_toml
-from softgrasp.model.material import Linear, Material, Polynomial, StressStrainLaw, Tabulated
+from softgrasp.model.material import Linear, Material, Polynomial, StressStrainLaw, Tabulated, check_given
+from softgrasp.model.ranges import RANGES
 from softgrasp.physics.fingertip.params import ContactParams
 
 __all__ = ["MaterialFile", "read_material_file", "write_material_file", "is_material_file"]
@@ -119,10 +120,13 @@ def read_material_file(path: str | Path) -> MaterialFile:
                 )
             law = Linear()
         elif kind == "polynomial":
-            law = Polynomial(
-                _number(name, "material", "a2", m.get("a2", 0.0)),
-                _number(name, "material", "a3", m.get("a3", 0.0)),
+            a2, a3 = (
+                RANGES[k].check(
+                    f"material file {name}: [material] {k}", _number(name, "material", k, m.get(k, 0.0))
+                )
+                for k in ("a2", "a3")
             )
+            law = Polynomial(a2, a3)
         else:
             raise ConfigError(
                 f"material file {name}: [material] law must be 'linear', 'polynomial' or 'tabulated', "
@@ -137,6 +141,7 @@ def read_material_file(path: str | Path) -> MaterialFile:
                 law=law,
                 name=str(m.get("name", Path(name).stem)),
             )
+            check_given(material)
         except MaterialError as exc:
             raise MaterialError(f"material file {name}: {exc}") from None
     contact: dict[str, object] = {}

@@ -2,6 +2,7 @@
 configuration: one mapping shared by the command line, ``--config`` files and sweeps.
 
 Options are plain values: ``object`` (built-in name, shape or mesh file), ``mesh_size`` [m],
+``units`` (the length unit of a mesh file's coordinates or a shape's sizes: ``m``, ``cm``, ``mm``),
 ``material`` (preset, ``key=value`` list or a ``.toml`` material file), the planner's settings
 (:data:`PLAN_DEFAULTS`; ``grasp`` names a ``plan.json`` whose initial grasp is closed from instead
 of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDES`: ``E`` [Pa],
@@ -10,13 +11,15 @@ of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDE
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from softgrasp.errors import ConfigError
+from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
 from softgrasp.model.material import Material
+from softgrasp.model.ranges import RANGES, check_units
 
 if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help stays quick
     from softgrasp.grasp.planner import PlanConfig
@@ -26,6 +29,10 @@ if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help
 __all__ = [
     "PLAN_DEFAULTS",
     "MATERIAL_OVERRIDES",
+    "TEXT_OPTIONS",
+    "check_option",
+    "check_inputs",
+    "scheduler_address",
     "load_body",
     "hand_model",
     "contact_params",
@@ -38,6 +45,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "object": "sphere",
     "material": None,
     "mesh_size": None,
+    "units": "m",
     "mu": 0.8,
     "fingertip_radius": 0.008,
     "step": 0.0005,
@@ -57,6 +65,74 @@ PLAN_DEFAULTS: dict[str, object] = {
 
 #: Material parameters a sweep may set over the object's material.
 MATERIAL_OVERRIDES = ("E", "nu", "density", "mass", "a2", "a3")
+
+#: Plan options whose values are text, and what each names (the others are numbers, but
+#: ``reorient``, a boolean).
+TEXT_OPTIONS: dict[str, str] = {
+    "object": "a built-in object, a shape such as box:0.04x0.03x0.02, or a mesh file",
+    "material": "a preset (foam, rubber), E=..,nu=..,density=.. or a .toml material file",
+    "units": "m, cm or mm",
+    "solver": "quasistatic or dynamic",
+    "hand": "shadow_like, none or a URDF file",
+    "grasp": "a plan.json file",
+    "contact_law": "resolved or paper",
+    "out": "a folder",
+}
+
+
+def check_option(key: str, value: object, name: str | None = None) -> object:
+    """The value of the plan option or material parameter ``key`` checked for its kind (text, a
+    boolean, a number) and its physical range (:data:`~softgrasp.model.ranges.RANGES`); None
+    stays None where the option is optional. ConfigError names ``name`` (default ``key``), the
+    kind or range expected and the value."""
+    label = key if name is None else name
+    if value is None and key in PLAN_DEFAULTS and PLAN_DEFAULTS[key] is None:
+        return None
+    if key in TEXT_OPTIONS:
+        if not isinstance(value, str):
+            raise ConfigError(f"{label} must be text ({TEXT_OPTIONS[key]}), got {value!r}")
+        if key == "units":
+            check_units(value, label)
+        return value
+    if key == "reorient":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{label} must be true or false, got {value!r}")
+        return value
+    if key not in RANGES:
+        raise ConfigError(f"unknown option {label}")
+    return RANGES[key].check(label, value)
+
+
+def check_inputs(options: Mapping[str, object]) -> None:
+    """What can be checked of merged plan ``options`` without meshing: the object (units on a
+    built-in object, a shape's text and size) and the material (a preset or key=value list
+    parsed, a material file read), each error naming the value."""
+    from softgrasp.model.material import parse_material
+    from softgrasp.model.objects import check_object
+
+    check_object(str(options["object"]), check_units(options.get("units", "m")))
+    spec = options.get("material")
+    if isinstance(spec, str):
+        if is_material_file(spec):
+            read_material_file(spec)
+        else:
+            parse_material(spec)
+
+
+def scheduler_address(text: str) -> str:
+    """``text`` when it reads as a Dask scheduler's address, ``[PROTOCOL://]HOST:PORT`` (protocol
+    tcp, tls, ucx, ws or wss; port 1-65535), or ``inproc://...``; ConfigError otherwise."""
+    import re
+
+    addr = str(text).strip()
+    if re.fullmatch(r"inproc://\S+", addr):
+        return addr
+    m = re.fullmatch(r"(?:(tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(\d{1,5})", addr)
+    if not m or not 1 <= int(m.group(3)) <= 65535:
+        raise ConfigError(
+            f"--scheduler must be a Dask scheduler's address tcp://HOST:PORT (or HOST:PORT), got {text!r}"
+        )
+    return addr
 
 
 def material_file(spec: str | None) -> MaterialFile | None:
@@ -83,7 +159,7 @@ def load_body(
     A material given with its own density or mass decides the mass; a preset, or a file or
     :class:`Material` without a density, keeps a built-in object's mass.
     """
-    from softgrasp.model.material import Polynomial, parse_material
+    from softgrasp.model.material import Polynomial, check_given, parse_material
     from softgrasp.model.objects import make_object
     from softgrasp.physics.body import build_body
 
@@ -117,7 +193,14 @@ def load_body(
         unknown = sorted(set(overrides) - set(MATERIAL_OVERRIDES))
         if unknown:
             raise ConfigError(f"unknown material parameter(s) {unknown}; known: {list(MATERIAL_OVERRIDES)}")
-        ov = {k: float(v) for k, v in overrides.items()}
+        ov: dict[str, float] = {}
+        for k, v in overrides.items():
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise ConfigError(f"material parameter {k} must be a number, got {v!r}")
+            ov[k] = float(v)
+        for k in ("mass", "a2", "a3"):  # (the material checks E, nu and density itself)
+            if k in ov:
+                RANGES[k].check(f"material parameter {k}", ov[k], MaterialError)
         law = mat.law
         if "a2" in ov or "a3" in ov:
             base = law.describe() if isinstance(law, Polynomial) else {}
@@ -130,6 +213,15 @@ def load_body(
             mass = None
         if "mass" in ov:
             mass = ov["mass"]
+    check_given(mat)
+    rho = mat.density if mass is None else mass / mesh.volume
+    r = RANGES["density"]
+    if rho is not None and not r.contains(rho):
+        given = "density" if mass is None else f"mass {mass:.4g} kg in its {mesh.volume * 1e6:.4g} cm^3"
+        raise MaterialError(
+            f"the object's {given} is a mean density of {rho:.4g} kg/m^3, outside {r.text} ({r.why}); "
+            "give a density or mass in range"
+        )
     return build_body(mesh, mat, mass=mass)
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import MaterialError
+from softgrasp.model.ranges import RANGES
 
 __all__ = [
     "StressStrainLaw",
@@ -27,10 +28,15 @@ __all__ = [
     "PRESETS",
     "preset",
     "parse_material",
+    "check_given",
 ]
 
 #: Strain interval over which a non-linear law must be strictly increasing.
 CHECK_RANGE = (-0.8, 0.8)
+
+
+def _is_number(x: object) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
 
 
 @runtime_checkable
@@ -288,15 +294,17 @@ class Material:
         return self.density
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.E, (int, float)) and math.isfinite(self.E) and self.E > 0):
+        if not (_is_number(self.E) and math.isfinite(self.E) and self.E > 0):
             raise MaterialError(f"Young's modulus E = {self.E} Pa is invalid: it must be > 0 Pa")
-        if not (math.isfinite(self.nu) and -1.0 < self.nu < 0.5):
+        if not (_is_number(self.nu) and math.isfinite(self.nu) and -1.0 < self.nu < 0.5):
             raise MaterialError(
                 f"Poisson's ratio nu = {self.nu} is invalid: it must lie in (-1, 0.5) "
                 "(0.5 is perfectly incompressible, which a mass-spring body cannot represent; "
                 "use e.g. 0.49)"
             )
-        if self.density is not None and not (math.isfinite(self.density) and self.density > 0):
+        if self.density is not None and not (
+            _is_number(self.density) and math.isfinite(self.density) and self.density > 0
+        ):
             raise MaterialError(f"density = {self.density} kg/m^3 is invalid: it must be > 0")
         if not isinstance(self.law, StressStrainLaw):
             raise MaterialError(f"law must provide stress/tangent/describe, got {type(self.law).__name__}")
@@ -337,6 +345,23 @@ PRESETS: dict[str, Material] = {
     "foam": Material(E=4.9284e6, nu=0.39, density=100.0, name="foam"),
     "rubber": Material(E=0.0793e6, nu=0.45, density=0.05 / (4.0 / 3.0 * math.pi * 0.064**3), name="rubber"),
 }
+
+
+def check_given(material: Material, where: str = "") -> Material:
+    """``material`` when its Young's modulus and density (if it has one) lie in their physical
+    ranges (:data:`~softgrasp.model.ranges.RANGES`: a soft object's, where a user gives one);
+    MaterialError otherwise, prefixed by ``where``. (A :class:`Material` itself takes any
+    positive value: fits and bodies derive materials inside softgrasp.)"""
+    for key, value, unit, label in (
+        ("E", material.E, "Pa", "Young's modulus E"),
+        ("density", material.density, "kg/m^3", "density"),
+    ):
+        r = RANGES[key]
+        if value is not None and not r.contains(float(value)):
+            raise MaterialError(
+                f"{where}{label} = {float(value):g} {unit} is invalid: it must lie in {r.text} ({r.why})"
+            )
+    return material
 
 
 def preset(name: str) -> Material:
@@ -385,9 +410,12 @@ def parse_material(spec: str) -> tuple[Material, float | None]:
         except ValueError:
             raise MaterialError(f"material value {k}={v!r} is not a number") from None
         if k == "mass":
-            if not (math.isfinite(val) and val > 0):
-                raise MaterialError(f"mass = {val} kg is invalid: it must be > 0")
+            r = RANGES["mass"]
+            if not (math.isfinite(val) and r.contains(val)):
+                raise MaterialError(f"mass = {val} kg is invalid: it must lie in {r.text} ({r.why})")
             mass = val
+        elif k in ("a2", "a3"):
+            base[k] = RANGES[k].check(f"material {k}", val, MaterialError)
         elif k in _KEYS:
             base[k] = val
         else:
@@ -400,4 +428,4 @@ def parse_material(spec: str) -> tuple[Material, float | None]:
         law = Polynomial(base.get("a2", 0.0), base.get("a3", 0.0))
     if "density" not in base and mass is None:
         raise MaterialError(f"material spec {spec!r} needs density=.. [kg/m^3] or mass=.. [kg]")
-    return Material(base["E"], base["nu"], base.get("density"), law, name), mass
+    return check_given(Material(base["E"], base["nu"], base.get("density"), law, name)), mass

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,8 +20,9 @@ from softgrasp.model.material import Material, preset
 from softgrasp.model.memory import release_freed_memory
 from softgrasp.model.mesh.placement import rest_on_table
 from softgrasp.model.mesh.tetmesh import TetMesh
+from softgrasp.model.ranges import RANGES, check_object_size
 
-__all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object"]
+__all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object", "check_object"]
 
 #: Edge of the default foam cube [m].
 CUBE_SIZE = 0.05
@@ -55,7 +57,9 @@ def make_object(
     A file (any tet mesh meshio reads, or a closed .stl/.obj surface) gets the ``rubber`` material
     and no fixed mass (the material density decides); its coordinates times ``scale`` are metres
     (``1e-3`` for a file in millimetres); ``reorient`` flips its inverted tets instead of refusing
-    them. Built-in objects and shapes are in metres (``scale`` 1).
+    them. A shape's sizes are times ``scale`` as well; the built-in objects have their own size
+    (``scale`` 1). An object outside :data:`~softgrasp.model.ranges.OBJECT_SIZE_M` (1 mm to
+    0.5 m) is refused before it is meshed where its size is known then (shapes, surface files).
     The mesh rests on the table plane z = 0 in a stable pose (:func:`rest_on_table`).
     """
     mesh, material, mass = _make_object(name_or_path, mesh_size, reorient, scale)
@@ -66,16 +70,16 @@ def make_object(
 def _make_object(
     name_or_path: str, mesh_size: float | None, reorient: bool, scale: float = 1.0
 ) -> tuple[TetMesh, Material, float | None]:
-    if mesh_size is not None and not mesh_size > 0:
-        raise MeshError(f"mesh size must be > 0 m, got {mesh_size}")
-    builtin = name_or_path in OBJECTS or (":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES)
-    if builtin and scale != 1.0:
-        raise MeshError(f"units apply to mesh files; {name_or_path!r} is given in metres")
+    if mesh_size is not None:
+        RANGES["mesh_size"].check("mesh size", mesh_size, MeshError)
+    if not (math.isfinite(scale) and scale > 0):
+        raise MeshError(f"scale must be positive and finite, got {scale!r}")
+    check_object(name_or_path, scale)
     if name_or_path in OBJECTS:
         spec = OBJECTS[name_or_path]
         return _generated(name_or_path, mesh_size), preset(spec.material), spec.mass
     if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
-        return _generated(name_or_path, mesh_size), preset("rubber"), None
+        return _generated(name_or_path, mesh_size, scale), preset("rubber"), None
     path = Path(name_or_path)
     if not path.suffix:
         raise MeshError(
@@ -83,12 +87,25 @@ def _make_object(
         )
     from softgrasp.model.mesh.io import load_mesh
 
-    mesh = rest_on_table(load_mesh(path, mesh_size=mesh_size, reorient=reorient, scale=scale))
-    return mesh, preset("rubber"), None
+    mesh = load_mesh(path, mesh_size=mesh_size, reorient=reorient, scale=scale, check_size=True)
+    return rest_on_table(mesh), preset("rubber"), None
+
+
+def check_object(name_or_path: str, scale: float = 1.0) -> None:
+    """Refuse, before any meshing, units (``scale`` metres per unit, 1 for metres) given with a
+    built-in object, and a shape that cannot be read or whose size lies outside
+    :data:`~softgrasp.model.ranges.OBJECT_SIZE_M`. A mesh file is checked when it is read."""
+    if name_or_path in OBJECTS and scale != 1.0:
+        raise MeshError(
+            f"units apply to mesh files and shapes; the built-in {name_or_path!r} has its own size "
+            "in metres: leave --units at m"
+        )
+    if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
+        _shape_sizes(name_or_path, scale)
 
 
 @functools.lru_cache(maxsize=GENERATED_KEPT)
-def _generated(name: str, mesh_size: float | None) -> TetMesh:
+def _generated(name: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
     """The mesh of a built-in object or parametric shape, generated once per process for each
     (name, mesh size) among the last few asked for: meshing is deterministic, the mesh immutable
     (its arrays read-only), and a sweep or a script planning the same object again (another
@@ -101,7 +118,7 @@ def _generated(name: str, mesh_size: float | None) -> TetMesh:
         if spec.name == "cube":
             return generate.box(CUBE_SIZE, _box_cells("cube", (CUBE_SIZE,) * 3, h), name="cube")
         return rest_on_table(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
-    return _shape(name, mesh_size)
+    return _shape(name, mesh_size, scale)
 
 
 def _box_cells(what: str, size: Sequence[float], h: float) -> list[int]:
@@ -123,7 +140,7 @@ def _box_cells(what: str, size: Sequence[float], h: float) -> list[int]:
 #: Most cells of a parametric box (each 12 tets): beyond it, a coarser --mesh-size is needed.
 MAX_SHAPE_CELLS = 20_000
 
-#: Parametric shapes ``--object KIND:DIMENSIONS`` (metres): what each needs.
+#: Parametric shapes ``--object KIND:DIMENSIONS`` (in --units, default metres): what each needs.
 SHAPES = {
     "box": "box:WxDxH (edge lengths; box:A for a cube)",
     "cylinder": "cylinder:DxH (diameter x height, axis vertical)",
@@ -131,18 +148,32 @@ SHAPES = {
 }
 
 
-def _shape(spec: str, mesh_size: float | None) -> TetMesh:
-    """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
-    ``ball:0.03``), meshed with about four elements across its smallest dimension by default."""
-    from softgrasp.model.mesh import generate
+def _shape_sizes(spec: str, scale: float) -> tuple[str, list[float]]:
+    """The kind of a shape and its sizes [m] (its numbers times ``scale``), checked: readable,
+    positive and finite, and an object of :data:`~softgrasp.model.ranges.OBJECT_SIZE_M`."""
     kind, _, dims = spec.partition(":")
     try:
-        vals = [float(v) for v in dims.lower().split("x")]
+        vals = [float(v) * scale for v in dims.lower().split("x")]
     except ValueError:
         vals = []
     want = {"box": (1, 3), "cylinder": (2,), "ball": (1,)}[kind]
     if len(vals) not in want or not all(v > 0 and v < float("inf") for v in vals):
-        raise MeshError(f"cannot read the shape {spec!r}; give {SHAPES[kind]} in metres, every size > 0")
+        raise MeshError(
+            f"cannot read the shape {spec!r}; give {SHAPES[kind]} (sizes in metres, or in --units), "
+            "every size > 0"
+        )
+    extent = {"box": vals * 3 if len(vals) == 1 else vals, "cylinder": [vals[0]] * 2 + vals[1:]}
+    check_object_size(extent.get(kind, [2 * vals[0]] * 3), f"the shape {spec}", scale)
+    return kind, vals
+
+
+def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
+    """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
+    ``ball:0.03``; the sizes times ``scale`` in metres), meshed with about four elements across
+    its smallest dimension by default."""
+    from softgrasp.model.mesh import generate
+
+    kind, vals = _shape_sizes(spec, scale)
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
         h = min(size) / 4 if mesh_size is None else mesh_size

@@ -97,6 +97,7 @@ def run_case(
     """
     from softgrasp.grasp.planner import plan_grasp
     from softgrasp.io.options import contact_params, load_body, material_file, plan_config
+    from softgrasp.model.ranges import check_units
     from softgrasp.sweep.spec import split_options
 
     t0 = time.perf_counter()
@@ -112,6 +113,7 @@ def run_case(
             reorient=bool(plan_opts.get("reorient", False)),
             mfile=mf,
             overrides=material,
+            scale=check_units(plan_opts.get("units", "m")),
         )
         mu = plan_opts["mu"] if "mu" in options or mf is None or "mu" not in mf.contact else None
         law = str(plan_opts.get("contact_law", "resolved"))

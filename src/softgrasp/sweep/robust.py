@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.model.ranges import RANGES
 
 __all__ = [
     "UNCERTAIN",
@@ -59,16 +60,6 @@ RAISE = 1.25
 #: Checks of the set-points (the first and the raised ones) before giving up.
 MAX_ROUNDS = 4
 _FINGERS = ("thumb", "first", "middle")
-#: Physical bounds of each parameter's range: (lowest, highest, whether the lowest is allowed).
-_BOUNDS = {
-    "mu": (0.0, math.inf, True),
-    "E": (0.0, math.inf, False),
-    "nu": (-1.0, 0.5, False),
-    "density": (0.0, math.inf, False),
-    "mass": (0.0, math.inf, False),
-    "a2": (-math.inf, math.inf, False),
-    "a3": (-math.inf, math.inf, False),
-}
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 
 
@@ -118,10 +109,11 @@ def parse_uncertain(text: str, nominal: Mapping[str, float]) -> Uncertain:
         )
     if not (math.isfinite(low) and math.isfinite(high) and low < high):
         raise ConfigError(f"--uncertain {text!r}: the range needs LOW < HIGH, got {low:g}..{high:g}")
-    lo, hi, closed = _BOUNDS[name]
-    if (low < lo or (low == lo and not closed)) or high >= hi:
-        bounds = f"{'>=' if closed else '>'} {lo:g}" + ("" if math.isinf(hi) else f" and < {hi:g}")
-        raise ConfigError(f"--uncertain {text!r}: {name} must stay {bounds}; the range is {low:g}..{high:g}")
+    bounds = RANGES[name]  # the parameter's physical range
+    if not (bounds.contains(low) and bounds.contains(high)):
+        raise ConfigError(
+            f"--uncertain {text!r}: {name} must stay in {bounds.text}; the range is {low:g}..{high:g}"
+        )
     return Uncertain(name, low, high, text)
 
 

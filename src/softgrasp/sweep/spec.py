@@ -21,10 +21,13 @@ A sweep file is TOML::
     E = { low = 40e3, high = 160e3, log = true }
 
 Options are those of ``softgrasp plan`` (:data:`softgrasp.io.options.PLAN_DEFAULTS`: ``object``,
-``material``, ``mesh_size``, ``mu``, ``fingertip_radius``, ``step``, ``solver``, ``safety_factor``,
-``hold_time``, ``max_squeeze``, ``refine``, ``hand``, ``grasp``) and the material parameters ``E``
+``material``, ``mesh_size``, ``units``, ``mu``, ``fingertip_radius``, ``step``, ``solver``,
+``safety_factor``, ``hold_time``, ``max_squeeze``, ``refine``, ``hand``, ``grasp``) and the
+material parameters ``E``
 [Pa], ``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3`` set over the object's material. SI
-units. ``grasp`` names a ``plan.json``: every case closes from its initial grasp.
+units; each value, and each end of a random range, lies in the option's physical range
+(:data:`softgrasp.model.ranges.RANGES`). ``grasp`` names a ``plan.json``: every case closes from
+its initial grasp.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from softgrasp.errors import ConfigError
-from softgrasp.io.options import MATERIAL_OVERRIDES, PLAN_DEFAULTS
+from softgrasp.io.options import MATERIAL_OVERRIDES, PLAN_DEFAULTS, TEXT_OPTIONS, check_option
 from softgrasp.io.tomlfile import read_toml
 
 __all__ = [
@@ -63,7 +66,7 @@ MAX_CASES = 1_000_000
 OPTIONS: tuple[str, ...] = (
     tuple(k for k in PLAN_DEFAULTS if k not in ("out", "reorient")) + MATERIAL_OVERRIDES
 )
-_TEXT = {"object", "material", "solver", "hand", "grasp"}
+_TEXT = TEXT_OPTIONS
 
 
 @dataclass(frozen=True)
@@ -128,19 +131,8 @@ def _check_name(source: str, table: str, name: str) -> None:
 
 
 def _check_value(source: str, where: str, name: str, value: object) -> object:
-    if name in _TEXT:
-        if value is not None and not isinstance(value, str):
-            raise ConfigError(f"sweep file {source}: {where} {name} must be text, got {value!r}")
-        return value
-    if name == "refine":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"sweep file {source}: {where} refine must be an integer, got {value!r}")
-        return value
-    if value is None and name == "mesh_size":
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
-        raise ConfigError(f"sweep file {source}: {where} {name} must be a finite number, got {value!r}")
-    return float(value)
+    """A case option's value checked for its kind and physical range (:func:`check_option`)."""
+    return check_option(name, value, f"sweep file {source}: {where} {name}")
 
 
 def read_sweep(path: str | Path) -> SweepSpec:
@@ -169,8 +161,7 @@ def read_sweep(path: str | Path) -> SweepSpec:
         raise ConfigError(
             f"sweep file {source}: [sweep] samples must be an integer from 1 to {MAX_CASES}, got {samples!r}"
         )
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ConfigError(f"sweep file {source}: [sweep] seed must be an integer, got {seed!r}")
+    check_option("seed", seed, f"sweep file {source}: [sweep] seed")
     if not isinstance(execute, bool):
         raise ConfigError(f"sweep file {source}: [sweep] execute must be true or false, got {execute!r}")
     base: dict[str, object] = {}

@@ -30,6 +30,7 @@ from softgrasp.model.mesh._gmsh import (
     tet_mesh_from_model,
 )
 from softgrasp.model.mesh.tetmesh import TetMesh
+from softgrasp.model.ranges import check_object_size
 
 __all__ = ["load_mesh", "save_mesh"]
 
@@ -70,6 +71,10 @@ _WRITE_FORMATS: dict[str, str] = {
     ".mesh": "medit",
     ".inp": "abaqus",
 }
+#: meshio's tetrahedral cells (linear; quadratic, whose first four nodes are the corners).
+_TET_CELLS = ("tetra", "tetra10")
+#: Words in the names of meshio's solid (3-D) cell types.
+_SOLID_CELL_WORDS = ("tetra", "hexahedron", "wedge", "pyramid", "polyhedron")
 #: Dihedral angle [rad] above which a surface edge is kept as a sharp feature when remeshing.
 _FEATURE_ANGLE = math.radians(40.0)
 
@@ -128,6 +133,7 @@ def load_mesh(
     reorient: bool = False,
     name: str | None = None,
     scale: float = 1.0,
+    check_size: bool = False,
 ) -> TetMesh:
     """Load a tetrahedral mesh from a volume mesh file, or tet-mesh a closed surface file.
 
@@ -152,6 +158,10 @@ def load_mesh(
         Label of the mesh; default the file name without suffix.
     scale:
         Factor turning file coordinates into metres, e.g. ``1e-3`` for a file in millimetres.
+    check_size:
+        Refuse an object whose size lies outside :data:`~softgrasp.model.ranges.OBJECT_SIZE_M`
+        (1 mm to 0.5 m), naming the length unit that would fit; a surface is checked before it is
+        tet-meshed.
 
     Returns
     -------
@@ -180,7 +190,7 @@ def load_mesh(
     stem = p.name[: len(p.name) - len(max(surface, volume, key=len))]
     label = name if name is not None else stem or "mesh"
     if surface in _SURFACE_FORMATS:
-        return _mesh_surface_file(p, _SURFACE_FORMATS[surface], mesh_size, factor, label)
+        return _mesh_surface_file(p, _SURFACE_FORMATS[surface], mesh_size, factor, label, check_size)
     if volume not in _VOLUME_FORMATS:
         raise MeshError(
             f"unknown mesh file suffix {volume or '(none)'!r} of {p}; volume formats: "
@@ -194,14 +204,31 @@ def load_mesh(
     data = _read(p, _VOLUME_FORMATS[volume])
     points, tets = _volume_arrays(p, data)
     try:
-        return TetMesh(points * factor, tets, reorient=reorient, name=label)
+        mesh = TetMesh(points * factor, tets, reorient=reorient, name=label)
     except MeshError as exc:
         raise MeshError(f"{p}: {exc}") from exc
+    if check_size:
+        check_object_size(np.ptp(mesh.points, axis=0), f"the object in {p}", factor)
+    return mesh
 
 
 def _volume_arrays(path: Path, data: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Points ``(N, 3)`` and linear tets ``(M, 4)`` of a meshio mesh, unreferenced nodes dropped."""
-    blocks = [np.asarray(c.data)[:, :4] for c in data.cells if c.type in ("tetra", "tetra10")]
+    """Points ``(N, 3)`` and linear tets ``(M, 4)`` of a meshio mesh, unreferenced nodes dropped.
+    Surface, line and point cells (boundary groups) are passed over; solid cells other than
+    tetrahedra (hexahedra, wedges, pyramids, polyhedra) are refused rather than dropped, which
+    would leave holes in the object."""
+    others: dict[str, int] = {}
+    for c in data.cells:
+        if c.type not in _TET_CELLS and any(w in c.type.lower() for w in _SOLID_CELL_WORDS):
+            others[c.type] = others.get(c.type, 0) + len(c.data)
+    if others:
+        found = ", ".join(f"{n} {kind}" for kind, n in sorted(others.items()))
+        raise MeshError(
+            f"{path}: the mesh has solid cells other than tetrahedra ({found}); softgrasp models "
+            "tetrahedra only: split them into tetrahedra (e.g. in gmsh) or give the surface (.stl) "
+            "to tet-mesh it"
+        )
+    blocks = [np.asarray(c.data)[:, :4] for c in data.cells if c.type in _TET_CELLS and len(c.data)]
     if not blocks:
         kinds = sorted({c.type for c in data.cells}) or ["none"]
         raise MeshError(
@@ -311,8 +338,10 @@ def _outward(points: NDArray[np.float64], tri: NDArray[np.int64]) -> NDArray[np.
     return tri if enclosed > 0 else tri[:, ::-1].copy()
 
 
-def _mesh_surface_file(path: Path, fmt: str, mesh_size: float | None, factor: float, label: str) -> TetMesh:
-    """Tet-mesh the closed surface in ``path`` with gmsh."""
+def _mesh_surface_file(
+    path: Path, fmt: str, mesh_size: float | None, factor: float, label: str, check_size: bool = False
+) -> TetMesh:
+    """Tet-mesh the closed surface in ``path`` with gmsh (its size checked first if ``check_size``)."""
     points, tri = _surface_triangles(path, _read(path, (fmt,)))
     points = points * factor
     tri = _outward(points, _orient_closed_surface(path, tri))
@@ -320,6 +349,8 @@ def _mesh_surface_file(path: Path, fmt: str, mesh_size: float | None, factor: fl
     box_volume = float(np.prod(extent))
     if box_volume <= 0.0:
         raise MeshError(f"{path}: the surface is flat (extent {extent.tolist()} m) and encloses nothing")
+    if check_size:
+        check_object_size(extent, f"the object in {path}", factor)
     h = min(default_mesh_size(box_volume), 0.25 * float(extent.min())) if mesh_size is None else mesh_size
     h = check_mesh_size(h, box_volume, f"{path}:", extent=float(extent.min()))
     try:

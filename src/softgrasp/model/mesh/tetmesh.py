@@ -84,8 +84,8 @@ class TetMesh:
     ------
     MeshError
         Empty mesh, wrong shapes, NaN/inf coordinates, out-of-range or repeated indices,
-        unreferenced nodes, zero-volume tets, inverted tets (unless ``reorient``), or a
-        non-manifold boundary.
+        unreferenced nodes, zero-volume tets, inverted tets (unless ``reorient``), a
+        non-manifold boundary, or tets falling apart into parts joined by no face.
     """
 
     points: NDArray[np.float64]
@@ -300,6 +300,32 @@ class TetMesh:
         _, dcount = _unique_rows(directed, self.n_nodes, counts=True)
         if (dcount != 1).any():
             raise MeshError("boundary surface is not consistently oriented (a face is folded over)")
+        self._check_connected()
+
+    def _check_connected(self) -> None:
+        """Refuse a mesh whose tets fall apart into parts joined by no face: separate bodies, or
+        parts touching only at a vertex or along an edge (no stiffness holds them together, and
+        the body's equations become singular)."""
+        if self.n_tets == 1:
+            return
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        _, inv, counts = self._faces
+        inner = np.flatnonzero(counts[inv] == 2)  # faces of two tets, pairs adjacent by key
+        pairs = inner[np.argsort(inv[inner], kind="stable")].reshape(-1, 2) // 4
+        m = self.n_tets
+        graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+        n_parts, label = connected_components(graph, directed=False)
+        if n_parts > 1:
+            sizes = np.bincount(label)
+            shown = ", ".join(str(int(k)) for k in np.sort(sizes)[::-1][:5])
+            shown += ", ..." if n_parts > 5 else ""
+            raise MeshError(
+                f"the mesh falls apart into {n_parts} parts joined by no shared face ({shown} tetrahedra): "
+                "separate bodies, or parts touching only at a vertex or along an edge; give one "
+                "connected object"
+            )
 
     # ------------------------------------------------------------------ transforms
     def translated(self, offset: NDArray[np.float64] | list[float]) -> TetMesh:

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ContactError
+from softgrasp.model.ranges import RANGES
 from softgrasp.physics.fingertip.laws import HERTZ_PREFACTOR, PAPER_PREFACTOR, RESOLUTION
 
 __all__ = ["Fingertip", "ContactParams"]
@@ -137,7 +138,7 @@ class ContactParams:
         if self.prefactor is None:
             object.__setattr__(self, "prefactor", HERTZ_PREFACTOR if self.law == "resolved" else PAPER_PREFACTOR)
         checks = {
-            "mu": self.mu >= 0,
+            "mu": RANGES["mu"].contains(self.mu),
             "exponent": self.exponent >= 1.0,
             "prefactor": self.prefactor > 0,
             "gamma": self.gamma >= 0,
@@ -147,7 +148,8 @@ class ContactParams:
         for k, ok in checks.items():
             v = getattr(self, k)
             if not (ok and math.isfinite(v)):
-                raise ContactError(f"contact parameter {k} = {v} is invalid")
+                hint = f": it must lie in {RANGES['mu'].text}" if k == "mu" else ""
+                raise ContactError(f"contact parameter {k} = {v} is invalid{hint}")
         if self.damping not in ("linear", "hunt-crossley"):
             raise ContactError(f"damping must be 'linear' or 'hunt-crossley', got {self.damping!r}")
         if self.rule not in ("patch", "facet"):
