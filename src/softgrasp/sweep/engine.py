@@ -147,33 +147,56 @@ def _write_parquet(path: Path, cols: Sequence[str], rows: Sequence[dict[str, obj
 
 
 @contextmanager
-def _sigint_held() -> Iterator[None]:
-    """SIGINT ignored in this block and a Ctrl-C pressed meanwhile delivered at its end.
+def _signals_deferred() -> Iterator[list[Callable[[], None]]]:
+    """A Ctrl-C (SIGINT) or SIGTERM received in this block is remembered and acted on at its end.
 
-    Processes started in the block (Dask's workers) inherit the ignored SIGINT, so a Ctrl-C at
-    the terminal, which reaches every process of the group, interrupts only this one, which then
-    shuts the cluster down: no worker prints a traceback or outlives the sweep. The signal is
-    also blocked in this thread meanwhile, which keeps a Ctrl-C pending (Linux does not discard
-    a blocked signal) until the handler is back. A cluster being shut down is not interrupted
-    halfway either."""
+    The block runs to its end (a cluster is never left half started or half closed); then, if a
+    signal came meanwhile, the callables the block added to the yielded list run (closing what it
+    started) and the signal is raised again, reaching the handler it would have reached
+    (``KeyboardInterrupt`` for a Ctrl-C).
+
+    SIGINT is also blocked in this thread meanwhile, and the threads and processes started in the
+    block inherit that mask: Dask's worker processes (and their threads) keep SIGINT blocked for
+    life, so a Ctrl-C at the terminal, which reaches every process of the group, interrupts only
+    this one, which then shuts the cluster down; no worker prints a traceback or outlives the run.
+    Multiprocessing's resource tracker unblocks SIGINT in the thread that starts it, so it is
+    started here first."""
     import signal
     import threading
 
+    undo: list[Callable[[], None]] = []
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield undo
         return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    caught: list[int] = []
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    before = {s: signal.getsignal(s) for s in sigs}
+    for s in sigs:
+        signal.signal(s, lambda n, _f: caught.append(n))
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ok = False
     try:
-        yield
+        yield undo
+        ok = True
     finally:
-        signal.signal(signal.SIGINT, handler)
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a Ctrl-C kept pending is recorded now
+        try:
+            if caught and ok:
+                for f in reversed(undo):
+                    f()
+        finally:
+            for s, h in before.items():
+                signal.signal(s, h if h is not None else signal.SIG_DFL)
+            if caught:
+                signal.raise_signal(caught[0])
 
 
 def _close(client: Any, cluster: Any) -> None:
     """Close a client (and the local cluster it ran on) without being interrupted halfway."""
-    with _sigint_held():
+    with _signals_deferred():
         if client is not None:
             client.close()
         if cluster is not None:
@@ -182,9 +205,12 @@ def _close(client: Any, cluster: Any) -> None:
 
 def _client(scheduler: str | None, workers: int):
     """A Dask client: of the cluster at ``scheduler``, or of a new local one (TCP on loopback)
-    whose worker processes never see SIGINT (:func:`_sigint_held`)."""
-    with _sigint_held():
-        return _start_client(scheduler, workers)
+    whose worker processes never see SIGINT; a Ctrl-C during the start closes the new cluster
+    and then interrupts (:func:`_signals_deferred`)."""
+    with _signals_deferred() as undo:
+        client, cluster = _start_client(scheduler, workers)
+        undo.append(lambda: _close(client, cluster))
+    return client, cluster
 
 
 def _start_client(scheduler: str | None, workers: int):
