@@ -252,7 +252,9 @@ def test_plan_keeps_a_users_file_in_a_folder_named_like_its_outputs(tmp_path, ca
     assert (d / "plan.json").is_file() and (d / "grasp.png").is_file()
 
 
-def test_a_plan_failing_while_writing_leaves_the_earlier_plan_byte_identical(planned, tmp_path, monkeypatch):
+def test_a_plan_failing_while_writing_leaves_the_earlier_plan_byte_identical(
+    planned, tmp_path, monkeypatch, capsys
+):
     d = _copy(planned, tmp_path / "d")
     before = snapshot(d)
     import softgrasp.api.planning as planning
@@ -261,8 +263,9 @@ def test_a_plan_failing_while_writing_leaves_the_earlier_plan_byte_identical(pla
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(planning, "_write_frames", full_disk)  # after history.csv and the figures
-    with pytest.raises(OSError):
-        main(["--debug", *PLAN, "--safety-factor", "1.3", "--out", str(d)])
+    assert main(["--debug", *PLAN, "--safety-factor", "1.3", "--out", str(d)]) == 2
+    err = capsys.readouterr().err
+    assert "the disk is full; free space or give a folder elsewhere; its earlier files are unchanged" in err
     assert snapshot(d) == before
 
 

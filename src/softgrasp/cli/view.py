@@ -17,11 +17,17 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softgrasp.io.runfolder import check_out_file
+    from pathlib import Path
+
+    from softgrasp.io.runfolder import check_out_file, write_failure
     from softgrasp.viz.view import write_view
 
     if args.out is not None:
         check_out_file(args.out)
-    path = write_view(args.run_dir, args.out)
+    out = args.out if args.out is not None else Path(args.run_dir) / "view.html"
+    try:
+        path = write_view(args.run_dir, args.out)
+    except OSError as exc:  # a full disk, say
+        raise write_failure(exc, out, "--out" if args.out is not None else "the page") or exc from None
     print(f"wrote {path} (open it in a browser; it needs no network)")
     return 0

@@ -84,15 +84,38 @@ def _ranged(doc: Any, path: str, key: str | None = None) -> float:
     return PLAN_RANGES[key or path].check(_get(doc, path), f"'{path}'", "plan file: field ")
 
 
+def _floats(v: Any) -> NDArray[np.float64]:
+    """``v`` (a list, nested or not) as an array of floats; an empty array when it is not a list
+    of numbers of one shape."""
+    if not isinstance(v, list):
+        return np.zeros(0)
+    try:
+        return np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        return np.zeros(0)
+
+
+#: Largest coordinate of a position in a plan [m]: far beyond any hand's reach, and small enough
+#: that distances between positions stay finite numbers.
+FAR_M = 1e9
+
+
 def _vector(doc: Any, path: str, n: int = 3) -> NDArray[np.float64]:
     v = _get(doc, path)
-    try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        a = np.zeros(0)
+    a = _floats(v)
     if a.shape != (n,) or not np.all(np.isfinite(a)):
         raise ConfigError(f"plan file: field {path!r} must be {n} finite numbers, got {v!r}")
+    _near(a, path)
     return a
+
+
+def _near(a: NDArray[np.float64], path: str) -> None:
+    """ConfigError when a coordinate of ``a`` lies beyond :data:`FAR_M`."""
+    if np.abs(a).max(initial=0.0) > FAR_M:
+        raise ConfigError(
+            f"plan file: field {path!r} holds a coordinate of {np.abs(a).max():g} m: no hand reaches "
+            f"there (at most {FAR_M:g} m); re-plan"
+        )
 
 
 def _read_document(p: Path) -> dict[str, Any]:
@@ -124,13 +147,14 @@ def load_plan_grasp(path: str | Path) -> InitialGrasp:
     rows = {}
     for key in ("contacts_m", "normals"):
         v = _get(doc, f"initial_grasp.{key}")
-        a = np.asarray(v, dtype=np.float64) if isinstance(v, list) else np.zeros(0)
+        a = _floats(v)
         if a.shape != (3, 3) or not np.all(np.isfinite(a)):
             raise ConfigError(
                 f"plan file: field 'initial_grasp.{key}' must be 3 x 3 finite numbers, got {v!r}"
             )
         rows[key] = a
-    n = np.linalg.norm(rows["normals"], axis=1)
+    _near(rows["contacts_m"], "initial_grasp.contacts_m")
+    n = np.linalg.norm(np.clip(rows["normals"], -2.0, 2.0), axis=1)
     if np.abs(n - 1.0).max() > 1e-6:
         raise ConfigError("plan file: field 'initial_grasp.normals' must hold unit vectors")
     facets = _get(doc, "initial_grasp.facets")
@@ -164,16 +188,14 @@ def load_plan_file(path: str | Path) -> PlanFile:
         raise ConfigError(
             "plan file: no 'hand' section: the plan was made without a hand model (re-plan with one)"
         )
-    pose = (
-        np.asarray(_get(doc, "hand.palm_pose"), dtype=np.float64)
-        if isinstance(_get(doc, "hand.palm_pose"), list)
-        else np.zeros(0)
-    )
+    pose = _floats(_get(doc, "hand.palm_pose"))
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
         raise ConfigError("plan file: field 'hand.palm_pose' must be a 4 x 4 matrix of finite numbers")
+    _near(pose[:3, 3], "hand.palm_pose")
     R = pose[:3, :3]
     if (
-        np.abs(R @ R.T - np.eye(3)).max() > 1e-6
+        np.abs(R).max() > 1.0 + 1e-6
+        or np.abs(R @ R.T - np.eye(3)).max() > 1e-6
         or abs(np.linalg.det(R) - 1) > 1e-6
         or np.any(pose[3] != [0, 0, 0, 1])
     ):
@@ -197,8 +219,8 @@ def load_plan_file(path: str | Path) -> PlanFile:
             raise ConfigError(f"plan file: field '{where}.name': finger {name!r} appears twice in 'fingers'")
         seen.add(name)
         q = _get(doc, f"hand.fingers.{name}.q_start_rad")
-        qa = np.asarray(q, dtype=np.float64) if isinstance(q, list) else np.zeros((0, 0))
-        if qa.ndim != 1 or not np.all(np.isfinite(qa)):
+        qa = _floats(q)
+        if not isinstance(q, list) or qa.shape != (len(q),) or not np.all(np.isfinite(qa)):
             raise ConfigError(
                 f"plan file: field 'hand.fingers.{name}.q_start_rad' must be a list of finite angles"
             )

@@ -40,7 +40,7 @@ from pathlib import Path
 from softgrasp.errors import ConfigError
 from softgrasp.io.atomic import write_json
 
-__all__ = ["RunFolder", "run_folder", "check_out", "check_out_file", "MANIFEST", "LOCK"]
+__all__ = ["RunFolder", "run_folder", "check_out", "check_out_file", "write_failure", "MANIFEST", "LOCK"]
 
 #: The lock file, the manifest, the commit journal and the staging folders' prefix.
 LOCK = ".softgrasp.lock"
@@ -157,8 +157,30 @@ def check_out_file(out: str | os.PathLike[str], option: str = "--out") -> Path:
     return path
 
 
-def _os_error(option: str, text: str, exc: OSError) -> ConfigError:
-    """A file-system failure at the door as one line that says what to change."""
+def _writing(exc: OSError, path: Path) -> bool:
+    """Whether ``exc`` is a failure to write output: the disk or quota full, a file too large, or
+    any failure on a file inside the output folder ``path``."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        return True
+    name = exc.filename
+    if not isinstance(name, str | bytes | os.PathLike):
+        return False
+    try:
+        full, top = Path(os.path.abspath(os.fsdecode(name))), Path(os.path.abspath(path))
+    except (TypeError, ValueError):
+        return False
+    return full == top or top in full.parents
+
+
+def write_failure(exc: OSError, out: str | os.PathLike[str], option: str = "--out") -> ConfigError | None:
+    """``exc`` as one line naming ``option`` when it is a failure to write ``out`` (a file or a
+    folder: the disk full, a read-only file system, ...); None when it is about another file."""
+    return _os_error(option, os.fspath(out), exc) if _writing(exc, Path(out)) else None
+
+
+def _os_error(option: str, text: str, exc: OSError, then: str = "") -> ConfigError:
+    """A file-system failure (at the door, or while writing: ``then`` adds what became of the
+    folder) as one line that says what to change."""
     why = {
         errno.ENAMETOOLONG: "a name in it is too long; give a shorter one",
         errno.EROFS: "it is on a read-only file system; give a folder elsewhere",
@@ -166,10 +188,11 @@ def _os_error(option: str, text: str, exc: OSError) -> ConfigError:
         errno.EPERM: "it is not writable; give a folder you can write to",
         errno.ENOSPC: "the disk is full; free space or give a folder elsewhere",
         errno.EDQUOT: "the disk quota is used up; free space or give a folder elsewhere",
+        errno.EFBIG: "a file outgrew the file system's size limit; give a folder elsewhere",
         errno.ENOTDIR: "a part of it is a file, not a folder",
         errno.EEXIST: "is a file, not a folder; give a folder name",
     }.get(exc.errno or 0, f"cannot be written ({exc.strerror})")
-    return _refuse(option, text, why)
+    return _refuse(option, text, why + then)
 
 
 def _makedirs(path: Path) -> list[Path]:
@@ -394,8 +417,16 @@ def run_folder(
             _OPEN.folders.append(folder)
             try:
                 with _sigterm_interrupts():
-                    yield folder
-                    _commit(folder, complete)
+                    try:
+                        yield folder
+                    except OSError as exc:  # a full disk, say, while the files were staged
+                        if not _writing(exc, path):
+                            raise
+                        raise _os_error(option, text, exc, "; its earlier files are unchanged") from None
+                    try:
+                        _commit(folder, complete)
+                    except OSError as exc:
+                        raise _os_error(option, text, exc) from None
                 committed = True
             finally:
                 _OPEN.folders.remove(folder)
