@@ -271,6 +271,10 @@ def _uncertain(args: argparse.Namespace, obj, mu: float) -> list:
     for key, default in ROBUST_DEFAULTS.items():
         if getattr(args, key) is None:
             setattr(args, key, default)
+    if args.scheduler is not None:
+        from softgrasp.sweep.engine import check_scheduler
+
+        check_scheduler(args.scheduler)  # before the nominal plan
     return uncertain_parameters(
         obj, mu, args.uncertain, samples=args.samples, quantile=args.quantile, workers=args.workers
     )

@@ -41,6 +41,10 @@ def run(args: argparse.Namespace) -> int:
     from softgrasp.sweep.spec import read_sweep, sweep_cases
 
     spec = read_sweep(args.sweep)
+    if args.scheduler is not None:
+        from softgrasp.sweep.engine import check_scheduler
+
+        check_scheduler(args.scheduler)  # before any work
     out = args.out if args.out is not None else "softgrasp-out/sweep"
     with run_folder(out, "sweep") as folder:  # checked and locked before any work
         return _run(args, spec, sweep_cases(spec), Path(out), folder.stage)

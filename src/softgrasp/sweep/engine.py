@@ -31,7 +31,7 @@ from softgrasp.io.atomic import atomic_write, write_json
 from softgrasp.sweep.case import output_columns, run_case
 from softgrasp.sweep.spec import Case, SweepSpec, describe_spec, spec_digest
 
-__all__ = ["SweepResult", "run_sweep", "dask_client", "read_rows", "columns"]
+__all__ = ["SweepResult", "run_sweep", "dask_client", "check_scheduler", "read_rows", "columns"]
 
 #: Seconds between rewrites of the Parquet table while rows stream in.
 PARQUET_EVERY = 10.0
@@ -211,6 +211,26 @@ def _client(scheduler: str | None, workers: int):
         client, cluster = _start_client(scheduler, workers)
         undo.append(lambda: _close(client, cluster))
     return client, cluster
+
+
+def check_scheduler(address: str, timeout_s: float = 5.0) -> None:
+    """ConfigError at once when nothing answers at the Dask scheduler ``address`` (a TCP address
+    as :func:`softgrasp.io.options.scheduler_address` reads it): checked before any work, where the
+    Dask client would retry for 20 s after it. Other protocols are left to the client."""
+    import re
+    import socket
+
+    m = re.fullmatch(r"(?:tcp://)?\[?([^\[\]/]+?)\]?:(\d+)", address)
+    if m is None:
+        return
+    try:
+        socket.create_connection((m.group(1), int(m.group(2))), timeout=timeout_s).close()
+    except OSError as exc:
+        why = exc.strerror or str(exc) or type(exc).__name__
+        raise ConfigError(
+            f"cannot reach the Dask scheduler at {address}: {why.lower()}; start one there "
+            "(dask scheduler) or leave --scheduler out for a local cluster"
+        ) from None
 
 
 def _start_client(scheduler: str | None, workers: int):
