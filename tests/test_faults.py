@@ -17,13 +17,11 @@ from __future__ import annotations
 import copy
 import errno
 import json
-import math
 import os
 import shutil
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
@@ -375,7 +373,9 @@ def _inject(monkeypatch, fault: str) -> None:
     elif fault == "calibration not converged":
         monkeypatch.setattr(calibration, "calibrate", _fail(NotConverged("the fit did not converge")))
     elif fault == "MuJoCo blow-up":
-        monkeypatch.setattr(MujocoHand, "step", _fail(SimulationUnstable("MuJoCo's simulation became unstable")))
+        monkeypatch.setattr(
+            MujocoHand, "step", _fail(SimulationUnstable("MuJoCo's simulation became unstable"))
+        )
 
 
 QUICK_COMPRESS = ["compress", "--object", "box:0.04", "--strain", "0.02", "--steps", "2"]
@@ -392,7 +392,11 @@ QUICK_INDENT = ["indent", "--object", "box:0.04", "--depth", "0.001", "--steps",
         (["calibrate", "--compression", "{i}/neg8.csv"], "calibration not converged", "did not converge"),
         (["execute", "{p}/plan.json"], "MuJoCo blow-up", "became unstable"),
         pytest.param(
-            ["execute", "{p}/plan.json"], "full disk", "the disk is full", marks=pytest.mark.slow, id="execute"
+            ["execute", "{p}/plan.json"],
+            "full disk",
+            "the disk is full",
+            marks=pytest.mark.slow,
+            id="execute",
         ),
     ],
     ids=lambda v: v if isinstance(v, str) and " " in v else None,
@@ -436,7 +440,13 @@ def _child(cmd: list[str], *, cwd: Path, sig: int | None = None, after: float = 
     """Run ``cmd`` in its own process group (a terminal's job), send the group ``sig`` ``after``
     seconds, and return how it ended; fail if it outlives the bound or leaves a process behind."""
     p = subprocess.Popen(
-        cmd, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+        cmd,
+        cwd=cwd,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
     )
     try:
         if sig is not None:
@@ -538,7 +548,9 @@ def test_two_plans_at_once_one_writes_the_other_is_refused(earlier, tmp_path):
     assert_clear_error(2, lost_err, "another softgrasp run is writing there")
     winner = runs[[code for _, code in ends].index(0)].args[-3]
     after = snapshot(d)
-    plan_files = {n for n, owner in json.loads(after[".softgrasp-manifest.json"])["files"].items() if owner == "plan"}
+    plan_files = {
+        n for n, owner in json.loads(after[".softgrasp-manifest.json"])["files"].items() if owner == "plan"
+    }
     assert json.loads(after["plan.json"])["margin"]["safety_factor"] == float(winner)
     assert {k: v for k, v in after.items() if k not in plan_files and not k.startswith(".")} == {
         k: v for k, v in before.items() if k not in plan_files and not k.startswith(".")
@@ -571,7 +583,14 @@ def issue_files(planned_sphere, plan_doc, tmp_path_factory) -> Path:
     from softgrasp.model.mesh.tetmesh import TetMesh
 
     d = tmp_path_factory.mktemp("issue")
-    for how in ("duplicated finger", "fourth finger", "swapped fingers", "palm 1e6 m away", "E_Pa 1e300", "mu 1e300"):
+    for how in (
+        "duplicated finger",
+        "fourth finger",
+        "swapped fingers",
+        "palm 1e6 m away",
+        "E_Pa 1e300",
+        "mu 1e300",
+    ):
         doc = copy.deepcopy(plan_doc)
         _tamper(doc, how)
         sub = d / how.replace(" ", "_")
@@ -583,18 +602,26 @@ def issue_files(planned_sphere, plan_doc, tmp_path_factory) -> Path:
     shutil.copyfile(planned_sphere / "plan.json", other / "plan.json")
     mesh = load_mesh(planned_sphere / "object.vtu")
     save_mesh(TetMesh(mesh.points * np.array([1.0, 1.0, 1.01]), mesh.tets), other / "object.vtu")
-    for name, text in (("size", 'mesh_size = "abc"'), ("int", "material = 5"), ("list", 'material = ["rubber"]')):
+    for name, text in (
+        ("size", 'mesh_size = "abc"'),
+        ("int", "material = 5"),
+        ("list", 'material = ["rubber"]'),
+    ):
         (d / f"{name}.toml").write_text(text + "\n")
     p = 0.02 * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0], [0, 0, -1]])
     meshio.write(d / "vertex.vtu", meshio.Mesh(p, [("tetra", np.array([[0, 1, 2, 3], [0, 4, 6, 5]]))]))
     ball = sphere(0.02, 0.01)
     pts = np.vstack([ball.points, ball.points + [0.1, 0.0, 0.0]])
-    meshio.write(d / "two_balls.vtu", meshio.Mesh(pts, [("tetra", np.vstack([ball.tets, ball.tets + ball.n_nodes]))]))
+    meshio.write(
+        d / "two_balls.vtu", meshio.Mesh(pts, [("tetra", np.vstack([ball.tets, ball.tets + ball.n_nodes]))])
+    )
     hexa = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])
     cells = [("tetra", ball.tets), ("hexahedron", np.arange(8)[None] + ball.n_nodes)]
     meshio.write(d / "mixed.vtu", meshio.Mesh(np.vstack([ball.points, 0.01 * hexa + [0.03, 0, 0]]), cells))
     values = ", ".join(str(0.1 + i * 1e-4) for i in range(1024))
-    (d / "grid.toml").write_text(f"[grid]\nmu = [{values}]\nE = [{', '.join(str(1e4 + i) for i in range(1024))}]\n")
+    (d / "grid.toml").write_text(
+        f"[grid]\nmu = [{values}]\nE = [{', '.join(str(1e4 + i) for i in range(1024))}]\n"
+    )
     (d / "a_file").write_text("a file\n")
     return d
 
@@ -610,40 +637,58 @@ ISSUE = [
     _issue("1048576-case grid sweep", ["sweep", "{r}/grid.toml"], "more than 1000000"),
     _issue("--out an existing file", ["plan", "--out", "{r}/a_file"], "is a file, not a folder"),
     _issue("--out under /proc", ["execute", "{p}/plan.json", "--out", "/proc/sg"], "virtual file system"),
-    _issue("--out under /sys", ["calibrate", "--compression", "c.csv", "--out", "/sys/sg"], "virtual file system"),
+    _issue(
+        "--out under /sys", ["calibrate", "--compression", "c.csv", "--out", "/sys/sg"], "virtual file system"
+    ),
     _issue("--out name too long", ["plan", "--out", "x" * 300], "longer than 255 bytes"),
     _issue("--out ''", ["compress", "--out", ""], "--out is empty"),
     _issue("mesh_size = 'abc'", ["plan", "--config", "{r}/size.toml"], "mesh_size must be a number"),
     _issue("material = 5", ["plan", "--config", "{r}/int.toml"], "material must be text"),
     _issue("material = ['rubber']", ["plan", "--config", "{r}/list.toml"], "material must be text"),
     _issue("--object box:1e300x1e300x1e300", ["plan", "--object", "box:1e300x1e300x1e300"], "1 mm to 0.5 m"),
-    _issue("--hold-time 1e300", ["plan", "--hold-time", "1e300"], "--hold-time must be a number in (0, 60] s"),
+    _issue(
+        "--hold-time 1e300", ["plan", "--hold-time", "1e300"], "--hold-time must be a number in (0, 60] s"
+    ),
     _issue("indent --depth inf", ["indent", "--depth", "inf"], "--depth must be a number"),
-    _issue("--scheduler not-a-url", ["sweep", "{r}/grid.toml", "--scheduler", "not-a-url"], "tcp://HOST:PORT"),
+    _issue(
+        "--scheduler not-a-url", ["sweep", "{r}/grid.toml", "--scheduler", "not-a-url"], "tcp://HOST:PORT"
+    ),
     _issue("two tets touching at a vertex", ["compress", "--object", "{r}/vertex.vtu"], "falls apart"),
     _issue("plan.json duplicated finger", ["execute", "{r}/duplicated_finger/plan.json"], "appears twice"),
     _issue("plan.json fourth finger", ["execute", "{r}/fourth_finger/plan.json"], "'ring' is not a finger"),
-    _issue("--mu 1e300 (said: raise the friction)", ["plan", "--mu", "1e300"], "--mu must be a number in [0, 5]"),
+    _issue(
+        "--mu 1e300 (said: raise the friction)", ["plan", "--mu", "1e300"], "--mu must be a number in [0, 5]"
+    ),
     _issue("--safety-factor 1000 (said: 0.00 N)", ["plan", "--safety-factor", "1000"], "in [1, 20]"),
     _issue(
         "weightless object (said: a lighter object)",
         ["plan", "--material", "E=1e5,nu=0.3,density=0.01"],
         "density = 0.01 kg/m^3 is invalid",
     ),
-    _issue("calibrate --steps 0 (said: check the mesh)", ["calibrate", "--compression", "c.csv", "--steps", "0"], "--steps"),
+    _issue(
+        "calibrate --steps 0 (said: check the mesh)",
+        ["calibrate", "--compression", "c.csv", "--steps", "0"],
+        "--steps",
+    ),
     _issue("execute swapped fingers", ["execute", "{r}/swapped_fingers/plan.json"], "fingers swapped?"),
     _issue("execute another object.vtu", ["execute", "{r}/other_object/plan.json"], "is not the one planned"),
-    _issue("execute palm 1e6 m away", ["execute", "{r}/palm_1e6_m_away/plan.json"], "the palm pose was moved"),
+    _issue(
+        "execute palm 1e6 m away", ["execute", "{r}/palm_1e6_m_away/plan.json"], "the palm pose was moved"
+    ),
     _issue("1e-9 m object compressed", ["compress", "--object", "box:1e-9"], "1 mm to 0.5 m"),
     _issue("1e6 m object indented", ["indent", "--object", "ball:1e6"], "1 mm to 0.5 m"),
-    _issue("two tet spheres in one VTU", ["indent", "--object", "{r}/two_balls.vtu"], "falls apart into 2 parts"),
+    _issue(
+        "two tet spheres in one VTU", ["indent", "--object", "{r}/two_balls.vtu"], "falls apart into 2 parts"
+    ),
     _issue("hexahedra in a mixed mesh", ["compress", "--object", "{r}/mixed.vtu"], "1 hexahedron"),
     _issue("execute --scale 1e300 (exited 0)", ["execute", "{p}/plan.json", "--scale", "1e300"], "--scale"),
 ]
 
 
 @pytest.mark.parametrize(("args", "needle"), ISSUE)
-def test_the_issues_reproductions_are_clear_errors(args, needle, issue_files, planned_sphere, tmp_path, capsys):
+def test_the_issues_reproductions_are_clear_errors(
+    args, needle, issue_files, planned_sphere, tmp_path, capsys
+):
     argv = [a.replace("{r}", str(issue_files)).replace("{p}", str(planned_sphere)) for a in args]
     if "--out" not in argv:
         argv += ["--out", str(tmp_path / "out")]
