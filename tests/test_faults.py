@@ -244,6 +244,8 @@ def inputs(tmp_path_factory) -> Path:
     (d / "one_row.csv").write_text("displacement_mm,force_N\n0.5,0.1\n")
     (d / "nan.csv").write_text("displacement_mm,force_N\n0.5,nan\n1.0,0.2\n1.5,0.3\n")
     (d / "negative.csv").write_text("displacement_mm,force_N\n0.5,-0.1\n1.0,-0.2\n1.5,-0.3\n")
+    rows = "".join(f"{0.5 * i},{0.1 * i + 0.01 * i * i}\n" for i in range(1, 9))
+    (d / "curve.csv").write_text("displacement_mm,force_N\n" + rows)  # a valid compression curve
     (d / "not_json.json").write_text("{plan")
     (d / "stone.toml").write_text('[material]\nname = "stone"\nE_Pa = 1e300\nnu = 0.3\n')
     (d / "hand.urdf").write_text("<robot name='x'><link name='a'/></robot>")
@@ -382,31 +384,31 @@ QUICK_COMPRESS = ["compress", "--object", "box:0.04", "--strain", "0.02", "--ste
 QUICK_INDENT = ["indent", "--object", "box:0.04", "--depth", "0.001", "--steps", "5"]
 
 
+def _midway(args: list[str], fault: str, needle: str, *marks) -> object:
+    return pytest.param(args, fault, needle, marks=marks, id=f"{args[0]}: {fault}")
+
+
 @pytest.mark.parametrize(
     ("args", "fault", "needle"),
     [
-        (QUICK_COMPRESS, "full disk", "the disk is full; free space or give a folder elsewhere; its earlier"),
-        (QUICK_INDENT, "full disk", "the disk is full"),
-        (QUICK_COMPRESS, "full disk at the move", "the disk is full"),
-        (["plan"], "plan not converged", "the static solve did not converge"),
-        (["calibrate", "--compression", "{i}/neg8.csv"], "calibration not converged", "did not converge"),
-        (["execute", "{p}/plan.json"], "MuJoCo blow-up", "became unstable"),
-        pytest.param(
-            ["execute", "{p}/plan.json"],
+        _midway(
+            QUICK_COMPRESS,
             "full disk",
-            "the disk is full",
-            marks=pytest.mark.slow,
-            id="execute",
+            "the disk is full; free space or give a folder elsewhere; its earlier",
         ),
+        _midway(QUICK_INDENT, "full disk", "the disk is full"),
+        _midway(QUICK_COMPRESS, "full disk at the move", "the disk is full"),
+        _midway(["plan"], "plan not converged", "the static solve did not converge"),
+        _midway(
+            ["calibrate", "--compression", "{i}/curve.csv"], "calibration not converged", "did not converge"
+        ),
+        _midway(["execute", "{p}/plan.json"], "MuJoCo blow-up", "became unstable"),
+        _midway(["execute", "{p}/plan.json"], "full disk", "the disk is full", pytest.mark.slow),
     ],
-    ids=lambda v: v if isinstance(v, str) and " " in v else None,
 )
 def test_a_run_failing_midway_leaves_the_earlier_outputs_byte_identical(
     args, fault, needle, inputs, earlier, planned_sphere, tmp_path, capsys, monkeypatch
 ):
-    (inputs / "neg8.csv").write_text(
-        "displacement_mm,force_N\n" + "".join(f"{0.5 * i},{0.1 * i + 0.01 * i * i}\n" for i in range(1, 9))
-    )
     d = tmp_path / "d"
     shutil.copytree(earlier, d)
     before = snapshot(d)
@@ -507,16 +509,13 @@ def test_a_ctrl_c_while_the_dask_cluster_starts_stops_the_sweep(earlier, tmp_pat
     [
         (["execute", "{p}/plan.json"], signal.SIGINT),
         (["execute", "{p}/plan.json"], signal.SIGTERM),
-        (["calibrate", "--compression", "{i}/neg8.csv"], signal.SIGINT),
+        (["calibrate", "--compression", "{i}/curve.csv"], signal.SIGINT),
     ],
     ids=["execute SIGINT", "execute SIGTERM", "calibrate SIGINT"],
 )
 def test_an_interrupted_run_leaves_the_earlier_outputs_byte_identical(
     args, sig, inputs, earlier, planned_sphere, tmp_path
 ):
-    (inputs / "neg8.csv").write_text(
-        "displacement_mm,force_N\n" + "".join(f"{0.5 * i},{0.1 * i + 0.01 * i * i}\n" for i in range(1, 9))
-    )
     d = tmp_path / "d"
     shutil.copytree(earlier, d)
     before = snapshot(d)
