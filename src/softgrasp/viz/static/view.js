@@ -197,7 +197,7 @@
         joints.push(s);
       }
     }
-    hand.add(...links, ...joints);
+    if (joints.length) hand.add(...links, ...joints);
     scene.add(hand);
   }
   function placeHand(points) {
