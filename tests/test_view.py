@@ -101,7 +101,9 @@ def test_page_is_self_contained_and_embeds_every_frame(run_dir, page):
     assert data["fingers"] == names
     np.testing.assert_allclose(data["frames"][-1]["forces"], held_forces, atol=1e-6)
     np.testing.assert_allclose([f["normals"] for f in data["frames"]], [*normals, held_normals], atol=1e-6)
-    np.testing.assert_allclose([f["hand"] for f in data["frames"]], [*hand.reshape(K, -1), held_hand.ravel()], atol=1e-6)
+    np.testing.assert_allclose(
+        [f["hand"] for f in data["frames"]], [*hand.reshape(K, -1), held_hand.ravel()], atol=1e-6
+    )
     assert data["hand_lines"] == lines.tolist()
     # The micrometre differences decode to the boundary nodes of every frame (within 1 um).
     used = np.unique(facets)
@@ -208,12 +210,19 @@ def test_frames_inconsistent_arrays(tmp_path):
     with pytest.raises(ConfigError, match=r"held_positions has shape \(4, 3\), expected \(6, 3\)"):
         write_view(run)
     run = _octahedron_run(
-        tmp_path / "run3", hand_points=np.zeros((3, 3, 3)), held_hand_points=np.zeros((3, 3)), hand_lines=[0, 1, 3]
+        tmp_path / "run3",
+        hand_points=np.zeros((3, 3, 3)),
+        held_hand_points=np.zeros((3, 3)),
+        hand_lines=[0, 1, 3],
     )
-    with pytest.raises(ConfigError, match=r"hand_lines must rise from 0 to 3 in steps of at least 2, got \[0, 1, 3\]"):
+    with pytest.raises(
+        ConfigError, match=r"hand_lines must rise from 0 to 3 in steps of at least 2, got \[0, 1, 3\]"
+    ):
         write_view(run)
     run = _octahedron_run(tmp_path / "run4", normal_forces=np.zeros((2, 3)))
-    with pytest.raises(ConfigError, match=r"normal_forces / held_normal_forces have shapes \(2, 3\) / \(3,\)"):
+    with pytest.raises(
+        ConfigError, match=r"normal_forces / held_normal_forces have shapes \(2, 3\) / \(3,\)"
+    ):
         write_view(run)
 
 
@@ -367,7 +376,8 @@ def test_page_in_headless_chromium(browser, page, run_dir):
     canvas = browser.find_element(By.ID, "view")
     shots = []
     for dx, dy in ((160, 0), (160, 0), (0, 120), (0, -300), (240, 60)):
-        ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(dx, dy).release().perform()
+        drag = ActionChains(browser).move_to_element(canvas).click_and_hold()
+        drag.move_by_offset(dx, dy).release().perform()
         shots.append(browser.execute_script(_SNAPSHOT, BACKGROUND))
         assert shots[-1]["border"] == 0 and shots[-1]["fraction"] > 0.03 and shots[-1]["frame"] == K
     assert _change(held, shots[0]) > 0.5 and _change(shots[0], shots[1]) > 0.5

@@ -301,7 +301,9 @@ def _page_data(run: _Run, title: str) -> dict:
         np.int64
     )
     steps = np.concatenate([pos_um[:1], np.diff(pos_um, axis=0)])
-    moved = _deformation(run.positions[0][used], np.concatenate([run.positions, run.held_positions[None]])[:, used])
+    moved = _deformation(
+        run.positions[0][used], np.concatenate([run.positions, run.held_positions[None]])[:, used]
+    )
     moved_max = float(moved.max())
     levels = np.rint(moved / (moved_max or 1.0) * _LEVELS).astype(np.int64)
     held_travel = _held_travel(run)

@@ -58,43 +58,47 @@
   const arrowMax = 0.7 * objR, shaftR = 0.17 * tipR, headR = 0.4 * tipR, headL = 1.1 * tipR;
   const linkR = 0.42 * tipR, palmR = 0.3 * tipR;
 
-  // A force arrow's ends: its point where the fingertip touches the object, its length proportional
-  // to the force; null for no force.
+  // A force arrow's ends: pushing the fingertip from behind along the force, its point on the
+  // fingertip's surface opposite the contact, its length proportional to the force; null for no force.
   function arrowEnds(f, i) {
     const m = f.mag[i];
     if (!(fMax > 0) || !(m > 1e-6 * fMax)) return null;
     const dir = new T.Vector3(...f.forces[i]).divideScalar(m);
-    const tip = new T.Vector3(...f.centres[i]).addScaledVector(dir, tipR);
+    const tip = new T.Vector3(...f.centres[i]).addScaledVector(dir, -tipR);
     return { tip: tip, tail: tip.clone().addScaledVector(dir, -arrowMax * m / fMax), dir: dir };
   }
 
-  // The sphere around everything drawn in any frame: the camera frames it whichever way it turns.
+  // The sphere around everything drawn in any frame (object nodes, hand joints, fingertips, arrow
+  // tails, each with its radius): the camera frames it whichever way it turns. Its centre starts at
+  // the middle of the bounding box and moves towards the farthest point with shrinking steps, which
+  // approaches the smallest enclosing sphere (Badoiu and Clarkson's iteration).
   const bounds = (() => {
+    const pts = [], stride = Math.max(1, Math.floor(nNodes * nFrames / 20000));
+    for (const f of frames) {
+      for (let i = 0; i < 3 * nNodes; i += 3 * stride) pts.push([f.p[i], f.p[i + 1], f.p[i + 2], 0]);
+      for (let i = 0; i < f.hand.length; i += 3) pts.push([f.hand[i], f.hand[i + 1], f.hand[i + 2], linkR]);
+      f.centres.forEach((c, i) => {
+        pts.push([c[0], c[1], c[2], tipR]);
+        const a = arrowEnds(f, i);
+        if (a) pts.push([a.tail.x, a.tail.y, a.tail.z, headR]);
+      });
+    }
     const box = new T.Box3(), v = new T.Vector3();
-    const stride = Math.max(1, Math.floor(nNodes * nFrames / 50000));
-    const add = (x, y, z, pad) => { box.expandByPoint(v.set(x - pad, y - pad, z - pad));
-                                    box.expandByPoint(v.set(x + pad, y + pad, z + pad)); };
-    for (const f of frames) {
-      for (let i = 0; i < nNodes; i += stride) add(f.p[3 * i], f.p[3 * i + 1], f.p[3 * i + 2], 0);
-      for (let i = 0; i < f.hand.length; i += 3) add(f.hand[i], f.hand[i + 1], f.hand[i + 2], linkR);
-      f.centres.forEach((c, i) => {
-        add(c[0], c[1], c[2], tipR);
-        const a = arrowEnds(f, i);
-        if (a) add(a.tail.x, a.tail.y, a.tail.z, headR);
-      });
+    for (const q of pts) box.expandByPoint(v.set(q[0], q[1], q[2]));
+    const c = box.getCenter(new T.Vector3());
+    const farthest = () => {
+      let best = 0, R = 0;
+      pts.forEach((q, k) => { const r = c.distanceTo(v.set(q[0], q[1], q[2])) + q[3]; if (r > R) { R = r; best = k; } });
+      return [R, pts[best]];
+    };
+    let [R, far] = farthest(), centre = c.clone();
+    for (let it = 1; it <= 100; it++) {
+      c.lerp(v.set(far[0], far[1], far[2]), 1 / (it + 1));
+      const [r, q] = farthest();
+      far = q;
+      if (r < R) { R = r; centre = c.clone(); }
     }
-    const centre = box.getCenter(new T.Vector3());
-    let R = 0;
-    for (const f of frames) {
-      for (let i = 0; i < nNodes; i += stride) R = Math.max(R, centre.distanceTo(v.fromArray(f.p, 3 * i)));
-      for (let i = 0; i < f.hand.length; i += 3) R = Math.max(R, centre.distanceTo(v.fromArray(f.hand, i)) + linkR);
-      f.centres.forEach((c, i) => {
-        R = Math.max(R, centre.distanceTo(v.set(...c)) + tipR);
-        const a = arrowEnds(f, i);
-        if (a) R = Math.max(R, centre.distanceTo(a.tail) + headR);
-      });
-    }
-    return { centre: centre, R: 1.04 * R };
+    return { centre: centre, R: 1.02 * R };
   })();
 
   // Renderer, scene, camera, lights.
@@ -114,13 +118,16 @@
   const camera = new T.PerspectiveCamera(FOV, 1, 0.01 * bounds.R, 100 * bounds.R);
   camera.up.set(0, 0, 1);
   scene.add(camera);
-  scene.add(new T.HemisphereLight(0xffffff, 0x9a8f80, 1.5));
-  const headlight = new T.DirectionalLight(0xffffff, 1.7);  // turns with the camera: upper left, in front
-  headlight.position.set(-0.6, 0.8, 1);
+  scene.add(new T.HemisphereLight(0xffffff, 0x8a8276, 1.0));
+  const top = new T.DirectionalLight(0xffffff, 0.9);  // from above, fixed: tops lighter than sides
+  top.position.set(0.3, -0.2, 1);
+  scene.add(top);
+  const headlight = new T.DirectionalLight(0xffffff, 1.4);  // turns with the camera: upper left, in front
+  headlight.position.set(-0.7, 0.6, 1);
   headlight.target.position.set(0, 0, -1);
   camera.add(headlight, headlight.target);
 
-  // The object's surface: positions, vertex normals and colours change with the frame.
+  // The object's surface, flat-shaded (its facets as meshed): positions and colours change with the frame.
   const geometry = new T.BufferGeometry();
   const positions = new T.BufferAttribute(new Float32Array(3 * nNodes), 3).setUsage(T.DynamicDrawUsage);
   const colours = new T.BufferAttribute(new Float32Array(3 * nNodes), 3).setUsage(T.DynamicDrawUsage);
@@ -128,7 +135,7 @@
   geometry.setAttribute("color", colours);
   geometry.setIndex(new T.BufferAttribute(Uint32Array.from(D.tris), 1));
   const object = new T.Mesh(geometry, new T.MeshStandardMaterial({
-    vertexColors: true, roughness: 0.8, metalness: 0, side: D.closed ? T.FrontSide : T.DoubleSide }));
+    vertexColors: true, flatShading: true, roughness: 0.85, metalness: 0, side: D.closed ? T.FrontSide : T.DoubleSide }));
   scene.add(object);
 
   // The table the object rests on during the closing (removed in the held state): a grid under it.
@@ -142,7 +149,7 @@
     return g;
   })();
 
-  // Fingertips (translucent, so that the force arrows inside them show) and force arrows.
+  // Fingertips and force arrows.
   const unitCylinder = new T.CylinderGeometry(1, 1, 1, 20).translate(0, 0.5, 0);  // base at 0, along y
   const unitCone = new T.ConeGeometry(1, 1, 24).translate(0, 0.5, 0);
   const unitSphere = new T.SphereGeometry(1, 24, 16);
@@ -150,9 +157,8 @@
   const tips = [], arrows = [], labels = [];
   D.fingers.forEach((name, i) => {
     const colour = new T.Color(D.colours[i]);
-    const tip = new T.Mesh(new T.SphereGeometry(tipR, 40, 24), new T.MeshStandardMaterial({
-      color: colour, roughness: 0.35, transparent: true, opacity: 0.6, depthWrite: false }));
-    tip.renderOrder = 2;
+    const tip = new T.Mesh(new T.SphereGeometry(tipR, 40, 24),
+                           new T.MeshStandardMaterial({ color: colour, roughness: 0.35 }));
     const dark = new T.MeshStandardMaterial({ color: colour.clone().multiplyScalar(0.8), roughness: 0.5 });
     const arrow = new T.Group(), shaft = new T.Mesh(unitCylinder, dark), head = new T.Mesh(unitCone, dark);
     arrow.add(shaft, head);
@@ -270,7 +276,6 @@
       colours.array.set(LUT.subarray(3 * c, 3 * c + 3), 3 * i);
     }
     colours.needsUpdate = true;
-    geometry.computeVertexNormals();
     geometry.computeBoundingSphere();
     f.centres.forEach((c, i) => tips[i].position.set(...c));
     arrows.forEach((arrow, i) => placeArrow(arrow, arrowEnds(f, i)));
