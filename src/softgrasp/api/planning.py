@@ -223,13 +223,21 @@ class Plan:
 
 
 def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:
-    """The closing increments and the held state, for ``softgrasp view`` (SI units)."""
+    """The closing increments and the held state, for ``softgrasp view`` (SI units): the frames'
+    object, fingertips, forces (normal forces from the history's rows, none at the start) and the
+    hand's link polylines (``hand_lines``: where each starts in a frame's ``hand_points``)."""
     import numpy as np
 
     from softgrasp.io.atomic import atomic_write
+    from softgrasp.io.plan_document import hand_polylines
 
     fr = plan.frames
     assert fr is not None
+
+    def points(lines: list[Any]) -> Any:
+        return np.concatenate(lines) if lines else np.zeros((0, 3))
+
+    held_links = hand_polylines(plan)
 
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:
@@ -245,6 +253,13 @@ def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:
                 facets=np.asarray(facets, dtype=np.int64),
                 fingertip_radius=np.float64(plan.config.fingertip_radius),
                 finger_names=np.array([f.name for f in plan.fingers]),
+                normal_forces=np.vstack([np.zeros((1, len(plan.fingers))), plan.normal_force]),
+                held_normal_forces=np.array([f.normal_force for f in plan.fingers]),
+                hand_points=np.array([points(hand_polylines(plan, t)) for t in fr.travel]).reshape(
+                    len(fr.travel), -1, 3
+                ),
+                held_hand_points=points(held_links),
+                hand_lines=np.cumsum([0, *(len(p) for p in held_links)]).astype(np.int64),
             )
 
     atomic_write(path, write)

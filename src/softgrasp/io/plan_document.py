@@ -190,15 +190,30 @@ def plan_table(plan: GraspPlan) -> str:
     return "\n".join(lines)
 
 
-def hand_polylines(plan: GraspPlan) -> list[NDArray[np.float64]]:
-    """The hand in the held state as world polylines [m]: the palm from the wrist through the
-    knuckles and back, and each finger from its base joint to its fingertip (empty without a hand
-    model)."""
+def hand_polylines(plan: GraspPlan, travel: float | None = None) -> list[NDArray[np.float64]]:
+    """The hand as world polylines [m]: the palm from the wrist through the knuckles and back, and
+    each finger from its base joint to its fingertip (empty without a hand model).
+
+    In the held state by default; at ``travel`` [m] of the closing instead, with each finger's joints
+    interpolated between the rows of its closing path (extrapolated linearly from its last two rows
+    past the held travel, where the closing went on only to bracket the least squeeze that holds).
+    """
     from softgrasp.hand.placement import transform
 
     hand, pl = plan.config.hand, plan.placement
     if hand is None or pl is None or plan.joint_paths is None:
         return []
-    fingers = [transform(pl.palm_pose, hand.link_points(f, q[-1])) for f, q in plan.joint_paths.items()]
+    index = {f.name: j for j, f in enumerate(plan.fingers)}
+    fingers = []
+    for f, q in plan.joint_paths.items():
+        j = index[f]
+        span = float(np.linalg.norm(plan.centres[j] - plan.start_centres[j]))
+        if travel is not None and len(q) > 1 and span > 0.0:
+            s = travel / span * (len(q) - 1)
+            i = min(max(int(np.floor(s)), 0), len(q) - 2)
+            joints = q[i] + (s - i) * (q[i + 1] - q[i])
+        else:
+            joints = q[-1]
+        fingers.append(transform(pl.palm_pose, hand.link_points(f, joints)))
     wrist = pl.palm_pose[:3, 3]
     return [np.array([wrist, *(f[0] for f in fingers), wrist]), *fingers]
