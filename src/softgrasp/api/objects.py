@@ -7,6 +7,7 @@ parametric shape or a mesh file, with its material); :func:`material` a preset
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -154,9 +155,19 @@ def material(name: str) -> Material:
     return mat
 
 
-def load_hand(name: str | Path = "shadow_like") -> HandModel | None:
-    """The hand: ``shadow_like`` (the packaged Shadow-like hand), a URDF file (fingertip links
-    ``th_tip``, ``ff_tip``, ``mf_tip``), or ``none`` (free fingertips: returns None)."""
+def load_hand(
+    name: str | Path = "shadow_like",
+    fingertips: Mapping[str, str] | str | None = None,
+    fingertip_radius_m: float | None = None,
+) -> HandModel | None:
+    """The hand: ``shadow_like`` (the packaged Shadow-like hand), ``parallel_jaw`` (the packaged
+    two-finger gripper, 0-85 mm), a URDF or MJCF file, or ``none`` (free fingertips: returns None).
+
+    ``fingertips`` maps the planner's fingers to the file's fingertip links (MJCF: bodies),
+    ``{"thumb": "th_tip", "first": "ff_tip", "middle": "mf_tip"}`` (or ``left``/``right`` for a
+    gripper), also as text ``thumb=th_tip,first=ff_tip,middle=mf_tip``; default: links named
+    ``th_tip``, ``ff_tip``, ``mf_tip``. The fingertip radius is the link's collision sphere's;
+    ``fingertip_radius_m`` overrides it (and is needed when the link has no sphere)."""
     from softgrasp.io.options import hand_model
 
-    return hand_model(str(name))
+    return hand_model(str(name), fingertips, fingertip_radius_m)

@@ -206,7 +206,7 @@ class Plan:
             g.positions,
             body.mesh.facets,
             g.centres,
-            np.full(3, self.config.fingertip_radius),
+            np.full(len(self.grasp.fingers), self.config.fingertip_radius),
             np.array([f.force for f in g.fingers]),
             g.contact_points,
             names,
@@ -269,8 +269,9 @@ def plan(
     obj: SoftObject | str = "sphere",
     hand: HandModel | str | None = "shadow_like",
     *,
+    fingertips: Mapping[str, str] | str | None = None,
     mu: float | None = None,
-    fingertip_radius_m: float = 0.008,
+    fingertip_radius_m: float | None = None,
     step_m: float = 0.0005,
     solver: str = "quasistatic",
     safety_factor: float = 1.25,
@@ -283,7 +284,7 @@ def plan(
     max_strain: float | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> Plan:
-    """Plan a three-finger grasp of ``obj`` and its force set-points.
+    """Plan a grasp of ``obj`` (three fingers, or two with a gripper) and its force set-points.
 
     Parameters
     ----------
@@ -291,12 +292,17 @@ def plan(
         The object (:func:`load_object`), or a source for it (built-in name, shape, mesh file in
         metres).
     hand:
-        A hand model (:func:`load_hand`), ``shadow_like``, a URDF file, or None / ``none`` for
-        free fingertips.
+        A hand model (:func:`load_hand`: any URDF or MJCF hand with its fingertip mapping),
+        ``shadow_like``, ``parallel_jaw``, a URDF or MJCF file, or None / ``none`` for free
+        fingertips.
+    fingertips:
+        A hand file's fingertip links by finger (``{"thumb": "th_tip", ...}`` or
+        ``thumb=th_tip,first=ff_tip,middle=mf_tip``); see :func:`load_hand`.
     mu:
         Fingertip friction coefficient; default the object's material file's, else 0.8.
     fingertip_radius_m, step_m:
-        Fingertip radius and closing increment [m].
+        Fingertip radius (default: the hand's fingertip spheres'; 8 mm without a hand) and
+        closing increment [m].
     solver:
         ``quasistatic`` (a static Newton solve per increment) or ``dynamic`` (explicit
         Runge-Kutta through each increment).
@@ -323,6 +329,7 @@ def plan(
     progress:
         Called with the fraction of the plan done.
     """
+    from softgrasp.grasp.initial import HandLayout
     from softgrasp.grasp.planner import plan_grasp
     from softgrasp.io.options import contact_params, plan_config
     from softgrasp.io.plan_document import plan_document
@@ -338,7 +345,7 @@ def plan(
         "mesh_size": obj.mesh_size_m,
         "units": obj.units,
         "reorient": obj.reorient,
-        "fingertip_radius": float(fingertip_radius_m),
+        "fingertip_radius": None if fingertip_radius_m is None else float(fingertip_radius_m),
         "step": float(step_m),
         "solver": solver,
         "safety_factor": float(safety_factor),
@@ -346,6 +353,8 @@ def plan(
         "max_squeeze": float(max_squeeze),
         "refine": int(refine),
         "hand": str(hand_name),
+        "fingertips": fingertips if fingertips is None or isinstance(fingertips, str)
+        else ",".join(f"{k}={v}" for k, v in fingertips.items()),
         "grasp": None if grasp is None else str(grasp),
         "contact_law": contact_law,
         "max_pressure": max_pressure_Pa,
@@ -360,7 +369,12 @@ def plan(
     if hand is None or isinstance(hand, str):
         config = plan_config(options, contact)
     else:
-        config = replace(plan_config({**options, "hand": "none"}, contact), hand=hand)
+        r = hand.fingertip_radius(hand.grasp_fingers[0]) if fingertip_radius_m is None else fingertip_radius_m
+        config = replace(
+            plan_config({**options, "hand": "none", "fingertip_radius": r}, contact),
+            hand=hand,
+            layout=HandLayout.for_hand(hand),
+        )
     g = plan_grasp(obj.body, config, progress=progress)
     doc = plan_document(g, obj.body, obj.name)
     return Plan(obj, g, config, options, doc, _started=started)

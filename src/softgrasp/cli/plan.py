@@ -61,7 +61,8 @@ def add_parser(sub) -> None:
         "--fingertip-radius",
         type=number("fingertip_radius"),
         default=None,
-        help=f"fingertip radius, {limits('fingertip_radius')} (default 0.008)",
+        help=f"fingertip radius, {limits('fingertip_radius')} (default: the hand's fingertip spheres', "
+        "0.008 without a hand); overrides the spheres'",
     )
     pl.add_argument(
         "--step",
@@ -105,9 +106,19 @@ def add_parser(sub) -> None:
     pl.add_argument(
         "--hand",
         default=None,
-        metavar="URDF",
-        help="the hand: a URDF file (fingertip links th_tip, ff_tip, mf_tip), 'shadow_like' (default, "
-        "packaged) or 'none' (free fingertips, no reachability check)",
+        metavar="HAND",
+        help="the hand: 'shadow_like' (default, packaged), 'parallel_jaw' (packaged two-finger gripper, "
+        "0-85 mm), a URDF or MJCF file (fingertips: see --fingertips), or 'none' (free fingertips, no "
+        "reachability check)",
+    )
+    pl.add_argument(
+        "--fingertips",
+        default=None,
+        metavar="FINGER=LINK,...",
+        help="the fingertip links (MJCF: bodies) of a hand file, e.g. "
+        "thumb=th_tip,first=ff_tip,middle=mf_tip "
+        "(a gripper: left=LINK,right=LINK); default: links named th_tip, ff_tip, mf_tip. Each link's "
+        "collision sphere gives the fingertip radius",
     )
     pl.add_argument(
         "--grasp",
@@ -204,6 +215,7 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
         result = plan(
             obj,
             hand=args.hand,
+            fingertips=args.fingertips,
             mu=mu,
             fingertip_radius_m=args.fingertip_radius,
             step_m=args.step,

@@ -30,9 +30,9 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import InfeasibleGrasp, NotConverged
 from softgrasp.grasp.config import CONTACT_START, FIRST_GROWTH, STEP_RTOL, TOUCH_GAP, TRAVEL_FLOOR, PlanConfig
+from softgrasp.grasp.damage import patch_torsion
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import Held, check_hold
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.grasp.setup import ClosingSetup
 from softgrasp.linalg.solve import SolverCache
@@ -81,8 +81,8 @@ class Closing:
         self.body, self.cfg, self.setup, self.cache, self.progress = body, cfg, setup, cache, progress
         start, u, xs = setup.start, setup.directions, setup.settled.x
         unit_tips = tuple(
-            Fingertip(cfg.fingertip_radius, centre=start[j], velocity=u[j], name=FINGER_NAMES[j])
-            for j in range(3)
+            Fingertip(cfg.fingertip_radius, centre=start[j], velocity=u[j], name=name)
+            for j, name in enumerate(cfg.fingers)
         )
         # The load parameter of the scene: travel [m] for the quasi-static solver, time [s] at the
         # closing speed for the dynamic one.
@@ -95,7 +95,7 @@ class Closing:
         )
         self.rows: list[Row] = []
         self.frames: list[tuple[float, NDArray, NDArray, NDArray]] = [
-            (0.0, xs.copy(), self.fingers.centres(0.0), np.zeros((3, 3)))
+            (0.0, xs.copy(), self.fingers.centres(0.0), np.zeros((len(cfg.fingers), 3)))
         ]
         self.checks: list[tuple[float, str]] = []
         self.last: Point = (0.0, self.start, math.inf, 0.0)
@@ -117,6 +117,7 @@ class Closing:
                 centre_of_mass(body, st.x),
                 body.total_mass,
                 body.gravity,
+                torsion=patch_torsion(body, fc, fn, cfg.contact.mu),
             )
         self.rows.append(
             (
@@ -158,7 +159,8 @@ class Closing:
         mu = cfg.contact.mu
         try:
             need = minimum_normal_forces(
-                pts, push, mu, centre_of_mass(body, st.x), body.total_mass, body.gravity
+                pts, push, mu, centre_of_mass(body, st.x), body.total_mass, body.gravity,
+                torsion=patch_torsion(body, self.fingers, fn, mu),
             ).sum()
         except InfeasibleGrasp:
             return f"; with mu = {mu:g} no normal forces at these contacts would hold even a rigid object"
@@ -173,7 +175,7 @@ class Closing:
         max_travel, first = self.setup.max_travel, self.setup.first_touch
         if t > max_travel + 1e-12:
             cfg, checks = self.cfg, self.checks
-            last = self.rows[-1][2] if self.rows else np.zeros(3)
+            last = self.rows[-1][2] if self.rows else np.zeros(len(self.cfg.fingers))
             raise InfeasibleGrasp(
                 f"no hold before the maximum squeeze ({(max_travel - first.max()) * 1e3:.1f} mm past "
                 f"first contact, {cfg.max_squeeze:.0%} of the fingers' reach): finger forces reached "

@@ -32,10 +32,9 @@ from numpy.typing import NDArray
 from softgrasp.errors import InfeasibleGrasp
 from softgrasp.grasp.closing import Closing
 from softgrasp.grasp.config import PlanConfig
-from softgrasp.grasp.damage import check_limits, grasp_damage
+from softgrasp.grasp.damage import check_limits, grasp_damage, patch_torsion
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import cone_usage
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.margin import critical_scale
 from softgrasp.grasp.result import FingerResult, GraspPlan, PlanFrames
 from softgrasp.grasp.settle import centre_of_mass
@@ -102,16 +101,17 @@ def _plan_grasp(
     tres = np.linalg.norm(_torque_residual(hrep, centres, com))
     # The held state's friction forces against the (circular) Coulomb cones, pair by pair.
     margin = float(1.0 - cone_usage(hrep, mu).max())
+    torsion = patch_torsion(body, fixed, fn, mu)  # two fingers: the Hertz patches' torsional friction
     try:
-        rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity)
+        rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity, torsion=torsion)
     except InfeasibleGrasp:
-        rigid = np.full(3, np.nan)
-    utilisation = squeeze_utilisation(pts, push, fn, mu, com, body.total_mass, body.gravity)
+        rigid = np.full(len(cfg.fingers), np.nan)
+    utilisation = squeeze_utilisation(pts, push, fn, mu, com, body.total_mass, body.gravity, torsion=torsion)
     damage = grasp_damage(body, fixed, held_state.x, hrep.normal)
     check_limits(damage, cfg.max_pressure, cfg.max_strain)
     fingers = tuple(
         FingerResult(
-            name=FINGER_NAMES[j],
+            name=name,
             initial_contact=ig.points[j],
             final_position=centres[j],
             penetration=float(max(t_final - first[j], 0.0)),
@@ -119,7 +119,7 @@ def _plan_grasp(
             normal_force=float(hrep.normal[j]),
             tangential_force=float(hrep.tangential[j]),
         )
-        for j in range(3)
+        for j, name in enumerate(cfg.fingers)
     )
     normal = np.array([f.normal_force for f in fingers])
     margin_ = critical_scale(body, replace(cfg, grasp=ig), normal)

@@ -47,7 +47,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "mesh_size": None,
     "units": "m",
     "mu": 0.8,
-    "fingertip_radius": 0.008,
+    "fingertip_radius": None,
     "step": 0.0005,
     "solver": "quasistatic",
     "safety_factor": 1.25,
@@ -55,6 +55,10 @@ PLAN_DEFAULTS: dict[str, object] = {
     "max_squeeze": 0.5,
     "refine": 12,
     "hand": "shadow_like",
+    "fingertips": None,
+    "min_spread": None,
+    "max_spread": None,
+    "max_aperture": None,
     "grasp": None,
     "contact_law": "resolved",
     "max_pressure": None,
@@ -73,7 +77,8 @@ TEXT_OPTIONS: dict[str, str] = {
     "material": "a preset (foam, rubber), E=..,nu=..,density=.. or a .toml material file",
     "units": "m, cm or mm",
     "solver": "quasistatic or dynamic",
-    "hand": "shadow_like, none or a URDF file",
+    "hand": "shadow_like, parallel_jaw, none, a URDF or an MJCF file",
+    "fingertips": "FINGER=LINK pairs, e.g. thumb=th_tip,first=ff_tip,middle=mf_tip",
     "grasp": "a plan.json file",
     "contact_law": "resolved or paper",
     "out": "a folder",
@@ -225,15 +230,39 @@ def load_body(
     return build_body(mesh, mat, mass=mass)
 
 
-def hand_model(name: str):
-    """The hand model named by ``hand``: the packaged Shadow-like hand, a URDF file, or none."""
-    from softgrasp.hand.kinematics import HandModel
+def hand_model(
+    name: str,
+    fingertips: str | Mapping[str, str] | None = None,
+    radius: float | None = None,
+    reach: Mapping[str, float | None] | None = None,
+):
+    """The hand model named by ``hand``: a packaged hand (``shadow_like``, ``parallel_jaw``), a
+    URDF or MJCF file, or none; ``fingertips`` maps finger names to links (``thumb=LINK,...``),
+    ``radius`` [m] overrides the fingertip spheres', ``reach`` (``min_spread``, ``max_spread``,
+    ``max_aperture`` [m], None: the hand's) overrides the hand's layout limits."""
+    from dataclasses import replace as _replace
 
-    if name == "shadow_like":
-        return HandModel.default()
+    from softgrasp.hand.chain import parse_fingertips
+    from softgrasp.hand.kinematics import HandModel
+    from softgrasp.hand.urdf import PACKAGED
+    from softgrasp.io.handfile import read_hand
+
     if name == "none":
         return None
-    return HandModel.from_urdf(name)
+    mapping = parse_fingertips(fingertips) if isinstance(fingertips, str) else fingertips
+    if name in PACKAGED:
+        if mapping is not None:
+            raise ConfigError(
+                f"--fingertips maps the fingertips of a hand file; the packaged {name} has its own"
+            )
+        default = name == "shadow_like" and radius is None
+        hand = HandModel.default() if default else HandModel.packaged(name, radius)
+    else:
+        hand = read_hand(name, mapping, radius)
+    given = {k: v for k, v in (reach or {}).items() if v is not None}
+    if given:
+        hand = hand.with_reach(_replace(hand.reach, **given))
+    return hand
 
 
 def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -> ContactParams:
@@ -251,19 +280,28 @@ def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -
 
 def plan_config(options: Mapping[str, object], contact: ContactParams) -> PlanConfig:
     """The planner configuration of merged plan ``options`` (every key of :data:`PLAN_DEFAULTS`)."""
+    from softgrasp.grasp.initial import HandLayout
     from softgrasp.grasp.planner import PlanConfig
     from softgrasp.io.planfile import load_plan_grasp
 
+    r = options.get("fingertip_radius")
+    reach = {k: options.get(k) for k in ("min_spread", "max_spread", "max_aperture")}
+    hand = hand_model(str(options["hand"]), options.get("fingertips"), r, reach)  # type: ignore[arg-type]
+    if r is None:  # the hand's fingertip spheres' radius (8 mm for free fingertips)
+        r = 0.008 if hand is None else hand.fingertip_radius(hand.grasp_fingers[0])
+    given = {k: float(v) for k, v in reach.items() if v is not None}  # type: ignore[arg-type]
+    layout = HandLayout(**given) if hand is None and given else None  # free fingertips: the limits given
     return PlanConfig(
+        layout=layout,  # type: ignore[arg-type]
         contact=contact,
-        fingertip_radius=float(options["fingertip_radius"]),  # type: ignore[arg-type]
+        fingertip_radius=float(r),  # type: ignore[arg-type]
         step=float(options["step"]),  # type: ignore[arg-type]
         solver=str(options["solver"]),
         safety_factor=float(options["safety_factor"]),  # type: ignore[arg-type]
         hold_time=float(options["hold_time"]),  # type: ignore[arg-type]
         max_squeeze=float(options["max_squeeze"]),  # type: ignore[arg-type]
         refine=int(options["refine"]),  # type: ignore[call-overload]
-        hand=hand_model(str(options["hand"])),
+        hand=hand,
         grasp=None if options.get("grasp") is None else load_plan_grasp(str(options["grasp"])),
         max_pressure=None if options.get("max_pressure") is None else float(options["max_pressure"]),  # type: ignore[arg-type]
         max_strain=None if options.get("max_strain") is None else float(options["max_strain"]),  # type: ignore[arg-type]

@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.planner import GraspPlan
 from softgrasp.physics.body import Body
 
@@ -145,6 +144,8 @@ def _hand_section(plan: GraspPlan) -> dict[str, Any] | None:
         return None
     return {
         "model": hand.source,
+        "fingertips": None if hand.fingertips is None else dict(hand.fingertips),
+        "fingertip_radius_m": hand.radius,
         "palm_pose": [_v(row) for row in pl.palm_pose],
         "fingers": {
             f.name: {
@@ -161,7 +162,7 @@ def history_rows(plan: GraspPlan) -> list[tuple[object, ...]]:
     """One row per increment and finger, in :data:`HISTORY_HEADER` order."""
     rows: list[tuple[object, ...]] = []
     for k in range(plan.increments):
-        for j, name in enumerate(FINGER_NAMES):
+        for j, name in enumerate(f.name for f in plan.fingers):
             rows.append(
                 (
                     k + 1,

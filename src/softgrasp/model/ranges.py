@@ -117,6 +117,10 @@ RANGES: dict[str, Range] = {
     "refine": Range(1, 60, integer=True),
     "max_pressure": Range(0.0, 1e9, "Pa", low_open=True),
     "max_strain": Range(0.0, 1.0, low_open=True),
+    # The hand's layout limits (config files): contacts' spread and the aperture.
+    "min_spread": Range(0.001, 0.5, "m", why="distance between side-by-side fingers' contacts"),
+    "max_spread": Range(0.001, 0.5, "m", why="distance between side-by-side fingers' contacts"),
+    "max_aperture": Range(0.001, 0.5, "m", why="opposing finger to the others, or a gripper's opening"),
     # Robust set-points and sweeps.
     "samples": Range(2, 100_000, integer=True),
     "quantile": Range(0.0, 1.0, low_open=True, high_open=True),
