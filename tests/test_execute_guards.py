@@ -96,7 +96,7 @@ def test_a_material_file_outside_the_ranges_is_refused(planned_sphere, tmp_path,
     _refused(
         capsys,
         ["execute", str(planned_sphere / "plan.json"), "--material", str(mf), "--out", str(tmp_path / "o")],
-        f"execute --material {mf}: E = 1e+300 Pa is not physical",
+        f"material file {mf}: Young's modulus E = 1e+300 Pa is invalid",
     )
     mf.write_text('[material]\nname = "rubber"\nE_Pa = 8e4\nnu = 0.45\n[contact]\nmu = 1e300\n')
     _refused(
