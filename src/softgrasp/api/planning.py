@@ -32,6 +32,7 @@ PLAN_FILES = (
     "plan.json",
     "history.csv",
     "object.vtu",
+    "closing.pvd",
     "frames.npz",
     "forces.png",
     "force_penetration.png",
@@ -135,16 +136,15 @@ class Plan:
         return copy.deepcopy(self.document)
 
     def write_plan_file(self, out: str | Path) -> Path:
-        """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu``, into
-        ``out`` (the two together, :mod:`softgrasp.io.runfolder`); return the path of ``plan.json``."""
+        """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu`` (with the
+        held state's arrays, :mod:`softgrasp.io.paraview`), into ``out`` (the two together,
+        :mod:`softgrasp.io.runfolder`); return the path of ``plan.json``."""
         from softgrasp.io.atomic import write_json
+        from softgrasp.io.paraview import write_object_vtu
         from softgrasp.io.runfolder import run_folder
-        from softgrasp.model.mesh.io import save_mesh
-        from softgrasp.model.mesh.tetmesh import TetMesh
 
-        mesh = self.object.body.mesh
         with run_folder(out, "plan", complete=False) as folder:
-            save_mesh(TetMesh(self.grasp.placed, mesh.tets, name=mesh.name), folder.stage / "object.vtu")
+            write_object_vtu(folder.stage / "object.vtu", self.grasp, self.object.body)
             self.document["object"]["mesh_file"] = "object.vtu"
             write_json(folder.stage / "plan.json", self.document)
         return folder.path / "plan.json"
@@ -217,6 +217,9 @@ class Plan:
         )
         write_text(out / "history.csv", buf.getvalue())
         _write_frames(out / "frames.npz", g, body.mesh.facets)
+        from softgrasp.io.paraview import write_closing_series
+
+        write_closing_series(out, g, body)
         doc["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
         self.write_plan_file(out)
         figures.finish()
@@ -323,6 +326,8 @@ def plan(
         "mesh_size": obj.mesh_size_m,
         "units": obj.units,
         "reorient": obj.reorient,
+        "density": obj.density_kg_m3,
+        "mass": obj.given_mass_kg,
         "fingertip_radius": float(fingertip_radius_m),
         "step": float(step_m),
         "solver": solver,
@@ -347,5 +352,5 @@ def plan(
     else:
         config = replace(plan_config({**options, "hand": "none"}, contact), hand=hand)
     g = plan_grasp(obj.body, config, progress=progress)
-    doc = plan_document(g, obj.body, obj.name)
+    doc = plan_document(g, obj.body, obj.name, source_transform=obj.transform, units=obj.units)
     return Plan(obj, g, config, options, doc, _started=started)
