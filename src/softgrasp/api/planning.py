@@ -146,6 +146,7 @@ class Plan:
         with run_folder(out, "plan", complete=False) as folder:
             write_object_vtu(folder.stage / "object.vtu", self.grasp, self.object.body)
             self.document["object"]["mesh_file"] = "object.vtu"
+            _portable_hand(self.document, folder.path)
             write_json(folder.stage / "plan.json", self.document)
         return folder.path / "plan.json"
 
@@ -223,6 +224,17 @@ class Plan:
         doc["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
         self.write_plan_file(out)
         figures.finish()
+
+
+def _portable_hand(doc: dict[str, Any], folder: Path) -> None:
+    """``doc``'s hand file named for its folder (:func:`~softgrasp.io.portable.portable_path`)."""
+    from softgrasp.io.portable import portable_path
+
+    params, hand = doc.get("parameters") or {}, doc.get("hand")
+    if isinstance(params.get("hand"), str):
+        params["hand"] = portable_path(params["hand"], folder)
+    if isinstance(hand, dict) and isinstance(hand.get("model"), str):
+        hand["model"] = portable_path(hand["model"], folder)
 
 
 def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:

@@ -120,11 +120,13 @@ def check_inputs(options: Mapping[str, object]) -> None:
 
     check_object(str(options["object"]), check_units(options.get("units", "m")))
     spec = options.get("material")
+    if options.get("density") is not None and options.get("mass") is not None:
+        raise ConfigError("give the object's density (--density) or its mass (--mass), not both")
     if isinstance(spec, str):
         if is_material_file(spec):
             read_material_file(spec)
         else:
-            parse_material(spec)
+            parse_material(spec, need_mass=options.get("density") is None and options.get("mass") is None)
 
 
 def scheduler_address(text: str) -> str:
@@ -244,7 +246,7 @@ def load_placed_body(
         if mf.mass is not None:
             mass = mf.mass
     elif material is not None:
-        mat, spec_mass = parse_material(material)
+        mat, spec_mass = parse_material(material, need_mass=not mass_given)
         if spec_mass is not None:
             mass = spec_mass
         elif "density" in material:

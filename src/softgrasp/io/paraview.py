@@ -33,7 +33,10 @@ CLOSING_DIR = "closing"
 
 
 def state_arrays(
-    body: Body, placed: NDArray[np.float64], x: NDArray[np.float64], contact_forces: NDArray[np.float64] | None
+    body: Body,
+    placed: NDArray[np.float64],
+    x: NDArray[np.float64],
+    contact_forces: NDArray[np.float64] | None,
 ) -> tuple[dict[str, NDArray[np.float64]], dict[str, NDArray[np.float64]]]:
     """Point and cell arrays of the object at positions ``x`` [m] (N, 3): ``displacement_m`` from
     ``placed`` (N, 3), ``contact_force_N`` (N, 3; zeros where None) and ``max_principal_strain``

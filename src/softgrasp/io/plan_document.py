@@ -9,8 +9,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from softgrasp import __version__
 from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.planner import GraspPlan
+from softgrasp.hand.packaged import portable_name
 from softgrasp.physics.body import Body
 
 __all__ = [
@@ -135,6 +137,7 @@ def plan_document(
     )
     return {
         "schema": SCHEMA,
+        "softgrasp_version": __version__,
         "object": {
             "name": object_name,
             "mass_kg": body.total_mass,
@@ -219,7 +222,7 @@ def _hand_section(plan: GraspPlan) -> dict[str, Any] | None:
     if pl is None or hand is None or plan.joint_paths is None:
         return None
     return {
-        "model": hand.source,
+        "model": portable_name(hand.source),
         "palm_pose": [_v(row) for row in pl.palm_pose],
         "fingers": {
             f.name: {
