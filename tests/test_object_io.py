@@ -41,7 +41,7 @@ def _icosphere(levels: int = 2) -> tuple[np.ndarray, np.ndarray]:
     for _ in range(levels):
         mid: dict[tuple[int, int], int] = {}
 
-        def half(a: int, b: int) -> int:
+        def half(a: int, b: int, mid: dict[tuple[int, int], int] = mid) -> int:
             key = (min(a, b), max(a, b))
             if key not in mid:
                 m = v[a] + v[b]
@@ -86,17 +86,23 @@ def ellipsoid(tmp_path_factory) -> dict[str, object]:
 
 
 def _distance_to_triangles(p: np.ndarray, tri_pts: np.ndarray) -> np.ndarray:
-    """Distance of each point ``p`` (P, 3) to the nearest of the triangles ``tri_pts`` (T, 3, 3),
-    sampled densely on each triangle (an upper bound, exact to the sampling's spacing)."""
-    s = np.linspace(0.0, 1.0, 9)
-    u, w = np.meshgrid(s, s)
-    keep = (u + w) <= 1.0
-    u, w = u[keep], w[keep]
-    a, b, c = tri_pts[:, 0], tri_pts[:, 1], tri_pts[:, 2]
-    samples = (a[:, None] + u[None, :, None] * (b - a)[:, None] + w[None, :, None] * (c - a)[:, None]).reshape(-1, 3)
-    from scipy.spatial import cKDTree
-
-    return cKDTree(samples).query(p)[0]
+    """Exact distance of each point ``p`` (P, 3) to the nearest of the triangles ``tri_pts`` (T, 3, 3):
+    to the plane where the projection falls inside the triangle, else to the nearest edge."""
+    a, b, c = (tri_pts[None, :, k] for k in range(3))
+    q = p[:, None, :]
+    n = np.cross(b - a, c - a)
+    nn = np.einsum("ptk,ptk->pt", n, n)
+    h = np.einsum("ptk,ptk->pt", q - a, n) / nn
+    proj = q - h[..., None] * n
+    inside = np.ones(h.shape, dtype=bool)
+    for u, v in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("ptk,ptk->pt", np.cross(v - u, proj - u), n) >= 0
+    best = np.where(inside, np.abs(h) * np.sqrt(nn), np.inf)
+    for u, v in ((a, b), (b, c), (c, a)):
+        e = v - u
+        t = np.clip(np.einsum("ptk,ptk->pt", q - u, e) / np.einsum("ptk,ptk->pt", e, e), 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(q - (u + t[..., None] * e), axis=-1))
+    return best.min(axis=1)
 
 
 # ---------------------------------------------------------------------------- density, mass, material
@@ -189,7 +195,8 @@ def test_paths_are_recorded_by_package_name_or_relative_to_the_output(tmp_path) 
 
     hand = HandModel.default().source
     assert portable_path(hand, tmp_path) == "package:softgrasp/hand/shadow_like.urdf"
-    assert resolve_path("package:softgrasp/hand/shadow_like.urdf", tmp_path).read_text() == Path(hand).read_text()
+    packaged = resolve_path("package:softgrasp/hand/shadow_like.urdf", tmp_path)
+    assert packaged.read_text() == Path(hand).read_text()
     (tmp_path / "in").mkdir()
     toml = tmp_path / "in" / "m.toml"
     toml.write_text("")
@@ -225,7 +232,8 @@ def test_a_millimetre_stl_plans_as_the_same_object_in_metres(planned_ellipsoid) 
     for name, sp in mm["setpoints_N"].items():
         assert sp == pytest.approx(m["setpoints_N"][name], rel=1e-6)
     assert [f["setpoint_N"] for f in mm["fingers"]] == list(mm["setpoints_N"].values())
-    T_mm, T_m = np.array(mm["object"]["transform_mesh_to_plan"]), np.array(m["object"]["transform_mesh_to_plan"])
+    T_mm = np.array(mm["object"]["transform_mesh_to_plan"])
+    T_m = np.array(m["object"]["transform_mesh_to_plan"])
     np.testing.assert_allclose(T_mm[:3, :3] * 1e3, T_m[:3, :3], atol=1e-9)  # the same turn, scaled
     assert "p_plan = T p_mesh" in mm["object"]["transform_note"]
 
@@ -238,22 +246,24 @@ def test_the_transform_and_the_contacts_map_onto_the_users_mesh(ellipsoid, plann
     vtu = meshio.read(out / "object.vtu")
     placed = np.asarray(vtu.points)
     tets = vtu.cells_dict["tetra"]
-    # The STL's vertices, taken to the plan frame, lie on object.vtu's surface (remeshed by gmsh).
+    # The STL's vertices, taken to the plan frame, lie on object.vtu's surface, to the chords of
+    # gmsh's remeshing (0.5 mm on this 40 mm ellipsoid).
     stl_mm = ellipsoid["points_mm"]
     mapped = stl_mm @ T[:3, :3].T + T[:3, 3]
     obj = sg.load_object(ellipsoid["mm"], units="mm", material=STIFF, density_kg_m3=1000.0)
     facets = np.asarray(obj.mesh.facets)
     size = float(np.ptp(placed, axis=0).max())
     assert np.asarray(obj.mesh.tets).shape == tets.shape
-    assert _distance_to_triangles(mapped, placed[facets]).max() < 0.01 * size
-    # And object.vtu's boundary nodes, taken back, lie on the STL's triangles (millimetres).
+    assert _distance_to_triangles(mapped, placed[facets]).max() < 0.025 * size
+    # And object.vtu's boundary nodes, taken back, lie exactly on the STL's triangles (millimetres).
     back = np.linalg.inv(T)
     nodes_mm = placed[np.unique(facets)] @ back[:3, :3].T + back[:3, 3]
-    assert _distance_to_triangles(nodes_mm, stl_mm[ellipsoid["tri"]]).max() < 0.01 * SEMI_AXES_MM.max()
-    # Every contact in the mesh frame lies on the user's surface, and is the plan's contact.
+    assert _distance_to_triangles(nodes_mm, stl_mm[ellipsoid["tri"]]).max() < 1e-9 * SEMI_AXES_MM.max()
+    # Every contact in the mesh frame lies on the user's surface (to the remeshing's chords), and
+    # is the plan's contact.
     contacts = np.array([f["contact_in_mesh_frame"] for f in doc["fingers"]])
     np.testing.assert_allclose(contacts, doc["initial_grasp"]["contacts_in_mesh_frame"])
-    assert _distance_to_triangles(contacts, stl_mm[ellipsoid["tri"]]).max() < 0.3  # mm
+    assert _distance_to_triangles(contacts, stl_mm[ellipsoid["tri"]]).max() < 0.025 * 2 * SEMI_AXES_MM.max()
     in_plan = contacts @ T[:3, :3].T + T[:3, 3]
     np.testing.assert_allclose(in_plan, doc["initial_grasp"]["contacts_m"], atol=2e-4)
 
@@ -267,7 +277,8 @@ def test_the_held_state_and_the_closing_open_in_paraview(planned_ellipsoid) -> N
     np.testing.assert_allclose(vtu.points, g.placed)  # the rest geometry execute reads
     np.testing.assert_allclose(vtu.point_data["displacement_m"], g.positions - g.placed)
     held = np.array([f.force for f in g.fingers]).sum(axis=0)
-    np.testing.assert_allclose(vtu.point_data["contact_force_N"].sum(axis=0), held, atol=1e-6 * np.abs(held).max())
+    total = vtu.point_data["contact_force_N"].sum(axis=0)
+    np.testing.assert_allclose(total, held, atol=1e-6 * np.abs(held).max())
     strain = vtu.cell_data["max_principal_strain"][0]
     assert strain.shape == (len(vtu.cells_dict["tetra"]),)
     assert strain.max() == pytest.approx(g.damage.strain, rel=1e-9)
