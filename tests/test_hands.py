@@ -253,4 +253,4 @@ def test_the_parallel_jaw_gripper_plans_the_sphere_and_the_cube(
     assert pose[2, 3] > obj.body.mesh.points[:, 2].max()  # from above, clear of the table
     result.save(tmp_path / "run", figures=None)
     saved = json.loads((tmp_path / "run" / "plan.json").read_text())
-    assert saved["hand"]["model"] == "softgrasp.hand/parallel_jaw.urdf"
+    assert saved["hand"]["model"] == "package:softgrasp/hand/parallel_jaw.urdf"

@@ -32,6 +32,7 @@ PLAN_FILES = (
     "plan.json",
     "history.csv",
     "object.vtu",
+    "closing.pvd",
     "frames.npz",
     "forces.png",
     "force_penetration.png",
@@ -135,17 +136,17 @@ class Plan:
         return copy.deepcopy(self.document)
 
     def write_plan_file(self, out: str | Path) -> Path:
-        """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu``, into
-        ``out`` (the two together, :mod:`softgrasp.io.runfolder`); return the path of ``plan.json``."""
+        """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu`` (with the
+        held state's arrays, :mod:`softgrasp.io.paraview`), into ``out`` (the two together,
+        :mod:`softgrasp.io.runfolder`); return the path of ``plan.json``."""
         from softgrasp.io.atomic import write_json
+        from softgrasp.io.paraview import write_object_vtu
         from softgrasp.io.runfolder import run_folder
-        from softgrasp.model.mesh.io import save_mesh
-        from softgrasp.model.mesh.tetmesh import TetMesh
 
-        mesh = self.object.body.mesh
         with run_folder(out, "plan", complete=False) as folder:
-            save_mesh(TetMesh(self.grasp.placed, mesh.tets, name=mesh.name), folder.stage / "object.vtu")
+            write_object_vtu(folder.stage / "object.vtu", self.grasp, self.object.body)
             self.document["object"]["mesh_file"] = "object.vtu"
+            _portable_hand(self.document, folder.path)
             write_json(folder.stage / "plan.json", self.document)
         return folder.path / "plan.json"
 
@@ -217,9 +218,23 @@ class Plan:
         )
         write_text(out / "history.csv", buf.getvalue())
         _write_frames(out / "frames.npz", g, body.mesh.facets)
+        from softgrasp.io.paraview import write_closing_series
+
+        write_closing_series(out, g, body)
         doc["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
         self.write_plan_file(out)
         figures.finish()
+
+
+def _portable_hand(doc: dict[str, Any], folder: Path) -> None:
+    """``doc``'s hand file named for its folder (:func:`~softgrasp.io.portable.portable_path`)."""
+    from softgrasp.io.portable import portable_path
+
+    params, hand = doc.get("parameters") or {}, doc.get("hand")
+    if isinstance(params.get("hand"), str):
+        params["hand"] = portable_path(params["hand"], folder)
+    if isinstance(hand, dict) and isinstance(hand.get("model"), str):
+        hand["model"] = portable_path(hand["model"], folder)
 
 
 def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:
@@ -346,6 +361,8 @@ def plan(
         "units": obj.units,
         "reorient": obj.reorient,
         "fingertip_radius": None if fingertip_radius_m is None else float(fingertip_radius_m),
+        "density": obj.density_kg_m3,
+        "mass": obj.given_mass_kg,
         "step": float(step_m),
         "solver": solver,
         "safety_factor": float(safety_factor),
@@ -376,5 +393,5 @@ def plan(
             layout=HandLayout.for_hand(hand),
         )
     g = plan_grasp(obj.body, config, progress=progress)
-    doc = plan_document(g, obj.body, obj.name)
+    doc = plan_document(g, obj.body, obj.name, source_transform=obj.transform, units=obj.units)
     return Plan(obj, g, config, options, doc, _started=started)

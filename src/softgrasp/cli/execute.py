@@ -56,6 +56,13 @@ def add_parser(sub) -> None:
     ex.add_argument(
         "--out", default="softgrasp-out/execute", help="output directory (default softgrasp-out/execute)"
     )
+    ex.add_argument(
+        "--save-scene",
+        default=None,
+        metavar="FILE.xml",
+        help="also write the simulated scene as MJCF (object, table, hand; self-contained): "
+        "mujoco.MjModel.from_xml_path loads it",
+    )
     ex.add_argument("--debug", action="store_true", help="show tracebacks of internal errors")
     ex.set_defaults(func=run)
 
@@ -112,6 +119,10 @@ def _run(args: argparse.Namespace, out: Path) -> int:
 
     EXECUTE_RANGES["--lift"].check(args.lift, "--lift")
     EXECUTE_RANGES["--scale"].check(args.scale, "--scale")
+    if args.save_scene is not None:
+        from softgrasp.io.runfolder import check_out_file
+
+        check_out_file(args.save_scene, "--save-scene")
     planned = load_plan_file(args.plan)
     check_options(planned, args.lift, args.scale, args.backend)
     plan = _execute_material(args, planned)
@@ -134,6 +145,9 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     finally:
         bar.close()
     pictures = run.save(out)
+    if args.save_scene is not None:
+        run.save_scene(args.save_scene)
+        print(f"wrote the scene {args.save_scene}")
     doc, res, cfg = run.document, run.result, run.config
     print("finger    set-point N  measured N  error %   held N")
     for fd in doc["fingers"]:

@@ -264,8 +264,8 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
             "hand, whose forces and friction vary, plan with a larger --safety-factor"
         )
     print(
-        f"wrote {out}/plan.json, history.csv, object.vtu, frames.npz, forces.png, force_penetration.png, "
-        "grasp.png "
+        f"wrote {out}/plan.json, history.csv, object.vtu, closing.pvd (and closing/), frames.npz, "
+        "forces.png, force_penetration.png, grasp.png "
         f"({g.increments} increments, {time.perf_counter() - t0:.1f} s)"
     )
     return 0

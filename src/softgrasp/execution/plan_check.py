@@ -43,6 +43,7 @@ def hand_model_of(plan: PlanFile) -> HandModel:
     """The hand a plan was made with: its URDF or MJCF file read with the plan's fingertip mapping
     and radius (``hand.fingertips``, ``hand.fingertip_radius_m``), or the packaged hand the plan
     names (a plan written elsewhere carries another install's path)."""
+    from softgrasp.hand.packaged import PACKAGE_PREFIX
     from softgrasp.hand.urdf import PACKAGED
     from softgrasp.io.options import hand_model
 
@@ -50,10 +51,13 @@ def hand_model_of(plan: PlanFile) -> HandModel:
     mapping = section.get("fingertips") if isinstance(section, dict) else None
     radius = section.get("fingertip_radius_m") if isinstance(section, dict) else None
     src = Path(plan.hand_source)
+    packaged = {file: name for name, file in PACKAGED.items()}
+    recorded = str(section.get("model", "")) if isinstance(section, dict) else ""
+    if recorded.startswith(PACKAGE_PREFIX) and src.name in packaged:  # a packaged hand, by name
+        return hand_model(packaged[src.name], None, radius)
     if src.is_file():
         return hand_model(str(src), mapping, radius)
-    packaged = {file: name for name, file in PACKAGED.items()}
-    if src.name in packaged:
+    if src.name in packaged:  # written by another installation
         return hand_model(packaged[src.name], None, radius)
     raise ConfigError(f"plan file: the hand model {src} is not found; put the hand file back at that path")
 

@@ -65,8 +65,8 @@ class Closing:
     scene: the object on the table with the fingertips.  start: the settled object, fingertips at
         their start.
     rows: each increment at rest (:data:`Row`), in the order simulated.
-    frames: (travel, positions, fingertip centres, fingertip forces) at the start and after each
-        increment, in the order simulated.
+    frames: (travel, positions, fingertip centres, fingertip forces, the contact forces on the
+        nodes) at the start and after each increment, in the order simulated.
     checks: every hold verification: (travel, ``"held"`` or why not).
     """
 
@@ -94,8 +94,8 @@ class Closing:
             xs, np.zeros_like(xs), 0.0, (setup.settled.contacts[0], self.fingers.init_state(body, xs, 0.0))
         )
         self.rows: list[Row] = []
-        self.frames: list[tuple[float, NDArray, NDArray, NDArray]] = [
-            (0.0, xs.copy(), self.fingers.centres(0.0), np.zeros((len(cfg.fingers), 3)))
+        self.frames: list[tuple[float, NDArray, NDArray, NDArray, NDArray]] = [
+            (0.0, xs.copy(), self.fingers.centres(0.0), np.zeros((len(cfg.fingers), 3)), np.zeros_like(xs))
         ]
         self.checks: list[tuple[float, str]] = []
         self.last: Point = (0.0, self.start, math.inf, 0.0)
@@ -129,7 +129,8 @@ class Closing:
                 need <= 1.0,
             )
         )
-        self.frames.append((t, st.x.copy(), fc.centres(t * s), rep.force.copy()))
+        nodes = fc.static_forces(body, st.x, t * s, st.contacts[1])
+        self.frames.append((t, st.x.copy(), fc.centres(t * s), rep.force.copy(), nodes))
         if self.progress is not None:
             self.progress(min(t / self.setup.max_travel, 1.0))
         self.last = (t, st, need, float(rep.normal.sum()))

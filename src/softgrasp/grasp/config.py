@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from softgrasp.errors import ConfigError
 from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp
 from softgrasp.hand.kinematics import HandModel
+from softgrasp.hand.packaged import portable_name
 from softgrasp.model.ranges import RANGES
 from softgrasp.physics.fingertip.params import ContactParams
 
@@ -220,7 +221,7 @@ class PlanConfig:
             "refine": self.refine,
             "table_mu": self.table_mu,
             "hand_layout": self.layout.describe(),
-            "hand": None if self.hand is None else self.hand.source,
+            "hand": None if self.hand is None else portable_name(self.hand.source),
             "grasp": "given" if self.grasp is not None else "searched",
             "max_pressure_Pa": self.max_pressure,
             "max_strain": self.max_strain,

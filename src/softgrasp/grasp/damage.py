@@ -29,7 +29,15 @@ from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.laws import effective_modulus
 
-__all__ = ["Damage", "hertz_peak_pressure", "peak_strain", "grasp_damage", "check_limits", "patch_torsion"]
+__all__ = [
+    "Damage",
+    "hertz_peak_pressure",
+    "principal_strains",
+    "peak_strain",
+    "grasp_damage",
+    "check_limits",
+    "patch_torsion",
+]
 
 
 @dataclass(frozen=True)
@@ -74,14 +82,21 @@ def hertz_peak_pressure(
 def peak_strain(body: Body, x: NDArray[np.float64]) -> tuple[float, int]:
     """The largest principal engineering strain ``|lambda - 1|`` over the body's tetrahedra at
     positions ``x`` [m] (lambda: the singular values of each deformation gradient), and its tet."""
+    strain = principal_strains(body, x)
+    k = int(np.argmax(strain))
+    return float(strain[k]), k
+
+
+def principal_strains(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each tetrahedron's largest principal engineering strain ``|lambda - 1|`` at positions ``x``
+    [m] (lambda: the singular values of its deformation gradient from the body's rest mesh),
+    compression or tension, (M,)."""
     rest = np.asarray(body.mesh.points, dtype=np.float64)[body.mesh.tets]
     now = np.asarray(x, dtype=np.float64)[body.mesh.tets]
     Dm = np.stack([rest[:, k] - rest[:, 0] for k in (1, 2, 3)], axis=2)
     Ds = np.stack([now[:, k] - now[:, 0] for k in (1, 2, 3)], axis=2)
     stretch = np.linalg.svd(Ds @ np.linalg.inv(Dm), compute_uv=False)
-    strain = np.abs(stretch - 1.0).max(axis=1)
-    k = int(np.argmax(strain))
-    return float(strain[k]), k
+    return np.abs(stretch - 1.0).max(axis=1)
 
 
 def grasp_damage(

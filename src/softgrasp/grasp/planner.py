@@ -42,6 +42,7 @@ from softgrasp.grasp.setup import ClosingSetup, closing_setup
 from softgrasp.hand.placement import closing_paths
 from softgrasp.linalg import pardiso
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.model.ranges import check_object_mass
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingerReport
 
@@ -73,10 +74,13 @@ def plan_grasp(
 
     Raises
     ------
+    ConfigError: the object is lighter than 1 g or heavier than the hand lifts
+        (:func:`~softgrasp.model.ranges.check_object_mass`), before any solve.
     InfeasibleGrasp: no reachable force-closure grasp, or no hold before the maximum squeeze.
     NotConverged: an increment between two at rest found no static equilibrium even when split
         (one past them that finds none is an InfeasibleGrasp: the object cannot be squeezed harder).
     """
+    check_object_mass(float(body.total_mass), float(body.mesh.volume))
     with pardiso.blas_one_thread():
         return _plan_grasp(body, config, progress, SolverCache() if cache is None else cache)
 
@@ -176,7 +180,9 @@ def _plan_grasp(
             positions=np.array([f[1] for f in frames]),
             centres=np.array([f[2] for f in frames]),
             forces=np.array([f[3] for f in frames]),
+            contact_forces=np.array([f[4] for f in frames]),
         ),
+        contact_forces=fixed.static_forces(body, held_state.x, 0.0, held_state.contacts[0]),
         solver_stats=dict(
             cache.stats,
             closing_systems=cache.stats["systems"]

@@ -154,7 +154,9 @@ def packaged_urdf(
     name: str = "shadow_like", radius: float | None = None
 ) -> tuple[dict[str, FingerChain], str]:
     """The chains of a packaged hand (:data:`PACKAGED`) and the file's package name
-    (``softgrasp.hand/shadow_like.urdf``: no machine path)."""
+    (``package:softgrasp/hand/shadow_like.urdf``: no machine path)."""
+    from softgrasp.hand.packaged import PACKAGE_PREFIX
+
     file = PACKAGED[name]
     res = resources.files("softgrasp.hand").joinpath(file)
-    return parse_urdf(res.read_bytes(), file, radius=radius), f"softgrasp.hand/{file}"
+    return parse_urdf(res.read_bytes(), file, radius=radius), f"{PACKAGE_PREFIX}hand/{file}"

@@ -18,6 +18,7 @@ from softgrasp.grasp.initial import InitialGrasp
 from softgrasp.hand.reach import GRASP_FINGERS
 from softgrasp.io.limits import PLAN_RANGES
 from softgrasp.io.plan_document import SCHEMA
+from softgrasp.io.portable import resolve_path
 
 __all__ = ["PlanFinger", "PlanFile", "load_plan_file", "load_plan_grasp", "SCHEMA"]
 
@@ -235,7 +236,7 @@ def load_plan_file(path: str | Path) -> PlanFile:
         mu=_ranged(doc, "parameters.contact.mu"),
         fingertip_radius=_ranged(doc, "parameters.fingertip_radius_m"),
         table_mu=_ranged(doc, "parameters.table_mu"),
-        hand_source=_text(doc, "hand.model"),
+        hand_source=str(resolve_path(_text(doc, "hand.model"), p.parent)),
         palm_pose=pose,
         fingers=tuple(fingers),
         document=doc,
