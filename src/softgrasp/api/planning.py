@@ -267,6 +267,7 @@ def plan(
     max_pressure_Pa: float | None = None,
     max_strain: float | None = None,
     progress: Callable[[float], None] | None = None,
+    phase: Callable[[str], None] | None = None,
 ) -> Plan:
     """Plan a three-finger grasp of ``obj`` and its force set-points.
 
@@ -306,7 +307,10 @@ def plan(
         Limits on the held grasp's peak contact pressure [Pa] and the object's peak principal
         strain; a plan whose least squeeze that holds exceeds one raises ``InfeasibleGrasp``.
     progress:
-        Called with the fraction of the plan done.
+        Called with the fraction of the plan done (never smaller than the one before).
+    phase:
+        Called with the name of each phase of the planner as it starts (``initial grasp``,
+        ``closing``, ``hold check``, ``set-points``), after every option has been checked.
     """
     from softgrasp.grasp.planner import plan_grasp
     from softgrasp.io.options import contact_params, plan_config
@@ -346,6 +350,6 @@ def plan(
         config = plan_config(options, contact)
     else:
         config = replace(plan_config({**options, "hand": "none"}, contact), hand=hand)
-    g = plan_grasp(obj.body, config, progress=progress)
+    g = plan_grasp(obj.body, config, progress=progress, phase=phase)
     doc = plan_document(g, obj.body, obj.name)
     return Plan(obj, g, config, options, doc, _started=started)

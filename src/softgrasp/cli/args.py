@@ -24,6 +24,8 @@ __all__ = [
     "counting_bar",
     "material_file",
     "load",
+    "plan_file",
+    "run_folder_of",
 ]
 
 
@@ -192,3 +194,17 @@ def load(args: argparse.Namespace) -> SoftObject:
         mesh_size_m=args.mesh_size,
         reorient=args.reorient,
     )
+
+
+def plan_file(path: str) -> str:
+    """A plan run given as its folder or its ``plan.json``: the ``plan.json``."""
+    import os
+
+    return os.path.join(path, "plan.json") if os.path.isdir(path) else path
+
+
+def run_folder_of(path: str) -> str:
+    """A plan run given as its folder or its ``plan.json``: the folder."""
+    import os
+
+    return (os.path.dirname(path) or ".") if os.path.isfile(path) else path
