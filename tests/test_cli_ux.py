@@ -39,18 +39,38 @@ COARSE = ["plan", "--mesh-size", "0.032", "--hold-time", "0.3"]
 
 
 @pytest.fixture(scope="module")
-def coarse_run(tmp_path_factory) -> tuple[Path, str]:
-    """A coarse plan's folder and what it printed on stderr (not a terminal)."""
+def coarse_run(tmp_path_factory) -> tuple[Path, str, list[float], list[str]]:
+    """A coarse plan by the command line: its folder, what it printed on stderr (not a terminal),
+    and the fractions done and phases the planner reported to it."""
+    import softgrasp.api.planning as planning
+
     out = tmp_path_factory.mktemp("coarse") / "run"
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        assert main([*COARSE, "--out", str(out)]) == 0
-    return out, err.getvalue()
+    fractions: list[float] = []
+    phases: list[str] = []
+    plan = planning.plan
+
+    def recorded(*args, progress, phase, **kwargs):
+        def fraction(f: float) -> None:
+            fractions.append(f)
+            progress(f)
+
+        def named(name: str) -> None:
+            phases.append(name)
+            phase(name)
+
+        return plan(*args, progress=fraction, phase=named, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(planning, "plan", recorded)
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            assert main([*COARSE, "--out", str(out)]) == 0
+    return out, err.getvalue(), fractions, phases
 
 
 # ------------------------------------------------------------------------------ progress
 def test_plan_prints_one_line_per_phase_off_a_terminal(coarse_run):
-    _, err = coarse_run
+    err = coarse_run[1]
     lines = err.strip().splitlines()
     names = [line.removeprefix("softgrasp: plan: ") for line in lines]
     assert all(line.startswith("softgrasp: plan: ") for line in lines), err
@@ -59,18 +79,8 @@ def test_plan_prints_one_line_per_phase_off_a_terminal(coarse_run):
     assert len(kernels) <= 1 and "%" not in err  # no bar off a terminal
 
 
-def test_the_planners_progress_never_goes_back_and_passes_every_phase():
-    from softgrasp.api.objects import load_object
-    from softgrasp.api.planning import plan
-
-    fractions: list[float] = []
-    phases: list[str] = []
-    plan(
-        load_object("sphere", mesh_size_m=0.032),
-        hold_time_s=0.3,
-        progress=fractions.append,
-        phase=phases.append,
-    )
+def test_the_planners_progress_never_goes_back_and_passes_every_phase(coarse_run):
+    _, _, fractions, phases = coarse_run
     assert phases == list(PHASES)
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
     # The closing moves the bar in steps, not 0 then 100 %.
@@ -234,7 +244,7 @@ def test_threads_sets_the_solvers_thread_count(coarse_run, tmp_path, monkeypatch
 
 
 def test_view_takes_the_run_folder_or_its_plan_json(coarse_run, tmp_path, capsys):
-    run, _ = coarse_run
+    run = coarse_run[0]
     a, b = tmp_path / "a.html", tmp_path / "b.html"
     assert main(["view", str(run), "--out", str(a)]) == 0
     assert main(["view", str(run / "plan.json"), "--out", str(b)]) == 0
@@ -381,9 +391,13 @@ def test_the_wheel_installs_into_a_fresh_venv_and_plans(tmp_path):
     site-packages of this one), and run ``softgrasp plan`` from there: the packaged hand and the
     view's static files come with it."""
     root = Path(__file__).resolve().parents[1]
+    # Nothing of this checkout or this environment on the new one's path (pip would take the
+    # checkout's softgrasp.egg-info on PYTHONPATH for an installed softgrasp).
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
     dist = tmp_path / "dist"
     build = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(dist), str(root)],
+        env=env,
         capture_output=True,
         text=True,
         timeout=600,
@@ -396,13 +410,16 @@ def test_the_wheel_installs_into_a_fresh_venv_and_plans(tmp_path):
     assert "softgrasp/hand/shadow_like.urdf" in names and "softgrasp/py.typed" in names
     assert any(n.startswith("softgrasp/viz/static/") for n in names), names
     venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], env=env, check=True, timeout=300)
     py = venv / "bin" / "python"
     install = subprocess.run(
-        [str(py), "-m", "pip", "install", "-q", str(wheel)], capture_output=True, text=True, timeout=1200
+        [str(py), "-m", "pip", "install", "-q", str(wheel)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1200,
     )
     assert install.returncode == 0, install.stderr[-3000:]
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
     out = tmp_path / "run"
     plan = subprocess.run(
         [str(venv / "bin" / "softgrasp"), *COARSE, "--out", str(out)],
