@@ -298,6 +298,7 @@ def plan(
     max_pressure_Pa: float | None = None,
     max_strain: float | None = None,
     progress: Callable[[float], None] | None = None,
+    phase: Callable[[str], None] | None = None,
 ) -> Plan:
     """Plan a grasp of ``obj`` (three fingers, or two with a gripper) and its force set-points.
 
@@ -342,7 +343,10 @@ def plan(
         Limits on the held grasp's peak contact pressure [Pa] and the object's peak principal
         strain; a plan whose least squeeze that holds exceeds one raises ``InfeasibleGrasp``.
     progress:
-        Called with the fraction of the plan done.
+        Called with the fraction of the plan done (never smaller than the one before).
+    phase:
+        Called with the name of each phase of the planner as it starts (``initial grasp``,
+        ``closing``, ``hold check``, ``set-points``), after every option has been checked.
     """
     from softgrasp.grasp.initial import HandLayout
     from softgrasp.grasp.planner import plan_grasp
@@ -392,6 +396,6 @@ def plan(
             hand=hand,
             layout=HandLayout.for_hand(hand),
         )
-    g = plan_grasp(obj.body, config, progress=progress)
+    g = plan_grasp(obj.body, config, progress=progress, phase=phase)
     doc = plan_document(g, obj.body, obj.name, source_transform=obj.transform, units=obj.units)
     return Plan(obj, g, config, options, doc, _started=started)

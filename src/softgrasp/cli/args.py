@@ -24,6 +24,8 @@ __all__ = [
     "counting_bar",
     "material_file",
     "load",
+    "plan_file",
+    "run_folder_of",
 ]
 
 
@@ -226,3 +228,17 @@ def load(args: argparse.Namespace) -> SoftObject:
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return obj
+
+
+def plan_file(path: str) -> str:
+    """A plan run given as its folder or its ``plan.json``: the ``plan.json``."""
+    import os
+
+    return os.path.join(path, "plan.json") if os.path.isdir(path) else path
+
+
+def run_folder_of(path: str) -> str:
+    """A plan run given as its folder or its ``plan.json``: the folder."""
+    import os
+
+    return (os.path.dirname(path) or ".") if os.path.isfile(path) else path

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from softgrasp.cli.args import progress_bar
+from softgrasp.cli.args import plan_file, progress_bar
 from softgrasp.io.limits import EXECUTE_RANGES, MAX_SETPOINT_N
 
 __all__ = ["add_parser", "run"]
@@ -31,7 +31,9 @@ def add_parser(sub) -> None:
         "plan's parts against each other (fingers, object.vtu, hand and palm pose); a simulation "
         "that blows up or runs past its time bound stops with an error.",
     )
-    ex.add_argument("plan", metavar="PLAN.json", help="a plan written by softgrasp plan")
+    ex.add_argument(
+        "plan", metavar="RUN", help="a plan: the plan.json softgrasp plan wrote, or the folder holding it"
+    )
     ex.add_argument("--backend", choices=("mujoco",), default="mujoco", help="the hand (default: mujoco)")
     lift, scale = EXECUTE_RANGES["--lift"], EXECUTE_RANGES["--scale"]
     ex.add_argument(
@@ -63,7 +65,6 @@ def add_parser(sub) -> None:
         help="also write the simulated scene as MJCF (object, table, hand; self-contained): "
         "mujoco.MjModel.from_xml_path loads it",
     )
-    ex.add_argument("--debug", action="store_true", help="show tracebacks of internal errors")
     ex.set_defaults(func=run)
 
 
@@ -106,7 +107,11 @@ def _drop_advice(args: argparse.Namespace, run) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.cli.extras import require
     from softgrasp.io.runfolder import run_folder
+
+    require("execute", "softgrasp execute")
+    args.plan = plan_file(args.plan)
 
     with run_folder(args.out, "execute"):  # checked and locked before any work
         return _run(args, Path(args.out))

@@ -37,10 +37,14 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.cli.extras import require
     from softgrasp.io.runfolder import run_folder
     from softgrasp.sweep.spec import read_sweep, sweep_cases
 
+    require("sweep", "softgrasp sweep")
     spec = read_sweep(args.sweep)
+    if spec.execute:
+        require("execute", "a sweep that executes its plans (execute = true)")
     out = args.out if args.out is not None else "softgrasp-out/sweep"
     with run_folder(out, "sweep") as folder:  # checked and locked before any work
         return _run(args, spec, sweep_cases(spec), Path(out), folder.stage)

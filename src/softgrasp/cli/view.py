@@ -11,17 +11,22 @@ def add_parser(sub) -> None:
     vw = sub.add_parser(
         "view", help="write an interactive 3-D page of a plan run (closing increments, forces)"
     )
-    vw.add_argument("run_dir", metavar="RUN_DIR", help="a folder written by softgrasp plan --out")
-    vw.add_argument("--out", default=None, metavar="FILE.html", help="the page (default RUN_DIR/view.html)")
+    vw.add_argument(
+        "run_dir", metavar="RUN", help="a plan run: the folder softgrasp plan --out wrote, or its plan.json"
+    )
+    vw.add_argument(
+        "--out", default=None, metavar="FILE.html", help="the page (default view.html in the run's folder)"
+    )
     vw.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.cli.args import run_folder_of
     from softgrasp.io.runfolder import check_out_file
     from softgrasp.viz.view import write_view
 
     if args.out is not None:
         check_out_file(args.out)
-    path = write_view(args.run_dir, args.out)
+    path = write_view(run_folder_of(args.run_dir), args.out)
     print(f"wrote {path} (open it in a browser; it needs no network)")
     return 0

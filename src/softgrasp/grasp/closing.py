@@ -131,8 +131,8 @@ class Closing:
         )
         nodes = fc.static_forces(body, st.x, t * s, st.contacts[1])
         self.frames.append((t, st.x.copy(), fc.centres(t * s), rep.force.copy(), nodes))
-        if self.progress is not None:
-            self.progress(min(t / self.setup.max_travel, 1.0))
+        if self.progress is not None:  # the squeeze's way to the grasp test's passing (s <= 1)
+            self.progress(min(max(t / self.setup.max_travel, 1.0 / need if need > 1.0 else 1.0), 1.0))
         self.last = (t, st, need, float(rep.normal.sum()))
         return self.last
 

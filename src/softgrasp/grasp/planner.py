@@ -36,6 +36,7 @@ from softgrasp.grasp.damage import check_limits, grasp_damage, patch_torsion
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import cone_usage
 from softgrasp.grasp.margin import critical_scale
+from softgrasp.grasp.progress import PlanProgress
 from softgrasp.grasp.result import FingerResult, GraspPlan, PlanFrames
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.grasp.setup import ClosingSetup, closing_setup
@@ -62,6 +63,7 @@ def plan_grasp(
     config: PlanConfig = PlanConfig(),  # noqa: B008 - frozen dataclass
     *,
     progress: Callable[[float], None] | None = None,
+    phase: Callable[[str], None] | None = None,
     cache: SolverCache | None = None,
 ) -> GraspPlan:
     """Plan a three-finger grasp of ``body`` resting on a table (paper steps 1-2).
@@ -69,7 +71,10 @@ def plan_grasp(
     Parameters
     ----------
     body: the object.  config: everything else (:class:`PlanConfig`).
-    progress: called with the fraction of the largest allowed travel reached after each increment.
+    progress: called with the fraction of the plan done, never smaller than the one before
+        (:class:`~softgrasp.grasp.progress.PlanProgress`).
+    phase: called with the name of each phase as it starts (``initial grasp``, ``closing``,
+        ``hold check``, ``set-points``).
     cache: the linear solves' state (its ``method`` chooses the solver); a fresh one if None.
 
     Raises
@@ -82,19 +87,23 @@ def plan_grasp(
     """
     check_object_mass(float(body.total_mass), float(body.mesh.volume))
     with pardiso.blas_one_thread():
-        return _plan_grasp(body, config, progress, SolverCache() if cache is None else cache)
+        tracker = PlanProgress(progress, phase)
+        return _plan_grasp(body, config, tracker, SolverCache() if cache is None else cache)
 
 
-def _plan_grasp(
-    body: Body, config: PlanConfig, progress: Callable[[float], None] | None, cache: SolverCache
-) -> GraspPlan:
+def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: SolverCache) -> GraspPlan:
     t0 = time.perf_counter()
     cfg = config
     mu = cfg.contact.mu
+    progress.enter("initial grasp")
     setup = closing_setup(body, cfg, cache)  # step 1
     ig, placement, start, first = setup.grasp, setup.placement, setup.start, setup.first_touch
-    closing = Closing(body, cfg, setup, cache, progress)  # step 2
-    t_final, (held_state, fixed, drift, slip) = closing.until_held(closing.until_the_grasp_test())
+    progress.enter("closing")
+    closing = Closing(body, cfg, setup, cache, progress.within("closing"))  # step 2
+    passing = closing.until_the_grasp_test()
+    progress.enter("hold check")
+    t_final, (held_state, fixed, drift, slip) = closing.until_held(passing)
+    progress.enter("set-points")
     rows, frames = closing.rows, closing.frames
     # The set-points: the held state's forces.
     hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
@@ -138,8 +147,7 @@ def _plan_grasp(
         assert cfg.hand is not None
         lines = {f.name: (start[j], centres[j]) for j, f in enumerate(fingers)}
         joint_paths = closing_paths(cfg.hand, placement, lines, max(1, int(np.ceil(t_final / cfg.step))))
-    if progress is not None:
-        progress(1.0)
+    progress.finish()
     rows.sort(key=lambda r: r[0])  # the solves' increments among the others, by travel
     frames.sort(key=lambda f: f[0])
     return GraspPlan(
