@@ -9,11 +9,12 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
+# softgrasp with both optional extras: MuJoCo (`execute`) and Dask with PyArrow (`sweep`).
 install: $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e ".[execute]"
+	$(BIN)/python -m pip install --quiet -e ".[execute,sweep]"
 
 install-test: $(BIN)/python browser
-	$(BIN)/python -m pip install --quiet -e ".[test,execute]"
+	$(BIN)/python -m pip install --quiet -e ".[test,execute,sweep]"
 
 # Debian's Chromium and ChromeDriver for the browser test of `softgrasp view` (installed when
 # missing and apt-get can run; otherwise that test is skipped and says why).

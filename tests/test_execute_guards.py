@@ -102,7 +102,7 @@ def test_a_material_file_outside_the_ranges_is_refused(planned_sphere, tmp_path,
     _refused(
         capsys,
         ["execute", str(planned_sphere / "plan.json"), "--material", str(mf), "--out", str(tmp_path / "o")],
-        "contact parameter mu = 1e+300 is invalid: it must lie in [0, 5]",
+        "contact parameter mu = 1e+300 is invalid",
     )
 
 

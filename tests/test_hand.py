@@ -509,7 +509,7 @@ def test_small_urdf_prismatic_rpy_and_scaled_mimic(tmp_path: Path) -> None:
         ),
         (
             (LINK.format("palm"), LINK.format("ff_tip"), _joint("J", "palm", "ff_tip", LIM)),
-            "no <collision> sphere",
+            "has no collision sphere giving the fingertip radius; add a sphere to it or give the radius",
         ),
         (
             (LINK.format("palm"), TIP.format("ff_tip"), _joint("J", "palm", "ff_tip", LIM, "continuous")),

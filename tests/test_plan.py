@@ -502,12 +502,13 @@ def test_default_plan_job_runs(tmp_path, capsys):
 
 
 def test_plan_cli_zero_values_are_used_not_replaced_by_defaults(tmp_path, capsys):
-    """``--mu 0`` means frictionless fingertips (no force closure: one clear error line), not the
-    default 0.8."""
+    """``--mu 0`` means frictionless fingertips (no force closure: one clear error line after the
+    phases' lines, exit status 1: valid input, no grasp), not the default 0.8."""
     out = tmp_path / "out"
-    assert main(["plan", "--mu", "0", "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "mu = 0" in err[0] and "force closure" in err[0]
+    assert main(["plan", "--mu", "0", "--out", str(out)]) == 1
+    *phases, err = capsys.readouterr().err.strip().splitlines()
+    assert all(line.startswith("softgrasp: plan: ") for line in phases), phases
+    assert err.startswith("softgrasp: error: ") and "mu = 0" in err and "force closure" in err
     assert not out.exists()
 
 

@@ -15,6 +15,7 @@ __all__ = [
     "NotConverged",
     "SimulationUnstable",
     "ConfigError",
+    "SoftgraspWarning",
 ]
 
 
@@ -58,3 +59,8 @@ class SimulationUnstable(SoftgraspError):
 
 class ConfigError(SoftgraspError):
     """A command-line option or configuration value is invalid."""
+
+
+class SoftgraspWarning(UserWarning):
+    """A default softgrasp took where the user gave nothing (a mesh file's material or density):
+    the command line prints it as one line on stderr."""

@@ -22,7 +22,7 @@ from numba.core.caching import FunctionCache
 
 from softgrasp import backend  # noqa: F401 - Intel TBB made loadable for Numba's threads first
 
-__all__ = ["KERNEL_MODULES", "SOURCE_DIGEST", "SourceKeyedCache", "jit", "source_digest"]
+__all__ = ["KERNEL_MODULES", "SOURCE_DIGEST", "SourceKeyedCache", "cached", "jit", "source_digest"]
 
 #: Every module that defines compiled kernels (with :func:`jit`); their sources key the cache.
 KERNEL_MODULES = (
@@ -85,3 +85,19 @@ def jit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
         return dispatcher
 
     return decorate
+
+
+def cached(dispatcher: Any) -> bool:
+    """Whether kernel ``dispatcher`` (compiled with :func:`jit`) has machine code on disk for the
+    current kernel sources and this CPU, for some argument types: loading it then takes a fraction
+    of a second, where compiling it takes seconds. False when it has none, when its cache index
+    cannot be read, or when ``dispatcher`` is not such a kernel."""
+    cache = getattr(dispatcher, "_cache", None)
+    if not isinstance(cache, SourceKeyedCache):
+        return False
+    try:
+        index = cache._cache_file._load_index()  # {index key: data file}, empty when stale
+        magic = dispatcher.targetctx.codegen().magic_tuple()
+    except Exception:  # noqa: BLE001 - an unreadable index is a cold cache
+        return False
+    return any(key[-1] == cache.digest and key[1] == magic for key in index)

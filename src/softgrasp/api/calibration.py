@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from softgrasp import __version__
 from softgrasp.api.objects import SoftObject, load_object
 from softgrasp.errors import ConfigError
 from softgrasp.model.material import Material
@@ -268,6 +269,7 @@ def calibrate(
             say(f"note: {note}")
     doc: dict[str, Any] = {
         "schema": "softgrasp.calibration/1",
+        "softgrasp_version": __version__,
         "specimen": obj.to_dict(),
         "E_Pa": material.E,
         "nu": material.nu,

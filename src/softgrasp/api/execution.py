@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from softgrasp import __version__
 from softgrasp.api.planning import Plan
 from softgrasp.errors import ConfigError
 
@@ -80,6 +81,8 @@ class Execution:
     frames: snapshots of the hand and object at the events ``start``, ``contact``, ``closed``, ``end``.
     facets: the object's surface triangles (for the pictures).
     document: the ``execute.json`` document.
+    scene_xml: the MJCF of the simulated scene (table, object as a flex with its points and tets
+        inline, hand on its arm; keyframe ``initial`` the start): self-contained, no other file.
     """
 
     plan: PlanFile
@@ -89,6 +92,15 @@ class Execution:
     frames: dict[str, tuple]
     facets: Any
     document: dict[str, Any]
+    scene_xml: str = ""
+
+    def save_scene(self, path: str | Path) -> Path:
+        """Write the MJCF of the executed scene (:attr:`scene_xml`) to ``path`` atomically; it loads
+        with ``mujoco.MjModel.from_xml_path(path)``."""
+        from softgrasp.io.atomic import write_text
+        from softgrasp.io.runfolder import check_out_file
+
+        return write_text(check_out_file(path, "--save-scene"), self.scene_xml)
 
     @property
     def lifted(self) -> bool:
@@ -143,9 +155,15 @@ class Execution:
         """Write ``execute.json``, ``execute.csv``, ``execute_forces.png`` and a picture per event
         (``frame_start.png`` ...) into ``out``, replacing the folder's earlier ones whole
         (:mod:`softgrasp.io.runfolder`); return the pictures' names."""
+        from softgrasp.io.portable import portable_path
         from softgrasp.io.runfolder import run_folder
 
         with run_folder(out, "execute") as folder:
+            doc, material = self.document, self.document.get("object_material") or {}
+            if isinstance(doc.get("plan"), str):  # named from the folder, not by this machine's path
+                doc["plan"] = portable_path(doc["plan"], folder.path)
+            if isinstance(material.get("file"), str):
+                material["file"] = portable_path(material["file"], folder.path)
             return self._write(folder.stage)
 
     def _write(self, out: Path) -> list[str]:
@@ -252,6 +270,7 @@ def _execute(
 ) -> Execution:
     from softgrasp.execution.controller import ExecuteConfig, closing_lines, execute_plan
     from softgrasp.execution.mujoco.hand import MujocoHand
+    from softgrasp.execution.mujoco.mjcf import build_mjcf
     from softgrasp.model.mesh.io import load_mesh
 
     t0 = time.perf_counter()
@@ -276,6 +295,7 @@ def _execute(
     sim = float(ser["t"][-1]) if len(ser["t"]) else 0.0
     doc = {
         "schema": EXECUTE_SCHEMA,
+        "softgrasp_version": __version__,
         "plan": str(Path(plan.path).resolve()),
         "backend": backend,
         "scale": scale,
@@ -286,4 +306,4 @@ def _execute(
         "wall_time_s": wall,
         "realtime_factor": sim / wall if wall > 0 else None,
     }
-    return Execution(plan, res, cfg, lines, frames, facets, doc)
+    return Execution(plan, res, cfg, lines, frames, facets, doc, build_mjcf(hand.scene.spec))

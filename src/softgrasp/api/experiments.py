@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from softgrasp import __version__
 from softgrasp.api.objects import SoftObject, load_object
 from softgrasp.errors import ConfigError
 
@@ -64,6 +65,7 @@ class Compression:
         res = self.result
         return {
             "schema": "softgrasp.compress/1",
+            "softgrasp_version": __version__,
             "object": self.object.to_dict(),
             "parameters": {
                 **self.parameters,
@@ -197,6 +199,7 @@ class Indentation:
         res = self.result
         report: dict[str, Any] = {
             "schema": "softgrasp.indent/1",
+            "softgrasp_version": __version__,
             "object": self.object.to_dict(),
             "parameters": {
                 "depth_m": res.depth_m,

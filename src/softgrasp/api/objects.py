@@ -7,9 +7,13 @@ parametric shape or a mesh file, with its material); :func:`material` a preset
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
@@ -42,6 +46,11 @@ class SoftObject:
     mesh_size_m: the element size asked for [m], or None for the object's default.
     units: the length unit of a mesh file (``m``, ``cm``, ``mm``).
     reorient: whether inverted tets of a mesh file were flipped.
+    density_kg_m3, given_mass_kg: the density [kg/m^3] or total mass [kg] given over the
+        material's, or None.
+    transform: the transform (4, 4) from the source's coordinates to the body's mesh,
+        ``p_body = T p_source`` (homogeneous; a mesh file's coordinates in ``units``, metres out):
+        the scaling by the units, then the turn and move that rest the object on the table.
     """
 
     source: str
@@ -51,6 +60,9 @@ class SoftObject:
     mesh_size_m: float | None = None
     units: str = "m"
     reorient: bool = False
+    density_kg_m3: float | None = None
+    given_mass_kg: float | None = None
+    transform: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
 
     @property
     def name(self) -> str:
@@ -76,6 +88,8 @@ class SoftObject:
     def density_given(self) -> bool:
         """Whether the material as given carries its own density (a calibration then writes it)."""
         spec, mf = self.material_spec, self.material_file
+        if self.density_kg_m3 is not None or self.given_mass_kg is not None:
+            return True
         if mf is not None:
             return mf.material is not None and mf.material.density is not None
         if isinstance(spec, Material):
@@ -108,6 +122,8 @@ def load_object(
     material: str | Material | MaterialFile | None = None,
     mesh_size_m: float | None = None,
     reorient: bool = False,
+    density_kg_m3: float | None = None,
+    mass_kg: float | None = None,
 ) -> SoftObject:
     """The soft object ``source``: a built-in object (``sphere``: the paper's 64 mm rubber sphere,
     ``cube``: its 50 mm foam cube), a shape (``box:0.04x0.03x0.02``, ``cylinder:DxH``, ``ball:R``,
@@ -121,24 +137,42 @@ def load_object(
     material:
         A :class:`Material`, a preset name (``rubber``, ``foam``), a ``key=value`` list
         (``E=80e3,nu=0.45,density=950``) or a material file (``.toml``, as ``softgrasp calibrate``
-        writes); default the object's own (a file: ``rubber``). A material with a density
-        decides the mass; one without keeps a built-in object's mass.
+        writes, optionally followed by overrides: ``material.toml,density=1000``); default the
+        object's own. A material with a density decides the mass; one without keeps a built-in
+        object's mass. A mesh file given without a material takes the ``rubber`` preset's E and nu
+        and, without a density or mass, 1000 kg/m^3 (water's), each with a
+        :class:`~softgrasp.errors.SoftgraspWarning`.
+    density_kg_m3, mass_kg:
+        The object's density [kg/m^3] or its total mass [kg] (one of them), over the material's.
     mesh_size_m:
         Target element size [m]; default the object's (a file: one eighth of its bounding box's
         mean side).
     reorient:
         Flip inverted tets of a volume mesh file instead of refusing it.
     """
-    from softgrasp.io.options import load_body
+    from softgrasp.io.options import load_placed_body
+    from softgrasp.model.ranges import check
 
     if units not in UNITS:
         raise ConfigError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
     if isinstance(material, dict):
         raise ConfigError("material must be a Material, a preset name, key=value text or a .toml file")
+    if density_kg_m3 is not None and mass_kg is not None:
+        raise ConfigError("give the object's density_kg_m3 or its mass_kg, not both")
+    overrides = {}
+    if density_kg_m3 is not None:
+        overrides["density"] = check("density", density_kg_m3, "density_kg_m3")
+    if mass_kg is not None:
+        overrides["mass"] = check("mass", mass_kg, "mass_kg")
     source = str(source)
     spec, mfile = _material_file(material)
-    body = load_body(source, mesh_size_m, spec, reorient=reorient, mfile=mfile, scale=UNITS[units])
-    return SoftObject(source, body, spec, mfile, mesh_size_m, units, reorient)
+    body, T = load_placed_body(
+        source, mesh_size_m, spec, reorient=reorient, mfile=mfile, overrides=overrides, scale=UNITS[units]
+    )
+    T.setflags(write=False)
+    return SoftObject(
+        source, body, spec, mfile, mesh_size_m, units, reorient, density_kg_m3, mass_kg, T
+    )
 
 
 def material(name: str) -> Material:
@@ -154,9 +188,19 @@ def material(name: str) -> Material:
     return mat
 
 
-def load_hand(name: str | Path = "shadow_like") -> HandModel | None:
-    """The hand: ``shadow_like`` (the packaged Shadow-like hand), a URDF file (fingertip links
-    ``th_tip``, ``ff_tip``, ``mf_tip``), or ``none`` (free fingertips: returns None)."""
+def load_hand(
+    name: str | Path = "shadow_like",
+    fingertips: Mapping[str, str] | str | None = None,
+    fingertip_radius_m: float | None = None,
+) -> HandModel | None:
+    """The hand: ``shadow_like`` (the packaged Shadow-like hand), ``parallel_jaw`` (the packaged
+    two-finger gripper, 0-85 mm), a URDF or MJCF file, or ``none`` (free fingertips: returns None).
+
+    ``fingertips`` maps the planner's fingers to the file's fingertip links (MJCF: bodies),
+    ``{"thumb": "th_tip", "first": "ff_tip", "middle": "mf_tip"}`` (or ``left``/``right`` for a
+    gripper), also as text ``thumb=th_tip,first=ff_tip,middle=mf_tip``; default: links named
+    ``th_tip``, ``ff_tip``, ``mf_tip``. The fingertip radius is the link's collision sphere's;
+    ``fingertip_radius_m`` overrides it (and is needed when the link has no sphere)."""
     from softgrasp.io.options import hand_model
 
-    return hand_model(str(name))
+    return hand_model(str(name), fingertips, fingertip_radius_m)

@@ -32,6 +32,7 @@ PLAN_FILES = (
     "plan.json",
     "history.csv",
     "object.vtu",
+    "closing.pvd",
     "frames.npz",
     "forces.png",
     "force_penetration.png",
@@ -135,17 +136,17 @@ class Plan:
         return copy.deepcopy(self.document)
 
     def write_plan_file(self, out: str | Path) -> Path:
-        """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu``, into
-        ``out`` (the two together, :mod:`softgrasp.io.runfolder`); return the path of ``plan.json``."""
+        """Write only what execution reads, ``plan.json`` and the placed mesh ``object.vtu`` (with the
+        held state's arrays, :mod:`softgrasp.io.paraview`), into ``out`` (the two together,
+        :mod:`softgrasp.io.runfolder`); return the path of ``plan.json``."""
         from softgrasp.io.atomic import write_json
+        from softgrasp.io.paraview import write_object_vtu
         from softgrasp.io.runfolder import run_folder
-        from softgrasp.model.mesh.io import save_mesh
-        from softgrasp.model.mesh.tetmesh import TetMesh
 
-        mesh = self.object.body.mesh
         with run_folder(out, "plan", complete=False) as folder:
-            save_mesh(TetMesh(self.grasp.placed, mesh.tets, name=mesh.name), folder.stage / "object.vtu")
+            write_object_vtu(folder.stage / "object.vtu", self.grasp, self.object.body)
             self.document["object"]["mesh_file"] = "object.vtu"
+            _portable_hand(self.document, folder.path)
             write_json(folder.stage / "plan.json", self.document)
         return folder.path / "plan.json"
 
@@ -206,7 +207,7 @@ class Plan:
             g.positions,
             body.mesh.facets,
             g.centres,
-            np.full(3, self.config.fingertip_radius),
+            np.full(len(self.grasp.fingers), self.config.fingertip_radius),
             np.array([f.force for f in g.fingers]),
             g.contact_points,
             names,
@@ -217,19 +218,41 @@ class Plan:
         )
         write_text(out / "history.csv", buf.getvalue())
         _write_frames(out / "frames.npz", g, body.mesh.facets)
+        from softgrasp.io.paraview import write_closing_series
+
+        write_closing_series(out, g, body)
         doc["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
         self.write_plan_file(out)
         figures.finish()
 
 
+def _portable_hand(doc: dict[str, Any], folder: Path) -> None:
+    """``doc``'s hand file named for its folder (:func:`~softgrasp.io.portable.portable_path`)."""
+    from softgrasp.io.portable import portable_path
+
+    params, hand = doc.get("parameters") or {}, doc.get("hand")
+    if isinstance(params.get("hand"), str):
+        params["hand"] = portable_path(params["hand"], folder)
+    if isinstance(hand, dict) and isinstance(hand.get("model"), str):
+        hand["model"] = portable_path(hand["model"], folder)
+
+
 def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:
-    """The closing increments and the held state, for ``softgrasp view`` (SI units)."""
+    """The closing increments and the held state, for ``softgrasp view`` (SI units): the frames'
+    object, fingertips, forces (normal forces from the history's rows, none at the start) and the
+    hand's link polylines (``hand_lines``: where each starts in a frame's ``hand_points``)."""
     import numpy as np
 
     from softgrasp.io.atomic import atomic_write
+    from softgrasp.io.plan_document import hand_polylines
 
     fr = plan.frames
     assert fr is not None
+
+    def points(lines: list[Any]) -> Any:
+        return np.concatenate(lines) if lines else np.zeros((0, 3))
+
+    held_links = hand_polylines(plan)
 
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:
@@ -245,6 +268,13 @@ def _write_frames(path: Path, plan: GraspPlan, facets: Any) -> None:
                 facets=np.asarray(facets, dtype=np.int64),
                 fingertip_radius=np.float64(plan.config.fingertip_radius),
                 finger_names=np.array([f.name for f in plan.fingers]),
+                normal_forces=np.vstack([np.zeros((1, len(plan.fingers))), plan.normal_force]),
+                held_normal_forces=np.array([f.normal_force for f in plan.fingers]),
+                hand_points=np.array([points(hand_polylines(plan, t)) for t in fr.travel]).reshape(
+                    len(fr.travel), -1, 3
+                ),
+                held_hand_points=points(held_links),
+                hand_lines=np.cumsum([0, *(len(p) for p in held_links)]).astype(np.int64),
             )
 
     atomic_write(path, write)
@@ -254,8 +284,9 @@ def plan(
     obj: SoftObject | str = "sphere",
     hand: HandModel | str | None = "shadow_like",
     *,
+    fingertips: Mapping[str, str] | str | None = None,
     mu: float | None = None,
-    fingertip_radius_m: float = 0.008,
+    fingertip_radius_m: float | None = None,
     step_m: float = 0.0005,
     solver: str = "quasistatic",
     safety_factor: float = 1.25,
@@ -267,8 +298,9 @@ def plan(
     max_pressure_Pa: float | None = None,
     max_strain: float | None = None,
     progress: Callable[[float], None] | None = None,
+    phase: Callable[[str], None] | None = None,
 ) -> Plan:
-    """Plan a three-finger grasp of ``obj`` and its force set-points.
+    """Plan a grasp of ``obj`` (three fingers, or two with a gripper) and its force set-points.
 
     Parameters
     ----------
@@ -276,12 +308,17 @@ def plan(
         The object (:func:`load_object`), or a source for it (built-in name, shape, mesh file in
         metres).
     hand:
-        A hand model (:func:`load_hand`), ``shadow_like``, a URDF file, or None / ``none`` for
-        free fingertips.
+        A hand model (:func:`load_hand`: any URDF or MJCF hand with its fingertip mapping),
+        ``shadow_like``, ``parallel_jaw``, a URDF or MJCF file, or None / ``none`` for free
+        fingertips.
+    fingertips:
+        A hand file's fingertip links by finger (``{"thumb": "th_tip", ...}`` or
+        ``thumb=th_tip,first=ff_tip,middle=mf_tip``); see :func:`load_hand`.
     mu:
         Fingertip friction coefficient; default the object's material file's, else 0.8.
     fingertip_radius_m, step_m:
-        Fingertip radius and closing increment [m].
+        Fingertip radius (default: the hand's fingertip spheres'; 8 mm without a hand) and
+        closing increment [m].
     solver:
         ``quasistatic`` (a static Newton solve per increment) or ``dynamic`` (explicit
         Runge-Kutta through each increment).
@@ -306,8 +343,12 @@ def plan(
         Limits on the held grasp's peak contact pressure [Pa] and the object's peak principal
         strain; a plan whose least squeeze that holds exceeds one raises ``InfeasibleGrasp``.
     progress:
-        Called with the fraction of the plan done.
+        Called with the fraction of the plan done (never smaller than the one before).
+    phase:
+        Called with the name of each phase of the planner as it starts (``initial grasp``,
+        ``closing``, ``hold check``, ``set-points``), after every option has been checked.
     """
+    from softgrasp.grasp.initial import HandLayout
     from softgrasp.grasp.planner import plan_grasp
     from softgrasp.io.options import contact_params, plan_config
     from softgrasp.io.plan_document import plan_document
@@ -323,7 +364,9 @@ def plan(
         "mesh_size": obj.mesh_size_m,
         "units": obj.units,
         "reorient": obj.reorient,
-        "fingertip_radius": float(fingertip_radius_m),
+        "fingertip_radius": None if fingertip_radius_m is None else float(fingertip_radius_m),
+        "density": obj.density_kg_m3,
+        "mass": obj.given_mass_kg,
         "step": float(step_m),
         "solver": solver,
         "safety_factor": float(safety_factor),
@@ -331,6 +374,8 @@ def plan(
         "max_squeeze": float(max_squeeze),
         "refine": int(refine),
         "hand": str(hand_name),
+        "fingertips": fingertips if fingertips is None or isinstance(fingertips, str)
+        else ",".join(f"{k}={v}" for k, v in fingertips.items()),
         "grasp": None if grasp is None else str(grasp),
         "contact_law": contact_law,
         "max_pressure": max_pressure_Pa,
@@ -345,7 +390,12 @@ def plan(
     if hand is None or isinstance(hand, str):
         config = plan_config(options, contact)
     else:
-        config = replace(plan_config({**options, "hand": "none"}, contact), hand=hand)
-    g = plan_grasp(obj.body, config, progress=progress)
-    doc = plan_document(g, obj.body, obj.name)
+        r = hand.fingertip_radius(hand.grasp_fingers[0]) if fingertip_radius_m is None else fingertip_radius_m
+        config = replace(
+            plan_config({**options, "hand": "none", "fingertip_radius": r}, contact),
+            hand=hand,
+            layout=HandLayout.for_hand(hand),
+        )
+    g = plan_grasp(obj.body, config, progress=progress, phase=phase)
+    doc = plan_document(g, obj.body, obj.name, source_transform=obj.transform, units=obj.units)
     return Plan(obj, g, config, options, doc, _started=started)

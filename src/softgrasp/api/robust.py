@@ -17,6 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from softgrasp import __version__
 from softgrasp.api.objects import SoftObject
 from softgrasp.api.planning import Plan
 from softgrasp.errors import ConfigError
@@ -111,6 +112,7 @@ def robust_plan(
         )
         res = replace(res, stages={k: str(out / "robust" / Path(v).name) for k, v in res.stages.items()})
         summary = res.describe()
+        summary["stages"] = {k: f"robust/{Path(v).name}" for k, v in res.stages.items()}  # from the folder
         per_sample = summary.pop("per_sample")
         doc = copy.deepcopy(plan.document)
         for j, f in enumerate(doc["fingers"]):
@@ -123,7 +125,13 @@ def robust_plan(
             "penetration, final position) and the equilibrium are the nominal plan's held state",
         }
         write_json(
-            stage / "robust.json", {"schema": "softgrasp.robust/1", **summary, "per_sample": per_sample}
+            stage / "robust.json",
+            {
+                "schema": "softgrasp.robust/1",
+                "softgrasp_version": __version__,
+                **summary,
+                "per_sample": per_sample,
+            },
         )
         write_json(stage / "plan.json", doc)
         plot_robust(

@@ -24,6 +24,8 @@ __all__ = [
     "counting_bar",
     "material_file",
     "load",
+    "plan_file",
+    "run_folder_of",
 ]
 
 
@@ -108,7 +110,26 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--material",
         default=None,
-        help="preset (foam, rubber) or E=..,nu=..,density=.. [Pa, -, kg/m^3]; default: the object's",
+        help="preset (foam, rubber), E=..,nu=..,density=.. [Pa, -, kg/m^3] or a material file "
+        "(FILE.toml, as calibrate writes; FILE.toml,density=.. to change it); default: the object's "
+        "(a mesh file: rubber's E and nu, with a warning)",
+    )
+    mass = p.add_mutually_exclusive_group()
+    mass.add_argument(
+        "--density",
+        type=number("density"),
+        default=None,
+        metavar="KG_M3",
+        help=f"the object's density [kg/m^3], {limits('density')}, over its material's (a mesh file "
+        "without one: 1000, with a warning)",
+    )
+    mass.add_argument(
+        "--mass",
+        type=number("mass"),
+        default=None,
+        metavar="KG",
+        help=f"the object's total mass [kg], {limits('mass')}, instead of a density; a plan takes "
+        "objects of 1 g to 2 kg",
     )
     p.add_argument(
         "--mesh-size",
@@ -181,14 +202,43 @@ def material_file(args: argparse.Namespace) -> MaterialFile | None:
 
 
 def load(args: argparse.Namespace) -> SoftObject:
-    """The object of --object, --units, --material, --mesh-size and --reorient."""
+    """The object of --object, --units, --material, --density, --mass, --mesh-size and --reorient;
+    the defaults it takes (:class:`~softgrasp.errors.SoftgraspWarning`) printed on stderr, one line
+    each."""
+    import warnings
+
     from softgrasp.api.objects import load_object
+    from softgrasp.errors import SoftgraspWarning
 
     mf = material_file(args)
-    return load_object(
-        args.object,
-        units=getattr(args, "units", None) or "m",
-        material=mf if mf is not None else args.material,
-        mesh_size_m=args.mesh_size,
-        reorient=args.reorient,
-    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SoftgraspWarning)
+        obj = load_object(
+            args.object,
+            units=getattr(args, "units", None) or "m",
+            material=mf if mf is not None else args.material,
+            mesh_size_m=args.mesh_size,
+            reorient=args.reorient,
+            density_kg_m3=getattr(args, "density", None),
+            mass_kg=getattr(args, "mass", None),
+        )
+    for w in caught:
+        if issubclass(w.category, SoftgraspWarning):
+            print(f"softgrasp: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return obj
+
+
+def plan_file(path: str) -> str:
+    """A plan run given as its folder or its ``plan.json``: the ``plan.json``."""
+    import os
+
+    return os.path.join(path, "plan.json") if os.path.isdir(path) else path
+
+
+def run_folder_of(path: str) -> str:
+    """A plan run given as its folder or its ``plan.json``: the folder."""
+    import os
+
+    return (os.path.dirname(path) or ".") if os.path.isfile(path) else path

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from softgrasp.cli.args import progress_bar
+from softgrasp.cli.args import plan_file, progress_bar
 from softgrasp.io.limits import EXECUTE_RANGES, MAX_SETPOINT_N
 
 __all__ = ["add_parser", "run"]
@@ -31,7 +31,9 @@ def add_parser(sub) -> None:
         "plan's parts against each other (fingers, object.vtu, hand and palm pose); a simulation "
         "that blows up or runs past its time bound stops with an error.",
     )
-    ex.add_argument("plan", metavar="PLAN.json", help="a plan written by softgrasp plan")
+    ex.add_argument(
+        "plan", metavar="RUN", help="a plan: the plan.json softgrasp plan wrote, or the folder holding it"
+    )
     ex.add_argument("--backend", choices=("mujoco",), default="mujoco", help="the hand (default: mujoco)")
     lift, scale = EXECUTE_RANGES["--lift"], EXECUTE_RANGES["--scale"]
     ex.add_argument(
@@ -56,7 +58,13 @@ def add_parser(sub) -> None:
     ex.add_argument(
         "--out", default="softgrasp-out/execute", help="output directory (default softgrasp-out/execute)"
     )
-    ex.add_argument("--debug", action="store_true", help="show tracebacks of internal errors")
+    ex.add_argument(
+        "--save-scene",
+        default=None,
+        metavar="FILE.xml",
+        help="also write the simulated scene as MJCF (object, table, hand; self-contained): "
+        "mujoco.MjModel.from_xml_path loads it",
+    )
     ex.set_defaults(func=run)
 
 
@@ -99,7 +107,11 @@ def _drop_advice(args: argparse.Namespace, run) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.cli.extras import require
     from softgrasp.io.runfolder import run_folder
+
+    require("execute", "softgrasp execute")
+    args.plan = plan_file(args.plan)
 
     with run_folder(args.out, "execute"):  # checked and locked before any work
         return _run(args, Path(args.out))
@@ -112,6 +124,10 @@ def _run(args: argparse.Namespace, out: Path) -> int:
 
     EXECUTE_RANGES["--lift"].check(args.lift, "--lift")
     EXECUTE_RANGES["--scale"].check(args.scale, "--scale")
+    if args.save_scene is not None:
+        from softgrasp.io.runfolder import check_out_file
+
+        check_out_file(args.save_scene, "--save-scene")
     planned = load_plan_file(args.plan)
     check_options(planned, args.lift, args.scale, args.backend)
     plan = _execute_material(args, planned)
@@ -134,6 +150,9 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     finally:
         bar.close()
     pictures = run.save(out)
+    if args.save_scene is not None:
+        run.save_scene(args.save_scene)
+        print(f"wrote the scene {args.save_scene}")
     doc, res, cfg = run.document, run.result, run.config
     print("finger    set-point N  measured N  error %   held N")
     for fd in doc["fingers"]:

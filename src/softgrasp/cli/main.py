@@ -9,6 +9,8 @@ from collections.abc import Sequence
 from softgrasp import __version__
 from softgrasp.cli import calibrate, compress, execute, indent, plan, reproduce, sweep, view
 from softgrasp.cli.args import Parser
+from softgrasp.cli.help import add_global_options, describe, exit_codes_epilog
+from softgrasp.cli.status import BAD_INPUT, INTERNAL, INTERRUPTED, exit_status
 from softgrasp.errors import SoftgraspError
 
 __all__ = ["build_parser", "main"]
@@ -16,18 +18,21 @@ __all__ = ["build_parser", "main"]
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``softgrasp`` argument parser."""
-    p = Parser(prog="softgrasp", description="Grasp planning for soft objects (SI units; lengths in m).")
-    p.add_argument("--version", action="version", version=f"softgrasp {__version__}")
-    p.add_argument("--debug", action="store_true", help="show tracebacks of internal errors")
-    p.add_argument(
-        "--verbose",
-        action="store_true",
-        help="print the static solver's progress to stderr (every Newton iteration, friction pass "
-        "and split load increment)",
+    p = Parser(
+        prog="softgrasp",
+        description="Grasp planning for soft objects (SI units; lengths in m).\n"
+        "'softgrasp COMMAND --help' gives a command's options and an example.",
+        epilog=exit_codes_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = p.add_subparsers(dest="command", parser_class=Parser)
+    p.add_argument("--version", action="version", version=f"softgrasp {__version__}")
+    add_global_options(p)
+    sub = p.add_subparsers(dest="command", parser_class=Parser, metavar="COMMAND")
     for command in (compress, indent, plan, calibrate, view, reproduce, sweep, execute):
         command.add_parser(sub)
+    for name, parser in sub.choices.items():
+        describe(name, parser)
+        add_global_options(parser, command=True)
     return p
 
 
@@ -42,30 +47,46 @@ def _log_progress() -> None:
     log.setLevel(logging.DEBUG)
 
 
+def _set_threads(n: int) -> None:
+    """``--threads N``: the solvers' and compiled kernels' thread count in this process
+    (:func:`softgrasp.linalg.threads.set_threads`) and in the worker processes it starts."""
+    import os
+
+    from softgrasp.linalg.threads import THREADS_ENV, set_threads
+
+    set_threads(n)
+    os.environ[THREADS_ENV] = str(n)  # Dask's and the figures' worker processes read it at import
+    import numba
+
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``softgrasp`` command; returns its exit status (2: a refused argument,
-    option or input; 0 after ``--help``)."""
+    """Entry point of the ``softgrasp`` command; returns its exit status (``softgrasp --help``
+    lists them: :mod:`softgrasp.cli.status`)."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, or an argument refused in one line
-        return exc.code if isinstance(exc.code, int) else 2
+        return exc.code if isinstance(exc.code, int) else BAD_INPUT
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
-    if getattr(args, "verbose", False):
+        return BAD_INPUT
+    if args.verbose:
         _log_progress()
     try:
+        if args.threads is not None:
+            _set_threads(args.threads)
         return int(args.func(args))
     except SoftgraspError as exc:
         print(f"softgrasp: error: {exc}", file=sys.stderr)
-        return 2
+        return exit_status(exc)
     except KeyboardInterrupt:
         import signal
 
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not break the exit
         print("softgrasp: interrupted", file=sys.stderr)
-        return 130
+        return INTERRUPTED
     except Exception as exc:  # a bug: keep it to one line unless asked
         if args.debug:
             raise
@@ -73,4 +94,4 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"softgrasp: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
             file=sys.stderr,
         )
-        return 3
+        return INTERNAL

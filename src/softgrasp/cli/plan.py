@@ -9,7 +9,8 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from softgrasp.cli.args import add_common, limits, load, material_file, number, progress_bar, scheduler
+from softgrasp.cli.args import add_common, limits, load, material_file, number, scheduler
+from softgrasp.cli.progress import PLAN_SHARES, PhaseBar, kernels_phase
 from softgrasp.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -61,7 +62,8 @@ def add_parser(sub) -> None:
         "--fingertip-radius",
         type=number("fingertip_radius"),
         default=None,
-        help=f"fingertip radius, {limits('fingertip_radius')} (default 0.008)",
+        help=f"fingertip radius, {limits('fingertip_radius')} (default: the hand's fingertip spheres', "
+        "0.008 without a hand); overrides the spheres'",
     )
     pl.add_argument(
         "--step",
@@ -105,9 +107,19 @@ def add_parser(sub) -> None:
     pl.add_argument(
         "--hand",
         default=None,
-        metavar="URDF",
-        help="the hand: a URDF file (fingertip links th_tip, ff_tip, mf_tip), 'shadow_like' (default, "
-        "packaged) or 'none' (free fingertips, no reachability check)",
+        metavar="HAND",
+        help="the hand: 'shadow_like' (default, packaged), 'parallel_jaw' (packaged two-finger gripper, "
+        "0-85 mm), a URDF or MJCF file (fingertips: see --fingertips), or 'none' (free fingertips, no "
+        "reachability check)",
+    )
+    pl.add_argument(
+        "--fingertips",
+        default=None,
+        metavar="FINGER=LINK,...",
+        help="the fingertip links (MJCF: bodies) of a hand file, e.g. "
+        "thumb=th_tip,first=ff_tip,middle=mf_tip "
+        "(a gripper: left=LINK,right=LINK); default: links named th_tip, ff_tip, mf_tip. Each link's "
+        "collision sphere gives the fingertip radius",
     )
     pl.add_argument(
         "--grasp",
@@ -170,17 +182,25 @@ def run(args: argparse.Namespace) -> int:
     # Every option (given, or from --config) is checked before any work starts.
     opts = plan_options(vars(args), args.config)
     args = argparse.Namespace(**{**vars(args), **opts, "mu_given": args.mu})
+    if args.uncertain:
+        from softgrasp.cli.extras import require
+
+        require("sweep", "softgrasp plan --uncertain")  # robust set-points run on Dask
     # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
     # files are written.
     # (The worker stops before the folder is committed or cleared: no figure lands after.)
     with ExitStack() as folder, FigureWorker() as figures:
-        return _plan(args, figures, folder)
+        bar = PhaseBar("plan", PLAN_SHARES)
+        try:
+            return _plan(args, figures, folder, bar)
+        finally:
+            bar.close()
 
 
-def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) -> int:
+def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, bar: PhaseBar) -> int:
     from softgrasp.cli.warm import warm_up_in_background
 
-    warm_up_in_background()  # the compiled kernels load while the object is meshed
+    warm = warm_up_in_background()  # the compiled kernels load while the object is meshed
     from softgrasp.api.planning import plan
     from softgrasp.io.options import contact_params
 
@@ -191,19 +211,26 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
     # The folder is checked and locked before any work; the files replace its earlier ones at the end.
     folder.enter_context(run_folder(str(args.out), "plan"))
     out = Path(str(args.out))
+    bar.phase("meshing", quiet=True)  # a refused mesh or material stays one line
     obj = load(args)
     m = obj.material
-    print(f"object   {obj.summary()}")
-    print(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
+    bar.write(f"object   {obj.summary()}")
+    bar.write(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
     # mu from --mu, else the material file, else --config or 0.8
     mf = material_file(args)
     mu = mu_given if mu_given is not None or (mf is not None and "mu" in mf.contact) else args.mu
     uncertain = _uncertain(args, obj, contact_params(mf, mu).mu)
-    bar, update = progress_bar("plan")
-    try:
+
+    def phase(name: str) -> None:  # the planner's phases, every option checked by then
+        if not bar.phases or bar.phases[-1] == "meshing":
+            kernels_phase(bar, warm)
+        bar.phase(name)
+
+    with bar.part("planning") as update:
         result = plan(
             obj,
             hand=args.hand,
+            fingertips=args.fingertips,
             mu=mu,
             fingertip_radius_m=args.fingertip_radius,
             step_m=args.step,
@@ -217,10 +244,11 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
             max_pressure_Pa=args.max_pressure,
             max_strain=args.max_strain,
             progress=update,
+            phase=phase,
         )
-    finally:
-        bar.close()
+    bar.phase("figures")
     result.save(out, figures=figures, started=t0)
+    bar.close()
     g, doc = result.grasp, result.document
     print(result.table())
     eq = doc["equilibrium"]
@@ -252,8 +280,8 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack) ->
             "hand, whose forces and friction vary, plan with a larger --safety-factor"
         )
     print(
-        f"wrote {out}/plan.json, history.csv, object.vtu, frames.npz, forces.png, force_penetration.png, "
-        "grasp.png "
+        f"wrote {out}/plan.json, history.csv, object.vtu, closing.pvd (and closing/), frames.npz, "
+        "forces.png, force_penetration.png, grasp.png "
         f"({g.increments} increments, {time.perf_counter() - t0:.1f} s)"
     )
     return 0

@@ -37,10 +37,14 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from softgrasp.cli.extras import require
     from softgrasp.io.runfolder import run_folder
     from softgrasp.sweep.spec import read_sweep, sweep_cases
 
+    require("sweep", "softgrasp sweep")
     spec = read_sweep(args.sweep)
+    if spec.execute:
+        require("execute", "a sweep that executes its plans (execute = true)")
     if args.scheduler is not None:
         from softgrasp.sweep.engine import check_scheduler
 

@@ -16,6 +16,11 @@ Numba's worker threads are then started by the warm-up thread. TBB's layer reset
 child only when the fork comes from the thread that started them (from another, Numba warns that
 the child's TBB may be in an invalid state); the command line forks no process after the warm-up
 (its figure worker is a new program, started by exec).
+
+A first run (or the first after an edit of a kernel's source, which keys the cache:
+:mod:`softgrasp.jitcache`) compiles instead of loading: :func:`cold` tells it beforehand from the
+cache's index of a few kernels the warm-up compiles first and last, so that the command line can
+say why it waits (:data:`COMPILE_TIME_S`).
 """
 
 from __future__ import annotations
@@ -26,7 +31,21 @@ import numpy as np
 
 from softgrasp.backend import compiled
 
-__all__ = ["warm_up", "warm_up_in_background"]
+__all__ = ["COMPILE_TIME_S", "WarmUp", "cold", "warm_up", "warm_up_in_background"]
+
+#: About how long compiling the kernels takes on a first run [s] (30-60 s on a 2-core machine).
+COMPILE_TIME_S = 60
+
+
+def cold() -> bool:
+    """Whether the kernels a plan loads first are not yet compiled on disk for the current
+    sources (:func:`softgrasp.jitcache.cached`): the warm-up then compiles them. Imports Numba
+    and the kernels' modules (about half a second)."""
+    from softgrasp import jitcache
+    from softgrasp.hand import descent
+    from softgrasp.physics import volume
+
+    return not all(jitcache.cached(k) for k in (volume._inverted, descent._solve))
 
 
 def warm_up() -> None:
@@ -75,8 +94,31 @@ def _quietly() -> None:
         pass
 
 
-def warm_up_in_background() -> threading.Thread:
+class WarmUp(threading.Thread):
+    """:func:`warm_up` on a daemon thread, having first found whether the cache is :func:`cold`.
+
+    Attributes
+    ----------
+    checked: set once :attr:`cold` is known.  cold: whether the warm-up compiles the kernels.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(name="softgrasp-warm-up", daemon=True)
+        self.checked = threading.Event()
+        self.cold = False
+
+    def run(self) -> None:
+        try:
+            self.cold = cold()
+        except Exception:  # noqa: BLE001 - only what the command line says while it waits
+            self.cold = False
+        finally:
+            self.checked.set()
+        _quietly()
+
+
+def warm_up_in_background() -> WarmUp:
     """Start :func:`warm_up` on a daemon thread and return it (joining it is optional)."""
-    thread = threading.Thread(target=_quietly, name="softgrasp-warm-up", daemon=True)
+    thread = WarmUp()
     thread.start()
     return thread

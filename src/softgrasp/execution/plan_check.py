@@ -23,7 +23,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.hand.kinematics import HandModel
 from softgrasp.hand.placement import transform
 from softgrasp.io.plan_document import mesh_digest
@@ -41,14 +40,26 @@ REACH_TOL = 0.01
 
 
 def hand_model_of(plan: PlanFile) -> HandModel:
-    """The hand a plan was made with: its URDF file, or the packaged Shadow-like hand when the
-    plan names that one (a plan written elsewhere carries another install's path)."""
+    """The hand a plan was made with: its URDF or MJCF file read with the plan's fingertip mapping
+    and radius (``hand.fingertips``, ``hand.fingertip_radius_m``), or the packaged hand the plan
+    names (a plan written elsewhere carries another install's path)."""
+    from softgrasp.hand.packaged import PACKAGE_PREFIX
+    from softgrasp.hand.urdf import PACKAGED
+    from softgrasp.io.options import hand_model
+
+    section = plan.document.get("hand") or {}
+    mapping = section.get("fingertips") if isinstance(section, dict) else None
+    radius = section.get("fingertip_radius_m") if isinstance(section, dict) else None
     src = Path(plan.hand_source)
+    packaged = {file: name for name, file in PACKAGED.items()}
+    recorded = str(section.get("model", "")) if isinstance(section, dict) else ""
+    if recorded.startswith(PACKAGE_PREFIX) and src.name in packaged:  # a packaged hand, by name
+        return hand_model(packaged[src.name], None, radius)
     if src.is_file():
-        return HandModel.from_urdf(src)
-    if src.name == "shadow_like.urdf":
-        return HandModel.default()
-    raise ConfigError(f"plan file: the hand model {src} is not found; put the URDF back at that path")
+        return hand_model(str(src), mapping, radius)
+    if src.name in packaged:  # written by another installation
+        return hand_model(packaged[src.name], None, radius)
+    raise ConfigError(f"plan file: the hand model {src} is not found; put the hand file back at that path")
 
 
 def _mm(d: float) -> str:
@@ -76,7 +87,7 @@ def _check_fingers(plan: PlanFile, hand: HandModel) -> None:
                 f"plan file: field 'fingers[{k}].name': the hand model has no finger {name!r} "
                 f"(it has {', '.join(sorted(hand.fingers))})"
             )
-    missing = [n for n in FINGER_NAMES if n not in names]
+    missing = [n for n in hand.grasp_fingers if n not in names]
     if missing:
         raise ConfigError(f"plan file: field 'fingers' lacks the finger(s) {', '.join(missing)}")
     section = plan.document["hand"].get("fingers")

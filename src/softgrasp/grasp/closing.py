@@ -30,9 +30,9 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import InfeasibleGrasp, NotConverged
 from softgrasp.grasp.config import CONTACT_START, FIRST_GROWTH, STEP_RTOL, TOUCH_GAP, TRAVEL_FLOOR, PlanConfig
+from softgrasp.grasp.damage import patch_torsion
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import Held, check_hold
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.grasp.setup import ClosingSetup
 from softgrasp.linalg.solve import SolverCache
@@ -65,8 +65,8 @@ class Closing:
     scene: the object on the table with the fingertips.  start: the settled object, fingertips at
         their start.
     rows: each increment at rest (:data:`Row`), in the order simulated.
-    frames: (travel, positions, fingertip centres, fingertip forces) at the start and after each
-        increment, in the order simulated.
+    frames: (travel, positions, fingertip centres, fingertip forces, the contact forces on the
+        nodes) at the start and after each increment, in the order simulated.
     checks: every hold verification: (travel, ``"held"`` or why not).
     """
 
@@ -81,8 +81,8 @@ class Closing:
         self.body, self.cfg, self.setup, self.cache, self.progress = body, cfg, setup, cache, progress
         start, u, xs = setup.start, setup.directions, setup.settled.x
         unit_tips = tuple(
-            Fingertip(cfg.fingertip_radius, centre=start[j], velocity=u[j], name=FINGER_NAMES[j])
-            for j in range(3)
+            Fingertip(cfg.fingertip_radius, centre=start[j], velocity=u[j], name=name)
+            for j, name in enumerate(cfg.fingers)
         )
         # The load parameter of the scene: travel [m] for the quasi-static solver, time [s] at the
         # closing speed for the dynamic one.
@@ -94,8 +94,8 @@ class Closing:
             xs, np.zeros_like(xs), 0.0, (setup.settled.contacts[0], self.fingers.init_state(body, xs, 0.0))
         )
         self.rows: list[Row] = []
-        self.frames: list[tuple[float, NDArray, NDArray, NDArray]] = [
-            (0.0, xs.copy(), self.fingers.centres(0.0), np.zeros((3, 3)))
+        self.frames: list[tuple[float, NDArray, NDArray, NDArray, NDArray]] = [
+            (0.0, xs.copy(), self.fingers.centres(0.0), np.zeros((len(cfg.fingers), 3)), np.zeros_like(xs))
         ]
         self.checks: list[tuple[float, str]] = []
         self.last: Point = (0.0, self.start, math.inf, 0.0)
@@ -117,6 +117,7 @@ class Closing:
                 centre_of_mass(body, st.x),
                 body.total_mass,
                 body.gravity,
+                torsion=patch_torsion(body, fc, fn, cfg.contact.mu),
             )
         self.rows.append(
             (
@@ -128,9 +129,10 @@ class Closing:
                 need <= 1.0,
             )
         )
-        self.frames.append((t, st.x.copy(), fc.centres(t * s), rep.force.copy()))
-        if self.progress is not None:
-            self.progress(min(t / self.setup.max_travel, 1.0))
+        nodes = fc.static_forces(body, st.x, t * s, st.contacts[1])
+        self.frames.append((t, st.x.copy(), fc.centres(t * s), rep.force.copy(), nodes))
+        if self.progress is not None:  # the squeeze's way to the grasp test's passing (s <= 1)
+            self.progress(min(max(t / self.setup.max_travel, 1.0 / need if need > 1.0 else 1.0), 1.0))
         self.last = (t, st, need, float(rep.normal.sum()))
         return self.last
 
@@ -158,7 +160,8 @@ class Closing:
         mu = cfg.contact.mu
         try:
             need = minimum_normal_forces(
-                pts, push, mu, centre_of_mass(body, st.x), body.total_mass, body.gravity
+                pts, push, mu, centre_of_mass(body, st.x), body.total_mass, body.gravity,
+                torsion=patch_torsion(body, self.fingers, fn, mu),
             ).sum()
         except InfeasibleGrasp:
             return f"; with mu = {mu:g} no normal forces at these contacts would hold even a rigid object"
@@ -173,7 +176,7 @@ class Closing:
         max_travel, first = self.setup.max_travel, self.setup.first_touch
         if t > max_travel + 1e-12:
             cfg, checks = self.cfg, self.checks
-            last = self.rows[-1][2] if self.rows else np.zeros(3)
+            last = self.rows[-1][2] if self.rows else np.zeros(len(self.cfg.fingers))
             raise InfeasibleGrasp(
                 f"no hold before the maximum squeeze ({(max_travel - first.max()) * 1e3:.1f} mm past "
                 f"first contact, {cfg.max_squeeze:.0%} of the fingers' reach): finger forces reached "

@@ -7,6 +7,11 @@ normal force the cone's edges are the forces ``f_jk = n_j + mu d_jk`` and the pr
 ``w_jk = (f_jk, (p_j - c) x f_jk / L)``; the torque scale ``L`` (default ``max_j |p_j - c|``) makes
 torques commensurate with forces, so the quality is dimensionless and scale invariant.
 
+Soft-finger contacts (``torsion`` kappa > 0 [m]) also resist a moment about their normal up to
+``kappa`` times their normal force: each adds the two primitive wrenches
+``(n_j, ((p_j - c) x n_j +- kappa n_j) / L)``; two contacts need it to be in force closure at all
+(point contacts cannot resist a torque about the line through them).
+
 The grasp is in force closure iff the origin of wrench space is strictly inside the convex hull
 of the primitive wrenches; Ferrari and Canny's epsilon (L1 or "sum" metric: total normal force
 at most 1) is the radius of the largest origin-centred ball in that hull. SI units throughout.
@@ -106,12 +111,13 @@ def ferrari_canny(
 
 
 def primitive_wrenches_many(
-    points: ArrayLike, normals: ArrayLike, mu: float, centre: ArrayLike, m: int = 8
+    points: ArrayLike, normals: ArrayLike, mu: float, centre: ArrayLike, m: int = 8, torsion: float = 0.0
 ) -> NDArray[np.float64]:
     """:func:`primitive_wrenches` of ``K`` grasps of ``k`` contacts at once, shape ``(K, k*m, 6)``
     (``(K, k, 6)`` with ``mu = 0``): ``points`` and ``normals`` are ``(K, k, 3)``, each grasp's
     torque scale its own ``max_j |p_j - centre|``. Row for row the same numbers as the one-grasp
-    function (the same operations, vectorised over the grasps)."""
+    function (the same operations, vectorised over the grasps). ``torsion`` kappa > 0 [m]: soft-finger
+    contacts, ``2 k`` more rows (the normal force with the moment ``+- kappa n_j`` about the normal)."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 3 or p.shape[2] != 3 or not np.all(np.isfinite(p)):
         raise ConfigError(f"points must be a finite (K, k, 3) array, got shape {p.shape}")
@@ -129,7 +135,14 @@ def primitive_wrenches_many(
         _, d = friction_cone_edges(n.reshape(-1, 3), m)
         f = (n.reshape(-1, 3)[:, None, :] + mu * d).reshape(K, k * m, 3)
         rr = np.repeat(r, m, axis=1)
-    return np.concatenate([f, np.cross(rr, f) / L[:, None, None]], axis=2)
+    w = np.concatenate([f, np.cross(rr, f) / L[:, None, None]], axis=2)
+    if torsion > 0.0:
+        spin = np.cross(r, n)
+        twist = [
+            np.concatenate([n, (spin + sign * torsion * n) / L[:, None, None]], axis=2) for sign in (1, -1)
+        ]
+        w = np.concatenate([w, *twist], axis=1)
+    return w
 
 
 def wrench_epsilon(w: NDArray[np.float64]) -> float:
@@ -165,7 +178,7 @@ def support_bounds(w: NDArray[np.float64], directions: NDArray[np.float64]) -> N
 
 
 def ferrari_canny_bounds(
-    points: ArrayLike, normals: ArrayLike, mu: float, centre: ArrayLike, m: int = 3
+    points: ArrayLike, normals: ArrayLike, mu: float, centre: ArrayLike, m: int = 3, torsion: float = 0.0
 ) -> NDArray[np.float64]:
     """:func:`ferrari_canny_bound` of ``K`` grasps at once (points and normals ``(K, k, 3)``):
     ``(K,)`` upper bounds of their epsilon for any number of cone edges (0: no linearisation is
@@ -176,7 +189,8 @@ def ferrari_canny_bounds(
         return np.array([wrench_epsilon(wi) for wi in w])
     m = _edges_count(m)
     out = np.empty(np.shape(points)[0])
-    for i, wi in enumerate(primitive_wrenches_many(points, normals, mu / math.cos(math.pi / m), centre, m)):
+    circumscribed = primitive_wrenches_many(points, normals, mu / math.cos(math.pi / m), centre, m, torsion)
+    for i, wi in enumerate(circumscribed):
         eps = _signed_epsilon(wi)
         out[i] = math.inf if eps is None else max(eps, 0.0)
     return out

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from softgrasp.errors import ConfigError
 from softgrasp.grasp.initial import FINGER_NAMES, HandLayout, InitialGrasp
 from softgrasp.hand.kinematics import HandModel
+from softgrasp.hand.packaged import portable_name
 from softgrasp.model.ranges import RANGES
 from softgrasp.physics.fingertip.params import ContactParams
 
@@ -130,7 +131,8 @@ class PlanConfig:
     refine: the most iterations of each of those solves (a bound: the force tolerance ends them
         first on smooth closings).
     table_mu: friction between object and table.
-    layout: the search grid and coarse reach limits of the initial grasp (:class:`HandLayout`).
+    layout: the search grid and coarse reach limits of the initial grasp (:class:`HandLayout`);
+        ``None``: the hand's (:meth:`HandLayout.for_hand`: its reach limits and fingers).
     hand: the hand's kinematic model (default: the packaged Shadow-like hand); the initial grasp
         must be reachable by it and its fingertips must follow the closing lines. ``None`` plans
         for free fingertips (the layout alone limits the grasp).
@@ -153,7 +155,7 @@ class PlanConfig:
     force_tol: float = 0.01
     refine: int = 12
     table_mu: float = 0.5
-    layout: HandLayout = field(default_factory=HandLayout)
+    layout: HandLayout = None  # type: ignore[assignment]  # None: the hand's (set in __post_init__)
     hand: HandModel | None = field(default_factory=HandModel.default)
     grasp: InitialGrasp | None = None
     max_pressure: float | None = None
@@ -180,8 +182,10 @@ class PlanConfig:
                 RANGES[name].check(f"plan parameter {name}", v)
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.layout is None:
+            object.__setattr__(self, "layout", HandLayout.for_hand(self.hand))
         if self.hand is not None:
-            for finger in FINGER_NAMES:
+            for finger in self.fingers:
                 r = self.hand.fingertip_radius(finger)
                 if abs(r - self.fingertip_radius) > 1e-9:
                     raise ConfigError(
@@ -194,6 +198,13 @@ class PlanConfig:
                 f"closing step {self.step * 1e3:g} mm must be smaller than the fingertip radius "
                 f"{self.fingertip_radius * 1e3:g} mm"
             )
+
+    @property
+    def fingers(self) -> tuple[str, ...]:
+        """The fingers of the grasp, the opposing one first: the hand's
+        (:attr:`~softgrasp.hand.kinematics.HandModel.grasp_fingers`), or thumb, first and middle
+        without a hand."""
+        return FINGER_NAMES if self.hand is None else self.hand.grasp_fingers
 
     def describe(self) -> dict[str, object]:
         return {
@@ -210,7 +221,7 @@ class PlanConfig:
             "refine": self.refine,
             "table_mu": self.table_mu,
             "hand_layout": self.layout.describe(),
-            "hand": None if self.hand is None else self.hand.source,
+            "hand": None if self.hand is None else portable_name(self.hand.source),
             "grasp": "given" if self.grasp is not None else "searched",
             "max_pressure_Pa": self.max_pressure,
             "max_strain": self.max_strain,

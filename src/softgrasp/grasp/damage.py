@@ -29,7 +29,15 @@ from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.laws import effective_modulus
 
-__all__ = ["Damage", "hertz_peak_pressure", "peak_strain", "grasp_damage", "check_limits"]
+__all__ = [
+    "Damage",
+    "hertz_peak_pressure",
+    "principal_strains",
+    "peak_strain",
+    "grasp_damage",
+    "check_limits",
+    "patch_torsion",
+]
 
 
 @dataclass(frozen=True)
@@ -42,17 +50,19 @@ class Damage:
     contact_radius: each finger's Hertz contact radius [m], (3,).
     strain: the object's peak principal strain (dimensionless, >= 0).
     strain_tet: the tetrahedron where it is.
+    names: the fingers' names.
     """
 
     pressure: NDArray[np.float64]
     contact_radius: NDArray[np.float64]
     strain: float
     strain_tet: int
+    names: tuple[str, ...] = FINGER_NAMES
 
     def describe(self) -> dict[str, object]:
         return {
-            "peak_pressure_Pa": dict(zip(FINGER_NAMES, map(float, self.pressure), strict=True)),
-            "contact_radius_m": dict(zip(FINGER_NAMES, map(float, self.contact_radius), strict=True)),
+            "peak_pressure_Pa": dict(zip(self.names, map(float, self.pressure), strict=True)),
+            "contact_radius_m": dict(zip(self.names, map(float, self.contact_radius), strict=True)),
             "peak_strain": self.strain,
         }
 
@@ -72,24 +82,49 @@ def hertz_peak_pressure(
 def peak_strain(body: Body, x: NDArray[np.float64]) -> tuple[float, int]:
     """The largest principal engineering strain ``|lambda - 1|`` over the body's tetrahedra at
     positions ``x`` [m] (lambda: the singular values of each deformation gradient), and its tet."""
+    strain = principal_strains(body, x)
+    k = int(np.argmax(strain))
+    return float(strain[k]), k
+
+
+def principal_strains(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each tetrahedron's largest principal engineering strain ``|lambda - 1|`` at positions ``x``
+    [m] (lambda: the singular values of its deformation gradient from the body's rest mesh),
+    compression or tension, (M,)."""
     rest = np.asarray(body.mesh.points, dtype=np.float64)[body.mesh.tets]
     now = np.asarray(x, dtype=np.float64)[body.mesh.tets]
     Dm = np.stack([rest[:, k] - rest[:, 0] for k in (1, 2, 3)], axis=2)
     Ds = np.stack([now[:, k] - now[:, 0] for k in (1, 2, 3)], axis=2)
     stretch = np.linalg.svd(Ds @ np.linalg.inv(Dm), compute_uv=False)
-    strain = np.abs(stretch - 1.0).max(axis=1)
-    k = int(np.argmax(strain))
-    return float(strain[k]), k
+    return np.abs(stretch - 1.0).max(axis=1)
 
 
-def grasp_damage(body: Body, fingers: FingertipContact, x: NDArray[np.float64], normal_N: NDArray[np.float64]) -> Damage:
+def grasp_damage(
+    body: Body, fingers: FingertipContact, x: NDArray[np.float64], normal_N: NDArray[np.float64]
+) -> Damage:
     """The load of the held grasp (fixed ``fingers``, positions ``x``, normal forces ``normal_N``)."""
     m = body.material
     E_star = np.array([effective_modulus(f.E, f.nu, m.E, m.nu) for f in fingers.fingertips])
     radius = fingers.law_table(body, 0.0)[:, 5]
     p0, a = hertz_peak_pressure(normal_N, radius, E_star)
     strain, tet = peak_strain(body, x)
-    return Damage(p0, a, strain, tet)
+    return Damage(p0, a, strain, tet, tuple(f.name for f in fingers.fingertips))
+
+
+def patch_torsion(
+    body: Body, fingers: FingertipContact, normal_N: NDArray[np.float64], mu: float
+) -> NDArray[np.float64] | None:
+    """The soft-finger torsion ``kappa`` [m] of each contact of a two-finger grasp, ``(2,)``: the
+    largest moment about its normal per unit normal force, ``(3 pi / 16) mu a`` for Hertz's patch
+    of radius ``a`` under the normal force ``normal_N`` sliding as a whole. None for more fingers
+    (their point contacts resist every load already)."""
+    if len(fingers.fingertips) != 2:
+        return None
+    m = body.material
+    E_star = np.array([effective_modulus(f.E, f.nu, m.E, m.nu) for f in fingers.fingertips])
+    radius = fingers.law_table(body, 0.0)[:, 5]
+    _, a = hertz_peak_pressure(np.asarray(normal_N, dtype=np.float64), radius, E_star)
+    return 3.0 * math.pi / 16.0 * mu * a
 
 
 def check_limits(damage: Damage, max_pressure_Pa: float | None, max_strain: float | None) -> None:
@@ -97,7 +132,7 @@ def check_limits(damage: Damage, max_pressure_Pa: float | None, max_strain: floa
     if max_pressure_Pa is not None and damage.pressure.max() > max_pressure_Pa:
         j = int(np.argmax(damage.pressure))
         raise InfeasibleGrasp(
-            f"the least squeeze that holds the object presses the {FINGER_NAMES[j]} fingertip at "
+            f"the least squeeze that holds the object presses the {damage.names[j]} fingertip at "
             f"{damage.pressure[j] / 1e3:.3g} kPa (Hertz's peak), above --max-pressure "
             f"{max_pressure_Pa / 1e3:.3g} kPa: no squeeze of these contacts holds within it; use larger "
             "fingertips, more friction, or a softer fingertip skin"

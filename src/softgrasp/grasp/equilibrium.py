@@ -292,14 +292,19 @@ def friction_feasibility(
     )
 
 
-def _holding_system(n, d, r, L: float, weight, mu: float, extra: int):  # type: ignore[no-untyped-def]
+def _holding_system(n, d, r, L: float, weight, mu: float, extra: int, torsion=None):  # type: ignore[no-untyped-def]
     """Eq. 21-22 and the linearised cones for unknown normal forces, in units of the weight.
 
     Variables ``x = [f_n (k), beta (k*m), extra...]``: equality rows ``A_eq x = b_eq`` (forces,
     then torques about the centre of mass over the length scale L) and cone rows
-    ``sum_k beta_jk - mu f_n,j <= 0``. ``weight``: m g in units of the force scale."""
+    ``sum_k beta_jk - mu f_n,j <= 0``. ``weight``: m g in units of the force scale.
+
+    ``torsion`` kappa ``(k,)`` [m] (soft-finger contacts): ``2 k`` more variables after the cones',
+    the moments ``tau+_j, tau-_j >= 0`` about each normal, and the cone rows become the linearised
+    limit surface ``sum_k beta_jk + (mu / kappa_j)(tau+_j + tau-_j) - mu f_n,j <= 0``."""
     k, mm = d.shape[0], d.shape[1]
-    nv = k + k * mm + extra
+    spin = 0 if torsion is None else 2 * k
+    nv = k + k * mm + spin + extra
     A_eq = np.zeros((6, nv))
     A_eq[:3, :k] = n.T
     A_eq[:3, k : k + k * mm] = d.reshape(-1, 3).T
@@ -310,6 +315,15 @@ def _holding_system(n, d, r, L: float, weight, mu: float, extra: int):  # type: 
     cone[:, :k] = -mu * np.eye(k)
     for j in range(k):
         cone[j, k + j * mm : k + (j + 1) * mm] = 1.0
+    if torsion is not None:
+        t0 = k + k * mm
+        for j, kappa in enumerate(np.asarray(torsion, dtype=np.float64)):
+            A_eq[3:, t0 + j] = n[j] / L
+            A_eq[3:, t0 + k + j] = -n[j] / L
+            if kappa > 0 and mu > 0:
+                cone[j, [t0 + j, t0 + k + j]] = mu / kappa
+            else:  # no patch or no friction: no moment
+                A_eq[3:, [t0 + j, t0 + k + j]] = 0.0
     return A_eq, b_eq, cone
 
 
@@ -335,11 +349,13 @@ def minimum_normal_forces(
     mass: float,
     gravity: ArrayLike = (0.0, 0.0, -9.81),
     m: int = 8,
+    torsion: ArrayLike | None = None,
 ) -> NDArray[np.float64]:
     """Normal-force magnitudes (k,) [N] of smallest sum that hold the object (Eq. 21-22).
 
     LP over ``f_n,j >= 0`` and ``beta_jk >= 0`` with ``sum_k beta_jk <= mu f_n,j`` (friction in
-    the linearised cones of :func:`friction_cone_edges`), minimising ``sum_j f_n,j``.
+    the linearised cones of :func:`friction_cone_edges`), minimising ``sum_j f_n,j``; with
+    ``torsion`` kappa ``(k,)`` [m], soft-finger contacts (:func:`_holding_system`).
 
     Raises
     ------
@@ -352,8 +368,9 @@ def minimum_normal_forces(
     """
     p, n, mu, c, g, mass, d, r, F, L = _setup(points, normals, mu, com, mass, gravity, m)
     k, mm = d.shape[0], d.shape[1]
-    A_eq, b_eq, A_ub = _holding_system(n, d, r, L, mass * g / F, mu, extra=0)
-    cost = np.concatenate([np.ones(k), np.zeros(k * mm)])
+    A_eq, b_eq, A_ub = _holding_system(n, d, r, L, mass * g / F, mu, extra=0, torsion=torsion)
+    cost = np.zeros(A_ub.shape[1])
+    cost[:k] = 1.0
     res = _linprog(cost, A_ub, np.zeros(k), A_eq, b_eq)
     if res.status == 2:
         raise InfeasibleGrasp(
@@ -374,9 +391,11 @@ def squeeze_utilisation(
     mass: float,
     gravity: ArrayLike = (0.0, 0.0, -9.81),
     m: int = 8,
+    torsion: ArrayLike | None = None,
 ) -> float:
     """Smallest s such that normal forces ``f_n,j' <= s f_n,j`` with friction inside the
-    linearised cones hold the object (Eq. 21-22); ``inf`` if no s does.
+    linearised cones hold the object (Eq. 21-22); ``inf`` if no s does. ``torsion`` kappa ``(k,)``
+    [m]: soft-finger contacts (:func:`_holding_system`).
 
     Unlike :func:`friction_feasibility` the normal forces may redistribute below the given ones:
     an object squeezed on the table, whose normal forces the table's friction balances, shifts in
@@ -390,7 +409,7 @@ def squeeze_utilisation(
         raise ConfigError(f"normal_forces must be {k} finite values >= 0 N, got {normal_forces!r}")
     if not fn.any():
         return math.inf
-    A_eq, b_eq, cone = _holding_system(n, d, r, L, mass * g / F, mu, extra=1)
+    A_eq, b_eq, cone = _holding_system(n, d, r, L, mass * g / F, mu, extra=1, torsion=torsion)
     # f_n,j - s f_n,j(given) <= 0 (forces in units of F)
     cap = np.zeros((k, cone.shape[1]))
     cap[:, :k] = np.eye(k)

@@ -31,7 +31,6 @@ from numpy.typing import NDArray
 from softgrasp.errors import ConfigError, NotConverged
 from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.hold import check_hold, cone_usage
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.setup import closing_setup
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
@@ -86,11 +85,11 @@ class SetpointHold:
 
 
 def _tips(cfg: PlanConfig, centres: NDArray[np.float64], moves: NDArray[np.float64]) -> FingertipContact:
-    """Fingertips at ``centres`` moving by ``moves`` (3, 3) over the load parameter 0 -> 1."""
+    """Fingertips at ``centres`` moving by ``moves`` (k, 3) over the load parameter 0 -> 1."""
     return FingertipContact(
         tuple(
-            Fingertip(cfg.fingertip_radius, centre=centres[j], velocity=moves[j], name=FINGER_NAMES[j])
-            for j in range(3)
+            Fingertip(cfg.fingertip_radius, centre=centres[j], velocity=moves[j], name=name)
+            for j, name in enumerate(cfg.fingers)
         ),
         cfg.contact,
     )
@@ -104,8 +103,8 @@ def hold_setpoints(
     tolerance: float = TOLERANCE,
     max_increments: int = MAX_INCREMENTS,
 ) -> SetpointHold:
-    """Close the three fingertips on ``body`` under force control to ``setpoints`` (normal forces
-    [N], thumb, first, middle), each along its own closing line, then check the hold with the
+    """Close the fingertips on ``body`` under force control to ``setpoints`` (normal forces
+    [N], one per finger of ``config.fingers``), each along its own closing line, then check the hold with the
     table taken away (module docstring).
 
     The closing lines are the planner's: from ``config.grasp`` when given (the same contacts as an
@@ -115,15 +114,17 @@ def hold_setpoints(
 
     Raises
     ------
-    ConfigError: set-points that are not three positive finite forces, or a bad tolerance.
+    ConfigError: set-points that are not one positive finite force per finger, or a bad tolerance.
     InfeasibleGrasp: no reachable initial grasp (as :func:`~softgrasp.grasp.planner.plan_grasp`).
     NotConverged: the object finds no rest on the table.
     """
     t0 = time.perf_counter()
     target = np.asarray(setpoints, dtype=np.float64)
-    if target.shape != (3,) or not (np.isfinite(target).all() and (target > 0).all()):
+    k = len(config.fingers)
+    if target.shape != (k,) or not (np.isfinite(target).all() and (target > 0).all()):
         raise ConfigError(
-            f"set-points must be three normal forces > 0 N, got {np.asarray(setpoints).tolist()}"
+            f"set-points must be {k} normal forces > 0 N (one per finger), got "
+            f"{np.asarray(setpoints).tolist()}"
         )
     if not 0 < tolerance < 0.5:
         raise ConfigError(f"the set-point tolerance must lie in (0, 0.5), got {tolerance}")
@@ -146,7 +147,7 @@ def hold_setpoints(
             reason,
             drift,
             margin,
-            np.full(3, math.nan) if normal is None else normal,
+            np.full(k, math.nan) if normal is None else normal,
             limit,
             time.perf_counter() - t0,
         )
@@ -160,9 +161,9 @@ def hold_setpoints(
         0.0,
         (setup.settled.contacts[0], fc.init_state(body, setup.settled.x, 0.0)),
     )
-    forces = np.zeros(3)
+    forces = np.zeros(k)
     s_prev, f_prev = s.copy(), forces.copy()
-    gain = np.full(3, math.nan)  # dF/ds of each finger, from the last increment that moved it
+    gain = np.full(k, math.nan)  # dF/ds of each finger, from the last increment that moved it
     increments = 0
     while True:
         err = target - forces
@@ -177,7 +178,7 @@ def hold_setpoints(
                 forces,
                 increments,
                 False,
-                f"the {FINGER_NAMES[j]} finger reached {forces[j]:.3f} N of its {target[j]:.3f} N set-point "
+                f"the {cfg.fingers[j]} finger reached {forces[j]:.3f} N of its {target[j]:.3f} N set-point "
                 f"at the crushing limit ({limit * 1e3:.1f} mm of travel)",
             )
         if increments == max_increments:

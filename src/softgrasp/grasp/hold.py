@@ -30,7 +30,6 @@ from softgrasp.grasp.config import (
     STEP_RTOL,
     PlanConfig,
 )
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
@@ -70,8 +69,8 @@ def finger_slip(before: FingerState, after: FingerState) -> NDArray[np.float64]:
 class _Tracker:
     """Each fingertip's slip summed over the steps of one hold check, and the verdicts on it."""
 
-    def __init__(self, limit: float, size: float, fs: FingerState) -> None:
-        self.limit, self.size, self.last = limit, size, fs
+    def __init__(self, limit: float, size: float, fs: FingerState, names: tuple[str, ...]) -> None:
+        self.limit, self.size, self.last, self.names = limit, size, fs, names
         self.slip = np.zeros(fs.active.shape[0])
 
     def step(self, fs: FingerState, when: str) -> None:
@@ -79,11 +78,11 @@ class _Tracker:
         self.last = fs
         touching = fs.active.any(axis=1)
         if not touching.all():
-            raise _NotHeld(f"the {FINGER_NAMES[int(np.argmin(touching))]} finger lost contact {when}")
+            raise _NotHeld(f"the {self.names[int(np.argmin(touching))]} finger lost contact {when}")
         if self.slip.max() > self.limit:
             j = int(np.argmax(self.slip))
             raise _NotHeld(
-                f"the {FINGER_NAMES[j]} fingertip slid {self.slip[j] * 1e3:.2f} mm in the object {when} "
+                f"the {self.names[j]} fingertip slid {self.slip[j] * 1e3:.2f} mm in the object {when} "
                 f"(limit {self.limit * 1e3:.2f} mm, {self.limit / self.size:.1%} of its size)"
             )
 
@@ -118,7 +117,7 @@ def check_hold(
     scene = Scene(body, (fixed,))
     c0 = centre_of_mass(body, state.x)
     size = object_size(state.x)
-    track = _Tracker(cfg.max_slip * size, size, state.contacts[1])
+    track = _Tracker(cfg.max_slip * size, size, state.contacts[1], tuple(f.name for f in fc.fingertips))
     drift = 0.0
     try:
         st = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1], None))

@@ -15,6 +15,14 @@ fingers lie at azimuths ``theta + pi -+ phi`` opposite the thumb at ``theta``. T
 Every (theta, phi) on a grid is cast from the centre of mass onto the surface; the candidate
 triples within the limits are scored by the Ferrari-Canny epsilon of their frictional point
 contacts (:mod:`softgrasp.grasp.closure`), and the best force-closure triple wins.
+
+A two-finger gripper (``fingers = 2``) closes on a pair of opposed contacts at azimuths ``theta``
+and ``theta + pi``, at most ``max_aperture`` apart, their normals within ``pi - min_opposition``
+of opposite. Two point contacts cannot resist a torque about the line through them, so the pair
+is scored as *soft-finger* contacts: each resists, besides the friction cone's forces, a moment
+about its normal up to ``(3 pi / 16) mu a`` times its normal force (Hertz's patch of radius
+``a`` sliding as a whole), with ``a = patch_radius`` (:data:`PATCH_FRACTION` of the fingertip
+radius); the hold check then tests the actual patch of the closing's contact.
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
 from softgrasp.grasp.closure import ferrari_canny_bounds, primitive_wrenches_many, support_bounds, wrench_hull
+from softgrasp.hand.kinematics import HandModel
 
 __all__ = [
     "HandLayout",
@@ -40,8 +49,12 @@ __all__ = [
     "ranked_grasps",
 ]
 
-#: Finger names in the order softgrasp uses everywhere.
+#: Finger names of a three-finger grasp, in the order softgrasp uses everywhere.
 FINGER_NAMES = ("thumb", "first", "middle")
+#: Contact patch radius of the two-finger criterion, as a fraction of the fingertip radius: a
+#: sphere pressed a sixteenth of its radius into a soft object (0.5 mm for an 8 mm fingertip,
+#: a holding squeeze) has a patch of radius sqrt(R d) = R / 4.
+PATCH_FRACTION = 0.25
 #: Hull facets nearest the origin kept from each exact quality, as directions that bound the
 #: others' (:func:`_best_first`).
 NEAREST_FACETS = 8
@@ -60,6 +73,9 @@ class HandLayout:
     min_opposition: smallest angle between the thumb's normal and the mean of the fingers' [rad].
     azimuths: number of thumb directions tried around the object.
     spreads: half-angles phi tried [rad] (first and middle fingers at theta + pi -+ phi).
+    fingers: 3 (thumb, first, middle) or 2 (an opposed pair: spreads unused).
+    patch_radius: the contacts' patch radius [m] of the two-finger criterion (soft-finger
+        torsional friction); 0 for three fingers.
     """
 
     min_spread: float = 0.02
@@ -69,6 +85,17 @@ class HandLayout:
     min_opposition: float = math.radians(135.0)
     azimuths: int = 36
     spreads: tuple[float, ...] = tuple(math.radians(a) for a in range(5, 66, 5))
+    fingers: int = 3
+    patch_radius: float = 0.0
+
+    @classmethod
+    def for_hand(cls, hand: HandModel | None) -> HandLayout:
+        """The layout of ``hand``'s reach limits and fingers (the defaults without a hand)."""
+        if hand is None:
+            return cls()
+        r, names = hand.reach, hand.grasp_fingers
+        patch = PATCH_FRACTION * hand.fingertip_radius(names[0]) if len(names) == 2 else 0.0
+        return cls(r.min_spread, r.max_spread, r.max_aperture, fingers=len(names), patch_radius=patch)
 
     def __post_init__(self) -> None:
         if not (0 < self.min_spread < self.max_spread and self.max_aperture > 0):
@@ -78,8 +105,22 @@ class HandLayout:
             )
         if self.azimuths < 1 or not self.spreads:
             raise ConfigError("hand layout needs at least one azimuth and one spread angle")
+        if self.fingers not in (2, 3) or not (math.isfinite(self.patch_radius) and self.patch_radius >= 0):
+            raise ConfigError(
+                f"hand layout needs 2 or 3 fingers and a patch radius >= 0, got {self.fingers}, "
+                f"{self.patch_radius} m"
+            )
 
     def describe(self) -> dict[str, object]:
+        if self.fingers == 2:
+            return {
+                "grasp_plane": "horizontal, through the centre of mass",
+                "fingers": 2,
+                "max_aperture_m": self.max_aperture,
+                "min_opposition_deg": round(math.degrees(self.min_opposition), 6),
+                "azimuths": self.azimuths,
+                "patch_radius_m": self.patch_radius,
+            }
         return {
             "grasp_plane": "horizontal, through the centre of mass",
             "min_spread_m": self.min_spread,
@@ -94,13 +135,13 @@ class HandLayout:
 
 @dataclass(frozen=True)
 class InitialGrasp:
-    """Three contact points on the surface (thumb, first, middle).
+    """The contact points on the surface, one per finger (thumb, first, middle; or left, right).
 
     Attributes
     ----------
-    points: contact points [m], (3, 3).
-    normals: outward unit surface normals there, (3, 3).
-    facets: boundary facet of each contact, (3,).
+    points: contact points [m], (k, 3).
+    normals: outward unit surface normals there, (k, 3).
+    facets: boundary facet of each contact, (k,).
     centroid: centroid of the contact triangle [m], (3,) (the fingers close towards it).
     epsilon: Ferrari-Canny quality (force units per unit normal force; 0 = not force closure).
     thumb_azimuth: theta [rad]; spread: phi [rad].
@@ -216,7 +257,8 @@ def ranked_grasps(
     thetas = 2.0 * np.pi * np.arange(layout.azimuths) / layout.azimuths
     # One ray per needed azimuth: thumb directions and every finger direction.
     angles = [thetas]
-    for phi in layout.spreads:
+    spreads = (0.0,) if layout.fingers == 2 else layout.spreads
+    for phi in spreads:
         angles += [thetas + np.pi - phi, thetas + np.pi + phi]
     allang = np.mod(np.concatenate(angles), 2 * np.pi)
     uniq, inv = np.unique(np.round(allang, 12), return_inverse=True)
@@ -234,11 +276,17 @@ def ranked_grasps(
     widest = 0.0
     for theta in thetas:
         it = ray[float(np.round(np.mod(theta, 2 * np.pi), 12))]
-        for phi in layout.spreads:
+        for phi in spreads:
             i1 = ray[float(np.round(np.mod(theta + np.pi - phi, 2 * np.pi), 12))]
             i2 = ray[float(np.round(np.mod(theta + np.pi + phi, 2 * np.pi), 12))]
             idx = [it, i1, i2]
             if np.isnan(dist[idx]).any():
+                continue
+            if layout.fingers == 2:
+                pair = _opposed_pair(pts[[it, i1]], nrm[fac[[it, i1]]], layout)
+                widest = max(widest, float(np.linalg.norm(pts[it] - pts[i1])))
+                if pair is not None:
+                    found.append((pts[[it, i1]], pair, fac[[it, i1]].astype(np.int64), float(theta), 0.0))
                 continue
             p = pts[idx]
             spread = float(np.linalg.norm(p[1] - p[2]))
@@ -253,6 +301,12 @@ def ranked_grasps(
             if not (side_by_side and opposed):
                 continue
             found.append((p, n_out, fac[idx].astype(np.int64), float(theta), float(phi)))
+    if not found and layout.fingers == 2:
+        raise InfeasibleGrasp(
+            f"the gripper cannot reach this object: no opposed pair of contacts in the grasp plane is within "
+            f"its {layout.max_aperture * 1e3:.0f} mm opening (the object is {widest * 1e3:.0f} mm across); "
+            "use a smaller object or a gripper with a wider opening (max_aperture)"
+        )
     if not found:
         raise InfeasibleGrasp(
             f"the hand cannot reach this object: no thumb/finger triple in the grasp plane has the "
@@ -260,7 +314,25 @@ def ranked_grasps(
             f"thumb within {layout.max_aperture * 1e3:.0f} mm of them (the object is "
             f"{widest * 1e3:.0f} mm across); use a smaller object or a hand layout with a wider reach"
         )
-    return _best_first(found, com, mu, skip)
+    return _best_first(found, com, mu, skip, _torsion(mu, layout))
+
+
+def _torsion(mu: float, layout: HandLayout) -> float:
+    """Largest moment about a contact's normal per unit normal force [m] of the two-finger
+    criterion: Hertz's patch of radius ``patch_radius`` sliding as a whole, (3 pi / 16) mu a."""
+    return 3.0 * math.pi / 16.0 * mu * layout.patch_radius if layout.fingers == 2 else 0.0
+
+
+def _opposed_pair(
+    p: NDArray[np.float64], n_out: NDArray[np.float64], layout: HandLayout
+) -> NDArray[np.float64] | None:
+    """The outward normals of two contacts ``p`` (2, 3) when the gripper reaches them (within its
+    opening, normals opposed within ``pi - min_opposition``), else None."""
+    if np.linalg.norm(p[0] - p[1]) > layout.max_aperture:
+        return None
+    if n_out[0] @ n_out[1] > math.cos(layout.min_opposition):
+        return None
+    return n_out
 
 
 def _best_first(
@@ -268,6 +340,7 @@ def _best_first(
     com: NDArray[np.float64],
     mu: float,
     skip: Callable[[float, float], bool] | None = None,
+    torsion: float = 0.0,
 ) -> Iterator[InitialGrasp]:
     """Yield the force-closure candidates by decreasing epsilon (rounded to 12 digits; ties in
     list order): a heap keyed by each candidate's best-known upper bound, refined to the exact
@@ -282,8 +355,8 @@ def _best_first(
     P = np.array([c[0] for c in found])
     N = -np.array([c[1] for c in found])  # inward normals
     theta = np.array([c[3] for c in found])
-    ub = ferrari_canny_bounds(P, N, mu, com)
-    wrenches = primitive_wrenches_many(P, N, mu, com)
+    ub = ferrari_canny_bounds(P, N, mu, com, torsion=torsion)
+    wrenches = primitive_wrenches_many(P, N, mu, com, torsion=torsion)
     exact = np.full(len(found), np.nan)  # the exact qualities computed so far
     alive = ub > 0.0  # not yet yielded, dropped or found not force closure
 
@@ -331,9 +404,9 @@ def _best_first(
         )
     if not yielded:
         raise InfeasibleGrasp(
-            f"no reachable triple is force closure with mu = {mu:g}: the friction cones are too narrow "
-            "for three fingertips to resist every load on this surface (with mu = 0 none can); "
-            "raise the friction coefficient"
+            f"no reachable {'pair' if len(found[0][0]) == 2 else 'triple'} is force closure with mu = "
+            f"{mu:g}: the friction cones are too narrow for the fingertips to resist every load on this "
+            "surface (with mu = 0 none can); raise the friction coefficient"
         )
 
 

@@ -32,17 +32,18 @@ from numpy.typing import NDArray
 from softgrasp.errors import InfeasibleGrasp
 from softgrasp.grasp.closing import Closing
 from softgrasp.grasp.config import PlanConfig
-from softgrasp.grasp.damage import check_limits, grasp_damage
+from softgrasp.grasp.damage import check_limits, grasp_damage, patch_torsion
 from softgrasp.grasp.equilibrium import minimum_normal_forces, squeeze_utilisation
 from softgrasp.grasp.hold import cone_usage
-from softgrasp.grasp.initial import FINGER_NAMES
 from softgrasp.grasp.margin import critical_scale
+from softgrasp.grasp.progress import PlanProgress
 from softgrasp.grasp.result import FingerResult, GraspPlan, PlanFrames
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.grasp.setup import ClosingSetup, closing_setup
 from softgrasp.hand.placement import closing_paths
 from softgrasp.linalg import pardiso
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.model.ranges import check_object_mass
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingerReport
 
@@ -62,6 +63,7 @@ def plan_grasp(
     config: PlanConfig = PlanConfig(),  # noqa: B008 - frozen dataclass
     *,
     progress: Callable[[float], None] | None = None,
+    phase: Callable[[str], None] | None = None,
     cache: SolverCache | None = None,
 ) -> GraspPlan:
     """Plan a three-finger grasp of ``body`` resting on a table (paper steps 1-2).
@@ -69,29 +71,39 @@ def plan_grasp(
     Parameters
     ----------
     body: the object.  config: everything else (:class:`PlanConfig`).
-    progress: called with the fraction of the largest allowed travel reached after each increment.
+    progress: called with the fraction of the plan done, never smaller than the one before
+        (:class:`~softgrasp.grasp.progress.PlanProgress`).
+    phase: called with the name of each phase as it starts (``initial grasp``, ``closing``,
+        ``hold check``, ``set-points``).
     cache: the linear solves' state (its ``method`` chooses the solver); a fresh one if None.
 
     Raises
     ------
+    ConfigError: the object is lighter than 1 g or heavier than the hand lifts
+        (:func:`~softgrasp.model.ranges.check_object_mass`), before any solve.
     InfeasibleGrasp: no reachable force-closure grasp, or no hold before the maximum squeeze.
     NotConverged: an increment between two at rest found no static equilibrium even when split
         (one past them that finds none is an InfeasibleGrasp: the object cannot be squeezed harder).
     """
+    check_object_mass(float(body.total_mass), float(body.mesh.volume))
     with pardiso.blas_one_thread():
-        return _plan_grasp(body, config, progress, SolverCache() if cache is None else cache)
+        tracker = PlanProgress(progress, phase)
+        return _plan_grasp(body, config, tracker, SolverCache() if cache is None else cache)
 
 
-def _plan_grasp(
-    body: Body, config: PlanConfig, progress: Callable[[float], None] | None, cache: SolverCache
-) -> GraspPlan:
+def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: SolverCache) -> GraspPlan:
     t0 = time.perf_counter()
     cfg = config
     mu = cfg.contact.mu
+    progress.enter("initial grasp")
     setup = closing_setup(body, cfg, cache)  # step 1
     ig, placement, start, first = setup.grasp, setup.placement, setup.start, setup.first_touch
-    closing = Closing(body, cfg, setup, cache, progress)  # step 2
-    t_final, (held_state, fixed, drift, slip) = closing.until_held(closing.until_the_grasp_test())
+    progress.enter("closing")
+    closing = Closing(body, cfg, setup, cache, progress.within("closing"))  # step 2
+    passing = closing.until_the_grasp_test()
+    progress.enter("hold check")
+    t_final, (held_state, fixed, drift, slip) = closing.until_held(passing)
+    progress.enter("set-points")
     rows, frames = closing.rows, closing.frames
     # The set-points: the held state's forces.
     hrep = fixed.report(body, held_state.x, None, 0.0, held_state.contacts[0], static=True)
@@ -102,16 +114,17 @@ def _plan_grasp(
     tres = np.linalg.norm(_torque_residual(hrep, centres, com))
     # The held state's friction forces against the (circular) Coulomb cones, pair by pair.
     margin = float(1.0 - cone_usage(hrep, mu).max())
+    torsion = patch_torsion(body, fixed, fn, mu)  # two fingers: the Hertz patches' torsional friction
     try:
-        rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity)
+        rigid = minimum_normal_forces(pts, push, mu, com, body.total_mass, body.gravity, torsion=torsion)
     except InfeasibleGrasp:
-        rigid = np.full(3, np.nan)
-    utilisation = squeeze_utilisation(pts, push, fn, mu, com, body.total_mass, body.gravity)
+        rigid = np.full(len(cfg.fingers), np.nan)
+    utilisation = squeeze_utilisation(pts, push, fn, mu, com, body.total_mass, body.gravity, torsion=torsion)
     damage = grasp_damage(body, fixed, held_state.x, hrep.normal)
     check_limits(damage, cfg.max_pressure, cfg.max_strain)
     fingers = tuple(
         FingerResult(
-            name=FINGER_NAMES[j],
+            name=name,
             initial_contact=ig.points[j],
             final_position=centres[j],
             penetration=float(max(t_final - first[j], 0.0)),
@@ -119,7 +132,7 @@ def _plan_grasp(
             normal_force=float(hrep.normal[j]),
             tangential_force=float(hrep.tangential[j]),
         )
-        for j in range(3)
+        for j, name in enumerate(cfg.fingers)
     )
     normal = np.array([f.normal_force for f in fingers])
     margin_ = critical_scale(body, replace(cfg, grasp=ig), normal)
@@ -134,8 +147,7 @@ def _plan_grasp(
         assert cfg.hand is not None
         lines = {f.name: (start[j], centres[j]) for j, f in enumerate(fingers)}
         joint_paths = closing_paths(cfg.hand, placement, lines, max(1, int(np.ceil(t_final / cfg.step))))
-    if progress is not None:
-        progress(1.0)
+    progress.finish()
     rows.sort(key=lambda r: r[0])  # the solves' increments among the others, by travel
     frames.sort(key=lambda f: f[0])
     return GraspPlan(
@@ -176,7 +188,9 @@ def _plan_grasp(
             positions=np.array([f[1] for f in frames]),
             centres=np.array([f[2] for f in frames]),
             forces=np.array([f[3] for f in frames]),
+            contact_forces=np.array([f[4] for f in frames]),
         ),
+        contact_forces=fixed.static_forces(body, held_state.x, 0.0, held_state.contacts[0]),
         solver_stats=dict(
             cache.stats,
             closing_systems=cache.stats["systems"]

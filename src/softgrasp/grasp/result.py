@@ -86,6 +86,8 @@ class GraspPlan:
     margin: the critical scale of the held state's normal forces (:mod:`softgrasp.grasp.margin`).
     frames: the object and the fingertips at rest at the start of the closing (travel 0) and after
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
+    contact_forces: the fingertips' forces on each node of the object in the held state [N],
+        (N, 3) (Eq. 17-20: each pair's force shared among its facet's nodes), or None.
     solver_stats: what the closing's linear algebra did (the critical scale's checks apart) (:attr:`SolverCache.stats
         <softgrasp.linalg.solve.SolverCache>`): Newton systems, factorisations, multigrid V-cycles
         ... (machine-independent measures of its cost); the Newton systems also by phase:
@@ -128,6 +130,7 @@ class GraspPlan:
     setpoints: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.nan))
     margin: Margin | None = None
     solver_stats: dict[str, int] = field(default_factory=dict)
+    contact_forces: NDArray[np.float64] | None = None
 
     @property
     def held_increment(self) -> int:
@@ -150,9 +153,12 @@ class PlanFrames:
     positions: node positions [m], (K, N, 3).
     centres: fingertip centres [m], (K, 3, 3).
     forces: force of each fingertip on the object [N], (K, 3, 3).
+    contact_forces: the fingertips' forces on each node of the object [N], (K, N, 3) (Eq. 17-20),
+        or None.
     """
 
     travel: NDArray[np.float64]
     positions: NDArray[np.float64]
     centres: NDArray[np.float64]
     forces: NDArray[np.float64]
+    contact_forces: NDArray[np.float64] | None = None

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import InfeasibleGrasp
 from softgrasp.grasp.config import MAX_PLACEMENTS, PER_SPREAD, START_BACKOFF, PlanConfig
-from softgrasp.grasp.initial import FINGER_NAMES, InitialGrasp, ranked_grasps
+from softgrasp.grasp.initial import InitialGrasp, ranked_grasps
 from softgrasp.grasp.settle import centre_of_mass, settle_on_table
 from softgrasp.hand.kinematics import HandModel
 from softgrasp.hand.placement import HandPlacement, place_hand
@@ -55,10 +55,17 @@ def _first_touch(body: Body, params: ContactParams, tip: Fingertip, x, t_max: fl
 def _start_centres(ig: InitialGrasp, cfg: PlanConfig) -> tuple[NDArray, NDArray, NDArray]:
     """Fingertip centres where the closing starts: tangent to the surface at each contact point,
     backed off ``START_BACKOFF`` steps along the closing line; the unit closing directions
-    (towards the contact triangle's centroid) and each contact's distance to that centroid."""
+    (towards the contact triangle's centroid) and each contact's distance to that centroid.
+
+    Two fingers (a gripper, whose pads slide on one axis) start on the line through the two
+    contacts, each at the distance from its contact that keeps the sphere off the contact's
+    tangent plane (R over the cosine between the line and the normal)."""
     u = ig.centroid[None, :] - ig.points
     reach = np.linalg.norm(u, axis=1)
     u = u / reach[:, None]
+    if len(ig.points) == 2:
+        cos = np.maximum(-np.einsum("ij,ij->i", ig.normals, u), 0.5)  # opposed within 60 deg
+        return ig.points - (cfg.fingertip_radius / cos + START_BACKOFF * cfg.step)[:, None] * u, u, reach
     return ig.points + cfg.fingertip_radius * ig.normals - START_BACKOFF * cfg.step * u, u, reach
 
 
@@ -66,12 +73,14 @@ def _hand_order(hand: HandModel, ig: InitialGrasp) -> InitialGrasp:
     """``ig`` with the first and middle fingers' contacts swapped if the hand needs them the other
     way round. Seen in a grasp from above (palm y from the thumb's contact to the fingers', palm
     normal down), the finger whose knuckle lies farther along the palm's x axis takes the contact
-    farther along that axis: the fingers do not cross."""
+    farther along that axis: the fingers do not cross. (A two-finger grasp is taken as it is.)"""
+    if len(ig.points) != 3:
+        return ig
     up = np.array([0.0, 0.0, 1.0])
     y = ig.points[1:].mean(axis=0) - ig.points[0]
     y -= (y @ up) * up
     x_axis = np.cross(y, -up)
-    knuckle = {f: hand.link_points(f, 0.5 * np.add(*hand.limits(f)))[0][0] for f in FINGER_NAMES[1:]}
+    knuckle = {f: hand.link_points(f, 0.5 * np.add(*hand.limits(f)))[0][0] for f in ("first", "middle")}
     want = knuckle["first"] > knuckle["middle"]
     have = (ig.points[1] - ig.points[0]) @ x_axis > (ig.points[2] - ig.points[0]) @ x_axis
     if want == have:
@@ -106,7 +115,7 @@ def _reachable_grasp(
         ig = _hand_order(cfg.hand, cand)
         start, _, _ = _start_centres(ig, cfg)
         try:
-            placement = place_hand(cfg.hand, dict(zip(FINGER_NAMES, start, strict=True)), obstacle=xs)
+            placement = place_hand(cfg.hand, dict(zip(cfg.fingers, start, strict=True)), obstacle=xs)
         except InfeasibleGrasp as exc:
             first_error = first_error or exc
             failures[cand.spread] = failures.get(cand.spread, 0) + 1
@@ -141,11 +150,11 @@ def _initial_grasp(
         tuple(Fingertip(R, centre=p + 0.5 * R * n) for p, n in zip(ig.points, ig.normals, strict=True)),
         cfg.contact,
     )
-    near = np.bincount(probe.pairs(body, xs, 0.0).finger, minlength=3)
+    near = np.bincount(probe.pairs(body, xs, 0.0).finger, minlength=len(ig.points))
     if near.min() == 0:
         j = int(np.argmin(near))
         raise InfeasibleGrasp(
-            f"the given grasp's {FINGER_NAMES[j]} contact {np.round(ig.points[j] * 1e3, 2).tolist()} mm lies "
+            f"the given grasp's {cfg.fingers[j]} contact {np.round(ig.points[j] * 1e3, 2).tolist()} mm lies "
             f"more than {cfg.fingertip_radius / 2 * 1e3:g} mm off this object's surface: that grasp was "
             "planned for another object, mesh or placement"
         )
@@ -203,11 +212,11 @@ def closing_setup(body: Body, cfg: PlanConfig, cache: SolverCache | None = None)
             _first_touch(
                 body,
                 cfg.contact,
-                Fingertip(R, centre=start[j], velocity=u[j], name=FINGER_NAMES[j]),
+                Fingertip(R, centre=start[j], velocity=u[j], name=cfg.fingers[j]),
                 xs,
                 4 * cfg.step + R,
             )
-            for j in range(3)
+            for j in range(len(cfg.fingers))
         ]
     )
     return ClosingSetup(settled, table, placed, ig, placement, start, u, reach, first, cfg.max_squeeze)

@@ -1,7 +1,7 @@
 """Forward kinematics of a multi-finger hand and its analytic positional Jacobian.
 
-:class:`HandModel` is a hand read from a URDF (:mod:`softgrasp.hand.urdf`): its fingers' serial
-chains, each ending at a fingertip sphere. A finger's joint vector ``q`` holds its independent
+:class:`HandModel` is a hand read from a URDF (:mod:`softgrasp.hand.urdf`) or an MJCF
+(:mod:`softgrasp.io.mjcf_hand`, through MuJoCo): its fingers' serial chains, each ending at a fingertip sphere. A finger's joint vector ``q`` holds its independent
 joints in root-to-tip order; mimic joints follow their drivers. Chains are evaluated through a
 :class:`ChainStack` (several chains and a batch of configurations at once) by the compiled
 :func:`forward` and :func:`joint_columns`, which the IK descent (:mod:`softgrasp.hand.descent`) calls too.
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from types import MappingProxyType
@@ -26,7 +26,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.hand.urdf import FINGER_NAMES, FingerChain, Joint, packaged_urdf, read_urdf
+from softgrasp.hand.chain import FINGER_NAMES, FingerChain, Joint
+from softgrasp.hand.reach import HandReach, grasp_fingers
 
 __all__ = [
     "FINGER_NAMES",
@@ -214,21 +215,58 @@ def _kinematics(
 
 @dataclass(frozen=True, eq=False)
 class HandModel:
-    """Kinematic model of a hand: ``fingers`` maps finger names to their :class:`FingerChain`."""
+    """Kinematic model of a hand: ``fingers`` maps finger names to their :class:`FingerChain`.
+
+    ``source`` names its file (a packaged hand by its package name), ``fingertips`` the finger to
+    link mapping it was read with (None: the ``<prefix>_tip`` naming), ``radius`` the fingertip
+    radius that overrode the spheres' (None: the spheres'), ``reach`` the initial grasp's coarse
+    layout limits (:class:`~softgrasp.hand.reach.HandReach`).
+    """
 
     fingers: Mapping[str, FingerChain]
     source: str = "<memory>"
+    fingertips: Mapping[str, str] | None = None
+    radius: float | None = None
+    reach: HandReach = HandReach()
 
     @classmethod
-    def from_urdf(cls, path: str | os.PathLike[str]) -> HandModel:
-        """Read a URDF file; :class:`ConfigError` for a missing, malformed or unusable description."""
-        return cls(MappingProxyType(read_urdf(path)), str(Path(path)))
+    def from_urdf(
+        cls,
+        path: str | os.PathLike[str],
+        fingertips: Mapping[str, str] | None = None,
+        radius: float | None = None,
+    ) -> HandModel:
+        """Read a URDF file (:func:`softgrasp.hand.urdf.read_urdf`); :class:`ConfigError` for a
+        missing, malformed or unusable description."""
+        from softgrasp.hand.urdf import read_urdf
+
+        chains = read_urdf(path, fingertips, radius)
+        return cls(MappingProxyType(chains), str(Path(path)), _frozen(fingertips), radius)
+
+    @classmethod
+    def packaged(cls, name: str = "shadow_like", radius: float | None = None) -> HandModel:
+        """A hand packaged with softgrasp (:data:`softgrasp.hand.urdf.PACKAGED`): ``shadow_like``
+        (thumb, first, middle) or ``parallel_jaw`` (left, right; an 85 mm opening)."""
+        from softgrasp.hand.urdf import packaged_urdf
+
+        chains, source = packaged_urdf(name, radius)
+        reach = HandReach(max_aperture=0.085) if name == "parallel_jaw" else HandReach()
+        return cls(MappingProxyType(chains), source, None, radius, reach)
 
     @classmethod
     def default(cls) -> HandModel:
         """The packaged Shadow-like hand (``shadow_like.urdf``): fingers thumb, first, middle."""
-        chains, source = packaged_urdf()
-        return cls(MappingProxyType(chains), source)
+        return _default_hand()
+
+    def with_reach(self, reach: HandReach) -> HandModel:
+        """This hand with other layout limits."""
+        return replace(self, reach=reach)
+
+    @property
+    def grasp_fingers(self) -> tuple[str, ...]:
+        """The fingers the planner uses (:func:`softgrasp.hand.reach.grasp_fingers`), the opposing
+        finger first."""
+        return grasp_fingers(self.fingers, self.source)
 
     def chain(self, finger: str) -> FingerChain:
         """The chain of ``finger``; :class:`ConfigError` naming the known fingers otherwise."""
@@ -284,3 +322,13 @@ class HandModel:
         assert J is not None
         return J
 
+
+
+def _frozen(m: Mapping[str, str] | None) -> Mapping[str, str] | None:
+    return None if m is None else MappingProxyType(dict(m))
+
+
+@lru_cache(maxsize=1)
+def _default_hand() -> HandModel:
+    """The packaged Shadow-like hand, read once (its chains are immutable)."""
+    return HandModel.packaged("shadow_like")

@@ -126,8 +126,9 @@ def _postures(model: HandModel, fingers: Sequence[str]) -> list[dict[str, NDArra
 def _seeds(
     model: HandModel, fingers: Sequence[str], T: NDArray[np.float64], up: NDArray[np.float64]
 ) -> list[tuple[NDArray[np.float64], dict[str, NDArray[np.float64]]]]:
-    """Starting (palm pose, posture) pairs: grasps from above (when a thumb opposes the others),
-    then Kabsch fits of nominal postures onto the targets."""
+    """Starting (palm pose, posture) pairs: grasps from above (when a thumb opposes the others, or
+    a two-finger gripper closes across its two targets), then Kabsch fits of nominal postures onto
+    the targets."""
     out = []
     postures = _postures(model, fingers)
     stack = chain_stack(tuple(model.chain(f) for f in fingers))
@@ -145,6 +146,27 @@ def _seeds(
             for q0, local in zip(postures[1::2], tips[1::2], strict=True):
                 for tilt, yaw in product((0.3, 0.9), (0.0, -0.4, 0.4)):
                     R = _rotation(yaw * up) @ base @ _rotation(np.array([tilt, 0.0, 0.0]))
+                    pose = np.eye(4)
+                    pose[:3, :3] = R
+                    pose[:3, 3] = T.mean(axis=0) - R @ local.mean(axis=0)
+                    out.append((pose, dict(q0)))
+    if len(fingers) == 2:  # a gripper: from above, its closing axis through the two targets
+        y = T[1] - T[0]
+        z = -up + (up @ y) / (y @ y) * y
+        if np.linalg.norm(y) > 1e-9 and np.linalg.norm(z) > 1e-9:
+            y /= np.linalg.norm(y)
+            z /= np.linalg.norm(z)
+            base = np.column_stack([np.cross(y, z), y, z])  # palm x, y (closing axis), z (approach)
+            # the fingers opened alike to the targets' distance: the palm centred between them
+            even = [{f: model.limits(f)[0] + a * np.subtract(*model.limits(f)[::-1]) for f in fingers}
+                    for a in np.linspace(0.0, 1.0, 41)]
+            opened = np.array([np.concatenate([q[f] for f in fingers]) for q in even])
+            ends = stack_kinematics(stack, opened).tips
+            gap = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+            k = int(np.argmin(np.abs(gap - np.linalg.norm(T[1] - T[0]))))
+            for q0, local in ((even[k], ends[k]),):
+                for tilt in (0.0, 0.4, -0.4):
+                    R = base @ _rotation(np.array([0.0, tilt, 0.0]))
                     pose = np.eye(4)
                     pose[:3, :3] = R
                     pose[:3, 3] = T.mean(axis=0) - R @ local.mean(axis=0)

@@ -5,7 +5,10 @@ A TOML file with an optional ``[material]`` table (``E_Pa``, ``nu``, ``density_k
 ``strain`` and ``stress_Pa`` for the table, e.g. a calibrated edge law) and an optional
 ``[contact]`` table (``contact_law = "resolved" | "paper"``, ``mu``, ``exponent``,
 ``stiffness_prefactor``, ``gamma_N_s_m2``, ``damping``). ``softgrasp
-calibrate`` writes one; ``plan``, ``indent``, ``compress`` and ``execute`` read it.
+calibrate`` writes one; ``plan``, ``indent``, ``compress`` and ``execute`` read it. A ``--material``
+value may follow the file's name with ``key=value`` overrides of its material, as after a preset:
+``material.toml,density=1000`` (``E``, ``nu``, ``density`` [kg/m^3], ``a2``, ``a3``; ``mass``
+[kg] the object's total mass).
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from softgrasp.physics.fingertip.params import ContactParams
 
 __all__ = ["MaterialFile", "read_material_file", "write_material_file", "is_material_file"]
 
+#: What ``--material FILE.toml,key=value`` may set.
+_OVERRIDES = ("E", "nu", "density", "mass", "a2", "a3")
 _MATERIAL_KEYS = {"E_Pa", "nu", "density_kg_m3", "name", "law", "a2", "a3", "strain", "stress_Pa"}
 _CONTACT_KEYS = {
     "mu": "mu",
@@ -41,13 +46,16 @@ class MaterialFile:
     Attributes
     ----------
     path: the file.
-    material: the material, or None when the file has no ``[material]`` table.
+    material: the material, or None when the file has no ``[material]`` table (with the overrides
+        given after the file's name).
     contact: contact parameters given in ``[contact]`` (ContactParams field names), possibly empty.
+    mass: the object's total mass [kg] given after the file's name (``,mass=0.1``), or None.
     """
 
     path: str
     material: Material | None
     contact: dict[str, object]
+    mass: float | None = None
 
     def contact_params(self, base: ContactParams) -> ContactParams:
         """``base`` with this file's contact parameters over it."""
@@ -58,8 +66,60 @@ class MaterialFile:
 
 
 def is_material_file(spec: str) -> bool:
-    """Whether a ``--material`` value names a file (``.toml``) rather than a preset or key=value list."""
-    return spec.strip().lower().endswith(".toml")
+    """Whether a ``--material`` value names a file (``.toml``, possibly followed by ``,key=value``
+    overrides) rather than a preset or key=value list."""
+    return _split_spec(spec)[0].lower().endswith(".toml")
+
+
+def _split_spec(spec: str) -> tuple[str, str]:
+    """A ``--material`` value split into the file's name and the ``key=value`` overrides after it."""
+    text = str(spec).strip()
+    low = text.lower()
+    k = low.find(".toml,")
+    if k < 0:
+        return text, ""
+    return text[: k + 5], text[k + 6 :]
+
+
+def _with_overrides(mf: MaterialFile, text: str) -> MaterialFile:
+    """``mf`` with the ``key=value`` overrides ``text`` over its material, each in its range."""
+    import re
+
+    where = f"--material {mf.path},{text}"
+    vals: dict[str, float] = {}
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        m = re.fullmatch(r"([A-Za-z0-9_]+)\s*=\s*(\S+)", part)
+        if not m or m.group(1) not in _OVERRIDES:
+            raise ConfigError(
+                f"{where}: cannot read {part!r}; after a material file give key=value with the keys "
+                f"{', '.join(_OVERRIDES)}"
+            )
+        key = m.group(1)
+        try:
+            value = float(m.group(2))
+        except ValueError:
+            raise ConfigError(f"{where}: {key}={m.group(2)!r} is not a number") from None
+        vals[key] = RANGES[key].check(f"{where}: {key}", value, MaterialError)
+    mass = vals.pop("mass", None)
+    base = mf.material
+    if base is None:
+        if vals and not {"E", "nu"} <= set(vals):
+            raise ConfigError(f"{where}: the file has no [material] table to change; give E and nu too")
+        if not vals:
+            return replace(mf, mass=mass)
+        base = Material(vals["E"], vals["nu"], name="custom")
+    law = base.law
+    if "a2" in vals or "a3" in vals:
+        if isinstance(law, Tabulated):
+            raise ConfigError(f"{where}: the file's law is tabulated; a2 and a3 do not apply to it")
+        old = law.describe() if isinstance(law, Polynomial) else {"a2": 0.0, "a3": 0.0}
+        law = Polynomial(vals.get("a2", float(old["a2"])), vals.get("a3", float(old["a3"])))  # type: ignore[arg-type]
+    try:
+        E, nu, rho = vals.get("E", base.E), vals.get("nu", base.nu), vals.get("density", base.density)
+        mat = check_given(Material(E, nu, rho, law, base.name))
+    except MaterialError as exc:
+        raise MaterialError(f"{where}: {exc}") from None
+    return replace(mf, material=mat, mass=mass)
 
 
 def _number(path: str, table: str, key: str, value: object) -> float:
@@ -69,7 +129,14 @@ def _number(path: str, table: str, key: str, value: object) -> float:
 
 
 def read_material_file(path: str | Path) -> MaterialFile:
-    """Read a material/contact file (module docstring). ConfigError says what is wrong and where."""
+    """Read a material/contact file (module docstring), with the ``key=value`` overrides after its
+    name applied. ConfigError says what is wrong and where."""
+    name, overrides = _split_spec(str(path))
+    mf = _read_file(name)
+    return _with_overrides(mf, overrides) if overrides else mf
+
+
+def _read_file(path: str | Path) -> MaterialFile:
     name = str(path)
     doc = read_toml(path, "material file")
     extra = sorted(set(doc) - {"material", "contact"})

@@ -3,7 +3,8 @@ configuration: one mapping shared by the command line, ``--config`` files and sw
 
 Options are plain values: ``object`` (built-in name, shape or mesh file), ``mesh_size`` [m],
 ``units`` (the length unit of a mesh file's coordinates or a shape's sizes: ``m``, ``cm``, ``mm``),
-``material`` (preset, ``key=value`` list or a ``.toml`` material file), the planner's settings
+``material`` (preset, ``key=value`` list or a ``.toml`` material file), ``density`` [kg/m^3] or
+``mass`` [kg] of the object (over its material's), the planner's settings
 (:data:`PLAN_DEFAULTS`; ``grasp`` names a ``plan.json`` whose initial grasp is closed from instead
 of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDES`: ``E`` [Pa],
 ``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3``) applied over the object's material.
@@ -14,7 +15,11 @@ from __future__ import annotations
 import numbers
 from collections.abc import Mapping
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
@@ -34,6 +39,7 @@ __all__ = [
     "check_inputs",
     "scheduler_address",
     "load_body",
+    "load_placed_body",
     "hand_model",
     "contact_params",
     "plan_config",
@@ -47,7 +53,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "mesh_size": None,
     "units": "m",
     "mu": 0.8,
-    "fingertip_radius": 0.008,
+    "fingertip_radius": None,
     "step": 0.0005,
     "solver": "quasistatic",
     "safety_factor": 1.25,
@@ -55,12 +61,18 @@ PLAN_DEFAULTS: dict[str, object] = {
     "max_squeeze": 0.5,
     "refine": 12,
     "hand": "shadow_like",
+    "fingertips": None,
+    "min_spread": None,
+    "max_spread": None,
+    "max_aperture": None,
     "grasp": None,
     "contact_law": "resolved",
     "max_pressure": None,
     "max_strain": None,
     "out": "softgrasp-out/plan",
     "reorient": False,
+    "density": None,
+    "mass": None,
 }
 
 #: Material parameters a sweep may set over the object's material.
@@ -73,7 +85,8 @@ TEXT_OPTIONS: dict[str, str] = {
     "material": "a preset (foam, rubber), E=..,nu=..,density=.. or a .toml material file",
     "units": "m, cm or mm",
     "solver": "quasistatic or dynamic",
-    "hand": "shadow_like, none or a URDF file",
+    "hand": "shadow_like, parallel_jaw, none, a URDF or an MJCF file",
+    "fingertips": "FINGER=LINK pairs, e.g. thumb=th_tip,first=ff_tip,middle=mf_tip",
     "grasp": "a plan.json file",
     "contact_law": "resolved or paper",
     "out": "a folder",
@@ -112,11 +125,13 @@ def check_inputs(options: Mapping[str, object]) -> None:
 
     check_object(str(options["object"]), check_units(options.get("units", "m")))
     spec = options.get("material")
+    if options.get("density") is not None and options.get("mass") is not None:
+        raise ConfigError("give the object's density (--density) or its mass (--mass), not both")
     if isinstance(spec, str):
         if is_material_file(spec):
             read_material_file(spec)
         else:
-            parse_material(spec)
+            parse_material(spec, need_mass=options.get("density") is None and options.get("mass") is None)
 
 
 def scheduler_address(text: str) -> str:
@@ -152,55 +167,118 @@ def load_body(
     overrides: Mapping[str, float] | None = None,
     scale: float = 1.0,
 ) -> Body:
+    """The object's body (:func:`load_placed_body`)."""
+    return load_placed_body(
+        object_name, mesh_size, material, reorient=reorient, mfile=mfile, overrides=overrides, scale=scale
+    )[0]
+
+
+def _checked_overrides(overrides: Mapping[str, float] | None) -> dict[str, float]:
+    if not overrides:
+        return {}
+    unknown = sorted(set(overrides) - set(MATERIAL_OVERRIDES))
+    if unknown:
+        raise ConfigError(f"unknown material parameter(s) {unknown}; known: {list(MATERIAL_OVERRIDES)}")
+    ov: dict[str, float] = {}
+    for k, v in overrides.items():
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, numbers.Real):
+            raise ConfigError(f"material parameter {k} must be a number, got {v!r}")
+        ov[k] = float(v)
+    for k in ("mass", "a2", "a3"):  # (the material checks E, nu and density itself)
+        if k in ov:
+            RANGES[k].check(f"material parameter {k}", ov[k], MaterialError)
+    if "density" in ov and "mass" in ov:
+        raise ConfigError("give the object's density (--density) or its mass (--mass), not both")
+    return ov
+
+
+def _warn(message: str) -> None:
+    import warnings
+
+    from softgrasp.errors import SoftgraspWarning
+
+    warnings.warn(message, SoftgraspWarning, stacklevel=4)
+
+
+def load_placed_body(
+    object_name: str,
+    mesh_size: float | None = None,
+    material: str | Material | None = None,
+    *,
+    reorient: bool = False,
+    mfile: MaterialFile | None = None,
+    overrides: Mapping[str, float] | None = None,
+    scale: float = 1.0,
+) -> tuple[Body, NDArray[np.float64]]:
     """The object's body: its mesh (a mesh file's coordinates times ``scale`` in metres), its
     material (the object's default, a :class:`Material`, a preset or key=value list, or a material
-    file ``mfile`` already read from ``material``) and the ``overrides``.
+    file ``mfile`` already read from ``material``) and the ``overrides`` (``density`` or ``mass``
+    set the mass); and the transform (4, 4) from the source's coordinates to the body's mesh
+    (:func:`~softgrasp.model.objects.make_placed_object`).
 
     A material given with its own density or mass decides the mass; a preset, or a file or
-    :class:`Material` without a density, keeps a built-in object's mass.
+    :class:`Material` without a density, keeps a built-in object's mass. A mesh file given
+    without a material takes :data:`~softgrasp.model.objects.FILE_MATERIAL` (the rubber preset's
+    E and nu; 1000 kg/m^3 unless ``density`` or ``mass`` is given), and one whose material has no
+    density, 1000 kg/m^3: each default with a :class:`~softgrasp.errors.SoftgraspWarning`.
     """
     from softgrasp.model.material import Polynomial, check_given, parse_material
-    from softgrasp.model.objects import make_object
+    from softgrasp.model.objects import FILE_MATERIAL, is_mesh_file, make_placed_object
     from softgrasp.physics.body import build_body
 
-    mesh, mat, mass = make_object(object_name, mesh_size, reorient=reorient, scale=scale)
+    mesh, mat, mass, transform = make_placed_object(object_name, mesh_size, reorient=reorient, scale=scale)
+    ov = _checked_overrides(overrides)
+    mass_given = "density" in ov or "mass" in ov
+    file = is_mesh_file(object_name)
+    label = Path(object_name).name
+    no_density = ""  # what was given without a density, where the object needs one
     if isinstance(material, Material):
         mat = material
         if mat.density is not None:
             mass = None
         elif mass is None:
-            raise ConfigError(
-                f"the material has no density; the object {object_name!r} needs one for its mass"
-            )
+            no_density = "the material has no density"
     elif material is not None and is_material_file(material):
         mf = mfile if mfile is not None else read_material_file(material)
         if mf.material is not None:
             mat = mf.material
             if mat.density is not None:
                 mass = None
-            elif mass is None:
-                raise ConfigError(
-                    f"material file {mf.path} has no density_kg_m3; the object {object_name!r} needs one "
-                    "for its mass"
-                )
+            elif mass is None and mf.mass is None:
+                no_density = f"material file {mf.path} has no density_kg_m3"
+        if mf.mass is not None:
+            mass = mf.mass
     elif material is not None:
-        mat, spec_mass = parse_material(material)
+        mat, spec_mass = parse_material(material, need_mass=not mass_given)
         if spec_mass is not None:
             mass = spec_mass
         elif "density" in material:
             mass = None
-    if overrides:
-        unknown = sorted(set(overrides) - set(MATERIAL_OVERRIDES))
-        if unknown:
-            raise ConfigError(f"unknown material parameter(s) {unknown}; known: {list(MATERIAL_OVERRIDES)}")
-        ov: dict[str, float] = {}
-        for k, v in overrides.items():
-            if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                raise ConfigError(f"material parameter {k} must be a number, got {v!r}")
-            ov[k] = float(v)
-        for k in ("mass", "a2", "a3"):  # (the material checks E, nu and density itself)
-            if k in ov:
-                RANGES[k].check(f"material parameter {k}", ov[k], MaterialError)
+    elif file:
+        water = float(FILE_MATERIAL.density or 0.0)
+        what = f"rubber's stiffness (E = {mat.E / 1e3:.4g} kPa, nu = {mat.nu:g})"
+        if not mass_given:
+            what += f" and the density of water, {water:g} kg/m^3 ({water * mesh.volume * 1e3:.4g} g)"
+        _warn(
+            f"the mesh file {label} is given without a material: softgrasp takes {what}; give --material "
+            "(a preset, E=..,nu=.. or a calibrate .toml)"
+            + ("" if mass_given else " and --density KG_M3 or --mass KG")
+        )
+    if no_density and not mass_given:
+        if not file:
+            raise ConfigError(
+                f"{no_density}; the object {object_name!r} needs one for its mass: give --density KG_M3 "
+                "or --mass KG (API: density_kg_m3=, mass_kg=)"
+            )
+        water = float(FILE_MATERIAL.density or 0.0)
+        mat = mat.with_density(water)
+        _warn(
+            f"{no_density}: softgrasp takes the density of water, {water:g} kg/m^3, for {label} "
+            f"({water * mesh.volume * 1e3:.4g} g); give --density KG_M3 or --mass KG"
+        )
+    if ov:
         law = mat.law
         if "a2" in ov or "a3" in ov:
             base = law.describe() if isinstance(law, Polynomial) else {}
@@ -222,18 +300,42 @@ def load_body(
             f"the object's {given} is a mean density of {rho:.4g} kg/m^3, outside {r.text} ({r.why}); "
             "give a density or mass in range"
         )
-    return build_body(mesh, mat, mass=mass)
+    return build_body(mesh, mat, mass=mass), transform
 
 
-def hand_model(name: str):
-    """The hand model named by ``hand``: the packaged Shadow-like hand, a URDF file, or none."""
+def hand_model(
+    name: str,
+    fingertips: str | Mapping[str, str] | None = None,
+    radius: float | None = None,
+    reach: Mapping[str, float | None] | None = None,
+):
+    """The hand model named by ``hand``: a packaged hand (``shadow_like``, ``parallel_jaw``), a
+    URDF or MJCF file, or none; ``fingertips`` maps finger names to links (``thumb=LINK,...``),
+    ``radius`` [m] overrides the fingertip spheres', ``reach`` (``min_spread``, ``max_spread``,
+    ``max_aperture`` [m], None: the hand's) overrides the hand's layout limits."""
+    from dataclasses import replace as _replace
+
+    from softgrasp.hand.chain import parse_fingertips
     from softgrasp.hand.kinematics import HandModel
+    from softgrasp.hand.urdf import PACKAGED
+    from softgrasp.io.handfile import read_hand
 
-    if name == "shadow_like":
-        return HandModel.default()
     if name == "none":
         return None
-    return HandModel.from_urdf(name)
+    mapping = parse_fingertips(fingertips) if isinstance(fingertips, str) else fingertips
+    if name in PACKAGED:
+        if mapping is not None:
+            raise ConfigError(
+                f"--fingertips maps the fingertips of a hand file; the packaged {name} has its own"
+            )
+        default = name == "shadow_like" and radius is None
+        hand = HandModel.default() if default else HandModel.packaged(name, radius)
+    else:
+        hand = read_hand(name, mapping, radius)
+    given = {k: v for k, v in (reach or {}).items() if v is not None}
+    if given:
+        hand = hand.with_reach(_replace(hand.reach, **given))
+    return hand
 
 
 def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -> ContactParams:
@@ -251,19 +353,28 @@ def contact_params(mfile: MaterialFile | None, mu: float | None, **kw: object) -
 
 def plan_config(options: Mapping[str, object], contact: ContactParams) -> PlanConfig:
     """The planner configuration of merged plan ``options`` (every key of :data:`PLAN_DEFAULTS`)."""
+    from softgrasp.grasp.initial import HandLayout
     from softgrasp.grasp.planner import PlanConfig
     from softgrasp.io.planfile import load_plan_grasp
 
+    r = options.get("fingertip_radius")
+    reach = {k: options.get(k) for k in ("min_spread", "max_spread", "max_aperture")}
+    hand = hand_model(str(options["hand"]), options.get("fingertips"), r, reach)  # type: ignore[arg-type]
+    if r is None:  # the hand's fingertip spheres' radius (8 mm for free fingertips)
+        r = 0.008 if hand is None else hand.fingertip_radius(hand.grasp_fingers[0])
+    given = {k: float(v) for k, v in reach.items() if v is not None}  # type: ignore[arg-type]
+    layout = HandLayout(**given) if hand is None and given else None  # free fingertips: the limits given
     return PlanConfig(
+        layout=layout,  # type: ignore[arg-type]
         contact=contact,
-        fingertip_radius=float(options["fingertip_radius"]),  # type: ignore[arg-type]
+        fingertip_radius=float(r),  # type: ignore[arg-type]
         step=float(options["step"]),  # type: ignore[arg-type]
         solver=str(options["solver"]),
         safety_factor=float(options["safety_factor"]),  # type: ignore[arg-type]
         hold_time=float(options["hold_time"]),  # type: ignore[arg-type]
         max_squeeze=float(options["max_squeeze"]),  # type: ignore[arg-type]
         refine=int(options["refine"]),  # type: ignore[call-overload]
-        hand=hand_model(str(options["hand"])),
+        hand=hand,
         grasp=None if options.get("grasp") is None else load_plan_grasp(str(options["grasp"])),
         max_pressure=None if options.get("max_pressure") is None else float(options["max_pressure"]),  # type: ignore[arg-type]
         max_strain=None if options.get("max_strain") is None else float(options["max_strain"]),  # type: ignore[arg-type]

@@ -14,11 +14,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError
-from softgrasp.grasp.initial import FINGER_NAMES, InitialGrasp
+from softgrasp.grasp.initial import InitialGrasp
+from softgrasp.hand.reach import GRASP_FINGERS
 from softgrasp.io.limits import PLAN_RANGES
 from softgrasp.io.plan_document import SCHEMA
+from softgrasp.io.portable import resolve_path
 
 __all__ = ["PlanFinger", "PlanFile", "load_plan_file", "load_plan_grasp", "SCHEMA"]
+
+#: The finger names a plan may hold (three fingers, or a gripper's two).
+PLANNED = tuple(name for fingers in GRASP_FINGERS for name in fingers)
 
 
 @dataclass(frozen=True)
@@ -148,9 +153,9 @@ def load_plan_grasp(path: str | Path) -> InitialGrasp:
     for key in ("contacts_m", "normals"):
         v = _get(doc, f"initial_grasp.{key}")
         a = _floats(v)
-        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+        if a.ndim != 2 or a.shape[0] not in (2, 3) or a.shape[1] != 3 or not np.all(np.isfinite(a)):
             raise ConfigError(
-                f"plan file: field 'initial_grasp.{key}' must be 3 x 3 finite numbers, got {v!r}"
+                f"plan file: field 'initial_grasp.{key}' must be 3 x 3 (or 2 x 3) finite numbers, got {v!r}"
             )
         rows[key] = a
     _near(rows["contacts_m"], "initial_grasp.contacts_m")
@@ -158,8 +163,13 @@ def load_plan_grasp(path: str | Path) -> InitialGrasp:
     if np.abs(n - 1.0).max() > 1e-6:
         raise ConfigError("plan file: field 'initial_grasp.normals' must hold unit vectors")
     facets = _get(doc, "initial_grasp.facets")
-    if not (isinstance(facets, list) and len(facets) == 3 and all(type(f) is int and f >= 0 for f in facets)):
-        raise ConfigError(f"plan file: field 'initial_grasp.facets' must be 3 facet numbers, got {facets!r}")
+    k = len(rows["contacts_m"])
+    if rows["normals"].shape != (k, 3):
+        raise ConfigError("plan file: fields 'initial_grasp.contacts_m' and 'normals' differ in length")
+    if not (isinstance(facets, list) and len(facets) == k and all(type(f) is int and f >= 0 for f in facets)):
+        raise ConfigError(
+            f"plan file: field 'initial_grasp.facets' must be {k} facet numbers, got {facets!r}"
+        )
     return InitialGrasp(
         points=rows["contacts_m"],
         normals=rows["normals"],
@@ -210,10 +220,10 @@ def load_plan_file(path: str | Path) -> PlanFile:
         name = f.get("name") if isinstance(f, dict) else None
         if not isinstance(name, str) or not name:
             raise ConfigError(f"plan file: field '{where}.name' must be a finger name")
-        if name not in FINGER_NAMES:
+        if name not in PLANNED:
             raise ConfigError(
                 f"plan file: field '{where}.name' = {name!r} is not a finger softgrasp plans "
-                f"({', '.join(FINGER_NAMES)})"
+                f"({', '.join(PLANNED)})"
             )
         if name in seen:
             raise ConfigError(f"plan file: field '{where}.name': finger {name!r} appears twice in 'fingers'")
@@ -248,7 +258,7 @@ def load_plan_file(path: str | Path) -> PlanFile:
         mu=_ranged(doc, "parameters.contact.mu"),
         fingertip_radius=_ranged(doc, "parameters.fingertip_radius_m"),
         table_mu=_ranged(doc, "parameters.table_mu"),
-        hand_source=_text(doc, "hand.model"),
+        hand_source=str(resolve_path(_text(doc, "hand.model"), p.parent)),
         palm_pose=pose,
         fingers=tuple(fingers),
         document=doc,

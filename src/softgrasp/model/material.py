@@ -375,13 +375,16 @@ def preset(name: str) -> Material:
 _KEYS = {"E", "nu", "density", "a2", "a3"}
 
 
-def parse_material(spec: str) -> tuple[Material, float | None]:
+def parse_material(spec: str, *, need_mass: bool = True) -> tuple[Material, float | None]:
     """Parse a material spec from the command line.
 
     ``spec`` is a preset name (``foam``, ``rubber``) or ``key=value`` pairs separated by commas:
     ``E=80e3,nu=0.45,density=45`` with optional ``mass=0.05`` (total mass [kg], overriding the
     density) and polynomial law coefficients ``a2``, ``a3``. A preset name may come first and be
     followed by overrides: ``rubber,nu=0.4``.
+
+    ``need_mass`` False accepts a list with neither density nor mass (the object's density or mass
+    given apart, as ``--density``/``--mass``).
 
     Returns
     -------
@@ -426,6 +429,8 @@ def parse_material(spec: str) -> tuple[Material, float | None]:
     law: StressStrainLaw = Linear()
     if "a2" in base or "a3" in base:
         law = Polynomial(base.get("a2", 0.0), base.get("a3", 0.0))
-    if "density" not in base and mass is None:
-        raise MaterialError(f"material spec {spec!r} needs density=.. [kg/m^3] or mass=.. [kg]")
+    if "density" not in base and mass is None and need_mass:
+        raise MaterialError(
+            f"material spec {spec!r} needs density=.. [kg/m^3] or mass=.. [kg] (or --density, --mass)"
+        )
     return check_given(Material(base["E"], base["nu"], base.get("density"), law, name)), mass

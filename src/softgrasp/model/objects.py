@@ -15,19 +15,36 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import NDArray
+
 from softgrasp.errors import MeshError
 from softgrasp.model.material import Material, preset
 from softgrasp.model.memory import release_freed_memory
-from softgrasp.model.mesh.placement import rest_on_table
+from softgrasp.model.mesh.placement import rest_on_table_transform
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.ranges import RANGES, check_object_size
 
-__all__ = ["ObjectSpec", "OBJECTS", "CUBE_SIZE", "SPHERE_RADIUS", "make_object", "check_object"]
+__all__ = [
+    "ObjectSpec",
+    "OBJECTS",
+    "CUBE_SIZE",
+    "SPHERE_RADIUS",
+    "FILE_MATERIAL",
+    "make_object",
+    "make_placed_object",
+    "check_object",
+    "is_mesh_file",
+]
 
 #: Edge of the default foam cube [m].
 CUBE_SIZE = 0.05
 #: Radius of the default rubber sphere [m] (paper, Sec. 4.2).
 SPHERE_RADIUS = 0.064
+#: The material a mesh file takes when it is given without one (with a warning from
+#: :func:`softgrasp.io.options.load_body`): the rubber preset's stiffness (Table 1) at the density
+#: of water, near that of fruit, silicone and most soft solids (900-1 200 kg/m^3).
+FILE_MATERIAL = Material(E=preset("rubber").E, nu=preset("rubber").nu, density=1000.0, name="rubber")
 #: Generated meshes kept per process (see :func:`_generated`).
 GENERATED_KEPT = 4
 
@@ -54,22 +71,35 @@ def make_object(
 ) -> tuple[TetMesh, Material, float | None]:
     """Mesh, default material and mass [kg] of a built-in object or a mesh file.
 
-    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) gets the ``rubber`` material
+    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) gets :data:`FILE_MATERIAL`
     and no fixed mass (the material density decides); its coordinates times ``scale`` are metres
     (``1e-3`` for a file in millimetres); ``reorient`` flips its inverted tets instead of refusing
     them. A shape's sizes are times ``scale`` as well; the built-in objects have their own size
     (``scale`` 1). An object outside :data:`~softgrasp.model.ranges.OBJECT_SIZE_M` (1 mm to
     0.5 m) is refused before it is meshed where its size is known then (shapes, surface files).
-    The mesh rests on the table plane z = 0 in a stable pose (:func:`rest_on_table`).
+    The mesh rests on the table plane z = 0 in a stable pose
+    (:func:`~softgrasp.model.mesh.placement.rest_on_table`).
     """
-    mesh, material, mass = _make_object(name_or_path, mesh_size, reorient, scale)
-    release_freed_memory()
+    mesh, material, mass, _ = make_placed_object(name_or_path, mesh_size, reorient=reorient, scale=scale)
     return mesh, material, mass
+
+
+def make_placed_object(
+    name_or_path: str, mesh_size: float | None = None, *, reorient: bool = False, scale: float = 1.0
+) -> tuple[TetMesh, Material, float | None, NDArray[np.float64]]:
+    """:func:`make_object`, and the transform (4, 4) from the source's coordinates to the mesh's
+    (``p_mesh = T p_source``, homogeneous; metres out): a mesh file's coordinates in its units
+    (``scale`` metres each), turned and moved to rest on the table; a built-in object's or a
+    shape's coordinates as softgrasp generates them (metres: a box standing on z = 0 about the z
+    axis, a sphere, ball or cylinder about its centre at the origin)."""
+    mesh, material, mass, T = _make_object(name_or_path, mesh_size, reorient, scale)
+    release_freed_memory()
+    return mesh, material, mass, T
 
 
 def _make_object(
     name_or_path: str, mesh_size: float | None, reorient: bool, scale: float = 1.0
-) -> tuple[TetMesh, Material, float | None]:
+) -> tuple[TetMesh, Material, float | None, NDArray[np.float64]]:
     if mesh_size is not None:
         RANGES["mesh_size"].check("mesh size", mesh_size, MeshError)
     if not (math.isfinite(scale) and scale > 0):
@@ -77,9 +107,11 @@ def _make_object(
     check_object(name_or_path, scale)
     if name_or_path in OBJECTS:
         spec = OBJECTS[name_or_path]
-        return _generated(name_or_path, mesh_size), preset(spec.material), spec.mass
+        mesh, T = _generated(name_or_path, mesh_size)
+        return mesh, preset(spec.material), spec.mass, T.copy()
     if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
-        return _generated(name_or_path, mesh_size, scale), preset("rubber"), None
+        mesh, T = _generated(name_or_path, mesh_size, scale)
+        return mesh, preset("rubber"), None, T.copy()
     path = Path(name_or_path)
     if not path.suffix:
         raise MeshError(
@@ -87,8 +119,16 @@ def _make_object(
         )
     from softgrasp.model.mesh.io import load_mesh
 
-    mesh = load_mesh(path, mesh_size=mesh_size, reorient=reorient, scale=scale, check_size=True)
-    return rest_on_table(mesh), preset("rubber"), None
+    mesh, T = rest_on_table_transform(
+        load_mesh(path, mesh_size=mesh_size, reorient=reorient, scale=scale, check_size=True)
+    )
+    return mesh, FILE_MATERIAL, None, T @ np.diag([scale, scale, scale, 1.0])
+
+
+def is_mesh_file(name_or_path: str) -> bool:
+    """Whether ``name_or_path`` names a mesh file rather than a built-in object or a shape."""
+    shape = ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES
+    return name_or_path not in OBJECTS and not shape
 
 
 def check_object(name_or_path: str, scale: float = 1.0) -> None:
@@ -105,19 +145,19 @@ def check_object(name_or_path: str, scale: float = 1.0) -> None:
 
 
 @functools.lru_cache(maxsize=GENERATED_KEPT)
-def _generated(name: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
+def _generated(name: str, mesh_size: float | None, scale: float = 1.0) -> tuple[TetMesh, NDArray[np.float64]]:
     """The mesh of a built-in object or parametric shape, generated once per process for each
     (name, mesh size) among the last few asked for: meshing is deterministic, the mesh immutable
     (its arrays read-only), and a sweep or a script planning the same object again (another
     friction coefficient, material or hand) then skips gmsh (0.3 s for the default sphere, 0.8 s
-    at 2 196 nodes)."""
+    at 2 196 nodes); with the transform from the generated coordinates to the resting mesh's."""
     from softgrasp.model.mesh import generate
     if name in OBJECTS:
         spec = OBJECTS[name]
         h = spec.mesh_size if mesh_size is None else mesh_size
         if spec.name == "cube":
-            return generate.box(CUBE_SIZE, _box_cells("cube", (CUBE_SIZE,) * 3, h), name="cube")
-        return rest_on_table(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
+            return generate.box(CUBE_SIZE, _box_cells("cube", (CUBE_SIZE,) * 3, h), name="cube"), np.eye(4)
+        return rest_on_table_transform(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
     return _shape(name, mesh_size, scale)
 
 
@@ -167,7 +207,7 @@ def _shape_sizes(spec: str, scale: float) -> tuple[str, list[float]]:
     return kind, vals
 
 
-def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
+def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> tuple[TetMesh, NDArray[np.float64]]:
     """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
     ``ball:0.03``; the sizes times ``scale`` in metres), meshed with about four elements across
     its smallest dimension by default."""
@@ -183,10 +223,10 @@ def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> TetMesh:
                 f"{spec} at {h * 1e3:.3g} mm elements needs {cells[0] * cells[1] * cells[2]} cells (at most "
                 f"{MAX_SHAPE_CELLS}); give a larger --mesh-size"
             )
-        return generate.box(size, cells, name=spec)
+        return generate.box(size, cells, name=spec), np.eye(4)
     if kind == "cylinder":
         D, H = vals
         h = min(D, H) / 4 if mesh_size is None else mesh_size
-        return rest_on_table(generate.cylinder(D / 2, H, h, name=spec))
+        return rest_on_table_transform(generate.cylinder(D / 2, H, h, name=spec))
     R = vals[0]
-    return rest_on_table(generate.sphere(R, R / 4 if mesh_size is None else mesh_size, name=spec))
+    return rest_on_table_transform(generate.sphere(R, R / 4 if mesh_size is None else mesh_size, name=spec))

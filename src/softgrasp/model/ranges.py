@@ -5,7 +5,9 @@ interval of values that describe a soft object a robot hand can grasp, and the u
 line states it in ``--help`` and refuses a value outside it before any work, and config files,
 sweep files and the Python API check the same intervals. :func:`check_object_size` refuses an
 object whose size is outside :data:`OBJECT_SIZE_M`, naming the length unit (``--units``) that
-would fit. SI units throughout.
+would fit; :func:`check_object_mass` an object to grasp whose mass is outside
+:data:`OBJECT_MASS_KG` (lighter than 1 g, or heavier than the hand's payload), naming ``--density``
+and ``--mass``. SI units throughout.
 """
 
 from __future__ import annotations
@@ -22,9 +24,11 @@ __all__ = [
     "RANGES",
     "UNITS",
     "OBJECT_SIZE_M",
+    "OBJECT_MASS_KG",
     "check",
     "check_units",
     "check_object_size",
+    "check_object_mass",
 ]
 
 #: Length units of mesh files and shape sizes: name -> metres per unit.
@@ -33,6 +37,12 @@ UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 #: Sizes of an object a hand can grasp [m]: its thinnest side at least 1 mm (thinner is a film,
 #: whose forces a mass-spring mesh cannot resolve), its largest at most 0.5 m (beyond a hand's span).
 OBJECT_SIZE_M = (1e-3, 0.5)
+
+#: Masses of an object a hand grasps and lifts [kg]: at least 1 g (lighter, its weight is below
+#: what the fingertips' force sensing resolves and the grasp test decides nothing), at most 2 kg:
+#: the payload of a fingertip grasp, whose three fingertips press some 10 N each (a dexterous
+#: hand's, such as the Shadow hand's) and, with friction near 1, carry about 2 kg.
+OBJECT_MASS_KG = (1e-3, 2.0)
 
 
 def _g(x: float) -> str:
@@ -117,6 +127,10 @@ RANGES: dict[str, Range] = {
     "refine": Range(1, 60, integer=True),
     "max_pressure": Range(0.0, 1e9, "Pa", low_open=True),
     "max_strain": Range(0.0, 1.0, low_open=True),
+    # The hand's layout limits (config files): contacts' spread and the aperture.
+    "min_spread": Range(0.001, 0.5, "m", why="distance between side-by-side fingers' contacts"),
+    "max_spread": Range(0.001, 0.5, "m", why="distance between side-by-side fingers' contacts"),
+    "max_aperture": Range(0.001, 0.5, "m", why="opposing finger to the others, or a gripper's opening"),
     # Robust set-points and sweeps.
     "samples": Range(2, 100_000, integer=True),
     "quantile": Range(0.0, 1.0, low_open=True, high_open=True),
@@ -174,3 +188,20 @@ def check_object_size(extent_m: Sequence[float], what: str, scale: float | None 
         elif current is not None:
             msg += f"; its numbers were read in {current} (--units m, cm or mm)"
     raise MeshError(msg)
+
+
+def check_object_mass(mass_kg: float, volume_m3: float, what: str = "the object") -> None:
+    """Refuse an object to grasp whose mass ``mass_kg`` [kg] (of volume ``volume_m3`` [m^3]) is
+    outside :data:`OBJECT_MASS_KG` (1 g to the hand's 2 kg payload) with ConfigError naming the
+    mass, its mean density and the options that set it (``--density``, ``--mass``)."""
+    lo, hi = OBJECT_MASS_KG
+    if math.isfinite(mass_kg) and lo <= mass_kg <= hi:
+        return
+    shown = f"{mass_kg * 1e3:.4g} g" if mass_kg < 1.0 else f"{mass_kg:.4g} kg"
+    rho = mass_kg / volume_m3 if volume_m3 > 0 else math.nan
+    why = "lighter than a hand's fingertips can feel" if mass_kg < lo else "more than the hand can lift"
+    raise ConfigError(
+        f"{what} weighs {shown} (mean density {rho:.4g} kg/m^3 over {volume_m3 * 1e6:.4g} cm^3): {why}; "
+        f"a hand grasps objects of {lo * 1e3:g} g to {hi:g} kg: give its --density KG_M3 or --mass KG "
+        "(API: density_kg_m3=, mass_kg=), or check --units"
+    )

@@ -298,6 +298,7 @@ def _reproduce(
     t_report = time.perf_counter()
     doc: dict[str, Any] = {
         "schema": SCHEMA,
+        "softgrasp_version": __version__,
         "paper": PAPER_TITLE,
         "run": {
             "softgrasp_version": __version__,

@@ -26,8 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from softgrasp import __version__
 from softgrasp.errors import ConfigError
 from softgrasp.io.atomic import atomic_write, write_json
+from softgrasp.io.portable import PATH_OPTIONS, portable_options, portable_path
 from softgrasp.sweep.case import output_columns, run_case
 from softgrasp.sweep.spec import Case, SweepSpec, describe_spec, spec_digest
 
@@ -267,6 +269,19 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
         _close(client, cluster)
 
 
+def _portable_spec(doc: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """A sweep's description with the files it names relative to its output ``folder``."""
+    out = dict(doc)
+    out["base"] = portable_options(doc.get("base") or {}, folder)
+    out["grid"] = {
+        k: [portable_path(v, folder) if k in PATH_OPTIONS and isinstance(v, str) else v for v in vals]
+        for k, vals in (doc.get("grid") or {}).items()
+    }
+    if isinstance(doc.get("source"), str):
+        out["source"] = portable_path(doc["source"], folder)
+    return out
+
+
 def _resumable(
     out: Path, json_path: Path, csv_path: Path, spec: SweepSpec, cases: Sequence[Case], cols: Sequence[str]
 ) -> list[dict[str, object]]:
@@ -365,7 +380,8 @@ def _run(
         client, cluster = _client(scheduler, workers)  # reached before the folder changes
     try:
         _write_csv(csv_path, cols, done)  # the finished rows, clean, then appended to
-        doc = {"schema": "softgrasp.sweep/1", **describe_spec(spec), "cases": len(cases)}
+        doc = {"schema": "softgrasp.sweep/1", **_portable_spec(describe_spec(spec), folder.path)}
+        doc.update(cases=len(cases), softgrasp_version=__version__)
         write_json(json_path, {**doc, "spec_sha256": spec_digest(spec)})
         if progress is not None:
             progress(len(rows), len(cases))
@@ -397,7 +413,8 @@ def _run(
                         result = {c: math.nan for c in output_columns(spec.execute, spec.hold is not None)}
                         kind = type(exc).__name__
                         result.update(status="failed", error=f"{kind}: {exc}", error_type=kind)
-                    row = {"case": case.index, "case_id": case.id, **case.options, **result}
+                    options = portable_options(case.options, folder.path)
+                    row = {"case": case.index, "case_id": case.id, **options, **result}
                     for c in spec.inputs:
                         row.setdefault(c, None)
                     w.writerow([_cell(row.get(c)) for c in cols])

@@ -64,7 +64,7 @@ MAX_CASES = 1_000_000
 
 #: Options a sweep may set (plan options and material parameters).
 OPTIONS: tuple[str, ...] = (
-    tuple(k for k in PLAN_DEFAULTS if k not in ("out", "reorient")) + MATERIAL_OVERRIDES
+    tuple(k for k in PLAN_DEFAULTS if k not in ("out", "reorient", *MATERIAL_OVERRIDES)) + MATERIAL_OVERRIDES
 )
 _TEXT = TEXT_OPTIONS
 
@@ -249,11 +249,12 @@ def sweep_cases(spec: SweepSpec) -> list[Case]:
 
 def split_options(options: Mapping[str, object]) -> tuple[dict[str, object], dict[str, float]]:
     """A case's plan options (over :data:`PLAN_DEFAULTS`) and its material parameters."""
-    plan = dict(PLAN_DEFAULTS)
+    plan = {k: v for k, v in PLAN_DEFAULTS.items() if k not in MATERIAL_OVERRIDES}
     material: dict[str, float] = {}
     for k, v in options.items():
         if k in MATERIAL_OVERRIDES:
-            material[k] = float(v)  # type: ignore[arg-type]
+            if v is not None:
+                material[k] = float(v)  # type: ignore[arg-type]
         else:
             plan[k] = v
     return plan, material

@@ -1,16 +1,16 @@
 """Interactive page of a plan run: ``softgrasp view RUN_DIR``.
 
 :func:`write_view` reads the ``frames.npz`` that ``softgrasp plan --out DIR`` writes and turns it into
-one self-contained HTML file: the deformed boundary surface of the object, the fingertips and their
-forces on the object, for the start of the closing, each closing increment and the final held state,
-chosen with a slider and turned with the mouse.
+one self-contained HTML file: the deformed boundary surface of the object coloured by its
+displacement, the fingertips, their forces on the object and the hand's links, for the start of the
+closing, each closing increment and the final held state, chosen with a slider and turned with the
+mouse.
 
-The page needs no network and no plug-in: the data are embedded as JSON and a small inline script
-(``static/view.js``, inlined into the page template ``static/view.html``) draws them with the
-Canvas 2D API (painter's algorithm: triangles sorted by depth, flat Lambert shading), which works
-everywhere, also without a GPU. Node coordinates are stored as whole
-micrometres, the first frame absolute and every later one as differences to the previous frame,
-which keeps the file small.
+The page needs no network and no plug-in: the data are embedded as JSON, and three.js (WebGL; the
+pinned build ``static/three.min.js`` with its OrbitControls, made by ``tools/vendor_three.sh``) and
+the page's script ``static/view.js`` are inlined into the page template ``static/view.html``. Node
+coordinates are stored as whole micrometres, the first frame absolute and every later one as
+differences to the previous frame, which keeps the file small.
 """
 
 from __future__ import annotations
@@ -45,6 +45,11 @@ _ARRAYS = (
     "facets",
     "fingertip_radius",
     "finger_names",
+    "normal_forces",
+    "held_normal_forces",
+    "hand_points",
+    "held_hand_points",
+    "hand_lines",
 )
 
 #: Finger colours, in the order of the planner's figures (matplotlib's tab: red, blue, green, ...).
@@ -63,6 +68,9 @@ _FINGER_COLOURS = (
 #: Fingertip centres this close [m] to those of a closing frame mark the travel of the held state.
 _SAME_CENTRE_M = 1e-7
 
+#: Each node's deformation is sent as a whole number of 1 / _LEVELS of the largest.
+_LEVELS = 1000
+
 #: Default elevation of the camera above the horizontal [deg]: slightly from above.
 _ELEVATION_DEG = 24.0
 
@@ -78,6 +86,11 @@ class _Run:
     held_positions: NDArray[np.float64]  # (N, 3)
     held_centres: NDArray[np.float64]  # (F, 3)
     held_forces: NDArray[np.float64]  # (F, 3)
+    normals: NDArray[np.float64]  # (K, F) normal components of the forces [N]
+    held_normals: NDArray[np.float64]  # (F,)
+    hand: NDArray[np.float64]  # (K, P, 3) points of the hand's link polylines
+    held_hand: NDArray[np.float64]  # (P, 3)
+    hand_lines: NDArray[np.int64]  # (L + 1,) where each polyline starts in the points, then P
     facets: NDArray[np.int64]  # (M, 3)
     radius: float
     names: list[str]
@@ -128,6 +141,11 @@ def _load_run(run_dir: Path) -> _Run:
     held_centres = real("held_centres", 2)
     held_forces = real("held_forces", 2)
     radius = real("fingertip_radius", 0)
+    normals = real("normal_forces", 2)
+    held_normals = real("held_normal_forces", 1)
+    hand = real("hand_points", 3)
+    held_hand = real("held_hand_points", 2)
+    hand_lines = raw["hand_lines"]
     facets = raw["facets"]
     names = raw["finger_names"]
     K = travel.shape[0]
@@ -146,6 +164,20 @@ def _load_run(run_dir: Path) -> _Run:
         raise bad(f"held_centres / held_forces have shapes {held_centres.shape} / {held_forces.shape}")
     if names.shape != (F,) or names.dtype.kind != "U":
         raise bad(f"finger_names must be {F} strings, got {names.dtype} {names.shape}")
+    if normals.shape != (K, F) or held_normals.shape != (F,):
+        raise bad(f"normal_forces / held_normal_forces have shapes {normals.shape} / {held_normals.shape}")
+    P = held_hand.shape[0]
+    if held_hand.shape != (P, 3) or hand.shape != (K, P, 3):
+        raise bad(f"hand_points / held_hand_points have shapes {hand.shape} / {held_hand.shape}")
+    if (
+        hand_lines.ndim != 1
+        or hand_lines.dtype.kind not in "iu"
+        or hand_lines.size < 1
+        or hand_lines[0] != 0
+        or hand_lines[-1] != P
+        or np.any(np.diff(hand_lines) < (2 if P else 0))
+    ):
+        raise bad(f"hand_lines must rise from 0 to {P} in steps of at least 2, got {hand_lines.tolist()}")
     if facets.ndim != 2 or facets.shape[1] != 3 or facets.shape[0] < 1 or facets.dtype.kind not in "iu":
         raise bad(f"facets must be an (M, 3) integer array, got {facets.dtype} {facets.shape}")
     facets = facets.astype(np.int64)
@@ -161,6 +193,11 @@ def _load_run(run_dir: Path) -> _Run:
         held_positions=held_positions,
         held_centres=held_centres,
         held_forces=held_forces,
+        normals=normals,
+        held_normals=held_normals,
+        hand=hand,
+        held_hand=held_hand,
+        hand_lines=hand_lines.astype(np.int64),
         facets=facets,
         radius=float(radius),
         names=[str(s) for s in names],
@@ -182,6 +219,21 @@ def _orient(points: NDArray[np.float64], tri: NDArray[np.int64]) -> tuple[NDArra
     a, b, c = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
     volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
     return (tri if volume >= 0.0 else tri[:, ::-1].copy()), True
+
+
+def _deformation(start: NDArray[np.float64], frames: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How far each node moved [m], ``(K, N)``, from ``start`` ``(N, 3)`` to each of ``frames``
+    ``(K, N, 3)`` less the rigid motion that best maps ``start`` onto the frame (least squares)."""
+    c0 = start.mean(axis=0)
+    c = frames.mean(axis=1, keepdims=True)
+    H = np.einsum("ni,knj->kij", start - c0, frames - c)
+    U, _, Vt = np.linalg.svd(H)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    d = np.sign(np.linalg.det(V @ Ut))
+    V[:, :, 2] *= np.where(d == 0.0, 1.0, d)[:, None]  # a rotation, never a reflection
+    R = V @ Ut
+    fitted = np.einsum("kij,nj->kni", R, start - c0) + c
+    return np.linalg.norm(frames - fitted, axis=2)
 
 
 def _held_travel(run: _Run) -> float | None:
@@ -244,11 +296,16 @@ def _page_data(run: _Run, title: str) -> dict:
     used = np.unique(run.facets)
     index = np.full(run.positions.shape[1], -1, dtype=np.int64)
     index[used] = np.arange(used.size)
-    tri, cull = _orient(run.positions[0][used], index[run.facets])
+    tri, closed = _orient(run.positions[0][used], index[run.facets])
     pos_um = np.rint(np.concatenate([run.positions[:, used], run.held_positions[None, used]]) * 1e6).astype(
         np.int64
     )
     steps = np.concatenate([pos_um[:1], np.diff(pos_um, axis=0)])
+    moved = _deformation(
+        run.positions[0][used], np.concatenate([run.positions, run.held_positions[None]])[:, used]
+    )
+    moved_max = float(moved.max())
+    levels = np.rint(moved / (moved_max or 1.0) * _LEVELS).astype(np.int64)
     held_travel = _held_travel(run)
     frames = []
     K = run.travel.shape[0]
@@ -257,6 +314,8 @@ def _page_data(run: _Run, title: str) -> dict:
         travel = held_travel if held else float(run.travel[k])
         c = run.held_centres if held else run.centres[k]
         f = run.held_forces if held else run.forces[k]
+        n = run.held_normals if held else run.normals[k]
+        h = run.held_hand if held else run.hand[k]
         frames.append(
             {
                 "label": "held" if held else str(k),
@@ -264,27 +323,33 @@ def _page_data(run: _Run, title: str) -> dict:
                 "travel_mm": None if travel is None else round(travel * 1e3, 6),
                 "centres": np.round(c, 6).tolist(),
                 "forces": np.round(f, 6).tolist(),
+                "normals": np.round(n, 6).tolist(),
+                "hand": np.round(h, 6).ravel().tolist(),
                 "pos": steps[k].ravel().tolist(),
+                "deformation": levels[k].tolist(),
             }
         )
     az, el = _default_view(run.positions[0][used], run.centres[-1], run.radius)
     return {
-        "format": "softgrasp.view/1",
+        "format": "softgrasp.view/2",
         "title": title,
         "nodes": int(used.size),
         "tris": tri.ravel().tolist(),
-        "cull": cull,
+        "closed": closed,
         "radius": run.radius,
         "fingers": run.names,
         "colours": [_FINGER_COLOURS[i % len(_FINGER_COLOURS)] for i in range(len(run.names))],
         "view": {"azimuth_deg": az, "elevation_deg": el},
+        "hand_lines": run.hand_lines.tolist(),
+        "deformation_max_m": moved_max,
         "frames": frames,
     }
 
 
 def _static(name: str) -> str:
     """The text of ``static/name``, shipped with the package: the page template (``view.html``,
-    with ``__TITLE__``, ``__SCRIPT__`` and ``__DATA__`` to fill in) and its script (``view.js``)."""
+    with ``__TITLE__``, ``__THREE__``, ``__SCRIPT__`` and ``__DATA__`` to fill in), three.js
+    (``three.min.js``) and the page's script (``view.js``)."""
     return resources.files("softgrasp.viz").joinpath("static", name).read_text(encoding="utf-8")
 
 
@@ -304,17 +369,20 @@ def write_view(run_dir: str | Path, out: str | Path | None = None) -> Path:
     out:
         The HTML file to write; default ``run_dir/view.html``.
 
-    The page is self-contained (no network access): the object's boundary surface at the start of
-    the closing, after each closing increment and in the held state (the last frame, "held"), the
-    fingertips as spheres and the force of each on the object as an arrow labelled in newtons. A
-    slider (``input#frame``) picks the frame, ``#readout`` shows its travel [mm] and the finger
-    forces [N]; dragging turns the view, the wheel zooms, a double click resets it. The
-    displacements from the start can be shown exaggerated (x2 to x20) and the surface coloured by
-    its deformation (on by default).
+    The page is self-contained (no network access; WebGL through the inlined three.js): the
+    object's boundary surface at the start of the closing, after each closing increment and in the
+    held state (the last frame, "held", which the page opens on), coloured by each node's
+    displacement from the start less the rigid shift (with a colour bar); the fingertips as
+    spheres; the force of each on the object as an arrow (lengths proportional to the force, on one
+    scale for all frames) labelled with its normal force in newtons; the hand's links as capsules;
+    the table during the closing. A slider (``input#frame``) picks the frame, ``#readout`` shows
+    its travel [mm] and the finger forces [N]; dragging turns the view, the wheel zooms, a double
+    click resets it. The camera frames every frame's scene whichever way it is turned.
 
     For scripts the page defines ``window.softgraspView`` (``frames``: number of frames including
-    the held one, ``held``: index of the held frame, ``frame``: current index, ``setFrame(i)``) and
-    sets ``document.body.dataset.ready`` to ``"1"`` after its first drawing.
+    the held one, ``held``: index of the held frame, ``frame``: current index, ``setFrame(i)``,
+    ``handLinks``: number of link capsules drawn, ``showHand(on)``, ``resetView()``) and sets
+    ``document.body.dataset.ready`` to ``"1"`` after its first drawing (``"error"`` without WebGL).
 
     Raises
     ------
@@ -326,8 +394,9 @@ def write_view(run_dir: str | Path, out: str | Path | None = None) -> Path:
     title = _title(run_dir)
     parts = {
         "TITLE": html.escape(f"softgrasp view: {title}"),
+        "THREE": _static("three.min.js"),
         "SCRIPT": _static("view.js"),
         "DATA": _embed(_page_data(run, title)),
     }
-    page = re.sub(r"__(TITLE|SCRIPT|DATA)__", lambda m: parts[m.group(1)], _static("view.html"))
+    page = re.sub(r"__(TITLE|THREE|SCRIPT|DATA)__", lambda m: parts[m.group(1)], _static("view.html"))
     return write_text(run_dir / "view.html" if out is None else Path(out), page)

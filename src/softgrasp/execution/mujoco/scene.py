@@ -29,10 +29,7 @@ from softgrasp.execution.mujoco.spec import SceneSpec, rigid_transform
 __all__ = ["MUJOCO_MISSING", "MujocoScene", "blow_up", "contact_force", "import_mujoco", "load_scene"]
 
 #: Message of the :class:`ConfigError` raised when MuJoCo cannot be imported.
-MUJOCO_MISSING = (
-    "MuJoCo is not installed: pip install 'mujoco>=4.0', or reinstall softgrasp with its extra: "
-    "pip install -e '.[execute]'"
-)
+MUJOCO_MISSING = "MuJoCo is not installed (softgrasp's 'execute' extra): pip install 'softgrasp[execute]'"
 
 
 def _log_warning(message: str) -> None:

@@ -14,7 +14,7 @@ import io
 import math
 import os
 import secrets
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -377,8 +377,15 @@ def _fill_surface(gmsh: Any, points: NDArray[np.float64], tri: NDArray[np.int64]
 
 
 # ---------------------------------------------------------------------------- writing
-def save_mesh(mesh: TetMesh, path: str | os.PathLike[str]) -> None:
-    """Write ``mesh`` (points in metres, tetra cells) to a volume mesh file, atomically.
+def save_mesh(
+    mesh: TetMesh,
+    path: str | os.PathLike[str],
+    *,
+    point_data: Mapping[str, NDArray[np.float64]] | None = None,
+    cell_data: Mapping[str, NDArray[np.float64]] | None = None,
+) -> None:
+    """Write ``mesh`` (points in metres, tetra cells) to a volume mesh file, atomically, with
+    named arrays per node (``point_data``: (N,) or (N, 3)) and per tet (``cell_data``: (M,)).
 
     The file is written under a temporary name in the target directory and renamed over ``path``
     only once complete, so an error never leaves a half-written file.
@@ -390,11 +397,14 @@ def save_mesh(mesh: TetMesh, path: str | os.PathLike[str]) -> None:
     path:
         Target file; its suffix selects the format: ``.vtu``, ``.vtk``, ``.msh`` (gmsh 4.1),
         ``.mesh`` (Medit) or ``.inp`` (Abaqus).
+    point_data, cell_data:
+        Arrays by name (``.vtu`` and ``.vtk`` only): ParaView shows them on the mesh.
 
     Raises
     ------
     MeshError
-        Unsupported suffix, missing directory, or the write failing.
+        Unsupported suffix, missing directory, arrays of the wrong length or a format without
+        them, or the write failing.
     """
     import meshio
 
@@ -408,12 +418,24 @@ def save_mesh(mesh: TetMesh, path: str | os.PathLike[str]) -> None:
     if not p.parent.is_dir():
         raise MeshError(f"cannot write {p}: directory {p.parent} does not exist")
     fmt = _WRITE_FORMATS[suffix]
-    cell_data = {}
+    if (point_data or cell_data) and fmt not in ("vtu", "vtk"):
+        raise MeshError(f"cannot write {p}: data arrays go to .vtu or .vtk files only")
+    cells_data: dict[str, list[NDArray[Any]]] = {}
+    nodes: dict[str, NDArray[Any]] = {}
+    for kind, given, n in (("point", point_data, mesh.n_nodes), ("cell", cell_data, mesh.n_tets)):
+        for name, a in (given or {}).items():
+            arr = np.ascontiguousarray(a, dtype=np.float64)
+            if arr.shape[0] != n:
+                raise MeshError(f"cannot write {p}: {kind} data {name!r} has {arr.shape[0]} rows, not {n}")
+            if kind == "point":
+                nodes[name] = arr
+            else:
+                cells_data[name] = [arr]
     if fmt == "gmsh":
         tags = np.ones(mesh.n_tets, dtype=np.int32)
-        cell_data = {"gmsh:physical": [tags], "gmsh:geometrical": [tags]}
+        cells_data = {"gmsh:physical": [tags], "gmsh:geometrical": [tags]}
     cells = [("tetra", np.asarray(mesh.tets))]
-    data = meshio.Mesh(np.asarray(mesh.points), cells, cell_data=cell_data)
+    data = meshio.Mesh(np.asarray(mesh.points), cells, point_data=nodes, cell_data=cells_data)
     tmp = p.with_name(f".{p.name}.{secrets.token_hex(4)}.tmp")
     done = False
     try:

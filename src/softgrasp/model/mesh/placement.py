@@ -13,7 +13,7 @@ from scipy.spatial import ConvexHull
 
 from softgrasp.model.mesh.tetmesh import TetMesh
 
-__all__ = ["rest_on_table", "rotation_between", "stable_facet_pose"]
+__all__ = ["rest_on_table", "rest_on_table_transform", "rotation_between", "stable_facet_pose", "rigid_fit"]
 
 
 def rotation_between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -35,7 +35,14 @@ def rotation_between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[
 
 def rest_on_table(mesh: TetMesh) -> TetMesh:
     """A copy of ``mesh`` rotated onto the convex-hull face below its centroid, standing on z = 0
-    with its centroid above the origin.
+    with its centroid above the origin (:func:`rest_on_table_transform`)."""
+    return rest_on_table_transform(mesh)[0]
+
+
+def rest_on_table_transform(mesh: TetMesh) -> tuple[TetMesh, NDArray[np.float64]]:
+    """A copy of ``mesh`` rotated onto the convex-hull face below its centroid, standing on z = 0
+    with its centroid above the origin, and the rigid transform (4, 4) that took it there
+    (``p_new = T p``, homogeneous, metres).
 
     The face is the one the downward vertical through the centroid crosses; after the rotation it
     lies flat on the table, so the centroid projects inside the support polygon (a stable pose).
@@ -59,8 +66,26 @@ def rest_on_table(mesh: TetMesh) -> TetMesh:
     else:
         R = rotation_between(n, down)
     xr = (x - c) @ R.T
-    xr[:, 2] -= xr[:, 2].min()
-    return TetMesh(xr, mesh.tets, name=mesh.name)
+    lift = xr[:, 2].min()
+    xr[:, 2] -= lift
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -(R @ c) - np.array([0.0, 0.0, lift])
+    return TetMesh(xr, mesh.tets, name=mesh.name), T
+
+
+def rigid_fit(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rigid transform (4, 4) taking the points ``a`` (N, 3) onto the points ``b`` (N, 3) in the
+    least-squares sense (Kabsch's method; a proper rotation): exact where ``b`` is ``a`` turned
+    and moved."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    R = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = cb - R @ ca
+    return T
 
 
 def stable_facet_pose(x: NDArray[np.float64], com: NDArray[np.float64]) -> NDArray[np.float64]:

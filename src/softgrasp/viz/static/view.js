@@ -1,487 +1,365 @@
-// The page script of `softgrasp view` (softgrasp.viz.view inlines it into the page).
-// Data format (softgrasp.view/1): `nodes` boundary nodes, `tris` flat node triples (outward when
-// `cull`), `frames[k]` with `pos` (node coordinates in whole micrometres, frame 0 absolute and every
-// later frame the difference to the previous one), `centres` [m], `forces` [N], `travel_mm` and
-// `held`; `radius` of the fingertips [m], `fingers` names, `colours`, default `view`.
+// The page script of `softgrasp view` (softgrasp.viz.view inlines it after three.js, the global THREE).
+// Data format (softgrasp.view/2), SI units: `nodes` boundary nodes, `tris` flat node triples (outward
+// when `closed`), `frames[k]` with `pos` (node coordinates in whole micrometres, frame 0 absolute and
+// every later frame the difference to the previous one), `centres` [m], `forces` [N] (of each
+// fingertip on the object), `normals` (their normal components [N]), `hand` (the hand's link polylines,
+// flat [m]; polyline j is points hand_lines[j] to hand_lines[j + 1] - 1), `deformation` (each node's
+// displacement from the start less the best-fit rigid motion, in thousandths of `deformation_max_m`),
+// `travel_mm` and `held`; `radius` of the fingertips [m], `fingers` names, `colours`, default `view`.
 "use strict";
 (function () {
-  const D = JSON.parse(document.getElementById("softgrasp-data").textContent);
   const $ = id => document.getElementById(id);
-  const canvas = $("view"), ctx = canvas.getContext("2d"), slider = $("frame");
+  const D = JSON.parse($("softgrasp-data").textContent);
+  const T = window.THREE;
 
-  const BACKGROUND = "#f3f4f6";
-  const OBJECT_RGB = [222, 186, 138];
-  // Colour by deformation: from the object's colour (none) through orange to plum (the largest).
-  const RAMP = [[0, OBJECT_RGB], [0.5, [240, 128, 48]], [1, [128, 34, 104]]];
-  const LIGHT = normalise([-0.45, 0.6, 0.66]);  // fixed in camera space: upper left, in front
-  const SHADES = 96, TINTS = 24;  // quantised brightness and deformation colour
-  const KEY_SPAN = 4194304;  // sort key = quantised depth * KEY_SPAN + item index (< 2^22)
+  const BACKGROUND = 0xf3f4f6, HAND = "#4b5563", PALM = "#7b8494", TABLE = 0xc4c9d1;
+  const OBJECT = [236, 230, 219];  // sRGB of the object where it has not moved
+  // Displacement colour map (sRGB stops): the object's colour through amber and red to plum.
+  const RAMP = [[0, OBJECT], [0.3, [246, 196, 106]], [0.65, [222, 90, 50]], [1, [116, 26, 86]]];
+  const FOV = 35;  // vertical field of view [deg]
+  const nNodes = D.nodes, nF = D.fingers.length, tipR = D.radius, lines = D.hand_lines;
+  const nFrames = D.frames.length, heldIndex = D.frames.findIndex(f => f.held);
 
-  const nNodes = D.nodes, tris = Int32Array.from(D.tris), nTri = tris.length / 3;
-  const nF = D.fingers.length, tipR = D.radius, nFrames = D.frames.length;
-  const heldIndex = D.frames.findIndex(f => f.held);
-
-  function normalise(v) {
-    const l = Math.hypot(v[0], v[1], v[2]) || 1;
-    return [v[0] / l, v[1] / l, v[2] / l];
-  }
-  function rgb(c) { return "rgb(" + c.map(v => Math.max(0, Math.min(255, Math.round(v)))).join(",") + ")"; }
-  function mix(a, b, t) { return a.map((v, i) => v + (b[i] - v) * t); }
   function ramp(x) {
     for (let i = 1; i < RAMP.length; i++) {
       const [x0, c0] = RAMP[i - 1], [x1, c1] = RAMP[i];
-      if (x <= x1) return mix(c0, c1, (x - x0) / (x1 - x0));
+      if (x <= x1) return c0.map((v, j) => v + (c1[j] - v) * (x - x0) / (x1 - x0));
     }
     return RAMP[RAMP.length - 1][1];
   }
-  function shadeHex(hex, k) {  // k > 0 towards white, k < 0 towards black
-    const n = parseInt(hex.slice(1), 16), c = [(n >> 16) & 255, (n >> 8) & 255, n & 255];
-    return rgb(k >= 0 ? mix(c, [255, 255, 255], k) : c.map(v => v * (1 + k)));
+  // 256 colours of the map in three.js's linear working space, for the vertex colours.
+  const LUT = new Float32Array(3 * 256);
+  for (let i = 0; i < 256; i++) {
+    const c = ramp(i / 255), col = new T.Color().setRGB(c[0] / 255, c[1] / 255, c[2] / 255, T.SRGBColorSpace);
+    LUT.set([col.r, col.g, col.b], 3 * i);
   }
 
-  // Frames: node positions [m] decoded from the micrometre differences, and the deformation of
-  // each node, |u - mean u| with u its displacement from the start (the mean is the rigid shift).
-  const frames = [];
-  let dMax = 0;
+  // Frames: node positions [m] decoded from the micrometre differences, the colour-map index of each
+  // node's deformation and the forces' magnitudes.
+  const frames = [], dMax = D.deformation_max_m;
+  let fMax = 0;
   {
     const acc = new Float64Array(3 * nNodes);
     for (const f of D.frames) {
       const p = new Float32Array(3 * nNodes);
       for (let i = 0; i < p.length; i++) { acc[i] += f.pos[i]; p[i] = acc[i] * 1e-6; }
-      delete f.pos;
-      const p0 = frames.length ? frames[0].p : p, mean = [0, 0, 0], def = new Float32Array(nNodes);
-      for (let i = 0; i < 3 * nNodes; i++) mean[i % 3] += (p[i] - p0[i]) / nNodes;
-      for (let i = 0; i < nNodes; i++) {
-        def[i] = Math.hypot(p[3 * i] - p0[3 * i] - mean[0], p[3 * i + 1] - p0[3 * i + 1] - mean[1],
-                            p[3 * i + 2] - p0[3 * i + 2] - mean[2]);
-        dMax = Math.max(dMax, def[i]);
-      }
-      frames.push({
-        p: p, def: def, centres: f.centres, forces: f.forces, held: f.held, label: f.label,
-        travel: f.travel_mm, mag: f.forces.map(v => Math.hypot(v[0], v[1], v[2])),
-      });
+      const def = Uint8Array.from(f.deformation, x => Math.round(x * 255 / 1000));
+      const mag = f.forces.map(v => Math.hypot(v[0], v[1], v[2]));
+      for (const m of mag) fMax = Math.max(fMax, m);
+      frames.push({ p: p, def: def, centres: f.centres, forces: f.forces, normals: f.normals, mag: mag,
+                    hand: Float32Array.from(f.hand), held: f.held, travel: f.travel_mm });
     }
   }
 
-  // The scene: centre and size of the object at the start, largest force, table grid.
-  const scene = (() => {
-    const p = frames[0].p, lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-    for (let i = 0; i < 3 * nNodes; i++) {
-      lo[i % 3] = Math.min(lo[i % 3], p[i]); hi[i % 3] = Math.max(hi[i % 3], p[i]);
+  // Sizes: the object's radius at the start sets the arrows' and the table's; arrows are scaled by
+  // the largest force of all frames, so that their lengths compare across the closing.
+  const box0 = new T.Box3().setFromArray(frames[0].p);
+  const objR = Math.max(0.5 * box0.getSize(new T.Vector3()).length(), 1e-4);
+  const arrowMax = 0.7 * objR, shaftR = 0.17 * tipR, headR = 0.4 * tipR, headL = 1.1 * tipR;
+  const linkR = 0.42 * tipR, palmR = 0.3 * tipR;
+
+  // A force arrow's ends: pushing the fingertip from behind along the force, its point on the
+  // fingertip's surface opposite the contact, its length proportional to the force; null for no force.
+  function arrowEnds(f, i) {
+    const m = f.mag[i];
+    if (!(fMax > 0) || !(m > 1e-6 * fMax)) return null;
+    const dir = new T.Vector3(...f.forces[i]).divideScalar(m);
+    const tip = new T.Vector3(...f.centres[i]).addScaledVector(dir, -tipR);
+    return { tip: tip, tail: tip.clone().addScaledVector(dir, -arrowMax * m / fMax), dir: dir };
+  }
+
+  // The sphere around everything drawn in any frame (object nodes, hand joints, fingertips, arrow
+  // tails, each with its radius): the camera frames it whichever way it turns. Its centre starts at
+  // the middle of the bounding box and moves towards the farthest point with shrinking steps, which
+  // approaches the smallest enclosing sphere (Badoiu and Clarkson's iteration).
+  const bounds = (() => {
+    const pts = [], stride = Math.max(1, Math.floor(nNodes * nFrames / 20000));
+    for (const f of frames) {
+      for (let i = 0; i < 3 * nNodes; i += 3 * stride) pts.push([f.p[i], f.p[i + 1], f.p[i + 2], 0]);
+      for (let i = 0; i < f.hand.length; i += 3) pts.push([f.hand[i], f.hand[i + 1], f.hand[i + 2], linkR]);
+      f.centres.forEach((c, i) => {
+        pts.push([c[0], c[1], c[2], tipR]);
+        const a = arrowEnds(f, i);
+        if (a) pts.push([a.tail.x, a.tail.y, a.tail.z, headR]);
+      });
     }
-    const c = [0, 1, 2].map(a => 0.5 * (lo[a] + hi[a]));
-    let R = 0;
-    for (let i = 0; i < nNodes; i++) {
-      R = Math.max(R, Math.hypot(p[3 * i] - c[0], p[3 * i + 1] - c[1], p[3 * i + 2] - c[2]));
+    const box = new T.Box3(), v = new T.Vector3();
+    for (const q of pts) box.expandByPoint(v.set(q[0], q[1], q[2]));
+    const c = box.getCenter(new T.Vector3());
+    const farthest = () => {
+      let best = 0, R = 0;
+      pts.forEach((q, k) => { const r = c.distanceTo(v.set(q[0], q[1], q[2])) + q[3]; if (r > R) { R = r; best = k; } });
+      return [R, pts[best]];
+    };
+    let [R, far] = farthest(), centre = c.clone();
+    for (let it = 1; it <= 100; it++) {
+      c.lerp(v.set(far[0], far[1], far[2]), 1 / (it + 1));
+      const [r, q] = farthest();
+      far = q;
+      if (r < R) { R = r; centre = c.clone(); }
     }
-    R = R || 1e-3;
-    let fMax = 0;
-    for (const f of frames) for (const m of f.mag) fMax = Math.max(fMax, m);
-    const raw = R / 3, pow = Math.pow(10, Math.floor(Math.log10(raw)));
-    const grid = [1, 2, 5, 10].map(m => m * pow).find(g => g >= raw);
-    return { c: c, R: R, fMax: fMax, arrowMax: 0.55 * R, grid: grid, half: Math.ceil(1.3 * R / grid) * grid };
+    return { centre: centre, R: 1.02 * R };
   })();
 
-  // Camera: orbit around the scene centre, z up; `dist` gives a mild perspective.
-  const cam = { az: 0, el: 0, zoom: 1, dist: 7 * scene.R };
-  const fit = { x0: -1, x1: 1, y0: -1, y1: 1 };  // the default view's extent in view units
-  let W = 300, H = 150, scale = 1, panX = 0, panY = 0, exaggerate = 1, colourOn = true;
-  let current = 0, drawCount = 0, lastDrawMs = 0;
+  // Renderer, scene, camera, lights.
+  const canvas = $("view"), main = canvas.parentElement;
+  let renderer;
+  try {
+    renderer = new T.WebGLRenderer({ canvas: canvas, antialias: true, preserveDrawingBuffer: true });
+  } catch (e) {
+    $("error").textContent = "This browser cannot draw WebGL, which this page needs (" + e.message + ").";
+    $("error").style.display = "flex";
+    document.body.dataset.ready = "error";
+    return;
+  }
+  renderer.setPixelRatio(window.devicePixelRatio || 1);
+  const scene = new T.Scene();
+  scene.background = new T.Color(BACKGROUND);
+  const camera = new T.PerspectiveCamera(FOV, 1, 0.01 * bounds.R, 100 * bounds.R);
+  camera.up.set(0, 0, 1);
+  scene.add(camera);
+  scene.add(new T.HemisphereLight(0xffffff, 0x8a8276, 1.0));
+  const top = new T.DirectionalLight(0xffffff, 0.9);  // from above, fixed: tops lighter than sides
+  top.position.set(0.3, -0.2, 1);
+  scene.add(top);
+  const headlight = new T.DirectionalLight(0xffffff, 1.4);  // turns with the camera: upper left, in front
+  headlight.position.set(-0.7, 0.6, 1);
+  headlight.target.position.set(0, 0, -1);
+  camera.add(headlight, headlight.target);
 
-  function basis() {
-    const ca = Math.cos(cam.az), sa = Math.sin(cam.az), ce = Math.cos(cam.el), se = Math.sin(cam.el);
-    return { r: [-sa, ca, 0], u: [-se * ca, -se * sa, ce], e: [ce * ca, ce * sa, se] };
+  // The object's surface, flat-shaded (its facets as meshed): positions and colours change with the frame.
+  const geometry = new T.BufferGeometry();
+  const positions = new T.BufferAttribute(new Float32Array(3 * nNodes), 3).setUsage(T.DynamicDrawUsage);
+  const colours = new T.BufferAttribute(new Float32Array(3 * nNodes), 3).setUsage(T.DynamicDrawUsage);
+  geometry.setAttribute("position", positions);
+  geometry.setAttribute("color", colours);
+  geometry.setIndex(new T.BufferAttribute(Uint32Array.from(D.tris), 1));
+  const object = new T.Mesh(geometry, new T.MeshStandardMaterial({
+    vertexColors: true, flatShading: true, roughness: 0.85, metalness: 0, side: D.closed ? T.FrontSide : T.DoubleSide }));
+  scene.add(object);
+
+  // The table the object rests on during the closing (removed in the held state): a grid under it.
+  const table = (() => {
+    const raw = objR / 4, pow = Math.pow(10, Math.floor(Math.log10(raw)));
+    const step = [1, 2, 5, 10].map(m => m * pow).find(g => g >= raw), n = 2 * Math.ceil(1.6 * objR / step);
+    const g = new T.GridHelper(n * step, n, TABLE, TABLE);
+    g.rotation.x = Math.PI / 2;
+    g.position.set(box0.getCenter(new T.Vector3()).x, box0.getCenter(new T.Vector3()).y, box0.min.z);
+    scene.add(g);
+    return g;
+  })();
+
+  // Fingertips and force arrows.
+  const unitCylinder = new T.CylinderGeometry(1, 1, 1, 20).translate(0, 0.5, 0);  // base at 0, along y
+  const unitCone = new T.ConeGeometry(1, 1, 24).translate(0, 0.5, 0);
+  const unitSphere = new T.SphereGeometry(1, 24, 16);
+  const Y = new T.Vector3(0, 1, 0);
+  const tips = [], arrows = [], labels = [];
+  D.fingers.forEach((name, i) => {
+    const colour = new T.Color(D.colours[i]);
+    const tip = new T.Mesh(new T.SphereGeometry(tipR, 40, 24),
+                           new T.MeshStandardMaterial({ color: colour, roughness: 0.35 }));
+    const dark = new T.MeshStandardMaterial({ color: colour.clone().multiplyScalar(0.8), roughness: 0.5 });
+    const arrow = new T.Group(), shaft = new T.Mesh(unitCylinder, dark), head = new T.Mesh(unitCone, dark);
+    arrow.add(shaft, head);
+    arrow.userData = { shaft: shaft, head: head };
+    scene.add(tip, arrow);
+    tips.push(tip);
+    arrows.push(arrow);
+    const label = document.createElement("div");
+    label.className = "force";
+    label.style.background = D.colours[i];
+    $("labels").append(label);
+    labels.push(label);
+  });
+
+  function placeArrow(arrow, a) {
+    arrow.visible = a !== null;
+    if (!a) return;
+    const L = a.tip.distanceTo(a.tail), hl = Math.min(headL, 0.6 * L), k = hl / headL;
+    arrow.position.copy(a.tail);
+    arrow.quaternion.setFromUnitVectors(Y, a.dir);
+    arrow.userData.shaft.scale.set(shaftR * k, L - hl, shaftR * k);
+    arrow.userData.head.position.set(0, L - hl, 0);
+    arrow.userData.head.scale.set(headR * k, hl, headR * k);
   }
 
-  // View coordinates of a world point (x right, y up, z towards the camera) and its screen point.
-  function project(B, P) {
-    const dx = P[0] - scene.c[0], dy = P[1] - scene.c[1], dz = P[2] - scene.c[2];
-    const vx = dx * B.r[0] + dy * B.r[1];
-    const vy = dx * B.u[0] + dy * B.u[1] + dz * B.u[2];
-    const vz = dx * B.e[0] + dy * B.e[1] + dz * B.e[2];
-    const s = cam.dist / (cam.dist - vz), k = cam.zoom * scale * s;
-    return { vx: vx, vy: vy, vz: vz, s: s,
-             X: W / 2 + cam.zoom * panX + k * vx, Y: H / 2 - cam.zoom * panY - k * vy };
-  }
-
-  // Fingertip centre as drawn: with exaggerated displacements it moves with the surface nearest
-  // to it, so that it still touches the object as it does.
-  function tipCentre(f, i, g) {
-    const c = f.centres[i];
-    if (g === 1) return c;
-    if (!f.near) {
-      f.near = f.centres.map(q => {
-        let best = 0, dBest = Infinity;
-        for (let j = 0; j < nNodes; j++) {
-          const d = (f.p[3 * j] - q[0]) ** 2 + (f.p[3 * j + 1] - q[1]) ** 2 + (f.p[3 * j + 2] - q[2]) ** 2;
-          if (d < dBest) { dBest = d; best = j; }
+  // The hand: each link a capsule (a cylinder between joint spheres), the palm outline thinner.
+  const hand = new T.Group(), links = [], joints = [];
+  {
+    const linkMat = new T.MeshStandardMaterial({ color: HAND, roughness: 0.45, metalness: 0.25 });
+    const palmMat = new T.MeshStandardMaterial({ color: PALM, roughness: 0.5, metalness: 0.2 });
+    for (let j = 0; j + 1 < lines.length; j++) {
+      const r = j === 0 ? palmR : linkR, mat = j === 0 ? palmMat : linkMat;
+      for (let p = lines[j]; p < lines[j + 1]; p++) {
+        if (p + 1 < lines[j + 1]) {
+          const m = new T.Mesh(unitCylinder, mat);
+          m.userData = { a: p, b: p + 1, r: r };
+          links.push(m);
         }
-        return best;
-      });
-    }
-    const j = 3 * f.near[i], p0 = frames[0].p;
-    return [0, 1, 2].map(a => c[a] + (g - 1) * (f.p[j + a] - p0[j + a]));
-  }
-
-  // Force arrow: its tip where the fingertip touches, its length proportional to the force.
-  function arrowEnds(f, i, g) {
-    const m = f.mag[i];
-    if (!(scene.fMax > 0) || !(m > 1e-6 * scene.fMax)) return null;
-    const c = tipCentre(f, i, g), F = f.forces[i], L = scene.arrowMax * m / scene.fMax;
-    const tip = [0, 1, 2].map(a => c[a] + tipR * F[a] / m);
-    return { tip: tip, tail: [0, 1, 2].map(a => tip[a] - L * F[a] / m) };
-  }
-
-  // Extent of everything (all frames, fingertips, arrows) seen from the default camera.
-  function fitDefault() {
-    cam.az = D.view.azimuth_deg * Math.PI / 180;
-    cam.el = D.view.elevation_deg * Math.PI / 180;
-    cam.zoom = 1;
-    const B = basis();
-    let x0 = Infinity, x1 = -Infinity, y0 = Infinity, y1 = -Infinity;
-    const add = (P, pad) => {
-      const q = project(B, P);
-      x0 = Math.min(x0, q.vx * q.s - pad); x1 = Math.max(x1, q.vx * q.s + pad);
-      y0 = Math.min(y0, q.vy * q.s - pad); y1 = Math.max(y1, q.vy * q.s + pad);
-    };
-    const stride = Math.max(1, Math.floor(nNodes * nFrames / 60000));
-    for (const f of frames) {
-      for (let i = 0; i < nNodes; i += stride) add([f.p[3 * i], f.p[3 * i + 1], f.p[3 * i + 2]], 0);
-      for (let i = 0; i < nF; i++) {
-        add(tipCentre(f, i, 1), tipR);
-        const a = arrowEnds(f, i, 1);
-        if (a) add(a.tail, 0);
+        const s = new T.Mesh(unitSphere, mat);
+        s.scale.setScalar(r);
+        s.userData = { a: p };
+        joints.push(s);
       }
     }
-    Object.assign(fit, { x0: x0, x1: x1, y0: y0, y1: y1 });
+    if (joints.length) hand.add(...links, ...joints);
+    scene.add(hand);
   }
-
-  function layout() {
-    const rect = canvas.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
-    W = Math.max(1, rect.width); H = Math.max(1, rect.height);
-    canvas.width = Math.round(W * dpr); canvas.height = Math.round(H * dpr);
-    ctx.setTransform(canvas.width / W, 0, 0, canvas.height / H, 0, 0);
-    const mx = Math.min(110, 0.15 * W), my = Math.min(30, 0.08 * H);  // room for the arrow labels
-    scale = Math.min((W - 2 * mx) / (fit.x1 - fit.x0), (H - 2 * my) / (fit.y1 - fit.y0));
-    panX = -scale * 0.5 * (fit.x0 + fit.x1);
-    panY = -scale * 0.5 * (fit.y0 + fit.y1);
-  }
-
-  // Fill styles by deformation tint and brightness (above 1: a highlight towards white); the
-  // outline of a triangle is a little darker than its fill.
-  const fillStyles = [], edgeStyles = [];
-  for (let t = 0; t < TINTS; t++) {
-    const base = ramp(t / (TINTS - 1));
-    for (let l = 0; l < SHADES; l++) {
-      const b = 1.2 * l / (SHADES - 1);
-      const c = b <= 1 ? base.map(v => v * b) : mix(base, [255, 255, 255], (b - 1) / 0.5);
-      fillStyles.push(rgb(c));
-      edgeStyles.push(rgb(c.map(v => 0.8 * v)));
+  function placeHand(points) {
+    const a = new T.Vector3(), b = new T.Vector3();
+    for (const m of links) {
+      a.fromArray(points, 3 * m.userData.a);
+      b.fromArray(points, 3 * m.userData.b);
+      const L = a.distanceTo(b);
+      m.visible = L > 0;
+      if (!m.visible) continue;
+      m.position.copy(a);
+      m.quaternion.setFromUnitVectors(Y, b.sub(a).divideScalar(L));
+      m.scale.set(m.userData.r, L, m.userData.r);
     }
+    for (const s of joints) s.position.fromArray(points, 3 * s.userData.a);
   }
 
-  // Work arrays, sized once.
-  const VX = new Float32Array(nNodes), VY = new Float32Array(nNodes), VZ = new Float32Array(nNodes);
-  const SX = new Float32Array(nNodes), SY = new Float32Array(nNodes);
-  const keys = new Float64Array(nTri + nF), style = new Uint16Array(nTri);
-
-  function drawTable(B, alpha) {
-    const c = scene.c, h = scene.half, g = scene.grid;
-    const x0 = Math.round(c[0] / g) * g - h, y0 = Math.round(c[1] / g) * g - h, n = Math.round(2 * h / g);
-    const P = (x, y) => project(B, [x, y, 0]);
-    ctx.save();
-    ctx.globalAlpha = alpha;
-    ctx.beginPath();
-    [P(x0, y0), P(x0 + 2 * h, y0), P(x0 + 2 * h, y0 + 2 * h), P(x0, y0 + 2 * h)].forEach(
-      (q, i) => (i ? ctx.lineTo(q.X, q.Y) : ctx.moveTo(q.X, q.Y)));
-    ctx.closePath();
-    ctx.fillStyle = "rgba(120, 132, 148, 0.14)";
-    ctx.fill();
-    ctx.beginPath();
-    for (let i = 0; i <= n; i++) {
-      const u = x0 + i * g, v = y0 + i * g;
-      for (const [a, b] of [[P(u, y0), P(u, y0 + 2 * h)], [P(x0, v), P(x0 + 2 * h, v)]]) {
-        ctx.moveTo(a.X, a.Y); ctx.lineTo(b.X, b.Y);
-      }
-    }
-    ctx.strokeStyle = "rgba(96, 108, 124, 0.3)";
-    ctx.lineWidth = 1;
-    ctx.stroke();
-    ctx.restore();
+  // Camera fit: the bounding sphere fills the smaller of the two fields of view.
+  const controls = new T.OrbitControls(camera, canvas);
+  let touched = false, current = heldIndex, colourOn = true;
+  function fit() {
+    const aspect = camera.aspect, half = Math.PI * FOV / 360;
+    const halfMin = Math.min(half, Math.atan(Math.tan(half) * aspect));
+    const dist = bounds.R / Math.sin(halfMin);
+    const az = D.view.azimuth_deg * Math.PI / 180, el = D.view.elevation_deg * Math.PI / 180;
+    controls.target.copy(bounds.centre);
+    camera.position.set(Math.cos(el) * Math.cos(az), Math.cos(el) * Math.sin(az), Math.sin(el))
+      .multiplyScalar(dist).add(bounds.centre);
+    controls.minDistance = 0.15 * bounds.R;
+    controls.maxDistance = 8 * dist;
+    camera.far = controls.maxDistance + 2 * bounds.R;
+    camera.updateProjectionMatrix();
+    controls.update();
+    touched = false;
+  }
+  function resize() {
+    const w = Math.max(1, main.clientWidth), h = Math.max(1, main.clientHeight);
+    renderer.setSize(w, h, false);
+    camera.aspect = w / h;
+    camera.updateProjectionMatrix();
+    if (!touched) fit();
+    render();
   }
 
-  function drawTip(q, i) {
-    const rp = Math.max(1.5, cam.zoom * scale * tipR * q.s), col = D.colours[i];
-    const g = ctx.createRadialGradient(q.X - 0.4 * rp, q.Y - 0.45 * rp, 0.05 * rp, q.X, q.Y, rp);
-    g.addColorStop(0, shadeHex(col, 0.75));
-    g.addColorStop(0.45, col);
-    g.addColorStop(1, shadeHex(col, -0.45));
-    ctx.beginPath();
-    ctx.arc(q.X, q.Y, rp, 0, 2 * Math.PI);
-    ctx.fillStyle = g;
-    ctx.fill();
-    ctx.lineWidth = 1;
-    ctx.strokeStyle = shadeHex(col, -0.55);
-    ctx.stroke();
-  }
-
-  function label(text, x, y, align, colour) {
-    ctx.font = "600 13px system-ui, -apple-system, 'Segoe UI', Roboto, Arial, sans-serif";
-    ctx.textAlign = align;
-    ctx.textBaseline = "middle";
-    ctx.lineJoin = "round";
-    ctx.lineWidth = 4;
-    ctx.strokeStyle = "rgba(255, 255, 255, 0.92)";
-    ctx.strokeText(text, x, y);
-    ctx.fillStyle = colour;
-    ctx.fillText(text, x, y);
-  }
-
-  // Force arrows and their labels, over everything; dashed when the fingertip is behind the object.
-  function drawArrows(f, B, tips) {
-    const o = project(B, scene.c);
-    for (let i = 0; i < nF; i++) {
-      const q = tips[i], col = D.colours[i], dark = shadeHex(col, -0.25);
-      const behind = q.vz < -0.3 * scene.R;
-      const a = arrowEnds(f, i, exaggerate);
-      let ux = q.X - o.X, uy = q.Y - o.Y, at = null;
-      if (a) {
-        const t = project(B, a.tip), s = project(B, a.tail), len = Math.hypot(t.X - s.X, t.Y - s.Y);
-        if (len > 1) {
-          const dx = (t.X - s.X) / len, dy = (t.Y - s.Y) / len, head = Math.min(16, 0.45 * len + 4);
-          const bx = t.X - head * dx, by = t.Y - head * dy;
-          ctx.save();
-          ctx.globalAlpha = behind ? 0.65 : 1;
-          ctx.lineCap = "round";
-          ctx.setLineDash(behind ? [7, 5] : []);
-          for (const [w, st] of [[7, "rgba(255, 255, 255, 0.9)"], [3.2, dark]]) {
-            ctx.beginPath(); ctx.moveTo(s.X, s.Y); ctx.lineTo(bx, by);
-            ctx.lineWidth = w; ctx.strokeStyle = st; ctx.stroke();
-          }
-          ctx.setLineDash([]);
-          ctx.beginPath();
-          ctx.moveTo(t.X, t.Y);
-          ctx.lineTo(bx - 0.5 * head * dy, by + 0.5 * head * dx);
-          ctx.lineTo(bx + 0.5 * head * dy, by - 0.5 * head * dx);
-          ctx.closePath();
-          ctx.lineWidth = 2; ctx.strokeStyle = "rgba(255, 255, 255, 0.9)"; ctx.stroke();
-          ctx.fillStyle = dark; ctx.fill();
-          ctx.restore();
-          ux = -dx; uy = -dy; at = s;
-        }
-      }
-      const l = Math.hypot(ux, uy) || 1;
-      ux /= l; uy /= l;
-      if (!at) {  // no arrow: the label beside the fingertip, away from the object
-        const rp = cam.zoom * scale * tipR * q.s;
-        at = { X: q.X + rp * ux, Y: q.Y + rp * uy };
-      }
-      const align = ux > 0.35 ? "left" : ux < -0.35 ? "right" : "center";
-      label(D.fingers[i] + ": " + f.mag[i].toFixed(2) + " N", at.X + 8 * ux, at.Y + 10 * uy, align, dark);
-    }
-  }
-
-  // A small axis cross in the lower right corner (x, y on the table, z up).
-  function drawAxes(B) {
-    const ox = W - 40, oy = H - 64, L = 22;
-    ctx.save();
-    ctx.lineWidth = 1.5; ctx.strokeStyle = "#57606a"; ctx.fillStyle = "#57606a";
-    ctx.font = "11px system-ui, sans-serif"; ctx.textAlign = "center"; ctx.textBaseline = "middle";
-    [["x", [1, 0, 0]], ["y", [0, 1, 0]], ["z", [0, 0, 1]]].forEach(([name, v]) => {
-      const x = v[0] * B.r[0] + v[1] * B.r[1], y = v[0] * B.u[0] + v[1] * B.u[1] + v[2] * B.u[2];
-      ctx.beginPath(); ctx.moveTo(ox, oy); ctx.lineTo(ox + L * x, oy - L * y); ctx.stroke();
-      ctx.fillText(name, ox + (L + 8) * x, oy - (L + 8) * y);
+  function render() {
+    renderer.render(scene, camera);
+    // Force labels beside the arrows' tails (hidden behind the camera or without a force).
+    const f = frames[current], w = main.clientWidth, h = main.clientHeight, v = new T.Vector3();
+    labels.forEach((label, i) => {
+      const a = arrowEnds(f, i);
+      if (a) v.copy(a.tail).addScaledVector(a.dir, -0.9 * headR - 0.06 * objR).project(camera);
+      const show = a !== null && v.z < 1;
+      label.style.display = show ? "" : "none";
+      if (!show) return;
+      label.style.left = ((v.x + 1) / 2 * w).toFixed(1) + "px";
+      label.style.top = ((1 - v.y) / 2 * h).toFixed(1) + "px";
     });
-    ctx.restore();
   }
 
-  function draw() {
-    const t0 = performance.now();
-    const f = frames[current], p = f.p, p0 = frames[0].p, g = exaggerate, B = basis();
-    ctx.fillStyle = BACKGROUND;
-    ctx.fillRect(0, 0, W, H);
-    const table = !f.held;
-    if (table && cam.el >= 0) drawTable(B, 1);
-
-    // Project the nodes (displacements from the start exaggerated by g).
-    let zMin = Infinity, zMax = -Infinity;
-    const k = cam.zoom * scale, cx = W / 2 + cam.zoom * panX, cy = H / 2 - cam.zoom * panY;
+  function newton(x) { return x.toFixed(3) + " N"; }
+  function setFrame(k) {
+    k = Math.max(0, Math.min(nFrames - 1, Math.round(Number(k)) || 0));
+    current = k;
+    slider.value = String(k);
+    const f = frames[k];
+    positions.array.set(f.p);
+    positions.needsUpdate = true;
     for (let i = 0; i < nNodes; i++) {
-      const j = 3 * i;
-      const dx = p0[j] + g * (p[j] - p0[j]) - scene.c[0];
-      const dy = p0[j + 1] + g * (p[j + 1] - p0[j + 1]) - scene.c[1];
-      const dz = p0[j + 2] + g * (p[j + 2] - p0[j + 2]) - scene.c[2];
-      const vx = dx * B.r[0] + dy * B.r[1];
-      const vy = dx * B.u[0] + dy * B.u[1] + dz * B.u[2];
-      const vz = dx * B.e[0] + dy * B.e[1] + dz * B.e[2];
-      const s = k * cam.dist / (cam.dist - vz);
-      VX[i] = vx; VY[i] = vy; VZ[i] = vz;
-      SX[i] = cx + s * vx;
-      SY[i] = cy - s * vy;
-      if (vz < zMin) zMin = vz;
-      if (vz > zMax) zMax = vz;
+      const c = colourOn ? f.def[i] : 0;
+      colours.array.set(LUT.subarray(3 * c, 3 * c + 3), 3 * i);
     }
-    const tips = [];
-    for (let i = 0; i < nF; i++) {
-      const q = project(B, tipCentre(f, i, g));
-      tips.push(q);
-      zMin = Math.min(zMin, q.vz); zMax = Math.max(zMax, q.vz);
-    }
-    const zScale = (1 << 30) / Math.max(zMax - zMin, 1e-12);
-    const tint = colourOn && dMax > 0 ? (TINTS - 1) / dMax : 0;
-
-    // Visible triangles: their style and depth key (sorted: far ones first).
-    let n = 0, edgeSum = 0, edgeCount = 0;
-    for (let t = 0; t < nTri; t++) {
-      const a = tris[3 * t], b = tris[3 * t + 1], c = tris[3 * t + 2];
-      const cross = (SX[b] - SX[a]) * (SY[c] - SY[a]) - (SY[b] - SY[a]) * (SX[c] - SX[a]);
-      if (D.cull && cross >= 0) continue;  // a back face (screen y points down)
-      const ux = VX[b] - VX[a], uy = VY[b] - VY[a], uz = VZ[b] - VZ[a];
-      const wx = VX[c] - VX[a], wy = VY[c] - VY[a], wz = VZ[c] - VZ[a];
-      let nx = uy * wz - uz * wy, ny = uz * wx - ux * wz, nz = ux * wy - uy * wx;
-      let l = Math.hypot(nx, ny, nz);
-      if (!(l > 0)) continue;
-      if (!D.cull && nz < 0) l = -l;  // two-sided lighting
-      const lambert = Math.max(0, (nx * LIGHT[0] + ny * LIGHT[1] + nz * LIGHT[2]) / l);
-      const bright = 0.45 + 0.55 * lambert + 0.12 * Math.pow(lambert, 12);
-      const shade = Math.min(SHADES - 1, Math.round(bright / 1.2 * (SHADES - 1)));
-      const d = Math.round(tint * (f.def[a] + f.def[b] + f.def[c]) / 3);
-      style[t] = Math.min(TINTS - 1, d) * SHADES + shade;
-      keys[n++] = Math.floor(((VZ[a] + VZ[b] + VZ[c]) / 3 - zMin) * zScale) * KEY_SPAN + t;
-      if ((t & 15) === 0) { edgeSum += Math.abs(SX[b] - SX[a]) + Math.abs(SY[b] - SY[a]); edgeCount++; }
-    }
-    for (let i = 0; i < nF; i++) keys[n++] = Math.floor((tips[i].vz - zMin) * zScale) * KEY_SPAN + nTri + i;
-    const order = keys.subarray(0, n).sort();
-
-    // A light outline on coarse meshes; on fine ones the edges only close the seams.
-    const coarse = edgeSum / Math.max(1, edgeCount) > 7, width = coarse ? 0.7 : 0.6;
-    const edges = coarse ? edgeStyles : fillStyles;
-    ctx.lineJoin = "round";
-    ctx.lineWidth = width;
-    for (let j = 0; j < n; j++) {
-      const t = order[j] % KEY_SPAN;
-      if (t >= nTri) { drawTip(tips[t - nTri], t - nTri); ctx.lineWidth = width; continue; }
-      const a = tris[3 * t], b = tris[3 * t + 1], c = tris[3 * t + 2], st = style[t];
-      ctx.beginPath();
-      ctx.moveTo(SX[a], SY[a]); ctx.lineTo(SX[b], SY[b]); ctx.lineTo(SX[c], SY[c]);
-      ctx.closePath();
-      ctx.fillStyle = fillStyles[st];
-      ctx.fill();
-      ctx.strokeStyle = edges[st];
-      ctx.stroke();
-    }
-    if (table && cam.el < 0) drawTable(B, 0.6);
-    drawArrows(f, B, tips);
-    drawAxes(B);
-    drawCount++;
-    lastDrawMs = performance.now() - t0;
-  }
-
-  let pending = false;
-  function requestDraw() {
-    if (pending) return;
-    pending = true;
-    requestAnimationFrame(() => { pending = false; draw(); });
-  }
-
-  function describe(f, k) {
-    $("frame-label").textContent = f.held ? "held" : "step " + k + " / " + (heldIndex - 1);
+    colours.needsUpdate = true;
+    geometry.computeBoundingSphere();
+    f.centres.forEach((c, i) => tips[i].position.set(...c));
+    arrows.forEach((arrow, i) => placeArrow(arrow, arrowEnds(f, i)));
+    labels.forEach((label, i) => { label.textContent = D.fingers[i] + " " + newton(f.normals[i]); });
+    placeHand(f.hand);
+    table.visible = !f.held;
+    $("frame-label").textContent = f.held ? "held" : k === 0 ? "start" : "increment " + k + " / " + (heldIndex - 1);
     const readout = $("readout"), travel = f.travel === null ? "" : "travel " + f.travel.toFixed(3) + " mm";
-    readout.textContent = (f.held ? "held by the fingers alone (table removed)" + (travel ? ", " : "") : "") +
-      travel + ": ";
-    for (let i = 0; i < nF; i++) {
+    readout.textContent = (f.held ? "held by the fingers alone (table removed)" + (travel ? ", " : "") : "")
+      + travel + "; normal force (|force|):  ";
+    f.normals.forEach((n, i) => {
       const span = document.createElement("span"), dot = document.createElement("span");
       span.className = "finger";
       dot.className = "dot";
       dot.style.background = D.colours[i];
-      span.append(dot, D.fingers[i] + " " + f.mag[i].toFixed(3) + " N");
+      span.append(dot, D.fingers[i] + " " + newton(n) + " (" + newton(f.mag[i]) + ")");
       readout.append(span, i + 1 < nF ? ",  " : "");
-    }
+    });
+    render();
   }
 
-  function setFrame(i) {
-    current = Math.max(0, Math.min(nFrames - 1, Math.round(Number(i)) || 0));
-    slider.value = String(current);
-    describe(frames[current], current);
-    draw();
+  // Legend: the colour bar of the displacement, the fingertips, the hand and the arrows.
+  function legend() {
+    const mm = dMax * 1e3, um = mm < 0.1, unit = um ? " \u00b5m" : " mm", s = um ? 1e3 : 1;
+    const fmt = x => (x * s).toPrecision(2).replace(/\.?0+$/, "");
+    const stops = RAMP.map(([x, c]) => "rgb(" + c.map(Math.round).join(",") + ") " + (100 * x) + "%");
+    const box = $("legend");
+    box.replaceChildren();
+    const row = html => { const d = document.createElement("div"); d.className = "row"; d.innerHTML = html; box.append(d); return d; };
+    if (colourOn) {
+      row("deformation: displacement from the start").title =
+        "each node's displacement from the start of the closing less the rigid motion that fits best";
+      row("less the best-fitting rigid motion");
+      const bar = row("");
+      bar.className = "bar";
+      bar.style.background = "linear-gradient(to right, " + stops.join(", ") + ")";
+      const ticks = row("");
+      ticks.className = "ticks";
+      for (const x of [0, 0.5, 1]) { const t = document.createElement("span"); t.textContent = fmt(x * mm) + (x === 1 ? unit : ""); ticks.append(t); }
+    }
+    D.fingers.forEach((name, i) => {
+      const r = row("<span class=\"swatch\"></span>");
+      r.firstChild.style.background = D.colours[i];
+      r.append("fingertip " + name);
+    });
+    if (links.length) row("<span class=\"swatch\" style=\"background:" + HAND + "\"></span>hand links");
+    row("arrows: force on the object (length \u221d force),");
+    row("labelled with its normal component");
   }
 
   // Controls.
-  $("title").textContent = D.title;
+  const slider = $("frame");
   slider.max = String(nFrames - 1);
   slider.addEventListener("input", () => setFrame(slider.value));
-  $("scale").addEventListener("change", e => { exaggerate = Number(e.target.value) || 1; draw(); });
-  $("colour").addEventListener("change", e => { colourOn = e.target.checked; legendRamp(); draw(); });
   let timer = null;
-  const play = $("play");
-  function stop() { clearInterval(timer); timer = null; play.innerHTML = "&#9654;"; }
-  play.addEventListener("click", () => {
-    if (timer) { stop(); return; }
-    if (current >= nFrames - 1) setFrame(0);
-    play.innerHTML = "&#10074;&#10074;";
-    timer = setInterval(() => { if (current >= nFrames - 1) stop(); else setFrame(current + 1); }, 700);
+  const stop = () => { if (timer !== null) { clearInterval(timer); timer = null; $("play").innerHTML = "&#9654;"; } };
+  $("play").addEventListener("click", () => {
+    if (timer !== null) { stop(); return; }
+    if (current >= heldIndex) setFrame(0);
+    $("play").innerHTML = "&#10074;&#10074;";
+    timer = setInterval(() => { if (current >= heldIndex) stop(); else setFrame(current + 1); }, 350);
   });
-  let drag = null;
-  canvas.addEventListener("pointerdown", e => {
-    drag = { x: e.clientX, y: e.clientY };
-    canvas.setPointerCapture(e.pointerId);
-    canvas.classList.add("dragging");
-  });
-  canvas.addEventListener("pointermove", e => {
-    if (!drag) return;
-    cam.az -= 0.01 * (e.clientX - drag.x);
-    cam.el = Math.max(-1.5, Math.min(1.5, cam.el + 0.01 * (e.clientY - drag.y)));
-    drag = { x: e.clientX, y: e.clientY };
-    requestDraw();
-  });
-  const release = () => { drag = null; canvas.classList.remove("dragging"); };
-  canvas.addEventListener("pointerup", release);
-  canvas.addEventListener("pointercancel", release);
-  canvas.addEventListener("wheel", e => {
-    e.preventDefault();
-    cam.zoom = Math.max(0.2, Math.min(20, cam.zoom * Math.exp(-0.0015 * e.deltaY)));
-    requestDraw();
-  }, { passive: false });
-  canvas.addEventListener("dblclick", () => { fitDefault(); layout(); requestDraw(); });
-  new ResizeObserver(() => { layout(); requestDraw(); }).observe(canvas);
-
-  // Legend.
-  const legend = $("legend");
-  const row = html => {
-    const d = document.createElement("div");
-    d.innerHTML = html;
-    legend.append(d);
-    return d;
-  };
-  row('<span class="swatch" style="background:' + rgb(OBJECT_RGB) + '"></span>object');
-  const tipsRow = row("");
-  D.colours.forEach(c => {
-    const dot = document.createElement("span");
-    dot.className = "dot"; dot.style.background = c;
-    tipsRow.append(dot);
-  });
-  tipsRow.append(" fingertips");
-  row("&#10230; force on the object, &prop; |F| (up to " + scene.fMax.toFixed(2) + " N)");
-  const rampRow = row('deformation 0<span class="ramp" style="background:linear-gradient(to right,' +
-    RAMP.map(s => rgb(s[1]) + " " + 100 * s[0] + "%").join(",") + ')"></span>' +
-    (1e3 * dMax).toFixed(2) + " mm");
-  rampRow.title = "displacement from the start, less the mean (rigid) shift";
-  function legendRamp() { rampRow.style.display = colourOn && dMax > 0 ? "" : "none"; }
-  legendRamp();
-  row('<span class="swatch" style="background:rgba(120,132,148,0.3)"></span>table, z = 0');
+  $("colour").addEventListener("change", e => { colourOn = e.target.checked; legend(); setFrame(current); });
+  $("hand").addEventListener("change", e => { hand.visible = e.target.checked; render(); });
+  $("hand").parentElement.style.display = links.length ? "" : "none";
+  controls.addEventListener("change", render);
+  controls.addEventListener("start", () => { touched = true; stop(); });
+  canvas.addEventListener("dblclick", () => { fit(); render(); });
+  new ResizeObserver(resize).observe(main);
+  $("title").textContent = D.title;
 
   window.softgraspView = {
     frames: nFrames,
     held: heldIndex,
     get frame() { return current; },
     setFrame: setFrame,
-    redraw: draw,
-    get drawCount() { return drawCount; },
-    get lastDrawMs() { return lastDrawMs; },
+    handLinks: links.length,
+    showHand: on => { $("hand").checked = !!on; hand.visible = !!on; render(); },
+    resetView: () => { fit(); render(); },
   };
-
-  fitDefault();
-  layout();
-  setFrame(0);
+  legend();
+  camera.aspect = Math.max(1, main.clientWidth) / Math.max(1, main.clientHeight);
+  renderer.setSize(Math.max(1, main.clientWidth), Math.max(1, main.clientHeight), false);
+  fit();
+  setFrame(heldIndex);
   document.body.dataset.ready = "1";
 })();

@@ -1,0 +1,444 @@
+"""The command line a person expects: progress by phase that never goes backwards, a "compiling
+kernels" status on a cold cache, global options anywhere, a run given as its folder or its
+plan.json, distinct exit statuses, ``python -m softgrasp``, every command's help with an example,
+and a message naming the extra to install when a command's optional dependency is missing."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import shlex
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from softgrasp.cli import build_parser, main
+from softgrasp.cli.help import COMMANDS
+from softgrasp.cli.progress import PLAN_SHARES, PhaseBar, kernels_phase
+from softgrasp.cli.status import EXIT_CODES, exit_status
+from softgrasp.errors import (
+    ConfigError,
+    ContactError,
+    InfeasibleGrasp,
+    MaterialError,
+    MeshError,
+    NotConverged,
+    SimulationUnstable,
+)
+from softgrasp.grasp.progress import PHASES, PlanProgress
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+ENV = {**os.environ, "PYTHONPATH": SRC}
+#: A coarse plan of the default sphere: a few seconds.
+COARSE = ["plan", "--mesh-size", "0.032", "--hold-time", "0.3"]
+
+
+@pytest.fixture(scope="module")
+def coarse_run(tmp_path_factory) -> tuple[Path, str, list[float], list[str]]:
+    """A coarse plan by the command line: its folder, what it printed on stderr (not a terminal),
+    and the fractions done and phases the planner reported to it."""
+    import softgrasp.api.planning as planning
+
+    out = tmp_path_factory.mktemp("coarse") / "run"
+    err = io.StringIO()
+    fractions: list[float] = []
+    phases: list[str] = []
+    plan = planning.plan
+
+    def recorded(*args, progress, phase, **kwargs):
+        def fraction(f: float) -> None:
+            fractions.append(f)
+            progress(f)
+
+        def named(name: str) -> None:
+            phases.append(name)
+            phase(name)
+
+        return plan(*args, progress=fraction, phase=named, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(planning, "plan", recorded)
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            assert main([*COARSE, "--out", str(out)]) == 0
+    return out, err.getvalue(), fractions, phases
+
+
+# ------------------------------------------------------------------------------ progress
+def test_plan_prints_one_line_per_phase_off_a_terminal(coarse_run):
+    err = coarse_run[1]
+    lines = err.strip().splitlines()
+    names = [line.removeprefix("softgrasp: plan: ") for line in lines]
+    assert all(line.startswith("softgrasp: plan: ") for line in lines), err
+    kernels = [n for n in names if "kernels" in n]  # loading, or compiling on a first run, or done
+    assert names[len(kernels) :] == [*PHASES, "figures"], err
+    assert len(kernels) <= 1 and "%" not in err  # no bar off a terminal
+
+
+def test_the_planners_progress_never_goes_back_and_passes_every_phase(coarse_run):
+    _, _, fractions, phases = coarse_run
+    assert phases == list(PHASES)
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    # The closing moves the bar in steps, not 0 then 100 %.
+    assert len(set(fractions)) >= 6 and sum(0.0 < f < 1.0 for f in fractions) >= 5, fractions
+
+
+def test_plan_progress_ignores_a_step_back_and_reports_only_in_its_phase():
+    seen: list[float] = []
+    names: list[str] = []
+    p = PlanProgress(seen.append, names.append)
+    closing = p.within("closing")
+    closing(0.5)  # before the closing starts: not reported
+    p.enter("initial grasp")
+    p.enter("closing")
+    closing(0.4)
+    closing(0.3)  # the solve for the least passing travel steps back: the bar does not
+    closing(0.6)
+    p.enter("hold check")
+    closing(1.0)  # the closing's increments during the hold check do not move the bar
+    p.finish()
+    assert names == ["initial grasp", "closing", "hold check"]
+    assert seen == sorted(seen) and seen[-1] == 1.0
+    assert seen == pytest.approx([0.15, 0.15 + 0.45 * 0.4, 0.15 + 0.45 * 0.6, 0.6, 1.0])
+
+
+def test_the_bar_on_a_terminal_is_labelled_by_phase_and_never_goes_back(monkeypatch):
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", err)
+    bar = PhaseBar("plan", PLAN_SHARES, tty=True)
+    bar.phase("meshing", quiet=True)
+    bar.phase("loading kernels")
+    update = bar.within("planning")
+    shown = []
+    for f in (0.1, 0.5, 0.3, 0.9):
+        update(f)
+        shown.append(bar.done)
+    bar.close()
+    assert shown == sorted(shown) and shown[2] == shown[1]
+    text = err.getvalue()
+    assert "plan: meshing" in text and "plan: loading kernels" in text and "%|" in text
+
+
+def test_quiet_phases_print_no_line_off_a_terminal(capsys):
+    bar = PhaseBar("plan", PLAN_SHARES, tty=False)
+    bar.phase("meshing", quiet=True)
+    bar.phase("closing")
+    bar.close()
+    assert capsys.readouterr().err == "softgrasp: plan: closing\n"
+
+
+class _WarmUp:
+    """A stand-in for :class:`softgrasp.cli.warm.WarmUp` that has found the cache cold or warm."""
+
+    def __init__(self, cold: bool) -> None:
+        import threading
+
+        self.cold, self.checked = cold, threading.Event()
+        self.checked.set()
+        self.alive = 2
+
+    def is_alive(self) -> bool:
+        self.alive -= 1
+        return self.alive >= 0
+
+    def join(self, timeout: float | None = None) -> None:
+        pass
+
+
+@pytest.mark.parametrize(
+    ("cold", "line"), [(True, "compiling kernels (first run only, ~"), (False, "loading kernels")]
+)
+def test_waiting_for_the_kernels_says_whether_they_compile(capsys, cold, line):
+    bar = PhaseBar("plan", PLAN_SHARES, tty=False)
+    kernels_phase(bar, _WarmUp(cold))
+    err = capsys.readouterr().err
+    assert err.startswith(f"softgrasp: plan: {line}") and err.count("\n") == 1, err
+    if cold:  # the planner's part of the bar starts where the compiling's ends
+        assert bar.shares["planning"][0] == PLAN_SHARES["compiling kernels"][1]
+
+
+def test_a_cold_kernel_cache_is_told_from_a_warm_one(tmp_path):
+    """:func:`softgrasp.jitcache.cached` reads a kernel's cache index: no machine code for the current
+    sources before the first call, some after it (also in a new process); another digest of the
+    sources has none. :func:`softgrasp.cli.warm.cold` says so for an empty cache folder."""
+    (tmp_path / "kern.py").write_text(
+        textwrap.dedent(
+            """
+            from softgrasp import jitcache
+
+            @jitcache.jit()
+            def twice(x):
+                return 2 * x
+            """
+        )
+    )
+    probe = (
+        f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from softgrasp import jitcache; import kern; "
+        "print(jitcache.cached(kern.twice)); kern.twice(2.0); print(jitcache.cached(kern.twice)); "
+        "kern.twice._cache.digest = '0' * 64; print(jitcache.cached(kern.twice))"
+    )
+    env = {**ENV, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    first = subprocess.run(
+        [sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=120
+    )
+    again = subprocess.run(
+        [sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert first.stdout.split() == ["False", "True", "False"], first.stderr
+    assert again.stdout.split() == ["True", "True", "False"], again.stderr
+    empty = {**ENV, "NUMBA_CACHE_DIR": str(tmp_path / "empty")}
+    cold = subprocess.run(
+        [sys.executable, "-c", "from softgrasp.cli.warm import cold; print(cold())"],
+        env=empty,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert cold.stdout.strip() == "True", cold.stderr
+
+
+# ------------------------------------------------------------------------------ options
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--verbose", "--debug", "--threads", "2", "view", "RUN"],
+        ["view", "RUN", "--verbose", "--debug", "--threads", "2"],
+        ["--verbose", "view", "--threads", "2", "RUN", "--debug"],
+    ],
+)
+def test_global_options_are_taken_before_and_after_the_command(argv):
+    args = build_parser().parse_args(argv)
+    assert (args.verbose, args.debug, args.threads, args.run_dir) == (True, True, 2, "RUN")
+
+
+def test_global_options_not_repeated_after_the_command_keep_their_value():
+    args = build_parser().parse_args(["--threads", "3", "--debug", "plan"])
+    assert (args.threads, args.debug, args.verbose) == (3, True, False)
+    args = build_parser().parse_args(["plan"])
+    assert (args.threads, args.debug, args.verbose) == (None, False, False)
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "two", "1.5"])
+def test_a_bad_thread_count_is_one_line_exit_2(capsys, value):
+    assert main(["plan", "--threads", value, "--out", "never"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("softgrasp: error:") and "--threads" in err
+    assert not Path("never").exists()
+
+
+def test_threads_sets_the_solvers_thread_count(coarse_run, tmp_path, monkeypatch, capsys):
+    from softgrasp.linalg import threads
+
+    monkeypatch.delenv(threads.THREADS_ENV, raising=False)
+    try:
+        assert main(["view", str(coarse_run[0]), "--out", str(tmp_path / "v.html"), "--threads", "1"]) == 0
+        assert threads.fixed_threads() == 1 and threads.choose_threads() == 1
+        assert os.environ[threads.THREADS_ENV] == "1"  # and in the worker processes started
+    finally:
+        threads.set_threads(None)
+        os.environ.pop(threads.THREADS_ENV, None)
+
+
+def test_view_takes_the_run_folder_or_its_plan_json(coarse_run, tmp_path, capsys):
+    run = coarse_run[0]
+    a, b = tmp_path / "a.html", tmp_path / "b.html"
+    assert main(["view", str(run), "--out", str(a)]) == 0
+    assert main(["view", str(run / "plan.json"), "--out", str(b)]) == 0
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_execute_takes_the_run_folder_or_its_plan_json(tmp_path, capsys):
+    """A folder is read as its plan.json: the same refusal names that file."""
+    (tmp_path / "plan.json").write_text("{not json")
+    for given in (tmp_path, tmp_path / "plan.json"):
+        assert main(["execute", str(given), "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(tmp_path / "plan.json") in err, err
+
+
+# ------------------------------------------------------------------------------ exit statuses
+@pytest.mark.parametrize(
+    ("error", "status"),
+    [
+        (InfeasibleGrasp("no grasp"), 1),
+        (NotConverged("no equilibrium"), 1),
+        (SimulationUnstable("blew up"), 1),
+        (ConfigError("bad option"), 2),
+        (MeshError("bad mesh"), 2),
+        (MaterialError("bad material"), 2),
+        (ContactError("bad contact"), 2),
+        (RuntimeError("a bug"), 3),
+    ],
+)
+def test_each_error_has_its_exit_status(coarse_run, tmp_path, monkeypatch, capsys, error, status):
+    import softgrasp.viz.view as view
+
+    def fail(*_a, **_k):
+        raise error
+
+    monkeypatch.setattr(view, "write_view", fail)
+    assert main(["view", str(coarse_run[0]), "--out", str(tmp_path / "v.html")]) == status
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(error) in err
+    assert err.startswith("softgrasp: internal error:" if status == 3 else "softgrasp: error:")
+    if isinstance(error, Exception) and status != 3:
+        assert exit_status(error) == status
+
+
+def test_an_argument_error_exits_2(capsys):
+    assert main(["plan", "--no-such-option"]) == 2
+    assert main(["no-such-command"]) == 2
+
+
+def test_the_exit_statuses_are_in_the_help_and_the_docs(capsys):
+    assert main(["--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "exit status:" in text
+    for code in (0, 1, 2, 3):
+        assert f" {code} " in text
+    assert "bad input" in text and "internal error" in text and "no grasp holds the object" in text
+    root = Path(__file__).resolve().parents[1]
+    for doc in (root / "README.md", root / "docs" / "guide.md"):
+        words = " ".join(doc.read_text(encoding="utf-8").split())
+        assert "Exit status" in words or "exit status" in words, doc
+        for code in EXIT_CODES:
+            assert f"| {code} |" in words, (doc, code)
+
+
+# ------------------------------------------------------------------------------ help
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_each_command_has_a_description_and_an_example_that_parses(capsys, command):
+    assert main([command, "--help"]) == 0
+    out = capsys.readouterr().out
+    line, example = COMMANDS[command]
+    assert " ".join(line.split()[:4]) in " ".join(out.split())
+    assert f"example:\n  {example}" in out and "exit status:" in out
+    argv = shlex.split(example)
+    assert argv[:2] == ["softgrasp", command]
+    args = build_parser().parse_args(argv[1:])  # the example is a valid command line
+    assert args.command == command
+
+
+@pytest.mark.parametrize("module", ["softgrasp", "softgrasp.cli"])
+def test_python_dash_m_runs_the_command_line(module):
+    proc = subprocess.run(
+        [sys.executable, "-m", module, "--help"], env=ENV, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("usage: softgrasp") and "exit status:" in proc.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", module, "plan", "--mu", "x"],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and bad.stderr.startswith("softgrasp: error:")
+
+
+# ------------------------------------------------------------------------------ extras
+@pytest.mark.parametrize(
+    ("missing", "argv", "extra"),
+    [
+        ("pyarrow", ["sweep", "{d}/s.toml"], "sweep"),
+        ("dask.distributed", ["sweep", "{d}/s.toml"], "sweep"),
+        ("dask.distributed", ["plan", "--uncertain", "mu=0.4..0.8"], "sweep"),
+        ("mujoco", ["execute", "{d}/plan.json"], "execute"),
+        ("mujoco", ["sweep", "{d}/x.toml"], "execute"),
+    ],
+)
+def test_a_missing_extra_is_named_with_its_install_command(
+    tmp_path, monkeypatch, capsys, missing, argv, extra
+):
+    (tmp_path / "s.toml").write_text('[base]\nobject = "sphere"\n[grid]\nmu = [0.5]\n')
+    executing = '[sweep]\nexecute = true\n[base]\nobject = "sphere"\n[grid]\nmu = [0.5]\n'
+    (tmp_path / "x.toml").write_text(executing)
+    monkeypatch.setitem(sys.modules, missing, None)  # its import now fails as if not installed
+    out = tmp_path / "out"
+    assert main([a.replace("{d}", str(tmp_path)) for a in argv] + ["--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"pip install 'softgrasp[{extra}]'" in err and missing.split(".")[0] in err, err
+    assert not out.exists()
+
+
+def test_the_core_install_leaves_the_extras_out():
+    """pyproject: Dask and PyArrow only in the 'sweep' extra, MuJoCo only in 'execute'; the test
+    extra and the Makefile install all the tests need."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    core = " ".join(project["dependencies"])
+    extras = project["optional-dependencies"]
+    for name in ("dask", "distributed", "pyarrow", "mujoco"):
+        assert name not in core, name
+    assert any(d.startswith("dask[distributed]") for d in extras["sweep"])
+    assert any(d.startswith("pyarrow") for d in extras["sweep"])
+    assert any(d.startswith("mujoco") for d in extras["execute"])
+    makefile = (root / "Makefile").read_text()
+    assert '".[execute,sweep]"' in makefile and '".[test,execute,sweep]"' in makefile
+
+
+# ------------------------------------------------------------------------------ the wheel
+@pytest.mark.slow
+def test_the_wheel_installs_into_a_fresh_venv_and_plans(tmp_path):
+    """Build the wheel, install it with its dependencies into a new virtual environment (no
+    site-packages of this one), and run ``softgrasp plan`` from there: the packaged hand and the
+    view's static files come with it."""
+    root = Path(__file__).resolve().parents[1]
+    # Nothing of this checkout or this environment on the new one's path (pip would take the
+    # checkout's softgrasp.egg-info on PYTHONPATH for an installed softgrasp).
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
+    dist = tmp_path / "dist"
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(dist), str(root)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert build.returncode == 0, build.stderr[-3000:]
+    (wheel,) = dist.glob("softgrasp-*.whl")
+    import zipfile
+
+    names = zipfile.ZipFile(wheel).namelist()
+    assert "softgrasp/hand/shadow_like.urdf" in names and "softgrasp/py.typed" in names
+    assert any(n.startswith("softgrasp/viz/static/") for n in names), names
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], env=env, check=True, timeout=300)
+    py = venv / "bin" / "python"
+    install = subprocess.run(
+        [str(py), "-m", "pip", "install", "-q", str(wheel)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
+    assert install.returncode == 0, install.stderr[-3000:]
+    out = tmp_path / "run"
+    plan = subprocess.run(
+        [str(venv / "bin" / "softgrasp"), *COARSE, "--out", str(out)],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
+    assert plan.returncode == 0, plan.stderr[-3000:]
+    assert "compiling kernels (first run only" in plan.stderr  # its own, empty cache
+    doc = json.loads((out / "plan.json").read_text())
+    assert doc["equilibrium"]["satisfied"] is True
+    where = subprocess.run(
+        [str(py), "-c", "import softgrasp; print(softgrasp.__file__)"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert where.stdout.strip().startswith(str(venv)), where.stdout  # the installed copy ran
