@@ -727,3 +727,15 @@ def test_an_unreachable_scheduler_is_refused_before_any_work(
     code, _, err = _run([*args, "--scheduler", address, "--out", str(d)], capsys)
     assert_clear_error(code, err, f"cannot reach the Dask scheduler at {address}: connection refused")
     assert snapshot(d) == before
+
+
+def test_an_interrupted_command_run_in_process_leaves_ctrl_c_to_its_caller(tmp_path, capsys, monkeypatch):
+    """``main(argv)`` called by a program (or a test) that is interrupted returns 130 and leaves
+    the caller's SIGINT handler in place: later Ctrl-Cs, and the processes it starts, see it."""
+    import softgrasp.api.objects as objects
+
+    monkeypatch.setattr(objects, "load_object", _fail(KeyboardInterrupt()))
+    before = signal.getsignal(signal.SIGINT)
+    code, _, err = _run(["compress", "--out", str(tmp_path / "c")], capsys)
+    _assert_interrupted(code, err)
+    assert signal.getsignal(signal.SIGINT) is before

@@ -82,9 +82,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"softgrasp: error: {exc}", file=sys.stderr)
         return exit_status(exc)
     except KeyboardInterrupt:
-        import signal
+        if argv is None:  # the process's own command: a second Ctrl-C must not break its exit
+            import signal
 
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not break the exit
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # (a caller passing argv keeps its handler)
         print("softgrasp: interrupted", file=sys.stderr)
         return INTERRUPTED
     except Exception as exc:  # a bug: keep it to one line unless asked
