@@ -547,8 +547,11 @@ def test_two_plans_at_once_one_writes_the_other_is_refused(earlier, tmp_path):
     assert_clear_error(2, lost_err, "another softgrasp run is writing there")
     winner = runs[[code for _, code in ends].index(0)].args[-3]
     after = snapshot(d)
-    plan_files = {
-        n for n, owner in json.loads(after[".softgrasp-manifest.json"])["files"].items() if owner == "plan"
+    plan_files = {  # the plan's files before and after (the winner removes the stale ones)
+        name
+        for snap in (before, after)
+        for name, owner in json.loads(snap[".softgrasp-manifest.json"])["files"].items()
+        if owner == "plan"
     }
     assert json.loads(after["plan.json"])["margin"]["safety_factor"] == float(winner)
     assert {k: v for k, v in after.items() if k not in plan_files and not k.startswith(".")} == {
