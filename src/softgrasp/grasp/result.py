@@ -91,7 +91,8 @@ class GraspPlan:
         (N, 3) (Eq. 17-20: each pair's force shared among its facet's nodes), or None.
     solver_stats: what the closing's linear algebra did, the critical scale's checks apart
         (:attr:`SolverCache.stats <softgrasp.linalg.solve.SolverCache>`): Newton systems,
-        factorisations, multigrid V-cycles ... (machine-independent measures of its cost); the Newton systems also by phase:
+        factorisations, multigrid V-cycles ... (machine-independent measures of its cost); the
+        Newton systems also by phase:
         ``settle_systems`` (the object coming to rest on the table), ``closing_systems`` (the
         closing increments and their refinement) and ``hold_check_systems`` (the table removed,
         the release, the holding simulation and the held equilibrium).
