@@ -16,8 +16,8 @@ import softgrasp as sg
 
 
 def main() -> None:
-    # A 20 % margin over the least squeeze that holds: a real (or another simulated) hand needs one.
-    plan = sg.plan(sg.load_object("sphere"), hand=sg.load_hand("shadow_like"), mu=0.8, safety_factor=1.2)
+    # The set-points carry the default safety factor (1.25) over the least forces that hold.
+    plan = sg.plan(sg.load_object("sphere"), hand=sg.load_hand("shadow_like"), mu=0.8)
     if len(sys.argv) > 1:
         plan.save(Path(sys.argv[1]) / "plan")
     run = sg.execute(plan, lift_m=0.10)

@@ -41,10 +41,10 @@ def finished_ok():
 @pytest.fixture(scope="session")
 def planned_sphere(tmp_path_factory):
     """A folder holding ``plan.json`` and ``object.vtu`` of the default sphere, planned once per
-    test session by ``softgrasp plan --safety-factor 1.2`` (MuJoCo's contact needs a few per cent
-    more squeeze than softgrasp's least one)."""
+    test session by ``softgrasp plan`` (its set-points carry the default safety factor, 1.25, over
+    the least that holds)."""
     from softgrasp.cli import main
 
     out = tmp_path_factory.mktemp("planned-sphere")
-    assert main(["plan", "--safety-factor", "1.2", "--out", str(out)]) == 0
+    assert main(["plan", "--out", str(out)]) == 0
     return out

@@ -48,21 +48,30 @@ def default_plan():
 
 
 def test_plan_reports_its_load_and_limits_refuse_it(default_plan):
-    """The default plan reports each finger's Hertz peak pressure (its own normal force, radius and
+    """The default plan reports each finger's Hertz peak pressure (at its set-point, radius and
     modulus: recomputed here) and the peak strain; a limit below them makes the plan
-    InfeasibleGrasp naming the limit, a limit above leaves the set-points as they were."""
+    InfeasibleGrasp naming the limit (a pressure limit between the least squeeze's and the
+    set-points' names the set-points), a limit above leaves the set-points as they were."""
     doc = default_plan.to_dict()
     damage = doc["damage"]
     obj = default_plan.object.material
     E_star = obj.E / (1.0 - obj.nu**2)
     for f in doc["fingers"]:
-        p, a = hertz_peak_pressure(np.array([f["normal_force_N"]]), np.array([0.008]), np.array([E_star]))
+        p, a = hertz_peak_pressure(np.array([f["setpoint_N"]]), np.array([0.008]), np.array([E_star]))
         # the sphere's curvature (R_s = 64 mm) makes the effective radius smaller and p0 larger
         assert damage["peak_pressure_Pa"][f["name"]] == pytest.approx(p[0] * (8 / 7.11) ** (2 / 3), rel=0.05)
     assert 0 < damage["peak_strain"] < 0.5
     peak = max(damage["peak_pressure_Pa"].values())
-    with pytest.raises(InfeasibleGrasp, match="above --max-pressure"):
+    least = "the least squeeze that holds the object presses .* above --max-pressure"
+    with pytest.raises(InfeasibleGrasp, match=least):
         sg.plan(max_pressure_Pa=0.5 * peak)
+    # Hertz: p0 grows as F^(1/3); the set-points press (their factor over the held forces)^(1/3) more
+    held = [f["normal_force_N"] for f in doc["fingers"]]
+    factor = max(sp / h for sp, h in zip(doc["setpoints_N"].values(), held, strict=True))
+    assert factor > 1.05
+    between = peak / factor ** (1 / 6)
+    with pytest.raises(InfeasibleGrasp, match="the set-points press .* lower --safety-factor"):
+        sg.plan(max_pressure_Pa=between)
     with pytest.raises(InfeasibleGrasp, match="above --max-strain"):
         sg.plan(max_strain=0.5 * damage["peak_strain"])
     within = sg.plan(max_pressure_Pa=2.0 * peak, max_strain=2.0 * damage["peak_strain"])

@@ -52,7 +52,7 @@ def test_execute_plan(tmp_path):
     out = _run("02_execute_plan.py")
     setpoints = _numbers(out, r"(?m)^(thumb|first|middle) set-point ([0-9.]+) N")
     measured = _numbers(out, r"(?m)^(thumb|first|middle) set-point [0-9.]+ N, measured ([0-9.]+) N")
-    plan = sg.plan(sg.load_object("sphere"), hand=sg.load_hand("shadow_like"), mu=0.8, safety_factor=1.2)
+    plan = sg.plan(sg.load_object("sphere"), hand=sg.load_hand("shadow_like"), mu=0.8)
     assert setpoints == pytest.approx(plan.setpoints_N, abs=1e-6)
     run = sg.execute(plan, lift_m=0.10)
     assert measured == pytest.approx(run.measured_N, abs=1e-6)

@@ -121,8 +121,9 @@ def robust_plan(
         doc["setpoints"] = "robust" if res.achieved else "robust (goal not met)"
         doc["robust"] = {
             **summary,
-            "note": "setpoints_N and each finger's setpoint_N are the robust set-points; the fingers' other fields (force, "
-            "penetration, final position) and the equilibrium are the nominal plan's held state",
+            "note": "setpoints_N and each finger's setpoint_N are the robust set-points; the fingers' "
+            "other fields (force, penetration, final position) and the equilibrium are the nominal "
+            "plan's held state",
         }
         write_json(
             stage / "robust.json",

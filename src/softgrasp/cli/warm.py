@@ -12,6 +12,10 @@ on its own fingertips. It calls the kernels through
 the same code path, with the same argument types, as a plan. It is only an optimisation: a failure
 is ignored, and the real call then meets the same problem and reports it.
 
+The modules the warm-up uses are imported before its thread starts, by the calling thread: two
+threads importing the same modules at once can deadlock in the interpreter's import locks when a
+Ctrl-C lands inside one of the imports (the process then hangs instead of stopping).
+
 Numba's worker threads are then started by the warm-up thread. TBB's layer resets them in a forked
 child only when the fork comes from the thread that started them (from another, Numba warns that
 the child's TBB may be in an invalid state); the command line forks no process after the warm-up
@@ -117,8 +121,35 @@ class WarmUp(threading.Thread):
         _quietly()
 
 
+def _import_modules() -> None:
+    """Import what :func:`cold` and :func:`warm_up` use (module docstring: no concurrent imports)."""
+    import importlib
+
+    for name in (
+        "softgrasp.jitcache",
+        "softgrasp.hand.descent",
+        "softgrasp.physics.volume",
+        "softgrasp.linalg.solve",
+        "softgrasp.model.material",
+        "softgrasp.model.mesh.generate",
+        "softgrasp.physics.forces_compiled",
+        "softgrasp.physics.body",
+        "softgrasp.physics.fingertip.contact",
+        "softgrasp.physics.fingertip.params",
+        "softgrasp.physics.planes",
+        "softgrasp.sim.scene",
+        "softgrasp.sim.static",
+        "softgrasp.hand.kinematics",
+        "softgrasp.hand.placement",
+    ):
+        importlib.import_module(name)
+
+
 def warm_up_in_background() -> WarmUp:
-    """Start :func:`warm_up` on a daemon thread and return it (joining it is optional)."""
+    """Import the warm-up's modules here, then start :func:`warm_up` on a daemon thread and return
+    it (joining it is optional)."""
+    if compiled():
+        _import_modules()
     thread = WarmUp()
     thread.start()
     return thread

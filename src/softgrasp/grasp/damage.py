@@ -12,7 +12,9 @@ user sets on them (fruit and tissue bruise above a pressure or a strain).
 
 The planner finds the least squeeze that holds the object; if that squeeze already exceeds a
 limit, no squeeze of these contacts holds within it: :func:`check_limits` raises
-:class:`~softgrasp.errors.InfeasibleGrasp` naming the limit.
+:class:`~softgrasp.errors.InfeasibleGrasp` naming the limit. The plan reports the pressures of its
+set-points (the safety factor above the least that holds), which must keep within the pressure
+limit too, and the strain of the held state.
 """
 
 from __future__ import annotations
@@ -74,7 +76,8 @@ def hertz_peak_pressure(
     with ``normal_N`` on a half-space of effective modulus ``E_star_Pa`` (element-wise):
     ``a = (3 F R / (4 E*))^(1/3)``, ``p0 = 3 F / (2 pi a^2)``; zeros where F = 0."""
     F = np.maximum(np.asarray(normal_N, dtype=np.float64), 0.0)
-    a = np.cbrt(3.0 * F * np.asarray(radius_m, dtype=np.float64) / (4.0 * np.asarray(E_star_Pa, dtype=np.float64)))
+    R = np.asarray(radius_m, dtype=np.float64)
+    a = np.cbrt(3.0 * F * R / (4.0 * np.asarray(E_star_Pa, dtype=np.float64)))
     p0 = np.divide(3.0 * F, 2.0 * math.pi * a * a, out=np.zeros_like(F), where=a > 0)
     return p0, a
 
@@ -127,8 +130,19 @@ def patch_torsion(
     return 3.0 * math.pi / 16.0 * mu * a
 
 
-def check_limits(damage: Damage, max_pressure_Pa: float | None, max_strain: float | None) -> None:
-    """Raise :class:`InfeasibleGrasp` when the least squeeze that holds exceeds a limit."""
+def check_limits(
+    damage: Damage, max_pressure_Pa: float | None, max_strain: float | None, *, setpoints: bool = False
+) -> None:
+    """Raise :class:`InfeasibleGrasp` when the least squeeze that holds (or, ``setpoints``, the
+    pressures of the set-points) exceeds a limit."""
+    if setpoints and max_pressure_Pa is not None and damage.pressure.max() > max_pressure_Pa:
+        j = int(np.argmax(damage.pressure))
+        raise InfeasibleGrasp(
+            f"the set-points press the {damage.names[j]} fingertip at {damage.pressure[j] / 1e3:.3g} kPa "
+            f"(Hertz's peak), above --max-pressure {max_pressure_Pa / 1e3:.3g} kPa, though the least "
+            "squeeze that holds keeps within it: lower --safety-factor (the margin above the least that "
+            "holds), or use larger fingertips"
+        )
     if max_pressure_Pa is not None and damage.pressure.max() > max_pressure_Pa:
         j = int(np.argmax(damage.pressure))
         raise InfeasibleGrasp(

@@ -142,6 +142,10 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: S
             f"{margin_.not_held:g} times them, does not hold the object (the fingers end elsewhere than "
             "the closing); raise the friction coefficient or move the grasp (--grasp)"
         )
+    setpoints = cfg.safety_factor * margin_.scale * normal
+    # The load the set-points put on the object: Hertz's pressure at them (the strain: the held state's).
+    damage = grasp_damage(body, fixed, held_state.x, setpoints)
+    check_limits(damage, cfg.max_pressure, None, setpoints=True)
     joint_paths = None
     if placement is not None:
         assert cfg.hand is not None
@@ -181,7 +185,7 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: S
         hold_checks=tuple(closing.checks),
         slip=slip,
         damage=damage,
-        setpoints=cfg.safety_factor * margin_.scale * normal,
+        setpoints=setpoints,
         margin=margin_,
         frames=PlanFrames(
             travel=np.array([f[0] for f in frames]),

@@ -80,7 +80,8 @@ class GraspPlan:
     slip: how far each fingertip slid as a whole in the object from the table's removal to the
         held state [m], (3,) (:func:`~softgrasp.grasp.hold.finger_slip`, summed over the check's
         steps; at most ``max_slip`` times the object's size).
-    damage: the held grasp's peak contact pressures and peak strain (:mod:`softgrasp.grasp.damage`).
+    damage: the set-points' peak contact pressures and the held state's peak strain
+        (:mod:`softgrasp.grasp.damage`).
     setpoints: the force set-points [N], (3,): the normal forces the fingers close to under force
         control, ``safety_factor`` times the critical scale times the held state's normal forces.
     margin: the critical scale of the held state's normal forces (:mod:`softgrasp.grasp.margin`).
@@ -88,9 +89,10 @@ class GraspPlan:
         each closing increment, in the order of travel (what ``softgrasp view`` animates).
     contact_forces: the fingertips' forces on each node of the object in the held state [N],
         (N, 3) (Eq. 17-20: each pair's force shared among its facet's nodes), or None.
-    solver_stats: what the closing's linear algebra did (the critical scale's checks apart) (:attr:`SolverCache.stats
-        <softgrasp.linalg.solve.SolverCache>`): Newton systems, factorisations, multigrid V-cycles
-        ... (machine-independent measures of its cost); the Newton systems also by phase:
+    solver_stats: what the closing's linear algebra did, the critical scale's checks apart
+        (:attr:`SolverCache.stats <softgrasp.linalg.solve.SolverCache>`): Newton systems,
+        factorisations, multigrid V-cycles ... (machine-independent measures of its cost); the
+        Newton systems also by phase:
         ``settle_systems`` (the object coming to rest on the table), ``closing_systems`` (the
         closing increments and their refinement) and ``hold_check_systems`` (the table removed,
         the release, the holding simulation and the held equilibrium).
