@@ -430,4 +430,5 @@ def test_material_file_precedence_and_execute_records_the_object(tmp_path):
     rc = main(["execute", str(tmp_path / "b" / "plan.json"), "--material", str(other), "--out", str(out)])
     assert rc == 0
     doc = json.loads((out / "execute.json").read_text())
-    assert doc["object_material"] == {"file": str(other), "E_Pa": 1.5e5, "nu": 0.4, "mu": 1.1}
+    # the material file by its path from the output folder (no machine path in the outputs)
+    assert doc["object_material"] == {"file": "../o.toml", "E_Pa": 1.5e5, "nu": 0.4, "mu": 1.1}

@@ -91,13 +91,13 @@ def test_readme_python_example_runs_as_written(tmp_path: Path) -> None:
     first, second = proc.stdout.strip().splitlines()[-2:]
     setpoints = ast.literal_eval(first)
     cli = subprocess.run(
-        [sys.executable, "-m", "softgrasp.cli", "plan", "--safety-factor", "1.2", "--out", str(tmp_path / "cli")],
+        [sys.executable, "-m", "softgrasp.cli", "plan", "--out", str(tmp_path / "cli")],
         capture_output=True,
         text=True,
     )
     assert cli.returncode == 0, cli.stderr[-3000:]
     doc = json.loads((tmp_path / "cli" / "plan.json").read_text())
-    want = {f["name"]: f["normal_force_N"] for f in doc["fingers"]}
+    want = doc["setpoints_N"]
     assert setpoints.keys() == want.keys()
     for name, value in want.items():
         assert setpoints[name] == pytest.approx(value, rel=1e-6)

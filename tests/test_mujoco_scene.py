@@ -124,8 +124,7 @@ def test_missing_mujoco_message(monkeypatch: pytest.MonkeyPatch) -> None:
     with pytest.raises(ConfigError) as info:
         load_scene(pebble_spec(ABOVE))
     assert str(info.value) == (
-        "MuJoCo is not installed: pip install 'mujoco>=4.0', or reinstall softgrasp with its extra: "
-        "pip install -e '.[execute]'"
+        "MuJoCo is not installed (softgrasp's 'execute' extra): pip install 'softgrasp[execute]'"
     )
 
 

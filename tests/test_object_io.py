@@ -312,7 +312,9 @@ def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None
 
     inputs = tmp_path / "inputs"
     inputs.mkdir()
-    urdf = shutil.copy(HandModel.default().source, inputs / "my_hand.urdf")
+    from softgrasp.hand.packaged import package_file
+
+    urdf = shutil.copy(package_file(HandModel.default().source), inputs / "my_hand.urdf")
     toml = inputs / "material.toml"
     toml.write_text("[material]\nE_Pa = 200000.0\nnu = 0.45\n")
     plan_dir, exe_dir, sweep_dir = tmp_path / "plan", tmp_path / "execute", tmp_path / "sweep"

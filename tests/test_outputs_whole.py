@@ -293,7 +293,8 @@ def _robust_folder(planned: Path, d: Path) -> Path:
     _copy(planned, d)
     doc = json.loads((d / "plan.json").read_text())
     for f in doc["fingers"]:
-        f["nominal_normal_force_N"], f["normal_force_N"] = f["normal_force_N"], 1.4 * f["normal_force_N"]
+        f["nominal_setpoint_N"], f["setpoint_N"] = f["setpoint_N"], 1.4 * f["setpoint_N"]
+        doc["setpoints_N"][f["name"]] = f["setpoint_N"]
     doc["setpoints"] = "robust"
     (d / "plan.json").write_text(json.dumps(doc))
     (d / "robust.json").write_text('{"schema": "softgrasp.robust/1"}')

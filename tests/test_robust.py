@@ -129,7 +129,7 @@ def test_setpoints_beyond_the_crushing_limit_are_not_held_and_say_why(sphere, no
     res = hold_setpoints(sphere, cfg, (30.0, 30.0, 30.0))
     assert not res.held and "crushing limit" in res.reason and math.isnan(res.drift)
     assert res.travel.max() == pytest.approx(res.max_travel, abs=1e-12)  # it went all the way
-    with pytest.raises(ConfigError, match="three normal forces > 0 N"):
+    with pytest.raises(ConfigError, match="normal forces > 0 N"):
         hold_setpoints(sphere, cfg, (1.0, -1.0, 1.0))
 
 
@@ -201,10 +201,10 @@ def test_plan_uncertain_command_writes_robust_setpoints(tmp_path, capsys):
     need = np.array([s["required_N"] for s in robust["per_sample"]])
     median = np.quantile(need, 0.5, axis=0, method="higher") * robust["scale_over_samples"]
     for j, f in enumerate(plan["fingers"]):
-        assert f["normal_force_N"] == pytest.approx(median[j], rel=1e-12)
-        assert f["nominal_normal_force_N"] == robust["nominal_setpoints_N"][f["name"]]
+        assert f["setpoint_N"] == plan["setpoints_N"][f["name"]] == pytest.approx(median[j], rel=1e-12)
+        assert f["nominal_setpoint_N"] == robust["nominal_setpoints_N"][f["name"]]
     # Every sample's friction is below the nominal 0.8: every one needs more squeeze.
-    assert need.sum(axis=1).min() > sum(f["nominal_normal_force_N"] for f in plan["fingers"])
+    assert need.sum(axis=1).min() > sum(f["nominal_setpoint_N"] for f in plan["fingers"])
     for stage in ("samples", "nominal", "robust-1"):
         assert (out / "robust" / stage / "results.parquet").is_file()
     assert (out / "robust.png").stat().st_size > 10_000

@@ -94,10 +94,13 @@ _NUMERIC_OUT = [c for c in output_columns(False) if c not in ("status", "error",
 
 @pytest.mark.slow
 def test_sweep_on_a_local_tcp_cluster_gives_the_rows_of_the_cases_run_one_by_one(tmp_path):
-    """24 cases (12 that plan, 12 with an invalid nu) on 2 worker processes over TCP on loopback:
+    """24 cases (12 that plan, 12 whose squeeze limit is too small to hold) on 2 worker processes
+    over TCP on loopback:
     every row equals the case run here by itself; the failed cases carry their error."""
     body = (
-        "[base]\n" + BASE + "[grid]\nmu = [0.45, 0.6, 0.75, 0.9]\nE = [6e4, 9e4, 1.2e5]\nnu = [0.45, 0.6]\n"
+        "[base]\n"
+        + BASE
+        + "[grid]\nmu = [0.45, 0.6, 0.75, 0.9]\nE = [6e4, 9e4, 1.2e5]\nmax_squeeze = [0.5, 0.001]\n"
     )
     spec = read_sweep(_spec(tmp_path, body))
     cases = sweep_cases(spec)
@@ -136,12 +139,12 @@ def test_sweep_on_a_local_tcp_cluster_gives_the_rows_of_the_cases_run_one_by_one
         assert row["status"] == alone["status"], case.options
         assert row["error"] == alone["error"] and row["error_type"] == alone["error_type"]
         if row["status"] == "failed":
-            assert "nu = 0.6" in str(row["error"]) and case.options["nu"] == 0.6
+            assert "--max-squeeze" in str(row["error"]) and case.options["max_squeeze"] == 0.001
             continue
         for c in _NUMERIC_OUT:
             # equal to 12 digits; the equilibrium residual (~1e-15 N, round-off) to 1e-12 N
             assert row[c] == pytest.approx(alone[c], rel=1e-12, abs=1e-12), (c, case.options)
-    assert all(r["status"] == "ok" for r in res.rows if r["nu"] == 0.45)
+    assert all(r["status"] == "ok" for r in res.rows if r["max_squeeze"] == 0.5)
 
 
 @pytest.mark.slow

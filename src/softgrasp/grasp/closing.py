@@ -183,7 +183,11 @@ class Closing:
                 f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {cfg.contact.mu:g}"
                 + (f" (last hold check at {checks[-1][0] * 1e3:.3g} mm: {checks[-1][1]})" if checks else "")
                 + (self._rigid_need() if self.rows else "")
-                + "; raise the friction coefficient, or grasp a lighter or stiffer object"
+                + (
+                    f"; allow more squeeze (--max-squeeze, now {cfg.max_squeeze:g})"
+                    if max(last, default=0.0) <= 0.0
+                    else "; raise the friction coefficient, or grasp a lighter or stiffer object"
+                )
             )
 
     def until_the_grasp_test(self) -> Point:
