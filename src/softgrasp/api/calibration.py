@@ -115,11 +115,9 @@ class Calibration:
         """Write a figure per fit, ``material.toml`` and ``calibration.json`` into ``out``,
         replacing the folder's earlier ones whole (:mod:`softgrasp.io.runfolder`: a failure or an
         interrupt leaves them as they were)."""
-        from softgrasp.io.runfolder import run_folder
+        from softgrasp.io.runfolder import save_whole
 
-        with run_folder(out, "calibrate") as folder:
-            self._write(folder.stage, started)
-        return Path(out)
+        return save_whole(out, "calibrate", lambda stage: self._write(stage, started))
 
     def _write(self, out: Path, started: float | None) -> None:
         from softgrasp.io.atomic import write_json

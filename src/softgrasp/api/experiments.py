@@ -85,11 +85,9 @@ class Compression:
     def save(self, out: str | Path, *, started: float | None = None) -> Path:
         """Write ``compress.csv``, ``compress.json`` and ``compress.png`` into ``out``, replacing the
         folder's earlier ones whole (:mod:`softgrasp.io.runfolder`)."""
-        from softgrasp.io.runfolder import run_folder
+        from softgrasp.io.runfolder import save_whole
 
-        with run_folder(out, "compress") as folder:
-            self._write(folder.stage, started)
-        return Path(out)
+        return save_whole(out, "compress", lambda stage: self._write(stage, started))
 
     def _write(self, out: Path, started: float | None) -> None:
         from softgrasp.io.atomic import write_json, write_text
@@ -235,11 +233,9 @@ class Indentation:
     def save(self, out: str | Path, *, started: float | None = None) -> Path:
         """Write ``indent.csv``, ``indent.json`` and ``indent.png`` into ``out``, replacing the
         folder's earlier ones whole (:mod:`softgrasp.io.runfolder`)."""
-        from softgrasp.io.runfolder import run_folder
+        from softgrasp.io.runfolder import save_whole
 
-        with run_folder(out, "indent") as folder:
-            self._write(folder.stage, started)
-        return Path(out)
+        return save_whole(out, "indent", lambda stage: self._write(stage, started))
 
     def _write(self, out: Path, started: float | None) -> None:
         from softgrasp.io.atomic import write_json, write_text

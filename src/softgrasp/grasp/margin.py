@@ -64,12 +64,11 @@ def critical_scale(
     the least that the object is held at under force control (``config``, whose ``grasp`` names
     the initial grasp to close from), to ``tolerance``; above 1 (up to 2) when force control
     does not hold at 1 (scale ``inf`` when not even at 2)."""
-    cfg = config
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: list[tuple[float, bool]] = []
 
     def held(s: float) -> bool:
-        ok = bool(hold_setpoints(body, cfg, s * setpoints).held)
+        ok = bool(hold_setpoints(body, config, s * setpoints).held)
         checks.append((s, ok))
         return ok
 

@@ -33,14 +33,23 @@ import shutil
 import signal
 import tempfile
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from softgrasp.errors import ConfigError
 from softgrasp.io.atomic import write_json
 
-__all__ = ["RunFolder", "run_folder", "check_out", "check_out_file", "write_failure", "MANIFEST", "LOCK"]
+__all__ = [
+    "RunFolder",
+    "run_folder",
+    "save_whole",
+    "check_out",
+    "check_out_file",
+    "write_failure",
+    "MANIFEST",
+    "LOCK",
+]
 
 #: The lock file, the manifest, the commit journal and the staging folders' prefix.
 LOCK = ".softgrasp.lock"
@@ -442,3 +451,11 @@ def run_folder(
                     d.rmdir()
                 except OSError:
                     break
+
+
+def save_whole(out: str | os.PathLike[str], owner: str, write: Callable[[Path], None]) -> Path:
+    """``write(folder)`` into :func:`run_folder`'s staging folder for ``out``, its files replacing
+    the folder's earlier ones of ``owner`` whole; return ``out``."""
+    with run_folder(out, owner) as folder:
+        write(folder.stage)
+    return Path(out)
