@@ -330,6 +330,45 @@ def test_ctrl_c_in_plan_is_one_line(planned_sphere, tmp_path):
     _assert_interrupted(_interrupt(["plan", "--out", "p"], tmp_path, _after(3)))
 
 
+_SWALLOWING_LIBRARY = """
+import os, signal, sys
+import softgrasp.cli.warm as warm
+start = warm.warm_up_in_background
+
+def swallowing_import():  # a library's optional import that catches every exception
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        signal.sigtimedwait([], 0.2)  # let the handler run here
+        sum(range(10**6))
+    except BaseException:
+        pass
+    return start()
+
+warm.warm_up_in_background = swallowing_import
+from softgrasp.cli.main import main
+sys.exit(main())
+"""
+
+
+def test_a_ctrl_c_swallowed_by_a_library_still_stops_the_plan_and_keeps_its_outputs(planned_sphere, tmp_path):
+    """A Ctrl-C caught by a library's ``except BaseException`` (trimesh's optional imports do
+    this) still ends the command with 130 and leaves the earlier outputs byte-identical."""
+    out = tmp_path / "p"
+    out.mkdir()
+    for f in ("plan.json", "object.vtu"):
+        (out / f).write_bytes((planned_sphere / f).read_bytes())
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    run = subprocess.run(
+        [sys.executable, "-c", _SWALLOWING_LIBRARY, "plan", "--out", str(out)],
+        env={**os.environ, "PYTHONPATH": SRC},
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    _assert_interrupted(run)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
 def test_ctrl_c_in_calibrate_is_one_line(tmp_path):
     rows = "".join(f"{0.5 * i},{0.3 * i + 0.01 * i * i}\n" for i in range(1, 11))
     (tmp_path / "c.csv").write_text("displacement_mm,force_N\n" + rows)

@@ -6,7 +6,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from softgrasp import __version__
+from softgrasp import __version__, interrupt
 from softgrasp.cli import calibrate, compress, execute, indent, plan, reproduce, sweep, view
 from softgrasp.cli.args import Parser
 from softgrasp.cli.help import add_global_options, describe, exit_codes_epilog
@@ -74,10 +74,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return BAD_INPUT
     if args.verbose:
         _log_progress()
+    if argv is None:  # the process's own command: a Ctrl-C is recorded too (softgrasp.interrupt)
+        interrupt.install()
     try:
         if args.threads is not None:
             _set_threads(args.threads)
-        return int(args.func(args))
+        status = int(args.func(args))
+        interrupt.raise_if_interrupted()
+        return status
     except SoftgraspError as exc:
         print(f"softgrasp: error: {exc}", file=sys.stderr)
         return exit_status(exc)

@@ -14,6 +14,8 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
+from softgrasp.interrupt import raise_if_interrupted
+
 __all__ = ["PLAN_SHARES", "PhaseBar", "kernels_phase"]
 
 #: The shares of ``softgrasp plan``'s bar: (start, end) of each part, as fractions of the whole.
@@ -61,7 +63,9 @@ class PhaseBar:
 
     def phase(self, name: str, label: str | None = None, *, quiet: bool = False) -> None:
         """Phase ``name`` starts: the bar says ``label`` (default the name) and moves to the
-        phase's start; off a terminal one line ``softgrasp: COMMAND: LABEL`` unless ``quiet``."""
+        phase's start; off a terminal one line ``softgrasp: COMMAND: LABEL`` unless ``quiet``.
+        A Ctrl-C received before (:mod:`softgrasp.interrupt`) stops the command here."""
+        raise_if_interrupted()
         self.name = name
         self.phases.append(name)
         text = label or name

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from softgrasp.errors import ConfigError
+from softgrasp.interrupt import raise_if_interrupted
 from softgrasp.io.atomic import write_json
 
 __all__ = [
@@ -432,6 +433,7 @@ def run_folder(
                         if not _writing(exc, path):
                             raise
                         raise _os_error(option, text, exc, "; its earlier files are unchanged") from None
+                    raise_if_interrupted()  # a Ctrl-C that a library swallowed still stops the run
                     try:
                         _commit(folder, complete)
                     except OSError as exc:
