@@ -12,15 +12,16 @@ the kernels afresh, once; unchanged sources load from the cache as Numba's own c
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numba
 from numba.core.caching import FunctionCache
 
-from softgrasp import backend  # noqa: F401 - Intel TBB made loadable for Numba's threads first
+from softgrasp import (
+    backend,  # noqa: F401 - Intel TBB made loadable for Numba's threads first
+    usercache,
+)
 
 __all__ = ["KERNEL_MODULES", "SOURCE_DIGEST", "SourceKeyedCache", "cached", "jit", "source_digest"]
 
@@ -51,14 +52,8 @@ KERNEL_MODULES = (
 
 
 def source_digest(modules: tuple[str, ...] = KERNEL_MODULES) -> str:
-    """SHA-256 over the source files of ``modules`` (softgrasp's own, read from the package folder
-    without importing them or their packages)."""
-    root = Path(__file__).resolve().parent
-    h = hashlib.sha256()
-    for name in modules:
-        path = root.joinpath(*name.split(".")[1:]).with_suffix(".py")
-        h.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
-    return h.hexdigest()
+    """SHA-256 over the source files of ``modules`` (:func:`softgrasp.usercache.source_digest`)."""
+    return usercache.source_digest(*modules)
 
 
 #: :func:`source_digest` of :data:`KERNEL_MODULES`, at import.

@@ -246,39 +246,39 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
             progress=update,
             phase=phase,
         )
-    bar.phase("figures")
-    result.save(out, figures=figures, started=t0)
-    bar.close()
     g, doc = result.grasp, result.document
-    print(result.table())
+    bar.write(result.table())  # the set-points as soon as they exist
     eq = doc["equilibrium"]
-    print(
+    bar.write(
         f"held: residual {eq['force_residual_N']:.2e} N, {eq['torque_residual_Nm']:.2e} N m; "
         f"friction margin {eq['friction_margin']:.2f}; centre of mass moved "
         f"{g.com_drift * 1e3:.2f} mm in {g.hold_time:g} s"
     )
     mg = doc["margin"]
-    print(
+    bar.write(
         f"margin: set-points {mg['safety_factor']:g} x the least that holds: held down to "
         f"{mg['critical_scale']:.2f} x the set-points, not at {mg['not_held_scale']:.2f} (softgrasp's model)"
     )
     if g.damage is not None:
         j = int(g.damage.pressure.argmax())
-        print(
+        bar.write(
             f"load on the object: peak contact pressure {g.damage.pressure[j] / 1e3:.3g} kPa "
             f"({g.fingers[j].name}), peak strain {g.damage.strain:.3g}"
         )
     for travel, why in g.hold_checks[:-1]:
-        print(f"not held at {travel * 1e3:.2f} mm of travel: {why}; closed further")
+        bar.write(f"not held at {travel * 1e3:.2f} mm of travel: {why}; closed further")
+    if eq["friction_margin"] < 0.05:
+        bar.write(
+            f"note: held at the friction limit (friction margin {eq['friction_margin']:.1%}): for a real "
+            "hand, whose forces and friction vary, plan with a larger --safety-factor"
+        )
+    bar.phase("figures")  # then the files, the figures and the view's data
+    result.save(out, figures=figures, started=t0)
+    bar.close()
     if uncertain:
         from softgrasp.cli.robust import robust
 
         return robust(args, result, uncertain, out, t0)
-    if eq["friction_margin"] < 0.05:
-        print(
-            f"note: held at the friction limit (friction margin {eq['friction_margin']:.1%}): for a real "
-            "hand, whose forces and friction vary, plan with a larger --safety-factor"
-        )
     print(
         f"wrote {out}/plan.json, history.csv, object.vtu, closing.pvd (and closing/), frames.npz, "
         "forces.png, force_penetration.png, grasp.png "

@@ -99,13 +99,14 @@ class PhaseBar:
         self.within(name)(1.0)
 
     def write(self, text: str) -> None:
-        """Print ``text`` on stdout without breaking the bar."""
+        """Print ``text`` on stdout without breaking the bar (at once, also into a pipe)."""
         if self._bar is not None:
             from tqdm import tqdm
 
             tqdm.write(text, file=sys.stdout)
+            sys.stdout.flush()
         else:
-            print(text)
+            print(text, flush=True)
 
     def close(self) -> None:
         """Remove the bar."""

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softgrasp import usercache
 from softgrasp.errors import ConfigError
 from softgrasp.hand.chain import FINGER_NAMES, MOVABLE, FingerChain, Joint, Sphere, finger_chains
 
@@ -88,10 +89,74 @@ def parse_urdf(
     """The finger chains, by finger name, of the URDF ``text`` (``source`` names it in messages);
     ``fingertips`` maps finger names to links, ``radius`` [m] overrides the fingertip spheres'.
     :class:`ConfigError` for a malformed or unusable description."""
+    data = text.encode("utf-8") if isinstance(text, str) else text
+    joints, links, spheres = _robot(data, source)
+    return finger_chains(joints, links, spheres, f"URDF {source}", fingertips, radius)
+
+
+#: The modules whose sources decide what :func:`_robot` returns (they key its cache entries).
+_READING_MODULES = ("softgrasp.hand.urdf", "softgrasp.hand.chain")
+
+
+def _robot(data: bytes, source: str) -> tuple[list[Joint], list[str], dict[str, Sphere]]:
+    """The joints, link names and collision spheres of the URDF ``data``: read by yourdfpy once,
+    then from softgrasp's cache folder (:mod:`softgrasp.usercache`; yourdfpy and the mesh library
+    it loads take about half a second to import), keyed by the file's bytes, the library's version
+    and this module's source."""
+    from importlib.metadata import version
+
+    key = usercache.entry_key(
+        "urdf", data, version("yourdfpy"), usercache.source_digest(*_READING_MODULES)
+    )
+    kept = usercache.load("hands", key)
+    if kept is not None:
+        try:
+            return _unpack(kept)
+        except (KeyError, ValueError, IndexError):
+            pass  # a damaged entry: read the file again
+    joints, links, spheres = _read(data, source)
+    usercache.store("hands", key, _pack(joints, links, spheres))
+    return joints, links, spheres
+
+
+def _pack(joints: list[Joint], links: list[str], spheres: dict[str, Sphere]) -> dict[str, np.ndarray]:
+    text = {f: np.array([str(getattr(j, f) or "") for j in joints], dtype=str)
+            for f in ("name", "kind", "parent", "child", "mimic")}
+    num = {f: np.array([getattr(j, f) for j in joints], dtype=np.float64)
+           for f in ("lower", "upper", "multiplier", "offset")}
+    return {
+        **{f"joint_{f}": v for f, v in (text | num).items()},
+        "joint_origin": np.array([j.origin for j in joints], dtype=np.float64).reshape(-1, 4, 4),
+        "joint_axis": np.array([j.axis for j in joints], dtype=np.float64).reshape(-1, 3),
+        "joint_has_mimic": np.array([j.mimic is not None for j in joints], dtype=bool),
+        "links": np.array(links, dtype=str),
+        "sphere_link": np.array(list(spheres), dtype=str),
+        "sphere_radius": np.array([s.radius for s in spheres.values()], dtype=np.float64),
+        "sphere_centre": np.array([s.centre for s in spheres.values()], dtype=np.float64).reshape(-1, 3),
+    }
+
+
+def _unpack(a: dict[str, np.ndarray]) -> tuple[list[Joint], list[str], dict[str, Sphere]]:
+    joints = [
+        Joint(str(a["joint_name"][i]), str(a["joint_kind"][i]), str(a["joint_parent"][i]),
+              str(a["joint_child"][i]), a["joint_origin"][i].copy(), a["joint_axis"][i].copy(),
+              float(a["joint_lower"][i]), float(a["joint_upper"][i]),
+              str(a["joint_mimic"][i]) if a["joint_has_mimic"][i] else None,
+              float(a["joint_multiplier"][i]), float(a["joint_offset"][i]))
+        for i in range(len(a["joint_name"]))
+    ]
+    spheres = {
+        str(link): Sphere(float(r), tuple(float(v) for v in c))  # type: ignore[arg-type]
+        for link, r, c in zip(a["sphere_link"], a["sphere_radius"], a["sphere_centre"], strict=True)
+    }
+    return joints, [str(n) for n in a["links"]], spheres
+
+
+def _read(data: bytes, source: str) -> tuple[list[Joint], list[str], dict[str, Sphere]]:
+    """:func:`_robot` through yourdfpy: :class:`ConfigError` for a malformed description."""
     from lxml import etree
     from yourdfpy import URDF
 
-    data = text.encode("utf-8") if isinstance(text, str) else text
     try:
         root = etree.fromstring(data, etree.XMLParser(remove_blank_text=True))
     except etree.XMLSyntaxError as exc:
@@ -131,7 +196,7 @@ def parse_urdf(
         s = _sphere(link, f"URDF {source}")
         if s is not None:
             spheres[str(link.name)] = s
-    return finger_chains(joints, links, spheres, f"URDF {source}", fingertips, radius)
+    return joints, links, spheres
 
 
 def read_urdf(

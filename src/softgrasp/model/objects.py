@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from softgrasp import usercache
 from softgrasp.errors import MeshError
 from softgrasp.model.material import Material, preset
 from softgrasp.model.memory import release_freed_memory
@@ -150,8 +151,42 @@ def _generated(name: str, mesh_size: float | None, scale: float = 1.0) -> tuple[
     (name, mesh size) among the last few asked for: meshing is deterministic, the mesh immutable
     (its arrays read-only), and a sweep or a script planning the same object again (another
     friction coefficient, material or hand) then skips gmsh (0.3 s for the default sphere, 0.8 s
-    at 2 196 nodes); with the transform from the generated coordinates to the resting mesh's."""
+    at 2 196 nodes); with the transform from the generated coordinates to the resting mesh's.
+    Across processes the meshes are kept in softgrasp's cache folder (:mod:`softgrasp.usercache`),
+    keyed by the parameters, gmsh's version and the meshing modules' sources."""
+    key = usercache.entry_key(
+        "mesh", name, mesh_size, scale, _gmsh_version(), usercache.source_digest(*MESHING_MODULES)
+    )
+    kept = usercache.load("meshes", key)
+    if kept is not None and {"points", "tets", "T", "name"} <= kept.keys():
+        return TetMesh(kept["points"], kept["tets"], name=str(kept["name"])), kept["T"]
+    mesh, T = _generate(name, mesh_size, scale)
+    usercache.store("meshes", key, {"points": mesh.points, "tets": mesh.tets, "T": T, "name": mesh.name})
+    return mesh, T
+
+
+#: The modules whose sources decide a generated mesh (they key its cache entry).
+MESHING_MODULES = (
+    "softgrasp.model.objects",
+    "softgrasp.model.mesh.generate",
+    "softgrasp.model.mesh._gmsh",
+    "softgrasp.model.mesh.placement",
+    "softgrasp.model.mesh.tetmesh",
+)
+
+
+def _gmsh_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("gmsh")
+    except PackageNotFoundError:
+        return "none"
+
+
+def _generate(name: str, mesh_size: float | None, scale: float) -> tuple[TetMesh, NDArray[np.float64]]:
     from softgrasp.model.mesh import generate
+
     if name in OBJECTS:
         spec = OBJECTS[name]
         h = spec.mesh_size if mesh_size is None else mesh_size

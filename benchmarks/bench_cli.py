@@ -1,0 +1,141 @@
+"""Benchmark: the wait a user sees for ``softgrasp plan``, beside MuJoCo, in the same run.
+
+Measured in rounds, alternating, each case in a fresh process as a user starts it:
+
+* **yardstick** — MuJoCo 4 flex pressing the 452-node rubber sphere for 2 s with one fingertip
+  (``bench_indent.mujoco_flex``: the same scene as ``bench_indent.py``; the 2 s of simulation,
+  timed as that script times it);
+* **plan ~2 000 nodes** — ``softgrasp plan --mesh-size 0.008`` (2 196 nodes), the whole process,
+  warm (kernels and the mesh in the cache folders);
+* **default plan** — ``softgrasp plan``: the whole process, and the time until its set-points are
+  printed (the table's header on stdout);
+* **first run** — ``softgrasp plan`` with empty cache folders (Numba's, ``NUMBA_CACHE_DIR``, and
+  softgrasp's, under ``XDG_CACHE_HOME``): what a first run after installing costs, and what it says
+  while it waits.
+
+Every plan's set-points are compared with the first default plan's (they must not change with
+the caches). Prints medians over the rounds and the ratios the speed targets use.
+
+Run: ``.venv/bin/python benchmarks/bench_cli.py [--rounds N] [--no-first-run]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np  # noqa: E402
+
+#: The yardstick's sphere: the mesh size giving 452 nodes.
+YARDSTICK_NODES = 452
+#: The ~2 000-node plan's mesh size [m] (2 196 nodes).
+FINE_MESH_SIZE = 0.008
+
+
+def _softgrasp(args: list[str], env: dict[str, str]) -> dict:
+    """Run ``softgrasp ARGS`` in a new process; its wall time, the time its set-points were
+    printed, its stderr and its plan's set-points."""
+    out = Path(tempfile.mkdtemp(prefix="bench_cli_"))
+    cmd = [sys.executable, "-m", "softgrasp", "plan", "--out", str(out / "run"), *args]
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    t_setpoints = None
+    assert p.stdout is not None
+    for line in p.stdout:
+        if t_setpoints is None and "set-point N" in line:
+            t_setpoints = time.perf_counter() - t0
+    err = p.stderr.read() if p.stderr is not None else ""
+    code = p.wait()
+    wall = time.perf_counter() - t0
+    if code != 0:
+        raise SystemExit(f"softgrasp plan {' '.join(args)} failed ({code}):\n{err}")
+    setpoints = json.loads((out / "run" / "plan.json").read_text())["setpoints_N"]
+    shutil.rmtree(out, ignore_errors=True)
+    return {"wall": wall, "setpoints_at": t_setpoints, "stderr": err, "setpoints": setpoints}
+
+
+def _yardstick_mesh_size() -> float:
+    """The sphere's mesh size [m] that gives :data:`YARDSTICK_NODES` nodes."""
+    from softgrasp.model.objects import make_object
+
+    for h in np.arange(0.0150, 0.0130, -0.0001):
+        if make_object("sphere", float(h))[0].n_nodes == YARDSTICK_NODES:
+            return float(h)
+    raise SystemExit(f"no mesh size gives the {YARDSTICK_NODES}-node sphere with this gmsh")
+
+
+def _yardstick(h: float) -> float:
+    """MuJoCo's 2 s squeeze of the sphere meshed at ``h``, in a fresh process [s]."""
+    code = (
+        "import sys; sys.path.insert(0, %r); import bench_indent as b; "
+        "from softgrasp.model.objects import make_object; "
+        "m, mat, mass = make_object('sphere', %r); r = b.mujoco_flex(m, mat, mass); print(r.wall)"
+    ) % (str(Path(__file__).resolve().parent), h)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return float(run.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rounds", type=int, default=3, help="rounds of the alternating cases (default 3)")
+    ap.add_argument("--no-first-run", action="store_true", help="skip the empty-cache first run")
+    args = ap.parse_args()
+
+    warm_env = dict(os.environ)
+    h452 = _yardstick_mesh_size()
+    # Warm the caches (kernels, meshes, hand) before the rounds.
+    reference = _softgrasp([], warm_env)["setpoints"]
+    _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], warm_env)
+
+    times: dict[str, list[float]] = {
+        "yardstick": [], "fine": [], "default": [], "default_setpoints": [], "first": [],
+    }
+    first_status = ""
+    changed: list[str] = []
+    for k in range(args.rounds):
+        times["yardstick"].append(_yardstick(h452))
+        fine = _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], warm_env)
+        times["fine"].append(fine["wall"])
+        default = _softgrasp([], warm_env)
+        times["default"].append(default["wall"])
+        times["default_setpoints"].append(default["setpoints_at"])
+        if default["setpoints"] != reference:
+            changed.append(f"default plan, round {k + 1}")
+        if not args.no_first_run:
+            with tempfile.TemporaryDirectory(prefix="bench_cli_cache_") as cache:
+                env = {**warm_env, "NUMBA_CACHE_DIR": f"{cache}/numba", "XDG_CACHE_HOME": f"{cache}/xdg"}
+                first = _softgrasp([], env)
+            times["first"].append(first["wall"])
+            first_status = next((ln for ln in first["stderr"].splitlines() if "compiling" in ln), "(none)")
+            if not np.allclose(list(first["setpoints"].values()), list(reference.values()), rtol=1e-9):
+                changed.append(f"first run, round {k + 1}")
+        print(f"round {k + 1}: " + ", ".join(f"{n} {v[-1]:.2f} s" for n, v in times.items() if v), flush=True)
+
+    med = {n: statistics.median(v) for n, v in times.items() if v}
+    print(f"\n`softgrasp plan`, whole process, medians of {args.rounds} alternating rounds:")
+    print(f"  MuJoCo, {YARDSTICK_NODES}-node sphere squeezed for 2 s (yardstick): {med['yardstick']:.2f} s")
+    print(
+        f"  plan --mesh-size {FINE_MESH_SIZE} (2 196 nodes), warm: {med['fine']:.2f} s = "
+        f"{med['fine'] / med['yardstick']:.2f} x the yardstick (target <= 0.5)"
+    )
+    print(
+        f"  default plan, warm: set-points printed at {med['default_setpoints']:.2f} s (target <= 1 s), "
+        f"process {med['default']:.2f} s"
+    )
+    if "first" in med:
+        print(f"  first run, empty caches: {med['first']:.1f} s (target <= 15 s); it said: {first_status.strip()}")
+    print("  set-points: " + ("unchanged in every run" if not changed else "CHANGED in " + ", ".join(changed)))
+
+
+if __name__ == "__main__":
+    main()

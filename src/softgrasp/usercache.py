@@ -1,0 +1,82 @@
+"""softgrasp's cache folder: results that are slow to make and the same every time.
+
+A repeated plan of a built-in object does not mesh it again, and a packaged or user hand is not
+read through the URDF library again: both are kept here, one file per entry, named by the
+SHA-256 of everything the entry depends on (its parameters, the versions of the libraries that
+made it and the sources of the softgrasp modules that made it), so an entry is never stale, only
+unused. The folder is ``$XDG_CACHE_HOME/softgrasp`` (the XDG convention), else
+``~/.cache/softgrasp``; deleting it at any time is safe.
+
+Entries are NumPy ``.npz`` files (no pickles: nothing is executed on load) written atomically.
+The cache is an optimisation only: a folder that cannot be written, or a damaged entry, is
+skipped and the result is made again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["cache_dir", "entry_key", "load", "source_digest", "store"]
+
+def cache_dir() -> Path:
+    """The cache folder (module docstring); not created here."""
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "softgrasp"
+
+
+def source_digest(*modules: str) -> str:
+    """SHA-256 of the source files of softgrasp's ``modules`` (dotted names), read from the
+    package folder without importing them."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for name in modules:
+        path = root.joinpath(*name.split(".")[1:]).with_suffix(".py")
+        h.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def entry_key(*parts: object) -> str:
+    """The name of an entry: SHA-256 over the ``repr`` of each part (numbers, strings, bytes)."""
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(p if isinstance(p, bytes) else repr(p).encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def _path(kind: str, key: str) -> Path:
+    return cache_dir() / kind / f"{key}.npz"
+
+
+def load(kind: str, key: str) -> dict[str, NDArray] | None:
+    """The arrays stored under ``kind``/``key``, or None when there is no readable entry."""
+    path = _path(kind, key)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, EOFError, KeyError):
+        return None
+
+
+def store(kind: str, key: str, arrays: Mapping[str, NDArray | str | float]) -> None:
+    """Keep ``arrays`` under ``kind``/``key`` (atomically); a failure to write is ignored."""
+    path = _path(kind, key)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".entry.", suffix=".npz", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    except OSError:
+        pass
