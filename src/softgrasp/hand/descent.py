@@ -84,7 +84,7 @@ def _jacobian(axis, prismatic, column, gain, length, p, frames, tips, J):  # pra
         J[r0 + 1, 5] = rx
         J[r0 + 2, 3] = ry
         J[r0 + 2, 4] = -rx
-    joint_columns(axis, prismatic, column, gain, length, frames, tips, J, 6)
+    joint_columns(axis, prismatic, column, gain, length, frames, tips, J, np.int64(6))
 
 
 @jit

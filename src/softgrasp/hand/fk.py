@@ -115,7 +115,7 @@ def batch(basis, axis, prismatic, column, gain, offset, length, R, p, q, tips, J
                 tips[b, c, i] = tip[c, i]
         if J_out.shape[0] > 0:
             J[:, :] = 0.0
-            joint_columns(axis, prismatic, column, gain, length, frames, tip, J, 0)
+            joint_columns(axis, prismatic, column, gain, length, frames, tip, J, np.int64(0))
             for c in range(C):
                 for i in range(3):
                     for k in range(n):

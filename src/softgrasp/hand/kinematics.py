@@ -188,8 +188,8 @@ def stack_kinematics(
         stack.gain,
         stack.offset,
         stack.lengths,
-        np.ascontiguousarray(R, dtype=np.float64),
-        np.ascontiguousarray(p, dtype=np.float64),
+        np.array(R, dtype=np.float64, order="C"),  # a writable copy (a broadcast identity is read-only): one
+        np.array(p, dtype=np.float64, order="C"),  # compiled kernel for every call
         qa,
         tips,
         J,

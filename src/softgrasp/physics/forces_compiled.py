@@ -232,9 +232,11 @@ def _jacobian_groups(
 ):  # pragma: no cover - compiled
     """:func:`assembly_partition`'s first two groups side by side (they write no entry in
     common), then the third; the same sums on any number of threads."""
-    for g in numba.prange(2):
+    for k in numba.prange(2):  # the group as an int64, as from Python: one compiled group kernel
+        g = np.int64(k)
         _jacobian_group(x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb, g)
-    _jacobian_group(x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb, 2)
+    last = np.int64(2)
+    _jacobian_group(x, edges, L, T, dT, tets, rest, kappa, barrier, base, stride, out, eo, eb, to, tb, last)
 
 
 def internal_jacobian_data(

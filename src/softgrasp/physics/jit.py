@@ -31,8 +31,11 @@ NO_ORDER = np.zeros(0, dtype=np.int64)
 
 
 def f64(a: Array) -> Array:
-    """``a`` as a contiguous float64 array (no copy when it already is one)."""
-    return np.ascontiguousarray(a, dtype=np.float64)
+    """``a`` as a writable contiguous float64 array (no copy when it already is one). Kernels are
+    compiled once per argument type, and Numba types a read-only array apart from a writable one:
+    a read-only input (a frozen mesh's points, say) is copied so that each kernel compiles once."""
+    out = np.ascontiguousarray(a, dtype=np.float64)
+    return out if out.flags.writeable else out.copy()
 
 
 def i64(a: IntArray) -> IntArray:

@@ -124,9 +124,10 @@ def _static_forces(
         )
     # At rest (static=True) the loop reads no velocities: x, centres and radii stand in for v, the
     # fingertips' velocities and spins, and C (which only multiplies the zero penetration rate).
+    # The flags as np.bool_, not literals: the pair law then compiles once for every caller.
     _pair_forces(
-        finger, facet, val, x, x, facets, centres, radii, centres, centres, law, radii, mu, n_exp, False,
-        patch, ratio, min_depth_ratio, active, anchor, offset, memory, True, out,
+        finger, facet, val, x, x, facets, centres, radii, centres, centres, law, radii, mu, n_exp,
+        np.bool_(False), patch, ratio, min_depth_ratio, active, anchor, offset, memory, np.bool_(True), out,
     )  # fmt: skip
 
 

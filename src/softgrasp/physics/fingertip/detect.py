@@ -201,7 +201,7 @@ def _detect(
             ez = cz - gz
             if ex * ex + ey * ey + ez * ez > lim * lim:
                 continue
-            if not _pair_values(tri, cx, cy, cz, R, closest, inside_tol, False, near, real[k]):
+            if not _pair_values(tri, cx, cy, cz, R, closest, inside_tol, np.bool_(False), near, real[k]):
                 continue
             finger[k] = f
             facet[k] = j
@@ -277,7 +277,7 @@ def _candidate_values(x, facets, centres, radii, finger, facet, closest, inside_
 def _pinned_values(x, facets, centres, radii, finger, facet, closest):  # pragma: no cover - compiled
     """The values (k, 13) of the given (finger, facet) pairs at ``x`` (:func:`_pair_values` with
     ``keep``), whether they touch there or not."""
-    return _candidate_values(x, facets, centres, radii, finger, facet, closest, 0.0, True)[1]
+    return _candidate_values(x, facets, centres, radii, finger, facet, closest, 0.0, np.bool_(True))[1]
 
 
 def pair_values(
@@ -296,9 +296,11 @@ def pair_values(
     of every pair, touching or not (a pinned pair followed through a displacement: depth may be
     <= 0, the contact point outside the triangle with the paper's test)."""
     f64, i64 = np.float64, np.int64
-    return _candidate_values(
-        np.ascontiguousarray(x, dtype=f64),
-        np.ascontiguousarray(facets, dtype=i64),
+    tri = np.require(facets, i64, "C").view()
+    tri.flags.writeable = False  # as a mesh's facets are, and x writable as a state's positions
+    return _candidate_values(  # are: the kernel compiled for the plan serves this call too
+        np.require(x, f64, ("C", "W")),
+        tri,
         np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(radii, dtype=f64).ravel(),
         np.ascontiguousarray(finger, dtype=i64),
