@@ -100,9 +100,14 @@ class SoftObject:
         """One line for people: the mesh and the mass."""
         return f"{self.body.mesh.summary()}, mass {self.mass_kg * 1e3:.1f} g"
 
-    def to_dict(self) -> dict[str, object]:
-        """JSON-ready description: name, mesh and model sizes, material (units in the keys)."""
-        return {"name": self.source, **self.body.describe()}
+    def to_dict(self, folder: str | Path | None = None) -> dict[str, object]:
+        """JSON-ready description: name, mesh and model sizes, material (units in the keys). With
+        ``folder`` (the output folder that records it), a mesh file is named by its path relative
+        to it (:func:`~softgrasp.io.portable.portable_path`), not by this machine's path."""
+        from softgrasp.io.portable import portable_path
+
+        name = self.source if folder is None else portable_path(self.source, folder)
+        return {"name": name, **self.body.describe()}
 
 
 def _material_file(
