@@ -8,6 +8,7 @@ import json
 import os
 import re
 import shutil
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -145,6 +146,38 @@ def test_a_calibrated_material_file_is_usable_on_any_object(ellipsoid, tmp_path)
         sg.load_object("sphere", material=f"{toml},colour=red")
     with pytest.raises(MaterialError, match="density"):
         sg.load_object("sphere", material=f"{toml},density=0")
+
+
+def test_a_shape_without_material_takes_water_and_rubber_with_a_warning() -> None:
+    with pytest.warns(SoftgraspWarning, match=r"the shape ball:0.03 is given without a material") as rec:
+        obj = sg.load_object("ball:0.03", mesh_size_m=0.015)
+    text = str(rec[0].message)
+    assert "1000 kg/m^3" in text and "E = 79.3 kPa" in text and "--density KG_M3 or --mass KG" in text
+    assert obj.material.density == pytest.approx(1000.0) and obj.material.E == sg.material("rubber").E
+    assert obj.mass_kg == pytest.approx(1000.0 * obj.mesh.volume)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SoftgraspWarning)  # stated choices, and objects of their own
+        dense = sg.load_object("ball:0.03", mesh_size_m=0.015, density_kg_m3=900.0)
+        light = sg.load_object("ball:0.03", mesh_size_m=0.015, mass_kg=0.02)
+        rubber = sg.load_object("ball:0.03", mesh_size_m=0.015, material="rubber")
+        sphere, cube = sg.load_object("sphere"), sg.load_object("cube", mesh_size_m=0.025)
+    assert dense.mass_kg == pytest.approx(900.0 * dense.mesh.volume) and light.mass_kg == pytest.approx(0.02)
+    assert dense.material.E == sg.material("rubber").E  # the stated default stiffness
+    assert rubber.material.density == sg.material("rubber").density
+    assert sphere.mass_kg == pytest.approx(0.05) and cube.mass_kg == pytest.approx(0.0125)
+    assert sphere.material.name == "rubber" and cube.material.name == "foam"
+
+
+def test_the_command_line_warns_of_a_shape_without_material_but_not_with_density(tmp_path, capsys) -> None:
+    argv = ["compress", "--object", "box:0.03", "--mesh-size", "0.015", "--strain", "0.02", "--steps", "2"]
+    assert main([*argv, "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "softgrasp: warning: the shape box:0.03 is given without a material" in err
+    assert "--material" in err and "--density KG_M3 or --mass KG" in err
+    doc = json.loads((tmp_path / "a" / "compress.json").read_text())
+    assert doc["object"]["mass_kg"] == pytest.approx(0.027)  # 27 cm^3 of water's density
+    assert main([*argv, "--density", "1000", "--out", str(tmp_path / "b")]) == 0
+    assert "warning" not in capsys.readouterr().err
 
 
 def test_the_command_line_takes_density_and_mass(ellipsoid, tmp_path, capsys) -> None:

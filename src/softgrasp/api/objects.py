@@ -144,9 +144,9 @@ def load_object(
         (``E=80e3,nu=0.45,density=950``) or a material file (``.toml``, as ``softgrasp calibrate``
         writes, optionally followed by overrides: ``material.toml,density=1000``); default the
         object's own. A material with a density decides the mass; one without keeps a built-in
-        object's mass. A mesh file given without a material takes the ``rubber`` preset's E and nu
-        and, without a density or mass, 1000 kg/m^3 (water's), each with a
-        :class:`~softgrasp.errors.SoftgraspWarning`.
+        object's mass. A mesh file or a shape given without a material takes the ``rubber``
+        preset's E and nu and, without a density or mass, 1000 kg/m^3 (water's), each with a
+        :class:`~softgrasp.errors.SoftgraspWarning` (a shape given its density or mass: none).
     density_kg_m3, mass_kg:
         The object's density [kg/m^3] or its total mass [kg] (one of them), over the material's.
     mesh_size_m:
