@@ -77,6 +77,23 @@ def test_sample_requirements_read_the_grippers_columns() -> None:
     np.testing.assert_allclose(required[:, 0], [0.4, 1.4, 2.4])
 
 
+def test_a_sweep_of_the_gripper_writes_its_fingers_rows_and_figure(tmp_path: Path, capsys) -> None:
+    source, material, size = BALL
+    base = f'object = "{source}"\nmaterial = "{material}"\nmesh_size = {size}\nhand = "parallel_jaw"'
+    out = tmp_path / "sweep"
+    path = _sweep(tmp_path, base, "mu = [0.7, 0.8]")
+    assert main(["sweep", str(path), "--workers", "1", "--out", str(out)]) == 0
+    with open(out / "results.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    for r in rows:
+        assert float(r["setpoint_left_N"]) > 0 and float(r["setpoint_right_N"]) > 0
+        both = float(r["setpoint_left_N"]) + float(r["setpoint_right_N"])
+        assert float(r["setpoint_sum_N"]) == pytest.approx(both)
+    assert json.loads((out / "sweep.json").read_text())["fingers"] == ["left", "right"]
+    assert (out / "force_vs_mu.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 # ---------------------------------------------------------------------- execution in MuJoCo
 
 
