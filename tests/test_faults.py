@@ -299,7 +299,7 @@ FOLDER_CASES = [
     _folder_case(["compress", "--object", "{i}/vertex.vtu"], "falls apart into 2 parts"),
     _folder_case(["indent", "--depth", "inf"], "--depth must be a number"),
     _folder_case(["indent", "--object", "ball:1e6"], "1 mm to 0.5 m"),
-    _folder_case(["indent", "--object", "box:0.004", "--depth", "0.009"], "depth"),
+    _folder_case(["indent", "--object", "box:0.004", "--density", "1000", "--depth", "0.009"], "depth"),
     _folder_case(["calibrate", "--compression", "{i}/missing.csv"], "missing.csv"),
     _folder_case(["calibrate", "--compression", "{i}/text.csv"], "text.csv"),
     _folder_case(["calibrate", "--compression", "{i}/one_row.csv"], "one_row.csv"),
@@ -380,8 +380,8 @@ def _inject(monkeypatch, fault: str) -> None:
         )
 
 
-QUICK_COMPRESS = ["compress", "--object", "box:0.04", "--strain", "0.02", "--steps", "2"]
-QUICK_INDENT = ["indent", "--object", "box:0.04", "--depth", "0.001", "--steps", "5"]
+QUICK_COMPRESS = ["compress", "--object", "box:0.04", "--density", "1000", "--strain", "0.02", "--steps", "2"]
+QUICK_INDENT = ["indent", "--object", "box:0.04", "--density", "1000", "--depth", "0.001", "--steps", "5"]
 
 
 def _midway(args: list[str], fault: str, needle: str, *marks) -> object:

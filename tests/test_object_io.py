@@ -8,6 +8,7 @@ import json
 import os
 import re
 import shutil
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -145,6 +146,38 @@ def test_a_calibrated_material_file_is_usable_on_any_object(ellipsoid, tmp_path)
         sg.load_object("sphere", material=f"{toml},colour=red")
     with pytest.raises(MaterialError, match="density"):
         sg.load_object("sphere", material=f"{toml},density=0")
+
+
+def test_a_shape_without_material_takes_water_and_rubber_with_a_warning() -> None:
+    with pytest.warns(SoftgraspWarning, match=r"the shape ball:0.03 is given without a material") as rec:
+        obj = sg.load_object("ball:0.03", mesh_size_m=0.015)
+    text = str(rec[0].message)
+    assert "1000 kg/m^3" in text and "E = 79.3 kPa" in text and "--density KG_M3 or --mass KG" in text
+    assert obj.material.density == pytest.approx(1000.0) and obj.material.E == sg.material("rubber").E
+    assert obj.mass_kg == pytest.approx(1000.0 * obj.mesh.volume)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SoftgraspWarning)  # stated choices, and objects of their own
+        dense = sg.load_object("ball:0.03", mesh_size_m=0.015, density_kg_m3=900.0)
+        light = sg.load_object("ball:0.03", mesh_size_m=0.015, mass_kg=0.02)
+        rubber = sg.load_object("ball:0.03", mesh_size_m=0.015, material="rubber")
+        sphere, cube = sg.load_object("sphere"), sg.load_object("cube", mesh_size_m=0.025)
+    assert dense.mass_kg == pytest.approx(900.0 * dense.mesh.volume) and light.mass_kg == pytest.approx(0.02)
+    assert dense.material.E == sg.material("rubber").E  # the stated default stiffness
+    assert rubber.material.density == sg.material("rubber").density
+    assert sphere.mass_kg == pytest.approx(0.05) and cube.mass_kg == pytest.approx(0.0125)
+    assert sphere.material.name == "rubber" and cube.material.name == "foam"
+
+
+def test_the_command_line_warns_of_a_shape_without_material_but_not_with_density(tmp_path, capsys) -> None:
+    argv = ["compress", "--object", "box:0.03", "--mesh-size", "0.015", "--strain", "0.02", "--steps", "2"]
+    assert main([*argv, "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "softgrasp: warning: the shape box:0.03 is given without a material" in err
+    assert "--material" in err and "--density KG_M3 or --mass KG" in err
+    doc = json.loads((tmp_path / "a" / "compress.json").read_text())
+    assert doc["object"]["mass_kg"] == pytest.approx(0.027)  # 27 cm^3 of water's density
+    assert main([*argv, "--density", "1000", "--out", str(tmp_path / "b")]) == 0
+    assert "warning" not in capsys.readouterr().err
 
 
 def test_the_command_line_takes_density_and_mass(ellipsoid, tmp_path, capsys) -> None:
@@ -306,8 +339,9 @@ def _files(folder: Path) -> list[Path]:
 @pytest.mark.slow
 def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None:
     """plan (a mesh file, a material file and a URDF named by absolute paths), execute with
-    --save-scene, a sweep and a quick reproduce: none of their files names the temporary folder,
-    the home folder or softgrasp's own folder, and every JSON names the softgrasp version."""
+    --save-scene, a sweep and a quick reproduce (compression, indentation and grasp): none of their
+    files names the temporary folder, the home folder or softgrasp's own folder, and every JSON
+    names the softgrasp version."""
     from softgrasp.hand.kinematics import HandModel
 
     inputs = tmp_path / "inputs"
@@ -337,7 +371,8 @@ def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None
     assert main(["sweep", str(spec), "--out", str(sweep_dir), "--workers", "1"]) == 0
     from softgrasp.report.reproduce import reproduce
 
-    reproduce(tmp_path / "reproduce", quick=True, experiments=["grasp_sphere"])
+    steps = ["compression_cube", "indentation_cube", "grasp_sphere"]
+    reproduce(tmp_path / "reproduce", quick=True, experiments=steps)
     capsys.readouterr()
     here = str(Path(sg.__file__).resolve().parents[2])
     machine = [str(tmp_path), os.path.realpath(tmp_path), here, os.path.expanduser("~") + "/"]
@@ -348,3 +383,44 @@ def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None
     for p in outputs:
         if p.suffix == ".json" and not p.name.startswith("."):
             assert json.loads(p.read_text()).get("softgrasp_version") == sg.__version__, p
+
+
+def test_compress_indent_and_calibrate_name_their_inputs_from_the_output_folder(tmp_path, capsys) -> None:
+    """compress, indent (with measured data) and calibrate of a mesh file, each named by its
+    absolute path: their JSON (and material.toml) name the mesh and data files relative to the
+    output folder, never by the machine's paths, and every JSON names the softgrasp version."""
+    from softgrasp.model.mesh.generate import box
+    from softgrasp.model.mesh.io import save_mesh
+
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    mesh = inputs / "block.vtu"
+    save_mesh(box(0.03, 2), mesh)  # 59 nodes: a few seconds a command
+    pen = np.linspace(0.0005, 0.003, 6)
+    curve = inputs / "indent.csv"
+    curve.write_text("penetration_m,force_N\n" + "".join(f"{a},{2000 * a**1.5}\n" for a in pen))
+    d = np.linspace(0.0002, 0.003, 6)
+    comp = inputs / "comp.csv"
+    comp.write_text("displacement_m,force_N\n" + "".join(f"{a},{60 * a}\n" for a in d))
+    obj = ["--object", str(mesh), "--material", "E=200e3,nu=0.45,density=1000"]
+    out = {c: tmp_path / "out" / c for c in ("compress", "indent", "calibrate")}
+    assert main(["compress", *obj, "--strain", "0.05", "--steps", "2", "--out", str(out["compress"])]) == 0
+    argv = ["indent", *obj, "--depth", "0.003", "--steps", "4", "--data", str(curve)]
+    assert main([*argv, "--out", str(out["indent"])]) == 0
+    argv = ["calibrate", "--object", str(mesh), "--density", "1000", "--compression", str(comp), "--law"]
+    assert main([*argv, "linear", "--nu", "0.3", "--steps", "6", "--out", str(out["calibrate"])]) == 0
+    capsys.readouterr()
+    names = {"compress": "compress.json", "indent": "indent.json", "calibrate": "calibration.json"}
+    for c, name in names.items():
+        doc = json.loads((out[c] / name).read_text())
+        assert doc["softgrasp_version"] == sg.__version__
+        assert doc.get("object", doc.get("specimen"))["name"] == "../../inputs/block.vtu", c
+    assert json.loads((out["indent"] / "indent.json").read_text())["data_file"] == "../../inputs/indent.csv"
+    cal = json.loads((out["calibrate"] / "calibration.json").read_text())
+    assert cal["fits"]["compression"]["data"] == "../../inputs/comp.csv"
+    assert "compression ../../inputs/comp.csv" in (out["calibrate"] / "material.toml").read_text()
+    here = str(Path(sg.__file__).resolve().parents[2])
+    machine = [str(tmp_path), os.path.realpath(tmp_path), here, os.path.expanduser("~") + "/"]
+    pattern = re.compile("|".join(re.escape(m) for m in machine).encode())
+    leaks = [p for p in _files(tmp_path / "out") if pattern.search(p.read_bytes())]
+    assert not leaks

@@ -117,12 +117,18 @@ class Calibration:
         interrupt leaves them as they were)."""
         from softgrasp.io.runfolder import save_whole
 
-        return save_whole(out, "calibrate", lambda stage: self._write(stage, started))
+        return save_whole(out, "calibrate", lambda stage: self._write(stage, started, Path(out)))
 
-    def _write(self, out: Path, started: float | None) -> None:
+    def _write(self, out: Path, started: float | None, folder: Path) -> None:
+        """The files into ``out``, the files they name relative to ``folder``, where they go."""
+        import copy
+
         from softgrasp.io.atomic import write_json
         from softgrasp.io.materialfile import write_material_file
+        from softgrasp.io.portable import portable_path
         from softgrasp.viz.plots import plot_calibration
+
+        sources = {k: portable_path(v, folder) for k, v in self.sources.items()}
 
         for kind, fit in self.fits.items():
             lateral = None
@@ -147,11 +153,14 @@ class Calibration:
             out / "material.toml",
             self.material,
             self.contact,
-            comment=f"softgrasp calibrate: {', '.join(f'{k} {self.sources[k]}' for k in self.fits)}\n"
+            comment=f"softgrasp calibrate: {', '.join(f'{k} {sources[k]}' for k in self.fits)}\n"
             "use with --material FILE in plan, indent, compress and execute",
         )
         wall = time.perf_counter() - (self._started if started is None else started)
-        doc = {**self.document, "wall_time_s": wall}
+        doc = {**copy.deepcopy(self.document), "wall_time_s": wall}
+        doc["specimen"] = self.object.to_dict(folder)
+        for kind, fit in doc.get("fits", {}).items():
+            fit["data"] = sources.get(kind, fit.get("data"))
         write_json(out / "calibration.json", doc)
 
 

@@ -59,14 +59,15 @@ class Compression:
         """Largest plate force [N]."""
         return float(self.result.force_N.max())
 
-    def to_dict(self, started: float | None = None) -> dict[str, Any]:
+    def to_dict(self, started: float | None = None, folder: str | Path | None = None) -> dict[str, Any]:
         """The ``compress.json`` document; ``wall_time_s`` counts from ``started`` (a
-        :func:`time.perf_counter` value; default when :func:`compress` began)."""
+        :func:`time.perf_counter` value; default when :func:`compress` began); a mesh file named
+        relative to ``folder``, the output folder (:meth:`SoftObject.to_dict`)."""
         res = self.result
         return {
             "schema": "softgrasp.compress/1",
             "softgrasp_version": __version__,
-            "object": self.object.to_dict(),
+            "object": self.object.to_dict(folder),
             "parameters": {
                 **self.parameters,
                 "height_m": res.height_m,
@@ -87,9 +88,9 @@ class Compression:
         folder's earlier ones whole (:mod:`softgrasp.io.runfolder`)."""
         from softgrasp.io.runfolder import save_whole
 
-        return save_whole(out, "compress", lambda stage: self._write(stage, started))
+        return save_whole(out, "compress", lambda stage: self._write(stage, started, Path(out)))
 
-    def _write(self, out: Path, started: float | None) -> None:
+    def _write(self, out: Path, started: float | None, folder: Path) -> None:
         from softgrasp.io.atomic import write_json, write_text
         from softgrasp.viz.plots import plot_stress_strain
 
@@ -97,7 +98,7 @@ class Compression:
         rows = zip(res.displacement_m, res.force_N, res.strain, res.stress_Pa, strict=True)
         header = ["displacement_m", "force_N", "strain", "stress_Pa"]
         write_text(out / "compress.csv", _csv(header, ([f"{v:.9g}" for v in row] for row in rows)))
-        write_json(out / "compress.json", self.to_dict(started))
+        write_json(out / "compress.json", self.to_dict(started, folder))
         plot_stress_strain(
             out / "compress.png",
             res.strain,
@@ -191,14 +192,17 @@ class Indentation:
         """The force at the full depth [N]."""
         return float(self.result.force_N[-1])
 
-    def to_dict(self, started: float | None = None) -> dict[str, Any]:
+    def to_dict(self, started: float | None = None, folder: str | Path | None = None) -> dict[str, Any]:
         """The ``indent.json`` document; ``wall_time_s`` counts from ``started`` (default when
-        :func:`indent` began)."""
+        :func:`indent` began); the mesh and data files named relative to ``folder``, the output
+        folder (:func:`~softgrasp.io.portable.portable_path`)."""
+        from softgrasp.io.portable import portable_path
+
         res = self.result
         report: dict[str, Any] = {
             "schema": "softgrasp.indent/1",
             "softgrasp_version": __version__,
-            "object": self.object.to_dict(),
+            "object": self.object.to_dict(folder),
             "parameters": {
                 "depth_m": res.depth_m,
                 "radius_m": self.radius_m,
@@ -224,7 +228,8 @@ class Indentation:
             "split_increments": res.halvings,
         }
         if self.measured is not None:
-            report["data_file"] = self.measured.path
+            data = self.measured.path
+            report["data_file"] = data if folder is None else portable_path(data, folder)
             report["measured_points"] = self.measured.points
             report["mean_abs_error_N"] = self.mean_abs_error_N
         report["wall_time_s"] = time.perf_counter() - (self._started if started is None else started)
@@ -235,9 +240,9 @@ class Indentation:
         folder's earlier ones whole (:mod:`softgrasp.io.runfolder`)."""
         from softgrasp.io.runfolder import save_whole
 
-        return save_whole(out, "indent", lambda stage: self._write(stage, started))
+        return save_whole(out, "indent", lambda stage: self._write(stage, started, Path(out)))
 
-    def _write(self, out: Path, started: float | None) -> None:
+    def _write(self, out: Path, started: float | None, folder: Path) -> None:
         from softgrasp.io.atomic import write_json, write_text
         from softgrasp.viz.plots import plot_force_penetration
 
@@ -246,7 +251,7 @@ class Indentation:
         cols = (res.time_s, res.penetration_m, res.force_N, res.normal_force_N, res.tangential_force_N)
         rows = ([*(f"{v:.9g}" for v in vals), int(n)] for *vals, n in zip(*cols, res.contacts, strict=True))
         write_text(out / "indent.csv", _csv(header, rows))
-        write_json(out / "indent.json", self.to_dict(started))
+        write_json(out / "indent.json", self.to_dict(started, folder))
         m = self.object.material
         title = f"Indentation of the {self.object.source} ({m.name}), R = {self.radius_m * 1e3:.3g} mm"
         measured = None if self.measured is None else (self.measured.penetration_m, self.measured.force_N)

@@ -100,9 +100,14 @@ class SoftObject:
         """One line for people: the mesh and the mass."""
         return f"{self.body.mesh.summary()}, mass {self.mass_kg * 1e3:.1f} g"
 
-    def to_dict(self) -> dict[str, object]:
-        """JSON-ready description: name, mesh and model sizes, material (units in the keys)."""
-        return {"name": self.source, **self.body.describe()}
+    def to_dict(self, folder: str | Path | None = None) -> dict[str, object]:
+        """JSON-ready description: name, mesh and model sizes, material (units in the keys). With
+        ``folder`` (the output folder that records it), a mesh file is named by its path relative
+        to it (:func:`~softgrasp.io.portable.portable_path`), not by this machine's path."""
+        from softgrasp.io.portable import portable_path
+
+        name = self.source if folder is None else portable_path(self.source, folder)
+        return {"name": name, **self.body.describe()}
 
 
 def _material_file(
@@ -139,9 +144,9 @@ def load_object(
         (``E=80e3,nu=0.45,density=950``) or a material file (``.toml``, as ``softgrasp calibrate``
         writes, optionally followed by overrides: ``material.toml,density=1000``); default the
         object's own. A material with a density decides the mass; one without keeps a built-in
-        object's mass. A mesh file given without a material takes the ``rubber`` preset's E and nu
-        and, without a density or mass, 1000 kg/m^3 (water's), each with a
-        :class:`~softgrasp.errors.SoftgraspWarning`.
+        object's mass. A mesh file or a shape given without a material takes the ``rubber``
+        preset's E and nu and, without a density or mass, 1000 kg/m^3 (water's), each with a
+        :class:`~softgrasp.errors.SoftgraspWarning` (a shape given its density or mass: none).
     density_kg_m3, mass_kg:
         The object's density [kg/m^3] or its total mass [kg] (one of them), over the material's.
     mesh_size_m:

@@ -109,6 +109,7 @@ def robust_plan(
             workers=workers,
             scheduler=scheduler,
             progress=progress,
+            fingers=[str(f["name"]) for f in plan.document["fingers"]],
         )
         res = replace(res, stages={k: str(out / "robust" / Path(v).name) for k, v in res.stages.items()})
         summary = res.describe()

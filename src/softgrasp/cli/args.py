@@ -112,7 +112,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
         default=None,
         help="preset (foam, rubber), E=..,nu=..,density=.. [Pa, -, kg/m^3] or a material file "
         "(FILE.toml, as calibrate writes; FILE.toml,density=.. to change it); default: the object's "
-        "(a mesh file: rubber's E and nu, with a warning)",
+        "(a mesh file or a shape: rubber's E and nu, with a warning)",
     )
     mass = p.add_mutually_exclusive_group()
     mass.add_argument(
@@ -121,7 +121,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="KG_M3",
         help=f"the object's density [kg/m^3], {limits('density')}, over its material's (a mesh file "
-        "without one: 1000, with a warning)",
+        "or a shape without one: 1000, with a warning)",
     )
     mass.add_argument(
         "--mass",

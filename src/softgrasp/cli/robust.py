@@ -50,7 +50,7 @@ def robust(args: argparse.Namespace, plan, uncertain: list, out: Path, t0: float
             b.close()  # type: ignore[attr-defined]
     wall = time.perf_counter() - t0
     print("finger    nominal N   robust N   samples need N (median..max)")
-    for j, name in enumerate(("thumb", "first", "middle")):
+    for j, name in enumerate(res.fingers):
         need = res.required[:, j][np.isfinite(res.required[:, j])]
         print(
             f"{name:<9} {res.nominal[j]:9.3f} {res.setpoints[j]:10.3f}   "

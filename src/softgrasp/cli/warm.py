@@ -87,7 +87,7 @@ def warm_up() -> None:
     from softgrasp.hand.placement import place_hand
 
     hand = HandModel.default()
-    mid = {f: hand.forward(f, 0.5 * np.add(*hand.limits(f))) for f in ("thumb", "first", "middle")}
+    mid = {f: hand.forward(f, 0.5 * np.add(*hand.limits(f))) for f in hand.grasp_fingers}
     place_hand(hand, mid)
 
 

@@ -219,20 +219,25 @@ def load_placed_body(
     (:func:`~softgrasp.model.objects.make_placed_object`).
 
     A material given with its own density or mass decides the mass; a preset, or a file or
-    :class:`Material` without a density, keeps a built-in object's mass. A mesh file given
-    without a material takes :data:`~softgrasp.model.objects.FILE_MATERIAL` (the rubber preset's
-    E and nu; 1000 kg/m^3 unless ``density`` or ``mass`` is given), and one whose material has no
-    density, 1000 kg/m^3: each default with a :class:`~softgrasp.errors.SoftgraspWarning`.
+    :class:`Material` without a density, keeps a built-in object's mass. A mesh file or a shape
+    (``ball:R`` ...: no mass of its own either) given without a material takes
+    :data:`~softgrasp.model.objects.FILE_MATERIAL` (the rubber preset's E and nu; 1000 kg/m^3
+    unless ``density`` or ``mass`` is given), and a mesh file whose material has no density,
+    1000 kg/m^3: each default with a :class:`~softgrasp.errors.SoftgraspWarning` (none for a shape
+    given its density or mass). A shape whose material has no density is refused (ConfigError
+    naming ``--density`` and ``--mass``).
     """
     from softgrasp.model.material import Polynomial, check_given, parse_material
-    from softgrasp.model.objects import FILE_MATERIAL, is_mesh_file, make_placed_object
+    from softgrasp.model.objects import FILE_MATERIAL, OBJECTS, is_mesh_file, make_placed_object
     from softgrasp.physics.body import build_body
 
     mesh, mat, mass, transform = make_placed_object(object_name, mesh_size, reorient=reorient, scale=scale)
     ov = _checked_overrides(overrides)
     mass_given = "density" in ov or "mass" in ov
     file = is_mesh_file(object_name)
-    label = Path(object_name).name
+    label = Path(object_name).name if file else object_name
+    what_object = f"the mesh file {label}" if file else f"the shape {label}"
+    own_mass = object_name in OBJECTS  # a built-in object; a file or a shape has no mass of its own
     no_density = ""  # what was given without a density, where the object needs one
     if isinstance(material, Material):
         mat = material
@@ -256,13 +261,13 @@ def load_placed_body(
             mass = spec_mass
         elif "density" in material:
             mass = None
-    elif file:
+    elif file or (not own_mass and not mass_given):  # a shape given its mass: rubber's E, nu, silently
         water = float(FILE_MATERIAL.density or 0.0)
         what = f"rubber's stiffness (E = {mat.E / 1e3:.4g} kPa, nu = {mat.nu:g})"
         if not mass_given:
             what += f" and the density of water, {water:g} kg/m^3 ({water * mesh.volume * 1e3:.4g} g)"
         _warn(
-            f"the mesh file {label} is given without a material: softgrasp takes {what}; give --material "
+            f"{what_object} is given without a material: softgrasp takes {what}; give --material "
             "(a preset, E=..,nu=.. or a calibrate .toml)"
             + ("" if mass_given else " and --density KG_M3 or --mass KG")
         )

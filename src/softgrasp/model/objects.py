@@ -42,7 +42,7 @@ __all__ = [
 CUBE_SIZE = 0.05
 #: Radius of the default rubber sphere [m] (paper, Sec. 4.2).
 SPHERE_RADIUS = 0.064
-#: The material a mesh file takes when it is given without one (with a warning from
+#: The material a mesh file or a shape takes when it is given without one (with a warning from
 #: :func:`softgrasp.io.options.load_body`): the rubber preset's stiffness (Table 1) at the density
 #: of water, near that of fruit, silicone and most soft solids (900-1 200 kg/m^3).
 FILE_MATERIAL = Material(E=preset("rubber").E, nu=preset("rubber").nu, density=1000.0, name="rubber")
@@ -70,14 +70,15 @@ OBJECTS: dict[str, ObjectSpec] = {
 def make_object(
     name_or_path: str, mesh_size: float | None = None, *, reorient: bool = False, scale: float = 1.0
 ) -> tuple[TetMesh, Material, float | None]:
-    """Mesh, default material and mass [kg] of a built-in object or a mesh file.
+    """Mesh, default material and mass [kg] of a built-in object, a shape or a mesh file.
 
-    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) gets :data:`FILE_MATERIAL`
-    and no fixed mass (the material density decides); its coordinates times ``scale`` are metres
-    (``1e-3`` for a file in millimetres); ``reorient`` flips its inverted tets instead of refusing
-    them. A shape's sizes are times ``scale`` as well; the built-in objects have their own size
-    (``scale`` 1). An object outside :data:`~softgrasp.model.ranges.OBJECT_SIZE_M` (1 mm to
-    0.5 m) is refused before it is meshed where its size is known then (shapes, surface files).
+    A file (any tet mesh meshio reads, or a closed .stl/.obj surface) or a shape gets
+    :data:`FILE_MATERIAL` and no fixed mass (the material density decides); a file's coordinates
+    times ``scale`` are metres (``1e-3`` for a file in millimetres); ``reorient`` flips its
+    inverted tets instead of refusing them. A shape's sizes are times ``scale`` as well; the
+    built-in objects have their own size (``scale`` 1). An object outside
+    :data:`~softgrasp.model.ranges.OBJECT_SIZE_M` (1 mm to 0.5 m) is refused before it is meshed
+    where its size is known then (shapes, surface files).
     The mesh rests on the table plane z = 0 in a stable pose
     (:func:`~softgrasp.model.mesh.placement.rest_on_table`).
     """
@@ -112,7 +113,7 @@ def _make_object(
         return mesh, preset(spec.material), spec.mass, T.copy()
     if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
         mesh, T = _generated(name_or_path, mesh_size, scale)
-        return mesh, preset("rubber"), None, T.copy()
+        return mesh, FILE_MATERIAL, None, T.copy()
     path = Path(name_or_path)
     if not path.suffix:
         raise MeshError(

@@ -14,55 +14,78 @@ import traceback
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from softgrasp.errors import SoftgraspError
+from softgrasp.errors import ConfigError, SoftgraspError
+from softgrasp.hand.reach import GRASP_FINGERS
 
-__all__ = ["FINGERS", "OUTPUTS", "EXECUTE_OUTPUTS", "HOLD_OUTPUTS", "run_case", "output_columns"]
+__all__ = [
+    "FINGERS",
+    "OUTPUTS",
+    "EXECUTE_OUTPUTS",
+    "HOLD_OUTPUTS",
+    "run_case",
+    "output_columns",
+    "plan_outputs",
+    "hold_outputs",
+]
 
-#: Finger names of the rows (thumb, first, middle).
-FINGERS = ("thumb", "first", "middle")
+#: The default hand's fingers (thumb, first, middle); a sweep's rows name its own hand's fingers
+#: (:attr:`softgrasp.sweep.spec.SweepSpec.fingers`: ``left`` and ``right`` for a gripper).
+FINGERS: tuple[str, ...] = GRASP_FINGERS[0]
 
 #: The first output columns of every case: its outcome and its object.
 _CASE: tuple[str, ...] = ("status", "error", "error_type", "wall_time_s", "nodes", "mass_kg")
 
-#: Output columns of every case (SI units in the names).
-OUTPUTS: tuple[str, ...] = (
-    *_CASE,
-    "travel_m",
-    "increments",
-    *(f"setpoint_{f}_N" for f in FINGERS),
-    *(f"force_{f}_N" for f in FINGERS),
-    *(f"penetration_{f}_m" for f in FINGERS),
-    "setpoint_sum_N",
-    "friction_margin",
-    "rigid_utilisation",
-    "force_residual_N",
-    "hold_drift_m",
-)
+
+def plan_outputs(fingers: Sequence[str] = FINGERS) -> tuple[str, ...]:
+    """Output columns of a planned case (SI units in the names), per finger of ``fingers``."""
+    return (
+        *_CASE,
+        "travel_m",
+        "increments",
+        *(f"setpoint_{f}_N" for f in fingers),
+        *(f"force_{f}_N" for f in fingers),
+        *(f"penetration_{f}_m" for f in fingers),
+        "setpoint_sum_N",
+        "friction_margin",
+        "rigid_utilisation",
+        "force_residual_N",
+        "hold_drift_m",
+    )
+
+
+def hold_outputs(fingers: Sequence[str] = FINGERS) -> tuple[str, ...]:
+    """Output columns of a case that checks given set-points (force-controlled closing and
+    hold), per finger of ``fingers``."""
+    return (
+        *_CASE,
+        "held",
+        "hold_reason",
+        "increments",
+        *(f"reached_{f}_N" for f in fingers),
+        *(f"travel_{f}_m" for f in fingers),
+        *(f"penetration_{f}_m" for f in fingers),
+        *(f"held_{f}_N" for f in fingers),
+        "friction_margin",
+        "hold_drift_m",
+    )
+
+
+#: Output columns of every case of the default hand.
+OUTPUTS: tuple[str, ...] = plan_outputs()
 
 #: Extra columns when the sweep executes each plan on the simulated hand.
 EXECUTE_OUTPUTS: tuple[str, ...] = ("reached", "lifted", "slip_m", "rise_m", "execute_wall_time_s")
 
-
-#: Output columns of a case that checks given set-points (force-controlled closing and hold).
-HOLD_OUTPUTS: tuple[str, ...] = (
-    *_CASE,
-    "held",
-    "hold_reason",
-    "increments",
-    *(f"reached_{f}_N" for f in FINGERS),
-    *(f"travel_{f}_m" for f in FINGERS),
-    *(f"penetration_{f}_m" for f in FINGERS),
-    *(f"held_{f}_N" for f in FINGERS),
-    "friction_margin",
-    "hold_drift_m",
-)
+#: Output columns of a case of the default hand that checks given set-points.
+HOLD_OUTPUTS: tuple[str, ...] = hold_outputs()
 
 
-def output_columns(execute: bool, hold: bool = False) -> tuple[str, ...]:
-    """The output columns of a sweep's rows (a plan's, with its execution's; or a hold check's)."""
+def output_columns(execute: bool, hold: bool = False, fingers: Sequence[str] = FINGERS) -> tuple[str, ...]:
+    """The output columns of a sweep's rows (a plan's, with its execution's; or a hold check's)
+    for a hand with the fingers ``fingers``."""
     if hold:
-        return HOLD_OUTPUTS
-    return OUTPUTS + (EXECUTE_OUTPUTS if execute else ())
+        return hold_outputs(fingers)
+    return plan_outputs(fingers) + (EXECUTE_OUTPUTS if execute else ())
 
 
 def _failed(row: dict[str, object], exc: BaseException, t0: float) -> dict[str, object]:
@@ -76,7 +99,10 @@ def _failed(row: dict[str, object], exc: BaseException, t0: float) -> dict[str, 
 
 
 def run_case(
-    options: Mapping[str, object], execute: bool = False, hold: Sequence[float] | None = None
+    options: Mapping[str, object],
+    execute: bool = False,
+    hold: Sequence[float] | None = None,
+    fingers: Sequence[str] = FINGERS,
 ) -> dict[str, object]:
     """Plan one case (and execute it when asked), or check set-points on it, and return its
     outputs as a row.
@@ -86,8 +112,11 @@ def run_case(
     options: the case's options (:mod:`softgrasp.sweep.spec`): plan options over the defaults and
         material parameters over the object's material.
     execute: also execute the plan on the simulated MuJoCo hand (lift and hold).
-    hold: normal-force set-points [N]: instead of planning, close the fingers to them under force
-        control and check the hold (:func:`softgrasp.grasp.force_control.hold_setpoints`).
+    hold: normal-force set-points [N], one per finger: instead of planning, close the fingers to
+        them under force control and check the hold
+        (:func:`softgrasp.grasp.force_control.hold_setpoints`).
+    fingers: the fingers the row's columns name (the sweep's hand's, opposing finger first); a
+        case whose hand plans with other fingers fails with a ConfigError saying so.
 
     Returns
     -------
@@ -101,7 +130,8 @@ def run_case(
     from softgrasp.sweep.spec import split_options
 
     t0 = time.perf_counter()
-    row: dict[str, object] = {c: math.nan for c in output_columns(execute, hold is not None)}
+    fingers = tuple(fingers)
+    row: dict[str, object] = {c: math.nan for c in output_columns(execute, hold is not None, fingers)}
     row.update(status="ok", error="", error_type="")
     try:
         plan_opts, material = split_options(options)
@@ -118,6 +148,11 @@ def run_case(
         mu = plan_opts["mu"] if "mu" in options or mf is None or "mu" not in mf.contact else None
         law = str(plan_opts.get("contact_law", "resolved"))
         config = plan_config(plan_opts, contact_params(mf, mu, law=law))  # type: ignore[arg-type]
+        if tuple(config.fingers) != fingers:
+            raise ConfigError(
+                f"the case's hand plans with the fingers {', '.join(config.fingers)}, the sweep's columns "
+                f"name {', '.join(fingers)}: sweep hands with other fingers apart"
+            )
         if hold is not None:
             row.update(_hold(body, config, hold))
             row["wall_time_s"] = time.perf_counter() - t0
@@ -133,7 +168,7 @@ def run_case(
             force_residual_N=float(plan.force_residual),
             hold_drift_m=float(plan.com_drift),
         )
-        for name, f, sp in zip(FINGERS, plan.fingers, plan.setpoints, strict=True):
+        for name, f, sp in zip(fingers, plan.fingers, plan.setpoints, strict=True):
             row[f"setpoint_{name}_N"] = float(sp)
             row[f"force_{name}_N"] = float(math.sqrt(float(f.force @ f.force)))
             row[f"penetration_{name}_m"] = float(f.penetration)
@@ -162,7 +197,7 @@ def _hold(body, config, setpoints: Sequence[float]) -> dict[str, object]:
         "friction_margin": float(res.friction_margin),
         "hold_drift_m": float(res.drift),
     }
-    for j, name in enumerate(FINGERS):
+    for j, name in enumerate(config.fingers):
         row[f"reached_{name}_N"] = float(res.reached[j])
         row[f"travel_{name}_m"] = float(res.travel[j])
         row[f"penetration_{name}_m"] = float(res.penetration[j])

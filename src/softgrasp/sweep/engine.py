@@ -74,7 +74,8 @@ class SweepResult:
 
 def columns(spec: SweepSpec) -> list[str]:
     """The results table's columns: case index and id, the inputs, then the outputs."""
-    return ["case", "case_id", *spec.inputs, *output_columns(spec.execute, spec.hold is not None)]
+    outputs = output_columns(spec.execute, spec.hold is not None, spec.fingers)
+    return ["case", "case_id", *spec.inputs, *outputs]
 
 
 def _parse(value: str, column: str) -> object:
@@ -397,6 +398,7 @@ def _run(
                     c.options,
                     spec.execute,
                     spec.hold,
+                    spec.fingers,
                     key=f"softgrasp-case-{c.id}-{c.index}-{token}",
                     pure=False,
                 ): c
@@ -410,7 +412,9 @@ def _run(
                     try:
                         result = fut.result()
                     except Exception as exc:  # noqa: BLE001 - a lost worker: the case failed
-                        result = {c: math.nan for c in output_columns(spec.execute, spec.hold is not None)}
+                        result = dict.fromkeys(
+                            output_columns(spec.execute, spec.hold is not None, spec.fingers), math.nan
+                        )
                         kind = type(exc).__name__
                         result.update(status="failed", error=f"{kind}: {exc}", error_type=kind)
                     options = portable_options(case.options, folder.path)

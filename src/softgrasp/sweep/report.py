@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from softgrasp.sweep.case import FINGERS
 from softgrasp.sweep.spec import SweepSpec
 
 __all__ = ["sweep_figures"]
@@ -30,13 +29,13 @@ def sweep_figures(spec: SweepSpec, rows: Sequence[dict[str, object]], out: str |
     against = [v for v in ("mu", "E") if v in varied] or varied[:1]
     for v in against:
         x = np.array([float(r[v]) for r in rows])  # type: ignore[arg-type]
-        sp = np.array([[float(r[f"setpoint_{f}_N"]) for f in FINGERS] for r in rows])  # type: ignore[arg-type]
+        sp = np.array([[float(r[f"setpoint_{f}_N"]) for f in spec.fingers] for r in rows])  # type: ignore[arg-type]
         written.append(
             plot_sweep_forces(
                 out / f"force_vs_{v}.png",
                 x[ok],
                 sp[ok],
-                FINGERS,
+                spec.fingers,
                 parameter=v,
                 title=f"Set-points against {v} ({ok.sum()} of {len(rows)} cases planned)",
                 failed=x[~ok],

@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, InfeasibleGrasp
+from softgrasp.hand.reach import GRASP_FINGERS
 from softgrasp.model.ranges import RANGES
 
 __all__ = [
@@ -59,7 +60,6 @@ UNCERTAIN = ("mu", "E", "nu", "density", "mass", "a2", "a3")
 RAISE = 1.25
 #: Checks of the set-points (the first and the raised ones) before giving up.
 MAX_ROUNDS = 4
-_FINGERS = ("thumb", "first", "middle")
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 
 
@@ -139,12 +139,13 @@ class RobustPlan:
     Attributes
     ----------
     uncertain: the uncertain parameters.  quantile: None (hold every sample) or the share to hold.
+    fingers: the plan's fingers (F of them, opposing finger first), the columns' order below.
     samples: each sample's parameter values, (S,) dicts.
-    required: each sample's planned set-points [N], (S, 3) (inf where the sample cannot be held at
+    required: each sample's planned set-points [N], (S, F) (inf where the sample cannot be held at
         all; ``sample_errors`` says why).
     sample_errors: per sample, "" or why its plan failed.
-    nominal: the nominal plan's set-points [N], (3,).
-    setpoints: the robust set-points [N], (3,).
+    nominal: the nominal plan's set-points [N], (F,).
+    setpoints: the robust set-points [N], (F,).
     scale: the factor of the last check over the samples' largest (or quantile) set-points (1, or
         raised by :data:`RAISE` per failed check).
     held: per sample, whether the robust set-points held it, (S,).
@@ -161,6 +162,7 @@ class RobustPlan:
 
     uncertain: tuple[Uncertain, ...]
     quantile: float | None
+    fingers: tuple[str, ...]
     samples: list[dict[str, float]]
     required: NDArray[np.float64]
     sample_errors: list[str]
@@ -202,8 +204,9 @@ class RobustPlan:
             "quantile": self.quantile,
             "goal_held_fraction": self.goal,
             "achieved": self.achieved,
-            "setpoints_N": dict(zip(_FINGERS, map(float, self.setpoints), strict=True)),
-            "nominal_setpoints_N": dict(zip(_FINGERS, map(float, self.nominal), strict=True)),
+            "fingers": list(self.fingers),
+            "setpoints_N": dict(zip(self.fingers, map(float, self.setpoints), strict=True)),
+            "nominal_setpoints_N": dict(zip(self.fingers, map(float, self.nominal), strict=True)),
             "scale_over_samples": self.scale,
             "rounds": self.rounds,
             "held_fraction": self.held_fraction,
@@ -258,28 +261,32 @@ def _spearman(x: NDArray[np.float64], y: NDArray[np.float64]) -> float:
 
 def _quantile(required: NDArray[np.float64], q: float | None) -> NDArray[np.float64]:
     """Per finger, the largest required set-point or its q-quantile (the next sample up: a
-    set-point some sample actually needed), (3,)."""
+    set-point some sample actually needed), (F,)."""
     if q is None:
         return required.max(axis=0)
     return np.quantile(required, q, axis=0, method="higher")
 
 
 def sample_requirements(
-    rows: Sequence[Mapping[str, object]], options: Sequence[Mapping[str, object]], names: Sequence[str]
+    rows: Sequence[Mapping[str, object]],
+    options: Sequence[Mapping[str, object]],
+    names: Sequence[str],
+    fingers: Sequence[str] = GRASP_FINGERS[0],
 ) -> tuple[NDArray[np.float64], list[str]]:
-    """The set-points each sample needs, (S, 3) (inf for a sample the fingers cannot hold at all:
-    its plan failed with ``InfeasibleGrasp``), and each sample's error ("" when planned).
+    """The set-points each sample needs, (S, F) for the F ``fingers`` (inf for a sample the
+    fingers cannot hold at all: its plan failed with ``InfeasibleGrasp``), and each sample's error
+    ("" when planned).
 
     Raises NotConverged when a sample's plan failed for another reason (a solve that did not
     converge, a lost worker, a missing file): that is no verdict on the grasp, and a robust
     set-point cannot skip the sample."""
     from softgrasp.errors import NotConverged
 
-    required = np.full((len(rows), 3), math.inf)
+    required = np.full((len(rows), len(fingers)), math.inf)
     errors = []
     for i, r in enumerate(rows):
         if r["status"] == "ok":
-            required[i] = [float(r[f"setpoint_{f}_N"]) for f in _FINGERS]  # type: ignore[arg-type]
+            required[i] = [float(r[f"setpoint_{f}_N"]) for f in fingers]  # type: ignore[arg-type]
             errors.append("")
         elif r.get("error_type") == "InfeasibleGrasp":
             errors.append(str(r["error"]))
@@ -318,6 +325,20 @@ def _unholdable(
     return text + f"narrow the ranges, or hold a share of the samples with --quantile {q_max:g} or less"
 
 
+def _plan_fingers(path: str | Path) -> tuple[str, ...]:
+    """The fingers of the plan file ``path`` (its ``fingers[*].name``), in its order."""
+    import json
+
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        names = tuple(str(f["name"]) for f in doc["fingers"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise ConfigError(f"plan file {path}: field 'fingers' must list the plan's fingers by name") from None
+    if not names:
+        raise ConfigError(f"plan file {path}: field 'fingers' lists no finger")
+    return names
+
+
 def robust_setpoints(
     options: Mapping[str, object],
     grasp_file: str | Path,
@@ -331,6 +352,7 @@ def robust_setpoints(
     workers: int = 2,
     scheduler: str | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    fingers: Sequence[str] | None = None,
 ) -> RobustPlan:
     """Robust set-points over ``uncertain`` parameters (module docstring).
 
@@ -340,13 +362,15 @@ def robust_setpoints(
         mesh size, mu, planner settings); each sample sets its uncertain parameters over them.
     grasp_file: the nominal ``plan.json`` (its initial grasp: every sample closes on the same
         contacts along the same lines).
-    nominal: the nominal plan's set-points [N], (3,).
+    nominal: the nominal plan's set-points [N], one per finger.
     uncertain: the uncertain parameters (:func:`parse_uncertain`), each at most once.
     out: folder of the stages' tables.
     samples, seed: number of parameter sets and the seed of their draw.
     quantile: None to hold every sample, or the share of samples to hold, in (0, 1).
     workers, scheduler: the Dask cluster (:func:`softgrasp.sweep.engine.run_sweep`).
     progress: called with (stage, finished cases, cases).
+    fingers: the nominal plan's fingers, in the order of ``nominal`` (default: those of
+        ``grasp_file``).
 
     Raises
     ------
@@ -370,6 +394,11 @@ def robust_setpoints(
     if quantile is not None and not 0 < quantile < 1:
         raise ConfigError(f"--quantile must lie between 0 and 1 (e.g. 0.9), got {quantile}")
     nominal = np.asarray(nominal, dtype=np.float64)
+    fingers = _plan_fingers(grasp_file) if fingers is None else tuple(fingers)
+    if nominal.shape != (len(fingers),):
+        raise ConfigError(
+            f"the nominal set-points {nominal.tolist()} must be one per finger ({', '.join(fingers)})"
+        )
     out = Path(out)
     base = {k: v for k, v in options.items() if k not in names}
     base["grasp"] = str(Path(grasp_file).resolve())
@@ -381,12 +410,13 @@ def robust_setpoints(
         base=base,
         random={u.name: (u.low, u.high, False) for u in uncertain},
         source="softgrasp plan --uncertain",
+        fingers=fingers,
     )
     cases = sweep_cases(spec)
     stages: dict[str, str] = {}
 
     def stage(client, name: str, hold: NDArray[np.float64] | None) -> list[dict[str, object]]:
-        s = replace(spec, hold=None if hold is None else (float(hold[0]), float(hold[1]), float(hold[2])))
+        s = replace(spec, hold=None if hold is None else tuple(float(v) for v in hold))
         cb = None if progress is None else (lambda done, total: progress(name, done, total))
         res = run_sweep(s, cases, out / name, progress=cb, client=client)
         stages[name] = str(out / name)
@@ -401,7 +431,7 @@ def robust_setpoints(
 
     with dask_client(scheduler, workers) as client:
         rows = stage(client, "samples", None)
-        required, errors = sample_requirements(rows, [c.options for c in cases], names)
+        required, errors = sample_requirements(rows, [c.options for c in cases], names, fingers)
         goal = 1.0 if quantile is None else quantile
         base_points = _quantile(required, quantile)
         if not np.isfinite(base_points).all():
@@ -423,6 +453,7 @@ def robust_setpoints(
     return RobustPlan(
         uncertain=tuple(uncertain),
         quantile=quantile,
+        fingers=fingers,
         samples=params,
         required=required,
         sample_errors=errors,

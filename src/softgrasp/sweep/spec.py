@@ -28,6 +28,10 @@ material parameters ``E``
 units; each value, and each end of a random range, lies in the option's physical range
 (:data:`softgrasp.model.ranges.RANGES`). ``grasp`` names a ``plan.json``: every case closes from
 its initial grasp.
+
+The results' per-finger columns (``setpoint_<finger>_N`` ...) name the fingers the sweep's hand
+plans with: ``thumb``, ``first``, ``middle`` for a three-finger hand, ``left``, ``right`` for a
+gripper (``hand = "parallel_jaw"``). The hands of one sweep must plan with the same fingers.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from softgrasp.errors import ConfigError
+from softgrasp.hand.reach import GRASP_FINGERS
 from softgrasp.io.options import MATERIAL_OVERRIDES, PLAN_DEFAULTS, TEXT_OPTIONS, check_option
 from softgrasp.io.tomlfile import read_toml
 
@@ -56,6 +61,7 @@ __all__ = [
     "split_options",
     "describe_spec",
     "spec_digest",
+    "sweep_fingers",
     "MAX_CASES",
 ]
 
@@ -90,10 +96,12 @@ class SweepSpec:
     grid: per option, its values (grid mode).
     random: per option, (low, high, log) (random mode).
     source: the file.
-    hold: normal-force set-points [N] (thumb, first, middle): each case then closes its fingers
-        to them under force control and checks the hold
+    hold: normal-force set-points [N], one per finger of ``fingers``: each case then closes its
+        fingers to them under force control and checks the hold
         (:func:`softgrasp.grasp.force_control.hold_setpoints`) instead of planning (robust
         set-points are checked so).
+    fingers: the fingers the hand plans with, opposing finger first (:func:`sweep_fingers`): the
+        names of the results' per-finger columns.
     """
 
     mode: str
@@ -104,7 +112,14 @@ class SweepSpec:
     grid: dict[str, list[object]] = field(default_factory=dict)
     random: dict[str, tuple[float, float, bool]] = field(default_factory=dict)
     source: str = "<sweep>"
-    hold: tuple[float, float, float] | None = None
+    hold: tuple[float, ...] | None = None
+    fingers: tuple[str, ...] = GRASP_FINGERS[0]
+
+    def __post_init__(self) -> None:
+        if self.hold is not None and len(self.hold) != len(self.fingers):
+            raise ConfigError(
+                f"hold set-points {list(self.hold)} must be one per finger ({', '.join(self.fingers)})"
+            )
 
     @property
     def varied(self) -> tuple[str, ...]:
@@ -217,7 +232,36 @@ def read_sweep(path: str | Path) -> SweepSpec:
             raise ConfigError(
                 f"sweep file {source}: a random sweep needs a [random] table with at least one option"
             )
-    return SweepSpec(mode, samples, seed, execute, base, grid, rand, source)
+    fingers = sweep_fingers(base, grid, source)
+    return SweepSpec(mode, samples, seed, execute, base, grid, rand, source, fingers=fingers)
+
+
+def sweep_fingers(
+    base: Mapping[str, object], grid: Mapping[str, list[object]] | None = None, source: str = "<sweep>"
+) -> tuple[str, ...]:
+    """The fingers the hands of a sweep plan with (``base`` options over the defaults, each
+    ``grid`` value of ``hand`` and ``fingertips``), opposing finger first. ConfigError names the
+    sweep file when a hand cannot be read or two hands plan with different fingers."""
+    from softgrasp.io.options import hand_model
+
+    grid = grid or {}
+    hands = grid.get("hand") or [base.get("hand", PLAN_DEFAULTS["hand"])]
+    tips = grid.get("fingertips") or [base.get("fingertips")]
+    radii = grid.get("fingertip_radius") or [base.get("fingertip_radius")]
+    found: dict[tuple[str, ...], str] = {}
+    for hand_name, mapping in itertools.product(hands, tips):
+        try:
+            hand = hand_model(str(hand_name), mapping, radii[0])  # type: ignore[arg-type]
+            fingers = GRASP_FINGERS[0] if hand is None else tuple(hand.grasp_fingers)
+        except ConfigError as exc:
+            raise ConfigError(f"sweep file {source}: hand {hand_name!r}: {exc}") from None
+        found.setdefault(fingers, str(hand_name))
+    if len(found) > 1:
+        what = "; ".join(f"{h} plans with {', '.join(f)}" for f, h in found.items())
+        raise ConfigError(
+            f"sweep file {source}: the hands plan with different fingers ({what}): sweep each hand apart"
+        )
+    return next(iter(found))
 
 
 def sweep_cases(spec: SweepSpec) -> list[Case]:
@@ -272,6 +316,7 @@ def describe_spec(spec: SweepSpec) -> dict[str, object]:
         "random": {k: {"low": lo, "high": hi, "log": log} for k, (lo, hi, log) in spec.random.items()},
         "source": spec.source,
         "hold_setpoints_N": None if spec.hold is None else list(spec.hold),
+        "fingers": list(spec.fingers),
     }
 
 
