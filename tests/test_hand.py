@@ -145,6 +145,24 @@ def test_wdls_tends_to_weighted_pseudo_inverse() -> None:
     np.testing.assert_allclose(J @ wdls_step(J, dx, w, damping=0.0), dx, rtol=1e-10, atol=1e-15)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_wdls_agrees_with_lapack_on_full_and_rank_deficient_jacobians(seed) -> None:
+    """The compiled step's own Cholesky and Jacobi-eigenvalue solves give NumPy's (LAPACK's)
+    solve and Moore-Penrose pinv: up to four fingers (12 rows), 20 joints, and a Jacobian whose
+    rows repeat (rank-deficient: no damping, the pseudo-inverse)."""
+    rng = np.random.default_rng(100 + seed)
+    m, n = 3 * (1 + seed % 4), 20
+    J = rng.normal(size=(m, n)) * 0.05
+    if seed % 2:
+        J[m - 3 :] = J[:3]  # the last finger's rows those of the first: rank m - 3
+    dx, w = rng.normal(size=m) * 1e-3, rng.uniform(0.5, 3.0, size=n)
+    Winv = np.diag(1.0 / w)
+    A = J @ Winv @ J.T
+    for lam in (1e-3, 0.0):
+        ref = Winv @ J.T @ (np.linalg.solve(A + lam**2 * np.eye(m), dx) if lam else np.linalg.pinv(A) @ dx)
+        np.testing.assert_allclose(wdls_step(J, dx, w, damping=lam), ref, rtol=1e-8, atol=1e-12)
+
+
 def test_wdls_solves_the_damped_weighted_least_squares_problem() -> None:
     # minimiser of |J dq - dx|^2 + lambda^2 dq^T W dq: (J^T J + lambda^2 W) dq = J^T dx
     J, dx, w = _random_problem(2)

@@ -32,16 +32,118 @@ def wdls(J, dx, winv, damping):  # pragma: no cover - compiled
     with ``winv = 0`` does not move and adds nothing to ``J W^-1 J^T``), ``damping >= 0``. With
     ``damping = 0`` the Moore-Penrose inverse of ``J W^-1 J^T`` is used (rank-deficient ``J``).
     Arguments are not checked (:func:`wdls_step` checks them).
+
+    The m x m system (m = 3 per finger) is solved here by Cholesky's method (SPD with damping > 0)
+    or, without damping, by the eigen-decomposition of the PSD matrix (:func:`_pinv_solve`):
+    written out because Numba's LAPACK bindings for ``np.linalg.solve`` and ``pinv`` took a third
+    of a first run's compile time (``benchmarks/bench_cli.py``, first run).
     """
-    JW = J * winv  # J W^-1
-    A = JW @ J.T
+    m, n = J.shape
+    A = np.zeros((m, m))
+    for i in range(m):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(n):
+                s += J[i, k] * winv[k] * J[j, k]
+            A[i, j] = s
+            A[j, i] = s
     if damping > 0.0:
-        for i in range(A.shape[0]):
+        for i in range(m):
             A[i, i] += damping * damping
-        y = np.linalg.solve(A, dx)
+        y = _cholesky_solve(A, dx)
     else:
-        y = np.linalg.pinv(A) @ dx
-    return JW.T @ y
+        y = _pinv_solve(A, dx)
+    dq = np.zeros(n)
+    for k in range(n):
+        s = 0.0
+        for i in range(m):
+            s += J[i, k] * y[i]
+        dq[k] = winv[k] * s
+    return dq
+
+
+@jit
+def _cholesky_solve(A, b):  # pragma: no cover - compiled
+    """``A^-1 b`` for a symmetric positive definite ``A`` (m, m) (overwritten by its factor)."""
+    m = A.shape[0]
+    for j in range(m):
+        d = A[j, j]
+        for k in range(j):
+            d -= A[j, k] * A[j, k]
+        d = math.sqrt(d)
+        A[j, j] = d
+        for i in range(j + 1, m):
+            s = A[i, j]
+            for k in range(j):
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s / d
+    y = b.copy()
+    for i in range(m):  # L z = b
+        s = y[i]
+        for k in range(i):
+            s -= A[i, k] * y[k]
+        y[i] = s / A[i, i]
+    for i in range(m - 1, -1, -1):  # L^T y = z
+        s = y[i]
+        for k in range(i + 1, m):
+            s -= A[k, i] * y[k]
+        y[i] = s / A[i, i]
+    return y
+
+
+@jit
+def _pinv_solve(A, b):  # pragma: no cover - compiled
+    """``pinv(A) b`` for a symmetric positive semi-definite ``A`` (m, m) (overwritten): cyclic
+    Jacobi rotations diagonalise it, ``A = V diag(w) V^T``, and eigenvalues at most 1e-15 of the
+    largest (NumPy's ``pinv`` cut-off) count as zero."""
+    m = A.shape[0]
+    V = np.eye(m)
+    scale = 0.0
+    for p in range(m):
+        for q in range(m):
+            scale += A[p, q] * A[p, q]
+    for _ in range(100):
+        off = 0.0
+        for p in range(m):
+            for q in range(p + 1, m):
+                off += A[p, q] * A[p, q]
+        if off <= 1e-34 * scale:  # off-diagonal below 1e-17 of the matrix's norm
+            break
+        for p in range(m):
+            for q in range(p + 1, m):
+                if A[p, q] == 0.0:
+                    continue
+                theta = 0.5 * (A[q, q] - A[p, p]) / A[p, q]
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(m):  # A <- A R (columns p, q)
+                    akp, akq = A[k, p], A[k, q]
+                    A[k, p] = c * akp - s * akq
+                    A[k, q] = s * akp + c * akq
+                for k in range(m):  # A <- R^T A (rows p, q)
+                    apk, aqk = A[p, k], A[q, k]
+                    A[p, k] = c * apk - s * aqk
+                    A[q, k] = s * apk + c * aqk
+                for k in range(m):
+                    vkp, vkq = V[k, p], V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    top = 0.0
+    for i in range(m):
+        top = max(top, abs(A[i, i]))
+    y = np.zeros(m)
+    for i in range(m):
+        w = A[i, i]
+        if abs(w) <= 1e-15 * top:
+            continue
+        s = 0.0
+        for k in range(m):
+            s += V[k, i] * b[k]
+        s /= w
+        for k in range(m):
+            y[k] += s * V[k, i]
+    return y
 
 
 @jit
