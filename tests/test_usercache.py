@@ -82,7 +82,8 @@ def test_the_folder_follows_xdg(monkeypatch, tmp_path):
 def test_an_entry_key_changes_with_every_part():
     base = usercache.entry_key("mesh", "sphere", 0.016, 1.0)
     assert base == usercache.entry_key("mesh", "sphere", 0.016, 1.0)
-    for other in (("mesh", "sphere", 0.0161, 1.0), ("mesh", "cube", 0.016, 1.0), ("mesh", "sphere", 0.016, 2.0)):
+    others = (("mesh", "sphere", 0.0161, 1.0), ("mesh", "cube", 0.016, 1.0), ("mesh", "sphere", 0.016, 2.0))
+    for other in others:
         assert usercache.entry_key(*other) != base
 
 
@@ -97,9 +98,9 @@ def test_a_kept_hand_is_the_hand_yourdfpy_reads(cache):
         assert links == read[1] and spheres == read[2]
         assert len(joints) == len(read[0])
         for a, b in zip(joints, read[0], strict=True):
-            assert (a.name, a.kind, a.parent, a.child, a.mimic) == (b.name, b.kind, b.parent, b.child, b.mimic)
+            same = ("name", "kind", "parent", "child", "mimic", "lower", "upper", "multiplier", "offset")
+            assert all(getattr(a, f) == getattr(b, f) for f in same)
             assert np.array_equal(a.origin, b.origin) and np.array_equal(a.axis, b.axis)
-            assert (a.lower, a.upper, a.multiplier, a.offset) == (b.lower, b.upper, b.multiplier, b.offset)
     chains = urdf.parse_urdf(data, "shadow_like.urdf")
     assert set(chains) == {"thumb", "first", "middle"}
 
