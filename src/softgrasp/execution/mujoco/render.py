@@ -211,7 +211,9 @@ def open_renderer(
     """
     make = import_mujoco().Renderer if make is None else make
     try:
-        renderer = make(scene.model, height, width)
+        with warnings.catch_warnings():  # GLFW's own warnings on a machine without a screen
+            warnings.simplefilter("ignore")
+            renderer = make(scene.model, height, width)
     except Exception as exc:  # no OpenGL library, no device, a context MuJoCo cannot make
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         warnings.warn(
