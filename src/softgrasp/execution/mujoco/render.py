@@ -50,7 +50,7 @@ FRAME_WIDTH, FRAME_HEIGHT = 640, 480
 #: Elevation of the camera [deg] (negative: looking down on the table).
 CAMERA_ELEVATION = -20.0
 #: The camera's distance over the least that keeps the scene's bounding sphere in the picture.
-FRAME_MARGIN = 1.0
+FRAME_MARGIN = 1.15
 #: Length [m] of the arrow of the largest set-point, as a fraction of the object's size.
 ARROW_FRACTION = 0.6
 #: The scene's light the camera looks along (it shows the object's lit side).
