@@ -138,6 +138,22 @@ def test_without_a_renderer_matplotlib_draws_the_pictures_and_says_what_to_insta
         assert img.std() > 20.0
 
 
+def test_the_command_line_gives_the_fallback_in_one_line(plan_json, slick, tmp_path, monkeypatch, capsys):
+    import mujoco
+
+    def no_gl(model, height, width):
+        raise RuntimeError("no EGL display")
+
+    monkeypatch.setattr(mujoco, "Renderer", no_gl)
+    argv = ["execute", str(plan_json), "--material", str(slick), "--lift", "0.01", "--out", str(tmp_path)]
+    assert main(argv) == 1  # dropped
+    err = capsys.readouterr().err.splitlines()
+    said = [line for line in err if line.startswith("softgrasp: warning: ")]
+    assert len(said) == 1 and "no EGL display" in said[0] and "libegl-mesa0" in said[0]
+    assert not any("Warning" in line or "warnings.warn" in line for line in err)
+    assert (tmp_path / "frame_end.png").read_bytes()[:8] == PNG
+
+
 def _projected(cam, points: np.ndarray, aspect: float, fovy_deg: float = 45.0) -> np.ndarray:
     """Points in the picture of MuJoCo's free camera ``cam``, in [-1, 1] across each side."""
     az, el = math.radians(cam.azimuth), math.radians(cam.elevation)
