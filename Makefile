@@ -3,17 +3,17 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: run test install install-test browser bench clean
+.PHONY: run test install install-test browser gl bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 # softgrasp with both optional extras: MuJoCo (`execute`) and Dask with PyArrow (`sweep`).
-install: $(BIN)/python
+install: $(BIN)/python gl
 	$(BIN)/python -m pip install --quiet -e ".[execute,sweep]"
 
-install-test: $(BIN)/python browser
+install-test: $(BIN)/python browser gl
 	$(BIN)/python -m pip install --quiet -e ".[test,execute,sweep]"
 
 # Debian's Chromium and ChromeDriver for the browser test of `softgrasp view` (installed when
@@ -25,6 +25,17 @@ browser:
 	      || echo "softgrasp: could not install chromium; the browser test will be skipped"; \
 	  else echo "softgrasp: no chromium and no root apt-get; the browser test will be skipped"; fi; \
 	fi
+
+# Debian's Mesa EGL, with which MuJoCo renders `softgrasp execute`'s pictures without a screen
+# (MUJOCO_GL=egl; installed when missing and apt-get can run; otherwise matplotlib draws them).
+GL_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
+gl:
+	@if [ "$$(dpkg-query -W -f='$${Status}\n' $(GL_PACKAGES) 2>/dev/null | grep -c 'install ok installed')" \
+	  = "$(words $(GL_PACKAGES))" ]; then :; \
+	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(GL_PACKAGES) >/dev/null) \
+	    || echo "softgrasp: could not install $(GL_PACKAGES); execute's pictures will be drawn by matplotlib"; \
+	else echo "softgrasp: no $(GL_PACKAGES) and no root apt-get; execute's pictures will be drawn by matplotlib"; fi
 
 # The main job on the built-in default object.
 run: install

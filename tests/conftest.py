@@ -7,6 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from softgrasp.execution.mujoco.scene import prefer_headless_gl
+
+# MuJoCo renders offscreen in the tests as in softgrasp's commands: the back-end is chosen before
+# any test module imports MuJoCo.
+prefer_headless_gl()
+
 
 @pytest.fixture
 def sphere_grasp() -> tuple[dict[str, np.ndarray], np.ndarray]:

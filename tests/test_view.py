@@ -105,6 +105,8 @@ def test_page_is_self_contained_and_embeds_every_frame(run_dir, page):
         [f["hand"] for f in data["frames"]], [*hand.reshape(K, -1), held_hand.ravel()], atol=1e-6
     )
     assert data["hand_lines"] == lines.tolist()
+    setpoints = json.loads((run_dir / "plan.json").read_text(encoding="utf-8"))["setpoints_N"]
+    assert data["setpoints"] == pytest.approx([setpoints[n] for n in names], abs=1e-6)
     # The micrometre differences decode to the boundary nodes of every frame (within 1 um).
     used = np.unique(facets)
     assert data["nodes"] == used.size and len(data["tris"]) == facets.size
@@ -348,7 +350,13 @@ def test_page_in_headless_chromium(browser, page, run_dir):
         "return [...document.querySelectorAll('#labels .force')].filter(e => e.style.display !== 'none')"
         ".map(e => e.textContent)"
     )
-    assert len(labels) == 3 and all(re.fullmatch(r"\w+ 0\.\d{3} N", t) for t in labels)
+    # each label: the finger's normal force in this frame, then its set-point (plan.json's)
+    setpoints = json.loads((run_dir / "plan.json").read_text(encoding="utf-8"))["setpoints_N"]
+    assert len(labels) == 3
+    for text in labels:
+        m = re.fullmatch(r"(\w+) (0\.\d{3}) N \(set-point (0\.\d{3}) N\)", text)
+        assert m, text
+        assert m[3] == f"{setpoints[m[1]]:.3f}" and m[2] != m[3]
     assert browser.execute_script("return window.softgraspView.handLinks") == n_links > 0
     assert held["hand"] > 1000, f"only {held['hand']} pixels of the hand's colour"
     browser.save_screenshot(str(run_dir / "view_held.png"))
@@ -363,6 +371,12 @@ def test_page_in_headless_chromium(browser, page, run_dir):
     last = browser.execute_script(_SNAPSHOT, BACKGROUND)
     assert last["frame"] == K - 1 and last["label"] == f"increment {K - 1} / {K - 1}"
     assert last["readout"] != held["readout"] and _change(held, last) > 0.1
+    shown = browser.execute_script(
+        "return [...document.querySelectorAll('#labels .force')].map(e => e.textContent)"
+    )
+    for text in shown:  # the force changed with the frame, the set-point did not
+        assert text.endswith(f" (set-point {setpoints[text.split(' ')[0]]:.3f} N)"), text
+    assert shown != labels
     browser.execute_script(
         "const s = arguments[0]; s.value = '0'; s.dispatchEvent(new Event('input', {bubbles: true}));", slider
     )
@@ -402,6 +416,10 @@ def test_free_fingertips_in_browser(browser, tmp_path):
     held = browser.execute_script(_SNAPSHOT, BACKGROUND)
     assert held["frame"] == 3 and held["label"] == "held" and held["fraction"] > 0.03 and held["border"] == 0
     assert "thumb 0.200 N" in held["readout"]
+    labels = browser.execute_script(
+        "return [...document.querySelectorAll('#labels .force')].map(e => e.textContent)"
+    )
+    assert labels[0] == "thumb 0.200 N"  # no plan.json in the run: no set-point to show
     browser.execute_script("window.softgraspView.setFrame(0)")
     start = browser.execute_script(_SNAPSHOT, BACKGROUND)
     assert _change(start, held) > 0.2

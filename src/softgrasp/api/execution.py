@@ -12,7 +12,7 @@ import io
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -78,11 +78,15 @@ class Execution:
     plan: the plan file executed (its object material possibly replaced).
     result: the controller's record (:class:`~softgrasp.execution.controller.ExecutionResult`).
     config: the controller settings.  lines: per finger its set-point and closing line.
-    frames: snapshots of the hand and object at the events ``start``, ``contact``, ``closed``, ``end``.
-    facets: the object's surface triangles (for the pictures).
+    frames: where MuJoCo could not render, snapshots of the hand and object at the events
+        ``start``, ``contact``, ``closed``, ``end`` (drawn by matplotlib); else empty.
+    facets: the object's surface triangles (for the snapshots' pictures).
     document: the ``execute.json`` document.
     scene_xml: the MJCF of the simulated scene (table, object as a flex with its points and tets
         inline, hand on its arm; keyframe ``initial`` the start): self-contained, no other file.
+    images: MuJoCo's renderings of the scene at the events (RGB, (480, 640, 3) uint8), all from
+        one camera; empty where MuJoCo could not render.
+    event_times: the hand's time [s] at each event.
     """
 
     plan: PlanFile
@@ -93,6 +97,8 @@ class Execution:
     facets: Any
     document: dict[str, Any]
     scene_xml: str = ""
+    images: dict[str, Any] = field(default_factory=dict)
+    event_times: dict[str, float] = field(default_factory=dict)
 
     def save_scene(self, path: str | Path) -> Path:
         """Write the MJCF of the executed scene (:attr:`scene_xml`) to ``path`` atomically; it loads
@@ -153,8 +159,8 @@ class Execution:
 
     def save(self, out: str | Path) -> list[str]:
         """Write ``execute.json``, ``execute.csv``, ``execute_forces.png`` and a picture per event
-        (``frame_start.png`` ...) into ``out``, replacing the folder's earlier ones whole
-        (:mod:`softgrasp.io.runfolder`); return the pictures' names."""
+        (``frame_start.png`` ..., :meth:`write_pictures`) into ``out``, replacing the folder's
+        earlier ones whole (:mod:`softgrasp.io.runfolder`); return the pictures' names."""
         from softgrasp.io.portable import portable_path
         from softgrasp.io.runfolder import run_folder
 
@@ -171,7 +177,7 @@ class Execution:
 
         from softgrasp.execution.controller import PHASES
         from softgrasp.io.atomic import write_json, write_text
-        from softgrasp.viz.plots import EXECUTION_FRAME_TITLES, plot_execution_forces, plot_execution_frame
+        from softgrasp.viz.plots import plot_execution_forces
 
         res, names = self.result, [f.name for f in self.plan.fingers]
         ser = res.series
@@ -194,17 +200,33 @@ class Execution:
             phases=phases,
             tolerance=self.config.tolerance,
         )
-        pictures = []
-        for event in EXECUTION_FRAME_TITLES:
-            if event in self.frames:
-                name = f"frame_{event}.png"
-                plot_execution_frame(
-                    out / name, self.frames[event], self.facets, names, self.plan.fingertip_radius, event
-                )
-                pictures.append(name)
+        pictures = self.write_pictures(out)
         write_text(out / "execute.csv", buf.getvalue())
         write_json(out / "execute.json", self.document)
         return pictures
+
+    def write_pictures(self, out: Path, prefix: str = "frame_") -> list[str]:
+        """Write the picture of each event into ``out`` as ``<prefix><event>.png``, titled by the
+        event and the run's outcome: MuJoCo's rendering (:attr:`images`), or matplotlib's drawing
+        of the snapshot (:attr:`frames`) where MuJoCo could not render; return their names
+        (:func:`~softgrasp.viz.execution_plots.write_execution_pictures`)."""
+        from softgrasp.viz.plots import write_execution_pictures
+
+        res = self.result
+        return write_execution_pictures(
+            out,
+            prefix,
+            images=self.images,
+            snapshots=self.frames,
+            times=self.event_times,
+            facets=self.facets,
+            names=[f.name for f in self.plan.fingers],
+            radius=self.plan.fingertip_radius,
+            reached=bool(res.reached),
+            lifted=bool(res.lifted),
+            rise_m=float(res.rise),
+            lift_m=self.config.lift,
+        )
 
 
 def execute(
@@ -215,6 +237,7 @@ def execute(
     material: str | None = None,
     backend: str = "mujoco",
     progress: Callable[[float], None] | None = None,
+    renderer: Callable[[Any, int, int], Any] | None = None,
 ) -> Execution:
     """Execute ``plan`` (a :class:`Plan`, a ``plan.json`` written by ``softgrasp plan`` or its
     :class:`~softgrasp.io.planfile.PlanFile`) under
@@ -231,6 +254,11 @@ def execute(
         The simulated hand: ``mujoco``.
     progress:
         Called with the fraction of the planned duration done.
+    renderer:
+        Makes MuJoCo's offscreen renderer of the pictures from (model, height, width); default
+        ``mujoco.Renderer``. Where it raises (no OpenGL), the pictures are drawn by matplotlib
+        instead, with a :class:`~softgrasp.errors.SoftgraspWarning`
+        (:mod:`softgrasp.execution.mujoco.render`).
 
     A :class:`Plan` not saved yet is executed from a temporary copy of its ``plan.json`` and
     ``object.vtu`` (the run's document then names no plan file).
@@ -249,15 +277,16 @@ def execute(
                 material=material,
                 backend=backend,
                 progress=progress,
+                renderer=renderer,
             )
         with tempfile.TemporaryDirectory(prefix="softgrasp-plan-") as tmp:
             planned = load_plan_file(plan.write_plan_file(tmp))
-            run = _execute(planned, lift_m, scale, material, backend, progress)
+            run = _execute(planned, lift_m, scale, material, backend, progress, renderer)
         run.document["plan"] = None
         return run
     if isinstance(plan, str | Path):
         plan = load_plan_file(plan)
-    return _execute(plan, lift_m, scale, material, backend, progress)
+    return _execute(plan, lift_m, scale, material, backend, progress, renderer)
 
 
 def _execute(
@@ -267,10 +296,12 @@ def _execute(
     material: str | None,
     backend: str,
     progress: Callable[[float], None] | None,
+    renderer: Callable[[Any, int, int], Any] | None = None,
 ) -> Execution:
     from softgrasp.execution.controller import ExecuteConfig, closing_lines, execute_plan
     from softgrasp.execution.mujoco.hand import MujocoHand
     from softgrasp.execution.mujoco.mjcf import build_mjcf
+    from softgrasp.execution.mujoco.render import event_pictures
     from softgrasp.model.mesh.io import load_mesh
 
     t0 = time.perf_counter()
@@ -281,15 +312,14 @@ def _execute(
     facets = load_mesh(plan.mesh_file).facets
     lines = closing_lines(plan, scale)
     cfg = ExecuteConfig(lift=float(lift_m))
-    names = [f.name for f in plan.fingers]
-    frames: dict[str, tuple] = {}
-
-    def snapshot(event: str) -> None:
-        frames[event] = hand.snapshot(names)
-
-    res = execute_plan(
-        hand, lines, cfg, palm_to_world=hand.palm_to_world, progress=progress, on_event=snapshot
-    )
+    largest = max(line.setpoint for line in lines.values())
+    pictures = event_pictures(hand, plan.fingertip_radius, cfg.lift, largest, make=renderer)
+    try:
+        res = execute_plan(
+            hand, lines, cfg, palm_to_world=hand.palm_to_world, progress=progress, on_event=pictures
+        )
+    finally:
+        pictures.close()
     wall = time.perf_counter() - t0
     ser = res.series
     sim = float(ser["t"][-1]) if len(ser["t"]) else 0.0
@@ -306,4 +336,15 @@ def _execute(
         "wall_time_s": wall,
         "realtime_factor": sim / wall if wall > 0 else None,
     }
-    return Execution(plan, res, cfg, lines, frames, facets, doc, build_mjcf(hand.scene.spec))
+    return Execution(
+        plan,
+        res,
+        cfg,
+        lines,
+        pictures.snapshots,
+        facets,
+        doc,
+        build_mjcf(hand.scene.spec),
+        images=pictures.images,
+        event_times=pictures.times,
+    )

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 from softgrasp.cli.args import plan_file, progress_bar
+from softgrasp.errors import SoftgraspWarning
 from softgrasp.io.limits import EXECUTE_RANGES, MAX_SETPOINT_N
 
 __all__ = ["add_parser", "run"]
@@ -108,8 +110,10 @@ def _drop_advice(args: argparse.Namespace, run) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from softgrasp.cli.extras import require
+    from softgrasp.execution.mujoco.scene import prefer_headless_gl
     from softgrasp.io.runfolder import run_folder
 
+    prefer_headless_gl()  # MuJoCo renders the pictures offscreen: chosen before it is imported
     require("execute", "softgrasp execute")
     args.plan = plan_file(args.plan)
 
@@ -139,16 +143,23 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     )
     bar, update = progress_bar("execute")
     try:
-        run = execute(
-            planned,
-            lift_m=args.lift,
-            scale=args.scale,
-            material=args.material,
-            backend=args.backend,
-            progress=update,
-        )
+        with warnings.catch_warnings(record=True) as caught:  # the pictures' fallback, one line
+            warnings.simplefilter("always", SoftgraspWarning)
+            run = execute(
+                planned,
+                lift_m=args.lift,
+                scale=args.scale,
+                material=args.material,
+                backend=args.backend,
+                progress=update,
+            )
     finally:
         bar.close()
+    for w in caught:
+        if issubclass(w.category, SoftgraspWarning):
+            print(f"softgrasp: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     pictures = run.save(out)
     if args.save_scene is not None:
         run.save_scene(args.save_scene)

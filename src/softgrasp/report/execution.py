@@ -12,7 +12,12 @@ from softgrasp.report.document import Block, figures, params_table, pct, status_
 
 
 def _mujoco_version() -> str:
-    """MuJoCo's version; raises :class:`Skipped` with the reason when it cannot be imported."""
+    """MuJoCo's version; raises :class:`Skipped` with the reason when it cannot be imported.
+    Imported for the first time here, MuJoCo renders offscreen (``MUJOCO_GL``,
+    :func:`~softgrasp.execution.mujoco.scene.prefer_headless_gl`)."""
+    from softgrasp.execution.mujoco.scene import prefer_headless_gl
+
+    prefer_headless_gl()
     try:
         import mujoco
     except Exception as exc:  # ImportError, or a broken installation
@@ -27,9 +32,10 @@ def run_execution(ctx: Context, rec: dict[str, Any], progress: Progress) -> None
     version = _mujoco_version()
     from softgrasp.execution.controller import PHASES, ExecuteConfig, closing_lines, execute_plan
     from softgrasp.execution.mujoco.hand import MujocoHand
+    from softgrasp.execution.mujoco.render import event_pictures
     from softgrasp.io.planfile import load_plan_file
     from softgrasp.model.mesh.io import load_mesh
-    from softgrasp.viz.plots import EXECUTION_FRAME_TITLES, plot_execution_forces, plot_execution_frame
+    from softgrasp.viz.plots import plot_execution_forces, write_execution_pictures
 
     plan = load_plan_file(ctx.plan_file)
     hand = MujocoHand.from_plan(plan)
@@ -47,20 +53,24 @@ def run_execution(ctx: Context, rec: dict[str, Any], progress: Progress) -> None
         "table_mu": plan.table_mu,
         "plan": "grasp/plan.json",
     }
-    frames: dict[str, tuple] = {}
-
-    def snapshot(event: str) -> None:
-        frames[event] = hand.snapshot(names)
-
-    t0 = time.perf_counter()
-    res = execute_plan(
-        hand,
-        lines,
-        cfg,
-        palm_to_world=hand.palm_to_world,
-        progress=lambda f: progress(0.75 * f),
-        on_event=snapshot,
+    largest = max(line.setpoint for line in lines.values())
+    pictures = event_pictures(hand, plan.fingertip_radius, cfg.lift, largest)
+    rendered = pictures.renderer is not None
+    rec["parameters"]["pictures"] = (
+        "MuJoCo's offscreen renderer" if rendered else "matplotlib (MuJoCo cannot render here)"
     )
+    t0 = time.perf_counter()
+    try:
+        res = execute_plan(
+            hand,
+            lines,
+            cfg,
+            palm_to_world=hand.palm_to_world,
+            progress=lambda f: progress(0.75 * f),
+            on_event=pictures,
+        )
+    finally:
+        pictures.close()
     sim_wall = time.perf_counter() - t0
     ser = res.series
     simulated = float(ser["t"][-1]) if len(ser["t"]) else 0.0
@@ -86,13 +96,22 @@ def run_execution(ctx: Context, rec: dict[str, Any], progress: Progress) -> None
         phases=[(p, res.events[p]) for p in PHASES if p in res.events],
         tolerance=cfg.tolerance,
     )
-    for done, event in enumerate(EXECUTION_FRAME_TITLES, start=1):
-        if event in frames:
-            key = f"frame_{event}"
-            figs[key] = f"figures/execution_{key}.png"
-            radius = plan.fingertip_radius
-            plot_execution_frame(ctx.out / figs[key], frames[event], facets, names, radius, event)
-        progress(0.75 + 0.25 * done / len(EXECUTION_FRAME_TITLES))
+    written = write_execution_pictures(
+        ctx.out / "figures",
+        "execution_frame_",
+        images=pictures.images,
+        snapshots=pictures.snapshots,
+        times=pictures.times,
+        facets=facets,
+        names=names,
+        radius=plan.fingertip_radius,
+        reached=bool(res.reached),
+        lifted=bool(res.lifted),
+        rise_m=float(res.rise),
+        lift_m=cfg.lift,
+    )
+    for name in written:  # execution_frame_<event>.png
+        figs[name[len("execution_") : -len(".png")]] = f"figures/{name}"
     rec["figures"] = figs
     progress(1.0)
 
@@ -186,7 +205,7 @@ def execution_section(st: dict[str, Any] | None) -> list[Block]:
             "frame_start": "Initial pose (cf. paper Fig. 14 a–b).",
             "frame_contact": "First contact (cf. Fig. 14 c–d).",
             "frame_closed": "Final deformation under the set-points (cf. Fig. 14 e–f).",
-            "frame_end": "Lifted, after the hold.",
+            "frame_end": "After the lift and the hold (lifted, or dropped).",
         },
     )
     if st.get("parameters"):

@@ -9,7 +9,14 @@ and robust planning); what they share is in :mod:`~softgrasp.viz.figure`.
 
 from __future__ import annotations
 
-from softgrasp.viz.execution_plots import EXECUTION_FRAME_TITLES, plot_execution_forces, plot_execution_frame
+from softgrasp.viz.execution_plots import (
+    EXECUTION_FRAME_TITLES,
+    execution_frame_title,
+    plot_execution_forces,
+    plot_execution_frame,
+    save_execution_image,
+    write_execution_pictures,
+)
 from softgrasp.viz.experiment_plots import plot_calibration, plot_force_penetration, plot_stress_strain
 from softgrasp.viz.figure import pyplot as _figure  # noqa: F401 - the figure worker warms pyplot up with it
 from softgrasp.viz.grasp_plots import plot_grasp_3d, plot_plan_force_penetration, plot_plan_forces
@@ -17,6 +24,7 @@ from softgrasp.viz.sweep_plots import plot_robust, plot_success_map, plot_sweep_
 
 __all__ = [
     "EXECUTION_FRAME_TITLES",
+    "execution_frame_title",
     "plot_calibration",
     "plot_execution_forces",
     "plot_execution_frame",
@@ -28,4 +36,6 @@ __all__ = [
     "plot_stress_strain",
     "plot_success_map",
     "plot_sweep_forces",
+    "save_execution_image",
+    "write_execution_pictures",
 ]

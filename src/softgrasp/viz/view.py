@@ -281,17 +281,38 @@ def _default_view(
     return best_az, _ELEVATION_DEG
 
 
-def _title(run_dir: Path) -> str:
-    """``object (material)`` from the run's plan.json when readable, else the directory name."""
+def _plan_doc(run_dir: Path) -> dict | None:
+    """The run's ``plan.json`` as read, None when it is missing or unreadable."""
     try:
         doc = json.loads((run_dir / "plan.json").read_text(encoding="utf-8"))
-        obj = doc["object"]
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def _title(run_dir: Path, doc: dict | None) -> str:
+    """``object (material)`` from the run's plan.json ``doc`` when it has them, else the
+    directory name."""
+    try:
+        obj = doc["object"]  # type: ignore[index]
         return f"{obj['name']} ({obj['material']['name']}), {run_dir.name}"
-    except (OSError, ValueError, KeyError, TypeError):
+    except (KeyError, TypeError):
         return run_dir.name or str(run_dir)
 
 
-def _page_data(run: _Run, title: str) -> dict:
+def _setpoints(doc: dict | None, names: list[str]) -> list[float] | None:
+    """Each finger's set-point [N] (``setpoints_N`` of the run's plan.json ``doc``: the normal
+    force the force controller closes to), in the order of ``names``; None unless the plan gives
+    a finite, positive one for every finger."""
+    try:
+        given = doc["setpoints_N"]  # type: ignore[index]
+        values = [float(given[n]) for n in names]
+    except (KeyError, TypeError, ValueError):
+        return None
+    return values if all(math.isfinite(v) and v > 0 for v in values) else None
+
+
+def _page_data(run: _Run, title: str, setpoints: list[float] | None = None) -> dict:
     """The JSON the page script reads (see the format notes at the top of ``static/view.js``)."""
     used = np.unique(run.facets)
     index = np.full(run.positions.shape[1], -1, dtype=np.int64)
@@ -338,6 +359,7 @@ def _page_data(run: _Run, title: str) -> dict:
         "closed": closed,
         "radius": run.radius,
         "fingers": run.names,
+        "setpoints": None if setpoints is None else [round(v, 6) for v in setpoints],
         "colours": [_FINGER_COLOURS[i % len(_FINGER_COLOURS)] for i in range(len(run.names))],
         "view": {"azimuth_deg": az, "elevation_deg": el},
         "hand_lines": run.hand_lines.tolist(),
@@ -374,7 +396,8 @@ def write_view(run_dir: str | Path, out: str | Path | None = None) -> Path:
     held state (the last frame, "held", which the page opens on), coloured by each node's
     displacement from the start less the rigid shift (with a colour bar); the fingertips as
     spheres; the force of each on the object as an arrow (lengths proportional to the force, on one
-    scale for all frames) labelled with its normal force in newtons; the hand's links as capsules;
+    scale for all frames) labelled with its normal force and the finger's set-point (the plan's
+    ``setpoints_N``, when ``run_dir`` holds its plan.json) in newtons; the hand's links as capsules;
     the table during the closing. A slider (``input#frame``) picks the frame, ``#readout`` shows
     its travel [mm] and the finger forces [N]; dragging turns the view, the wheel zooms, a double
     click resets it. The camera frames every frame's scene whichever way it is turned.
@@ -391,12 +414,13 @@ def write_view(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """
     run_dir = Path(run_dir)
     run = _load_run(run_dir)
-    title = _title(run_dir)
+    doc = _plan_doc(run_dir)
+    title = _title(run_dir, doc)
     parts = {
         "TITLE": html.escape(f"softgrasp view: {title}"),
         "THREE": _static("three.min.js"),
         "SCRIPT": _static("view.js"),
-        "DATA": _embed(_page_data(run, title)),
+        "DATA": _embed(_page_data(run, title, _setpoints(doc, run.names))),
     }
     page = re.sub(r"__(TITLE|THREE|SCRIPT|DATA)__", lambda m: parts[m.group(1)], _static("view.html"))
     return write_text(run_dir / "view.html" if out is None else Path(out), page)

@@ -15,6 +15,9 @@ flex contacts in MuJoCo 4.0; forces on the object are read from the contacts the
 
 from __future__ import annotations
 
+import os
+import sys
+from collections.abc import Container, MutableMapping
 from typing import Any
 
 import numpy as np
@@ -26,7 +29,16 @@ from softgrasp.execution.mujoco.mjcf import build_mjcf
 from softgrasp.execution.mujoco.options import ARM_JOINTS, OBJECT_NAME
 from softgrasp.execution.mujoco.spec import SceneSpec, rigid_transform
 
-__all__ = ["MUJOCO_MISSING", "MujocoScene", "blow_up", "contact_force", "import_mujoco", "load_scene"]
+__all__ = [
+    "GL_BACKEND",
+    "MUJOCO_MISSING",
+    "MujocoScene",
+    "blow_up",
+    "contact_force",
+    "import_mujoco",
+    "load_scene",
+    "prefer_headless_gl",
+]
 
 #: Message of the :class:`ConfigError` raised when MuJoCo cannot be imported.
 MUJOCO_MISSING = "MuJoCo is not installed (softgrasp's 'execute' extra): pip install 'softgrasp[execute]'"
@@ -38,11 +50,37 @@ def _log_warning(message: str) -> None:
     logging.getLogger("softgrasp.mujoco").debug("MuJoCo: %s", message)
 
 
+#: MuJoCo's OpenGL back-end without a screen on Linux (the value of ``MUJOCO_GL``): Mesa's EGL.
+GL_BACKEND = "egl"
+
+
+def prefer_headless_gl(
+    environ: MutableMapping[str, str] | None = None,
+    modules: Container[str] | None = None,
+    platform: str | None = None,
+) -> bool:
+    """Set ``MUJOCO_GL`` to :data:`GL_BACKEND` on Linux when the user has not set it and MuJoCo
+    is not imported yet (it reads the variable once, at import); whether it was set.
+
+    ``environ``, ``modules`` and ``platform`` default to this process's (``os.environ``, the
+    names in ``sys.modules``, ``sys.platform``)."""
+    environ = os.environ if environ is None else environ
+    loaded = sys.modules if modules is None else modules
+    platform = sys.platform if platform is None else platform
+    if not platform.startswith("linux") or "MUJOCO_GL" in environ or "mujoco" in loaded:
+        return False
+    environ["MUJOCO_GL"] = GL_BACKEND
+    return True
+
+
 def import_mujoco() -> Any:
     """The ``mujoco`` module; :class:`ConfigError` (:data:`MUJOCO_MISSING`) if it is not installed.
 
-    MuJoCo's warnings go to the ``softgrasp.mujoco`` logger (DEBUG) instead of stderr and a
-    ``MUJOCO_LOG.TXT`` in the working folder; the scenes read them from ``data.warning``."""
+    Imported for the first time, it renders offscreen through :data:`GL_BACKEND` unless the user
+    chose otherwise (:func:`prefer_headless_gl`). MuJoCo's warnings go to the ``softgrasp.mujoco``
+    logger (DEBUG) instead of stderr and a ``MUJOCO_LOG.TXT`` in the working folder; the scenes
+    read them from ``data.warning``."""
+    prefer_headless_gl()
     try:
         import mujoco
     except ImportError:

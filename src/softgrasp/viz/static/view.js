@@ -5,7 +5,9 @@
 // fingertip on the object), `normals` (their normal components [N]), `hand` (the hand's link polylines,
 // flat [m]; polyline j is points hand_lines[j] to hand_lines[j + 1] - 1), `deformation` (each node's
 // displacement from the start less the best-fit rigid motion, in thousandths of `deformation_max_m`),
-// `travel_mm` and `held`; `radius` of the fingertips [m], `fingers` names, `colours`, default `view`.
+// `travel_mm` and `held`; `radius` of the fingertips [m], `fingers` names, `setpoints` (each finger's
+// set-point [N], the normal force the force controller closes to; null when unknown), `colours`,
+// default `view`.
 "use strict";
 (function () {
   const $ = id => document.getElementById(id);
@@ -279,7 +281,10 @@
     geometry.computeBoundingSphere();
     f.centres.forEach((c, i) => tips[i].position.set(...c));
     arrows.forEach((arrow, i) => placeArrow(arrow, arrowEnds(f, i)));
-    labels.forEach((label, i) => { label.textContent = D.fingers[i] + " " + newton(f.normals[i]); });
+    labels.forEach((label, i) => {
+      label.textContent = D.fingers[i] + " " + newton(f.normals[i])
+        + (D.setpoints ? " (set-point " + newton(D.setpoints[i]) + ")" : "");
+    });
     placeHand(f.hand);
     table.visible = !f.held;
     $("frame-label").textContent = f.held ? "held" : k === 0 ? "start" : "increment " + k + " / " + (heldIndex - 1);
@@ -323,7 +328,7 @@
     });
     if (links.length) row("<span class=\"swatch\" style=\"background:" + HAND + "\"></span>hand links");
     row("arrows: force on the object (length \u221d force),");
-    row("labelled with its normal component");
+    row(D.setpoints ? "labelled with its normal component and the set-point" : "labelled with its normal component");
   }
 
   // Controls.
