@@ -134,19 +134,21 @@ def test_quiet_phases_print_no_line_off_a_terminal(capsys):
 class _WarmUp:
     """A stand-in for :class:`softgrasp.cli.warm.WarmUp` that has found the cache cold or warm."""
 
-    def __init__(self, cold: bool) -> None:
+    def __init__(self, cold: bool, compiles: tuple[str, ...] = ()) -> None:
         import threading
 
         self.cold, self.checked = cold, threading.Event()
         self.checked.set()
-        self.alive = 2
+        self.compiles, self.compiling = list(compiles), ""
+        self.alive = 2 + len(compiles)
 
     def is_alive(self) -> bool:
         self.alive -= 1
         return self.alive >= 0
 
     def join(self, timeout: float | None = None) -> None:
-        pass
+        if self.compiles:
+            self.compiling = self.compiles.pop(0)
 
 
 @pytest.mark.parametrize(
@@ -159,6 +161,25 @@ def test_waiting_for_the_kernels_says_whether_they_compile(capsys, cold, line):
     assert err.startswith(f"softgrasp: plan: {line}") and err.count("\n") == 1, err
     if cold:  # the planner's part of the bar starts where the compiling's ends
         assert bar.shares["planning"][0] == PLAN_SHARES["compiling kernels"][1]
+
+
+def test_a_first_run_names_what_it_compiles_once_each(capsys):
+    groups = ("body forces", "fingertip contact", "body forces", "hand kinematics")
+    kernels_phase(PhaseBar("plan", PLAN_SHARES, tty=False), _WarmUp(True, groups))
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[1:] == [
+        "softgrasp: plan: compiling kernels: body forces",
+        "softgrasp: plan: compiling kernels: fingertip contact",
+        "softgrasp: plan: compiling kernels: hand kinematics",
+    ]
+
+
+def test_every_kernel_module_has_a_name_for_the_first_run():
+    from softgrasp.cli.warm import kernel_group
+    from softgrasp.jitcache import KERNEL_MODULES
+
+    assert all(kernel_group(m) for m in KERNEL_MODULES)
+    assert kernel_group("numba.np.linalg") == ""
 
 
 def test_a_cold_kernel_cache_is_told_from_a_warm_one(tmp_path):

@@ -75,6 +75,14 @@ class PhaseBar:
             print(f"softgrasp: {self.command}: {text}", file=sys.stderr, flush=True)
         self.report(self.shares.get(name, (self.done, self.done))[0])
 
+    def relabel(self, text: str) -> None:
+        """The current phase goes on under a new label: the bar says ``text``; off a terminal one
+        line ``softgrasp: COMMAND: TEXT``."""
+        if self._bar is not None:
+            self._bar.set_description_str(f"{self.command}: {text}", refresh=True)
+        else:
+            print(f"softgrasp: {self.command}: {text}", file=sys.stderr, flush=True)
+
     def report(self, fraction: float) -> None:
         """The whole is ``fraction`` done; a smaller fraction than before leaves the bar."""
         self.done = max(self.done, min(float(fraction), 1.0))
@@ -136,7 +144,12 @@ def kernels_phase(bar: PhaseBar, warm_up) -> None:
         bar.phase(name)
     t0, expected = time.monotonic(), COMPILE_TIME_S if warm_up.cold else 1.0
     update = bar.within(name) if name in bar.shares else None
+    said: set[str] = set()
     while warm_up.is_alive():
         warm_up.join(timeout=0.5)
         if update is not None:  # the expected time's share gone, at most 95 % of the phase
             update(min(0.95, (time.monotonic() - t0) / expected))
+        now = warm_up.compiling
+        if warm_up.cold and now and now not in said:  # what is being compiled, each named once
+            said.add(now)
+            bar.relabel(f"compiling kernels: {now}")

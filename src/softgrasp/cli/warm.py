@@ -37,8 +37,22 @@ from softgrasp.backend import compiled
 
 __all__ = ["COMPILE_TIME_S", "WarmUp", "cold", "warm_up", "warm_up_in_background"]
 
-#: About how long compiling the kernels takes on a first run [s] (30-60 s on a 2-core machine).
-COMPILE_TIME_S = 60
+#: About how long compiling the kernels takes on a first run [s] (on a 2-core machine).
+COMPILE_TIME_S = 30
+
+#: What the kernels of each package compute, as a first run names them while it compiles them.
+KERNEL_GROUPS = (
+    ("softgrasp.physics.fingertip", "fingertip contact"),
+    ("softgrasp.physics", "body forces"),
+    ("softgrasp.linalg", "sparse assembly"),
+    ("softgrasp.hand", "hand kinematics"),
+    ("softgrasp.sim", "time stepping"),
+)
+
+
+def kernel_group(module: str) -> str:
+    """What a kernel of ``module`` computes (:data:`KERNEL_GROUPS`), or "" for another module's."""
+    return next((name for prefix, name in KERNEL_GROUPS if module.startswith(prefix)), "")
 
 
 def cold() -> bool:
@@ -104,12 +118,14 @@ class WarmUp(threading.Thread):
     Attributes
     ----------
     checked: set once :attr:`cold` is known.  cold: whether the warm-up compiles the kernels.
+    compiling: what the kernel being compiled computes (:func:`kernel_group`), "" before any.
     """
 
     def __init__(self) -> None:
         super().__init__(name="softgrasp-warm-up", daemon=True)
         self.checked = threading.Event()
         self.cold = False
+        self.compiling = ""
 
     def run(self) -> None:
         try:
@@ -118,7 +134,24 @@ class WarmUp(threading.Thread):
             self.cold = False
         finally:
             self.checked.set()
-        _quietly()
+        if not self.cold:
+            _quietly()
+            return
+        from numba.core import event
+
+        warm = self
+
+        class _Compiling(event.Listener):  # Numba's compile events: which kernel compiles now
+            def on_start(self, ev: event.Event) -> None:
+                group = kernel_group(getattr(ev.data["dispatcher"].py_func, "__module__", ""))
+                if group:
+                    warm.compiling = group
+
+            def on_end(self, ev: event.Event) -> None:
+                pass
+
+        with event.install_listener("numba:compile", _Compiling()):
+            _quietly()
 
 
 def _import_modules() -> None:
