@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from softgrasp.execution.mujoco.scene import prefer_headless_gl
+from softgrasp.offscreen import prefer_headless_gl
 
 # MuJoCo renders offscreen in the tests as in softgrasp's commands: the back-end is chosen before
 # any test module imports MuJoCo.

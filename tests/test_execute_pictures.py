@@ -18,7 +18,7 @@ from softgrasp.api.execution import execute  # noqa: E402
 from softgrasp.cli import main  # noqa: E402
 from softgrasp.errors import SoftgraspWarning  # noqa: E402
 from softgrasp.execution.mujoco.render import FRAME_HEIGHT, FRAME_WIDTH, GL_PACKAGES, frame_camera  # noqa: E402
-from softgrasp.execution.mujoco.scene import GL_BACKEND, prefer_headless_gl  # noqa: E402
+from softgrasp.offscreen import GL_BACKEND, prefer_headless_gl  # noqa: E402
 from softgrasp.viz.execution_plots import TITLE_BAND, execution_frame_title  # noqa: E402
 
 EVENTS = ("start", "contact", "closed", "end")

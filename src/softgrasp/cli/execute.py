@@ -110,8 +110,8 @@ def _drop_advice(args: argparse.Namespace, run) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from softgrasp.cli.extras import require
-    from softgrasp.execution.mujoco.scene import prefer_headless_gl
     from softgrasp.io.runfolder import run_folder
+    from softgrasp.offscreen import prefer_headless_gl
 
     prefer_headless_gl()  # MuJoCo renders the pictures offscreen: chosen before it is imported
     require("execute", "softgrasp execute")

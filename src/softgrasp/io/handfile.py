@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from softgrasp.errors import ConfigError
 from softgrasp.hand.chain import FingerChain, Joint, Sphere, finger_chains
 from softgrasp.hand.kinematics import HandModel
+from softgrasp.offscreen import prefer_headless_gl
 
 __all__ = ["is_mjcf", "read_hand", "read_mjcf"]
 
@@ -82,6 +83,7 @@ def _shift(p: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _compile(path: Path):  # type: ignore[no-untyped-def]
+    prefer_headless_gl()  # MuJoCo's first import here: execute's pictures render offscreen too
     try:
         import mujoco
     except ImportError:

@@ -14,8 +14,8 @@ from softgrasp.report.document import Block, figures, params_table, pct, status_
 def _mujoco_version() -> str:
     """MuJoCo's version; raises :class:`Skipped` with the reason when it cannot be imported.
     Imported for the first time here, MuJoCo renders offscreen (``MUJOCO_GL``,
-    :func:`~softgrasp.execution.mujoco.scene.prefer_headless_gl`)."""
-    from softgrasp.execution.mujoco.scene import prefer_headless_gl
+    softgrasp.offscreen.prefer_headless_gl)."""
+    from softgrasp.offscreen import prefer_headless_gl
 
     prefer_headless_gl()
     try:

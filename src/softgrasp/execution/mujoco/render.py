@@ -11,7 +11,7 @@ snapshot for the matplotlib pictures; :func:`event_pictures` sets both up for a 
 Rendering without a screen needs an OpenGL back-end that makes a context without one: on Linux
 MuJoCo's ``egl`` (Mesa's EGL: Debian's :data:`GL_PACKAGES`), chosen by the ``MUJOCO_GL`` variable
 that MuJoCo reads when it is first imported:
-:func:`~softgrasp.execution.mujoco.scene.prefer_headless_gl` sets it to ``egl`` where the user has
+:func:`~softgrasp.offscreen.prefer_headless_gl` sets it to ``egl`` where the user has
 not chosen one. When ``mujoco.Renderer`` cannot be made (no GL library, no device),
 :func:`open_renderer` warns (:class:`~softgrasp.errors.SoftgraspWarning`, one line naming the
 packages) and returns None: the pictures are then drawn by matplotlib from the snapshots.
@@ -29,7 +29,8 @@ from numpy.typing import NDArray
 
 from softgrasp.errors import SoftgraspWarning
 from softgrasp.execution.mujoco.hand import MujocoHand
-from softgrasp.execution.mujoco.scene import GL_BACKEND, MujocoScene, import_mujoco
+from softgrasp.execution.mujoco.scene import MujocoScene, import_mujoco
+from softgrasp.offscreen import GL_BACKEND
 
 __all__ = [
     "FRAME_HEIGHT",

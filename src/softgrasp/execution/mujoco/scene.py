@@ -15,9 +15,6 @@ flex contacts in MuJoCo 4.0; forces on the object are read from the contacts the
 
 from __future__ import annotations
 
-import os
-import sys
-from collections.abc import Container, MutableMapping
 from typing import Any
 
 import numpy as np
@@ -28,16 +25,15 @@ from softgrasp.execution.mujoco.elements import actuator_name, tip_geom_name
 from softgrasp.execution.mujoco.mjcf import build_mjcf
 from softgrasp.execution.mujoco.options import ARM_JOINTS, OBJECT_NAME
 from softgrasp.execution.mujoco.spec import SceneSpec, rigid_transform
+from softgrasp.offscreen import prefer_headless_gl
 
 __all__ = [
-    "GL_BACKEND",
     "MUJOCO_MISSING",
     "MujocoScene",
     "blow_up",
     "contact_force",
     "import_mujoco",
     "load_scene",
-    "prefer_headless_gl",
 ]
 
 #: Message of the :class:`ConfigError` raised when MuJoCo cannot be imported.
@@ -48,29 +44,6 @@ def _log_warning(message: str) -> None:
     import logging
 
     logging.getLogger("softgrasp.mujoco").debug("MuJoCo: %s", message)
-
-
-#: MuJoCo's OpenGL back-end without a screen on Linux (the value of ``MUJOCO_GL``): Mesa's EGL.
-GL_BACKEND = "egl"
-
-
-def prefer_headless_gl(
-    environ: MutableMapping[str, str] | None = None,
-    modules: Container[str] | None = None,
-    platform: str | None = None,
-) -> bool:
-    """Set ``MUJOCO_GL`` to :data:`GL_BACKEND` on Linux when the user has not set it and MuJoCo
-    is not imported yet (it reads the variable once, at import); whether it was set.
-
-    ``environ``, ``modules`` and ``platform`` default to this process's (``os.environ``, the
-    names in ``sys.modules``, ``sys.platform``)."""
-    environ = os.environ if environ is None else environ
-    loaded = sys.modules if modules is None else modules
-    platform = sys.platform if platform is None else platform
-    if not platform.startswith("linux") or "MUJOCO_GL" in environ or "mujoco" in loaded:
-        return False
-    environ["MUJOCO_GL"] = GL_BACKEND
-    return True
 
 
 def import_mujoco() -> Any:
