@@ -41,9 +41,9 @@ gl:
 run: install
 	$(BIN)/softgrasp plan
 
-# The whole test suite (slow tests included).
+# The whole test suite (slow tests included), on one pytest-xdist worker per core.
 test: install-test
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n auto
 
 bench: install
 	$(BIN)/python benchmarks/bench_body.py
