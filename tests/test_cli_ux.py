@@ -463,3 +463,21 @@ def test_the_wheel_installs_into_a_fresh_venv_and_plans(tmp_path):
         timeout=120,
     )
     assert where.stdout.strip().startswith(str(venv)), where.stdout  # the installed copy ran
+
+
+def test_the_set_points_are_printed_before_the_files_are_written(tmp_path, monkeypatch, capsys):
+    """``plan`` prints its table of set-points as soon as the planner returns, before it writes
+    the files, figures and view data (which take longer than the answer)."""
+    from softgrasp.api.planning import Plan
+
+    printed_first: list[bool] = []
+    save = Plan.save
+
+    def save_after_looking(self, *args, **kwargs):
+        printed_first.append("set-point N" in capsys.readouterr().out)
+        return save(self, *args, **kwargs)
+
+    monkeypatch.setattr(Plan, "save", save_after_looking)
+    assert main(["plan", "--out", str(tmp_path / "p")]) == 0
+    assert printed_first == [True]
+    assert (tmp_path / "p" / "plan.json").exists()
