@@ -64,6 +64,8 @@ def _refused(capsys, argv: list[str], needle: str) -> None:
         ("--lift", "1e300", "--lift = 1e+300 m is not physical: it must be 0 < --lift <= 0.5 m"),
         ("--lift", "0", "--lift = 0 m is not physical"),
         ("--lift", "inf", "--lift must be a finite number"),
+        ("--hold", "-1", "--hold = -1 s is not physical: it must be 0 <= --hold <= 60 s"),
+        ("--hold", "1e4", "--hold = 10000 s is not physical"),
         ("--scale", "1e300", "--scale = 1e+300 is not physical: it must be 0 < --scale <= 10"),
         ("--scale", "nan", "--scale must be a finite number"),
         ("--scale", "0", "--scale = 0 is not physical"),

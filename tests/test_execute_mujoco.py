@@ -57,7 +57,8 @@ def test_plan_set_points_with_a_margin_are_reached_and_the_sphere_lifted(full):
 @pytest.mark.slow
 def test_a_quarter_of_the_set_points_slips_more_than_the_full_plan(plan_dir, full, tmp_path):
     _, doc_full, _ = full
-    rc = main(["execute", str(plan_dir / "plan.json"), "--scale", "0.25", "--out", str(tmp_path)])
+    argv = ["execute", str(plan_dir / "plan.json"), "--scale", "0.25", "--hold", "0.5"]
+    rc = main([*argv, "--out", str(tmp_path)])  # (it drops in the lift: a short hold after it)
     doc = json.loads((tmp_path / "execute.json").read_text())
     assert [f["setpoint_N"] for f in doc["fingers"]] == pytest.approx(
         [0.25 * f["setpoint_N"] for f in doc_full["fingers"]]

@@ -119,7 +119,7 @@ def test_a_parallel_jaw_plan_executes_in_mujoco_and_reaches_its_setpoints(tmp_pa
 def test_an_mjcf_hand_plan_executes_in_mujoco_and_reaches_its_setpoints() -> None:
     pytest.importorskip("mujoco")
     result = sg.plan("sphere", hand=str(MJCF), fingertips=MJCF_TIPS)
-    run = sg.execute(result, lift_m=0.03)
+    run = sg.execute(result, lift_m=0.03, hold_s=0.5)
     doc = run.document
     assert [f["name"] for f in doc["fingers"]] == ["thumb", "first", "middle"]
     assert doc["reached"] and doc["lifted"]

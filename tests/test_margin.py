@@ -74,7 +74,8 @@ def test_mujoco_holds_the_plan_and_agrees_on_its_critical_scale_within_15_percen
     c = plan.to_dict()["margin"]["critical_scale"]
     assert 1.15 * c < 1.0
     scales = [1.15 * c, 0.85 * c] + ([1.0] if mu == 0.8 else [])
-    runs = {s: sg.execute(plan, lift_m=0.10, scale=s) for s in scales}
+    # a drop shows during the 0.10 m lift; the hold after it is short (its length is not the test)
+    runs = {s: sg.execute(plan, lift_m=0.10, hold_s=0.5, scale=s) for s in scales}
     assert runs[1.15 * c].lifted, runs[1.15 * c].to_dict()
     assert not runs[0.85 * c].lifted
     if mu == 0.8:

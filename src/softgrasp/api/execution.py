@@ -233,6 +233,7 @@ def execute(
     plan: Plan | PlanFile | str | Path,
     *,
     lift_m: float = 0.10,
+    hold_s: float = 2.0,
     scale: float = 1.0,
     material: str | None = None,
     backend: str = "mujoco",
@@ -241,7 +242,7 @@ def execute(
 ) -> Execution:
     """Execute ``plan`` (a :class:`Plan`, a ``plan.json`` written by ``softgrasp plan`` or its
     :class:`~softgrasp.io.planfile.PlanFile`) under
-    force control on a simulated hand, lift the object ``lift_m`` [m] and hold it.
+    force control on a simulated hand, lift the object ``lift_m`` [m] and hold it ``hold_s`` [s].
 
     Parameters
     ----------
@@ -267,12 +268,14 @@ def execute(
     from softgrasp.io.planfile import load_plan_file
 
     EXECUTE_RANGES["--lift"].check(lift_m, "--lift")
+    EXECUTE_RANGES["--hold"].check(hold_s, "--hold")
     EXECUTE_RANGES["--scale"].check(scale, "--scale")
     if isinstance(plan, Plan):
         if plan.directory is not None:
             return execute(
                 plan.directory / "plan.json",
                 lift_m=lift_m,
+                hold_s=hold_s,
                 scale=scale,
                 material=material,
                 backend=backend,
@@ -281,12 +284,12 @@ def execute(
             )
         with tempfile.TemporaryDirectory(prefix="softgrasp-plan-") as tmp:
             planned = load_plan_file(plan.write_plan_file(tmp))
-            run = _execute(planned, lift_m, scale, material, backend, progress, renderer)
+            run = _execute(planned, lift_m, scale, material, backend, progress, renderer, hold_s)
         run.document["plan"] = None
         return run
     if isinstance(plan, str | Path):
         plan = load_plan_file(plan)
-    return _execute(plan, lift_m, scale, material, backend, progress, renderer)
+    return _execute(plan, lift_m, scale, material, backend, progress, renderer, hold_s)
 
 
 def _execute(
@@ -297,6 +300,7 @@ def _execute(
     backend: str,
     progress: Callable[[float], None] | None,
     renderer: Callable[[Any, int, int], Any] | None = None,
+    hold_s: float = 2.0,
 ) -> Execution:
     from softgrasp.execution.controller import ExecuteConfig, closing_lines, execute_plan
     from softgrasp.execution.mujoco.hand import MujocoHand
@@ -311,7 +315,7 @@ def _execute(
     hand = MujocoHand.from_plan(plan)  # the plan's parts checked to agree first
     facets = load_mesh(plan.mesh_file).facets
     lines = closing_lines(plan, scale)
-    cfg = ExecuteConfig(lift=float(lift_m))
+    cfg = ExecuteConfig(lift=float(lift_m), hold_time=float(hold_s))
     largest = max(line.setpoint for line in lines.values())
     pictures = event_pictures(hand, plan.fingertip_radius, cfg.lift, largest, make=renderer)
     try:

@@ -45,6 +45,12 @@ def add_parser(sub) -> None:
         help=f"lift height [m] (default 0.10; {lift.describe('LIFT')})",
     )
     ex.add_argument(
+        "--hold",
+        type=_number("--hold"),
+        default=2.0,
+        help=f"hold the lifted object [s] (default 2; {EXECUTE_RANGES['--hold'].describe('HOLD')})",
+    )
+    ex.add_argument(
         "--scale",
         type=_number("--scale"),
         default=1.0,
@@ -127,6 +133,7 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     from softgrasp.io.planfile import load_plan_file
 
     EXECUTE_RANGES["--lift"].check(args.lift, "--lift")
+    EXECUTE_RANGES["--hold"].check(args.hold, "--hold")
     EXECUTE_RANGES["--scale"].check(args.scale, "--scale")
     if args.save_scene is not None:
         from softgrasp.io.runfolder import check_out_file
@@ -148,6 +155,7 @@ def _run(args: argparse.Namespace, out: Path) -> int:
             run = execute(
                 planned,
                 lift_m=args.lift,
+                hold_s=args.hold,
                 scale=args.scale,
                 material=args.material,
                 backend=args.backend,

@@ -80,5 +80,6 @@ PLAN_RANGES: dict[str, Range] = {
 #: The range of each numeric option of ``softgrasp execute`` (and of :func:`softgrasp.execute`).
 EXECUTE_RANGES: dict[str, Range] = {
     "--lift": Range(0.0, 0.5, "m", open_lo=True),
+    "--hold": Range(0.0, 60.0, "s"),
     "--scale": Range(0.0, 10.0, open_lo=True),
 }
