@@ -73,13 +73,13 @@ def test_set_points_do_not_depend_on_the_step_or_the_bound_of_the_solves(name):
 
 @pytest.mark.slow
 def test_set_points_fall_with_friction_and_too_little_friction_is_infeasible():
-    """From mu = 0.15 to 1 every plan holds, with a total force that does not grow with mu and a
-    sum of normal forces at least the rigid-body minimum at its contacts; mu = 0.05 ends in
-    InfeasibleGrasp naming mu and the normal force a rigid object would need, not a solver
-    error."""
+    """From mu = 0.15 to 1 (four values spanning the range) every plan holds, with a total force
+    that does not grow with mu and a sum of normal forces at least the rigid-body minimum at its
+    contacts; mu = 0.05 ends in InfeasibleGrasp naming mu and the normal force a rigid object would
+    need, not a solver error."""
     body = _body("sphere")
     totals = []
-    for mu in (0.15, 0.2, 0.3, 0.5, 1.0):
+    for mu in (0.15, 0.3, 0.5, 1.0):
         plan = plan_grasp(body, PlanConfig(contact=ContactParams(mu=mu)))
         assert "held" in [w for _, w in plan.hold_checks]
         assert _normal(plan).sum() >= plan.rigid_normal_forces.sum() * (1 - 1e-9), mu
