@@ -198,7 +198,8 @@ def test_robust_setpoints_hold_every_sample_where_the_nominal_ones_fail(tmp_path
         robust = hold_setpoints(body, c, res.setpoints)
         assert robust.held, f"sample {i} {s}: {robust.reason}"
         assert robust.drift < 1e-3
-        nominal_failed += not hold_setpoints(body, c, target).held
+        if not nominal_failed:  # one sample the nominal set-points drop is the claim: no need for more
+            nominal_failed += not hold_setpoints(body, c, target).held
     assert nominal_failed >= 1 and res.nominal_failure_fraction > 0
 
 
