@@ -20,10 +20,9 @@ DEFAULT_NORMAL_N = {"thumb": 0.310, "first": 0.202, "middle": 0.209}
 
 
 @pytest.fixture(scope="module")
-def cli_plan(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cli") / "plan"
-    assert main(["plan", "--out", str(out)]) == 0
-    return out
+def cli_plan(planned_sphere):
+    """``softgrasp plan`` with every default: the session's plan (tests/conftest.py)."""
+    return planned_sphere
 
 
 @pytest.fixture(scope="module")

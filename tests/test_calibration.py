@@ -330,13 +330,14 @@ def test_material_file_feeds_plan_and_execute(tmp_path, capsys):
         tmp_path / "m.toml", Material(9.0e4, 0.42, None, Polynomial(-0.5, 1.0)), ContactParams(mu=1.1)
     )
     out = tmp_path / "plan"
-    assert main(["plan", "--material", str(mf), "--out", str(out)]) == 0
+    coarse = ["--mesh-size", "0.032", "--hold-time", "0.3"]  # what is read from the file needs no finer plan
+    assert main(["plan", "--material", str(mf), *coarse, "--out", str(out)]) == 0
     doc = json.loads((out / "plan.json").read_text())
     assert doc["object"]["material"]["E_Pa"] == 9.0e4
     assert doc["object"]["material"]["law"] == {"kind": "polynomial", "a2": -0.5, "a3": 1.0}
     assert doc["parameters"]["contact"]["mu"] == 1.1
     assert doc["object"]["mass_kg"] == pytest.approx(0.05)  # no density in the file: the sphere's 50 g
-    assert main(["plan", "--material", str(mf), "--mu", "0.9", "--out", str(tmp_path / "p2")]) == 0
+    assert main(["plan", "--material", str(mf), "--mu", "0.9", *coarse, "--out", str(tmp_path / "p2")]) == 0
     assert json.loads((tmp_path / "p2" / "plan.json").read_text())["parameters"]["contact"]["mu"] == 0.9
     # execute: the object of another material
     other = write_material_file(tmp_path / "o.toml", Material(2.0e5, 0.3, None), ContactParams(mu=0.5))
@@ -427,7 +428,8 @@ def test_material_file_precedence_and_execute_records_the_object(tmp_path):
     assert json.loads((tmp_path / "b" / "plan.json").read_text())["parameters"]["contact"]["mu"] == 1.1
     other = write_material_file(tmp_path / "o.toml", Material(1.5e5, 0.4, None), None)
     out = tmp_path / "x"
-    rc = main(["execute", str(tmp_path / "b" / "plan.json"), "--material", str(other), "--out", str(out)])
+    argv = ["execute", str(tmp_path / "b" / "plan.json"), "--material", str(other), "--lift", "0.03"]
+    rc = main([*argv, "--out", str(out)])
     assert rc == 0
     doc = json.loads((out / "execute.json").read_text())
     # the material file by its path from the output folder (no machine path in the outputs)

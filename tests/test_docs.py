@@ -78,9 +78,10 @@ def test_the_performance_page_shows_the_benchmarks_table():
 
 
 @pytest.mark.slow
-def test_readme_python_example_runs_as_written(tmp_path: Path) -> None:
+def test_readme_python_example_runs_as_written(tmp_path: Path, planned_sphere: Path) -> None:
     """The README's Python example, run as written in a fresh interpreter: its set-points are the
-    command line's plan with the same safety factor, and the executed plan lifts the sphere."""
+    command line's plan with the same safety factor (``softgrasp plan`` with every default: the
+    session's plan, tests/conftest.py), and the executed plan lifts the sphere."""
     import json
     import re
 
@@ -90,13 +91,7 @@ def test_readme_python_example_runs_as_written(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
     first, second = proc.stdout.strip().splitlines()[-2:]
     setpoints = ast.literal_eval(first)
-    cli = subprocess.run(
-        [sys.executable, "-m", "softgrasp.cli", "plan", "--out", str(tmp_path / "cli")],
-        capture_output=True,
-        text=True,
-    )
-    assert cli.returncode == 0, cli.stderr[-3000:]
-    doc = json.loads((tmp_path / "cli" / "plan.json").read_text())
+    doc = json.loads((planned_sphere / "plan.json").read_text())
     want = doc["setpoints_N"]
     assert setpoints.keys() == want.keys()
     for name, value in want.items():

@@ -352,13 +352,16 @@ def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None
     toml = inputs / "material.toml"
     toml.write_text("[material]\nE_Pa = 200000.0\nnu = 0.45\n")
     plan_dir, exe_dir, sweep_dir = tmp_path / "plan", tmp_path / "execute", tmp_path / "sweep"
+    # A short hold, lift and sweep hold: the files' names of paths do not depend on them.
     argv = ["plan", "--object", str(ellipsoid["mm"]), "--units", "mm", "--material", str(toml)]
+    argv += ["--hold-time", "0.3"]
     assert main([*argv, "--density", "1000", "--hand", str(urdf), "--out", str(plan_dir)]) == 0
     doc = json.loads((plan_dir / "plan.json").read_text())
     assert doc["hand"]["model"] == "../inputs/my_hand.urdf" == doc["parameters"]["hand"]
     scene = tmp_path / "scene" / "scene.xml"
     scene.parent.mkdir()
-    code = main(["execute", str(plan_dir / "plan.json"), "--out", str(exe_dir), "--save-scene", str(scene)])
+    argv = ["execute", str(plan_dir / "plan.json"), "--lift", "0.02", "--out", str(exe_dir)]
+    code = main([*argv, "--save-scene", str(scene)])
     assert code in (0, 1)
     import mujoco
 
@@ -367,7 +370,7 @@ def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None
     assert json.loads((exe_dir / "execute.json").read_text())["plan"] == "../plan/plan.json"
     spec = inputs / "sweep.toml"
     spec.write_text(f'[base]\nobject = "{ellipsoid["mm"]}"\nunits = "mm"\nmaterial = "{toml},density=1000"\n'
-                    "[grid]\nmu = [0.8]\n")
+                    "hold_time = 0.3\n[grid]\nmu = [0.8]\n")
     assert main(["sweep", str(spec), "--out", str(sweep_dir), "--workers", "1"]) == 0
     capsys.readouterr()  # (reproduce's report: tests/test_reproduce.py checks it the same way)
     here = str(Path(sg.__file__).resolve().parents[2])

@@ -158,19 +158,33 @@ def test_a_plan_from_another_plans_grasp_keeps_its_contacts(tmp_path, sphere, no
         load_plan_grasp(tmp_path / "bad.json")
 
 
+#: The coarse sphere of the robust set-points' test (half the default element size).
+COARSE_H = 0.032
+
+
 @pytest.mark.slow
-def test_robust_setpoints_hold_every_sample_where_the_nominal_ones_fail(tmp_path, sphere, nominal_plan):
+def test_robust_setpoints_hold_every_sample_where_the_nominal_ones_fail(tmp_path):
     """The issue's test: robust set-points over mu in 0.4..0.8 and E +-20 % (8 samples, planned on
     a 2-worker Dask cluster), applied by force control to the object with each sampled parameter
     set, hold it: the centre of mass moves < 1 mm. Checked again here, in this process, apart
     from the cluster's check. The nominal plan's set-points (mu = 0.8) fail for at least one
-    sample, and friction, not stiffness, drives the force (more friction, less squeeze)."""
+    sample, and friction, not stiffness, drives the force (more friction, less squeeze). On the
+    coarse sphere: the claims are of the set-points of the object planned, whatever its mesh."""
+    sphere = load_body("sphere", COARSE_H)
+    options = {**PLAN_DEFAULTS, "mesh_size": COARSE_H}
+    nominal_plan = plan_grasp(sphere, plan_config(options, contact_params(None, 0.8)))
     write_json(tmp_path / "grasp.json", plan_document(nominal_plan, sphere, "sphere"))
     nominal = nominal_values(sphere, 0.8)
     uncertain = [parse_uncertain("mu=0.4..0.8", nominal), parse_uncertain("E=±20%", nominal)]
     target = np.array([f.normal_force for f in nominal_plan.fingers])
     res = robust_setpoints(
-        {"mu": 0.8}, tmp_path / "grasp.json", target, uncertain, tmp_path / "robust", samples=8, seed=3
+        {"mu": 0.8, "mesh_size": COARSE_H},
+        tmp_path / "grasp.json",
+        target,
+        uncertain,
+        tmp_path / "robust",
+        samples=8,
+        seed=3,
     )
     assert res.achieved and res.held.all()
     assert np.isfinite(res.required).all()
@@ -179,12 +193,13 @@ def test_robust_setpoints_hold_every_sample_where_the_nominal_ones_fail(tmp_path
     cfg = replace(nominal_plan.config, grasp=nominal_plan.initial)
     nominal_failed = 0
     for i, s in enumerate(res.samples):
-        body = load_body("sphere", overrides={"E": s["E"]})
+        body = load_body("sphere", COARSE_H, overrides={"E": s["E"]})
         c = replace(cfg, contact=replace(cfg.contact, mu=s["mu"]))
         robust = hold_setpoints(body, c, res.setpoints)
         assert robust.held, f"sample {i} {s}: {robust.reason}"
         assert robust.drift < 1e-3
-        nominal_failed += not hold_setpoints(body, c, target).held
+        if not nominal_failed:  # one sample the nominal set-points drop is the claim: no need for more
+            nominal_failed += not hold_setpoints(body, c, target).held
     assert nominal_failed >= 1 and res.nominal_failure_fraction > 0
 
 
@@ -192,6 +207,7 @@ def test_robust_setpoints_hold_every_sample_where_the_nominal_ones_fail(tmp_path
 def test_plan_uncertain_command_writes_robust_setpoints(tmp_path, capsys):
     out = tmp_path / "plan"
     args = ["plan", "--out", str(out), "--uncertain", "mu=0.5..0.8", "--samples", "4", "--quantile", "0.5"]
+    args += ["--mesh-size", str(COARSE_H)]  # the coarse sphere: what is checked needs no finer one
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "what drives the set-points" in text and "mu (rho" in text
@@ -210,7 +226,7 @@ def test_plan_uncertain_command_writes_robust_setpoints(tmp_path, capsys):
     assert (out / "robust.png").stat().st_size > 10_000
     assert not (out / ".robust-partial").exists()
     # A plain plan into the same folder takes the robust outputs, which no longer belong, away.
-    assert main(["plan", "--out", str(out)]) == 0
+    assert main(["plan", "--out", str(out), "--mesh-size", str(COARSE_H)]) == 0
     assert not (out / "robust.json").exists() and not (out / "robust").exists()
     assert "robust" not in json.loads((out / "plan.json").read_text())
 
