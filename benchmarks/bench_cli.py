@@ -79,7 +79,7 @@ def _yardstick(h: float) -> float:
     code = (
         "import sys; sys.path.insert(0, %r); import bench_indent as b; "
         "from softgrasp.model.objects import make_object; "
-        "m, mat, mass = make_object('sphere', %r); r = b.mujoco_flex(m, mat, mass); print(r.wall)"
+        "m, mat, mass = make_object('sphere', %r); r = b.mujoco_flex(m, mat, mass); print(r.wall_s)"
     ) % (str(Path(__file__).resolve().parent), h)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(run.stdout.strip().splitlines()[-1])

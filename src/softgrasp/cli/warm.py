@@ -38,7 +38,7 @@ from softgrasp.backend import compiled
 __all__ = ["COMPILE_TIME_S", "WarmUp", "cold", "warm_up", "warm_up_in_background"]
 
 #: About how long compiling the kernels takes on a first run [s] (on a 2-core machine).
-COMPILE_TIME_S = 30
+COMPILE_TIME_S = 20
 
 #: What the kernels of each package compute, as a first run names them while it compiles them.
 KERNEL_GROUPS = (
