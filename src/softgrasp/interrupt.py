@@ -14,7 +14,7 @@ from __future__ import annotations
 import signal
 import threading
 
-__all__ = ["handle_sigint", "install", "interrupted", "raise_if_interrupted"]
+__all__ = ["handle_sigint", "install", "raise_if_interrupted"]
 
 _RECEIVED = threading.Event()
 
@@ -32,11 +32,6 @@ def install() -> None:
         signal.getsignal(signal.SIGINT) is signal.default_int_handler
     ):
         signal.signal(signal.SIGINT, handle_sigint)
-
-
-def interrupted() -> bool:
-    """Whether a Ctrl-C reached :func:`handle_sigint` in this process."""
-    return _RECEIVED.is_set()
 
 
 def raise_if_interrupted() -> None:
