@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from softgrasp.errors import ConfigError, NotConverged
 from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.hold import check_hold, cone_usage
-from softgrasp.grasp.setup import closing_setup
+from softgrasp.grasp.setup import ClosingSetup, closing_setup
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingertipContact
@@ -102,6 +102,7 @@ def hold_setpoints(
     *,
     tolerance: float = TOLERANCE,
     max_increments: int = MAX_INCREMENTS,
+    setup: ClosingSetup | None = None,
 ) -> SetpointHold:
     """Close the fingertips on ``body`` under force control to ``setpoints`` (normal forces
     [N], one per finger of ``config.fingers``), each along its own closing line, then check the hold with the
@@ -111,6 +112,8 @@ def hold_setpoints(
     earlier plan), else from the best reachable grasp. A set-point that the finger does not reach
     before the crushing limit (``config.max_squeeze``), or a controller that does not settle in
     ``max_increments`` increments, makes the grasp not held (``reason`` says which finger).
+    ``setup``: the closing's start (:func:`~softgrasp.grasp.setup.closing_setup` of ``body`` and
+    ``config``) when already made, as for several set-points on one grasp.
 
     Raises
     ------
@@ -132,7 +135,8 @@ def hold_setpoints(
         raise ConfigError(f"max_increments must be >= 1, got {max_increments}")
     cfg = config
     cache = SolverCache()
-    setup = closing_setup(body, cfg, cache)
+    if setup is None:
+        setup = closing_setup(body, cfg, cache)
     u = setup.directions
     limit = setup.max_travel
 

@@ -17,6 +17,8 @@ from numpy.typing import NDArray
 
 from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.force_control import hold_setpoints
+from softgrasp.grasp.setup import closing_setup
+from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
 
 __all__ = ["Margin", "critical_scale"]
@@ -57,33 +59,46 @@ def critical_scale(
     config: PlanConfig,
     normal_N: NDArray[np.float64],
     *,
+    guess: float = 1.0,
     lowest: float = 0.5,
     tolerance: float = 0.02,
 ) -> Margin:
-    """Bisect the scale of the normal forces ``normal_N`` [N] (3,) between ``lowest`` and 1 for
-    the least that the object is held at under force control (``config``, whose ``grasp`` names
-    the initial grasp to close from), to ``tolerance``; above 1 (up to 2) when force control
-    does not hold at 1 (scale ``inf`` when not even at 2)."""
+    """The least scale of the normal forces ``normal_N`` [N] (3,) at which the object is held
+    under force control (``config``, whose ``grasp`` names the initial grasp to close from), to
+    ``tolerance``, between ``lowest`` and 1; above 1 (up to 2) when force control does not hold
+    at 1 (scale ``inf`` when not even at 2).
+
+    The search starts at ``guess`` (the planner's: the rigid-body utilisation of the held
+    squeeze, which lies near the critical scale). Held there, it steps down by twice the
+    tolerance (three times, then doubling the step) until a scale is not held (or ``lowest`` is);
+    not held there, it tries 1 (and up). The bracket found is then bisected to ``tolerance``."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: list[tuple[float, bool]] = []
+    setup = closing_setup(body, config, SolverCache())  # every check closes from the same start
 
     def held(s: float) -> bool:
-        ok = bool(hold_setpoints(body, config, s * setpoints).held)
+        ok = bool(hold_setpoints(body, config, s * setpoints, setup=setup).held)
         checks.append((s, ok))
         return ok
 
-    lo, hi = lowest, 1.0  # lo: the largest scale not held, once one is found
-    if held(hi):
-        if held(lo):
-            return Margin(lo, 0.0, tolerance, tuple(checks))
-    else:  # force control ends elsewhere than the position-controlled closing
+    g = float(guess) if np.isfinite(guess) else 1.0
+    g = min(max(g, lowest), 1.0)
+    if held(g):  # down from the guess until a scale does not hold
+        hi, steps = g, 0
         while True:
-            lo, hi = hi, min(2.0, hi / 0.9)
-            if held(hi):
+            if hi <= lowest:
+                return Margin(lowest, 0.0, tolerance, tuple(checks))
+            lo = max(hi - 2.0 * tolerance * 2.0 ** max(steps - 2, 0), lowest)
+            if not held(lo):
                 break
+            hi, steps = lo, steps + 1
+    else:  # up from the guess: 1, then beyond (force control ends elsewhere than the closing)
+        lo, hi = g, 1.0
+        while hi <= lo or not held(hi):
             if hi >= 2.0:
                 return Margin(float("inf"), hi, tolerance, tuple(checks))
-    while hi - lo > tolerance:
+            lo, hi = max(lo, hi), min(2.0, hi / 0.9)
+    while hi - lo > tolerance * (1.0 + 1e-9):  # (a bracket of 2 tolerances halves once)
         mid = 0.5 * (lo + hi)
         if held(mid):
             hi = mid

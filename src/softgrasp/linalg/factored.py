@@ -21,6 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from softgrasp.errors import NotConverged
 from softgrasp.linalg import pardiso
 from softgrasp.linalg.krylov import (
     INDEFINITE_SHIFT,
@@ -67,6 +68,32 @@ def _rigid_motion_free(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> bool:
     B /= np.linalg.norm(B, axis=0)
     scale = float(np.abs(A).sum(axis=1).max()) or 1.0  # the largest row sum bounds |A|
     return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * scale).any())
+
+
+#: A translation is free when the stiffness's product with it is below this fraction of the
+#: stiffness's largest row sum (round-off: nothing couples the body to anything that stays put).
+FREE_TRANSLATION_RTOL = 1e-12
+#: ... and the load pushes the body along it when its share of the load's norm exceeds this.
+FREE_LOAD_RTOL = 1e-6
+
+
+def _load_along_free_translation(
+    A: sp.csr_matrix, b: NDArray[np.float64], x_nodes: NDArray[np.float64]
+) -> str:
+    """The axis ("x", "y", "z") of a translation that meets no stiffness in A while the load b
+    pushes the body along it (then ``A x = b`` has no solution: nothing holds the body against
+    that load), or "" if there is none."""
+    scale = float(np.abs(A).sum(axis=1).max()) or 1.0
+    nb = float(np.linalg.norm(b))
+    if nb == 0.0:
+        return ""
+    n = x_nodes.shape[0]
+    for k, axis in enumerate("xyz"):
+        t = np.zeros(3 * n)
+        t[k::3] = 1.0 / np.sqrt(n)
+        if np.linalg.norm(A @ t) < FREE_TRANSLATION_RTOL * scale and abs(float(t @ b)) > FREE_LOAD_RTOL * nb:
+            return axis
+    return ""
 
 
 def _shifted_solve(
@@ -219,7 +246,14 @@ def _fresh_solve(
     if f.perturbed_pivots > 0:
         # A singular stiffness (a body not yet held may slide or spin): the factor would blow the
         # free motions up; multigrid-CG finds the solution orthogonal to them (the factor's
-        # analysis is kept for the next system).
+        # analysis is kept for the next system). A load along a translation that nothing resists
+        # (every contact lost) has no solution at all: said at once, not after the iterations.
+        if axis := _load_along_free_translation(A, b, x_nodes):
+            cache.stats["free_translations"] = cache.stats.get("free_translations", 0) + 1
+            raise NotConverged(
+                f"the load pushes the body along {axis} and nothing resists that translation: "
+                "the body is not held"
+            )
         cache.stats["amg_solves"] += 1
         return pcg(A, b, x_nodes, cache)
     # The factor of A itself: one solve, refined by a few conjugate-gradient steps where rounding
