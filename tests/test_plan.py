@@ -382,9 +382,9 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
 
     from softgrasp.grasp import planner
 
-    def closing_only(body, cfg, normal):  # the critical scale's own hold checks not recorded
+    def closing_only(body, cfg, normal, **kw):  # the critical scale's own hold checks not recorded
         n = len(release_rtols)
-        out = real_margin(body, cfg, normal)
+        out = real_margin(body, cfg, normal, **kw)
         del release_rtols[n:]
         return out
 
