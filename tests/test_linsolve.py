@@ -442,6 +442,23 @@ def test_a_free_body_singular_stiffness_is_not_shifted():
     assert np.linalg.norm(K0 @ x - b) <= 1e-8 * np.linalg.norm(b)
 
 
+def test_a_load_along_a_translation_nothing_resists_is_found():
+    """A free body's stiffness K (nothing holds it) under its weight: K t = 0 for the vertical
+    translation t, so t . (K x - b) = -t . b for every x and K x = b has no solution; the check
+    the singular path runs before multigrid names that axis. A load in K's range (K r), or the
+    weight on a body that something holds (K shifted), has none."""
+    body = build_body(box(0.05, 4), preset("foam"), mass=0.0125)
+    x_nodes = np.asarray(body.mesh.points)
+    K0 = _stiffness(shift=0.0)
+    weight = (body.mass[:, None] * np.array([0.0, 0.0, -9.81])).ravel()
+    assert factored._load_along_free_translation(K0, weight, x_nodes) == "z"
+    sideways = np.roll(weight.reshape(-1, 3), -2, axis=1).ravel()  # the weight turned along x
+    assert factored._load_along_free_translation(K0, sideways, x_nodes) == "x"
+    in_range = K0 @ np.random.default_rng(9).standard_normal(K0.shape[0])
+    assert factored._load_along_free_translation(K0, in_range, x_nodes) == ""
+    assert factored._load_along_free_translation(_stiffness(), weight, x_nodes) == ""
+
+
 @needs_mkl
 @pytest.mark.parametrize("precision", ["double", "mixed"])
 @pytest.mark.parametrize("case", ["tau beyond 1", "a node nothing holds"])
