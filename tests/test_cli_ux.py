@@ -456,6 +456,10 @@ def test_the_wheel_installs_into_a_fresh_venv_and_plans(tmp_path):
     )
     assert plan.returncode == 0, plan.stderr[-3000:]
     assert "compiling kernels (first run only" in plan.stderr  # its own, empty cache
+    # the fingertip contact's kernels compile in the warm-up's second process and load here
+    # (compiled here as well, the warm-up would name them: another argument type, for one)
+    assert "compiling kernels: body forces" in plan.stderr
+    assert "compiling kernels: fingertip contact" not in plan.stderr, plan.stderr
     doc = json.loads((out / "plan.json").read_text())
     assert doc["equilibrium"]["satisfied"] is True
     where = subprocess.run(
