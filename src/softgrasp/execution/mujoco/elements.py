@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 from softgrasp.execution.mujoco.options import (
     CONTACT_SOLIMP,
     CONTACT_SOLREF,
+    IMPRATIO,
     OBJECT_BIT,
     SOLVER,
     SOLVER_ITERATIONS,
@@ -90,7 +91,7 @@ def add_table(world: ET.Element, centre, reach: float, table_z: float, table_mu:
 
 def mujoco_root(model: str, timestep: float) -> ET.Element:
     """The ``<mujoco>`` element with softgrasp's compiler and solver options (discrete integrator,
-    elliptic friction cones)."""
+    elliptic friction cones, their impedance ratio)."""
     root = ET.Element("mujoco", model=model)
     element(root, "compiler", angle="radian", autolimits="true")
     element(
@@ -101,6 +102,7 @@ def mujoco_root(model: str, timestep: float) -> ET.Element:
         integrator="discrete",
         solver=SOLVER,
         cone="elliptic",
+        impratio=fnum(IMPRATIO),
         iterations=str(SOLVER_ITERATIONS),
         tolerance=fnum(SOLVER_TOLERANCE),
     )

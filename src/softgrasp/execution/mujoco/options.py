@@ -40,6 +40,18 @@ Choices
   and the flex 0: table-object contacts get ``table_mu`` and fingertip-object contacts ``mu``
   exactly, whatever the flex's friction. ``condim`` 3 (point contact with Coulomb friction, the
   planner's model). Rolling friction would be useless anyway: flex vertices have no rotation.
+* **Friction impedance** :data:`IMPRATIO` = 3: MuJoCo's soft friction lets a held object creep
+  down through the fingertips at a rate that grows with the friction force, and a fingertip on a
+  tetrahedral flex touches one or two boundary tetrahedra, whose facets tilt from facet to facet.
+  At 1 (MuJoCo's default) the 745- and 2 196-node spheres crept 2.5 mm during the 0.10 m lift,
+  their contacts rode onto facets sloping the other way and the object slid out 65-70 mm up,
+  at the planned set-points. At 3 they are lifted (slip 1.4 / 3.0 mm) and the 388-node sphere
+  still holds at 1.15 times softgrasp's critical scale and drops at 0.85 times it. At 10 the
+  creep is smaller still (0.6 / 1.1 mm) but the friction no longer relaxes at all while the
+  weight passes from the table to the fingers: the 388-node sphere then needs 0.92-1.0 of its
+  set-points (softgrasp's critical scale: 0.80). At 100 the friction rows are so stiff that the
+  force-controlled closing chatters and never settles. So MuJoCo's critical scale depends on
+  this setting by up to 25 %: read its margins with that uncertainty.
 * **Contact softness** :data:`CONTACT_SOLREF`, :data:`CONTACT_SOLIMP`: MuJoCo's soft contacts
   penetrate by ``(1 - d) timeconst^2 x (force / effective mass)``, and a flex vertex weighs
   ~0.1 g, so the default (0.02 s, d = 0.9-0.95) lets a fingertip sink centimetres. With
@@ -68,6 +80,7 @@ __all__ = [
     "SOLVER",
     "SOLVER_ITERATIONS",
     "SOLVER_TOLERANCE",
+    "IMPRATIO",
     "JOINT_KP",
     "JOINT_DAMPING",
     "JOINT_ARMATURE",
@@ -103,6 +116,9 @@ SOLVER = "CG"
 SOLVER_ITERATIONS = 1000
 #: Relative tolerance of both solves.
 SOLVER_TOLERANCE = 1e-8
+
+#: Ratio of the friction constraints' impedance to the normal one's (elliptic cones; module docstring).
+IMPRATIO = 3.0
 
 #: Position-servo stiffness of every independent joint [N m/rad or N/m].
 JOINT_KP = 200.0
