@@ -63,7 +63,7 @@ def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover
             "cycles": plan.solver_stats.get("multigrid_cycles", 0),
             "phases": tuple(
                 plan.solver_stats.get(k, 0)
-                for k in ("settle_systems", "closing_systems", "hold_check_systems")
+                for k in ("settle_systems", "closing_systems", "hold_check_systems", "margin_systems")
             ),
         }
     except Exception as exc:  # noqa: BLE001 - reported, not hidden
@@ -106,7 +106,8 @@ def _row(r: dict, label: str, ref: float | None) -> str:
         f"{r['nodes']:>6} {label:>22} {r['plan_s']:>8.2f} {warm} {ratio} {r['peak_MB']:>8.0f} "
         f"{r['increments']:>5} {r['margin']:>7.1%}  {f}   (mesh+body {r['build_s']:.1f} s; "
         f"{r['systems']} Newton systems: settle {r['phases'][0]}, closing {r['phases'][1]}, hold checks "
-        f"{r['phases'][2]}" + (f"; {r['cycles']} V-cycles)" if r["cycles"] else ")")
+        f"{r['phases'][2]}; the critical scale's checks {r['phases'][3]} more"
+        + (f"; {r['cycles']} V-cycles)" if r["cycles"] else ")")
     )
 
 

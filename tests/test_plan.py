@@ -298,9 +298,9 @@ def test_quasistatic_and_dynamic_closing_agree(sphere_body, default_plan):
 
 def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_plan, monkeypatch):
     """``GraspPlan.solver_stats`` counts the Newton systems of the plan's closing (the settle, the
-    closing, the hold check; not the critical scale's force-controlled checks), as a wrapper around
-    the static solver's linear solve counts them; the default plan's repeat solves the same
-    number."""
+    closing, the hold check; the critical scale's force-controlled checks apart, as
+    ``margin_systems``), as a wrapper around the static solver's linear solve counts them; the
+    default plan's repeat solves the same number."""
     from softgrasp.grasp import planner
     from softgrasp.sim import newton
 
@@ -308,17 +308,22 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     real = newton.solve_newton_system
     counting = [True]
 
+    margin_calls = []
+
     def counted(*args, **kw):
-        if counting[0]:
-            calls.append(1)
+        (calls if counting[0] else margin_calls).append(1)
         return real(*args, **kw)
+
+    in_margin = []
 
     def uncounted_margin(*args, **kw):
         counting[0] = False
+        before = len(calls)
         try:
             return real_margin(*args, **kw)
         finally:
             counting[0] = True
+            in_margin.append(len(calls) - before)
 
     real_margin = planner.critical_scale
     monkeypatch.setattr(planner, "critical_scale", uncounted_margin)
@@ -354,6 +359,8 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
     assert sum(phases) == plan.solver_stats["systems"] and min(phases) > 0
     assert plan.solver_stats["hold_check_systems"] == sum(in_hold_checks) > 0
     assert plan.solver_stats["closing_systems"] == sum(in_increments) > 0
+    # the critical scale's checks, counted apart
+    assert in_margin == [0] and plan.solver_stats["margin_systems"] == len(margin_calls) > 0
     calls.clear()
     with pardiso.blas_one_thread():
         settle_on_table(sphere_body, PlanConfig(), SolverCache())

@@ -68,6 +68,7 @@ class SetpointHold:
     held_normal: normal forces in the held state [N], (3,) (nan when not held).
     max_travel: the crushing limit: the farthest travel along a closing line [m].
     wall_time: seconds.
+    systems: Newton systems solved (the settle, when made here, the closing and the hold check).
     """
 
     setpoints: NDArray[np.float64]
@@ -82,6 +83,7 @@ class SetpointHold:
     held_normal: NDArray[np.float64]
     max_travel: float
     wall_time: float
+    systems: int = 0
 
 
 def _tips(cfg: PlanConfig, centres: NDArray[np.float64], moves: NDArray[np.float64]) -> FingertipContact:
@@ -154,6 +156,7 @@ def hold_setpoints(
             np.full(k, math.nan) if normal is None else normal,
             limit,
             time.perf_counter() - t0,
+            int(cache.stats["systems"]),
         )
 
     # Each fingertip to its first touch (no force yet: the object stays as it rests).

@@ -34,12 +34,14 @@ class Margin:
     not_held: the largest scale found not held (< scale), or 0 if every scale tried held.
     tolerance: the bisection's resolution in scale.
     checks: every scale tried and whether it held.
+    systems: Newton systems the search solved (its settle and every check's closing and hold).
     """
 
     scale: float
     not_held: float
     tolerance: float
     checks: tuple[tuple[float, bool], ...]
+    systems: int = 0
 
     def relative_to(self, factor: float) -> dict[str, object]:
         """The margin as ``plan.json`` states it: scales relative to set-points that are
@@ -74,12 +76,18 @@ def critical_scale(
     not held there, it tries 1 (and up). The bracket found is then bisected to ``tolerance``."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: list[tuple[float, bool]] = []
-    setup = closing_setup(body, config, SolverCache())  # every check closes from the same start
+    cache = SolverCache()
+    setup = closing_setup(body, config, cache)  # every check closes from the same start
+    systems = [int(cache.stats["systems"])]
 
     def held(s: float) -> bool:
-        ok = bool(hold_setpoints(body, config, s * setpoints, setup=setup).held)
-        checks.append((s, ok))
-        return ok
+        check = hold_setpoints(body, config, s * setpoints, setup=setup)
+        checks.append((s, bool(check.held)))
+        systems.append(check.systems)
+        return bool(check.held)
+
+    def margin(scale: float, not_held: float) -> Margin:
+        return Margin(scale, not_held, tolerance, tuple(checks), sum(systems))
 
     g = float(guess) if np.isfinite(guess) else 1.0
     g = min(max(g, lowest), 1.0)
@@ -87,7 +95,7 @@ def critical_scale(
         hi, steps = g, 0
         while True:
             if hi <= lowest:
-                return Margin(lowest, 0.0, tolerance, tuple(checks))
+                return margin(lowest, 0.0)
             lo = max(hi - 2.0 * tolerance * 2.0 ** max(steps - 2, 0), lowest)
             if not held(lo):
                 break
@@ -96,7 +104,7 @@ def critical_scale(
         lo, hi = g, 1.0
         while hi <= lo or not held(hi):
             if hi >= 2.0:
-                return Margin(float("inf"), hi, tolerance, tuple(checks))
+                return margin(float("inf"), hi)
             lo, hi = max(lo, hi), min(2.0, hi / 0.9)
     while hi - lo > tolerance * (1.0 + 1e-9):  # (a bracket of 2 tolerances halves once)
         mid = 0.5 * (lo + hi)
@@ -104,4 +112,4 @@ def critical_scale(
             hi = mid
         else:
             lo = mid
-    return Margin(hi, lo, tolerance, tuple(checks))
+    return margin(hi, lo)

@@ -200,6 +200,7 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: S
             closing_systems=cache.stats["systems"]
             - cache.stats["settle_systems"]
             - cache.stats["hold_check_systems"],
+            margin_systems=margin_.systems,
         ),
     )
 

@@ -95,7 +95,8 @@ class GraspPlan:
         Newton systems also by phase:
         ``settle_systems`` (the object coming to rest on the table), ``closing_systems`` (the
         closing increments and their refinement) and ``hold_check_systems`` (the table removed,
-        the release, the holding simulation and the held equilibrium).
+        the release, the holding simulation and the held equilibrium); and ``margin_systems``,
+        those the critical scale's checks solved on their own (not in ``systems``).
     """
 
     initial: InitialGrasp
