@@ -101,11 +101,11 @@ def critical_scale(
                 break
             hi, steps = lo, steps + 1
     else:  # up from the guess: 1, then beyond (force control ends elsewhere than the closing)
-        lo, hi = g, 1.0
-        while hi <= lo or not held(hi):
+        lo, hi = g, 1.0 if g < 1.0 else 1.0 / 0.9
+        while not held(hi):
             if hi >= 2.0:
                 return margin(float("inf"), hi)
-            lo, hi = max(lo, hi), min(2.0, hi / 0.9)
+            lo, hi = hi, min(2.0, hi / 0.9)
     while hi - lo > tolerance * (1.0 + 1e-9):  # (a bracket of 2 tolerances halves once)
         mid = 0.5 * (lo + hi)
         if held(mid):

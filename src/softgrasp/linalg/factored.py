@@ -64,10 +64,19 @@ CORRECT_MAX_NODES = 24
 def _rigid_motion_free(A: sp.csr_matrix, x_nodes: NDArray[np.float64]) -> bool:
     """Whether a rigid translation or rotation of the nodes ``x_nodes`` meets (almost) no stiffness
     in A: nothing holds the body in place (its stiffness is singular)."""
+    B = _unit_rigid_modes(x_nodes)
+    return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * _norm_bound(A)).any())
+
+
+def _unit_rigid_modes(x_nodes: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The six rigid-body modes of the nodes (:func:`rigid_modes`), each of unit length."""
     B = rigid_modes(x_nodes)
-    B /= np.linalg.norm(B, axis=0)
-    scale = float(np.abs(A).sum(axis=1).max()) or 1.0  # the largest row sum bounds |A|
-    return bool((np.linalg.norm(A @ B, axis=0) < 1e-9 * scale).any())
+    return B / np.linalg.norm(B, axis=0)
+
+
+def _norm_bound(A: sp.csr_matrix) -> float:
+    """The largest absolute row sum of A, which bounds its norm (1 for a zero matrix)."""
+    return float(np.abs(A).sum(axis=1).max()) or 1.0
 
 
 #: A translation is free when the stiffness's product with it is below this fraction of the
@@ -83,17 +92,14 @@ def _load_along_free_translation(
     """The axis ("x", "y", "z") of a translation that meets no stiffness in A while the load b
     pushes the body along it (then ``A x = b`` has no solution: nothing holds the body against
     that load), or "" if there is none."""
-    scale = float(np.abs(A).sum(axis=1).max()) or 1.0
     nb = float(np.linalg.norm(b))
     if nb == 0.0:
         return ""
-    n = x_nodes.shape[0]
-    for k, axis in enumerate("xyz"):
-        t = np.zeros(3 * n)
-        t[k::3] = 1.0 / np.sqrt(n)
-        if np.linalg.norm(A @ t) < FREE_TRANSLATION_RTOL * scale and abs(float(t @ b)) > FREE_LOAD_RTOL * nb:
-            return axis
-    return ""
+    T = _unit_rigid_modes(x_nodes)[:, :3]  # the three translations
+    free = np.linalg.norm(A @ T, axis=0) < FREE_TRANSLATION_RTOL * _norm_bound(A)
+    pushed = np.abs(T.T @ b) > FREE_LOAD_RTOL * nb
+    hit = np.flatnonzero(free & pushed)
+    return "xyz"[int(hit[0])] if len(hit) else ""
 
 
 def _shifted_solve(
