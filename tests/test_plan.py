@@ -368,15 +368,16 @@ def test_the_plan_reports_every_newton_system_it_solved(sphere_body, default_pla
 
 
 def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, default_plan, monkeypatch):
-    """The closing increments and the release steps but the last stop at ``STEP_RTOL`` (1e-4 of
-    the largest force); the last release step, where the hold starts, and the held state at
-    ``HELD_RTOL`` (1e-9). Against a plan whose steps are all solved to 1e-9: the same set-points
-    to 1e-4 of themselves (a hundredth of the 1 % force tolerance; measured 1.5e-5: the friction
-    history the looser increments leave differs in its last digits), the same closing path
-    (travel to 1e-5, grasp tests, hold checks) with
-    its per-step forces to 1e-4 of the largest, fewer Newton systems in the closing and in the hold check, the same
-    in the settle."""
-    from softgrasp.grasp import closing, config, hold
+    """The closing increments, the force-controlled increments of the critical scale's checks and
+    the release steps but the last stop at ``STEP_RTOL`` (1e-4 of the largest force); the last
+    release step, where the hold starts, and the held state at ``HELD_RTOL`` (1e-9). Against a
+    plan whose steps are all solved to 1e-9: the same set-points to 1e-4 of themselves (a
+    hundredth of the 1 % force tolerance; measured 1.5e-5: the friction history the looser
+    increments leave differs in its last digits), the same closing path (travel to 1e-5, grasp
+    tests, hold checks) with its per-step forces to 1e-4 of the largest, the same critical-scale
+    checks and verdicts, fewer Newton systems in the closing, the hold check and the critical
+    scale, the same in the settle."""
+    from softgrasp.grasp import closing, config, force_control, hold
 
     assert config.STEP_RTOL == 1e-4 and config.HELD_RTOL == 1e-9
     release_rtols: list[float] = []
@@ -403,6 +404,7 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
     assert again.solver_stats == default_plan.solver_stats
     monkeypatch.setattr(closing, "STEP_RTOL", 1e-9)  # the closing increments
     monkeypatch.setattr(hold, "STEP_RTOL", 1e-9)  # the release steps
+    monkeypatch.setattr(force_control, "STEP_RTOL", 1e-9)  # the critical scale's closings
     tight = plan_grasp(sphere_body, PlanConfig())
     for a, b in zip(default_plan.fingers, tight.fingers, strict=True):
         np.testing.assert_allclose(a.force, b.force, rtol=0, atol=1e-4 * b.force_norm)
@@ -421,6 +423,11 @@ def test_load_steps_to_their_looser_tolerance_keep_the_set_points(sphere_body, d
     assert stats["closing_systems"] < tight_stats["closing_systems"]
     assert stats["hold_check_systems"] < tight_stats["hold_check_systems"]
     assert stats["settle_systems"] == tight_stats["settle_systems"]
+    assert stats["margin_systems"] < tight_stats["margin_systems"]
+    assert [h for _, h in default_plan.margin.checks] == [h for _, h in tight.margin.checks]
+    np.testing.assert_allclose(
+        [s for s, _ in default_plan.margin.checks], [s for s, _ in tight.margin.checks], rtol=1e-5
+    )
 
 
 # --------------------------------------------------------------------------- implicit holding

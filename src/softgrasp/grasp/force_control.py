@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, NotConverged
-from softgrasp.grasp.config import PlanConfig
+from softgrasp.grasp.config import STEP_RTOL, PlanConfig
 from softgrasp.grasp.hold import check_hold, cone_usage
 from softgrasp.grasp.setup import ClosingSetup, closing_setup
 from softgrasp.linalg.solve import SolverCache
@@ -210,7 +210,7 @@ def hold_setpoints(
         fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
         scene = Scene(body, (setup.table, fc))
         try:
-            state, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache)
+            state, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache, rtol=STEP_RTOL)
         except NotConverged as exc:
             return result(s, forces, increments, False, f"a closing increment found no equilibrium ({exc})")
         increments += 1
