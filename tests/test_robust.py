@@ -94,6 +94,57 @@ def test_force_control_reaches_its_setpoints_and_holds_the_nominal_plan(sphere, 
     assert not short.held and "did not settle" in short.reason
 
 
+def _squeezed_ball(k: np.ndarray, k_table: float):
+    """Normal forces [N] of three fingertips at travels ``s`` [m] along their closing lines (in one
+    plane, the thumb opposite the two fingers) on a rigid ball that a spring ``k_table`` [N/m]
+    holds: Hertz contacts F_j = k_j p_j^1.5, the ball moved to where the forces and the spring
+    balance (SciPy's root finder), so that each finger's force changes when another pushes."""
+    from scipy.optimize import root
+
+    ang = np.radians([0.0, 160.0, 200.0])
+    U = np.stack([np.cos(ang), np.sin(ang)], axis=1)  # each closing direction
+
+    def forces(s: np.ndarray) -> np.ndarray:
+        def unbalanced(c):
+            return (k * np.maximum(s - U @ c, 0.0) ** 1.5) @ U - k_table * c
+
+        sol = root(unbalanced, np.zeros(2), tol=1e-13)
+        assert np.abs(unbalanced(sol.x)).max() <= 1e-9 * max(k_table * np.abs(sol.x).max(), 1e-6), sol
+        return k * np.maximum(s - U @ sol.x, 0.0) ** 1.5
+
+    return forces
+
+
+def test_the_force_controller_moves_the_fingers_together_to_their_set_points():
+    """The controller's rule (``_next_move``) on three fingertips squeezing a ball held by a weak
+    spring (each finger's force also moves when the others push): from first touch it reaches
+    40 random reachable sets of set-points within 1 % in at most 8 increments of at most 0.5 mm
+    (measured 6 at most; each finger's own secant gain alone needs up to 21, the corrections of
+    one finger upsetting the others). A finger without a gain yet creeps a quarter step."""
+    from softgrasp.grasp.force_control import _next_move
+
+    step = 5e-4
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        plant = _squeezed_ball(rng.uniform(2e4, 6e4, 3), rng.uniform(5.0, 50.0))
+        target = plant(rng.uniform(5e-4, 2e-3, 3))
+        s, F = np.zeros(3), np.zeros(3)
+        ds, dF = np.zeros(3), np.zeros(3)
+        gain, jac = np.full(3, np.nan), None
+        for n in range(9):
+            err = target - F
+            if (np.abs(err) <= 0.01 * target).all():
+                break
+            move, gain, jac = _next_move(ds, dF, err, gain, jac, step)
+            if n == 0:
+                np.testing.assert_allclose(move, 0.25 * step)  # no gains yet: a creep
+            assert np.abs(move).max() <= step
+            move = np.clip(move, -s, None)
+            F_new = plant(s + move)
+            ds, dF, s, F = move, F_new - F, s + move, F_new
+        assert (np.abs(target - F) <= 0.01 * target).all(), (n, target, F)
+
+
 def test_force_control_penetration_scales_with_stiffness_between_hertz_and_a_linear_body():
     """Run as a sweep's hold case, so that the case's E (and contact law) reach the body: the same
     set-points on a sphere four times stiffer need less penetration, by a factor between

@@ -3,13 +3,14 @@
 
 From the object at rest on the table and the fingertips at the start of their closing lines
 (:func:`softgrasp.grasp.setup.closing_setup`), each fingertip first moves to where it touches
-the object; then every increment moves each fingertip along its own line by the secant estimate
-of the travel that brings its normal force (the tactile sensor's reading) to its set-point,
+the object; then every increment moves the fingertips along their lines by the travels that
+bring their normal forces (the tactile sensors' readings) to their set-points, estimated from the
+increments so far (:func:`_next_move`),
 
-    d_j = clip((F_set,j - F_j) / k_j, -step, step),   k_j = dF_j / ds_j of the last increment,
+    J d = F_set - F,   each d_j clipped to [-step, step],   J ~ dF/ds (Broyden's secant Jacobian),
 
 and the object comes to static equilibrium (the fingers push the object on the table and each
-other's forces change with it). The closing ends when every finger is within ``tolerance`` of
+other's forces change with it: J is not diagonal). The closing ends when every finger is within ``tolerance`` of
 its set-point. Then the table is taken away and the object held for ``hold_time`` seconds
 (:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when every step finds its
 equilibrium, every finger keeps contact and no fingertip slides in the object by more than
@@ -97,6 +98,50 @@ def _tips(cfg: PlanConfig, centres: NDArray[np.float64], moves: NDArray[np.float
     )
 
 
+def _next_move(
+    ds: NDArray[np.float64],
+    dF: NDArray[np.float64],
+    err: NDArray[np.float64],
+    gain: NDArray[np.float64],
+    jac: NDArray[np.float64] | None,
+    step: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
+    """The force controller's next travel of each fingertip along its line [m], from the last
+    increment's travels ``ds`` [m] and force changes ``dF`` [N] and the force errors ``err`` [N].
+
+    Each finger's own secant ``gain`` dF_j/ds_j [N/m] is kept from the last increment that moved
+    it with a rising force. Until every finger has one, a finger with a gain steps by err_j / gain_j
+    and one without creeps a quarter ``step`` towards its set-point. Then the fingers move
+    together: the Jacobian ``jac`` dF/ds (k, k), started as diag(gain), follows Broyden's update
+    (each finger's force also changes when the others push the object), and the move solves
+    jac d = err, so that a finger already at its set-point compensates for the others. A Jacobian
+    that turns singular or gives a finger a non-positive own gain (a contact slipping or lost)
+    restarts from diag(gain). The move is scaled down to at most ``step`` for any finger.
+
+    Returns (move, gain, jac)."""
+    moved = np.abs(ds) > 1e-12
+    slope = dF / np.where(moved, ds, 1.0)
+    gain = np.where(moved & (slope > 0), slope, gain)
+    known = np.isfinite(gain)
+    if not known.all():
+        jac = None
+        move = np.where(known, err / np.where(known, gain, 1.0), np.sign(err) * 0.25 * step)
+        return np.clip(move, -step, step), gain, jac
+    if jac is not None and moved.any():
+        jac = jac + np.outer(dF - jac @ ds, ds) / float(ds @ ds)  # Broyden's rank-one update
+    move = None
+    if jac is not None and (np.diag(jac) > 0).all():
+        try:
+            move = np.linalg.solve(jac, err)
+        except np.linalg.LinAlgError:
+            move = None
+    if move is None or not np.isfinite(move).all():
+        jac = np.diag(gain)
+        move = err / gain
+    largest = float(np.abs(move).max())
+    return np.clip(move, -step, step), gain, jac
+
+
 def hold_setpoints(
     body: Body,
     config: PlanConfig,
@@ -171,6 +216,7 @@ def hold_setpoints(
     forces = np.zeros(k)
     s_prev, f_prev = s.copy(), forces.copy()
     gain = np.full(k, math.nan)  # dF/ds of each finger, from the last increment that moved it
+    jac: NDArray[np.float64] | None = None  # dF/ds of the fingers together, once each has a gain
     increments = 0
     while True:
         err = target - forces
@@ -197,16 +243,8 @@ def hold_setpoints(
                 f"the force control did not settle within {max_increments} increments (forces "
                 f"{', '.join(f'{v:.3f}' for v in forces)} N for {', '.join(f'{v:.3f}' for v in target)} N)",
             )
-        ds = s - s_prev
-        slope = (forces - f_prev) / np.where(ds == 0, 1.0, ds)
-        gain = np.where((np.abs(ds) > 1e-12) & (slope > 0), slope, gain)
-        # A finger without a slope yet (no contact, or its force fell as it advanced) creeps a
-        # quarter step towards its set-point; otherwise the secant step, at most one closing step
-        # either way, never past the crushing limit nor behind the start of its line.
-        known = np.isfinite(gain)
-        guess = np.where(known, err / np.where(known, gain, 1.0), np.sign(err) * 0.25 * cfg.step)
-        move = np.clip(guess, -cfg.step, cfg.step)
-        move = np.clip(np.where(done, 0.0, move), -s, limit - s)
+        move, gain, jac = _next_move(s - s_prev, forces - f_prev, err, gain, jac, cfg.step)
+        move = np.clip(move, -s, limit - s)
         fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
         scene = Scene(body, (setup.table, fc))
         try:
