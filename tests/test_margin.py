@@ -58,6 +58,23 @@ def test_the_safety_factor_scales_the_set_points_and_nothing_else(sphere, plans)
         np.testing.assert_allclose(other.grasp.positions, base.grasp.positions, rtol=0, atol=1e-12)
 
 
+def test_the_critical_scale_closes_from_the_closings_own_start(sphere, plans):
+    """The planner hands its closing's start (the settled object, the closing lines) to the
+    critical scale; a search that settles the object again itself tries the same scales with the
+    same verdicts and finds the same critical scale, solving the settle's Newton systems on top."""
+    from dataclasses import replace
+
+    from softgrasp.grasp.margin import critical_scale
+
+    g = plans[0.8].grasp
+    normal = np.array([f.normal_force for f in g.fingers])
+    own = critical_scale(sphere.body, replace(g.config, grasp=g.initial), normal, guess=g.rigid_utilisation)
+    assert [h for _, h in own.checks] == [h for _, h in g.margin.checks]
+    np.testing.assert_allclose([c for c, _ in own.checks], [c for c, _ in g.margin.checks], rtol=1e-9)
+    assert own.scale == pytest.approx(g.margin.scale, rel=1e-9)
+    assert own.systems == g.margin.systems + g.solver_stats["settle_systems"]
+
+
 def test_a_safety_factor_below_one_is_refused(sphere):
     with pytest.raises(sg.ConfigError, match="safety_factor"):
         sg.plan(sphere, safety_factor=0.9)

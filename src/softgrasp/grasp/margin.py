@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from softgrasp.grasp.config import PlanConfig
 from softgrasp.grasp.force_control import hold_setpoints
-from softgrasp.grasp.setup import closing_setup
+from softgrasp.grasp.setup import ClosingSetup, closing_setup
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
 
@@ -34,7 +34,8 @@ class Margin:
     not_held: the largest scale found not held (< scale), or 0 if every scale tried held.
     tolerance: the bisection's resolution in scale.
     checks: every scale tried and whether it held.
-    systems: Newton systems the search solved (its settle and every check's closing and hold).
+    systems: Newton systems the search solved (its settle, when made here, and every check's closing
+        and hold).
     """
 
     scale: float
@@ -64,6 +65,7 @@ def critical_scale(
     guess: float = 1.0,
     lowest: float = 0.5,
     tolerance: float = 0.02,
+    setup: ClosingSetup | None = None,
 ) -> Margin:
     """The least scale of the normal forces ``normal_N`` [N] (3,) at which the object is held
     under force control (``config``, whose ``grasp`` names the initial grasp to close from), to
@@ -77,7 +79,8 @@ def critical_scale(
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: list[tuple[float, bool]] = []
     cache = SolverCache()
-    setup = closing_setup(body, config, cache)  # every check closes from the same start
+    if setup is None:
+        setup = closing_setup(body, config, cache)  # every check closes from the same start
     systems = [int(cache.stats["systems"])]
 
     def held(s: float) -> bool:

@@ -135,7 +135,7 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: S
         for j, name in enumerate(cfg.fingers)
     )
     normal = np.array([f.normal_force for f in fingers])
-    margin_ = critical_scale(body, replace(cfg, grasp=ig), normal, guess=utilisation)
+    margin_ = critical_scale(body, replace(cfg, grasp=ig), normal, guess=utilisation, setup=setup)
     if not np.isfinite(margin_.scale):
         raise InfeasibleGrasp(
             f"force control to the held state's normal forces ({_forces(normal)} N), and to up to "
