@@ -43,7 +43,7 @@ run: install
 
 # The whole test suite (slow tests included), on one pytest-xdist worker per core.
 test: install-test
-	$(BIN)/python -m pytest -n auto
+	$(BIN)/python -m pytest -n auto --dist worksteal
 
 bench: install
 	$(BIN)/python benchmarks/bench_body.py

@@ -54,3 +54,11 @@ def planned_sphere(tmp_path_factory):
     out = tmp_path_factory.mktemp("planned-sphere")
     assert main(["plan", "--out", str(out)]) == 0
     return out
+    assert main(["plan", "--out", str(out)]) == 0
+    return out
+
+
+def pytest_collection_modifyitems(config, items):
+    """The slow tests first: started at once on the workers, they do not leave one worker running
+    the last of them while the other idles at the end of the session."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
