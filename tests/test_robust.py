@@ -119,7 +119,7 @@ def test_the_force_controller_moves_the_fingers_together_to_their_set_points():
     """The controller's rule (``_next_move``) on three fingertips squeezing a ball held by a weak
     spring (each finger's force also moves when the others push): from first touch it reaches
     40 random reachable sets of set-points within 1 % in at most 8 increments of at most 0.5 mm
-    (measured 6 at most; each finger's own secant gain alone needs up to 21, the corrections of
+    (measured 6 at most; each finger's own secant gain alone needs up to 20, the corrections of
     one finger upsetting the others). A finger without a gain yet creeps a quarter step."""
     from softgrasp.grasp.force_control import _next_move
 
