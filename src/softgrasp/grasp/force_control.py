@@ -10,8 +10,8 @@ increments so far (:func:`_next_move`),
     J d = F_set - F,   each d_j clipped to [-step, step],   J ~ dF/ds (Broyden's secant Jacobian),
 
 and the object comes to static equilibrium (the fingers push the object on the table and each
-other's forces change with it: J is not diagonal). The closing ends when every finger is within ``tolerance`` of
-its set-point. Then the table is taken away and the object held for ``hold_time`` seconds
+other's forces change with it: J is not diagonal). The closing ends when every finger is within
+``tolerance`` of its set-point. Then the table is taken away and the object held for ``hold_time`` seconds
 (:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when every step finds its
 equilibrium, every finger keeps contact and no fingertip slides in the object by more than
 ``max_slip`` times its size.
@@ -116,7 +116,7 @@ def _next_move(
     (each finger's force also changes when the others push the object), and the move solves
     jac d = err, so that a finger already at its set-point compensates for the others. A Jacobian
     that turns singular or gives a finger a non-positive own gain (a contact slipping or lost)
-    restarts from diag(gain). The move is scaled down to at most ``step`` for any finger.
+    restarts from diag(gain). Each finger's move is clipped to at most ``step`` either way.
 
     Returns (move, gain, jac)."""
     moved = np.abs(ds) > 1e-12
@@ -138,7 +138,6 @@ def _next_move(
     if move is None or not np.isfinite(move).all():
         jac = np.diag(gain)
         move = err / gain
-    largest = float(np.abs(move).max())
     return np.clip(move, -step, step), gain, jac
 
 
@@ -244,7 +243,7 @@ def hold_setpoints(
                 f"{', '.join(f'{v:.3f}' for v in forces)} N for {', '.join(f'{v:.3f}' for v in target)} N)",
             )
         move, gain, jac = _next_move(s - s_prev, forces - f_prev, err, gain, jac, cfg.step)
-        move = np.clip(move, -s, limit - s)
+        move = np.clip(move, -s, limit - s)  # never past the crushing limit nor behind the line's start
         fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
         scene = Scene(body, (setup.table, fc))
         try:
