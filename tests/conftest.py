@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 import math
+import os
 
-import numpy as np
-import pytest
+# Each pytest-xdist worker gets its share of the cores for softgrasp's threads (one each on two
+# cores): two workers each running two spinning PARDISO and Numba threads on two cores nearly
+# double the suite's time. Set before softgrasp is imported (``SOFTGRASP_THREADS`` is read at its
+# import); a value given by the caller is kept, and tests of the thread count set it themselves.
+if (workers := int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))) > 1:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    os.environ.setdefault("SOFTGRASP_THREADS", str(max(1, cores // workers)))
 
-from softgrasp.offscreen import prefer_headless_gl
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from softgrasp.offscreen import prefer_headless_gl  # noqa: E402
 
 # MuJoCo renders offscreen in the tests as in softgrasp's commands: the back-end is chosen before
 # any test module imports MuJoCo.

@@ -328,8 +328,23 @@ def test_ctrl_c_in_execute_is_one_line(planned_sphere, tmp_path):
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
 
 
+def test_a_ctrl_c_while_the_command_exits_is_ignored(tmp_path):
+    """Once the command is over (its files written, or an error said), a Ctrl-C during the
+    interpreter's exit would kill the process by the signal (status -2, no message): the command
+    line ignores Ctrl-C from then on, on every way out."""
+    code = (
+        "import signal, sys; from softgrasp.cli import main; "
+        f"sys.argv = ['softgrasp', 'view', {str(tmp_path / 'missing')!r}]; status = main(); "
+        "print(status, signal.getsignal(signal.SIGINT) is signal.SIG_IGN)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": SRC}
+    )
+    assert out.stdout.split() == ["2", "True"], out.stderr
+
+
 def test_ctrl_c_in_plan_is_one_line(planned_sphere, tmp_path):
-    _assert_interrupted(_interrupt(["plan", "--out", "p"], tmp_path, _after(3)))
+    _assert_interrupted(_interrupt(["plan", "--out", "p"], tmp_path, _after(2)))
 
 
 _SWALLOWING_LIBRARY = """

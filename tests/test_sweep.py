@@ -202,3 +202,27 @@ def test_sweep_command_writes_table_and_figures(tmp_path, capsys):
     assert by[(0.9, 6e4)] < by[(0.5, 6e4)] and by[(0.9, 1.2e5)] < by[(0.5, 1.2e5)]
     assert main(["sweep", str(tmp_path / "s.toml"), "--out", str(out)]) == 2
     assert "add --resume" in capsys.readouterr().err
+
+
+def test_a_local_cluster_leaves_dasks_default_port_to_others():
+    """With Dask's default port 8787 held by someone else (another cluster's dashboard), a local
+    cluster starts without a word about it: its scheduler's HTTP routes take a free port."""
+    import socket
+    import warnings
+
+    from softgrasp.sweep.engine import dask_client
+
+    holder = socket.socket()
+    try:
+        holder.bind(("127.0.0.1", 8787))
+        holder.listen()
+    except OSError:
+        pass  # already held: the same situation
+    try:
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            with dask_client(workers=1) as client:
+                assert client.submit(sum, [1, 2]).result() == 3
+    finally:
+        holder.close()
+    assert not [w for w in seen if "already in use" in str(w.message)], [str(w.message) for w in seen]

@@ -86,10 +86,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"softgrasp: error: {exc}", file=sys.stderr)
         return exit_status(exc)
     except KeyboardInterrupt:
-        if argv is None:  # the process's own command: a second Ctrl-C must not break its exit
-            import signal
-
-            signal.signal(signal.SIGINT, signal.SIG_IGN)  # (a caller passing argv keeps its handler)
+        _ignore_sigint(argv)  # a second Ctrl-C must not break the exit
         print("softgrasp: interrupted", file=sys.stderr)
         return INTERRUPTED
     except Exception as exc:  # a bug: keep it to one line unless asked
@@ -100,3 +97,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return INTERNAL
+    finally:
+        # The command is over, its files written or left as they were: a Ctrl-C while the
+        # interpreter exits would only kill the process by the signal.
+        _ignore_sigint(argv)
+
+
+def _ignore_sigint(argv: Sequence[str] | None) -> None:
+    """Ignore Ctrl-C from now on in the process's own command (a caller passing ``argv`` keeps
+    its handler)."""
+    import threading
+
+    if argv is None and threading.current_thread() is threading.main_thread():
+        import signal
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -253,6 +253,9 @@ def _start_client(scheduler: str | None, workers: int):
         protocol="tcp",
         host="127.0.0.1",
         dashboard_address=None,
+        # the scheduler's HTTP routes on a free port: no clash (and no warning) where another
+        # cluster already holds Dask's default 8787
+        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
         silence_logs=logging.ERROR,
         env=_WORKER_ENV,  # the worker processes' environment (this process's stays as it is)
     )
