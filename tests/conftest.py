@@ -63,8 +63,6 @@ def planned_sphere(tmp_path_factory):
     out = tmp_path_factory.mktemp("planned-sphere")
     assert main(["plan", "--out", str(out)]) == 0
     return out
-    assert main(["plan", "--out", str(out)]) == 0
-    return out
 
 
 def pytest_collection_modifyitems(config, items):

@@ -78,10 +78,11 @@ def critical_scale(
     not held there, it tries 1 (and up). The bracket found is then bisected to ``tolerance``."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: list[tuple[float, bool]] = []
-    cache = SolverCache()
+    systems: list[int] = []  # the Newton systems of the settle (when made here) and of each check
     if setup is None:
+        cache = SolverCache()
         setup = closing_setup(body, config, cache)  # every check closes from the same start
-    systems = [int(cache.stats["systems"])]
+        systems.append(int(cache.stats["systems"]))
 
     def held(s: float) -> bool:
         check = hold_setpoints(body, config, s * setpoints, setup=setup)
