@@ -768,6 +768,25 @@ def test_resolved_law_follows_hertz_under_refinement(where):
         assert (_changes(forces) < 0.05).all(), ratio
 
 
+def test_the_penetration_at_a_force_inverts_the_normal_law():
+    """``penetration_value`` (where the force-controlled closing starts each finger) returns the
+    penetration at which the elastic normal law gives a force: the paper's law in closed form,
+    (F / K)^(1/n); under the resolved law it lies between Hertz's (F / K)^(2/3), a fully
+    unresolved contact, and that less the share r of it, a fully resolved one, and the law gives
+    the force back there, on a coarse and a fine mesh."""
+    from softgrasp.physics.fingertip.resolved import elastic_normal_value, penetration_value
+
+    R, K = 0.008, 2.0e4
+    for F in (1e-3, 0.3, 20.0):
+        assert penetration_value(F, R, K, 2.0, 0.0, 0.0, 0.0, 0.0) == pytest.approx((F / K) ** 0.5, rel=1e-12)
+        hertz = (F / K) ** (2 / 3)
+        for h in (5e-3, 2e-4):  # the mesh's resolution length: coarse, fine
+            d = penetration_value(F, R, K, 1.5, 0.9, h, 1.5 * h, 2 * h)
+            assert (1 - 0.9) * hertz < d < hertz
+            assert elastic_normal_value(d, R, K, 1.5, 0.9, h, 1.5 * h, 2 * h)[0] == pytest.approx(F, rel=1e-9)
+    assert penetration_value(0.0, R, K, 1.5, 0.9, 1e-3, 1e-3, 1e-3) == 0.0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("where", ["facet", "node"])
 def test_resolved_law_follows_hertz_deeper_on_finer_meshes(where):

@@ -55,16 +55,19 @@ def test_a_fingertip_slides_as_a_whole_only_when_every_pair_slips():
 @pytest.mark.parametrize("name", ["sphere", "cube"])
 def test_set_points_do_not_depend_on_the_step_or_the_bound_of_the_solves(name):
     """Closing steps of 0.25, 0.5 and 1 mm and solves bounded at 4 or 30 iterations give the
-    default's set-points, finger by finger, within 3 % (the squeeze passes through the same
-    travels whatever the step, and the grasp test's travel is solved to a force tolerance of 1 %,
-    not to a fraction of the step); on the stiff foam cube every one stays within 5 % above the
-    least sum of normal forces that holds a rigid object at its contacts."""
+    default's closing forces and set-points, finger by finger, within 3 % (the squeeze passes
+    through the same travels whatever the step, the grasp test's travel is solved to a force
+    tolerance of 1 %, not to a fraction of the step, and the force-controlled closings of the
+    critical scale rise to their set-points without overshooting them by a step's worth); on the
+    stiff foam cube every closing stays within 5 % above the least sum of normal forces that holds
+    a rigid object at its contacts."""
     body = _body(name)
     ref = plan_grasp(body, PlanConfig())
     for kw in ({"step": 0.00025}, {"step": 0.001}, {"refine": 4}, {"refine": 30}):
         plan = plan_grasp(body, PlanConfig(**kw))
         assert _normal(plan) == pytest.approx(_normal(ref), rel=0.03), kw
         assert _total(plan) == pytest.approx(_total(ref), rel=0.03), kw
+        assert plan.setpoints == pytest.approx(ref.setpoints, rel=0.03), kw
         rigid = plan.rigid_normal_forces.sum()
         assert rigid * (1 - 1e-9) <= _normal(plan).sum()
         if name == "cube":

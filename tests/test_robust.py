@@ -120,29 +120,55 @@ def test_the_force_controller_moves_the_fingers_together_to_their_set_points():
     spring (each finger's force also moves when the others push): from first touch it reaches
     40 random reachable sets of set-points within 1 % in at most 8 increments of at most 0.5 mm
     (measured 6 at most; each finger's own secant gain alone needs up to 20, the corrections of
-    one finger upsetting the others). A finger without a gain yet creeps a quarter step."""
+    one finger upsetting the others). A finger without a gain yet moves by the travel at which its
+    contact alone meets its set-point. Working on F^(2/3), in which these Hertz contacts are
+    linear, the forces pass their set-points by 1.5 % (median) and 8.8 % at most, only through the
+    fingers' coupling (a secant on F itself: 6.7 % and 26 %)."""
     from softgrasp.grasp.force_control import _next_move
 
     step = 5e-4
     rng = np.random.default_rng(7)
+    peaks = []
     for _ in range(40):
-        plant = _squeezed_ball(rng.uniform(2e4, 6e4, 3), rng.uniform(5.0, 50.0))
+        k = rng.uniform(2e4, 6e4, 3)
+        plant = _squeezed_ball(k, rng.uniform(5.0, 50.0))
         target = plant(rng.uniform(5e-4, 2e-3, 3))
+        first = (target / k) ** (2 / 3)  # each contact's law alone meets its set-point there
         s, F = np.zeros(3), np.zeros(3)
-        ds, dF = np.zeros(3), np.zeros(3)
-        gain, jac = np.full(3, np.nan), None
+        ds, dG = np.zeros(3), np.zeros(3)
+        gain, jac, peak = np.full(3, np.nan), None, 0.0
         for n in range(9):
             err = target - F
             if (np.abs(err) <= 0.01 * target).all():
                 break
-            move, gain, jac = _next_move(ds, dF, err, gain, jac, step)
+            move, gain, jac = _next_move(ds, dG, target ** (2 / 3) - F ** (2 / 3), gain, jac, step, first)
             if n == 0:
-                np.testing.assert_allclose(move, 0.25 * step)  # no gains yet: a creep
+                np.testing.assert_allclose(move, np.minimum(first, step))  # no gains yet
             assert np.abs(move).max() <= step
             move = np.clip(move, -s, None)
             F_new = plant(s + move)
-            ds, dF, s, F = move, F_new - F, s + move, F_new
+            ds, dG, s, F = move, F_new ** (2 / 3) - F ** (2 / 3), s + move, F_new
+            peak = max(peak, float((F / target).max()))
         assert (np.abs(target - F) <= 0.01 * target).all(), (n, target, F)
+        peaks.append(peak)
+    assert np.median(peaks) < 1.03 and max(peaks) < 1.10, (np.median(peaks), max(peaks))
+
+
+@pytest.mark.parametrize("name", ["cube", "sphere"])
+def test_force_control_closes_on_its_set_points_without_crushing_first(name):
+    """Force control to a plan's last closing forces, on the stiff foam cube (penetrations of
+    80 um) and on the soft rubber sphere (1.1 mm), with closing steps of 0.5 and 1 mm: no finger
+    presses more than 6 % past its set-point on the way (measured 3.3 % and 4.7 %; a secant on the
+    force itself, blind to the contact stiffening as it loads, pressed the cube with 14 times its
+    set-points before backing off, by how much depending on the step)."""
+    body = load_body(name)
+    plan = plan_grasp(body, plan_config(PLAN_DEFAULTS, contact_params(None, 0.8)))
+    k = int(np.argmax(plan.travel))
+    for step in (5e-4, 1e-3):
+        res = hold_setpoints(body, replace(plan.config, grasp=plan.initial, step=step), plan.normal_force[k])
+        assert res.held and res.increments <= 8, (step, res.reason, res.increments)
+        assert (res.peak <= 1.06 * res.setpoints).all(), (step, res.peak / res.setpoints)
+        assert (np.abs(res.reached - res.setpoints) <= 0.01 * res.setpoints).all()
 
 
 def test_force_control_penetration_scales_with_stiffness_between_hertz_and_a_linear_body():

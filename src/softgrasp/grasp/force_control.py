@@ -5,13 +5,19 @@ From the object at rest on the table and the fingertips at the start of their cl
 (:func:`softgrasp.grasp.setup.closing_setup`), each fingertip first moves to where it touches
 the object; then every increment moves the fingertips along their lines by the travels that
 bring their normal forces (the tactile sensors' readings) to their set-points, estimated from the
-increments so far (:func:`_next_move`),
+increments so far (:func:`_next_move`) on G = F^(2/3),
 
-    J d = F_set - F,   each d_j clipped to [-step, step],   J ~ dF/ds (Broyden's secant Jacobian),
+    J d = G_set - G,   each d_j clipped to [-step, step],   J ~ dG/ds (Broyden's secant Jacobian),
 
 and the object comes to static equilibrium (the fingers push the object on the table and each
-other's forces change with it: J is not diagonal). The closing ends when every finger is within
-``tolerance`` of its set-point. Then the table is taken away and the object held for ``hold_time`` seconds
+other's forces change with it: J is not diagonal). A Hertzian contact (F ~ p^1.5 in its
+penetration p) is linear in G, so the secant follows a contact that stiffens as it loads; a
+secant on F itself is softer than the tangent there and overshoots the set-point, on a stiff
+object by a multiple of it, leaving a friction state that depends on the step. The first move,
+before a finger has a force, is the travel at which its own contact law meets the set-point
+against a rigid object (the object's deformation only adds to it). The closing ends when every
+finger is within ``tolerance`` of its set-point. Then the table is taken away and the object
+held for ``hold_time`` seconds
 (:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when every step finds its
 equilibrium, every finger keeps contact and no fingertip slides in the object by more than
 ``max_slip`` times its size.
@@ -56,6 +62,7 @@ class SetpointHold:
     ----------
     setpoints: the normal forces asked for [N], (3,).
     reached: each finger's normal force at the end of the closing, on the table [N], (3,).
+    peak: the largest normal force each finger pressed with during the closing [N], (3,).
     travel: each fingertip's travel along its closing line from its start [m], (3,).
     penetration: each fingertip's travel past its first touch of the object [m], (3,).
     increments: closing increments the controller used.
@@ -74,6 +81,7 @@ class SetpointHold:
 
     setpoints: NDArray[np.float64]
     reached: NDArray[np.float64]
+    peak: NDArray[np.float64]
     travel: NDArray[np.float64]
     penetration: NDArray[np.float64]
     increments: int
@@ -105,18 +113,21 @@ def _next_move(
     gain: NDArray[np.float64],
     jac: NDArray[np.float64] | None,
     step: float,
+    first: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
     """The force controller's next travel of each fingertip along its line [m], from the last
-    increment's travels ``ds`` [m] and force changes ``dF`` [N] and the force errors ``err`` [N].
+    increment's travels ``ds`` [m] and changes ``dG`` of the controlled force measure
+    G = F^(2/3) [N^(2/3)] and the errors ``err`` = G_set - G (module docstring).
 
-    Each finger's own secant ``gain`` dF_j/ds_j [N/m] is kept from the last increment that moved
-    it with a rising force. Until every finger has one, a finger with a gain steps by err_j / gain_j
-    and one without creeps a quarter ``step`` towards its set-point. Then the fingers move
-    together: the Jacobian ``jac`` dF/ds (k, k), started as diag(gain), follows Broyden's update
-    (each finger's force also changes when the others push the object), and the move solves
-    jac d = err, so that a finger already at its set-point compensates for the others. A Jacobian
-    that turns singular or gives a finger a non-positive own gain (a contact slipping or lost)
-    restarts from diag(gain). Each finger's move is clipped to at most ``step`` either way.
+    Each finger's own secant ``gain`` dG_j/ds_j is kept from the last increment that moved it
+    with a rising force. Until every finger has one, a finger with a gain steps by err_j / gain_j
+    and one without moves by ``first`` [m] towards a set-point above its force (a quarter ``step``
+    back from one below it). Then the fingers move together: the Jacobian ``jac`` dG/ds (k, k),
+    started as diag(gain), follows Broyden's update (each finger's force also changes when the
+    others push the object), and the move solves jac d = err, so that a finger already at its
+    set-point compensates for the others. A Jacobian that turns singular or gives a finger a
+    non-positive own gain (a contact slipping or lost) restarts from diag(gain). Each finger's
+    move is clipped to at most ``step`` either way.
 
     Returns (move, gain, jac)."""
     moved = np.abs(ds) > 1e-12
@@ -125,7 +136,8 @@ def _next_move(
     known = np.isfinite(gain)
     if not known.all():
         jac = None
-        move = np.where(known, err / np.where(known, gain, 1.0), np.sign(err) * 0.25 * step)
+        blind = np.where(err > 0, first, -0.25 * step)
+        move = np.where(known, err / np.where(known, gain, 1.0), blind)
         return np.clip(move, -step, step), gain, jac
     if jac is not None and moved.any():
         jac = jac + np.outer(dF - jac @ ds, ds) / float(ds @ ds)  # Broyden's rank-one update
@@ -139,6 +151,19 @@ def _next_move(
         jac = np.diag(gain)
         move = err / gain
     return np.clip(move, -step, step), gain, jac
+
+
+def _law_travels(
+    body: Body, fc: FingertipContact, target: NDArray[np.float64], t: float
+) -> NDArray[np.float64]:
+    """Each fingertip's penetration at which its own normal law (at its position at time ``t``)
+    gives its set-point ``target`` [N] against a rigid object [m], (k,)."""
+    from softgrasp.physics.fingertip.resolved import penetration_value
+
+    law, n = fc.law_table(body, t), fc.params.exponent
+    return np.array(
+        [penetration_value(float(F), law[j, 5], law[j, 0], n, *law[j, 1:5]) for j, F in enumerate(target)]
+    )
 
 
 def hold_setpoints(
@@ -190,6 +215,7 @@ def hold_setpoints(
         return SetpointHold(
             target,
             np.asarray(forces, dtype=np.float64).copy(),
+            peak.copy(),
             s.copy(),
             s - setup.first_touch,
             n,
@@ -213,7 +239,10 @@ def hold_setpoints(
         (setup.settled.contacts[0], fc.init_state(body, setup.settled.x, 0.0)),
     )
     forces = np.zeros(k)
-    s_prev, f_prev = s.copy(), forces.copy()
+    peak = forces.copy()
+    first = _law_travels(body, fc, target, 1.0)
+    g_set = target ** (2.0 / 3.0)
+    s_prev, g_prev = s.copy(), forces.copy()
     gain = np.full(k, math.nan)  # dF/ds of each finger, from the last increment that moved it
     jac: NDArray[np.float64] | None = None  # dF/ds of the fingers together, once each has a gain
     increments = 0
@@ -242,7 +271,8 @@ def hold_setpoints(
                 f"the force control did not settle within {max_increments} increments (forces "
                 f"{', '.join(f'{v:.3f}' for v in forces)} N for {', '.join(f'{v:.3f}' for v in target)} N)",
             )
-        move, gain, jac = _next_move(s - s_prev, forces - f_prev, err, gain, jac, cfg.step)
+        g = np.maximum(forces, 0.0) ** (2.0 / 3.0)
+        move, gain, jac = _next_move(s - s_prev, g - g_prev, g_set - g, gain, jac, cfg.step, first)
         move = np.clip(move, -s, limit - s)  # never past the crushing limit nor behind the line's start
         fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
         scene = Scene(body, (setup.table, fc))
@@ -251,9 +281,10 @@ def hold_setpoints(
         except NotConverged as exc:
             return result(s, forces, increments, False, f"a closing increment found no equilibrium ({exc})")
         increments += 1
-        s_prev, f_prev = s, forces
+        s_prev, g_prev = s, g
         s = s + move
         forces = fc.report(body, state.x, None, 1.0, state.contacts[1], static=True).normal
+        peak = np.maximum(peak, forces)
     checked = check_hold(body, setup.table, fc, state, 1.0, cfg, cache)
     if isinstance(checked, str):
         return result(s, forces, increments, False, checked)

@@ -20,9 +20,10 @@ resolves) as far as the mesh resolves it. Integrated over a (``dF = 3 K' a^2 da 
 
     delta(a) = (a^2 - 2 r I2(a)) / R,    I2(a) = integral of t^2 / sqrt(t^2 + h(t)^2) over (0, a)
 
-(Gauss-Legendre), increasing in a for every r < 1. On a coarse mesh (h >> a) it is Hertz's law (the mesh is stiff
-at the patch's scale and the contact supplies the local compliance); as the mesh resolves the
-patch (h << a) the law becomes a stiff penalty and the mesh's own deformation is the indentation.
+(Gauss-Legendre), increasing in a for every r < 1. On a coarse mesh (h >> a) it is Hertz's law
+(the mesh is stiff at the patch's scale and the contact supplies the local compliance); as the
+mesh resolves the patch (h << a) the law becomes a stiff penalty and the mesh's own deformation
+is the indentation.
 ``r`` is capped at :data:`~softgrasp.physics.fingertip.laws.MAX_SHARE`: the law keeps at least
 2 % of Hertz's tangent compliance, which bounds its stiffness at 50x Hertz's (the fully resolved
 limit is reached within ~3 % of force) and brackets the root for a.
@@ -42,7 +43,7 @@ import numpy as np
 
 from softgrasp import jitcache
 
-__all__ = ["elastic_normal_value", "contact_radius_value"]
+__all__ = ["elastic_normal_value", "contact_radius_value", "penetration_value"]
 
 _jit = jitcache.jit(fastmath=False, error_model="numpy")
 
@@ -141,3 +142,21 @@ def elastic_normal_value(
     _, i5 = _moments(a, h_node, h_land, size)
     W = 2.0 * K / (radius * radius * rs) * (a**5 / 5.0 - share * i5)
     return F, slope, W
+
+
+@_jit
+def penetration_value(
+    force: float, radius: float, K: float, n: float, share: float, h_node: float, h_land: float, size: float
+) -> float:
+    """The penetration [m] at which :func:`elastic_normal_value` gives the normal force ``force``
+    [N] (its inverse; 0 unless force > 0): ``(F / K)^(1/n)`` under the paper's law; under the
+    resolved law the contact radius of Hertz's ``F = K a^3 / R^1.5`` and ``(a^2 - 2 share I2(a)) / R``.
+    Against a rigid object this is the travel at which the fingertip meets the force; a meshed
+    object adds its own deformation to it."""
+    if not force > 0.0:
+        return 0.0
+    if share <= 0.0:
+        return (force / K) ** (1.0 / n)
+    a = (force * radius * math.sqrt(radius) / K) ** (1.0 / 3.0)
+    i2, _ = _moments(a, h_node, h_land, size)
+    return (a * a - 2.0 * share * i2) / radius
