@@ -123,6 +123,15 @@ def test_plot_grasp_3d_writes_png_quickly(tmp_path, grasp):
     assert elapsed < 10.0  # ~0.3 s here; generous for a loaded CI machine
 
 
+def test_plot_grasp_3d_names_the_set_points_beside_the_forces(tmp_path, grasp):
+    """The legend gives each finger's |force| in the picture and, when given, its set-point (a
+    held state's forces are not the set-points): a different picture."""
+    plain = plot_grasp_3d(**grasp, path=tmp_path / "plain.png").read_bytes()
+    named = plot_grasp_3d(**grasp, path=tmp_path / "named.png", setpoints=[0.363, 0.237, 0.245])
+    _check_png(named, min_side=400)
+    assert named.read_bytes() != plain
+
+
 def test_plot_grasp_3d_without_weight_title_or_forces(tmp_path, grasp):
     args = dict(grasp, weight=None, forces=np.zeros((3, 3)))
     _check_png(plot_grasp_3d(**args, path=tmp_path / "g.png"))
@@ -143,6 +152,8 @@ def test_plot_grasp_3d_without_weight_title_or_forces(tmp_path, grasp):
         ({"names": ["thumb"]}, "names has 1 entries but the data has 3 fingers"),
         ({"weight": (np.zeros(2), 0.5)}, r"weight centre of mass must have shape \(3,\)"),
         ({"weight": (np.zeros(3), -1.0)}, "weight must be a finite force >= 0 N"),
+        ({"setpoints": [0.3, 0.2]}, r"setpoints must have shape \(3,\), got \(2,\)"),
+        ({"setpoints": [0.3, np.nan, 0.2]}, "setpoints holds NaN"),
     ],
 )
 def test_plot_grasp_3d_rejects_bad_input(tmp_path, grasp, change, match):

@@ -215,6 +215,7 @@ class Plan:
             title=f"Held grasp of the {doc['object']['name']} ({m.name}), mu = {self.mu:g}",
             weight=(g.com, body.total_mass * float(abs(body.gravity[2]))),
             links=hand_polylines(g),
+            setpoints=g.setpoints,
         )
         write_text(out / "history.csv", buf.getvalue())
         _write_frames(out / "frames.npz", g, body.mesh.facets)

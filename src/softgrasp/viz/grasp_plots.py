@@ -187,6 +187,7 @@ def plot_grasp_3d(
     elev: float = 20.0,
     azim: float | None = None,
     links: Sequence[NDArray[np.float64]] = (),
+    setpoints: Sequence[float] | None = None,
 ) -> Path:
     """3D picture of a grasp: deformed object surface, fingertip spheres and contact force arrows.
 
@@ -206,6 +207,8 @@ def plot_grasp_3d(
     weight: optional (centre of mass [m] (3,), weight [N]) drawn as a downward arrow.
     elev, azim: viewpoint [deg]; by default the azimuth is chosen so all fingers are visible.
     links: the hand drawn as polylines [m], each (K, 3) (palm outline, finger joints to tip).
+    setpoints: each finger's normal-force set-point [N], named in the legend beside the finger's
+        |force| in the picture (a held state's forces are not the set-points).
 
     Raises
     ------
@@ -248,6 +251,11 @@ def plot_grasp_3d(
     size = float((hi - lo).max()) or float(2 * R.max())
     norms = np.linalg.norm(f, axis=1)
     f_max = max(float(norms.max()) if n_f else 0.0, w)
+    if setpoints is None:
+        labels = [f"{names[i]}: {norms[i]:.2f} N" for i in range(n_f)]
+    else:
+        sp = as_array("setpoints", setpoints, (n_f,))
+        labels = [f"{names[i]}: |F| {norms[i]:.2f} N, set-point {sp[i]:.3f} N" for i in range(n_f)]
     mm_per_N = 0.4 * size / f_max if f_max > 0 else 0.0
 
     if azim is None:
@@ -328,7 +336,7 @@ def plot_grasp_3d(
         )
         handles.append(
             Line2D(
-                [], [], ls="-", lw=2.2, color=colour, marker="o", ms=9, label=f"{names[i]}: {norms[i]:.2f} N"
+                [], [], ls="-", lw=2.2, color=colour, marker="o", ms=9, label=labels[i]
             )
         )
 
