@@ -334,11 +334,7 @@ def plot_grasp_3d(
                 zorder=1 if behind else 3,
             )
         )
-        handles.append(
-            Line2D(
-                [], [], ls="-", lw=2.2, color=colour, marker="o", ms=9, label=labels[i]
-            )
-        )
+        handles.append(Line2D([], [], ls="-", lw=2.2, color=colour, marker="o", ms=9, label=labels[i]))
 
     # Force arrows (on top of everything) with one shared scale.
     ends = [P[np.unique(tri)], (C - R[:, None]), (C + R[:, None])]
