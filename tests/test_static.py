@@ -211,6 +211,22 @@ def test_cycling_newton_iterates_are_recognised():
     assert cycle_period([1e-3, 2e-3, 1e-3 * (1 + 1e-4), 2e-3, 1e-3 * (1 + 2e-4)]) == 0
 
 
+def test_a_newton_crawl_that_cannot_balance_in_time_is_recognised():
+    """A solve whose unbalanced force falls by 1.5 % per iteration (an object sliding out of fingers
+    that cannot hold it) would need hundreds of iterations: given up on; one converging linearly
+    fast enough to reach the target in the iterations left, quadratically, or through a step
+    that raised the unbalanced force (another merit accepted it) is not."""
+    crawl = [6e-4 * 0.985**k for k in range(6)]
+    assert newton._crawls(crawl, left=14, target=1.6e-7)
+    assert not newton._crawls(crawl[:4], left=14, target=1.6e-7)  # too few iterations to judge
+    assert not newton._crawls(crawl, left=1000, target=1.6e-7)  # would get there in time
+    halving = [6e-4 * 0.5**k for k in range(6)]
+    assert not newton._crawls(halving, left=14, target=1.6e-7)
+    assert not newton._crawls([1e-1, 1e-2, 1e-4, 1e-8, 1e-12, 1e-15], left=14, target=1e-16)
+    assert not newton._crawls([*crawl[:3], 7e-4, *crawl[3:]], left=14, target=1.6e-7)
+    assert not newton._crawls(crawl, left=14, target=1e-3)  # balanced already
+
+
 def test_static_and_dynamic_rest_states_agree():
     """The static solve and a damped dynamic settle find the same rest state on the table.
 

@@ -1,7 +1,7 @@
 """Newton's method on a scene's unbalanced forces, with a line search on two merits (the
 unbalanced force and the potential energy), Levenberg-Marquardt shifts where no step length makes
 progress, a negative-curvature step for a body tipping over, and the early ends of a solve that
-will not converge (a stall balanced to :data:`STALL_RTOL`, creeping, cycling).
+will not converge (a stall balanced to :data:`STALL_RTOL`, creeping, crawling, cycling).
 
 One Newton solve holds the contacts' friction anchors fixed (the stick predictor of
 :func:`softgrasp.sim.static.solve_static`, which runs the friction passes around it).
@@ -54,6 +54,11 @@ NEGATIVE_CURVATURE_MAX_GROWTH = 1024.0
 #: the Newton step that reduced the largest unbalanced force by less than 1 %.
 CREEP_ITERATIONS = 6
 CREEP_ALPHA = 1.0 / 64
+#: Newton gives up on a crawl: when each of its last ``CRAWL_ITERATIONS`` iterations reduced the
+#: largest unbalanced force, but so little that even the best of those rates, kept up for the
+#: iterations left, would not bring it to ``STALL_RTOL`` of the largest force (an object sliding
+#: out of fingers that cannot hold it crawls at ~1.5 % per iteration: hundreds of iterations).
+CRAWL_ITERATIONS = 4
 #: Newton gives up when its iterates cycle: the unbalanced force repeats (to this relative
 #: tolerance: the inexact linear solves leave ~1e-7 of noise) with a period of 2 to 4 iterations,
 #: twice in a row (a node or a contact pair switching in and out on every other step, or a step
@@ -78,7 +83,6 @@ def valid(body: Body, x: NDArray[np.float64]) -> bool:
 def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:
     r = scene.static_forces(x, t, contacts).ravel()
     return r - C.T @ lam if C is not None else r
-
 
 
 def newton(
@@ -209,6 +213,14 @@ def newton(
                 f"unbalanced force {res:.3g} N): the body is not held in this configuration"
             )
         history.append(res)
+        if _crawls(history, max_iter - it, STALL_RTOL * scale):
+            if _free_rigid_motion(scene, x, t, contacts, C):
+                raise NotConverged(f"static solve did not converge: {_SINGULAR}")
+            raise NotConverged(
+                f"static solve crawls (largest unbalanced force {res:.3g} N, falling by "
+                f"{1.0 - history[-1] / history[-2]:.1%} per iteration, too slowly to balance in the "
+                f"{max_iter} Newton iterations it is given); use smaller load steps"
+            )
         if period := cycle_period(history):
             if res <= STALL_RTOL * scale:
                 return x, it, res, lam_new, contacts  # balanced to 1e-6 of the largest force: accept
@@ -245,6 +257,19 @@ def newton(
         f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
         f"{res:.3g} N); use smaller load steps"
     )
+
+
+def _crawls(history: list[float], left: int, target: float) -> bool:
+    """Whether the unbalanced forces ``history`` [N] fell at each of the last
+    :data:`CRAWL_ITERATIONS` iterations, but at rates (the best of them kept up for ``left`` more
+    iterations) that do not bring the last one down to ``target`` [N]."""
+    if len(history) <= CRAWL_ITERATIONS or history[-1] <= target:
+        return False
+    recent = np.asarray(history[-CRAWL_ITERATIONS - 1 :])
+    rates = recent[1:] / recent[:-1]
+    if not (rates < 1.0).all():
+        return False  # a merit other than the unbalanced force accepted a step: no linear crawl
+    return bool(history[-1] * float(rates.min()) ** left > target)
 
 
 def _follow_negative_curvature(
@@ -301,4 +326,3 @@ def _free_rigid_motion(scene: Scene, x: NDArray[np.float64], t: float, contacts:
     if C is not None:
         return False
     return _rigid_motion_free((-scene.jacobian(x, t, contacts)).tocsr(), x)
-
