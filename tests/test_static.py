@@ -213,18 +213,20 @@ def test_cycling_newton_iterates_are_recognised():
 
 def test_a_newton_crawl_that_cannot_balance_in_time_is_recognised():
     """A solve whose unbalanced force falls by 1.5 % per iteration (an object sliding out of fingers
-    that cannot hold it) would need hundreds of iterations: given up on; one converging linearly
-    fast enough to reach the target in the iterations left, quadratically, or through a step
-    that raised the unbalanced force (another merit accepted it) is not."""
+    that cannot hold it) would need hundreds of iterations: given up on, at that rate. One
+    converging linearly fast enough to reach the target in the iterations left, speeding up on its
+    way to quadratic convergence, quadratically, or through a step that raised the unbalanced
+    force (another merit accepted it) is not."""
     crawl = [6e-4 * 0.985**k for k in range(6)]
-    assert newton._crawls(crawl, left=14, target=1.6e-7)
-    assert not newton._crawls(crawl[:4], left=14, target=1.6e-7)  # too few iterations to judge
-    assert not newton._crawls(crawl, left=1000, target=1.6e-7)  # would get there in time
+    assert newton._crawl_rate(crawl, left=14, target=1.6e-7) == pytest.approx(0.985)
+    assert not newton._crawl_rate(crawl[:4], left=14, target=1.6e-7)  # too few iterations to judge
+    assert not newton._crawl_rate(crawl, left=1000, target=1.6e-7)  # would get there in time
+    assert not newton._crawl_rate(crawl, left=14, target=1e-3)  # balanced already
     halving = [6e-4 * 0.5**k for k in range(6)]
-    assert not newton._crawls(halving, left=14, target=1.6e-7)
-    assert not newton._crawls([1e-1, 1e-2, 1e-4, 1e-8, 1e-12, 1e-15], left=14, target=1e-16)
-    assert not newton._crawls([*crawl[:3], 7e-4, *crawl[3:]], left=14, target=1.6e-7)
-    assert not newton._crawls(crawl, left=14, target=1e-3)  # balanced already
+    assert not newton._crawl_rate(halving, left=14, target=1.6e-7)
+    assert not newton._crawl_rate([1.0, 0.9, 0.78, 0.64, 0.48], left=55, target=1e-6)  # speeding up
+    assert not newton._crawl_rate([1e-1, 1e-2, 1e-4, 1e-8, 1e-12, 1e-15], left=14, target=1e-16)
+    assert not newton._crawl_rate([*crawl[:3], 7e-4, *crawl[3:]], left=14, target=1.6e-7)
 
 
 def test_static_and_dynamic_rest_states_agree():

@@ -5,17 +5,18 @@ From the object at rest on the table and the fingertips at the start of their cl
 (:func:`softgrasp.grasp.setup.closing_setup`), each fingertip first moves to where it touches
 the object; then every increment moves the fingertips along their lines by the travels that
 bring their normal forces (the tactile sensors' readings) to their set-points, estimated from the
-increments so far (:func:`_next_move`) on G = F^(2/3),
+increments so far (:func:`_next_move`) on G = F^(1/n), n the contact law's exponent,
 
     J d = G_set - G,   each d_j clipped to [-step, step],   J ~ dG/ds (Broyden's secant Jacobian),
 
 and the object comes to static equilibrium (the fingers push the object on the table and each
-other's forces change with it: J is not diagonal). A Hertzian contact (F ~ p^1.5 in its
-penetration p) is linear in G, so the secant follows a contact that stiffens as it loads; a
+other's forces change with it: J is not diagonal). The contact (F ~ p^n in its penetration p;
+Hertz's n = 3/2) is linear in G, so the secant follows a contact that stiffens as it loads; a
 secant on F itself is softer than the tangent there and overshoots the set-point, on a stiff
-object by a multiple of it, leaving a friction state that depends on the step. The first move,
-before a finger has a force, is the travel at which its own contact law meets the set-point
-against a rigid object (the object's deformation only adds to it). The closing ends when every
+object by a multiple of it, leaving a friction state that depends on the step. A finger without
+a secant yet moves by the travel at which its own contact law, against a rigid object, takes it
+from its force to its set-point (under the patch rule the object's deformation only adds to
+it; the paper's facet rule gives each touched facet the whole law). The closing ends when every
 finger is within ``tolerance`` of its set-point. Then the table is taken away and the object
 held for ``hold_time`` seconds
 (:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when every step finds its
@@ -108,7 +109,7 @@ def _tips(cfg: PlanConfig, centres: NDArray[np.float64], moves: NDArray[np.float
 
 def _next_move(
     ds: NDArray[np.float64],
-    dF: NDArray[np.float64],
+    dG: NDArray[np.float64],
     err: NDArray[np.float64],
     gain: NDArray[np.float64],
     jac: NDArray[np.float64] | None,
@@ -117,21 +118,21 @@ def _next_move(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
     """The force controller's next travel of each fingertip along its line [m], from the last
     increment's travels ``ds`` [m] and changes ``dG`` of the controlled force measure
-    G = F^(2/3) [N^(2/3)] and the errors ``err`` = G_set - G (module docstring).
+    G = F^(1/n) and the errors ``err`` = G_set - G (module docstring).
 
     Each finger's own secant ``gain`` dG_j/ds_j is kept from the last increment that moved it
     with a rising force. Until every finger has one, a finger with a gain steps by err_j / gain_j
-    and one without moves by ``first`` [m] towards a set-point above its force (a quarter ``step``
-    back from one below it). Then the fingers move together: the Jacobian ``jac`` dG/ds (k, k),
-    started as diag(gain), follows Broyden's update (each finger's force also changes when the
-    others push the object), and the move solves jac d = err, so that a finger already at its
+    and one without moves by ``first`` [m] (the contact law's travel from its force to its
+    set-point) towards a set-point above its force, a quarter ``step`` back from one below it.
+    Then the fingers move together: the Jacobian ``jac`` dG/ds (k, k), started as diag(gain),
+    follows Broyden's update (each finger's force also changes when the others push the object), and the move solves jac d = err, so that a finger already at its
     set-point compensates for the others. A Jacobian that turns singular or gives a finger a
     non-positive own gain (a contact slipping or lost) restarts from diag(gain). Each finger's
     move is clipped to at most ``step`` either way.
 
     Returns (move, gain, jac)."""
     moved = np.abs(ds) > 1e-12
-    slope = dF / np.where(moved, ds, 1.0)
+    slope = dG / np.where(moved, ds, 1.0)
     gain = np.where(moved & (slope > 0), slope, gain)
     known = np.isfinite(gain)
     if not known.all():
@@ -140,7 +141,7 @@ def _next_move(
         move = np.where(known, err / np.where(known, gain, 1.0), blind)
         return np.clip(move, -step, step), gain, jac
     if jac is not None and moved.any():
-        jac = jac + np.outer(dF - jac @ ds, ds) / float(ds @ ds)  # Broyden's rank-one update
+        jac = jac + np.outer(dG - jac @ ds, ds) / float(ds @ ds)  # Broyden's rank-one update
     move = None
     if jac is not None and (np.diag(jac) > 0).all():
         try:
@@ -241,10 +242,11 @@ def hold_setpoints(
     forces = np.zeros(k)
     peak = forces.copy()
     first = _law_travels(body, fc, target, 1.0)
-    g_set = target ** (2.0 / 3.0)
+    power = 1.0 / cfg.contact.exponent  # G = F^(1/n): linear in the penetration of the law
+    g_set = target**power
     s_prev, g_prev = s.copy(), forces.copy()
-    gain = np.full(k, math.nan)  # dF/ds of each finger, from the last increment that moved it
-    jac: NDArray[np.float64] | None = None  # dF/ds of the fingers together, once each has a gain
+    gain = np.full(k, math.nan)  # dG/ds of each finger, from the last increment that moved it
+    jac: NDArray[np.float64] | None = None  # dG/ds of the fingers together, once each has a gain
     increments = 0
     while True:
         err = target - forces
@@ -271,8 +273,9 @@ def hold_setpoints(
                 f"the force control did not settle within {max_increments} increments (forces "
                 f"{', '.join(f'{v:.3f}' for v in forces)} N for {', '.join(f'{v:.3f}' for v in target)} N)",
             )
-        g = np.maximum(forces, 0.0) ** (2.0 / 3.0)
-        move, gain, jac = _next_move(s - s_prev, g - g_prev, g_set - g, gain, jac, cfg.step, first)
+        g = np.maximum(forces, 0.0) ** power
+        rest = first * np.clip((g_set - g) / g_set, 0.0, 1.0)  # the law's travel from g to g_set
+        move, gain, jac = _next_move(s - s_prev, g - g_prev, g_set - g, gain, jac, cfg.step, rest)
         move = np.clip(move, -s, limit - s)  # never past the crushing limit nor behind the line's start
         fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
         scene = Scene(body, (setup.table, fc))

@@ -55,9 +55,10 @@ NEGATIVE_CURVATURE_MAX_GROWTH = 1024.0
 CREEP_ITERATIONS = 6
 CREEP_ALPHA = 1.0 / 64
 #: Newton gives up on a crawl: when each of its last ``CRAWL_ITERATIONS`` iterations reduced the
-#: largest unbalanced force, but so little that even the best of those rates, kept up for the
-#: iterations left, would not bring it to ``STALL_RTOL`` of the largest force (an object sliding
-#: out of fingers that cannot hold it crawls at ~1.5 % per iteration: hundreds of iterations).
+#: largest unbalanced force, no faster at the last than at the first, and so little that even the
+#: best of those rates, kept up for the iterations left, would not balance the forces (to the
+#: solve's tolerance, or ``STALL_RTOL`` of the largest force if looser) (an object sliding out of
+#: fingers that cannot hold it crawls at ~1.5 % per iteration: hundreds of iterations).
 CRAWL_ITERATIONS = 4
 #: Newton gives up when its iterates cycle: the unbalanced force repeats (to this relative
 #: tolerance: the inexact linear solves leave ~1e-7 of noise) with a period of 2 to 4 iterations,
@@ -213,13 +214,13 @@ def newton(
                 f"unbalanced force {res:.3g} N): the body is not held in this configuration"
             )
         history.append(res)
-        if _crawls(history, max_iter - it, STALL_RTOL * scale):
+        if rate := _crawl_rate(history, max_iter - it + 1, max(rtol, STALL_RTOL) * scale):
             if _free_rigid_motion(scene, x, t, contacts, C):
                 raise NotConverged(f"static solve did not converge: {_SINGULAR}")
             raise NotConverged(
-                f"static solve crawls (largest unbalanced force {res:.3g} N, falling by "
-                f"{1.0 - history[-1] / history[-2]:.1%} per iteration, too slowly to balance in the "
-                f"{max_iter} Newton iterations it is given); use smaller load steps"
+                f"static solve crawls (largest unbalanced force {res:.3g} N, falling by at most "
+                f"{1.0 - rate:.1%} per iteration, too slowly to balance in the {max_iter} Newton "
+                f"iterations it is given); use smaller load steps"
             )
         if period := cycle_period(history):
             if res <= STALL_RTOL * scale:
@@ -259,17 +260,20 @@ def newton(
     )
 
 
-def _crawls(history: list[float], left: int, target: float) -> bool:
-    """Whether the unbalanced forces ``history`` [N] fell at each of the last
-    :data:`CRAWL_ITERATIONS` iterations, but at rates (the best of them kept up for ``left`` more
-    iterations) that do not bring the last one down to ``target`` [N]."""
+def _crawl_rate(history: list[float], left: int, target: float) -> float:
+    """The best rate of a crawl, or 0 when the unbalanced forces ``history`` [N] do not crawl: they
+    fell at each of the last :data:`CRAWL_ITERATIONS` iterations, no faster at the last than at the
+    first of them (a Newton solve that speeds up on its way to quadratic convergence does not
+    crawl), and the best of those rates kept up for ``left`` more iterations does not bring the
+    last one down to ``target`` [N]."""
     if len(history) <= CRAWL_ITERATIONS or history[-1] <= target:
-        return False
+        return 0.0
     recent = np.asarray(history[-CRAWL_ITERATIONS - 1 :])
     rates = recent[1:] / recent[:-1]
-    if not (rates < 1.0).all():
-        return False  # a merit other than the unbalanced force accepted a step: no linear crawl
-    return bool(history[-1] * float(rates.min()) ** left > target)
+    if not (rates < 1.0).all() or rates[-1] < rates[0]:
+        return 0.0  # another merit accepted a step, or the solve is speeding up
+    best = float(rates.min())
+    return best if history[-1] * best**left > target else 0.0
 
 
 def _follow_negative_curvature(
