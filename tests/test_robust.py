@@ -154,19 +154,30 @@ def test_the_force_controller_moves_the_fingers_together_to_their_set_points():
     assert np.median(peaks) < 1.03 and max(peaks) < 1.10, (np.median(peaks), max(peaks))
 
 
-@pytest.mark.parametrize("name", ["cube", "sphere"])
-def test_force_control_closes_on_its_set_points_without_crushing_first(name):
+@pytest.mark.parametrize(
+    "name, contact, options",
+    [
+        ("cube", {}, {}),
+        ("sphere", {}, {}),
+        ("sphere", {"law": "paper", "exponent": 2.0}, {}),
+        ("cube", {}, {"hand": "parallel_jaw"}),
+    ],
+)
+def test_force_control_closes_on_its_set_points_without_crushing_first(name, contact, options):
     """Force control to a plan's last closing forces, on the stiff foam cube (penetrations of
-    80 um) and on the soft rubber sphere (1.1 mm), with closing steps of 0.5 and 1 mm: no finger
-    presses more than 6 % past its set-point on the way (measured 3.3 % and 4.7 %; a secant on the
-    force itself, blind to the contact stiffening as it loads, pressed the cube with 14 times its
-    set-points before backing off, by how much depending on the step)."""
+    80 um) and on the soft rubber sphere (1.1 mm), under the default law, the paper's law with
+    n = 2, and with the two fingers of the parallel-jaw gripper, with closing steps of 0.5 and
+    1 mm: no finger presses more than 6 % past its set-point on the way (measured at most 3.3 %,
+    4.7 %, 0.2 % and 1.0 %; a secant on the force itself, blind to the contact stiffening as it
+    loads, pressed the cube with 14 times its set-points before backing off, by how much
+    depending on the step)."""
     body = load_body(name)
-    plan = plan_grasp(body, plan_config(PLAN_DEFAULTS, contact_params(None, 0.8)))
+    cfg = plan_config(dict(PLAN_DEFAULTS, **options), contact_params(None, 0.8, **contact))
+    plan = plan_grasp(body, cfg)
     k = int(np.argmax(plan.travel))
     for step in (5e-4, 1e-3):
         res = hold_setpoints(body, replace(plan.config, grasp=plan.initial, step=step), plan.normal_force[k])
-        assert res.held and res.increments <= 8, (step, res.reason, res.increments)
+        assert res.held and res.increments <= 12, (step, res.reason, res.increments)
         assert (res.peak <= 1.06 * res.setpoints).all(), (step, res.peak / res.setpoints)
         assert (np.abs(res.reached - res.setpoints) <= 0.01 * res.setpoints).all()
 
