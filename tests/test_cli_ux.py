@@ -76,7 +76,9 @@ def test_plan_prints_one_line_per_phase_off_a_terminal(coarse_run):
     assert all(line.startswith("softgrasp: plan: ") for line in lines), err
     kernels = [n for n in names if "kernels" in n]  # loading, or compiling on a first run, or done
     assert names[len(kernels) :] == [*PHASES, "figures"], err
-    assert len(kernels) <= 1 and "%" not in err  # no bar off a terminal
+    # one line, or a first run's (a cache another test left stale): what it compiles, group by group
+    assert len(kernels) <= 1 or all(k.startswith("compiling kernels") for k in kernels), err
+    assert "%" not in err  # no bar off a terminal
 
 
 def test_the_planners_progress_never_goes_back_and_passes_every_phase(coarse_run):

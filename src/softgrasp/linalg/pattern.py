@@ -14,7 +14,8 @@ __all__ = ["block_layout", "unique_pairs"]
 
 @jitcache.jit(error_model="numpy")
 def _unique_pairs(rows, cols, n):  # pragma: no cover - compiled
-    """:func:`unique_pairs` by a counting sort on the rows and, within a row, a mark per column."""
+    """:func:`unique_pairs` by a counting sort on the rows and, within a row, a mark per column
+    and an insertion sort of its few columns."""
     K = rows.shape[0]
     start = np.zeros(n + 1, dtype=np.int64)
     for k in range(K):
@@ -43,11 +44,17 @@ def _unique_pairs(rows, cols, n):  # pragma: no cover - compiled
                 mark[c] = r
                 seen[m] = c
                 m += 1
-        row = np.sort(seen[:m])
+        for q in range(1, m):  # insertion sort: a row has tens of columns (np.sort compiles for seconds)
+            c = seen[q]
+            j = q - 1
+            while j >= 0 and seen[j] > c:
+                seen[j + 1] = seen[j]
+                j -= 1
+            seen[j + 1] = c
         for q in range(m):
-            slot[row[q]] = nu + q
+            slot[seen[q]] = nu + q
             urow[nu + q] = r
-            ucol[nu + q] = row[q]
+            ucol[nu + q] = seen[q]
         for p in range(start[r], start[r + 1]):
             k = order[p]
             inv[k] = slot[cols[k]]
