@@ -51,18 +51,21 @@ def _run(src: pathlib.Path, args: list[str], out: pathlib.Path) -> float:
 
 
 def _setpoints(out: pathlib.Path) -> list[float]:
-    """The fingers' contact-force norms and normal forces [N] of a plan.json."""
+    """The fingers' set-points and their held state's contact-force norms and normal forces [N]
+    of a plan.json."""
     doc = json.loads((out / "plan.json").read_text())
     values: list[float] = []
     for finger in doc["fingers"]:
-        values += [float(finger["force_norm_N"]), float(finger["normal_force_N"])]
+        values += [float(finger[k]) for k in ("setpoint_N", "force_norm_N", "normal_force_N") if k in finger]
     if not values:
         raise SystemExit(f"no set-points found in {out / 'plan.json'}")
     return values
 
 
 def _agree(a: list[float], b: list[float], rtol: float = 1e-6) -> bool:
-    return len(a) == len(b) and all(abs(x - y) <= rtol * max(abs(x), abs(y), 1e-12) for x, y in zip(a, b, strict=True))
+    return len(a) == len(b) and all(
+        abs(x - y) <= rtol * max(abs(x), abs(y), 1e-12) for x, y in zip(a, b, strict=True)
+    )
 
 
 def main() -> None:
