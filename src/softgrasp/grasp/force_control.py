@@ -125,10 +125,11 @@ def _next_move(
     and one without moves by ``first`` [m] (the contact law's travel from its force to its
     set-point) towards a set-point above its force, a quarter ``step`` back from one below it.
     Then the fingers move together: the Jacobian ``jac`` dG/ds (k, k), started as diag(gain),
-    follows Broyden's update (each finger's force also changes when the others push the object), and the move solves jac d = err, so that a finger already at its
-    set-point compensates for the others. A Jacobian that turns singular or gives a finger a
-    non-positive own gain (a contact slipping or lost) restarts from diag(gain). Each finger's
-    move is clipped to at most ``step`` either way.
+    follows Broyden's update (each finger's force also changes when the others push the object),
+    and the move solves jac d = err, so that a finger already at its set-point compensates for the
+    others. A Jacobian that turns singular or gives a finger a non-positive own gain (a contact
+    slipping or lost) restarts from diag(gain). Each finger's move is clipped to at most ``step``
+    either way.
 
     Returns (move, gain, jac)."""
     moved = np.abs(ds) > 1e-12
