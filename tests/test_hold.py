@@ -77,17 +77,19 @@ def test_set_points_do_not_depend_on_the_step_or_the_bound_of_the_solves(name):
 @pytest.mark.slow
 def test_set_points_fall_with_friction_and_too_little_friction_is_infeasible():
     """From mu = 0.15 to 1 (four values spanning the range) every plan holds, with a total force
-    that does not grow with mu and a sum of normal forces at least the rigid-body minimum at its
-    contacts; mu = 0.05 ends in InfeasibleGrasp naming mu and the normal force a rigid object would
-    need, not a solver error."""
+    and total set-points that do not grow with mu and a sum of normal forces at least the
+    rigid-body minimum at its contacts; mu = 0.05 ends in InfeasibleGrasp naming mu and the normal
+    force a rigid object would need, not a solver error."""
     body = _body("sphere")
-    totals = []
+    totals, setpoints = [], []
     for mu in (0.15, 0.3, 0.5, 1.0):
         plan = plan_grasp(body, PlanConfig(contact=ContactParams(mu=mu)))
         assert "held" in [w for _, w in plan.hold_checks]
         assert _normal(plan).sum() >= plan.rigid_normal_forces.sum() * (1 - 1e-9), mu
         totals.append(_total(plan))
+        setpoints.append(float(plan.setpoints.sum()))
     assert (np.diff(totals) <= 0).all(), totals
+    assert (np.diff(setpoints) <= 0).all(), setpoints
     assert totals[0] > 3 * totals[-1]  # friction matters: mg / mu sets the squeeze
     with pytest.raises(
         InfeasibleGrasp, match=r"mu = 0.05 cannot hold .*needs at least \d+\.\d+ N of normal force"
