@@ -107,10 +107,9 @@ def warm_up_fingertips() -> None:
     state = fingers.refresh(body, x, t, state)
     fingers.report(body, x, None, t, state, static=True)
     fingers.contact_frames(body, x, t, state)
-    from softgrasp.physics.fingertip.resolved import penetration_value
+    from softgrasp.grasp.force_control import _law_travels
 
-    law = fingers.law_table(body, t)  # the force controller's first move (its law's inverse)
-    penetration_value(0.1, law[0, 5], law[0, 0], fingers.params.exponent, *law[0, 1:5])
+    _law_travels(body, fingers, np.array([0.1]), t)  # the force controller's first move
 
 
 def start_fingertip_compile():

@@ -56,9 +56,9 @@ CREEP_ITERATIONS = 6
 CREEP_ALPHA = 1.0 / 64
 #: Newton gives up on a crawl: when each of its last ``CRAWL_ITERATIONS`` iterations reduced the
 #: largest unbalanced force, no faster at the last than at the first, and so little that even the
-#: best of those rates, kept up for the iterations left, would not balance the forces (to the
-#: solve's tolerance, or ``STALL_RTOL`` of the largest force if looser) (an object sliding out of
-#: fingers that cannot hold it crawls at ~1.5 % per iteration: hundreds of iterations).
+#: best of those rates, kept up for the iterations left, would not balance the forces to the
+#: solve's tolerance, or to ``STALL_RTOL`` of the largest force if that is looser. An object
+#: sliding out of fingers that cannot hold it crawls at ~1.5 % per iteration: hundreds of them.
 CRAWL_ITERATIONS = 4
 #: Newton gives up when its iterates cycle: the unbalanced force repeats (to this relative
 #: tolerance: the inexact linear solves leave ~1e-7 of noise) with a period of 2 to 4 iterations,

@@ -233,6 +233,7 @@ def plot_grasp_3d(
     f = as_array("forces", forces, (n_f, 3))
     cp = as_array("contact_points", contact_points, (n_f, 3))
     names = check_names(names, n_f)
+    sp = None if setpoints is None else as_array("setpoints", setpoints, (n_f,))
     com = None
     w = 0.0
     if weight is not None:
@@ -251,10 +252,9 @@ def plot_grasp_3d(
     size = float((hi - lo).max()) or float(2 * R.max())
     norms = np.linalg.norm(f, axis=1)
     f_max = max(float(norms.max()) if n_f else 0.0, w)
-    if setpoints is None:
+    if sp is None:
         labels = [f"{names[i]}: {norms[i]:.2f} N" for i in range(n_f)]
     else:
-        sp = as_array("setpoints", setpoints, (n_f,))
         labels = [f"{names[i]}: |F| {norms[i]:.2f} N, set-point {sp[i]:.3f} N" for i in range(n_f)]
     mm_per_N = 0.4 * size / f_max if f_max > 0 else 0.0
 
