@@ -8,21 +8,22 @@ import pytest
 
 from softgrasp.errors import ConfigError
 from softgrasp.execution.controller import ClosingLine, ExecuteConfig, execute_plan
+from softgrasp.execution.force_loop import closing_speed
 from softgrasp.execution.protocol import Hand
 
 G = 9.81
 
 
 class SpringHand:
-    """Three fingertips pressing a rigid-bodied object through springs F = k d^1.5 (d the
+    """Three fingertips pressing a rigid-bodied object through springs F = k d^n (d the
     fingertip's advance past first contact at ``gap``); each tip follows its command through a
     first-order servo lag ``tau``. The object rides with the base while friction can hold it
     (mu * sum of normal forces >= m g), and otherwise slides down under gravity."""
 
     fingers = ("thumb", "first", "middle")
 
-    def __init__(self, k=2.0e3, gap=5e-4, tau=0.02, mu=0.8, mass=0.05):
-        self.k, self.gap, self.tau, self.mu, self.mass = k, gap, tau, mu, mass
+    def __init__(self, k=2.0e3, gap=5e-4, tau=0.02, mu=0.8, mass=0.05, n=1.5):
+        self.k, self.gap, self.tau, self.mu, self.mass, self.n = k, gap, tau, mu, mass, n
         self.t = 0.0
         dirs = {"thumb": [0, 1, 0], "first": [0, -1, 0], "middle": [0, -1, 0]}
         self.dir = {f: np.array(v, float) for f, v in dirs.items()}
@@ -44,7 +45,7 @@ class SpringHand:
         return dict(self.pos)
 
     def fingertip_normal_forces(self):
-        return {f: self.k * max(self._advance(f) - self.gap, 0.0) ** 1.5 for f in self.fingers}
+        return {f: self.k * max(self._advance(f) - self.gap, 0.0) ** self.n for f in self.fingers}
 
     def fingertip_forces(self):
         n = self.fingertip_normal_forces()
@@ -101,6 +102,51 @@ def test_controller_reaches_the_set_points_and_lifts_without_slip():
     assert res.slip < 1e-5  # the fingertips re-adjust by microns; the object does not slide
     assert res.events["settle"] < res.events["close"] < res.events["lift"] < res.events["hold"]
     assert res.events["hold"] - res.events["lift"] == pytest.approx(0.05 / 0.05, abs=0.003)
+
+
+def test_the_closing_speed_covers_the_travel_left_to_a_hertzian_set_point_in_its_response_time():
+    """After the touch, the speed times the response time is the travel from the fingertip's
+    depth d to the depth where F = k d^1.5 reaches the set-point, less the travel the hand's lag
+    still carries (more of it than is left: the finger backs off), whatever k; before the touch
+    the finger approaches at the touch speed, and far from the set-point at most at full speed."""
+    cfg = ExecuteConfig()
+
+    def speed(F, setpoint, d, coming=0.0, fast=False):
+        return closing_speed(F, setpoint, d, coming, 0.05, cfg.speed, cfg.touch_speed, fast)
+
+    for k, d in ((2.0e3, 1e-3), (6.5e5, 2e-5), (6.5e5, 5e-5)):
+        F = k * d**1.5
+        for setpoint in (1.3 * F, 0.8 * F):
+            left = (setpoint / k) ** (1 / 1.5) - d
+            assert speed(F, setpoint, d) == pytest.approx(left / 0.05, rel=1e-9)
+        left = (1.3 * F / k) ** (1 / 1.5) - d
+        assert speed(F, 1.3 * F, d, coming=0.2 * left) == pytest.approx(0.8 * left / 0.05, rel=1e-9)
+        assert speed(F, 1.3 * F, d, coming=3 * left) == pytest.approx(-2 * left / 0.05, rel=1e-9)
+    assert speed(0.0, 0.3, None) == cfg.touch_speed
+    assert speed(0.0, 0.3, None, fast=True) == cfg.speed
+    assert speed(0.01, 0.3, 1e-3) == cfg.speed  # far below: full speed
+    assert 0 < speed(0.1, 0.3, 0.0) < cfg.touch_speed  # no travel since the touch: it creeps on
+
+
+@pytest.mark.parametrize(
+    ("k", "n", "tau"),
+    [(2.0e3, 1.5, 0.02), (6.5e5, 1.5, 0.02), (5.0e3, 1.0, 0.02), (6.5e5, 1.5, 0.05)],
+    ids=["soft", "stiff", "linear", "stiff-slow-servo"],
+)
+def test_the_closing_does_not_press_past_its_set_points(k, n, tau):
+    """Soft and stiff Hertzian contacts (the stiffest reaching 0.3 N at 0.06 mm, as MuJoCo's
+    contact with the sphere does), a linear one, and a servo lagging its command by 20 or 50 ms:
+    no fingertip ever presses more than the tolerance above its set-point while it closes, the
+    closing reaches the set-points, and the lag it measures at the touch is the servo's."""
+    hand = SpringHand(k=k, n=n, tau=tau)
+    cfg = ExecuteConfig(lift=0.05, hold_time=0.5)
+    res = execute_plan(hand, lines_for(hand, 0.3), cfg)
+    close = res.series["phase"] == 1
+    assert res.reached
+    assert res.series["force"][close].max() <= 0.3 * (1 + cfg.tolerance)
+    assert res.lifted
+    for f in hand.fingers:  # the lag it measured at the touch is the servo's
+        assert res.lag[f] == pytest.approx(tau, rel=0.15)
 
 
 def test_too_small_set_points_drop_the_object():

@@ -129,8 +129,9 @@ def execution_section(st: dict[str, Any] | None) -> list[Block]:
             "p",
             "The plan is executed on a simulated hand in MuJoCo (physics softgrasp did not write): the "
             "sphere as a 3-D flex from the plan's mesh with its E and ν, the hand from the plan's URDF. "
-            "Each fingertip closes along its planned line under an integral force loop on its tactile "
-            "normal force until every finger has stayed within the tolerance of its set-point; the arm "
+            "Each fingertip closes along its planned line under force control on its tactile normal "
+            "force, approaching its set-point without pressing past it, until every finger has stayed "
+            "within the tolerance of its set-point; the arm "
             "then lifts and holds with the fingers keeping that posture.",
         )
     )
