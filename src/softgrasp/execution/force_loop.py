@@ -2,10 +2,12 @@
 advances along its closing line, from its tactile normal force and its measured position.
 
 A guarded approach at the touch speed until the force reaches :data:`TOUCH_FRACTION` of the
-set-point; then a first-order approach of the set-point. The travel left to it is estimated from
-the force and the fingertip's measured travel since the touch by Hertz's law ``F ~ d^1.5``, less
-the travel the hand's position lag still carries, and the command covers the rest with a time
-constant of at least :data:`LAG_FACTOR` lags. A loop on the force error alone cannot do this on a
+set-point; there the hand's position lag is measured (the command's lead over the measured
+fingertip, over the speed) and the command comes back to the fingertip. Then a first-order
+approach of the set-point: the travel left to it is estimated from the force and the
+fingertip's measured travel since the touch by Hertz's law ``F ~ d^1.5``, less the travel the
+hand's position lag still carries, and the command covers the rest with a time constant of at
+least :data:`LAG_FACTOR` lags. A loop on the force error alone cannot do this on a
 stiff object: a hand lagging its command by 16 ms at 10 mm/s carries 0.16 mm into the touch,
 while MuJoCo's contact with the rubber sphere reaches the set-point 0.06 mm in.
 """
@@ -71,10 +73,11 @@ class FingerLoops:
 
     Attributes
     ----------
+    names: the fingers.
     response_time: the least time constant of the approach of the set-point [s].
     speed: largest fingertip speed [m/s].  touch_speed: speed of the guarded approach [m/s].
     free: measured travel at the latest reading before the touch [m].
-    pressing: whether the finger touches.  lag: the hand's position lag measured at the touch [s].
+    pressing: whether the finger touches.  lag: the hand's position lag measured at its first touch [s].
     response: each finger's time constant (``response_time``, or :data:`LAG_FACTOR` lags).
     speed_now: each finger's latest commanded speed [m/s].
     """
