@@ -8,7 +8,7 @@ import pytest
 
 from softgrasp.errors import ConfigError
 from softgrasp.execution.controller import ClosingLine, ExecuteConfig, execute_plan
-from softgrasp.execution.force_loop import closing_speed
+from softgrasp.execution.force_loop import SLOPE_BASE, closing_speed
 from softgrasp.execution.protocol import Hand
 
 G = 9.81
@@ -105,27 +105,31 @@ def test_controller_reaches_the_set_points_and_lifts_without_slip():
 
 
 def test_the_closing_speed_covers_the_travel_left_to_a_hertzian_set_point_in_its_response_time():
-    """After the touch, the speed times the response time is the travel from the fingertip's
-    depth d to the depth where F = k d^1.5 reaches the set-point, less the travel the hand's lag
-    still carries (more of it than is left: the finger backs off), whatever k; before the touch
-    the finger approaches at the touch speed, and far from the set-point at most at full speed."""
+    """After the touch, with the contact's stiffness measured in G = F^(2/3) (in which F = k d^1.5
+    is linear), the speed times the response time is the travel from the fingertip's depth d to
+    the depth where the force reaches the set-point, less the travel the hand's lag still carries
+    (more of it than is left: the finger backs off), whatever k; before the touch the finger
+    approaches at full speed, until the stiffness is measured it creeps, and far from the
+    set-point it moves at most at full speed."""
     cfg = ExecuteConfig()
 
-    def speed(F, setpoint, d, coming=0.0, fast=False):
-        return closing_speed(F, setpoint, d, coming, 0.05, cfg.speed, cfg.touch_speed, fast)
+    def speed(F, setpoint, slope, coming=0.0, response=0.05):
+        return closing_speed(F, setpoint, slope, coming, response, cfg.speed)
 
     for k, d in ((2.0e3, 1e-3), (6.5e5, 2e-5), (6.5e5, 5e-5)):
-        F = k * d**1.5
+        F, slope = k * d**1.5, k ** (2 / 3)  # G = k^(2/3) d
         for setpoint in (1.3 * F, 0.8 * F):
             left = (setpoint / k) ** (1 / 1.5) - d
-            assert speed(F, setpoint, d) == pytest.approx(left / 0.05, rel=1e-9)
+            T = abs(left) / (0.5 * cfg.speed)  # a response time that needs half the full speed
+            assert speed(F, setpoint, slope, response=T) == pytest.approx(left / T, rel=1e-9)
         left = (1.3 * F / k) ** (1 / 1.5) - d
-        assert speed(F, 1.3 * F, d, coming=0.2 * left) == pytest.approx(0.8 * left / 0.05, rel=1e-9)
-        assert speed(F, 1.3 * F, d, coming=3 * left) == pytest.approx(-2 * left / 0.05, rel=1e-9)
-    assert speed(0.0, 0.3, None) == cfg.touch_speed
-    assert speed(0.0, 0.3, None, fast=True) == cfg.speed
-    assert speed(0.01, 0.3, 1e-3) == cfg.speed  # far below: full speed
-    assert 0 < speed(0.1, 0.3, 0.0) < cfg.touch_speed  # no travel since the touch: it creeps on
+        T = left / (0.5 * cfg.speed)
+        assert speed(F, 1.3 * F, slope, 0.2 * left, T) == pytest.approx(0.8 * left / T, rel=1e-9)
+        assert speed(F, 1.3 * F, slope, 3 * left, T) == pytest.approx(-2 * left / T, rel=1e-9)
+    assert speed(0.0, 0.3, None) == cfg.speed
+    # the stiffness not measured yet: a creep of one measuring stretch per response time
+    assert speed(0.1, 0.3, 0.0) == pytest.approx((0.2 / 0.3) * SLOPE_BASE / 0.05, rel=1e-12)
+    assert speed(0.01, 0.3, 2.0e3 ** (2 / 3)) == cfg.speed  # far below: full speed
 
 
 @pytest.mark.parametrize(
@@ -135,9 +139,10 @@ def test_the_closing_speed_covers_the_travel_left_to_a_hertzian_set_point_in_its
 )
 def test_the_closing_does_not_press_past_its_set_points(k, n, tau):
     """Soft and stiff Hertzian contacts (the stiffest reaching 0.3 N at 0.06 mm, as MuJoCo's
-    contact with the sphere does), a linear one, and a servo lagging its command by 20 or 50 ms:
-    no fingertip ever presses more than the tolerance above its set-point while it closes, the
-    closing reaches the set-points, and the lag it measures at the touch is the servo's."""
+    contact with the sphere does), a linear one, and a servo lagging its command by 20 or 50 ms,
+    approached at 5 mm/s: no fingertip ever presses more than the tolerance above its set-point
+    while it closes, the closing reaches the set-points, and the lag it measures at the touch is
+    the servo's (short of it where the 0.5 mm approach lasts only one lag)."""
     hand = SpringHand(k=k, n=n, tau=tau)
     cfg = ExecuteConfig(lift=0.05, hold_time=0.5)
     res = execute_plan(hand, lines_for(hand, 0.3), cfg)
@@ -145,8 +150,8 @@ def test_the_closing_does_not_press_past_its_set_points(k, n, tau):
     assert res.reached
     assert res.series["force"][close].max() <= 0.3 * (1 + cfg.tolerance)
     assert res.lifted
-    for f in hand.fingers:  # the lag it measured at the touch is the servo's
-        assert res.lag[f] == pytest.approx(tau, rel=0.15)
+    for f in hand.fingers:  # the servo's lag (short of it after an approach of a few lags)
+        assert 0.8 * tau <= res.lag[f] <= 1.15 * tau
 
 
 def test_too_small_set_points_drop_the_object():

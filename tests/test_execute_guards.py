@@ -161,14 +161,6 @@ TAMPERED = [
     (lambda d: d["parameters"].update(fingertip_radius_m=1.0), "'parameters.fingertip_radius_m' = 1 m"),
     (lambda d: d["parameters"].update(table_mu=-1), "'parameters.table_mu' = -1 is not physical"),
     (lambda d: d["fingers"][2].update(setpoint_N=1e300), "'fingers[2].setpoint_N' = 1e+300 N"),
-    (
-        lambda d: d["fingers"][1].update(first_contact_travel_m=-1e-3),
-        "'fingers[1].first_contact_travel_m' = -0.001 is not physical",
-    ),
-    (
-        lambda d: d["fingers"][0].update(first_contact_travel_m=0.5),
-        "'fingers[0].first_contact_travel_m' = 0.5",
-    ),
     (lambda d: d["object"].pop("mesh_sha256"), "missing field 'object.mesh_sha256'"),
     (lambda d: d["fingers"][0].pop("final_position_m"), "missing field 'fingers[0].final_position_m'"),
     (lambda d: d["object"].update(mesh_sha256=5), "'object.mesh_sha256' must be"),

@@ -7,11 +7,10 @@ Phases, all driven through the :class:`~softgrasp.execution.protocol.Hand` inter
    initial contacts; the backend puts it there, a hardware hand by position control) and holds it
    while the object comes to rest on the table;
 2. **close**: each fingertip advances along its planned straight closing line (palm frame) under
-   force control on its tactile normal force (:mod:`~softgrasp.execution.force_loop`): at full
-   speed up to 2 mm before its planned touch, a guarded approach at ``touch_speed`` until it
-   touches, then a first-order approach of the set-point over ``response_time``; the closing is
-   done when every finger has stayed within ``tolerance`` of its set-point for ``settle_band``
-   seconds;
+   force control on its tactile normal force (:mod:`~softgrasp.execution.force_loop`): at
+   ``speed`` until it touches, where the command comes back to the fingertip, then a first-order
+   approach of the set-point over ``response_time``; the closing is done when every finger has
+   stayed within ``tolerance`` of its set-point for ``settle_band`` seconds;
 3. **lift**: the base rises ``lift`` metres at ``lift_speed`` on average (a half-cosine profile),
    the fingers holding the posture that reached the set-points;
 4. **hold**: ``hold_time`` seconds at the top.
@@ -56,9 +55,6 @@ WALL_TIME_BASE = 60.0
 #: ... plus this many times its longest hand time (MuJoCo runs the 388-node sphere ~6x slower
 #: than real time on one core).
 WALL_TIME_FACTOR = 100.0
-#: A finger approaches at full speed up to this distance [m] before the travel at which it touched
-#: the object in the plan, then at the touch speed (the object settles on the table first).
-TOUCH_MARGIN = 0.002
 
 
 @dataclass(frozen=True)
@@ -72,23 +68,18 @@ class ClosingLine:
     direction: unit closing direction, palm frame, (3,).
     max_travel: farthest the fingertip may advance along the line [m] (the crushing guard), and
         back off behind its start.
-    fast_travel: travel [m] up to which the fingertip approaches at the controller's full speed
-        before its guarded approach (0: guarded from the start).
     """
 
     setpoint: float
     start: NDArray[np.float64]
     direction: NDArray[np.float64]
     max_travel: float
-    fast_travel: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.setpoint) and self.setpoint > 0):
             raise ConfigError(f"set-point {self.setpoint} N must be a finite force > 0")
         if not (math.isfinite(self.max_travel) and self.max_travel > 0):
             raise ConfigError(f"max_travel {self.max_travel} m must be > 0")
-        if not (math.isfinite(self.fast_travel) and 0 <= self.fast_travel <= self.max_travel):
-            raise ConfigError(f"fast_travel {self.fast_travel} m must lie between 0 and max_travel")
         d = np.asarray(self.direction, dtype=np.float64)
         if d.shape != (3,) or abs(np.linalg.norm(d) - 1.0) > 1e-6:
             raise ConfigError("a closing direction must be a unit vector (3,)")
@@ -96,17 +87,14 @@ class ClosingLine:
 
 def closing_lines(plan: PlanFile, scale: float = 1.0) -> dict[str, ClosingLine]:
     """Each finger's task from a plan: set-point ``scale`` times its planned normal force, the line
-    from its start to its final centre in the palm frame, a crushing guard of three times the
-    planned travel (at least 5 mm more than it), and full speed up to :data:`TOUCH_MARGIN` before
-    the planned first contact."""
+    from its start to its final centre in the palm frame, and a crushing guard of three times the
+    planned travel (at least 5 mm more than it)."""
     to_palm = invert(plan.palm_pose)
     lines = {}
     for f in plan.fingers:
         a, b = transform(to_palm, f.start), transform(to_palm, f.final)
         L = float(np.linalg.norm(b - a))
-        guard = max(3.0 * L, L + 0.005)
-        fast = min(max(f.first_contact_travel - TOUCH_MARGIN, 0.0), guard)
-        lines[f.name] = ClosingLine(scale * f.normal_force, a, (b - a) / L, guard, fast)
+        lines[f.name] = ClosingLine(scale * f.normal_force, a, (b - a) / L, max(3.0 * L, L + 0.005))
     return lines
 
 
@@ -120,12 +108,10 @@ class ExecuteConfig:
     tolerance: relative force error that counts as reaching a set-point (0.05 = 5 %).
     settle_time: [s] before the closing.  settle_band: [s] every finger must stay within the
         tolerance to end the closing.  max_close_time: [s] before giving up on the set-points.
-    speed: largest fingertip speed of the force controller [m/s].
-    touch_speed: fingertip speed [m/s] until the finger touches (a guarded approach: the hand's
-        position lag times this speed is the travel it keeps going after the touch).
+    speed: largest fingertip speed of the force controller [m/s], and its approach speed.
     response_time: time constant [s] of the approach of the set-point after the touch
         (:func:`~softgrasp.execution.force_loop.closing_speed`); at least three times the hand's
-        position lag, measured as each finger touches.
+        position lag, measured as each finger first touches.
     control_dt: controller period [s].
     max_wall_time: wall-clock bound of the whole execution [s]; None: :data:`WALL_TIME_BASE` +
         :data:`WALL_TIME_FACTOR` x :attr:`duration`. Past it the execution stops with
@@ -145,8 +131,7 @@ class ExecuteConfig:
     settle_time: float = 0.3
     settle_band: float = 0.2
     max_close_time: float = 6.0
-    speed: float = 0.01
-    touch_speed: float = 0.002
+    speed: float = 0.005
     response_time: float = 0.05
     control_dt: float = 0.002
     force_control_in_lift: bool = False
@@ -163,7 +148,6 @@ class ExecuteConfig:
             "settle_band",
             "max_close_time",
             "speed",
-            "touch_speed",
             "response_time",
             "control_dt",
         ):
@@ -202,7 +186,6 @@ class ExecuteConfig:
             "settle_band_s": self.settle_band,
             "max_close_time_s": self.max_close_time,
             "speed_m_s": self.speed,
-            "touch_speed_m_s": self.touch_speed,
             "response_time_s": self.response_time,
             "control_dt_s": self.control_dt,
             "force_control_in_lift": self.force_control_in_lift,
@@ -340,15 +323,14 @@ def execute_plan(
         if progress is not None:
             progress(min(hand.time / planned, 1.0))
 
-    loops = FingerLoops(names, cfg.response_time, cfg.speed, cfg.touch_speed)
+    loops = FingerLoops(names, cfg.response_time, cfg.speed)
 
     def control(forces: Mapping[str, float]) -> None:
         where = hand.fingertip_positions()
         for f in names:
             line = lines[f]
             at = float((np.asarray(where[f]) - line.start) @ line.direction)  # measured travel
-            fast = travel[f] < line.fast_travel
-            v, travel[f] = loops.advance(f, forces[f], line.setpoint, at, travel[f], fast)
+            v, travel[f] = loops.advance(f, forces[f], line.setpoint, at, travel[f])
             travel[f] = float(np.clip(travel[f] + v * dt, -line.max_travel, line.max_travel))
 
     # 1. settle

@@ -29,15 +29,13 @@ PLANNED = tuple(name for fingers in GRASP_FINGERS for name in fingers)
 @dataclass(frozen=True)
 class PlanFinger:
     """One finger of a plan: where its closing starts and ends (world, m), its set-point (the
-    normal force of the held state, N), its joints at the start (rad) and the travel from the
-    start at which it touched the object in the plan (m; 0 where the plan does not say)."""
+    normal force of the held state, N) and its joints at the start (rad)."""
 
     name: str
     start: NDArray[np.float64]
     final: NDArray[np.float64]
     normal_force: float
     q_start: NDArray[np.float64]
-    first_contact_travel: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -241,7 +239,6 @@ def load_plan_file(path: str | Path) -> PlanFile:
         final = _vector(named, f"{where}.final_position_m")
         if np.linalg.norm(final - start) <= 0:
             raise ConfigError(f"plan file: finger {name!r} has no closing travel (start = final position)")
-        reach = float(np.linalg.norm(final - start)) * (1 + 1e-9)  # it touches before its end
         fingers.append(
             PlanFinger(
                 name=name,
@@ -249,11 +246,6 @@ def load_plan_file(path: str | Path) -> PlanFile:
                 final=final,
                 normal_force=_ranged(named, f"{where}.setpoint_N", "setpoint_N"),
                 q_start=qa,
-                first_contact_travel=(
-                    _number(named, f"{where}.first_contact_travel_m", lo=0.0, hi=reach, open_lo=False)
-                    if "first_contact_travel_m" in f
-                    else 0.0
-                ),
             )
         )
     return PlanFile(
