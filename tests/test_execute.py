@@ -123,7 +123,7 @@ def test_the_closing_speed_covers_the_travel_left_to_a_hertzian_set_point_in_its
             T = abs(left) / (0.5 * cfg.speed)  # a response time that needs half the full speed
             assert speed(F, setpoint, slope, response=T) == pytest.approx(left / T, rel=1e-9)
         left = (1.3 * F / k) ** (1 / 1.5) - d
-        T = left / (0.5 * cfg.speed)
+        T = left / (0.2 * cfg.speed)
         assert speed(F, 1.3 * F, slope, 0.2 * left, T) == pytest.approx(0.8 * left / T, rel=1e-9)
         assert speed(F, 1.3 * F, slope, 3 * left, T) == pytest.approx(-2 * left / T, rel=1e-9)
     assert speed(0.0, 0.3, None) == cfg.speed

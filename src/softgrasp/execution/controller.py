@@ -8,9 +8,10 @@ Phases, all driven through the :class:`~softgrasp.execution.protocol.Hand` inter
    while the object comes to rest on the table;
 2. **close**: each fingertip advances along its planned straight closing line (palm frame) under
    force control on its tactile normal force (:mod:`~softgrasp.execution.force_loop`): at
-   ``speed`` until it touches, where the command comes back to the fingertip, then a first-order
-   approach of the set-point over ``response_time``; the closing is done when every finger has
-   stayed within ``tolerance`` of its set-point for ``settle_band`` seconds;
+   ``speed`` until it touches (the command comes back to the fingertip at its first touch),
+   then a first-order approach of the set-point over ``response_time``; the closing is done
+   when every finger has stayed within ``tolerance`` of its set-point for ``settle_band``
+   seconds;
 3. **lift**: the base rises ``lift`` metres at ``lift_speed`` on average (a half-cosine profile),
    the fingers holding the posture that reached the set-points;
 4. **hold**: ``hold_time`` seconds at the top.

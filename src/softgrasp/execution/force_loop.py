@@ -2,15 +2,17 @@
 advances along its closing line, from its tactile normal force and its measured position.
 
 The fingertip approaches at full speed until its force reaches :data:`TOUCH_FRACTION` of the
-set-point. There the hand's position lag is measured (the command's lead over the measured
-fingertip, over the speed) and the command comes back to the fingertip: the lead would press on.
+set-point. At its first touch under way the hand's position lag is measured (the command's lead
+over the measured fingertip, over the speed) and the command comes back to the fingertip: the
+lead would press on.
 Then a first-order approach of the set-point in ``G = F^(1/1.5)``, in which Hertz's law is
 linear: the travel left is ``(G_set - G) / slope``, ``slope`` the contact's stiffness in G
 measured over the fingertip's latest stretch of travel; less the travel the hand's lag still
 carries, the command covers it with a time constant of at least :data:`LAG_FACTOR` lags. A loop
 on the force error alone cannot do this on a stiff object: a hand lagging its command by 16 ms at
-10 mm/s carries 0.16 mm into the touch, while MuJoCo's contact with the rubber sphere reaches the
-set-point 0.06 mm in.
+5 mm/s carries 0.08 mm into the touch, while MuJoCo's contact with the rubber sphere reaches the
+set-point 0.06 mm in. A finger that already touches when the closing starts measures no lag (its
+time constant is the configured one).
 """
 
 from __future__ import annotations
@@ -60,9 +62,10 @@ def closing_speed(
     and the set-point lies ``(G_set - G) / slope`` further. Of that travel, ``coming_m`` [m] is
     already on its way (where the fingertip ends if the command stops); the command covers the
     rest with the time constant ``response_s``, so the force approaches the set-point without
-    passing it. The least speed is a creep of ``(F_set - F) / F_set`` :data:`SLOPE_BASE` per
-    ``response_s``: a finger whose stiffness is not measured yet, or stale (the object moved
-    with it), covers a measuring stretch per time constant; the speed is at most ``speed_m_s``.
+    passing it; ``coming_m`` above the travel left makes it back off. Otherwise the least speed is
+    a creep of ``(F_set - F) / F_set`` :data:`SLOPE_BASE` per ``response_s``, and while the
+    stiffness is not measured yet the creep is the speed: such a finger covers a measuring
+    stretch per time constant. The speed is at most ``speed_m_s``.
     """
     if slope is None:
         return speed_m_s
@@ -123,9 +126,11 @@ class FingerLoops:
         elif not self.pressing[f]:
             self.pressing[f], self.anchor[f], self.slope[f] = True, (measured_m, G), 0.0
             v0 = self.speed_now[f]
-            if self.lag[f] == 0.0 and v0 > 0:  # the first touch
+            if self.lag[f] == 0.0 and v0 > 0:  # the first touch under way
                 self.lag[f] = max(command_m - measured_m, 0.0) / v0
                 self.response[f] = max(self.response_time, LAG_FACTOR * self.lag[f])
+                # (only here: brought back at every touch, a finger whose force hovers at the
+                # touch force, the object bouncing off it, never closes on its set-point)
                 command_m = min(command_m, measured_m)
             self.speed_now[f] = 0.0
         slope = None
@@ -137,7 +142,8 @@ class FingerLoops:
                     self.slope[f] = (G - G0) / dx
                 self.anchor[f] = (measured_m, G)
             slope = self.slope[f]
-        coming = min(max(command_m - measured_m, 0.0), COMING_LAGS * self.lag[f] * abs(self.speed_now[f]))
+        cap = COMING_LAGS * self.lag[f] * abs(self.speed_now[f])
+        coming = min(max(command_m - measured_m, -cap), cap)  # (< 0: backing off)
         v = closing_speed(force_N, setpoint_N, slope, coming, self.response[f], self.speed)
         self.speed_now[f] = v
         return v, command_m
