@@ -93,8 +93,8 @@ class FingerLoops:
     pressing: whether the finger touches.
     anchor: measured travel [m] and G where the stiffness was last measured.
     slope: the contact's stiffness in G, dG/dx [N^(2/3)/m], over the latest stretch (0: not yet).
-    lag: the hand's position lag measured at the finger's first touch [s].
-    response: each finger's time constant (``response_time``, or :data:`LAG_FACTOR` lags).
+    lag: the hand's position lag measured at the finger's first touch [s]; the finger's time
+        constant is ``response_time`` or :data:`LAG_FACTOR` lags, whichever is longer.
     speed_now: each finger's latest commanded speed [m/s].
     """
 
@@ -106,13 +106,12 @@ class FingerLoops:
     anchor: dict[str, tuple[float, float]] = field(default_factory=dict)
     slope: dict[str, float] = field(default_factory=dict)
     lag: dict[str, float] = field(default_factory=dict)
-    response: dict[str, float] = field(default_factory=dict)
     speed_now: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for f in self.names:
             self.free[f], self.pressing[f], self.anchor[f], self.slope[f] = 0.0, False, (0.0, 0.0), 0.0
-            self.lag[f], self.response[f], self.speed_now[f] = 0.0, self.response_time, 0.0
+            self.lag[f], self.speed_now[f] = 0.0, 0.0
 
     def advance(
         self, finger: str, force_N: float, setpoint_N: float, measured_m: float, command_m: float
@@ -128,7 +127,6 @@ class FingerLoops:
             v0 = self.speed_now[f]
             if self.lag[f] == 0.0 and v0 > 0:  # the first touch under way
                 self.lag[f] = max(command_m - measured_m, 0.0) / v0
-                self.response[f] = max(self.response_time, LAG_FACTOR * self.lag[f])
                 # (only here: brought back at every touch, a finger whose force hovers at the
                 # touch force, the object bouncing off it, never closes on its set-point)
                 command_m = min(command_m, measured_m)
@@ -144,6 +142,7 @@ class FingerLoops:
             slope = self.slope[f]
         cap = COMING_LAGS * self.lag[f] * abs(self.speed_now[f])
         coming = min(max(command_m - measured_m, -cap), cap)  # (< 0: backing off)
-        v = closing_speed(force_N, setpoint_N, slope, coming, self.response[f], self.speed)
+        response = max(self.response_time, LAG_FACTOR * self.lag[f])
+        v = closing_speed(force_N, setpoint_N, slope, coming, response, self.speed)
         self.speed_now[f] = v
         return v, command_m
