@@ -360,7 +360,7 @@ def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None
     assert doc["hand"]["model"] == "../inputs/my_hand.urdf" == doc["parameters"]["hand"]
     scene = tmp_path / "scene" / "scene.xml"
     scene.parent.mkdir()
-    argv = ["execute", str(plan_dir / "plan.json"), "--lift", "0.02", "--out", str(exe_dir)]
+    argv = ["execute", str(plan_dir / "plan.json"), "--lift", "0.02", "--hold", "0.1", "--out", str(exe_dir)]
     code = main([*argv, "--save-scene", str(scene)])
     assert code in (0, 1)
     import mujoco
