@@ -9,12 +9,15 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# softgrasp with both optional extras: MuJoCo (`execute`) and Dask with PyArrow (`sweep`).
+# softgrasp with both optional extras: MuJoCo (`execute`) and Dask with PyArrow (`sweep`); then
+# its kernels compile once (about 12 s on a first install; nothing to do after).
 install: $(BIN)/python gl
 	$(BIN)/python -m pip install --quiet -e ".[execute,sweep]"
+	$(BIN)/python -m softgrasp.cli.warm
 
 install-test: $(BIN)/python browser gl
 	$(BIN)/python -m pip install --quiet -e ".[test,execute,sweep]"
+	$(BIN)/python -m softgrasp.cli.warm
 
 # Debian's Chromium and ChromeDriver for the browser test of `softgrasp view` (installed when
 # missing and apt-get can run; otherwise that test is skipped and says why).

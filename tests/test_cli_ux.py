@@ -224,6 +224,35 @@ def test_a_cold_kernel_cache_is_told_from_a_warm_one(tmp_path):
     assert cold.stdout.strip() == "True", cold.stderr
 
 
+def test_the_install_compiles_the_kernels_ahead_and_says_so_only_when_it_does(monkeypatch, capsys):
+    """``python -m softgrasp.cli.warm`` (the Makefile's install runs it): on a cold cache it says
+    it compiles and compiles the fingertip contact's kernels in a second process; on a warm one it
+    loads them quietly; a failure is one line and does not fail the install. The Makefile runs
+    it after both installs."""
+    from softgrasp.cli import warm
+
+    calls = []
+    monkeypatch.setattr(warm, "warm_up", lambda split=False: calls.append(split))
+    for first in (True, False):
+        monkeypatch.setattr(warm, "cold", lambda first=first: first)
+        assert warm.main() == 0
+        err = capsys.readouterr().err
+        assert ("compiling kernels (first run only" in err) is first, err
+    assert calls == [True, False]
+
+    def broken(split=False):
+        raise RuntimeError("no space left on device")
+
+    monkeypatch.setattr(warm, "warm_up", broken)
+    assert warm.main() == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no space left on device" in err[0] and "first plan compiles" in err[0]
+    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    for target in ("install:", "install-test:"):
+        recipe = makefile.split("\n" + target, 1)[1].split("\n\n", 1)[0]
+        assert "-m softgrasp.cli.warm" in recipe, recipe
+
+
 # ------------------------------------------------------------------------------ options
 @pytest.mark.parametrize(
     "argv",

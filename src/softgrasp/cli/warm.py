@@ -271,3 +271,33 @@ def warm_up_in_background() -> WarmUp:
     thread = WarmUp()
     thread.start()
     return thread
+
+
+def main() -> int:
+    """Compile the kernels a plan uses now, once, instead of on the first plan: what the
+    Makefile's install runs (``python -m softgrasp.cli.warm``). Says so when it compiles; a
+    failure is reported in one line and does not fail the install (the first plan then compiles
+    and meets the same problem)."""
+    import sys
+
+    if not compiled():
+        return 0
+    try:
+        first = cold()
+        if first:
+            print(
+                f"softgrasp: compiling kernels (first run only, ~{COMPILE_TIME_S} s)",
+                file=sys.stderr,
+                flush=True,
+            )
+        warm_up(split=first)
+    except Exception as exc:  # noqa: BLE001 - an optimisation only
+        print(
+            f"softgrasp: the kernels were not compiled ahead ({exc}); the first plan compiles them",
+            file=sys.stderr,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
