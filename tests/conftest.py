@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 
 # Each pytest-xdist worker gets its share of the cores for softgrasp's threads (one each on two
 # cores): two workers each running two spinning PARDISO and Numba threads on two cores nearly
@@ -21,6 +22,13 @@ from softgrasp.offscreen import prefer_headless_gl  # noqa: E402
 # MuJoCo renders offscreen in the tests as in softgrasp's commands: the back-end is chosen before
 # any test module imports MuJoCo.
 prefer_headless_gl()
+
+# The Ctrl-C tests send SIGINT to softgrasp's processes. A shell without job control starts a
+# background job with SIGINT ignored, its children inherit that, and Python then installs no
+# handler: the commands (rightly) ignore Ctrl-C. The suite restores Python's own handler, so that
+# those tests test the command line whichever way the suite was started.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
