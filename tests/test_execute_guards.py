@@ -386,6 +386,44 @@ def test_a_ctrl_c_swallowed_by_a_library_still_stops_the_plan_and_keeps_its_outp
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+_IMPORT_ERROR_LIBRARY = """
+import os, signal, sys
+import softgrasp.cli.warm as warm
+
+def failing_import():  # a C extension interrupted while it initialises (NumPy's says ImportError)
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        signal.sigtimedwait([], 0.2)  # let the handler run here
+        sum(range(10**6))
+    except BaseException:
+        raise ImportError("initialization failed") from None
+
+warm.warm_up_in_background = failing_import
+from softgrasp.cli.main import main
+sys.exit(main())
+"""
+
+
+def test_a_ctrl_c_a_library_reports_as_its_own_error_is_still_an_interrupt(planned_sphere, tmp_path):
+    """A Ctrl-C that lands in a C extension's initialisation comes out as that library's error
+    (NumPy: ``ImportError: initialization failed``): the command still says it was interrupted
+    and exits 130, not 3 (an internal error), and leaves the earlier outputs byte-identical."""
+    out = tmp_path / "p"
+    out.mkdir()
+    (out / "plan.json").write_bytes((planned_sphere / "plan.json").read_bytes())
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    run = subprocess.run(
+        [sys.executable, "-c", _IMPORT_ERROR_LIBRARY, "plan", "--out", str(out)],
+        env={**os.environ, "PYTHONPATH": SRC},
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    _assert_interrupted(run)
+    assert "internal error" not in run.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
 def test_ctrl_c_in_calibrate_is_one_line(tmp_path):
     rows = "".join(f"{0.5 * i},{0.3 * i + 0.01 * i * i}\n" for i in range(1, 11))
     (tmp_path / "c.csv").write_text("displacement_mm,force_N\n" + rows)

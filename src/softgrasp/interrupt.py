@@ -14,7 +14,7 @@ from __future__ import annotations
 import signal
 import threading
 
-__all__ = ["handle_sigint", "install", "raise_if_interrupted"]
+__all__ = ["handle_sigint", "install", "interrupted", "raise_if_interrupted"]
 
 _RECEIVED = threading.Event()
 
@@ -32,6 +32,12 @@ def install() -> None:
         signal.getsignal(signal.SIGINT) is signal.default_int_handler
     ):
         signal.signal(signal.SIGINT, handle_sigint)
+
+
+def interrupted() -> bool:
+    """Whether a Ctrl-C was received (a C extension interrupted while it initialises reports
+    it as another exception, e.g. NumPy's ``ImportError``)."""
+    return _RECEIVED.is_set()
 
 
 def raise_if_interrupted() -> None:

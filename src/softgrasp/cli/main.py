@@ -90,6 +90,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("softgrasp: interrupted", file=sys.stderr)
         return INTERRUPTED
     except Exception as exc:  # a bug: keep it to one line unless asked
+        if interrupt.interrupted():  # a Ctrl-C a library turned into its own error
+            _ignore_sigint(argv)
+            print("softgrasp: interrupted", file=sys.stderr)
+            return INTERRUPTED
         if args.debug:
             raise
         print(
