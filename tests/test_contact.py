@@ -692,7 +692,7 @@ def test_patch_rule_indentation_force_converges_under_refinement():
     (measured 57.2, 56.7, 58.0 N: 0.9 %, 2.2 %); over a facet it converges from above, each change
     less than half the previous (74.9, 65.2, 60.9 N: 14.9 %, 7.1 %), and the two landing points
     draw together (31 % apart at n = 6, 5 % at n = 10). (At 1.5 mm over a facet it does not yet
-    converge in this range: see the xfail below.)"""
+    converge in this range: `test_paper_law_counts_the_object_compliance_twice`.)"""
     node = [_indentation(n, "patch", "node", 3e-3) for n in (6, 8, 10)]
     facet = [_indentation(n, "patch", "facet", 3e-3) for n in (6, 8, 10)]
     f_node = np.array([f for f, _ in node])
