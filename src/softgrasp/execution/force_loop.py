@@ -12,7 +12,10 @@ carries, the command covers it with a time constant of at least :data:`LAG_FACTO
 on the force error alone cannot do this on a stiff object: a hand lagging its command by 16 ms at
 5 mm/s carries 0.08 mm into the touch, while MuJoCo's contact with the rubber sphere reaches the
 set-point 0.06 mm in. A finger that already touches when the closing starts measures no lag (its
-time constant is the configured one).
+time constant is the configured one). A contact lost after its stiffness was measured (a reading
+that drops out, a fingertip that slips off an edge) is sought again at the approach of the
+set-point, with the stiffness measured before, not at full speed: a full-speed step into a stiff
+contact at every dropout presses on without bound.
 """
 
 from __future__ import annotations
@@ -90,7 +93,7 @@ class FingerLoops:
     response_time: the least time constant of the approach of the set-point [s].
     speed: largest fingertip speed [m/s].
     free: measured travel at the latest reading before the touch [m].
-    pressing: whether the finger touches.
+    pressing: whether the finger touches.  touched: whether it has touched since the closing began.
     anchor: measured travel [m] and G where the stiffness was last measured.
     slope: the contact's stiffness in G, dG/dx [N^(2/3)/m], over the latest stretch (0: not yet).
     lag: the hand's position lag measured at the finger's first touch [s]; the finger's time
@@ -103,6 +106,7 @@ class FingerLoops:
     speed: float
     free: dict[str, float] = field(default_factory=dict)
     pressing: dict[str, bool] = field(default_factory=dict)
+    touched: dict[str, bool] = field(default_factory=dict)
     anchor: dict[str, tuple[float, float]] = field(default_factory=dict)
     slope: dict[str, float] = field(default_factory=dict)
     lag: dict[str, float] = field(default_factory=dict)
@@ -111,6 +115,7 @@ class FingerLoops:
     def __post_init__(self) -> None:
         for f in self.names:
             self.free[f], self.pressing[f], self.anchor[f], self.slope[f] = 0.0, False, (0.0, 0.0), 0.0
+            self.touched[f] = False
             self.lag[f], self.speed_now[f] = 0.0, 0.0
 
     def advance(
@@ -123,7 +128,12 @@ class FingerLoops:
         if force_N < TOUCH_FRACTION * setpoint_N:
             self.pressing[f], self.free[f] = False, measured_m  # not (or no longer) touching
         elif not self.pressing[f]:
-            self.pressing[f], self.anchor[f], self.slope[f] = True, (measured_m, G), 0.0
+            self.pressing[f] = True
+            if self.slope[f] > 0 or not self.touched[f]:
+                # (a touch again keeps the stiffness measured before and measures it anew from
+                # here; before it is measured once, it is measured from the first touch)
+                self.anchor[f] = (measured_m, G)
+            self.touched[f] = True
             v0 = self.speed_now[f]
             if self.lag[f] == 0.0 and v0 > 0:  # the first touch under way
                 self.lag[f] = max(command_m - measured_m, 0.0) / v0
@@ -131,7 +141,6 @@ class FingerLoops:
                 # touch force, the object bouncing off it, never closes on its set-point)
                 command_m = min(command_m, measured_m)
             self.speed_now[f] = 0.0
-        slope = None
         if self.pressing[f]:
             x0, G0 = self.anchor[f]
             dx = measured_m - x0
@@ -139,7 +148,9 @@ class FingerLoops:
                 if (G - G0) / dx > 0:
                     self.slope[f] = (G - G0) / dx
                 self.anchor[f] = (measured_m, G)
-            slope = self.slope[f]
+        # (a contact lost after its stiffness was measured is sought at the approach of the
+        # set-point, not at full speed: a tactile reading that drops out must not press on)
+        slope = self.slope[f] if self.pressing[f] or self.slope[f] > 0 else None
         cap = COMING_LAGS * self.lag[f] * abs(self.speed_now[f])
         coming = min(max(command_m - measured_m, -cap), cap)  # (< 0: backing off)
         response = max(self.response_time, LAG_FACTOR * self.lag[f])
