@@ -367,9 +367,10 @@ sys.exit(main())
 """
 
 
-_IMPORT_ERROR_LIBRARY = """
+_FAILING_IMPORT = """
 import os, signal, sys
 import softgrasp.cli.warm as warm
+from softgrasp.errors import ConfigError
 
 def failing_import():  # a C extension interrupted while it initialises (NumPy's says ImportError)
     try:
@@ -377,7 +378,7 @@ def failing_import():  # a C extension interrupted while it initialises (NumPy's
         signal.sigtimedwait([], 0.2)  # let the handler run here
         sum(range(10**6))
     except BaseException:
-        raise ImportError("initialization failed") from None
+        raise {error} from None
 
 warm.warm_up_in_background = failing_import
 from softgrasp.cli.main import main
@@ -386,15 +387,22 @@ sys.exit(main())
 
 
 @pytest.mark.parametrize(
-    "library", [_SWALLOWING_LIBRARY, _IMPORT_ERROR_LIBRARY], ids=["swallowed", "its-own-error"]
+    "library",
+    [
+        _SWALLOWING_LIBRARY,
+        _FAILING_IMPORT.format(error='ImportError("initialization failed")'),
+        _FAILING_IMPORT.format(error='ConfigError("this needs the extra: pip install it")'),
+    ],
+    ids=["swallowed", "its-own-error", "softgrasp-error"],
 )
 def test_a_ctrl_c_a_library_swallows_or_reports_as_its_own_error_still_stops_the_plan(
     library, planned_sphere, tmp_path
 ):
     """A Ctrl-C caught by a library's ``except BaseException`` (trimesh's optional imports do
     this), or one that lands in a C extension's initialisation and comes out as that library's
-    error (NumPy: ``ImportError: initialization failed``), still ends the command as interrupted,
-    130, not 0 or 3 (an internal error), and leaves the earlier outputs byte-identical."""
+    error (NumPy: ``ImportError: initialization failed``), which softgrasp may turn into its own
+    (a missing extra), still ends the command as interrupted, 130, not 0, 2 (bad input) or 3 (an
+    internal error), and leaves the earlier outputs byte-identical."""
     out = tmp_path / "p"
     out.mkdir()
     for f in ("plan.json", "object.vtu"):
@@ -408,7 +416,7 @@ def test_a_ctrl_c_a_library_swallows_or_reports_as_its_own_error_still_stops_the
         timeout=240,
     )
     _assert_interrupted(run)
-    assert "internal error" not in run.stderr
+    assert "error" not in run.stderr
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 

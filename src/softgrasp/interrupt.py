@@ -31,6 +31,7 @@ def install() -> None:
     if threading.current_thread() is threading.main_thread() and (
         signal.getsignal(signal.SIGINT) is signal.default_int_handler
     ):
+        _RECEIVED.clear()  # (a command run earlier in this process is over)
         signal.signal(signal.SIGINT, handle_sigint)
 
 

@@ -82,18 +82,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         status = int(args.func(args))
         interrupt.raise_if_interrupted()
         return status
+    except KeyboardInterrupt:
+        return _interrupted(argv)
     except SoftgraspError as exc:
+        if interrupt.interrupted():  # a Ctrl-C a library turned into its own error, then softgrasp
+            return _interrupted(argv)
         print(f"softgrasp: error: {exc}", file=sys.stderr)
         return exit_status(exc)
-    except KeyboardInterrupt:
-        _ignore_sigint(argv)  # a second Ctrl-C must not break the exit
-        print("softgrasp: interrupted", file=sys.stderr)
-        return INTERRUPTED
     except Exception as exc:  # a bug: keep it to one line unless asked
-        if interrupt.interrupted():  # a Ctrl-C a library turned into its own error
-            _ignore_sigint(argv)
-            print("softgrasp: interrupted", file=sys.stderr)
-            return INTERRUPTED
+        if interrupt.interrupted():  # a Ctrl-C a library turned into its own error (NumPy's
+            return _interrupted(argv)  # ImportError when it lands in its initialisation)
         if args.debug:
             raise
         print(
@@ -105,6 +103,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # The command is over, its files written or left as they were: a Ctrl-C while the
         # interpreter exits would only kill the process by the signal.
         _ignore_sigint(argv)
+
+
+def _interrupted(argv: Sequence[str] | None) -> int:
+    """Say the command was interrupted; its exit status."""
+    _ignore_sigint(argv)  # a second Ctrl-C must not break the exit
+    print("softgrasp: interrupted", file=sys.stderr)
+    return INTERRUPTED
 
 
 def _ignore_sigint(argv: Sequence[str] | None) -> None:

@@ -12,10 +12,17 @@ carries, the command covers it with a time constant of at least :data:`LAG_FACTO
 on the force error alone cannot do this on a stiff object: a hand lagging its command by 16 ms at
 5 mm/s carries 0.08 mm into the touch, while MuJoCo's contact with the rubber sphere reaches the
 set-point 0.06 mm in. A finger that already touches when the closing starts measures no lag (its
-time constant is the configured one). A contact lost after its stiffness was measured (a reading
-that drops out, a fingertip that slips off an edge) is sought again at the approach of the
-set-point, with the stiffness measured before, not at full speed: a full-speed step into a stiff
-contact at every dropout presses on without bound.
+time constant is the configured one).
+
+A contact lost after the touch: the finger waits out a single reading without contact (a reading
+that drops out, a fingertip that slips for one period off an edge of a coarse flex). Then it
+seeks the contact at the approach of the set-point with the stiffness measured before, until it
+has passed where the set-point lay (:meth:`FingerLoops._depth`), and beyond that at full speed. A
+contact found again that far away is a new touch: the command comes back to the fingertip and
+the stiffness is measured anew; found again nearer, it keeps both (a finger brought back at
+every touch, the object bouncing off it, hovers at the touch force and never closes). Seeking
+every lost contact at full speed, with the stiffness measured anew after each, pressed a stiff
+contact to hundreds of times its set-point when readings dropped out one period in 7.
 """
 
 from __future__ import annotations
@@ -92,12 +99,17 @@ class FingerLoops:
     names: the fingers.
     response_time: the least time constant of the approach of the set-point [s].
     speed: largest fingertip speed [m/s].
-    free: measured travel at the latest reading before the touch [m].
-    pressing: whether the finger touches.  touched: whether it has touched since the closing began.
-    anchor: measured travel [m] and G where the stiffness was last measured.
-    slope: the contact's stiffness in G, dG/dx [N^(2/3)/m], over the latest stretch (0: not yet).
-    lag: the hand's position lag measured at the finger's first touch [s]; the finger's time
-        constant is ``response_time`` or :data:`LAG_FACTOR` lags, whichever is longer.
+    free: measured travel at the latest reading without contact [m].
+    pressing: whether the finger touches.
+    touched: whether it has touched since the closing began.
+    lost: measured travel where it last lost its contact [m], and the readings without contact
+        since then.
+    anchor: measured travel [m] and G where the stiffness was last measured (or, until it is
+        measured once, where the finger touched).
+    slope: the contact's stiffness in G, dG/dx [N^(2/3)/m], over the latest stretch (0: not yet);
+        kept while a lost contact is sought.
+    lag: the hand's position lag measured at the finger's first touch under way [s]; the finger's
+        time constant is ``response_time`` or :data:`LAG_FACTOR` lags, whichever is longer.
     speed_now: each finger's latest commanded speed [m/s].
     """
 
@@ -107,6 +119,7 @@ class FingerLoops:
     free: dict[str, float] = field(default_factory=dict)
     pressing: dict[str, bool] = field(default_factory=dict)
     touched: dict[str, bool] = field(default_factory=dict)
+    lost: dict[str, tuple[float, int]] = field(default_factory=dict)
     anchor: dict[str, tuple[float, float]] = field(default_factory=dict)
     slope: dict[str, float] = field(default_factory=dict)
     lag: dict[str, float] = field(default_factory=dict)
@@ -115,8 +128,14 @@ class FingerLoops:
     def __post_init__(self) -> None:
         for f in self.names:
             self.free[f], self.pressing[f], self.anchor[f], self.slope[f] = 0.0, False, (0.0, 0.0), 0.0
-            self.touched[f] = False
+            self.touched[f], self.lost[f] = False, (0.0, 0)
             self.lag[f], self.speed_now[f] = 0.0, 0.0
+
+    def _depth(self, finger: str, setpoint_N: float) -> float:
+        """How far past its surface the set-point lies by the measured stiffness [m] (at least
+        one measuring stretch)."""
+        slope = self.slope[finger]
+        return max(setpoint_N ** (1.0 / HERTZ_EXPONENT) / slope, SLOPE_BASE) if slope > 0 else SLOPE_BASE
 
     def advance(
         self, finger: str, force_N: float, setpoint_N: float, measured_m: float, command_m: float
@@ -125,21 +144,25 @@ class FingerLoops:
         given its tactile force and set-point [N] and its measured and commanded travel [m]."""
         f = finger
         G = max(force_N, 0.0) ** (1.0 / HERTZ_EXPONENT)
-        if force_N < TOUCH_FRACTION * setpoint_N:
-            self.pressing[f], self.free[f] = False, measured_m  # not (or no longer) touching
+        depth = self._depth(f, setpoint_N)
+        if force_N < TOUCH_FRACTION * setpoint_N:  # not (or no longer) touching
+            where, reads = self.lost[f]
+            self.lost[f] = (measured_m, 1) if self.pressing[f] else (where, reads + 1)
+            self.pressing[f], self.free[f] = False, measured_m
         elif not self.pressing[f]:
             self.pressing[f] = True
-            if self.slope[f] > 0 or not self.touched[f]:
-                # (a touch again keeps the stiffness measured before and measures it anew from
-                # here; before it is measured once, it is measured from the first touch)
-                self.anchor[f] = (measured_m, G)
-            self.touched[f] = True
             v0 = self.speed_now[f]
             if self.lag[f] == 0.0 and v0 > 0:  # the first touch under way
                 self.lag[f] = max(command_m - measured_m, 0.0) / v0
-                # (only here: brought back at every touch, a finger whose force hovers at the
-                # touch force, the object bouncing off it, never closes on its set-point)
-                command_m = min(command_m, measured_m)
+            if not self.touched[f] or abs(measured_m - self.lost[f][0]) > depth:
+                # a first touch, or a contact found again elsewhere: its stiffness is measured
+                # from here, and the command comes back to the fingertip (a touch again where
+                # the contact was lost keeps both: brought back at every touch, a finger whose
+                # force hovers at the touch force, the object bouncing off it, never closes)
+                self.anchor[f], self.slope[f] = (measured_m, G), 0.0
+                if v0 > 0:
+                    command_m = min(command_m, measured_m)
+            self.touched[f] = True
             self.speed_now[f] = 0.0
         if self.pressing[f]:
             x0, G0 = self.anchor[f]
@@ -148,9 +171,14 @@ class FingerLoops:
                 if (G - G0) / dx > 0:
                     self.slope[f] = (G - G0) / dx
                 self.anchor[f] = (measured_m, G)
-        # (a contact lost after its stiffness was measured is sought at the approach of the
-        # set-point, not at full speed: a tactile reading that drops out must not press on)
-        slope = self.slope[f] if self.pressing[f] or self.slope[f] > 0 else None
+            slope: float | None = self.slope[f]
+        elif self.touched[f] and self.lost[f][1] == 1:
+            self.speed_now[f] = 0.0  # a single reading without contact: the finger waits
+            return 0.0, command_m
+        elif self.slope[f] > 0 and abs(measured_m - self.lost[f][0]) <= depth:
+            slope = self.slope[f]  # a contact lost nearby: sought at the approach of the set-point
+        else:
+            slope = None  # not touched yet, or the contact is not near: the approach
         cap = COMING_LAGS * self.lag[f] * abs(self.speed_now[f])
         coming = min(max(command_m - measured_m, -cap), cap)  # (< 0: backing off)
         response = max(self.response_time, LAG_FACTOR * self.lag[f])
