@@ -11,7 +11,7 @@ Phases, all driven through the :class:`~softgrasp.execution.protocol.Hand` inter
    ``speed`` until it touches (the command comes back to the fingertip at its first touch),
    then a first-order approach of the set-point over ``response_time``; the closing is done
    when every finger has stayed within ``tolerance`` of its set-point for ``settle_band``
-   seconds;
+   seconds (a single reading without contact after a touch counting as the one before it);
 3. **lift**: the base rises ``lift`` metres at ``lift_speed`` on average (a half-cosine profile),
    the fingers holding the posture that reached the set-points;
 4. **hold**: ``hold_time`` seconds at the top.
@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, SimulationUnstable
-from softgrasp.execution.force_loop import FingerLoops
+from softgrasp.execution.force_loop import TOUCH_FRACTION, FingerLoops
 from softgrasp.execution.protocol import Hand
 from softgrasp.hand.placement import invert, transform
 from softgrasp.io.planfile import PlanFile
@@ -351,6 +351,8 @@ def execute_plan(
     t_limit = hand.time + cfg.max_close_time
     inside_since: float | None = None
     reached = False
+    touch = {f: TOUCH_FRACTION * lines[f].setpoint for f in names}
+    before = dict.fromkeys(names, 0.0)
     while hand.time < t_limit - 1e-12:
         forces = last
         for f in names:
@@ -360,7 +362,11 @@ def execute_plan(
             touching = True
             if on_event is not None:
                 on_event("contact")
-        within = all(abs(forces[f] - lines[f].setpoint) <= cfg.tolerance * lines[f].setpoint for f in names)
+        # a single reading without contact after a touch: waited out by the finger (force_loop)
+        # and by the band, which counts the reading before it
+        judged = {f: before[f] if forces[f] < touch[f] <= before[f] else forces[f] for f in names}
+        before = dict(forces)
+        within = all(abs(judged[f] - lines[f].setpoint) <= cfg.tolerance * lines[f].setpoint for f in names)
         if within:
             inside_since = hand.time if inside_since is None else inside_since
             if hand.time - inside_since >= cfg.settle_band - 1e-12:
