@@ -331,7 +331,6 @@ def test_the_held_state_and_the_closing_open_in_paraview(planned_ellipsoid) -> N
     assert np.abs(last.point_data["contact_force_N"]).sum() > 0
 
 
-# ---------------------------------------------------------------------------- outputs of every command
 def test_the_users_ellipsoid_is_executed_in_mujoco_without_pressing_past_its_set_points(planned_ellipsoid):
     """The millimetre ellipsoid's plan (a coarse 162-point STL meshed by softgrasp, 200 kPa),
     executed in MuJoCo: its fingertips lose their contacts for single periods on the coarse flex,
@@ -347,6 +346,7 @@ def test_the_users_ellipsoid_is_executed_in_mujoco_without_pressing_past_its_set
     assert run.result.reached and run.lifted, run.to_dict()
 
 
+# ---------------------------------------------------------------------------- outputs of every command
 def _files(folder: Path) -> list[Path]:
     return [p for p in folder.rglob("*") if p.is_file()]
 
