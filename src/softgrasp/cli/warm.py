@@ -37,7 +37,7 @@ import numpy as np
 
 from softgrasp.backend import compiled
 
-__all__ = ["COMPILE_TIME_S", "WarmUp", "cold", "warm_up", "warm_up_in_background"]
+__all__ = ["COMPILE_TIME_S", "WarmUp", "cold", "main", "warm_up", "warm_up_in_background"]
 
 #: About how long compiling the kernels takes on a first run [s] (on a 2-core machine, the
 #: fingertip contact's in a second process).
