@@ -184,7 +184,8 @@ def test_a_reading_that_drops_out_neither_presses_on_nor_holds_up_the_closing(k,
     after each, pressed 2 times (soft) and 113-425 times (stiff) its set-point, and no closing
     with dropouts ended before its 6 s limit."""
     cfg = ExecuteConfig(lift=0.05, hold_time=0.5)
-    steady = execute_plan(SpringHand(k=k), lines_for(SpringHand(k=k), 0.3), cfg)
+    steady_hand = SpringHand(k=k)
+    steady = execute_plan(steady_hand, lines_for(steady_hand, 0.3), cfg)
     hand = DroppingOutHand(every, k=k)
     res = execute_plan(hand, lines_for(hand, 0.3), cfg)
     close = res.series["phase"] == 1

@@ -43,5 +43,5 @@ def interrupted() -> bool:
 
 def raise_if_interrupted() -> None:
     """Raise ``KeyboardInterrupt`` if a Ctrl-C was received, even one a library swallowed."""
-    if _RECEIVED.is_set():
+    if interrupted():
         raise KeyboardInterrupt

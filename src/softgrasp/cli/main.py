@@ -84,15 +84,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return status
     except KeyboardInterrupt:
         return _interrupted(argv)
-    except SoftgraspError as exc:
-        if interrupt.interrupted():  # a Ctrl-C a library turned into its own error, then softgrasp
+    except Exception as exc:
+        # a Ctrl-C a library turned into its own error (NumPy's ImportError when it lands in its
+        # initialisation), which softgrasp may have turned into its own (a missing extra)
+        if interrupt.interrupted():
             return _interrupted(argv)
-        print(f"softgrasp: error: {exc}", file=sys.stderr)
-        return exit_status(exc)
-    except Exception as exc:  # a bug: keep it to one line unless asked
-        if interrupt.interrupted():  # a Ctrl-C a library turned into its own error (NumPy's
-            return _interrupted(argv)  # ImportError when it lands in its initialisation)
-        if args.debug:
+        if isinstance(exc, SoftgraspError):
+            print(f"softgrasp: error: {exc}", file=sys.stderr)
+            return exit_status(exc)
+        if args.debug:  # a bug: keep it to one line unless asked
             raise
         print(
             f"softgrasp: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",

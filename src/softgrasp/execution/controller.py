@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from softgrasp.errors import ConfigError, SimulationUnstable
-from softgrasp.execution.force_loop import TOUCH_FRACTION, FingerLoops
+from softgrasp.execution.force_loop import FingerLoops
 from softgrasp.execution.protocol import Hand
 from softgrasp.hand.placement import invert, transform
 from softgrasp.io.planfile import PlanFile
@@ -351,8 +351,6 @@ def execute_plan(
     t_limit = hand.time + cfg.max_close_time
     inside_since: float | None = None
     reached = False
-    touch = {f: TOUCH_FRACTION * lines[f].setpoint for f in names}
-    before = dict.fromkeys(names, 0.0)
     while hand.time < t_limit - 1e-12:
         forces = last
         for f in names:
@@ -362,11 +360,10 @@ def execute_plan(
             touching = True
             if on_event is not None:
                 on_event("contact")
-        # a single reading without contact after a touch: waited out by the finger (force_loop)
-        # and by the band, which counts the reading before it
-        judged = {f: before[f] if forces[f] < touch[f] <= before[f] else forces[f] for f in names}
-        before = dict(forces)
-        within = all(abs(judged[f] - lines[f].setpoint) <= cfg.tolerance * lines[f].setpoint for f in names)
+        # (a single reading without contact after a touch, which the finger waits out, counts
+        # as the reading before it)
+        counted = {f: loops.counted(f, forces[f], lines[f].setpoint) for f in names}
+        within = all(abs(counted[f] - lines[f].setpoint) <= cfg.tolerance * lines[f].setpoint for f in names)
         if within:
             inside_since = hand.time if inside_since is None else inside_since
             if hand.time - inside_since >= cfg.settle_band - 1e-12:

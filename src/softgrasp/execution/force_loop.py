@@ -111,6 +111,7 @@ class FingerLoops:
     lag: the hand's position lag measured at the finger's first touch under way [s]; the finger's
         time constant is ``response_time`` or :data:`LAG_FACTOR` lags, whichever is longer.
     speed_now: each finger's latest commanded speed [m/s].
+    force: each finger's latest tactile reading [N].
     """
 
     names: tuple[str, ...]
@@ -124,12 +125,20 @@ class FingerLoops:
     slope: dict[str, float] = field(default_factory=dict)
     lag: dict[str, float] = field(default_factory=dict)
     speed_now: dict[str, float] = field(default_factory=dict)
+    force: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for f in self.names:
             self.free[f], self.pressing[f], self.anchor[f], self.slope[f] = 0.0, False, (0.0, 0.0), 0.0
             self.touched[f], self.lost[f] = False, (0.0, 0)
-            self.lag[f], self.speed_now[f] = 0.0, 0.0
+            self.lag[f], self.speed_now[f], self.force[f] = 0.0, 0.0, 0.0
+
+    def counted(self, finger: str, force_N: float, setpoint_N: float) -> float:
+        """The force [N] a new reading counts for, before :meth:`advance` takes it: the reading,
+        except that a single reading without contact after a touch, which the finger waits out,
+        counts as the reading before it."""
+        lost = self.pressing[finger] and force_N < TOUCH_FRACTION * setpoint_N
+        return self.force[finger] if lost else force_N
 
     def _depth(self, finger: str, setpoint_N: float) -> float:
         """How far past its surface the set-point lies by the measured stiffness [m] (at least
@@ -143,6 +152,7 @@ class FingerLoops:
         """The finger's speed [m/s] and the command [m] (travel along its line) to advance from,
         given its tactile force and set-point [N] and its measured and commanded travel [m]."""
         f = finger
+        self.force[f] = force_N
         G = max(force_N, 0.0) ** (1.0 / HERTZ_EXPONENT)
         depth = self._depth(f, setpoint_N)
         if force_N < TOUCH_FRACTION * setpoint_N:  # not (or no longer) touching
