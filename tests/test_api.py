@@ -16,7 +16,7 @@ from softgrasp.cli import main
 from softgrasp.model.material import Material as ModelMaterial
 
 #: ``softgrasp plan``'s default normal-force set-points [N] (thumb, first, middle).
-DEFAULT_NORMAL_N = {"thumb": 0.310, "first": 0.202, "middle": 0.209}
+DEFAULT_NORMAL_N = {"thumb": 0.299, "first": 0.202, "middle": 0.208}
 
 
 @pytest.fixture(scope="module")

@@ -118,6 +118,18 @@ def test_material_file_round_trip(tmp_path):
     assert back.contact_params(ContactParams()) == c
 
 
+def test_a_material_file_naming_a_contact_law_gets_that_laws_defaults(tmp_path):
+    """``contact_law = "paper"`` alone, over the default (resolved) law: the paper's prefactor 2
+    (Eq. 11) and the facets' normals, not the resolved law's Hertz 4/3 and smooth normals; a
+    prefactor the file gives is kept."""
+    (tmp_path / "paper.toml").write_text('[contact]\ncontact_law = "paper"\n')
+    (tmp_path / "given.toml").write_text('[contact]\ncontact_law = "paper"\nstiffness_prefactor = 1.7\n')
+    paper = read_material_file(tmp_path / "paper.toml").contact_params(ContactParams())
+    assert (paper.law, paper.prefactor, paper.normals) == ("paper", 2.0, "facet")
+    given = read_material_file(tmp_path / "given.toml").contact_params(ContactParams())
+    assert (given.prefactor, given.normals) == (1.7, "facet")
+
+
 @pytest.mark.parametrize(
     ("text", "error", "message"),
     [

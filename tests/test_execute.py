@@ -8,7 +8,7 @@ import pytest
 
 from softgrasp.errors import ConfigError
 from softgrasp.execution.controller import ClosingLine, ExecuteConfig, execute_plan
-from softgrasp.execution.force_loop import SLOPE_BASE, closing_speed
+from softgrasp.execution.force_loop import PAST_SETPOINT, SLOPE_BASE, FingerLoops, closing_speed
 from softgrasp.execution.protocol import Hand
 
 G = 9.81
@@ -228,6 +228,23 @@ def test_a_contact_lost_for_good_is_found_again_at_the_approach_speed(k, away):
     close = res.series["phase"] == 1
     assert res.reached and res.series["force"][close].max() <= 0.3 * (1 + cfg.tolerance)
     assert res.lifted
+
+
+def test_a_finger_holds_while_another_presses_past_its_set_point():
+    """Two fingers in contact on one object, the middle short of its set-point: it presses on
+    while the thumb is within :data:`PAST_SETPOINT` of its own set-point and holds its command
+    (speed 0) once the thumb presses further past it, since pressing on would push the object
+    into the thumb; a finger still approaching is not held."""
+    loops = FingerLoops(("thumb", "middle", "first"), response_time=0.05, speed=0.005)
+    for k in range(6):  # both touch and measure their stiffness: G rises 0.02 per 10 um
+        for f in ("thumb", "middle"):
+            loops.advance(f, (0.02 * k + 0.02) ** 1.5, 0.3, 1e-5 * k, 1e-5 * k)
+    loops.advance("first", 0.0, 0.3, 0.0, 0.0)
+    loops.advance("thumb", 0.3 * (1 + 0.5 * PAST_SETPOINT), 0.3, 6e-5, 6e-5)
+    assert loops.advance("middle", 0.2, 0.3, 6e-5, 6e-5)[0] > 0
+    loops.advance("thumb", 0.3 * (1 + 2 * PAST_SETPOINT), 0.3, 6e-5, 6e-5)
+    assert loops.advance("middle", 0.2, 0.3, 6e-5, 6e-5)[0] == 0.0
+    assert loops.advance("first", 0.0, 0.3, 1e-5, 1e-5)[0] == 0.005  # approaching at full speed
 
 
 def test_too_small_set_points_drop_the_object():

@@ -75,8 +75,24 @@ def closest_points(
     return q, bary
 
 
-def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool) -> ContactPairs:
-    """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``."""
+def smooth_normals(tri: NDArray[np.float64], corners: NDArray[np.float64], bary: NDArray[np.float64]):
+    """Phong's normal (k, 3) of triangles ``tri`` (k, 3, 3) at barycentric coordinates ``bary``
+    (k, 3) (clipped to the triangle), from corner normals ``corners`` (k, 3, 3) given in each
+    triangle's frame (e1 along its first edge, e2 = n x e1, n): rotated by that frame's matrix."""
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    e1 = tri[:, 1] - tri[:, 0]
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    frame = np.stack([e1, np.cross(n, e1), n], axis=2)  # columns e1, e2, n: (k, 3, 3)
+    world = np.einsum("kab,kib->kia", frame, corners)  # each corner normal in world axes
+    w = np.clip(bary, 0.0, None)
+    s = np.einsum("ki,kia->ka", w / w.sum(axis=1)[:, None], world)
+    return s / np.linalg.norm(s, axis=1)[:, None]
+
+
+def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool, corners=None) -> ContactPairs:
+    """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``;
+    normals the smooth surface's given the mesh's ``corners`` (F, 3, 3)."""
     tri = x[facets[fj]]  # (k, 3, 3) candidates only
     a, b, c3 = tri[:, 0], tri[:, 1], tri[:, 2]
     nrm = np.cross(b - a, c3 - a)
@@ -101,12 +117,13 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bo
         ok = (d > 0) & (d < R) & (low >= -INSIDE_TOL)
     if keep_all:
         ok = np.ones(len(fj), bool)
+    normal = n if corners is None else smooth_normals(tri, corners[fj], bary)
     return ContactPairs(
         finger=fi[ok],
         facet=fj[ok],
         bary=bary[ok],
         point=point[ok],
-        normal=n[ok],
+        normal=normal[ok],
         distance=dist[ok],
         depth=R[ok] - dist[ok],
         area=0.5 * twice_area[ok],
@@ -114,11 +131,13 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bo
     )
 
 
-def pair_geometry(x, facets, centres, radii, finger, facet, *, closest: bool = False) -> ContactPairs:
+def pair_geometry(x, facets, centres, radii, finger, facet, *, closest: bool = False, corners=None) -> ContactPairs:
     """:func:`softgrasp.physics.fingertip.geometry.pair_geometry` by NumPy."""
     if len(facet) == 0:
         return _empty()
-    return _narrow_phase(x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True)
+    return _narrow_phase(
+        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True, corners=corners
+    )
 
 
 def candidates_nodes(
@@ -169,13 +188,13 @@ def relative_velocity(
     return vr, vn, vr - vn
 
 
-def oracle_detect(x, facets, centres, radii, *, closest: bool, index: FacetIndex) -> ContactPairs:
+def oracle_detect(x, facets, centres, radii, *, closest: bool, index: FacetIndex, corners=None) -> ContactPairs:
     """The touching pairs by NumPy (the node-index broad phase, then the vectorised narrow phase
     of :mod:`softgrasp.physics.fingertip.geometry`), in the compiled detection's order."""
     fi, fj = candidates_nodes(x, index, centres, radii)
     if fj.size == 0:
         return _empty()
-    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False)
+    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False, corners=corners)
 
 
 class OracleFingertipContact(FingertipContact):
@@ -184,7 +203,15 @@ class OracleFingertipContact(FingertipContact):
     def pairs(self, body: Body, x: NDArray[np.float64], t: float) -> ContactPairs:
         """Touching pairs at positions x and time t, detected by NumPy."""
         index = FacetIndex.of(body.mesh)
-        return oracle_detect(x, body.mesh.facets, self.centres(t), self._radii(), closest=self._closest(), index=index)
+        return oracle_detect(
+            x,
+            body.mesh.facets,
+            self.centres(t),
+            self._radii(),
+            closest=self._closest(),
+            index=index,
+            corners=self.corners(body),
+        )
 
     def _patch_weights(self, pairs: ContactPairs) -> NDArray[np.float64]:
         if self.params.rule == "facet" or len(pairs) == 0:
@@ -359,7 +386,9 @@ class OracleFingertipContact(FingertipContact):
         centres, radii = self.centres(t), self._radii()
 
         def forces(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            pairs = pair_geometry(x, body.mesh.facets, centres, radii, finger, facet, closest=closest)
+            pairs = pair_geometry(
+                x, body.mesh.facets, centres, radii, finger, facet, closest=closest, corners=self.corners(body)
+            )
             return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True, pairs=pairs))
 
         return forces

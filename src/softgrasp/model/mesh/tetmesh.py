@@ -253,6 +253,14 @@ class TetMesh:
         return _frozen(n / np.linalg.norm(n, axis=1, keepdims=True))
 
     @cached_property
+    def facet_corner_normals(self) -> NDArray[np.float64]:
+        """The smooth surface's unit normal at each corner of each boundary facet, in the facet's
+        rest frame, shape ``(F, 3, 3)`` (:func:`softgrasp.model.mesh.normals.corner_normals`)."""
+        from softgrasp.model.mesh.normals import corner_normals
+
+        return corner_normals(self.points, self.facets, self.node_facets)
+
+    @cached_property
     def facet_areas(self) -> NDArray[np.float64]:
         """Areas [m^2] of the boundary facets, shape ``(F,)``."""
         p = self.points[self.facets]

@@ -73,6 +73,7 @@ def _fingertip_forces(
     x,
     v,
     facets,
+    corners,
     boundary,
     indptr,
     indices,
@@ -100,7 +101,7 @@ def _fingertip_forces(
     """Dynamic contact forces added to ``out`` (N, 3) (or wider: columns 0-2); returns the number of
     touching pairs."""
     finger, facet, val = _detect(
-        x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
+        x, facets, corners, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
     _pair_forces(
         finger, facet, val, x, v, facets, centres, radii, velocities, omegas, law, C, mu, n_exp,
@@ -111,16 +112,16 @@ def _fingertip_forces(
 
 @_jit
 def _static_forces(
-    x, facets, boundary, indptr, indices, reach, centres, radii, law, closest, inside_tol, mu, n_exp, patch,
+    x, facets, corners, boundary, indptr, indices, reach, centres, radii, law, closest, inside_tol, mu, n_exp, patch,
     ratio, min_depth_ratio, active, anchor, offset, memory, pinned, finger, facet, out,
 ):  # pragma: no cover - compiled
     """Contact forces at rest added to ``out`` (N, 3), of the touching pairs (detected), or with
     ``pinned`` of the given pairs (finger, facet) followed to ``x``."""
     if pinned:
-        val = _pinned_values(x, facets, centres, radii, finger, facet, closest)
+        val = _pinned_values(x, facets, corners, centres, radii, finger, facet, closest)
     else:
         finger, facet, val = _detect(
-            x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
+            x, facets, corners, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
         )
     # At rest (static=True) the loop reads no velocities: x, centres and radii stand in for v, the
     # fingertips' velocities and spins, and C (which only multiplies the zero penetration rate).
@@ -135,6 +136,7 @@ def _static_forces(
 def _fingertip_update(
     x,
     facets,
+    corners,
     boundary,
     indptr,
     indices,
@@ -162,7 +164,7 @@ def _fingertip_update(
 ):  # pragma: no cover - compiled
     """Algorithm 1's state update into the zeroed ``new_*`` arrays; returns the pair count."""
     finger, facet, val = _detect(
-        x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
+        x, facets, corners, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
     )
     return _update_pairs(
         finger, facet, val, x, facets, centres, radii, law, mu, n_exp, patch, ratio, min_depth_ratio, active,
@@ -238,6 +240,7 @@ def fingertip_forces(
     x: NDArray[np.float64],
     v: NDArray[np.float64],
     facets: NDArray[np.int64],
+    corners: NDArray[np.float64] | None,
     boundary_nodes: NDArray[np.int64],
     indptr: NDArray[np.int64],
     indices: NDArray[np.int64],
@@ -267,9 +270,11 @@ def fingertip_forces(
     :meth:`softgrasp.physics.fingertip.contact.FingertipContact.law_table` gives it, damping C
     [N s/m]) with friction state (active
     (n_f, F), anchor (n_f, F, 3), offset (n_f, F, 3) [m], memory (n_f, 3) [m]); parameters as in
-    :class:`softgrasp.physics.fingertip.params.ContactParams` (``ratio`` = k_t / k_n)."""
+    :class:`softgrasp.physics.fingertip.params.ContactParams` (``ratio`` = k_t / k_n); ``corners``
+    the mesh's corner normals for the smooth surface's normal, None for the facets'
+    (:func:`~softgrasp.physics.fingertip.detect.detect_arrays`)."""
     f64 = np.float64
-    geometry = _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii)
+    geometry = _geometry_args(x, facets, corners, boundary_nodes, indptr, indices, reach, centres, radii)
     out = np.zeros_like(geometry[0])
     _fingertip_forces(
         geometry[0],
@@ -299,6 +304,7 @@ def fingertip_forces(
 def fingertip_static_forces(
     x: NDArray[np.float64],
     facets: NDArray[np.int64],
+    corners: NDArray[np.float64] | None,
     boundary_nodes: NDArray[np.int64],
     indptr: NDArray[np.int64],
     indices: NDArray[np.int64],
@@ -327,7 +333,7 @@ def fingertip_static_forces(
     (:meth:`~softgrasp.physics.fingertip.contact.FingertipContact.pinned_static_forces`). Arguments as
     :func:`fingertip_forces`."""
     f64, i64 = np.float64, np.int64
-    geometry = _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii)
+    geometry = _geometry_args(x, facets, corners, boundary_nodes, indptr, indices, reach, centres, radii)
     out = np.zeros_like(geometry[0])
     finger, facet = (np.zeros(0, i64), np.zeros(0, i64)) if pairs is None else pairs
     _static_forces(
@@ -346,6 +352,7 @@ def fingertip_static_forces(
 def fingertip_update(
     x: NDArray[np.float64],
     facets: NDArray[np.int64],
+    corners: NDArray[np.float64] | None,
     boundary_nodes: NDArray[np.int64],
     indptr: NDArray[np.int64],
     indices: NDArray[np.int64],
@@ -379,7 +386,7 @@ def fingertip_update(
     new_slip = np.zeros(slip.shape)
     new_memory = np.zeros(memory.shape)
     _fingertip_update(
-        *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
+        *_geometry_args(x, facets, corners, boundary_nodes, indptr, indices, reach, centres, radii),
         *_law_args(law, closest, inside_tol, mu, exponent, patch, ratio, min_depth_ratio),
         *_state_args(active, anchor, offset),
         np.ascontiguousarray(slip, dtype=f64),

@@ -161,7 +161,14 @@ class FingertipContact:
         """Touching pairs at positions x and time t."""
         index = FacetIndex.of(body.mesh)
         centres, radii = self.centres(t), self._radii()
-        return detect(x, body.mesh.facets, centres, radii, closest=self._closest(), index=index)
+        return detect(
+            x, body.mesh.facets, centres, radii, closest=self._closest(), index=index, corners=self.corners(body)
+        )
+
+    def corners(self, body: Body) -> NDArray[np.float64] | None:
+        """The mesh's corner normals when the pairs' normals are the smooth surface's
+        (``params.normals``), else None (the facets' own)."""
+        return body.mesh.facet_corner_normals if self.params.normals == "smooth" else None
 
     # ------------------------------------------------------------------ core evaluation
     def _anchor_points(self, body: Body, x, pairs: ContactPairs, state: FingerState, t: float):
@@ -271,6 +278,7 @@ class FingertipContact:
         index = FacetIndex.of(body.mesh)
         return {
             "facets": body.mesh.facets,
+            "corners": self.corners(body),
             "boundary_nodes": index.boundary_nodes,
             "indptr": index.indptr,
             "indices": index.indices,

@@ -4,7 +4,10 @@
 around them, through the mesh's :class:`~softgrasp.physics.fingertip.geometry.FacetIndex`) and the
 narrow phase (contact point, barycentric coordinates, contact normal, distance, penetration
 ``delta = R - d``, area, facing factor; the paper's projection test or the sphere's overlap with the
-triangle, :mod:`softgrasp.physics.fingertip.geometry` describes both) in one pass. Pairs come out
+triangle, :mod:`softgrasp.physics.fingertip.geometry` describes both) in one pass. The contact
+normal is the facet's, or given the mesh's corner normals
+(:attr:`~softgrasp.model.mesh.tetmesh.TetMesh.facet_corner_normals`, (F, 3, 3); an empty (0, 3, 3)
+array for the facet's) the smooth surface's at the contact point (:func:`_smooth_normal`). Pairs come out
 by fingertip, then by facet index. :func:`pair_values` runs the narrow phase on given pairs (the
 candidates of another broad phase, or pairs followed to new positions, touching or not). A pair's values are one row of 13: bary 0-2, point 3-5, normal 6-8, distance 9,
 depth 10, area 11, facing 12.
@@ -19,7 +22,7 @@ from numpy.typing import NDArray
 
 from softgrasp import jitcache
 
-__all__ = ["detect_arrays", "pair_values"]
+__all__ = ["corner_args", "detect_arrays", "pair_values"]
 
 _jit = jitcache.jit(fastmath=False, error_model="numpy")
 
@@ -55,13 +58,50 @@ def _closest_point(px, py, pz, tri, near):  # pragma: no cover - compiled
 
 
 @_jit
-def _pair_values(tri, cx, cy, cz, R, closest, inside_tol, keep, near, row):  # pragma: no cover
-    """Narrow phase of the sphere (centre c, radius R) against triangle ``tri`` (3, 3): writes the
-    pair's values to ``row`` (13: bary 0-2, point 3-5, normal 6-8, distance 9, depth 10, area 11,
-    facing 12; ``near`` (3) is scratch) and returns whether it touches (as
-    :func:`softgrasp.physics.fingertip.geometry.detect` with ``closest`` decides). With ``keep`` the values
-    are written whether it touches or not, and it returns True (a pinned pair followed through a
-    small displacement, as :func:`softgrasp.physics.fingertip.geometry.pair_geometry`: depth may be <= 0)."""
+def _smooth_normal(tri, nx, ny, nz, corners, near, row):  # pragma: no cover - compiled
+    """The smooth surface's unit normal at the contact point written to ``row[6:9]``: the facet's
+    corner normals ``corners`` (3, 3), given in its rest frame, turned into its current frame
+    (e1 along ``tri[1] - tri[0]``, e2 = n x e1, its unit normal n) and interpolated by the
+    contact point's barycentric coordinates ``near`` (those outside the triangle clipped to it:
+    a pinned pair followed beyond its facet), then normalised (Phong's normal;
+    :mod:`softgrasp.model.mesh.normals`)."""
+    ex = tri[1, 0] - tri[0, 0]
+    ey = tri[1, 1] - tri[0, 1]
+    ez = tri[1, 2] - tri[0, 2]
+    le = math.sqrt(ex * ex + ey * ey + ez * ez)
+    ex /= le
+    ey /= le
+    ez /= le
+    fx = ny * ez - nz * ey
+    fy = nz * ex - nx * ez
+    fz = nx * ey - ny * ex
+    b0 = max(near[0], 0.0)
+    b1 = max(near[1], 0.0)
+    b2 = max(near[2], 0.0)
+    bs = b0 + b1 + b2
+    s1 = (b0 * corners[0, 0] + b1 * corners[1, 0] + b2 * corners[2, 0]) / bs
+    s2 = (b0 * corners[0, 1] + b1 * corners[1, 1] + b2 * corners[2, 1]) / bs
+    s3 = (b0 * corners[0, 2] + b1 * corners[1, 2] + b2 * corners[2, 2]) / bs
+    sx = s1 * ex + s2 * fx + s3 * nx
+    sy = s1 * ey + s2 * fy + s3 * ny
+    sz = s1 * ez + s2 * fz + s3 * nz
+    ls = math.sqrt(sx * sx + sy * sy + sz * sz)
+    row[6] = sx / ls
+    row[7] = sy / ls
+    row[8] = sz / ls
+
+
+@_jit
+def _pair_values(tri, cx, cy, cz, R, closest, inside_tol, keep, near, row, corners, j):  # pragma: no cover
+    """Narrow phase of the sphere (centre c, radius R) against triangle ``tri`` (3, 3), facet
+    ``j`` of the mesh: writes the pair's values to ``row`` (13: bary 0-2, point 3-5, normal 6-8,
+    distance 9, depth 10, area 11, facing 12; ``near`` (3) is scratch) and returns whether it
+    touches (as :func:`softgrasp.physics.fingertip.geometry.detect` with ``closest`` decides). With
+    ``keep`` the values are written whether it touches or not, and it returns True (a pinned pair
+    followed through a small displacement, as
+    :func:`softgrasp.physics.fingertip.geometry.pair_geometry`: depth may be <= 0). The normal is the
+    facet's when ``corners`` is empty, else the smooth surface's (:func:`_smooth_normal` of
+    ``corners[j]``); the penetration is the facet's in both."""
     ux = tri[1, 0] - tri[0, 0]
     uy = tri[1, 1] - tri[0, 1]
     uz = tri[1, 2] - tri[0, 2]
@@ -125,9 +165,12 @@ def _pair_values(tri, cx, cy, cz, R, closest, inside_tol, keep, near, row):  # p
     row[3] = Qx
     row[4] = Qy
     row[5] = Qz
-    row[6] = nx
-    row[7] = ny
-    row[8] = nz
+    if corners.shape[0] > 0:
+        _smooth_normal(tri, nx, ny, nz, corners[j], near, row)
+    else:
+        row[6] = nx
+        row[7] = ny
+        row[8] = nz
     row[9] = dist
     row[10] = R - dist
     row[11] = 0.5 * twice_area
@@ -137,7 +180,7 @@ def _pair_values(tri, cx, cy, cz, R, closest, inside_tol, keep, near, row):  # p
 
 @_jit
 def _detect(
-    x, facets, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
+    x, facets, corners, boundary, indptr, indices, reach, centres, radii, closest, inside_tol
 ):  # pragma: no cover
     """Touching pairs (see :func:`detect_arrays`), per fingertip in increasing facet order."""
     n_fingers = centres.shape[0]
@@ -201,7 +244,7 @@ def _detect(
             ez = cz - gz
             if ex * ex + ey * ey + ez * ez > lim * lim:
                 continue
-            if not _pair_values(tri, cx, cy, cz, R, closest, inside_tol, np.bool_(False), near, real[k]):
+            if not _pair_values(tri, cx, cy, cz, R, closest, inside_tol, np.bool_(False), near, real[k], corners, j):
                 continue
             finger[k] = f
             facet[k] = j
@@ -209,13 +252,15 @@ def _detect(
     return finger[:k].copy(), facet[:k].copy(), real[:k].copy()
 
 
-def _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii) -> tuple:
+def _geometry_args(x, facets, corners, boundary_nodes, indptr, indices, reach, centres, radii) -> tuple:
     """The mesh, broad-phase index and fingertip arguments every compiled contact kernel takes
-    first, as the contiguous float64 / int64 arrays (and floats) the kernels are compiled for."""
+    first, as the contiguous float64 / int64 arrays (and floats) the kernels are compiled for;
+    ``corners`` None for the facets' own normals."""
     f64, i64 = np.float64, np.int64
     return (
         np.ascontiguousarray(x, dtype=f64),
         np.ascontiguousarray(facets, dtype=i64),
+        corner_args(corners),
         np.ascontiguousarray(boundary_nodes, dtype=i64),
         np.ascontiguousarray(indptr, dtype=i64),
         np.ascontiguousarray(indices, dtype=i64),
@@ -225,9 +270,19 @@ def _geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, r
     )
 
 
+def corner_args(corners: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """A mesh's corner normals (F, 3, 3) as the kernels take them (read-only, as the mesh's are:
+    one compiled signature); None (the facets' own normals) as an empty (0, 3, 3) array."""
+    a = np.zeros((0, 3, 3)) if corners is None else np.ascontiguousarray(corners, dtype=np.float64)
+    view = a.reshape(-1, 3, 3).view()
+    view.flags.writeable = False
+    return view
+
+
 def detect_arrays(
     x: NDArray[np.float64],
     facets: NDArray[np.int64],
+    corners: NDArray[np.float64] | None,
     boundary_nodes: NDArray[np.int64],
     indptr: NDArray[np.int64],
     indices: NDArray[np.int64],
@@ -242,16 +297,17 @@ def detect_arrays(
     :class:`~softgrasp.physics.fingertip.geometry.ContactPairs`).
 
     ``reach`` [m] is the broad phase's margin beyond each radius (a surface node farther than
-    R + reach from a centre has no facet in contact)."""
+    R + reach from a centre has no facet in contact); ``corners`` the mesh's corner normals for
+    the smooth surface's normal, None for the facets'."""
     return _detect(
-        *_geometry_args(x, facets, boundary_nodes, indptr, indices, reach, centres, radii),
+        *_geometry_args(x, facets, corners, boundary_nodes, indptr, indices, reach, centres, radii),
         bool(closest),
         float(inside_tol),
     )
 
 
 @_jit
-def _candidate_values(x, facets, centres, radii, finger, facet, closest, inside_tol, keep):  # pragma: no cover
+def _candidate_values(x, facets, corners, centres, radii, finger, facet, closest, inside_tol, keep):  # pragma: no cover
     """The narrow phase (:func:`_pair_values`) of the given (finger, facet) pairs at ``x``:
     (whether each touches (k,), their values (k, 13)); with ``keep`` every pair's values, whether
     it touches or not (all True)."""
@@ -269,20 +325,21 @@ def _candidate_values(x, facets, centres, radii, finger, facet, closest, inside_
             tri[r, 1] = x[node, 1]
             tri[r, 2] = x[node, 2]
         cx, cy, cz = centres[f, 0], centres[f, 1], centres[f, 2]
-        touch[p] = _pair_values(tri, cx, cy, cz, radii[f], closest, inside_tol, keep, near, val[p])
+        touch[p] = _pair_values(tri, cx, cy, cz, radii[f], closest, inside_tol, keep, near, val[p], corners, j)
     return touch, val
 
 
 @_jit
-def _pinned_values(x, facets, centres, radii, finger, facet, closest):  # pragma: no cover - compiled
+def _pinned_values(x, facets, corners, centres, radii, finger, facet, closest):  # pragma: no cover - compiled
     """The values (k, 13) of the given (finger, facet) pairs at ``x`` (:func:`_pair_values` with
     ``keep``), whether they touch there or not."""
-    return _candidate_values(x, facets, centres, radii, finger, facet, closest, 0.0, np.bool_(True))[1]
+    return _candidate_values(x, facets, corners, centres, radii, finger, facet, closest, 0.0, np.bool_(True))[1]
 
 
 def pair_values(
     x: NDArray[np.float64],
     facets: NDArray[np.int64],
+    corners: NDArray[np.float64] | None,
     centres: NDArray[np.float64],
     radii: NDArray[np.float64],
     finger: NDArray[np.int64],
@@ -294,13 +351,15 @@ def pair_values(
     """The narrow phase of given (fingertip, facet) pairs (finger (k,), facet (k,)): (whether each
     touches (k,), its values (k, 13), columns as :func:`detect_arrays`'); with ``keep`` the values
     of every pair, touching or not (a pinned pair followed through a displacement: depth may be
-    <= 0, the contact point outside the triangle with the paper's test)."""
+    <= 0, the contact point outside the triangle with the paper's test); ``corners`` as
+    :func:`detect_arrays`'."""
     f64, i64 = np.float64, np.int64
     tri = np.require(facets, i64, "C").view()
     tri.flags.writeable = False  # as a mesh's facets are, and x writable as a state's positions
     return _candidate_values(  # are: the kernel compiled for the plan serves this call too
         np.require(x, f64, ("C", "W")),
         tri,
+        corner_args(corners),
         np.ascontiguousarray(centres, dtype=f64).reshape(-1, 3),
         np.ascontiguousarray(radii, dtype=f64).ravel(),
         np.ascontiguousarray(finger, dtype=i64),

@@ -15,6 +15,11 @@ d_j / |c - Q_j| goes to 0 as it turns edge-on to the centre, and the patch rule 
 (its area seen from the centre). At a sharp convex edge the facets on both sides share the edge's
 closest point.
 
+The contact normal n_j is the facet's, or, given the mesh's corner normals (``corners``), the
+smooth surface's at the contact point (:mod:`softgrasp.model.mesh.normals`): a coarse mesh of a
+curved object then pushes along the object's own normal, not along a facet's tilted by up to half
+the angle between neighbouring facets. The penetration and the contact point stay the facet's.
+
 Broad phase: the surface nodes near each fingertip and the facets around them (a node-to-facet
 index computed once per mesh, :class:`FacetIndex`), so the cost grows with the boundary nodes at a
 few microseconds per thousand, not with F log F: with an index, :func:`detect` runs both phases in
@@ -50,7 +55,8 @@ class ContactPairs:
     bary: barycentric (area) coordinates A_i / A_G of the contact point, (k, 3) (Eq. 4, 8).
     point: contact point [m], (k, 3): the projection P_j of the centre on the facet (paper's test),
         or the triangle's closest point Q_j to the centre (patch rule; P_j when inside).
-    normal: the facet's outward unit normal n_j, (k, 3).
+    normal: the outward unit contact normal n_j, (k, 3): the facet's, or the smooth surface's at
+        the contact point (``corners``).
     distance: |c - point| [m], (k,) (d_j, the centre-to-plane distance, with the paper's test).
     depth: penetration delta_j = R - distance [m], (k,) (Eq. 14).
     area: current facet area [m^2], (k,).
@@ -131,6 +137,7 @@ def detect(
     *,
     closest: bool = False,
     index: FacetIndex | None = None,
+    corners: NDArray[np.float64] | None = None,
 ) -> ContactPairs:
     """All touching (fingertip, facet) pairs (Sec. 3.1).
 
@@ -144,13 +151,15 @@ def detect(
     index: the mesh's :class:`FacetIndex`: the broad phase then looks at the surface nodes near
         each fingertip (cost ~ boundary nodes, a few microseconds per thousand) instead of
         building a k-d tree of all facet centroids (cost ~ F log F).
+    corners: the mesh's corner normals (:attr:`TetMesh.facet_corner_normals`): each pair's normal
+        is then the smooth surface's at its contact point; None: the facet's.
     """
     if index is not None:
-        return _detect_compiled(x, facets, centres, radii, closest, index)
+        return _detect_compiled(x, facets, centres, radii, closest, index, corners)
     fi, fj = _candidates_tree(x, facets, centres, radii)
     if fj.size == 0:
         return _empty()
-    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False)
+    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=False, corners=corners)
 
 
 def pair_geometry(
@@ -162,19 +171,22 @@ def pair_geometry(
     facet: NDArray[np.int64],
     *,
     closest: bool = False,
+    corners: NDArray[np.float64] | None = None,
 ) -> ContactPairs:
     """The geometry of given (fingertip, facet) pairs at ``x``, whether they touch there or not
     (depths may be <= 0, projections outside the triangles): the pairs of an earlier
     :func:`detect`, followed through a small displacement (derivatives along a direction with
-    the contact set fixed, as a Jacobian assumes)."""
+    the contact set fixed, as a Jacobian assumes). ``corners`` as in :func:`detect`."""
     if len(facet) == 0:
         return _empty()
     return _narrow_phase(
-        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True
+        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True, corners=corners
     )
 
 
-def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool) -> ContactPairs:
+def _narrow_phase(
+    x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool, corners=None
+) -> ContactPairs:
     """Pair geometry of the candidate pairs (fi, fj) by the compiled narrow phase
     (:func:`softgrasp.physics.fingertip.detect.pair_values`); the touching ones only unless
     ``keep_all``. The float fields are read-only views of one (k, 13) array."""
@@ -182,7 +194,7 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bo
 
     fi = np.asarray(fi, dtype=np.int64)
     fj = np.asarray(fj, dtype=np.int64)
-    touch, val = pair_values(x, facets, centres, radii, fi, fj, closest, INSIDE_TOL, keep_all)
+    touch, val = pair_values(x, facets, corners, centres, radii, fi, fj, closest, INSIDE_TOL, keep_all)
     if not keep_all:
         fi, fj, val = fi[touch], fj[touch], val[touch]
     return _pairs_of(fi, fj, val)
@@ -212,6 +224,7 @@ def _detect_compiled(
     radii: NDArray[np.float64],
     closest: bool,
     index: FacetIndex,
+    corners: NDArray[np.float64] | None,
 ) -> ContactPairs:
     """:func:`detect` with the node-index broad phase, by the compiled kernel
     (:mod:`softgrasp.physics.fingertip.detect`): the same pairs in the same order, fields equal to
@@ -221,6 +234,7 @@ def _detect_compiled(
     fi, fj, val = detect_arrays(
         x,
         facets,
+        corners,
         index.boundary_nodes,
         index.indptr,
         index.indices,

@@ -10,6 +10,10 @@ Defaults for what the paper does not give (DESIGN.md §4), each with its source:
   ``"paper"`` is the paper's K delta^n in series with the meshed body (Eq. 9-11), for reproducing it.
 * ``prefactor`` — Hertz's 4/3 under the resolved law; the paper's K = 2 Psi sqrt(R) (Eq. 11) under
   its own.
+* ``normals = "smooth"`` under the resolved law — a contact pushes along the object's smooth
+  surface's normal at the contact point (:mod:`softgrasp.model.mesh.normals`), not along its
+  facet's, tilted by up to half the angle between neighbouring facets; ``"facet"`` (the paper's)
+  under its own law.
 * ``gamma = 10 N s/m^2`` — C = 4 pi R gamma is then 1.0 N s/m for an 8 mm fingertip: 5 mN of
   damping force at the paper's 5 mm/s closing speed, small next to the elastic force, enough to damp
   contact chatter in explicit runs.
@@ -119,6 +123,10 @@ class ContactParams:
         (:mod:`softgrasp.physics.fingertip.resolved`); ``"paper"``: K delta^n (Eq. 9-11).
     resolution: the mesh's resolution length at a contact over the patch's facet size (resolved
         law; :data:`softgrasp.physics.fingertip.laws.RESOLUTION`).
+    normals: ``"smooth"``: each pair's normal is the object's smooth surface's at its contact
+        point, interpolated from the mesh's corner normals (Phong's normal; edges sharper than
+        :data:`softgrasp.model.mesh.normals.CREASE_DEG` kept); ``"facet"``: its facet's (the
+        paper's). Default (None) the law's: smooth for the resolved law, facet for the paper's.
     """
 
     mu: float = 0.8
@@ -131,10 +139,15 @@ class ContactParams:
     min_depth_ratio: float = 0.01
     law: str = "resolved"
     resolution: float = RESOLUTION
+    normals: str | None = None
 
     def __post_init__(self) -> None:
         if self.law not in ("resolved", "paper"):
             raise ContactError(f"contact law must be 'resolved' or 'paper', got {self.law!r}")
+        if self.normals is None:
+            object.__setattr__(self, "normals", "smooth" if self.law == "resolved" else "facet")
+        if self.normals not in ("smooth", "facet"):
+            raise ContactError(f"contact normals must be 'smooth' or 'facet', got {self.normals!r}")
         if self.prefactor is None:
             object.__setattr__(self, "prefactor", HERTZ_PREFACTOR if self.law == "resolved" else PAPER_PREFACTOR)
         checks = {
@@ -174,4 +187,5 @@ class ContactParams:
             "min_depth_ratio": self.min_depth_ratio,
             "law": self.law,
             "resolution": self.resolution,
+            "normals": self.normals,
         }

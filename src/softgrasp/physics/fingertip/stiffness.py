@@ -29,15 +29,17 @@ def _pair_normal_forces(
     coef: NDArray[np.float64],
     n_exp: NDArray[np.float64],
     closest: bool,
+    corners: NDArray[np.float64] | None,
 ) -> NDArray[np.float64]:
     """Static normal forces on the three nodes of each facet, (k, 3, 3): ``-coef delta^n b_l n``
     for triangles ``tri`` (k, 3, 3) and fingertip centres (k, 3), with each pair's contact point
     (b), normal and penetration as :func:`~softgrasp.physics.fingertip.geometry.pair_geometry` follows them
-    (``closest`` as in :func:`~softgrasp.physics.fingertip.geometry.detect`)."""
+    (``closest`` as in :func:`~softgrasp.physics.fingertip.geometry.detect`; ``corners`` (k, 3, 3)
+    each triangle's corner normals, or None)."""
     k = tri.shape[0]
     ids = np.arange(k)
     own = np.arange(3 * k).reshape(k, 3)  # each pair its own triangle
-    pr = pair_geometry(tri.reshape(-1, 3), own, centre, radius, ids, ids, closest=closest)
+    pr = pair_geometry(tri.reshape(-1, 3), own, centre, radius, ids, ids, closest=closest, corners=corners)
     mag = coef * np.where(pr.depth > 0, np.abs(pr.depth) ** n_exp, 0.0)
     return -(mag[:, None, None] * pr.bary[:, :, None]) * pr.normal[:, None, :]
 
@@ -49,10 +51,12 @@ def _normal_jacobian_blocks(
     coef: NDArray[np.float64],
     n_exp: NDArray[np.float64],
     closest: bool,
+    corners: NDArray[np.float64] | None,
 ) -> NDArray[np.float64]:
     """d(nodal normal forces)/d(node positions) per pair by central differences, symmetrised,
     (k, 3, 3, 3, 3) indexed [pair, node_l, node_m, axis_l, axis_m]; the magnitude
-    ``coef delta^n`` per pair (exponent ``n_exp`` (k,))."""
+    ``coef delta^n`` per pair (exponent ``n_exp`` (k,)); ``corners`` each pair's facet's corner
+    normals (k, 3, 3), or None for the facets' normals."""
     k = tri.shape[0]
     h = 1e-7 * np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1)  # (k,)
     # All 18 perturbed copies (+-h on each node's axis) in one evaluation: (2, 3, 3, k, 3, 3)
@@ -70,6 +74,7 @@ def _normal_jacobian_blocks(
         np.tile(coef, reps),
         np.tile(n_exp, reps),
         closest,
+        None if corners is None else np.tile(corners, (reps, 1, 1)),
     ).reshape(2, 3, 3, k, 3, 3)
     dF = (F[0] - F[1]) / (2 * h)[None, None, :, None, None]  # [m, ax, pair, node l, axis l]
     J = np.ascontiguousarray(dF.transpose(2, 3, 0, 4, 1))  # [pair, l, m, axis l, axis m]
@@ -91,21 +96,23 @@ def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float,
     centres = contact.centres(t)[pr.finger]
     radii = contact._radii()[pr.finger]
     patch = contact.params.rule == "patch"
+    corners = contact.corners(body)
+    corners = None if corners is None else corners[pr.facet]
     if patch:
-        # Pair force w_j F(delta_max) along its facet's normal at its contact point: their
+        # Pair force w_j F(delta_max) along its normal at its contact point: their
         # motion with the facet at fixed magnitude (central differences, exponent 0), plus the
         # magnitude's dependence on the finger's deepest facet, d delta_max / d x_l =
         # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
         # slides on the surface at no first-order cost); the weights are lagged.
         deep = ev.deep
-        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic, np.zeros(len(pr)), True)
+        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic, np.zeros(len(pr)), True, corners)
     else:
         # Exact per-pair blocks (facet rotation and the moving contact point included), the
         # normal law written locally as the power law with its value and slope at the pair's
         # penetration (the same first derivative).
         d = np.maximum(ev.depth, 1e-300)
         m = np.where(ev.elastic > 0, ev.slope * d / np.maximum(ev.elastic, 1e-300), 1.0)
-        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic / d**m, m, False)
+        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic / d**m, m, False, corners)
     blk_t = np.zeros((len(pr), 3, 3))
     if contact.params.mu > 0:
         nn = pr.normal[:, :, None] * pr.normal[:, None, :]

@@ -163,9 +163,9 @@ def finger_forces(x, v, t, fingers, fstate, cur, x_ref, track, near, centres, ou
     reach, n_near = finger_reach(x, t, fingers, x_ref, track, near, centres)
     active, anchor, _, memory, offset = fstate
     (_, facets, _, indptr, indices, _, _, vel, omega, radii, law, C, closest, inside_tol, mu, n_exp,
-     hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
+     hunt_crossley, patch, ratio, min_depth_ratio, corners) = fingers  # fmt: skip
     _fingertip_forces(
-        x, v, facets, near[:n_near], indptr, indices, reach, centres, radii, vel, omega, law, C, closest,
+        x, v, facets, corners, near[:n_near], indptr, indices, reach, centres, radii, vel, omega, law, C, closest,
         inside_tol, mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active[cur], anchor[cur],
         offset[cur], memory[cur], out,
     )  # fmt: skip
@@ -180,10 +180,10 @@ def finger_step(
     same pairs). Returns the new current buffer and the forces' power (0 unless ``want_power``)."""
     reach, n_near = finger_reach(x, t, fingers, x_ref, track, near, centres)
     (_, facets, _, indptr, indices, _, _, vel, omega, radii, law, C, closest, inside_tol, mu, n_exp,
-     hunt_crossley, patch, ratio, min_depth_ratio) = fingers  # fmt: skip
+     hunt_crossley, patch, ratio, min_depth_ratio, corners) = fingers  # fmt: skip
     active, anchor, slip, memory, offset = fstate
     finger, facet, val = _detect(
-        x, facets, near[:n_near], indptr, indices, reach, centres, radii, closest, inside_tol
+        x, facets, corners, near[:n_near], indptr, indices, reach, centres, radii, closest, inside_tol
     )
     nxt = 1 - cur
     _clear_finger(active[nxt], anchor[nxt], offset[nxt], slip[nxt], memory[nxt])

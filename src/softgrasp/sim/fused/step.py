@@ -28,6 +28,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from softgrasp.physics.fingertip.detect import corner_args
 from softgrasp.physics.fingertip.laws import LAW_COLUMNS
 from softgrasp.physics.forces_compiled import polynomial_coefficients
 from softgrasp.sim.fused.body import packed
@@ -125,6 +126,7 @@ def _finger_arrays(fingers: Any, body: Any) -> tuple:
         bool(kw["patch"]),
         float(kw["ratio"]),
         float(kw["min_depth_ratio"]),
+        corner_args(kw["corners"]),
     )
 
 
@@ -132,7 +134,7 @@ def _finger_arrays(fingers: Any, body: Any) -> tuple:
 _NO_FINGERS = (
     False, np.zeros((1, 3), np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
     0.0, np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1), np.zeros((1, LAW_COLUMNS)), np.zeros(1),
-    False, 0.0, 0.0, 1.0, False, False, 0.0, 0.0,
+    False, 0.0, 0.0, 1.0, False, False, 0.0, 0.0, corner_args(None),
 )  # fmt: skip
 
 
