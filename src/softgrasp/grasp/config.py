@@ -123,7 +123,7 @@ class PlanConfig:
     max_slip: largest slip of a fingertip in the object, as a whole, from the table's removal to
         the held state, as a fraction of the object's size (its largest extent): beyond it the
         object slides in the fingers (its elastic sag is no slip). 0.25 %: 0.32 mm on the default
-        sphere, about a tenth of its fingertips' contact radius. Allowed 1 %, a grasp whose
+        sphere, about an eighth of its fingertips' contact radius. Allowed 1 %, a grasp whose
         fingertips slid into a better hold passed below the force at which sliding starts, by an
         amount that changed from one mesh to the next (the default sphere's thumb slid 1.3 mm and
         held at 0.91 of the force that holds it rigidly; its neighbours' meshes started sliding

@@ -84,9 +84,13 @@ def _normal_jacobian_blocks(
 def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float, state: FingerState) -> sp.csr_matrix:
     """``d f / d x`` at rest, symmetrised: the normal forces' per-pair derivative (central
     differences of the 9 facet coordinates, so the facet's rotation and the moving contact
-    point are included; exact for the literal rule; for the patch rule with the weights w_j
-    held fixed, plus the magnitude's dependence on the deepest facet) and the friction
-    springs' ``w k_t H^T P_t H`` (or the slip tangent)."""
+    point are included; exact for the literal rule with the facets' normals; for the patch rule
+    with the weights w_j held fixed, plus the magnitude's dependence on the deepest facet) and
+    the friction springs' ``w k_t H^T P_t H`` (or the slip tangent). With the smooth surface's
+    normals the force is no longer the gradient of the contact's energy (the penetration stays
+    the facet's): the true derivative is slightly unsymmetric (3 % on a sphere's pair) and this
+    symmetrised one preconditions the Newton solves' exact products
+    (:mod:`softgrasp.sim.newton_matrix`)."""
     ev = contact._evaluate(body, x, None, t, state, static=True)
     N = body.n_nodes
     if not len(ev.pairs):
