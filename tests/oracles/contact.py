@@ -90,7 +90,9 @@ def smooth_normals(tri: NDArray[np.float64], corners: NDArray[np.float64], bary:
     return s / np.linalg.norm(s, axis=1)[:, None]
 
 
-def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool, corners=None) -> ContactPairs:
+def _narrow_phase(
+    x, facets, centres, radii, fi, fj, closest: bool, keep_all: bool, corners=None
+) -> ContactPairs:
     """Pair geometry of the candidate pairs (fi, fj); the touching ones only unless ``keep_all``;
     normals the smooth surface's given the mesh's ``corners`` (F, 3, 3)."""
     tri = x[facets[fj]]  # (k, 3, 3) candidates only
@@ -131,13 +133,14 @@ def _narrow_phase(x, facets, centres, radii, fi, fj, closest: bool, keep_all: bo
     )
 
 
-def pair_geometry(x, facets, centres, radii, finger, facet, *, closest: bool = False, corners=None) -> ContactPairs:
+def pair_geometry(
+    x, facets, centres, radii, finger, facet, *, closest: bool = False, corners=None
+) -> ContactPairs:
     """:func:`softgrasp.physics.fingertip.geometry.pair_geometry` by NumPy."""
     if len(facet) == 0:
         return _empty()
-    return _narrow_phase(
-        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True, corners=corners
-    )
+    fi, fj = np.asarray(finger), np.asarray(facet)
+    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=True, corners=corners)
 
 
 def candidates_nodes(
@@ -188,7 +191,9 @@ def relative_velocity(
     return vr, vn, vr - vn
 
 
-def oracle_detect(x, facets, centres, radii, *, closest: bool, index: FacetIndex, corners=None) -> ContactPairs:
+def oracle_detect(
+    x, facets, centres, radii, *, closest: bool, index: FacetIndex, corners=None
+) -> ContactPairs:
     """The touching pairs by NumPy (the node-index broad phase, then the vectorised narrow phase
     of :mod:`softgrasp.physics.fingertip.geometry`), in the compiled detection's order."""
     fi, fj = candidates_nodes(x, index, centres, radii)
@@ -386,9 +391,8 @@ class OracleFingertipContact(FingertipContact):
         centres, radii = self.centres(t), self._radii()
 
         def forces(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            pairs = pair_geometry(
-                x, body.mesh.facets, centres, radii, finger, facet, closest=closest, corners=self.corners(body)
-            )
+            corners, facets = self.corners(body), body.mesh.facets
+            pairs = pair_geometry(x, facets, centres, radii, finger, facet, closest=closest, corners=corners)
             return self._nodal(body, x, self._evaluate(body, x, None, t, state, static=True, pairs=pairs))
 
         return forces

@@ -112,8 +112,8 @@ def _fingertip_forces(
 
 @_jit
 def _static_forces(
-    x, facets, corners, boundary, indptr, indices, reach, centres, radii, law, closest, inside_tol, mu, n_exp, patch,
-    ratio, min_depth_ratio, active, anchor, offset, memory, pinned, finger, facet, out,
+    x, facets, corners, boundary, indptr, indices, reach, centres, radii, law, closest, inside_tol, mu, n_exp,
+    patch, ratio, min_depth_ratio, active, anchor, offset, memory, pinned, finger, facet, out,
 ):  # pragma: no cover - compiled
     """Contact forces at rest added to ``out`` (N, 3), of the touching pairs (detected), or with
     ``pinned`` of the given pairs (finger, facet) followed to ``x``."""

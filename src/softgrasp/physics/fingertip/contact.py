@@ -161,9 +161,8 @@ class FingertipContact:
         """Touching pairs at positions x and time t."""
         index = FacetIndex.of(body.mesh)
         centres, radii = self.centres(t), self._radii()
-        return detect(
-            x, body.mesh.facets, centres, radii, closest=self._closest(), index=index, corners=self.corners(body)
-        )
+        closest, corners = self._closest(), self.corners(body)
+        return detect(x, body.mesh.facets, centres, radii, closest=closest, index=index, corners=corners)
 
     def corners(self, body: Body) -> NDArray[np.float64] | None:
         """The mesh's corner normals when the pairs' normals are the smooth surface's

@@ -244,7 +244,9 @@ def _detect(
             ez = cz - gz
             if ex * ex + ey * ey + ez * ez > lim * lim:
                 continue
-            if not _pair_values(tri, cx, cy, cz, R, closest, inside_tol, np.bool_(False), near, real[k], corners, j):
+            if not _pair_values(
+                tri, cx, cy, cz, R, closest, inside_tol, np.bool_(False), near, real[k], corners, j
+            ):
                 continue
             finger[k] = f
             facet[k] = j
@@ -307,7 +309,9 @@ def detect_arrays(
 
 
 @_jit
-def _candidate_values(x, facets, corners, centres, radii, finger, facet, closest, inside_tol, keep):  # pragma: no cover
+def _candidate_values(
+    x, facets, corners, centres, radii, finger, facet, closest, inside_tol, keep
+):  # pragma: no cover - compiled
     """The narrow phase (:func:`_pair_values`) of the given (finger, facet) pairs at ``x``:
     (whether each touches (k,), their values (k, 13)); with ``keep`` every pair's values, whether
     it touches or not (all True)."""
@@ -325,7 +329,8 @@ def _candidate_values(x, facets, corners, centres, radii, finger, facet, closest
             tri[r, 1] = x[node, 1]
             tri[r, 2] = x[node, 2]
         cx, cy, cz = centres[f, 0], centres[f, 1], centres[f, 2]
-        touch[p] = _pair_values(tri, cx, cy, cz, radii[f], closest, inside_tol, keep, near, val[p], corners, j)
+        R = radii[f]
+        touch[p] = _pair_values(tri, cx, cy, cz, R, closest, inside_tol, keep, near, val[p], corners, j)
     return touch, val
 
 
@@ -333,7 +338,8 @@ def _candidate_values(x, facets, corners, centres, radii, finger, facet, closest
 def _pinned_values(x, facets, corners, centres, radii, finger, facet, closest):  # pragma: no cover - compiled
     """The values (k, 13) of the given (finger, facet) pairs at ``x`` (:func:`_pair_values` with
     ``keep``), whether they touch there or not."""
-    return _candidate_values(x, facets, corners, centres, radii, finger, facet, closest, 0.0, np.bool_(True))[1]
+    pinned = np.bool_(True)
+    return _candidate_values(x, facets, corners, centres, radii, finger, facet, closest, 0.0, pinned)[1]
 
 
 def pair_values(

@@ -179,9 +179,8 @@ def pair_geometry(
     the contact set fixed, as a Jacobian assumes). ``corners`` as in :func:`detect`."""
     if len(facet) == 0:
         return _empty()
-    return _narrow_phase(
-        x, facets, centres, radii, np.asarray(finger), np.asarray(facet), closest, keep_all=True, corners=corners
-    )
+    fi, fj = np.asarray(finger), np.asarray(facet)
+    return _narrow_phase(x, facets, centres, radii, fi, fj, closest, keep_all=True, corners=corners)
 
 
 def _narrow_phase(

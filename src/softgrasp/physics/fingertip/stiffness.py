@@ -109,7 +109,8 @@ def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float,
         # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
         # slides on the surface at no first-order cost); the weights are lagged.
         deep = ev.deep
-        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic, np.zeros(len(pr)), True, corners)
+        zero = np.zeros(len(pr))
+        Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic, zero, True, corners)
     else:
         # Exact per-pair blocks (facet rotation and the moving contact point included), the
         # normal law written locally as the power law with its value and slope at the pair's

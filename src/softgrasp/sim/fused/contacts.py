@@ -165,9 +165,9 @@ def finger_forces(x, v, t, fingers, fstate, cur, x_ref, track, near, centres, ou
     (_, facets, _, indptr, indices, _, _, vel, omega, radii, law, C, closest, inside_tol, mu, n_exp,
      hunt_crossley, patch, ratio, min_depth_ratio, corners) = fingers  # fmt: skip
     _fingertip_forces(
-        x, v, facets, corners, near[:n_near], indptr, indices, reach, centres, radii, vel, omega, law, C, closest,
-        inside_tol, mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active[cur], anchor[cur],
-        offset[cur], memory[cur], out,
+        x, v, facets, corners, near[:n_near], indptr, indices, reach, centres, radii, vel, omega, law, C,
+        closest, inside_tol, mu, n_exp, hunt_crossley, patch, ratio, min_depth_ratio, active[cur],
+        anchor[cur], offset[cur], memory[cur], out,
     )  # fmt: skip
 
 
