@@ -58,14 +58,10 @@ class MaterialFile:
     mass: float | None = None
 
     def contact_params(self, base: ContactParams) -> ContactParams:
-        """``base`` with this file's contact parameters over it; a file that changes the contact
-        law gets that law's defaults for what it does not give (its stiffness prefactor and
-        normals), not ``base``'s."""
-        given = dict(self.contact)
-        if given.get("law", base.law) != base.law:
-            given = {"prefactor": None, "normals": None, **given}
+        """``base`` with this file's contact parameters over it (:meth:`ContactParams.updated`: a
+        file that changes the contact law gets that law's defaults for what it does not give)."""
         try:
-            return replace(base, **given)  # type: ignore[arg-type]
+            return base.updated(**self.contact)
         except (ContactError, TypeError) as exc:
             raise ConfigError(f"material file {self.path}: [contact]: {exc}") from None
 

@@ -35,16 +35,16 @@ CREASE_DEG = 45.0
 def corner_normals(
     points: NDArray[np.float64],
     facets: NDArray[np.int64],
+    normals: NDArray[np.float64],
     node_facets: tuple[NDArray[np.int64], NDArray[np.int64]],
 ) -> NDArray[np.float64]:
     """The smooth surface's unit normal at each corner of each boundary facet, in the facet's rest
     frame (module docstring), (F, 3, 3) indexed [facet, corner, (e1, e2, n) component].
 
-    ``points`` (N, 3) [m] at rest; ``facets`` (F, 3) with outward right-hand normals;
+    ``points`` (N, 3) [m] at rest; ``facets`` (F, 3) and their outward unit ``normals`` (F, 3);
     ``node_facets`` the facets around each node, CSR (indptr, indices)."""
     tri = points[facets]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n = cross / np.linalg.norm(cross, axis=1)[:, None]
+    n = normals
     angle = np.empty(facets.shape)  # each facet's interior angle at each corner [rad]
     for i in range(3):
         a = tri[:, (i + 1) % 3] - tri[:, i]

@@ -258,7 +258,7 @@ class TetMesh:
         rest frame, shape ``(F, 3, 3)`` (:func:`softgrasp.model.mesh.normals.corner_normals`)."""
         from softgrasp.model.mesh.normals import corner_normals
 
-        return corner_normals(self.points, self.facets, self.node_facets)
+        return corner_normals(self.points, self.facets, self.facet_normals, self.node_facets)
 
     @cached_property
     def facet_areas(self) -> NDArray[np.float64]:

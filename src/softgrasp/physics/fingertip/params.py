@@ -26,7 +26,7 @@ Defaults for what the paper does not give (DESIGN.md §4), each with its source:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -174,6 +174,13 @@ class ContactParams:
                 f"the resolved contact law is Hertz's (exponent 1.5), got exponent = {self.exponent}; "
                 "use the paper's law (law='paper', --contact-law paper) for another exponent"
             )
+
+    def updated(self, **changes: object) -> ContactParams:
+        """These parameters with ``changes``; a change of ``law`` also brings that law's defaults
+        (stiffness prefactor and normals) where ``changes`` does not give them, not this law's."""
+        if changes.get("law", self.law) != self.law:
+            changes = {"prefactor": None, "normals": None, **changes}
+        return replace(self, **changes)  # type: ignore[arg-type]
 
     def describe(self) -> dict[str, object]:
         return {
