@@ -296,6 +296,24 @@ def test_save_is_atomic(tmp_path, coarse_sphere: TetMesh, monkeypatch: pytest.Mo
     assert os.listdir(tmp_path) == ["ball.vtu"]
 
 
+def test_save_writes_a_deformed_state(tmp_path, coarse_sphere: TetMesh) -> None:
+    """``points`` replace the mesh's own in the file (a squeezed state, even one with an inverted
+    tet that no mesh to simulate may have), with the mesh's cells; a wrong shape is refused."""
+    squeezed = coarse_sphere.points * np.array([1.0, 1.0, 0.5])
+    corners = squeezed[coarse_sphere.tets[0]]
+    squeezed[coarse_sphere.tets[0, 0]] = 2.0 * corners[1:].mean(axis=0) - corners[0]  # through its face
+    from softgrasp.model.mesh.tetmesh import signed_volumes
+
+    assert (signed_volumes(squeezed, coarse_sphere.tets) < 0).any()
+    path = tmp_path / "squeezed.vtu"
+    save_mesh(coarse_sphere, path, points=squeezed)
+    back = meshio.read(path)
+    assert np.array_equal(back.points, squeezed)
+    assert np.array_equal(back.cells_dict["tetra"], coarse_sphere.tets)
+    with pytest.raises(MeshError, match=r"points of shape \(3, 3\)"):
+        save_mesh(coarse_sphere, tmp_path / "bad.vtu", points=squeezed[:3])
+
+
 def test_save_errors(tmp_path, coarse_sphere: TetMesh) -> None:
     with pytest.raises(MeshError, match=r"unsupported suffix '\.stl'"):
         save_mesh(coarse_sphere, tmp_path / "ball.stl")

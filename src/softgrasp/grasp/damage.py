@@ -92,14 +92,16 @@ def peak_strain(body: Body, x: NDArray[np.float64]) -> tuple[float, int]:
 
 def principal_strains(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
     """Each tetrahedron's largest principal engineering strain ``|lambda - 1|`` at positions ``x``
-    [m] (lambda: the singular values of its deformation gradient from the body's rest mesh),
-    compression or tension, (M,)."""
+    [m] (lambda: the singular values of its deformation gradient F from the body's rest mesh,
+    the square roots of the eigenvalues of the right Cauchy-Green tensor F^T F), compression or
+    tension, (M,)."""
     rest = np.asarray(body.mesh.points, dtype=np.float64)[body.mesh.tets]
     now = np.asarray(x, dtype=np.float64)[body.mesh.tets]
     Dm = np.stack([rest[:, k] - rest[:, 0] for k in (1, 2, 3)], axis=2)
     Ds = np.stack([now[:, k] - now[:, 0] for k in (1, 2, 3)], axis=2)
-    stretch = np.linalg.svd(Ds @ np.linalg.inv(Dm), compute_uv=False)
-    return np.abs(stretch - 1.0).max(axis=1)
+    F = Ds @ np.linalg.inv(Dm)
+    stretch = np.sqrt(np.maximum(np.linalg.eigvalsh(np.swapaxes(F, 1, 2) @ F), 0.0))  # ascending
+    return np.maximum(1.0 - stretch[:, 0], stretch[:, 2] - 1.0)
 
 
 def grasp_damage(

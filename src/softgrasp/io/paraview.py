@@ -49,18 +49,15 @@ def state_arrays(
 def write_object_vtu(path: str | Path, plan: GraspPlan, body: Body) -> None:
     """``object.vtu``: the placed object with the held state's arrays (module docstring)."""
     from softgrasp.model.mesh.io import save_mesh
-    from softgrasp.model.mesh.tetmesh import TetMesh
 
-    mesh = body.mesh
     points, cells = state_arrays(body, plan.placed, plan.positions, plan.contact_forces)
-    save_mesh(TetMesh(plan.placed, mesh.tets, name=mesh.name), path, point_data=points, cell_data=cells)
+    save_mesh(body.mesh, path, point_data=points, cell_data=cells, points=plan.placed)
 
 
 def write_closing_series(folder: str | Path, plan: GraspPlan, body: Body) -> list[str]:
     """Write ``closing.pvd`` and ``closing/increment_KKK.vtu`` into ``folder`` (module docstring);
     return the names written, relative to ``folder``."""
     from softgrasp.model.mesh.io import save_mesh
-    from softgrasp.model.mesh.tetmesh import TetMesh
 
     fr = plan.frames
     if fr is None:
@@ -74,8 +71,7 @@ def write_closing_series(folder: str | Path, plan: GraspPlan, body: Body) -> lis
         name = f"{CLOSING_DIR}/increment_{k:03d}.vtu"
         forces = None if fr.contact_forces is None else fr.contact_forces[k]
         points, cells = state_arrays(body, plan.placed, fr.positions[k], forces)
-        mesh = TetMesh(fr.positions[k], body.mesh.tets, name=body.mesh.name)
-        save_mesh(mesh, root / name, point_data=points, cell_data=cells)
+        save_mesh(body.mesh, root / name, point_data=points, cell_data=cells, points=fr.positions[k])
         names.append(name)
         lines.append(f'    <DataSet timestep="{float(travel)!r}" group="" part="0" file={quoteattr(name)}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]

@@ -383,9 +383,12 @@ def save_mesh(
     *,
     point_data: Mapping[str, NDArray[np.float64]] | None = None,
     cell_data: Mapping[str, NDArray[np.float64]] | None = None,
+    points: NDArray[np.float64] | None = None,
 ) -> None:
     """Write ``mesh`` (points in metres, tetra cells) to a volume mesh file, atomically, with
     named arrays per node (``point_data``: (N,) or (N, 3)) and per tet (``cell_data``: (M,)).
+    ``points`` [m] (N, 3), when given, are written instead of the mesh's own: a deformed state of
+    it (written as it is; a state may be squeezed beyond what a mesh to simulate must be).
 
     The file is written under a temporary name in the target directory and renamed over ``path``
     only once complete, so an error never leaves a half-written file.
@@ -399,6 +402,8 @@ def save_mesh(
         ``.mesh`` (Medit) or ``.inp`` (Abaqus).
     point_data, cell_data:
         Arrays by name (``.vtu`` and ``.vtk`` only): ParaView shows them on the mesh.
+    points:
+        Node positions to write instead of ``mesh.points``.
 
     Raises
     ------
@@ -420,6 +425,9 @@ def save_mesh(
     fmt = _WRITE_FORMATS[suffix]
     if (point_data or cell_data) and fmt not in ("vtu", "vtk"):
         raise MeshError(f"cannot write {p}: data arrays go to .vtu or .vtk files only")
+    xyz = np.asarray(mesh.points if points is None else points, dtype=np.float64)
+    if xyz.shape != (mesh.n_nodes, 3):
+        raise MeshError(f"cannot write {p}: points of shape {xyz.shape}, not ({mesh.n_nodes}, 3)")
     cells_data: dict[str, list[NDArray[Any]]] = {}
     nodes: dict[str, NDArray[Any]] = {}
     for kind, given, n in (("point", point_data, mesh.n_nodes), ("cell", cell_data, mesh.n_tets)):
@@ -435,7 +443,7 @@ def save_mesh(
         tags = np.ones(mesh.n_tets, dtype=np.int32)
         cells_data = {"gmsh:physical": [tags], "gmsh:geometrical": [tags]}
     cells = [("tetra", np.asarray(mesh.tets))]
-    data = meshio.Mesh(np.asarray(mesh.points), cells, point_data=nodes, cell_data=cells_data)
+    data = meshio.Mesh(xyz, cells, point_data=nodes, cell_data=cells_data)
     tmp = p.with_name(f".{p.name}.{secrets.token_hex(4)}.tmp")
     done = False
     try:
