@@ -229,6 +229,26 @@ def test_a_newton_crawl_that_cannot_balance_in_time_is_recognised():
     assert not newton._crawl_rate([*crawl[:3], 7e-4, *crawl[3:]], left=14, target=1.6e-7)
 
 
+def test_a_newton_climb_away_from_balance_is_recognised():
+    """A solve whose unbalanced force rose at each of its last ``CLIMB_ITERATIONS`` iterations after
+    full Newton steps on positive definite matrices (an object sliding out of fingers that cannot
+    hold it: the release step of a hold check that fails) is given up on. One that rose for fewer
+    in a row and then fell (contacts engaging over several iterates, as a foam cube's closing
+    increment converged after 7 rises), or rose on shifted steps (a body tipping over on an
+    indefinite matrix), is not."""
+    k = newton.CLIMB_ITERATIONS
+    assert k > 7  # above the longest rise of a solve that converged
+    sliding = [3.08e-3 * 1.1**i for i in range(k + 1)]
+    assert newton.climbs(sliding, [True] * k)
+    assert newton.climbs([1.0, 1e-3, *sliding], [False, True, *[True] * k])  # after a fall
+    assert not newton.climbs(sliding[:-1], [True] * (k - 1))  # one rise too few
+    assert not newton.climbs(sliding, [True] * (k - 1) + [False])  # the last rise on a shifted step
+    engaging = [4.32e-3, 3.51e-2, 7.57e-2, 0.137, 0.198, 0.199, 0.275, 0.385, 1e-6]
+    assert not newton.climbs(engaging, [True] * (len(engaging) - 1))
+    flat = [*sliding[:5], sliding[4], *sliding[5:]]
+    assert not newton.climbs(flat, [True] * (len(flat) - 1))  # a repeat is not a rise
+
+
 def test_static_and_dynamic_rest_states_agree():
     """The static solve and a damped dynamic settle find the same rest state on the table.
 

@@ -1,7 +1,7 @@
 """Newton's method on a scene's unbalanced forces, with a line search on two merits (the
 unbalanced force and the potential energy), Levenberg-Marquardt shifts where no step length makes
 progress, a negative-curvature step for a body tipping over, and the early ends of a solve that
-will not converge (a stall balanced to :data:`STALL_RTOL`, creeping, crawling, cycling).
+will not converge (a stall balanced to :data:`STALL_RTOL`, creeping, crawling, climbing, cycling).
 
 One Newton solve holds the contacts' friction anchors fixed (the stick predictor of
 :func:`softgrasp.sim.static.solve_static`, which runs the friction passes around it).
@@ -30,7 +30,7 @@ from softgrasp.sim.scene import Scene
 #: Newton's progress at DEBUG level: each iteration's unbalanced force and accepted step.
 log = logging.getLogger(__name__)
 
-__all__ = ["newton", "valid", "cycle_period", "STALL_RTOL", "NEGATIVE_CURVATURE_MAX_GROWTH"]
+__all__ = ["newton", "valid", "climbs", "cycle_period", "STALL_RTOL", "NEGATIVE_CURVATURE_MAX_GROWTH"]
 
 #: A Newton iteration that stalls (contact kinks) is accepted when the largest unbalanced force
 #: is below this fraction of the largest force present (the target is ``rtol``).
@@ -60,6 +60,15 @@ CREEP_ALPHA = 1.0 / 64
 #: solve's tolerance, or to ``STALL_RTOL`` of the largest force if that is looser. An object
 #: sliding out of fingers that cannot hold it crawls at ~1.5 % per iteration: hundreds of them.
 CRAWL_ITERATIONS = 4
+#: Newton gives up on a climb: when the largest unbalanced force rose at each of its last
+#: ``CLIMB_ITERATIONS`` iterations, each after a full Newton step on a positive definite matrix
+#: (unshifted) that was accepted for lowering the potential energy while the forces grow. The
+#: iterates then run downhill away from any balance: an object sliding out of fingers that cannot
+#: hold it (the table's support gone) rose so at each of its 16-18 iterations up to the release
+#: step's limit. Solves that converged rose at most 7 times in a row (a foam cube's closing
+#: increment whose contacts engaged over several iterates), 2 on the spheres; a body tipping over
+#: rises for longer, but on an indefinite matrix's shifted steps, which do not count.
+CLIMB_ITERATIONS = 10
 #: Newton gives up when its iterates cycle: the unbalanced force repeats (to this relative
 #: tolerance: the inexact linear solves leave ~1e-7 of noise) with a period of 2 to 4 iterations,
 #: twice in a row (a node or a contact pair switching in and out on every other step, or a step
@@ -110,6 +119,7 @@ def newton(
     shift = 0.0
     creep, last_res = 0, np.inf
     history: list[float] = []  # the unbalanced force [N] at the start of each iteration
+    plain: list[bool] = []  # whether each iteration's step was a full Newton step, unshifted
     start = contacts
     for it in range(1, max_iter + 1):
         f_int = body.internal_forces(x)
@@ -222,6 +232,21 @@ def newton(
                 f"{1.0 - rate:.1%} per iteration, too slowly to balance in the {max_iter} Newton "
                 f"iterations it is given); use smaller load steps"
             )
+        if climbs(history, plain):
+            if _free_rigid_motion(scene, x, t, contacts, C):
+                raise NotConverged(f"static solve did not converge: {_SINGULAR}")
+            raise NotConverged(
+                f"static solve climbs (the largest unbalanced force rose at each of the last "
+                f"{CLIMB_ITERATIONS} iterations, to {res:.3g} N): the iterates run away from any "
+                "balance; the body is not held in this configuration"
+            )
+        plain.append(
+            alpha == 1.0
+            and cap == 1.0
+            and shift == 0.0
+            and cache.stats.get("shifted", 0) == shifted_before
+            and cache.stats.get("indefinite_factor", 0) == indefinite_before
+        )
         if period := cycle_period(history):
             if res <= STALL_RTOL * scale:
                 return x, it, res, lam_new, contacts  # balanced to 1e-6 of the largest force: accept
@@ -309,6 +334,18 @@ def _follow_negative_curvature(
         best, e_best, grown = xg, e, g
         g *= 2.0
     return best, grown
+
+
+def climbs(history: list[float], plain: list[bool]) -> bool:
+    """Whether the unbalanced forces ``history`` [N] rose at each of the last
+    :data:`CLIMB_ITERATIONS` iterations, each after a plain step: ``plain[i]`` says whether the
+    step from ``history[i]`` to ``history[i + 1]`` was a full Newton step on a positive definite,
+    unshifted matrix."""
+    if len(history) <= CLIMB_ITERATIONS:
+        return False
+    recent = np.asarray(history[-CLIMB_ITERATIONS - 1 :])
+    steps = plain[len(history) - CLIMB_ITERATIONS - 1 : len(history) - 1]
+    return len(steps) == CLIMB_ITERATIONS and all(steps) and bool((np.diff(recent) > 0.0).all())
 
 
 def cycle_period(history: list[float]) -> int:
