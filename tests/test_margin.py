@@ -75,6 +75,35 @@ def test_the_critical_scale_closes_from_the_closings_own_start(sphere, plans):
     assert own.systems == g.margin.systems + g.solver_stats["settle_systems"]
 
 
+def test_the_search_brackets_the_critical_scale_and_tries_one_tolerance_below_the_guess(monkeypatch):
+    """With a force control that holds exactly from a scale c up (a stand-in for the closings), the
+    search returns the bracket (not held, held] of one tolerance around c, wherever c and the
+    guess lie, without trying a scale twice; where c lies within one tolerance below the guess
+    (half the measured plans) it takes two checks."""
+    from types import SimpleNamespace
+
+    from softgrasp.grasp import margin
+
+    rng = np.random.default_rng(7)
+    for _ in range(400):
+        c, guess = rng.uniform(0.45, 1.6), rng.uniform(0.4, 1.1)
+        tried = []
+
+        def check(body, config, setpoints, setup, c=c, tried=tried):
+            tried.append(float(setpoints[0]))
+            return SimpleNamespace(held=setpoints[0] >= c, systems=1)
+
+        monkeypatch.setattr(margin, "hold_setpoints", check)
+        m = margin.critical_scale(None, None, np.ones(3), guess=guess, setup=object())
+        assert len(set(tried)) == len(tried) == len(m.checks)
+        if c <= 0.5:
+            assert m.scale == 0.5 and m.not_held == 0.0
+            continue
+        assert m.not_held < c <= m.scale and m.scale - m.not_held <= 0.02 * (1 + 1e-9)
+        if 0.5 + 0.04 <= guess - 0.02 < c <= guess <= 1.0:
+            assert len(m.checks) == 2
+
+
 def test_a_safety_factor_below_one_is_refused(sphere):
     with pytest.raises(sg.ConfigError, match="safety_factor"):
         sg.plan(sphere, safety_factor=0.9)
