@@ -134,20 +134,37 @@ def test_mujoco_holds_the_plan_and_agrees_on_its_critical_scale_within_15_percen
         assert runs[1.0].lifted
 
 
+@pytest.fixture(scope="module")
+def fine_plan():
+    """The 2 196-node sphere's plan (``--mesh-size 0.008``), the issue's ~2 000-node plan."""
+    obj = sg.load_object("sphere", mesh_size_m=0.008)
+    assert obj.mesh.n_nodes == 2196
+    return sg.plan(obj)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not HAVE_MUJOCO, reason="MuJoCo is not installed")
-def test_mujoco_lifts_a_finer_meshs_plan_as_planned():
-    """The 745-node sphere's plan (``--mesh-size 0.012``), executed in MuJoCo as planned (1.0x),
-    reaches its set-points without pressing past them and is lifted 0.10 m: the fingertips each
-    touch one or two boundary tetrahedra there, and MuJoCo's soft friction creep must not carry
-    the contacts off their facets (``options.IMPRATIO``)."""
-    obj = sg.load_object("sphere", mesh_size_m=0.012)
-    assert obj.mesh.n_nodes == 745
-    plan = sg.plan(obj)
-    run = sg.execute(plan, lift_m=0.10, hold_s=0.5)
-    close = run.result.series["phase"] == 1
-    for j, name in enumerate(run.result.fingers):
-        want = plan.setpoints_N[name]
-        assert run.measured_N[name] == pytest.approx(want, rel=0.05)  # the controller's tolerance
-        assert run.result.series["force"][close, j].max() <= 1.05 * want  # and never pressed past it
-    assert run.lifted, run.to_dict()
+@pytest.mark.parametrize("times_critical", [None, 1.15, 0.85])
+def test_mujoco_holds_a_2000_node_plan_and_agrees_on_its_critical_scale_within_15_percent(
+    fine_plan, times_critical
+):
+    """The 2 196-node plan executed in MuJoCo (one run per case, so that the runs spread over the
+    test workers): lifted 0.10 m as planned (1.0x: the set-points reached within the controller's
+    tolerance and never pressed past it while closing), lifted at 1.15 times softgrasp's critical
+    scale and dropped at 0.85 times it. A fingertip there touches one or two boundary tetrahedra
+    of the flex, and MuJoCo's soft friction creep, which grows with the mesh's refinement, must
+    not carry the contacts off their facets (``options.impratio``: with the default sphere's 3 this
+    plan drops at 1.0). (Off the plan the fine flex's contact force jitters by about 3 % from one
+    2 ms step to the next while another finger pushes the object: at 0.85 times the critical scale
+    one reading reaches 5.0 % past a set-point, so the pressing is checked as planned.)"""
+    c = fine_plan.to_dict()["margin"]["critical_scale"]
+    assert 1.15 * c < 1.0
+    scale = 1.0 if times_critical is None else times_critical * c
+    run = sg.execute(fine_plan, lift_m=0.10, hold_s=0.5, scale=scale)
+    if times_critical is None:
+        res, tol = run.result, run.config.tolerance
+        peak = res.series["force"][res.series["phase"] == 1].max(axis=0)
+        assert (peak <= (1 + tol) * np.array([res.setpoints[f] for f in res.fingers])).all(), peak
+        for name in res.fingers:
+            assert run.measured_N[name] == pytest.approx(fine_plan.setpoints_N[name], rel=tol)
+    assert run.lifted == (times_critical != 0.85), run.to_dict()

@@ -187,6 +187,21 @@ def test_mjcf_content(sphere: tuple) -> None:
     assert arm.find("body").get("name") == "palm" and arm.find("body").get("mocap") is None
 
 
+def test_friction_impedance_grows_with_the_cube_root_of_the_node_count(sphere: tuple) -> None:
+    """MuJoCo's friction creep under a held weight goes as N / (n_c impratio) (N vertices, n_c ~
+    N^(2/3) contact rows in a patch): the scene's impratio is 3 on the default 388-node sphere and
+    grows as N^(1/3), so that refining the mesh does not loosen MuJoCo's friction."""
+    from softgrasp.execution.mujoco.options import IMPRATIO, IMPRATIO_NODES, impratio
+
+    assert sphere[0].n_nodes == IMPRATIO_NODES and impratio(IMPRATIO_NODES) == IMPRATIO == 3.0
+    assert impratio(8 * IMPRATIO_NODES) == pytest.approx(2.0 * IMPRATIO, rel=1e-12)
+    assert impratio(IMPRATIO_NODES // 8) < IMPRATIO
+    for spec in (sphere_spec(sphere, ABOVE), pebble_spec(ABOVE)):
+        option = ET.fromstring(build_mjcf(spec)).find("option")
+        assert option is not None
+        assert float(option.get("impratio", "nan")) == pytest.approx(impratio(len(spec.points)), rel=1e-6)
+
+
 # ---------------------------------------------------------------------- compiled scene
 
 

@@ -89,9 +89,10 @@ def add_table(world: ET.Element, centre, reach: float, table_z: float, table_mu:
     )
 
 
-def mujoco_root(model: str, timestep: float) -> ET.Element:
+def mujoco_root(model: str, timestep: float, impratio: float = IMPRATIO) -> ET.Element:
     """The ``<mujoco>`` element with softgrasp's compiler and solver options (discrete integrator,
-    elliptic friction cones, their impedance ratio)."""
+    elliptic friction cones, their impedance ratio ``impratio``: :func:`~softgrasp.execution.mujoco
+    .options.impratio` of the object where it is held)."""
     root = ET.Element("mujoco", model=model)
     element(root, "compiler", angle="radian", autolimits="true")
     element(
@@ -102,7 +103,7 @@ def mujoco_root(model: str, timestep: float) -> ET.Element:
         integrator="discrete",
         solver=SOLVER,
         cone="elliptic",
-        impratio=fnum(IMPRATIO),
+        impratio=fnum(impratio),
         iterations=str(SOLVER_ITERATIONS),
         tolerance=fnum(SOLVER_TOLERANCE),
     )

@@ -59,6 +59,7 @@ from softgrasp.execution.mujoco.options import (
     LINK_RADIUS,
     OBJECT_BIT,
     TIP_BIT,
+    impratio,
 )
 from softgrasp.execution.mujoco.spec import SceneSpec
 
@@ -190,7 +191,7 @@ def build_mjcf(spec: SceneSpec) -> str:
     palm_xyz = spec.palm_pose[:3, 3]
     reach = max(extent, float(np.linalg.norm(palm_xyz[:2] - centre[:2])) + 0.15, 0.25)
 
-    root = mujoco_root("softgrasp_scene", spec.timestep)
+    root = mujoco_root("softgrasp_scene", spec.timestep, impratio(len(pts)))
     visual = element(root, "visual")
     element(visual, "global", offwidth="1280", offheight="960", azimuth="135", elevation="-25")
     element(visual, "headlight", ambient="0.35 0.35 0.35", diffuse="0.5 0.5 0.5", specular="0.1 0.1 0.1")

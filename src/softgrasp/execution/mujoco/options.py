@@ -40,18 +40,27 @@ Choices
   and the flex 0: table-object contacts get ``table_mu`` and fingertip-object contacts ``mu``
   exactly, whatever the flex's friction. ``condim`` 3 (point contact with Coulomb friction, the
   planner's model). Rolling friction would be useless anyway: flex vertices have no rotation.
-* **Friction impedance** :data:`IMPRATIO` = 3: MuJoCo's soft friction lets a held object creep
-  down through the fingertips at a rate that grows with the friction force, and a fingertip on a
-  tetrahedral flex touches one or two boundary tetrahedra, whose facets tilt from facet to facet.
-  At 1 (MuJoCo's default) the 745- and 2 196-node spheres crept 2.5 mm during the 0.10 m lift,
-  their contacts rode onto facets sloping the other way and the object slid out 65-70 mm up,
-  at the planned set-points. At 3 they are lifted (slip 1.4 / 3.0 mm) and the 388-node sphere
-  still holds at 1.15 times softgrasp's critical scale and drops at 0.85 times it. At 10 the
-  creep is smaller still (0.6 / 1.1 mm) but the friction no longer relaxes at all while the
-  weight passes from the table to the fingers: the 388-node sphere then needs 0.92-1.0 of its
-  set-points (softgrasp's critical scale: 0.80). At 100 the friction rows are so stiff that the
-  force-controlled closing chatters and never settles. So MuJoCo's critical scale depends on
-  this setting by up to 25 %: read its margins with that uncertainty.
+* **Friction impedance** :func:`impratio`: :data:`IMPRATIO` = 3 on the default 388-node sphere,
+  growing with the cube root of the object's node count. MuJoCo's soft friction lets a held
+  object creep down through the fingertips: a friction row's force f comes with a slip velocity
+  ``v = R f / b`` (``b``: the reference damping of ``solref``; ``R``: the regulariser, the
+  ``(1 - d) / d`` share of the row's inverse inertia, ~1 / the vertex mass, divided by
+  ``impratio``). Holding a weight ``M g`` on ``n_c`` contact rows gives
+  ``v ~ g (M / m_vertex) / (n_c impratio) = g N / (n_c impratio)``; a finer mesh puts
+  ``n_c ~ N^(2/3)`` rows in the same patch, so the creep grows as ``N^(1/3)`` unless
+  ``impratio`` does. A fingertip on a tetrahedral flex touches one or two boundary tetrahedra,
+  whose facets tilt from facet to facet: creep carries the contacts onto facets sloping the other
+  way. At 1 (MuJoCo's default) the 745- and 2 196-node spheres crept 2.5 mm during the 0.10 m
+  lift and slid out 65-70 mm up, at the planned set-points. At 3 on every mesh the 388-node
+  sphere holds at 1.15 times softgrasp's critical scale and drops at 0.85 times it, but the
+  2 196-node one drops at 1.0 (slides 84 mm) and is lifted only at 1.25; with the cube-root
+  growth (5.3 there) it is lifted at 1.0 and at 1.15 times the critical scale (slip 2.2 mm) and
+  dropped at 0.85 times it, as the 388-node sphere. At 10 on the 388-node sphere the creep is
+  smaller still but the friction no longer relaxes at all while the weight passes from the table
+  to the fingers: it then needs 0.92-1.0 of its set-points (softgrasp's critical scale: 0.80). At
+  100 the friction rows are so stiff that the force-controlled closing chatters and never
+  settles. So MuJoCo's critical scale depends on this setting by up to 25 %: read its margins
+  with that uncertainty.
 * **Contact softness** :data:`CONTACT_SOLREF`, :data:`CONTACT_SOLIMP`: MuJoCo's soft contacts
   penetrate by ``(1 - d) timeconst^2 x (force / effective mass)``, and a flex vertex weighs
   ~0.1 g, so the default (0.02 s, d = 0.9-0.95) lets a fingertip sink centimetres. With
@@ -81,6 +90,8 @@ __all__ = [
     "SOLVER_ITERATIONS",
     "SOLVER_TOLERANCE",
     "IMPRATIO",
+    "IMPRATIO_NODES",
+    "impratio",
     "JOINT_KP",
     "JOINT_DAMPING",
     "JOINT_ARMATURE",
@@ -117,8 +128,20 @@ SOLVER_ITERATIONS = 1000
 #: Relative tolerance of both solves.
 SOLVER_TOLERANCE = 1e-8
 
-#: Ratio of the friction constraints' impedance to the normal one's (elliptic cones; module docstring).
+#: Ratio of the friction constraints' impedance to the normal one's (elliptic cones) on a flex of
+#: :data:`IMPRATIO_NODES` vertices (module docstring; :func:`impratio`).
 IMPRATIO = 3.0
+#: The node count at which the friction impedance ratio is :data:`IMPRATIO` (the default sphere).
+IMPRATIO_NODES = 388
+
+
+def impratio(n_nodes: int) -> float:
+    """The friction impedance ratio of a scene whose object flex has ``n_nodes`` vertices:
+    ``IMPRATIO (n_nodes / IMPRATIO_NODES)^(1/3)``, under which MuJoCo's friction creep at a held
+    weight does not grow with the mesh's refinement (module docstring)."""
+    if n_nodes < 1:
+        raise ValueError(f"a flex has at least one vertex, got {n_nodes}")
+    return IMPRATIO * (n_nodes / IMPRATIO_NODES) ** (1.0 / 3.0)
 
 #: Position-servo stiffness of every independent joint [N m/rad or N/m].
 JOINT_KP = 200.0
