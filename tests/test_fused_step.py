@@ -8,6 +8,7 @@ fall to round-off; the compiled kernels' cache keyed by the sources they inline.
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -199,7 +200,9 @@ def test_free_fall_of_the_centroid_to_round_off():
 )
 def test_blow_up_raises_the_same_error(method, nu, factor, check_every, reason):
     """A step far beyond the stable bound (check_dt=False) blows up; the fused loop stops at the
-    same step with the same SimulationUnstable (reason, time, step, suggested step)."""
+    same step with the same SimulationUnstable (reason, time, step, first inverted tet, suggested
+    step). How many more tets are inverted at that step, in a state tens of times past the stable
+    step, is round-off: the compiled kernel and NumPy sum in other orders (61 or 62 of them)."""
     body = build_body(box(0.04, 2), Material(RUBBER.E, nu, RUBBER.density))
     scene = Scene(body, (PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.5, name="table"),))
     rng = np.random.default_rng(11)
@@ -219,7 +222,11 @@ def test_blow_up_raises_the_same_error(method, nu, factor, check_every, reason):
                 fused=fused,
             )
         errors[fused] = err.value
-    assert str(errors[True]) == str(errors[False])
+    more = re.compile(r" and (\d+) more inverted")
+    fused, stepped = (more.sub(" and N more inverted", str(errors[f])) for f in (True, False))
+    assert fused == stepped
+    counts = [int(m.group(1)) for e in errors.values() if (m := more.search(str(e)))]
+    assert len(counts) in (0, 2) and (not counts or abs(counts[0] - counts[1]) <= 0.05 * max(counts))
     assert errors[True].suggested_dt == pytest.approx(0.5 * stable_time_step(scene, method))
     assert "simulation unstable at t = " in str(errors[True])
 

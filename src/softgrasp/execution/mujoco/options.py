@@ -143,6 +143,7 @@ def impratio(n_nodes: int) -> float:
         raise ValueError(f"a flex has at least one vertex, got {n_nodes}")
     return IMPRATIO * (n_nodes / IMPRATIO_NODES) ** (1.0 / 3.0)
 
+
 #: Position-servo stiffness of every independent joint [N m/rad or N/m].
 JOINT_KP = 200.0
 #: Viscous damping of every hand joint [N m s/rad or N s/m].
