@@ -79,7 +79,7 @@ def test_the_search_brackets_the_critical_scale_and_tries_one_tolerance_below_th
     """With a force control that holds exactly from a scale c up (a stand-in for the closings), the
     search returns the bracket (not held, held] of one tolerance around c, wherever c and the
     guess lie, without trying a scale twice; where c lies within one tolerance below the guess
-    (half the measured plans) it takes two checks."""
+    (five of sixteen plans measured) it takes two checks."""
     from types import SimpleNamespace
 
     from softgrasp.grasp import margin

@@ -62,8 +62,8 @@ CREEP_ALPHA = 1.0 / 64
 CRAWL_ITERATIONS = 4
 #: Newton gives up on a climb: when the largest unbalanced force rose at each of its last
 #: ``CLIMB_ITERATIONS`` iterations, each after a full Newton step on a positive definite matrix
-#: (unshifted) that was accepted for lowering the potential energy while the forces grow. The
-#: iterates then run downhill away from any balance: an object sliding out of fingers that cannot
+#: (unshifted), the line search taking every step whole while the forces grow. The iterates then
+#: run away from any balance: an object sliding out of fingers that cannot
 #: hold it (the table's support gone) rose so at each of its 16-18 iterations up to the release
 #: step's limit. Solves that converged rose at most 7 times in a row (a foam cube's closing
 #: increment whose contacts engaged over several iterates), 2 on the spheres; a body tipping over
