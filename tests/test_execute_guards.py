@@ -344,7 +344,8 @@ def test_a_ctrl_c_while_the_command_exits_is_ignored(tmp_path):
 
 
 def test_ctrl_c_in_plan_is_one_line(planned_sphere, tmp_path):
-    _assert_interrupted(_interrupt(["plan", "--out", "p"], tmp_path, _after(2)))
+    # the ~4 500-node sphere plans for several seconds (the default plan may be over within 2 s)
+    _assert_interrupted(_interrupt(["plan", "--mesh-size", "0.006", "--out", "p"], tmp_path, _after(2)))
 
 
 _SWALLOWING_LIBRARY = """
