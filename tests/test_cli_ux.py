@@ -81,6 +81,24 @@ def test_plan_prints_one_line_per_phase_off_a_terminal(coarse_run):
     assert "%" not in err  # no bar off a terminal
 
 
+def test_set_points_without_room_to_the_least_that_holds_are_noted(coarse_run, tmp_path, capsys):
+    """The default plan's set-points are 1.25 times the least normal forces that hold: no note.
+    With --safety-factor 1 a scale of them within the force controller's 5 % tolerance is not
+    held, and the command says so and what to change."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*COARSE, "--safety-factor", "1", "--out", str(tmp_path / "tight")]) == 0
+    tight = json.loads((tmp_path / "tight" / "plan.json").read_text())["margin"]
+    assert tight["not_held_scale"] >= 0.95
+    assert f"note: at {tight['not_held_scale']:.2f} x the set-points the object is not held" in out.getvalue()
+    assert "--safety-factor" in out.getvalue()
+    roomy = json.loads((coarse_run[0] / "plan.json").read_text())["margin"]
+    assert roomy["not_held_scale"] < 0.95
+    with contextlib.redirect_stdout(out := io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*COARSE, "--out", str(tmp_path / "roomy")]) == 0
+    assert "note:" not in out.getvalue()
+
+
 def test_the_planners_progress_never_goes_back_and_passes_every_phase(coarse_run):
     _, _, fractions, phases = coarse_run
     assert phases == list(PHASES)

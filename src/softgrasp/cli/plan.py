@@ -267,10 +267,17 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
         )
     for travel, why in g.hold_checks[:-1]:
         bar.write(f"not held at {travel * 1e3:.2f} mm of travel: {why}; closed further")
-    if eq["friction_margin"] < 0.05:
+    # The closing's held state is the least squeeze that holds, at the friction limit by design;
+    # what a hand needs to know is whether its set-points leave room: a warning when a scale of
+    # them within the force controller's tolerance does not hold.
+    from softgrasp.execution.controller import ExecuteConfig
+
+    reach = ExecuteConfig().tolerance
+    if mg["not_held_scale"] >= 1.0 - reach:
         bar.write(
-            f"note: held at the friction limit (friction margin {eq['friction_margin']:.1%}): for a real "
-            "hand, whose forces and friction vary, plan with a larger --safety-factor"
+            f"note: at {mg['not_held_scale']:.2f} x the set-points the object is not held, within the force "
+            f"controller's {reach:.0%} tolerance of them: for a real hand, whose forces and friction vary, "
+            "plan with a larger --safety-factor"
         )
     bar.phase("figures")  # then the files, the figures and the view's data
     result.save(out, figures=figures, started=t0)
