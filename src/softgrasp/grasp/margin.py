@@ -78,10 +78,10 @@ def critical_scale(
     several frictions, stiffnesses and meshes, cubes, a box and a cylinder; in two it lay one
     tolerance lower, at the same cost, and in one further down, at one check more); held, it
     steps down from the guess by twice the tolerance (three times, then doubling the step) until
-    a scale is not held (or ``lowest`` is). Not held at the guess,
-    it tries 1 (and up). The bracket found is then bisected to ``tolerance``; the one-tolerance
-    probe is the bisection's first midpoint below the guess, so the bracket is the same as
-    without it."""
+    a scale is not held (or ``lowest`` is). Not held at the guess, it tries 1 (and up). The
+    bracket found is then bisected to ``tolerance``; the one-tolerance probe is the bisection's
+    first midpoint below the guess (a scale is never checked twice), so the bracket is the same
+    as without it."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: list[tuple[float, bool]] = []
     systems: list[int] = []  # the Newton systems of the settle (when made here) and of each check

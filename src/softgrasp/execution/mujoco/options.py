@@ -54,8 +54,9 @@ Choices
   lift and slid out 65-70 mm up, at the planned set-points. At 3 on every mesh the 388-node
   sphere holds at 1.15 times softgrasp's critical scale and drops at 0.85 times it, but the
   2 196-node one drops at 1.0 (slides 84 mm) and is lifted only at 1.25; with the cube-root
-  growth (5.3 there) it is lifted at 1.0 and at 1.15 times the critical scale (slip 2.2 mm) and
-  dropped at 0.85 times it, as the 388-node sphere. At 10 on the 388-node sphere the creep is
+  growth (5.35 there) it is lifted at 1.0 and at 1.15 times the critical scale (slip 2.6 and
+  2.7 mm) and dropped at 0.85 times it, as the 388-node sphere; the 745-node one (3.73) is lifted
+  as planned (1.3 mm). At 10 on the 388-node sphere the creep is
   smaller still but the friction no longer relaxes at all while the weight passes from the table
   to the fingers: it then needs 0.92-1.0 of its set-points (softgrasp's critical scale: 0.80). At
   100 the friction rows are so stiff that the force-controlled closing chatters and never
