@@ -83,26 +83,22 @@ def critical_scale(
     first midpoint below the guess (a scale is never checked twice), so the bracket is the same
     as without it."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
-    checks: list[tuple[float, bool]] = []
+    checks: dict[float, bool] = {}  # every scale tried, in order, and whether it held
     systems: list[int] = []  # the Newton systems of the settle (when made here) and of each check
     if setup is None:
         cache = SolverCache()
         setup = closing_setup(body, config, cache)  # every check closes from the same start
         systems.append(int(cache.stats["systems"]))
 
-    verdicts: dict[float, bool] = {}
-
     def held(s: float) -> bool:
-        if s in verdicts:
-            return verdicts[s]
-        check = hold_setpoints(body, config, s * setpoints, setup=setup)
-        verdicts[s] = bool(check.held)
-        checks.append((s, bool(check.held)))
-        systems.append(check.systems)
-        return bool(check.held)
+        if s not in checks:
+            check = hold_setpoints(body, config, s * setpoints, setup=setup)
+            checks[s] = bool(check.held)
+            systems.append(check.systems)
+        return checks[s]
 
     def margin(scale: float, not_held: float) -> Margin:
-        return Margin(scale, not_held, tolerance, tuple(checks), sum(systems))
+        return Margin(scale, not_held, tolerance, tuple(checks.items()), sum(systems))
 
     g = float(guess) if np.isfinite(guess) else 1.0
     g = min(max(g, lowest), 1.0)
