@@ -10,13 +10,17 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 # softgrasp with both optional extras: MuJoCo (`execute`) and Dask with PyArrow (`sweep`); then
-# its kernels compile once (about 12 s on a first install; nothing to do after).
+# its bytecode is written (an editable install writes none, and where PYTHONDONTWRITEBYTECODE is
+# set, as in many containers, every run would compile every module: ~0.12 s of a plan) and its
+# kernels compile once (about 12 s on a first install; nothing to do after).
 install: $(BIN)/python gl
 	$(BIN)/python -m pip install --quiet -e ".[execute,sweep]"
+	$(BIN)/python -m compileall -q src/softgrasp
 	$(BIN)/python -m softgrasp.cli.warm
 
 install-test: $(BIN)/python browser gl
 	$(BIN)/python -m pip install --quiet -e ".[test,execute,sweep]"
+	$(BIN)/python -m compileall -q src/softgrasp
 	$(BIN)/python -m softgrasp.cli.warm
 
 # Debian's Chromium and ChromeDriver for the browser test of `softgrasp view` (installed when

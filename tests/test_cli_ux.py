@@ -269,6 +269,76 @@ def test_the_install_compiles_the_kernels_ahead_and_says_so_only_when_it_does(mo
     for target in ("install:", "install-test:"):
         recipe = makefile.split("\n" + target, 1)[1].split("\n\n", 1)[0]
         assert "-m softgrasp.cli.warm" in recipe, recipe
+        assert "-m compileall -q src/softgrasp" in recipe, recipe  # the bytecode, written ahead
+
+
+def test_the_collector_pause_ends_once_and_only_if_it_began(monkeypatch):
+    """:func:`~softgrasp.cli.warm.pause_collector` turns the cyclic garbage collector off;
+    :func:`~softgrasp.cli.warm.resume_collector` turns it on again, the objects made meanwhile
+    frozen, once; a collector someone else turned off stays off; a warm-up that finds the kernel
+    cache cold (it will compile) resumes it itself."""
+    import gc
+
+    from softgrasp.cli import warm
+
+    assert gc.isenabled()
+    frozen = gc.get_freeze_count()
+    try:
+        warm.pause_collector()
+        assert not gc.isenabled()
+        junk = [[i] for i in range(1000)]  # made while paused
+        warm.resume_collector()
+        assert gc.isenabled() and gc.get_freeze_count() >= frozen + len(junk)
+        gc.disable()
+        warm.resume_collector()  # nothing left to resume
+        assert not gc.isenabled()
+        warm.pause_collector()  # off already: not this pause's to end
+        warm.resume_collector()
+        assert not gc.isenabled()
+        gc.enable()
+        warm.pause_collector()
+        monkeypatch.setattr(warm, "cold", lambda: True)
+        monkeypatch.setattr(warm, "_quietly", lambda split=False: None)
+        thread = warm.WarmUp()
+        thread.start()
+        thread.join(timeout=60)
+        assert gc.isenabled()
+    finally:
+        gc.enable()
+        gc.unfreeze()
+
+
+def test_the_plan_command_collects_no_garbage_until_its_kernels_are_loaded(tmp_path):
+    """The ``softgrasp plan`` process: the collector is off while it imports and loads its
+    kernels (the meshing phase), on from the first planner phase; a command called with its
+    arguments in a caller's process leaves the caller's collector alone."""
+    script = textwrap.dedent(
+        f"""
+        import gc, sys
+        from softgrasp.cli import main, progress
+        seen = []
+        phase = progress.PhaseBar.phase
+        def record(self, name, *args, **kwargs):
+            seen.append((name, gc.isenabled()))
+            return phase(self, name, *args, **kwargs)
+        progress.PhaseBar.phase = record
+        sys.argv = ["softgrasp", "plan", "--out", {str(tmp_path / "run")!r}]
+        status = main()
+        print(status, seen)
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    status, seen = out.stdout.strip().splitlines()[-1].split(" ", 1)
+    assert status == "0"
+    phases = dict(eval(seen))  # noqa: S307 - the list printed just above
+    assert phases["meshing"] is False and phases["initial grasp"] is True, phases
+    assert all(phases[name] for name in ("closing", "hold check", "set-points", "figures")), phases
+    import gc
+
+    assert gc.isenabled()
+    assert main(["plan", "--out", str(tmp_path / "bad"), "--mu", "-1"]) == 2
+    assert gc.isenabled()
 
 
 # ------------------------------------------------------------------------------ options

@@ -76,6 +76,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _log_progress()
     if argv is None:  # the process's own command: a Ctrl-C is recorded too (softgrasp.interrupt)
         interrupt.install()
+        if args.func is plan.run:  # its start-up: no collector passes until the kernels are loaded
+            from softgrasp.cli.warm import pause_collector
+
+            pause_collector()
     try:
         if args.threads is not None:
             _set_threads(args.threads)
@@ -108,6 +112,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             # 0.3 s after a plan); frozen, they are left to the operating system.
             import gc
 
+            from softgrasp.cli.warm import resume_collector
+
+            resume_collector()  # a command that ended before its kernels were loaded
             gc.freeze()
 
 

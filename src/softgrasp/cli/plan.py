@@ -198,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, bar: PhaseBar) -> int:
-    from softgrasp.cli.warm import warm_up_in_background
+    from softgrasp.cli.warm import resume_collector, warm_up_in_background
 
     warm = warm_up_in_background()  # the compiled kernels load while the object is meshed
     from softgrasp.api.planning import plan
@@ -224,6 +224,7 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
     def phase(name: str) -> None:  # the planner's phases, every option checked by then
         if not bar.phases or bar.phases[-1] == "meshing":
             kernels_phase(bar, warm)
+            resume_collector()  # the start-up is over: softgrasp.cli.warm.pause_collector
         bar.phase(name)
 
     with bar.part("planning") as update:
