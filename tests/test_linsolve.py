@@ -190,13 +190,13 @@ def test_auto_threads_are_a_fixed_rule_not_the_machine_load(monkeypatch):
 
 
 def test_mkl_is_found_where_the_mkl_wheel_installs_it():
-    """The library comes from the ``mkl`` distribution's own file list (no path setting), each
-    candidate once."""
+    """The library comes from where the ``mkl`` wheel installs it: the distribution's own file
+    list names it among the candidates (no path setting), each candidate once."""
     from importlib.metadata import PackageNotFoundError, distribution
 
     from softgrasp.linalg import mkl
 
-    names = mkl._candidates()
+    names = list(mkl._candidates())
     assert len(names) == len(set(names))
     try:
         wheel = [f for f in distribution("mkl").files or [] if f.name.startswith("libmkl_rt.so")]
