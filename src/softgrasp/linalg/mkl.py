@@ -1,9 +1,10 @@
 """Intel oneMKL as softgrasp calls it: the library, its thread count, and the PARDISO call.
 
-The library is the one the ``mkl`` wheel installs (``libmkl_rt``, found through the wheel's file
-list or in the environment's ``lib`` directory, else by the system's library search); :func:`available` says whether it loaded, and
-:mod:`softgrasp.linalg.solve` falls back to SciPy's sparse LU and multigrid-preconditioned CG where
-it did not. MKL runs on Intel's OpenMP runtime, whatever OpenMP another library loaded first.
+The library is the one the ``mkl`` wheel installs (``libmkl_rt``, found in the environment's
+``lib`` directory or through the wheel's file list, else by the system's library search);
+:func:`available` says whether it loaded, and :mod:`softgrasp.linalg.solve` falls back to
+SciPy's sparse LU and multigrid-preconditioned CG where it did not. MKL runs on Intel's OpenMP
+runtime, whatever OpenMP another library loaded first.
 
 Every PARDISO call is made through :func:`call` holding one lock, with the thread count of the
 handle's analysis (PARDISO sizes its work per thread when it analyses a pattern; a factorisation
