@@ -63,6 +63,42 @@ def test_factors_with_different_thread_counts_interleave():
     assert pardiso.choose_threads() == (pardiso.fixed_threads() or len(os.sched_getaffinity(0)))
 
 
+def test_small_systems_are_factorised_on_one_thread_unless_a_count_is_fixed():
+    """Below ``PARALLEL_MIN_UNKNOWNS`` a factor runs on one thread (the automatic count), at and
+    above it on the cores this process may use; a fixed count holds for every size."""
+    small, large = pardiso.PARALLEL_MIN_UNKNOWNS - 1, pardiso.PARALLEL_MIN_UNKNOWNS
+    try:
+        pardiso.set_threads(None)
+        if pardiso.fixed_threads() is None:
+            assert pardiso.factor_threads(small) == 1
+            assert pardiso.factor_threads(large) == len(os.sched_getaffinity(0))
+        pardiso.set_threads(3)
+        assert pardiso.factor_threads(small) == pardiso.factor_threads(large) == 3
+    finally:
+        pardiso.set_threads(None)
+
+
+@needs_mkl
+def test_a_small_factor_on_one_thread_solves_as_on_two():
+    """The foam cube's stiffness at 1 473 unknowns (below the limit): its automatic factor runs
+    on one thread and its solves agree with a two-thread factor's and SciPy's sparse LU to 1e-12."""
+    K = _stiffness(5)
+    assert K.shape[0] < pardiso.PARALLEL_MIN_UNKNOWNS
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    want = spla.spsolve(K.tocsc(), b)
+    try:
+        pardiso.set_threads(None)
+        auto = pardiso.PardisoFactor(K)
+        pardiso.set_threads(2)
+        two = pardiso.PardisoFactor(K)
+    finally:
+        pardiso.set_threads(None)
+    if pardiso.fixed_threads() is None:
+        assert auto._threads == 1 and two._threads == 2
+    np.testing.assert_allclose(auto.solve(b), two.solve(b), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(auto.solve(b), want, rtol=1e-9, atol=0)
+
+
 @needs_mkl
 def test_factor_uses_cholesky_while_positive_definite_and_ldlt_otherwise():
     """A positive definite matrix is factorised by Cholesky; one with negative eigenvalues falls

@@ -23,7 +23,7 @@ whether a matrix counts as positive definite, indefinite or singular does not de
 precision.
 
 The library and the calls are :mod:`softgrasp.linalg.mkl`'s; a factor runs on the thread count
-:mod:`softgrasp.linalg.threads` gives when its pattern is analysed, through every later phase.
+:func:`factor_threads` gives when its pattern is analysed, through every later phase.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from softgrasp.linalg.mkl import PardisoError, available, blas_one_thread
 from softgrasp.linalg.threads import choose_threads, fixed_threads, set_threads
 
 # What callers reach through this module: the factor, its error, MKL's state and the threads.
-__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread"]
+__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread", "factor_threads"]
 __all__ += ["choose_threads", "fixed_threads", "set_threads"]
 
 #: PARDISO's matrix type for real symmetric indefinite matrices (LDL^T, Bunch-Kaufman pivoting).
@@ -66,6 +66,9 @@ SPD_PIVOT_RTOL = 1e-8
 #: ~1e-7 / (d_k / a_kk): above this floor the single pivots are known to within a few percent, so
 #: the single factor's verdict cannot differ from the double one's.
 SINGLE_PIVOT_FLOOR = 1e-4
+#: Systems of fewer unknowns are factorised on one thread unless a thread count is fixed
+#: (:func:`factor_threads`).
+PARALLEL_MIN_UNKNOWNS = 2000
 #: PARDISO's error code for a zero or negative pivot (a Cholesky of a matrix that is not positive
 #: definite).
 _ZERO_PIVOT = -4
@@ -77,6 +80,22 @@ _ORDERINGS: dict[bytes, NDArray[np.int32]] = {}
 #: How many orderings are kept (each n 4-byte integers).
 ORDERINGS_KEPT = 8
 _ORDERINGS_LOCK = threading.Lock()
+
+
+def factor_threads(n: int) -> int:
+    """The thread count of a factor of ``n`` unknowns: the fixed count
+    (:func:`~softgrasp.linalg.threads.fixed_threads`) if there is one; otherwise one below
+    :data:`PARALLEL_MIN_UNKNOWNS`, else the cores this process may use. A factorisation that
+    small takes about a millisecond: a second thread saves a fraction of it where the other core
+    is idle, and makes it several times longer where that core is busy (1 164 unknowns, the
+    default sphere's: 0.8 ms on two threads and 1.2 ms on one with the other core idle; 7.3 and
+    1.3 ms with it busy, as it is while ``softgrasp plan``'s figure process starts). The count
+    depends on the size only (the set-points of eight plans of 388 to 775 nodes, spheres and the
+    cube, come out bit-identical on one thread and on two)."""
+    fixed = fixed_threads()
+    if fixed is not None:
+        return fixed
+    return 1 if n < PARALLEL_MIN_UNKNOWNS else choose_threads()
 
 
 def _pattern_key(indptr: NDArray[np.int32], indices: NDArray[np.int32]) -> bytes:
@@ -135,7 +154,7 @@ class PardisoFactor:
         self._data = np.ascontiguousarray(U.data, dtype=np.float64)
         # PARDISO sizes its work per thread in the analysis: every phase of this factor must run
         # with the same thread count (changing it in between crashed MKL here).
-        self._threads = choose_threads()
+        self._threads = factor_threads(self.n)
         # (indptr, indices) of the full pattern last seen by same_pattern, its upper entries and
         # their positions in this factor's data (None: every entry, in order).
         self._gather: tuple[NDArray, NDArray, NDArray, NDArray | None] | None = None
@@ -143,8 +162,7 @@ class PardisoFactor:
         self._pattern = _pattern_key(self._indptr, self._indices)  # its key in _ORDERINGS
         self._factorise()
 
-    @staticmethod
-    def _new_iparm() -> NDArray[np.int32]:
+    def _new_iparm(self) -> NDArray[np.int32]:
         iparm = np.zeros(64, dtype=np.int32)
         iparm[0] = 1  # iparm given below (not defaults)
         iparm[1] = 2  # nested-dissection ordering (METIS)
@@ -155,7 +173,7 @@ class PardisoFactor:
         iparm[17] = -1  # report the factor's non-zeros in iparm[17]
         iparm[18] = -1  # report the factorisation's Mflop count in iparm[18]
         iparm[34] = 1  # zero-based indices
-        iparm[33] = choose_threads()  # reproducible results on this many threads (MKL's CNR mode)
+        iparm[33] = self._threads  # reproducible results on this many threads (MKL's CNR mode)
         return iparm
 
     def _analysed(self, key: tuple[int, bool]) -> None:
