@@ -323,7 +323,6 @@ def hand_model(
     from softgrasp.hand.chain import parse_fingertips
     from softgrasp.hand.kinematics import HandModel
     from softgrasp.hand.urdf import PACKAGED
-    from softgrasp.io.handfile import read_hand
 
     if name == "none":
         return None
@@ -336,6 +335,8 @@ def hand_model(
         default = name == "shadow_like" and radius is None
         hand = HandModel.default() if default else HandModel.packaged(name, radius)
     else:
+        from softgrasp.io.handfile import read_hand  # (XML parsing: only for a hand file)
+
         hand = read_hand(name, mapping, radius)
     given = {k: v for k, v in (reach or {}).items() if v is not None}
     if given:
