@@ -14,7 +14,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from softgrasp.linalg import factored, krylov, pardiso
+from softgrasp.linalg import factored, krylov, pardiso, threads
 from softgrasp.linalg import solve as linsolve
 from softgrasp.linalg.multigrid import cycle, hierarchy
 from softgrasp.linalg.multigrid import krylov as mg_krylov
@@ -64,9 +64,9 @@ def test_factors_with_different_thread_counts_interleave():
 
 
 def test_small_systems_are_factorised_on_one_thread_unless_a_count_is_fixed():
-    """Below ``PARALLEL_MIN_UNKNOWNS`` a factor runs on one thread (the automatic count), at and
+    """Below ``threads.PARALLEL_MIN_UNKNOWNS`` a factor runs on one thread (the automatic count), at and
     above it on the cores this process may use; a fixed count holds for every size."""
-    small, large = pardiso.PARALLEL_MIN_UNKNOWNS - 1, pardiso.PARALLEL_MIN_UNKNOWNS
+    small, large = threads.PARALLEL_MIN_UNKNOWNS - 1, threads.PARALLEL_MIN_UNKNOWNS
     try:
         pardiso.set_threads(None)
         if pardiso.fixed_threads() is None:
@@ -83,7 +83,7 @@ def test_a_small_factor_on_one_thread_solves_as_on_two():
     """The foam cube's stiffness at 1 473 unknowns (below the limit): its automatic factor runs
     on one thread and its solves agree with a two-thread factor's and SciPy's sparse LU to 1e-12."""
     K = _stiffness(5)
-    assert K.shape[0] < pardiso.PARALLEL_MIN_UNKNOWNS
+    assert K.shape[0] < threads.PARALLEL_MIN_UNKNOWNS
     b = np.random.default_rng(3).standard_normal(K.shape[0])
     want = spla.spsolve(K.tocsc(), b)
     try:
@@ -1127,9 +1127,10 @@ def test_a_kept_multigrid_hierarchy_smooths_with_the_current_matrix():
 @pytest.mark.parametrize("n", [6, 10, 14])
 def test_a_kept_hierarchy_updated_for_a_pressing_plate_converges_as_a_fresh_one(n):
     """The same two systems: with the hierarchy kept from the first and its coarse levels brought
-    up to date (the plate's nodes out of the coarse space: :mod:`softgrasp.linalg.multigrid.coarse`), CG on the
-    second takes at most two iterations more than with a hierarchy built on it (16 against 15
-    here); with the coarse levels as built it took more than twice as many (36 and 46). At n = 14
+    up to date (the plate's nodes out of the coarse space:
+    :mod:`softgrasp.linalg.multigrid.coarse`), CG on the second takes at most two iterations more
+    than with a hierarchy built on it (16 against 15 here); with the coarse levels as built it
+    took more than twice as many (36 and 46). At n = 14
     the hierarchy has three levels: the change reaches the third by the second's Galerkin
     product, and the second level's sweeps are updated in place."""
     kept, A1, b, x, dx = _both_on_one_hierarchy(n, 1e-8, seed=1)

@@ -38,11 +38,11 @@ from numpy.typing import NDArray
 
 from softgrasp.linalg import mkl
 from softgrasp.linalg.mkl import PardisoError, available, blas_one_thread
-from softgrasp.linalg.threads import choose_threads, fixed_threads, set_threads
+from softgrasp.linalg.threads import choose_threads, factor_threads, fixed_threads, set_threads
 
 # What callers reach through this module: the factor, its error, MKL's state and the threads.
-__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread", "factor_threads"]
-__all__ += ["choose_threads", "fixed_threads", "set_threads"]
+__all__ = ["PardisoError", "PardisoFactor", "available", "blas_one_thread"]
+__all__ += ["choose_threads", "factor_threads", "fixed_threads", "set_threads"]
 
 #: PARDISO's matrix type for real symmetric indefinite matrices (LDL^T, Bunch-Kaufman pivoting).
 SYMMETRIC_INDEFINITE = -2
@@ -66,9 +66,6 @@ SPD_PIVOT_RTOL = 1e-8
 #: ~1e-7 / (d_k / a_kk): above this floor the single pivots are known to within a few percent, so
 #: the single factor's verdict cannot differ from the double one's.
 SINGLE_PIVOT_FLOOR = 1e-4
-#: Systems of fewer unknowns are factorised on one thread unless a thread count is fixed
-#: (:func:`factor_threads`).
-PARALLEL_MIN_UNKNOWNS = 2000
 #: PARDISO's error code for a zero or negative pivot (a Cholesky of a matrix that is not positive
 #: definite).
 _ZERO_PIVOT = -4
@@ -80,22 +77,6 @@ _ORDERINGS: dict[bytes, NDArray[np.int32]] = {}
 #: How many orderings are kept (each n 4-byte integers).
 ORDERINGS_KEPT = 8
 _ORDERINGS_LOCK = threading.Lock()
-
-
-def factor_threads(n: int) -> int:
-    """The thread count of a factor of ``n`` unknowns: the fixed count
-    (:func:`~softgrasp.linalg.threads.fixed_threads`) if there is one; otherwise one below
-    :data:`PARALLEL_MIN_UNKNOWNS`, else the cores this process may use. A factorisation that
-    small takes about a millisecond: a second thread saves a fraction of it where the other core
-    is idle, and makes it several times longer where that core is busy (1 164 unknowns, the
-    default sphere's: 0.8 ms on two threads and 1.2 ms on one with the other core idle; 7.3 and
-    1.3 ms with it busy, as it is while ``softgrasp plan``'s figure process starts). The count
-    depends on the size only (the set-points of eight plans of 388 to 775 nodes, spheres and the
-    cube, come out bit-identical on one thread and on two)."""
-    fixed = fixed_threads()
-    if fixed is not None:
-        return fixed
-    return 1 if n < PARALLEL_MIN_UNKNOWNS else choose_threads()
 
 
 def _pattern_key(indptr: NDArray[np.int32], indices: NDArray[np.int32]) -> bytes:
