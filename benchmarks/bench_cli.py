@@ -13,6 +13,11 @@ Measured in rounds, alternating, each case in a fresh process as a user starts i
   softgrasp's, under ``XDG_CACHE_HOME``): what a first run after installing costs, and what it says
   while it waits.
 
+Before the rounds, one default plan runs under ``python -X importtime``: its imports by package
+(self times summed; ``-X importtime`` itself adds to them), and whether any package the command
+does not need (Matplotlib, MuJoCo, Dask, PyArrow, gmsh, yourdfpy) was imported by the command's
+own process (the figures are drawn in a child process; the mesh and the hand come from the cache).
+
 Every plan's set-points are compared with the first default plan's (they must not change with
 the caches). Prints medians over the rounds and the ratios the speed targets use.
 
@@ -64,6 +69,31 @@ def _softgrasp(args: list[str], env: dict[str, str]) -> dict:
     return {"wall": wall, "setpoints_at": t_setpoints, "stderr": err, "setpoints": setpoints}
 
 
+#: Packages the default ``softgrasp plan`` must not import in its own process.
+UNNEEDED = ("matplotlib", "mujoco", "dask", "distributed", "pyarrow", "gmsh", "yourdfpy")
+
+
+def _imports(env: dict[str, str]) -> tuple[dict[str, float], float]:
+    """The default plan's imports under ``python -X importtime``: seconds by top-level package
+    (each module's own time), and the total."""
+    out = Path(tempfile.mkdtemp(prefix="bench_cli_"))
+    cmd = [sys.executable, "-X", "importtime", "-m", "softgrasp", "plan", "--out", str(out / "run")]
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    shutil.rmtree(out, ignore_errors=True)
+    if run.returncode != 0:
+        raise SystemExit(f"softgrasp plan failed ({run.returncode}):\n{run.stderr}")
+    by: dict[str, float] = {}
+    for line in run.stderr.splitlines():
+        if not line.startswith("import time:") or "|" not in line:
+            continue
+        own, _, name = line[len("import time:") :].split("|")
+        if not own.strip().isdigit():  # the header line
+            continue
+        package = name.strip().split(".")[0]
+        by[package] = by.get(package, 0.0) + int(own) * 1e-6
+    return by, sum(by.values())
+
+
 def _yardstick_mesh_size() -> float:
     """The sphere's mesh size [m] that gives :data:`YARDSTICK_NODES` nodes."""
     from softgrasp.model.objects import make_object
@@ -76,11 +106,12 @@ def _yardstick_mesh_size() -> float:
 
 def _yardstick(h: float) -> float:
     """MuJoCo's 2 s squeeze of the sphere meshed at ``h``, in a fresh process [s]."""
+    here = str(Path(__file__).resolve().parent)
     code = (
-        "import sys; sys.path.insert(0, %r); import bench_indent as b; "
+        f"import sys; sys.path.insert(0, {here!r}); import bench_indent as b; "
         "from softgrasp.model.objects import make_object; "
-        "m, mat, mass = make_object('sphere', %r); r = b.mujoco_flex(m, mat, mass); print(r.wall_s)"
-    ) % (str(Path(__file__).resolve().parent), h)
+        f"m, mat, mass = make_object('sphere', {h!r}); r = b.mujoco_flex(m, mat, mass); print(r.wall_s)"
+    )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(run.stdout.strip().splitlines()[-1])
 
@@ -96,9 +127,25 @@ def main() -> None:
     # Warm the caches (kernels, meshes, hand) before the rounds.
     reference = _softgrasp([], warm_env)["setpoints"]
     _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], warm_env)
+    by, total = _imports(warm_env)
+    top = sorted(by.items(), key=lambda kv: -kv[1])[:6]
+    print(
+        f"default plan's imports (python -X importtime): {total:.2f} s; "
+        + ", ".join(f"{name} {t:.3f} s" for name, t in top)
+    )
+    loaded = [name for name in UNNEEDED if name in by]
+    print(
+        "  not imported by the command's process: "
+        + ", ".join(n for n in UNNEEDED if n not in loaded)
+        + ("; IMPORTED: " + ", ".join(loaded) if loaded else "")
+    )
 
     times: dict[str, list[float]] = {
-        "yardstick": [], "fine": [], "default": [], "default_setpoints": [], "first": [],
+        "yardstick": [],
+        "fine": [],
+        "default": [],
+        "default_setpoints": [],
+        "first": [],
     }
     first_status = ""
     changed: list[str] = []
@@ -133,8 +180,11 @@ def main() -> None:
         f"process {med['default']:.2f} s"
     )
     if "first" in med:
-        print(f"  first run, empty caches: {med['first']:.1f} s (target <= 15 s); it said: {first_status.strip()}")
-    print("  set-points: " + ("unchanged in every run" if not changed else "CHANGED in " + ", ".join(changed)))
+        said = first_status.strip()
+        print(f"  first run, empty caches: {med['first']:.1f} s (target <= 15 s); it said: {said}")
+    print(
+        "  set-points: " + ("unchanged in every run" if not changed else "CHANGED in " + ", ".join(changed))
+    )
 
 
 if __name__ == "__main__":
