@@ -27,6 +27,10 @@ cache's index of a few kernels the warm-up compiles first and last, so that the 
 say why it waits (:data:`COMPILE_TIME_S`). It then compiles the fingertip contact's kernels in a
 second process (a new program, :func:`start_fingertip_compile`) while this one compiles the rest,
 and loads them from the cache once that process is done: about 11 s instead of 20 s on two cores.
+
+While a plan command starts (its imports and this loading), Python's cyclic garbage collector is
+paused (:func:`pause_collector`, :func:`resume_collector`): what is made then lives as long as
+the process.
 """
 
 from __future__ import annotations

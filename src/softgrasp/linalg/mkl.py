@@ -253,9 +253,11 @@ def blas_one_thread() -> Iterator[None]:
     runtime's second thread then waits for the core another runtime's thread spins on. The
     Newton solves' vector products gain nothing from a second BLAS thread at these sizes. The
     limit must hold between the solves too (the line search's norms would wake OpenBLAS's
-    threads), so the planner holds it for the whole plan. Does nothing where PARDISO runs on one
-    thread (a fixed count of 1, one core, or no MKL). Reference-counted across threads: the counts
-    found when the first holder entered are restored when the last one leaves."""
+    threads), so the planner holds it for the whole plan. Does nothing where PARDISO never runs on
+    more than one thread (a fixed count of 1, one core, or no MKL); a small system's factor runs on
+    one thread anyway (:func:`~softgrasp.linalg.threads.factor_threads`). Reference-counted across
+    threads: the counts found when the first holder entered are restored when the last one
+    leaves."""
     global _blas_holders, _blas_limiter
     controller = _openblas() if choose_threads() > 1 and available() else None
     if controller is None:
