@@ -13,6 +13,7 @@ import pytest
 from softgrasp.errors import InfeasibleGrasp
 from softgrasp.grasp.hold import finger_slip
 from softgrasp.grasp.planner import PlanConfig, plan_grasp
+from softgrasp.model.material import preset
 from softgrasp.model.objects import make_object
 from softgrasp.physics.body import build_body
 from softgrasp.physics.fingertip.params import ContactParams
@@ -108,6 +109,27 @@ def test_set_points_fall_with_friction_and_too_little_friction_is_infeasible():
         InfeasibleGrasp, match=r"mu = 0.05 cannot hold .*needs at least \d+\.\d+ N of normal force"
     ):
         plan_grasp(body, PlanConfig(contact=ContactParams(mu=0.05)))
+
+
+def test_a_soft_heavy_ball_that_sags_far_onto_the_table_is_planned_and_held(monkeypatch):
+    """A 60 mm ball of E = 5 kPa, nu = 0.45 and water's density (111 g: a jelly) sags about
+    6 mm onto the table, where Newton on its static balance cycles; it comes to rest by backward
+    Euler steps (:func:`softgrasp.sim.static.proximal_solve`), and the plan holds it in static
+    equilibrium, its set-points above the rigid-body least normal forces."""
+    mesh, _, _ = make_object("ball:0.03")
+    body = build_body(mesh, dataclasses.replace(preset("rubber"), E=5e3, density=1000.0))
+    from softgrasp.grasp import settle
+
+    used = []
+    real = settle.proximal_solve
+    monkeypatch.setattr(settle, "proximal_solve", lambda *a, **kw: used.append(1) or real(*a, **kw))
+    plan = plan_grasp(body, PlanConfig())
+    assert used  # the settle's Newton found no rest directly
+    W = body.total_mass * 9.81
+    assert plan.force_residual < 0.02 * W
+    assert "held" in [w for _, w in plan.hold_checks]
+    assert _normal(plan).sum() >= 0.9 * plan.rigid_normal_forces.sum()
+    assert (plan.setpoints > 0).all()
 
 
 @pytest.mark.parametrize("E", [5e3, 20e3])

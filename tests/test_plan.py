@@ -628,8 +628,8 @@ def test_the_settle_starts_lowered_where_its_systems_go_to_multigrid(monkeypatch
 
 def test_a_lowered_start_that_finds_no_rest_is_followed_by_the_level_one(monkeypatch):
     """A lowered start that does not converge is followed by the level start from the same
-    placement, which settles; where every start fails, the error names each start and its
-    failure."""
+    placement, which settles; where every start fails, and so do backward Euler steps from each
+    placement, the error names each start and its failure."""
     from softgrasp.grasp import settle
 
     body = build_body(sphere(0.15, 0.06), preset("rubber"), mass=5.0)  # balanced on one node
@@ -658,10 +658,13 @@ def test_a_lowered_start_that_finds_no_rest_is_followed_by_the_level_one(monkeyp
         raise NotConverged("static solve did not converge (forced)")
 
     monkeypatch.setattr(settle, "solve_static", always_fails)
+    monkeypatch.setattr(settle, "proximal_solve", lambda scene, state, t, **kw: always_fails(scene, state))
     for mesh, tried in (
-        (sphere(0.15, 0.06), ["on its most stable facet, lowered", "on its most stable facet"]),
+        (sphere(0.15, 0.06), ["on its most stable facet, lowered", "on its most stable facet",
+                              "on its most stable facet, by backward Euler steps"]),
         (make_object("sphere")[0], ["as meshed, lowered", "as meshed", "on its most stable facet, lowered",
-                                    "on its most stable facet"]),
+                                    "on its most stable facet", "as meshed, by backward Euler steps",
+                                    "on its most stable facet, by backward Euler steps"]),
     ):  # fmt: skip
         with pytest.raises(NotConverged, match="no rest on the table") as info:
             settle.settle_on_table(

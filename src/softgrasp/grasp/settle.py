@@ -21,7 +21,7 @@ from softgrasp.physics.fingertip.laws import effective_modulus
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.physics.resting import lowered_onto_table
 from softgrasp.sim.scene import Scene, State
-from softgrasp.sim.static import solve_static
+from softgrasp.sim.static import proximal_solve, solve_static
 
 __all__ = ["settle_on_table", "centre_of_mass", "table_under", "stable_pose", "lowered_start"]
 
@@ -95,6 +95,10 @@ def settle_on_table(
     iterations (a friction pass), level with the table; the linear solver's state is dropped
     between starts. Smaller bodies and PARDISO's exact solves start level: there the iterates of a
     lowered sphere may zig-zag along its nearly neutral rolling mode.
+    Where no start finds a rest by Newton directly (a soft, heavy object sagging far onto the
+    table, whose Newton iterates cycle as nodes flip in and out of contact), each placement is
+    brought to rest by backward Euler steps from rest instead
+    (:func:`~softgrasp.sim.static.proximal_solve`).
     Returns (the rest state, the table, the unloaded placement the rest was found from)."""
     lowers = body.n_nodes >= LOWERED_MIN_NODES and by_multigrid(3 * body.n_nodes, cache)
 
@@ -111,6 +115,7 @@ def settle_on_table(
             yield where, placed, None
 
     failures = []
+    placements = []
     for where, x, guess in starts():
         if failures:
             cache.scene_changed()  # the failed start's factor or hierarchy is no guide here
@@ -122,6 +127,15 @@ def settle_on_table(
             return state, table, x
         except NotConverged as exc:
             failures.append((where, exc))
+            if guess is None:
+                placements.append((where, x, table))
+    for where, x, table in placements:
+        cache.scene_changed()
+        try:
+            rest = Scene(body, (table,))
+            return proximal_solve(rest, rest.initial_state(x), 0.0, cache=cache, rtol=PATH_RTOL), table, x
+        except NotConverged as exc:
+            failures.append((f"{where}, by backward Euler steps", exc))
     raise NotConverged(
         "the object found no rest on the table: " + "; ".join(f"{where}: {exc}" for where, exc in failures)
     ) from failures[-1][1]

@@ -1,5 +1,6 @@
 """Static equilibrium of a scene: friction advanced by passes around Newton's method, and load
-increments split in halves where they do not converge.
+increments split in halves where they do not converge, and, where even halves do not, a rest
+reached by backward Euler steps from rest (:func:`proximal_solve`).
 
 The equilibrium is the minimum of the total potential (elastic + gravity + contact penalty + the
 tangential springs of sticking contacts). Friction is advanced incrementally: Newton
@@ -26,6 +27,7 @@ from softgrasp.errors import NotConverged, SimulationUnstable
 from softgrasp.linalg import pardiso
 from softgrasp.linalg.solve import SolverCache, assembly_threads
 from softgrasp.physics.body import Body
+from softgrasp.sim.inertia import Inertia
 from softgrasp.sim.newton import newton, valid
 from softgrasp.sim.scene import Scene, State
 
@@ -37,6 +39,7 @@ __all__ = [
     "StaticInfo",
     "solve_static",
     "solve_increment",
+    "proximal_solve",
     "rigid_constraints",
     "extrapolated",
     "MAX_HALVINGS",
@@ -44,6 +47,8 @@ __all__ = [
 
 #: How often :func:`solve_increment` halves a load increment that does not converge.
 MAX_HALVINGS = 4
+#: Most backward Euler steps :func:`proximal_solve` takes before its final static solve.
+PROXIMAL_MAX_STEPS = 40
 
 
 @dataclass(frozen=True)
@@ -90,7 +95,6 @@ def rigid_constraints(
             row /= max(float(np.sqrt((row**2).sum())), 1e-300)
         rows.append(row.ravel())
     return sp.csr_matrix(np.array(rows))
-
 
 
 def extrapolated(
@@ -258,7 +262,63 @@ def solve_increment(
         except NotConverged as exc:
             log.debug("load increment to t = %.6g in %d part(s) failed: %s", t, n, exc)
             if level == max_halvings:
-                raise NotConverged(
-                    f"load increment to t = {t:.6g} did not converge even when split into {n} parts: {exc}"
-                ) from exc
+                try:
+                    return proximal_solve(scene, state, t, cache=cache, rtol=rtol), 0, level
+                except NotConverged as last:
+                    raise NotConverged(
+                        f"load increment to t = {t:.6g} did not converge even when split into {n} parts "
+                        f"({exc}), nor by backward Euler steps ({last})"
+                    ) from exc
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+def proximal_solve(
+    scene: Scene,
+    state: State,
+    t: float,
+    *,
+    cache: SolverCache | None = None,
+    rtol: float = 1e-9,
+    max_steps: int = PROXIMAL_MAX_STEPS,
+) -> State:
+    """The rest at load parameter ``t`` reached from ``state`` by backward Euler steps that each
+    start at rest (proximal steps), for where Newton on the static balance finds none (its
+    iterates cycling as contacts flip in and out, or crawling along a nearly free rolling mode):
+    each step balances the forces plus an inertia spring ``m / dt^2`` towards the last positions
+    (:class:`~softgrasp.sim.inertia.Inertia`), which holds the iterates near them. The first step
+    is ``1 / omega`` long (omega the body's lowest elastic frequency,
+    :attr:`~softgrasp.physics.body.Body.fundamental_frequency`: the inertia spring is then about as
+    stiff as the body), each next one twice the last, a step that fails retried a quarter as long,
+    until the forces balance without the inertia spring (to ``rtol`` of the largest force, as
+    :func:`solve_static`); where instead a step moves the positions by less than 1e-6 of the
+    body's size, or after ``max_steps`` steps, the static solve from there (the inertia gone)
+    gives the rest. The friction anchors follow the steps' path.
+
+    Raises NotConverged when that static solve fails (no rest near: the object slides away)."""
+    cache = cache if cache is not None else SolverCache()
+    body = scene.body
+    size = float(np.ptp(body.mesh.points, axis=0).max())
+    dt = 1.0 / body.fundamental_frequency
+    weight = float(np.abs(body.mass[:, None] * body.gravity[None, :]).max())
+    still = np.zeros_like(state.x)
+    current = State(state.x, still, t, state.contacts)
+    for _ in range(max_steps):
+        step = Scene(body, (*scene.interactions, Inertia(current.x, dt)))
+        try:
+            new, _ = solve_static(
+                step, State(current.x, still, t, (*current.contacts, None)), cache=cache, rtol=rtol
+            )
+        except NotConverged:
+            dt /= 4.0
+            continue
+        moved = float(np.abs(new.x - current.x).max())
+        current = State(new.x, still, t, new.contacts[:-1])
+        f_int = body.internal_forces(current.x)
+        f = scene.static_forces(current.x, t, current.contacts, internal=f_int)
+        scale = max(float(np.abs(f_int).max()), float(np.abs(f - f_int).max()), weight)
+        if float(np.abs(f).max()) <= rtol * scale:
+            return current  # the inertia spring holds no force left: a rest of the scene itself
+        if moved < 1e-6 * size:
+            break  # at rest under the inertia spring: the static solve from here
+        dt *= 2.0
+    return solve_static(scene, current, cache=cache, rtol=rtol)[0]
