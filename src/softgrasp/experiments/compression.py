@@ -1,10 +1,11 @@
 """Uniaxial compression between two rigid plates (paper Sec. 4.2, Figs. 8-9).
 
-The object settles under gravity on a fixed bottom plate; a top plate starting on its top moves
-down to the requested engineering strain in quasi-static increments. Each increment is a static
-solve (:func:`softgrasp.sim.static.solve_static`) with gravity. The plate force is read from the
-top plate. Plates are frictionless by default (a lubricated test, giving a uniaxial stress state);
-``plate_friction`` > 0 sticks the faces as in an unlubricated rig.
+The object settles under gravity on a fixed bottom plate (:func:`softgrasp.sim.static.solve_rest`);
+a top plate starting on its top moves down to the requested engineering strain in quasi-static
+increments. Each increment is a static solve (:func:`softgrasp.sim.static.solve_increment`) with
+gravity. The plate force is read from the top plate. Plates are frictionless by default (a
+lubricated test, giving a uniaxial stress state); ``plate_friction`` > 0 sticks the faces as in an
+unlubricated rig.
 
 Stress is nominal: force over the area of the object's outline seen from above (the footprint of a
 box, pi R^2 for a sphere); strain is the plate travel over the initial height, positive in
@@ -27,7 +28,7 @@ from softgrasp.physics.body import Body
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.physics.supports import Tether
 from softgrasp.sim.scene import Scene
-from softgrasp.sim.static import extrapolated, solve_increment, solve_static
+from softgrasp.sim.static import extrapolated, solve_increment, solve_rest
 
 __all__ = ["CompressionResult", "compression_test", "outline_area"]
 
@@ -145,7 +146,7 @@ def compression_test(
     # The object first settles under its own weight; like a rig zeroed at first contact, the top
     # plate then starts on the settled top.
     rest = Scene(body, (bottom, tether))
-    settled, _ = solve_static(rest, rest.initial_state(), cache=cache)
+    settled, _ = solve_rest(rest, rest.initial_state(), cache=cache)
     ztop = float(settled.x[:, 2].max())
     top = PlaneContact(
         Plane([0, 0, ztop], [0, 0, -1], velocity=[0, 0, -1.0]), mu=plate_friction, penalty=penalty, name="top"

@@ -1,12 +1,12 @@
 """Indentation by one fingertip (paper Sec. 4.3.1, Figs. 10-11): force versus penetration.
 
 A spherical fingertip presses straight down on the object resting on the table. The object first
-settles under gravity on the table (a static solve); the fingertip starts one increment above the
-surface point under the press point and moves down along -z. The test is quasi-static: the fingertip
-path is cut into load increments and every increment is a static solve
-(:func:`softgrasp.sim.static.solve_static`, the load parameter ``t`` being the fingertip travel in
-metres since its start, the fingertip velocity ``(0, 0, -1)`` in those units). Times are reported
-as ``travel / speed``.
+settles under gravity on the table (a static solve, :func:`softgrasp.sim.static.solve_rest`); the
+fingertip starts one increment above the surface point under the press point and moves down
+along -z. The test is quasi-static: the fingertip path is cut into load increments and every
+increment is a static solve (:func:`softgrasp.sim.static.solve_increment`, the load parameter
+``t`` being the fingertip travel in metres since its start, the fingertip velocity
+``(0, 0, -1)`` in those units). Times are reported as ``travel / speed``.
 
 Definitions
 -----------
@@ -50,7 +50,7 @@ from softgrasp.physics.fingertip.contact import FingerReport, FingertipContact
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.planes import Plane, PlaneContact
 from softgrasp.sim.scene import Scene, State
-from softgrasp.sim.static import extrapolated, solve_increment, solve_static
+from softgrasp.sim.static import extrapolated, solve_increment, solve_rest
 
 __all__ = [
     "DEFAULT_INCREMENT",
@@ -334,7 +334,7 @@ def indentation_test(
         Plane(np.array([0.0, 0.0, zmin]), np.array([0.0, 0.0, 1.0])), mu=table_mu, name="table"
     )
     rest = Scene(body, (table,))
-    settled, info0 = solve_static(rest, rest.initial_state(), cache=cache)
+    settled, its0 = solve_rest(rest, rest.initial_state(), cache=cache)
     xs = settled.x
     top = float(xs[:, 2].max())
     sag = float(x_mesh[:, 2].max() - top)
@@ -376,7 +376,7 @@ def indentation_test(
         iters.append(n_it)
         return rep
 
-    record(state, info0.newton_iterations)
+    record(state, its0)
     if progress is not None:
         progress(1.0 / (steps + 1))
     previous = state

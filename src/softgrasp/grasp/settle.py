@@ -133,7 +133,7 @@ def settle_on_table(
         cache.scene_changed()
         try:
             rest = Scene(body, (table,))
-            return proximal_solve(rest, rest.initial_state(x), 0.0, cache=cache, rtol=PATH_RTOL), table, x
+            return proximal_solve(rest, rest.initial_state(x), 0.0, cache=cache, rtol=PATH_RTOL)[0], table, x
         except NotConverged as exc:
             failures.append((f"{where}, by backward Euler steps", exc))
     raise NotConverged(

@@ -40,6 +40,7 @@ __all__ = [
     "solve_static",
     "solve_increment",
     "proximal_solve",
+    "solve_rest",
     "rigid_constraints",
     "extrapolated",
     "MAX_HALVINGS",
@@ -263,7 +264,8 @@ def solve_increment(
             log.debug("load increment to t = %.6g in %d part(s) failed: %s", t, n, exc)
             if level == max_halvings:
                 try:
-                    return proximal_solve(scene, state, t, cache=cache, rtol=rtol), 0, level
+                    rest, its = proximal_solve(scene, state, t, cache=cache, rtol=rtol)
+                    return rest, its, level
                 except NotConverged as last:
                     raise NotConverged(
                         f"load increment to t = {t:.6g} did not converge even when split into {n} parts "
@@ -280,7 +282,7 @@ def proximal_solve(
     cache: SolverCache | None = None,
     rtol: float = 1e-9,
     max_steps: int = PROXIMAL_MAX_STEPS,
-) -> State:
+) -> tuple[State, int]:
     """The rest at load parameter ``t`` reached from ``state`` by backward Euler steps that each
     start at rest (proximal steps), for where Newton on the static balance finds none (its
     iterates cycling as contacts flip in and out, or crawling along a nearly free rolling mode):
@@ -294,6 +296,8 @@ def proximal_solve(
     body's size, or after ``max_steps`` steps, the static solve from there (the inertia gone)
     gives the rest. The friction anchors follow the steps' path.
 
+    Returns (the rest, the Newton iterations of every step and of the static solve).
+
     Raises NotConverged when that static solve fails (no rest near: the object slides away)."""
     cache = cache if cache is not None else SolverCache()
     body = scene.body
@@ -302,23 +306,40 @@ def proximal_solve(
     weight = float(np.abs(body.mass[:, None] * body.gravity[None, :]).max())
     still = np.zeros_like(state.x)
     current = State(state.x, still, t, state.contacts)
+    iterations = 0
     for _ in range(max_steps):
         step = Scene(body, (*scene.interactions, Inertia(current.x, dt)))
         try:
-            new, _ = solve_static(
+            new, info = solve_static(
                 step, State(current.x, still, t, (*current.contacts, None)), cache=cache, rtol=rtol
             )
         except NotConverged:
             dt /= 4.0
             continue
+        iterations += info.newton_iterations
         moved = float(np.abs(new.x - current.x).max())
         current = State(new.x, still, t, new.contacts[:-1])
         f_int = body.internal_forces(current.x)
         f = scene.static_forces(current.x, t, current.contacts, internal=f_int)
         scale = max(float(np.abs(f_int).max()), float(np.abs(f - f_int).max()), weight)
         if float(np.abs(f).max()) <= rtol * scale:
-            return current  # the inertia spring holds no force left: a rest of the scene itself
+            return current, iterations  # the inertia spring holds no force left: a rest of the scene
         if moved < 1e-6 * size:
             break  # at rest under the inertia spring: the static solve from here
         dt *= 2.0
-    return solve_static(scene, current, cache=cache, rtol=rtol)[0]
+    rest, info = solve_static(scene, current, cache=cache, rtol=rtol)
+    return rest, iterations + info.newton_iterations
+
+
+def solve_rest(
+    scene: Scene, state: State, *, cache: SolverCache | None = None, rtol: float = 1e-9
+) -> tuple[State, int]:
+    """The rest of ``scene`` from ``state`` at its load: :func:`solve_static`, or where Newton
+    finds none (:class:`NotConverged`), :func:`proximal_solve`. Returns (the rest, its Newton
+    iterations)."""
+    try:
+        rest, info = solve_static(scene, state, cache=cache, rtol=rtol)
+        return rest, info.newton_iterations
+    except NotConverged as exc:
+        log.debug("static solve failed (%s); backward Euler steps from rest instead", exc)
+        return proximal_solve(scene, state, state.t, cache=cache, rtol=rtol)
