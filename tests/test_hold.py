@@ -10,7 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from softgrasp.errors import InfeasibleGrasp
+from softgrasp.errors import InfeasibleGrasp, NotConverged
 from softgrasp.grasp.hold import finger_slip
 from softgrasp.grasp.planner import PlanConfig, plan_grasp
 from softgrasp.model.material import preset
@@ -109,6 +109,35 @@ def test_set_points_fall_with_friction_and_too_little_friction_is_infeasible():
         InfeasibleGrasp, match=r"mu = 0.05 cannot hold .*needs at least \d+\.\d+ N of normal force"
     ):
         plan_grasp(body, PlanConfig(contact=ContactParams(mu=0.05)))
+
+
+@pytest.mark.parametrize("mu", [0.2, pytest.param(1.0, marks=pytest.mark.slow)])
+def test_a_box_rocking_on_its_bottom_edge_is_closed_past_a_travel_without_rest(mu, monkeypatch):
+    """The 50 x 40 x 30 mm rubber box (60 g): at one travel of its closing Newton finds no rest
+    (a bottom-edge node on the table's edge of contact, the box rocking on it) and a little
+    further it does. The closing goes on from there, and the plan holds the box in static
+    equilibrium, its normal forces above the rigid-body least ones, where that one travel once
+    ended the plan as if friction could not hold it."""
+    from softgrasp.grasp.closing import Closing
+
+    body = _body("box:0.05x0.04x0.03")
+    failed = []
+    real = Closing.close
+
+    def close(self, start, t, guess=None):
+        try:
+            return real(self, start, t, guess)
+        except NotConverged:
+            failed.append(t)
+            raise
+
+    monkeypatch.setattr(Closing, "close", close)
+    plan = plan_grasp(body, PlanConfig(contact=ContactParams(mu=mu)))
+    assert failed  # the closing met a travel without rest
+    W = body.total_mass * 9.81
+    assert plan.force_residual < 0.02 * W
+    assert "held" in [w for _, w in plan.hold_checks]
+    assert _normal(plan).sum() >= 0.9 * plan.rigid_normal_forces.sum()
 
 
 def test_a_soft_heavy_ball_that_sags_far_onto_the_table_is_planned_and_held(monkeypatch):

@@ -138,10 +138,23 @@ class Closing:
 
     def _further(self, start: State, t: float, guess: NDArray | None = None) -> Point:
         """:meth:`close`, where a closing that finds no equilibrium ends the plan: the fingers
-        cannot squeeze the object harder (they slide on it, or it buckles) before it is held."""
+        cannot squeeze the object harder (they slide on it, or it buckles) before it is held.
+        Where no rest is found at ``t``, the closing first tries half the increment and the whole
+        increment further (from ``start``): Newton may find no rest at one travel where a node
+        sits on the table's edge of contact (the object rocking on its bottom edge), and finds
+        one a little further; only when those fail too does the plan end."""
         try:
             return self.close(start, t, guess)
         except NotConverged as exc:
+            step = t - start.t / self.scale
+            for ahead in (0.5 * step, step):
+                if step <= 0.0:
+                    break
+                try:
+                    self.too_far(t + ahead)
+                    return self.close(start, t + ahead)
+                except (NotConverged, InfeasibleGrasp):
+                    continue
             raise InfeasibleGrasp(
                 f"mu = {self.cfg.contact.mu:g} cannot hold the object: the closing found no equilibrium of "
                 f"the squeezed object at {t * 1e3:.3g} mm of travel before it was held ({exc})"

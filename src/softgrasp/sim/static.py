@@ -50,6 +50,10 @@ __all__ = [
 MAX_HALVINGS = 4
 #: Most backward Euler steps :func:`proximal_solve` takes before its final static solve.
 PROXIMAL_MAX_STEPS = 40
+#: Failed steps (each retried a quarter as long) after which the backward Euler steps of
+#: :func:`solve_increment` give up: the iterates cycle even held by the inertia spring (a contact
+#: on its edge of touching, not a free motion), and a closing tries a little further instead.
+PROXIMAL_MAX_FAILED = 8
 
 
 @dataclass(frozen=True)
@@ -264,7 +268,9 @@ def solve_increment(
             log.debug("load increment to t = %.6g in %d part(s) failed: %s", t, n, exc)
             if level == max_halvings:
                 try:
-                    rest, its = proximal_solve(scene, state, t, cache=cache, rtol=rtol)
+                    rest, its = proximal_solve(
+                        scene, state, t, cache=cache, rtol=rtol, max_failed=PROXIMAL_MAX_FAILED
+                    )
                     return rest, its, level
                 except NotConverged as last:
                     raise NotConverged(
@@ -282,6 +288,7 @@ def proximal_solve(
     cache: SolverCache | None = None,
     rtol: float = 1e-9,
     max_steps: int = PROXIMAL_MAX_STEPS,
+    max_failed: int | None = None,
 ) -> tuple[State, int]:
     """The rest at load parameter ``t`` reached from ``state`` by backward Euler steps that each
     start at rest (proximal steps), for where Newton on the static balance finds none (its
@@ -298,7 +305,8 @@ def proximal_solve(
 
     Returns (the rest, the Newton iterations of every step and of the static solve).
 
-    Raises NotConverged when that static solve fails (no rest near: the object slides away)."""
+    Raises NotConverged when that static solve fails (no rest near: the object slides away), or
+    when ``max_failed`` steps fail (None: no limit but ``max_steps``)."""
     cache = cache if cache is not None else SolverCache()
     body = scene.body
     size = float(np.ptp(body.mesh.points, axis=0).max())
@@ -307,13 +315,17 @@ def proximal_solve(
     still = np.zeros_like(state.x)
     current = State(state.x, still, t, state.contacts)
     iterations = 0
+    failed = 0  # steps failed
     for _ in range(max_steps):
         step = Scene(body, (*scene.interactions, Inertia(current.x, dt)))
         try:
             new, info = solve_static(
                 step, State(current.x, still, t, (*current.contacts, None)), cache=cache, rtol=rtol
             )
-        except NotConverged:
+        except NotConverged as exc:
+            failed += 1
+            if failed == max_failed:
+                raise NotConverged(f"{failed} backward Euler steps found no rest ({exc})") from exc
             dt /= 4.0
             continue
         iterations += info.newton_iterations
