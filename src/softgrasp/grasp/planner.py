@@ -137,10 +137,17 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: S
     normal = np.array([f.normal_force for f in fingers])
     margin_ = critical_scale(body, replace(cfg, grasp=ig), normal, guess=utilisation, setup=setup)
     if not np.isfinite(margin_.scale):
+        need = (
+            f"; mu = {mu:g} needs at least {rigid.sum():.2f} N of normal force in all to hold even a rigid "
+            "object at these contacts"
+            if np.isfinite(rigid).all()
+            else ""
+        )
         raise InfeasibleGrasp(
-            f"force control to the held state's normal forces ({_forces(normal)} N), and to up to "
-            f"{margin_.not_held:g} times them, does not hold the object (the fingers end elsewhere than "
-            "the closing); raise the friction coefficient or move the grasp (--grasp)"
+            f"mu = {mu:g} cannot hold the object under force control: closed to the held state's normal "
+            f"forces ({_forces(normal)} N), and to up to {margin_.not_held:g} times them, the fingers "
+            f"end elsewhere than the closing and the object is not held{need}; raise the friction "
+            "coefficient or move the grasp (--grasp)"
         )
     setpoints = cfg.safety_factor * margin_.scale * normal
     # The load the set-points put on the object: Hertz's pressure at them (the strain: the held state's).
