@@ -444,7 +444,7 @@ def test_ctrl_c_in_a_sweep_stops_the_workers_quietly(tmp_path):
 
 
 # ----------------------------------------------------------------------- the drop's advice
-def _run(reached: bool, measured: float):
+def _run(reached: bool, measured: float, capped: float = 0.004):
     from types import SimpleNamespace
 
     res = SimpleNamespace(
@@ -453,25 +453,27 @@ def _run(reached: bool, measured: float):
         measured={"thumb": measured, "first": measured},
         setpoints={"thumb": 0.3, "first": 0.2},
     )
-    return SimpleNamespace(result=res, config=ExecuteConfig())
+    document = {"mujoco_solver_capped_share": capped}
+    return SimpleNamespace(result=res, config=ExecuteConfig(), document=document)
 
 
 @pytest.mark.parametrize(
-    ("reached", "measured", "material", "scale", "needle"),
+    ("reached", "measured", "material", "scale", "capped", "needle"),
     [
-        (False, 0.0, None, 1.0, "the fingers never pressed the object"),
-        (False, 0.1, None, 1.0, "did not reach their set-points in 6 s of closing (thumb 0.100 of 0.300 N"),
-        (True, 0.3, "o.toml", 1.0, "plan for it (softgrasp plan --material o.toml)"),
-        (True, 0.3, None, 0.25, "the set-points scaled by 0.25 do not hold it: raise --scale"),
-        (True, 0.3, None, 1.0, "raise the set-points (plan with --safety-factor)"),
+        (False, 0.0, None, 1.0, 0.004, "the fingers never pressed the object"),
+        (False, 0.1, None, 1.0, 0.004, "did not reach their set-points in 6 s of closing (thumb 0.100 of"),
+        (True, 0.3, "o.toml", 1.0, 0.004, "plan for it (softgrasp plan --material o.toml)"),
+        (True, 0.3, None, 0.25, 0.004, "the set-points scaled by 0.25 do not hold it: raise --scale"),
+        (True, 0.3, None, 1.0, 0.004, "raise the set-points (plan with --safety-factor)"),
+        (False, 0.0, None, 1.0, 0.21, "constraint solver stopped at its iteration cap in 21% of the steps"),
     ],
 )
-def test_a_drop_is_explained_by_its_cause(reached, measured, material, scale, needle):
+def test_a_drop_is_explained_by_its_cause(reached, measured, material, scale, capped, needle):
     from types import SimpleNamespace
 
     from softgrasp.cli.execute import _drop_advice
 
-    advice = _drop_advice(SimpleNamespace(material=material, scale=scale), _run(reached, measured))
+    advice = _drop_advice(SimpleNamespace(material=material, scale=scale), _run(reached, measured, capped))
     assert needle in advice
-    if not reached or material is not None:
+    if not reached or material is not None or capped > 0.05:
         assert "raise the set-points" not in advice

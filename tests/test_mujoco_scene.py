@@ -279,6 +279,29 @@ def test_object_settles_on_table(sphere: tuple) -> None:
     assert nodes[:, 2].min() > -5e-4  # on, not through, the table
     for finger in FINGERS:
         np.testing.assert_array_equal(scene.fingertip_force(finger), 0.0)
+    assert scene.steps == steps
+    assert scene.solver_capped_share < 0.01  # its contact forces resolved to the solver's tolerance
+
+
+def test_steps_whose_constraint_solve_stops_at_the_iteration_cap_are_counted(sphere: tuple) -> None:
+    """With MuJoCo's constraint solver allowed one iteration and no tolerance to stop at, every
+    step of the sphere settling on the table stops at the cap: the steps are counted one by one
+    (:attr:`solver_capped_share`), also when several are taken at once; with the scene's own
+    options none of them is."""
+    scene = load_scene(sphere_spec(sphere, ABOVE))
+    scene.step(50)
+    assert scene.steps == 50 and scene.capped_steps == 0
+    scene.model.opt.iterations = 1
+    scene.model.opt.tolerance = 0.0
+    scene.step(100)
+    assert scene.capped_steps >= 90  # all but the steps without a constraint to solve
+    for _ in range(100):
+        before = scene.capped_steps
+        scene.step()
+        assert scene.capped_steps - before == int(scene.data.solver_niter[0] >= 1)
+    assert scene.steps == 250
+    assert scene.solver_capped_share == pytest.approx(scene.capped_steps / 250)
+    assert scene.solver_capped_share > 0.7
 
 
 def test_fingertip_indentation_hertz_and_third_law(sphere: tuple) -> None:

@@ -339,6 +339,7 @@ def _execute(
         "simulated_time_s": sim,
         "wall_time_s": wall,
         "realtime_factor": sim / wall if wall > 0 else None,
+        "mujoco_solver_capped_share": hand.scene.solver_capped_share,
     }
     return Execution(
         plan,

@@ -89,10 +89,23 @@ def _execute_material(args: argparse.Namespace, plan):
     return plan
 
 
+#: Share of MuJoCo's steps whose constraint solve stopped at its iteration cap above which a drop
+#: is put down to MuJoCo's unresolved contact forces (a plan that lifts has a few per mille).
+CAPPED_SHARE = 0.05
+
+
 def _drop_advice(args: argparse.Namespace, run) -> str:
     """Why the object dropped, and what to change: set-points not reached are not cured by
-    raising them; another object than planned needs its own plan."""
+    raising them; another object than planned needs its own plan; MuJoCo's constraint solver
+    stopping at its iteration cap on many steps makes the simulation itself untrustworthy."""
     res, cfg = run.result, run.config
+    capped = float(run.document.get("mujoco_solver_capped_share") or 0.0)
+    if capped > CAPPED_SHARE:
+        return (
+            f"MuJoCo's constraint solver stopped at its iteration cap in {capped:.0%} of the steps, so "
+            "its contact forces were not resolved (a heavy, soft object sinks into the table and the "
+            "fingers miss it): this simulation does not tell whether the plan holds"
+        )
     if not res.reached:
         short = [f"{n} {res.measured[n]:.3f} of {res.setpoints[n]:.3f} N" for n in res.fingers]
         if all(res.measured[n] <= 0 for n in res.fingers):

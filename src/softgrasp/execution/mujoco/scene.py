@@ -124,6 +124,10 @@ class MujocoScene:
         self.data = data
         self.spec = spec
         self.fingers: tuple[str, ...] = tuple(spec.hand.fingers)
+        #: Steps taken, and those whose constraint solve stopped at ``opt.iterations``
+        #: (:attr:`solver_capped_share`).
+        self.steps = 0
+        self.capped_steps = 0
 
         def ident(kind: Any, name: str) -> int:
             i = mujoco.mj_name2id(model, kind, name)
@@ -231,6 +235,13 @@ class MujocoScene:
         self.data.ctrl[self._arm_act] = d
         self._mj.mj_kinematics(self.model, self.data)
 
+    @property
+    def solver_capped_share(self) -> float:
+        """The share of the steps taken whose constraint solve stopped at its iteration cap
+        (``opt.iterations``) instead of its tolerance: their contact forces are not resolved (a
+        heavy, soft object then sinks into the table). A few per mille is usual."""
+        return self.capped_steps / self.steps if self.steps else 0.0
+
     def forward(self) -> None:
         """Recompute the derived quantities (positions, contacts, contact forces) of the current
         state (after :meth:`step` they are those of the start of the last step)."""
@@ -241,7 +252,11 @@ class MujocoScene:
         if isinstance(n, bool) or int(n) != n or n < 1:
             raise ConfigError(f"n = {n} must be an integer >= 1")
         t = float(self.data.time)
-        self._mj.mj_step(self.model, self.data, nstep=int(n))
+        cap = int(self.model.opt.iterations)
+        for _ in range(int(n)):  # one at a time: the solver's iterations are those of the last
+            self._mj.mj_step(self.model, self.data)
+            self.capped_steps += int(self.data.solver_niter[0]) >= cap
+        self.steps += int(n)
         what = blow_up(self.model, self.data, t)
         if what is not None:
             sp = self.spec
