@@ -147,9 +147,7 @@ class Closing:
             return self.close(start, t, guess)
         except NotConverged as exc:
             step = t - start.t / self.scale
-            for ahead in (0.5 * step, step):
-                if step <= 0.0:
-                    break
+            for ahead in (0.5 * step, step) if step > 0.0 else ():
                 try:
                     self.too_far(t + ahead)
                     return self.close(start, t + ahead)

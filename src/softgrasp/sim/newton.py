@@ -30,7 +30,15 @@ from softgrasp.sim.scene import Scene
 #: Newton's progress at DEBUG level: each iteration's unbalanced force and accepted step.
 log = logging.getLogger(__name__)
 
-__all__ = ["newton", "valid", "climbs", "cycle_period", "STALL_RTOL", "NEGATIVE_CURVATURE_MAX_GROWTH"]
+__all__ = [
+    "newton",
+    "unbalanced",
+    "valid",
+    "climbs",
+    "cycle_period",
+    "STALL_RTOL",
+    "NEGATIVE_CURVATURE_MAX_GROWTH",
+]
 
 #: A Newton iteration that stalls (contact kinks) is accepted when the largest unbalanced force
 #: is below this fraction of the largest force present (the target is ``rtol``).
@@ -90,6 +98,19 @@ def valid(body: Body, x: NDArray[np.float64]) -> bool:
     return count_inverted(x, body.mesh.tets) == 0
 
 
+def unbalanced(
+    scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """The static forces on the nodes at ``x`` (N, 3) [N], the body's internal part of them, and
+    the scale a static solve's tolerance is relative to: the largest internal force, other
+    force or node weight [N]."""
+    body = scene.body
+    f_int = body.internal_forces(x)
+    f = scene.static_forces(x, t, contacts, internal=f_int)
+    grav = np.abs(body.mass[:, None] * body.gravity[None, :]).max()
+    return f, f_int, max(float(np.abs(f_int).max()), float(np.abs(f - f_int).max()), float(grav), 1e-300)
+
+
 def _residual(scene: Scene, x, t, contacts, C, lam) -> NDArray[np.float64]:
     r = scene.static_forces(x, t, contacts).ravel()
     return r - C.T @ lam if C is not None else r
@@ -122,9 +143,7 @@ def newton(
     plain: list[bool] = []  # whether each iteration's step was a full Newton step, unshifted
     start = contacts
     for it in range(1, max_iter + 1):
-        f_int = body.internal_forces(x)
-        f = scene.static_forces(x, t, contacts, internal=f_int)
-        scale = max(np.abs(f_int).max(), np.abs(f - f_int).max(), grav, 1e-300)
+        f, f_int, scale = unbalanced(scene, x, t, contacts)
         if C is None and (res := float(np.abs(f).max())) <= rtol * scale:
             return x, it - 1, res, lam, contacts  # balanced already: no system to solve
         A, exact = newton_matrix(scene, x, t, contacts, L, assembly_threads(3 * body.n_nodes, cache))

@@ -28,7 +28,7 @@ from softgrasp.linalg import pardiso
 from softgrasp.linalg.solve import SolverCache, assembly_threads
 from softgrasp.physics.body import Body
 from softgrasp.sim.inertia import Inertia
-from softgrasp.sim.newton import newton, valid
+from softgrasp.sim.newton import newton, unbalanced, valid
 from softgrasp.sim.scene import Scene, State
 
 #: The friction passes and the load increments at DEBUG level (Newton's iterations:
@@ -311,7 +311,6 @@ def proximal_solve(
     body = scene.body
     size = float(np.ptp(body.mesh.points, axis=0).max())
     dt = 1.0 / body.fundamental_frequency
-    weight = float(np.abs(body.mass[:, None] * body.gravity[None, :]).max())
     still = np.zeros_like(state.x)
     current = State(state.x, still, t, state.contacts)
     iterations = 0
@@ -331,9 +330,7 @@ def proximal_solve(
         iterations += info.newton_iterations
         moved = float(np.abs(new.x - current.x).max())
         current = State(new.x, still, t, new.contacts[:-1])
-        f_int = body.internal_forces(current.x)
-        f = scene.static_forces(current.x, t, current.contacts, internal=f_int)
-        scale = max(float(np.abs(f_int).max()), float(np.abs(f - f_int).max()), weight)
+        f, _, scale = unbalanced(scene, current.x, t, current.contacts)
         if float(np.abs(f).max()) <= rtol * scale:
             return current, iterations  # the inertia spring holds no force left: a rest of the scene
         if moved < 1e-6 * size:
