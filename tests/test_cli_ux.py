@@ -99,6 +99,25 @@ def test_set_points_without_room_to_the_least_that_holds_are_noted(coarse_run, t
     assert "note:" not in out.getvalue()
 
 
+def test_plan_names_each_hold_check_that_did_not_hold_and_only_those(tmp_path):
+    """The 5 kPa rubber sphere is not held at the closing's first hold check; the least travel
+    held is then bracketed, by checks that hold and checks that do not. The command prints one
+    line per check that did not hold, with its travel and why (the plan.json's), none for a
+    check that held, and no advice on load steps: a release step that finds no equilibrium is
+    the check's verdict, not something a user could change."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*COARSE, "--material", "rubber,E=5000", "--out", str(tmp_path / "soft")]) == 0
+    checks = json.loads((tmp_path / "soft" / "plan.json").read_text())["hold"]["checks"]
+    failed = [c for c in checks if c["result"] != "held"]
+    assert failed and len(failed) < len(checks) - 1, checks  # held checks before the last one too
+    lines = [line for line in out.getvalue().splitlines() if line.startswith("not held at ")]
+    assert lines == [
+        f"not held at {c['travel_m'] * 1e3:.2f} mm of travel: {c['result']}; closed further" for c in failed
+    ]
+    assert "load steps" not in out.getvalue()
+
+
 def test_the_planners_progress_never_goes_back_and_passes_every_phase(coarse_run):
     _, _, fractions, phases = coarse_run
     assert phases == list(PHASES)

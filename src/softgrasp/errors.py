@@ -40,7 +40,18 @@ class InfeasibleGrasp(SoftgraspError):
 
 
 class NotConverged(SoftgraspError):
-    """An iterative solver stopped before reaching its tolerance."""
+    """An iterative solver stopped before reaching its tolerance.
+
+    Attributes
+    ----------
+    diagnosis: what the solver did (the message without ``advice``).
+    advice: what a user may change to help it, or None; the message ends with it.
+    """
+
+    def __init__(self, diagnosis: str, advice: str | None = None) -> None:
+        super().__init__(diagnosis if advice is None else f"{diagnosis}; {advice}")
+        self.diagnosis = diagnosis
+        self.advice = advice
 
 
 class SimulationUnstable(SoftgraspError):

@@ -266,8 +266,9 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
             f"load on the object: peak contact pressure {g.damage.pressure[j] / 1e3:.3g} kPa "
             f"({g.fingers[j].name}), peak strain {g.damage.strain:.3g}"
         )
-    for travel, why in g.hold_checks[:-1]:
-        bar.write(f"not held at {travel * 1e3:.2f} mm of travel: {why}; closed further")
+    for travel, why in g.hold_checks:  # the least travel held was searched for among held ones too
+        if why != "held":
+            bar.write(f"not held at {travel * 1e3:.2f} mm of travel: {why}; closed further")
     # The closing's held state is the least squeeze that holds, at the friction limit by design;
     # what a hand needs to know is whether its set-points leave room: a warning when a scale of
     # them within the force controller's tolerance does not hold.

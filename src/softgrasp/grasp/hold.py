@@ -52,6 +52,12 @@ class _NotHeld(Exception):
     """The hold check's verdict, raised where it is found."""
 
 
+def _what(exc: Exception) -> str:
+    """What a solver that found no equilibrium did, without advice on load steps: the hold check's
+    are its own, and a step that finds none is its verdict that the object slides out."""
+    return exc.diagnosis if isinstance(exc, NotConverged) else str(exc)
+
+
 def object_size(x: NDArray[np.float64]) -> float:
     """The object's size [m]: the largest extent of its nodes ``x`` along a world axis."""
     return float(np.ptp(x, axis=0).max())
@@ -141,9 +147,7 @@ def check_hold(
                     max_iter=RELEASE_MAX_ITER,
                 )
             except (NotConverged, SimulationUnstable) as exc:
-                raise _NotHeld(
-                    f"the object slides out of the fingers {when} (no equilibrium: {exc})"
-                ) from exc
+                raise _NotHeld(f"the object slides out of the fingers {when} (no equilibrium: {_what(exc)})") from exc
             track.step(st.contacts[0], when)
             drift = max(drift, float(np.linalg.norm(centre_of_mass(body, st.x) - c0)))
         start = State(st.x, np.zeros_like(st.x), 0.0, (st.contacts[0],))
@@ -153,7 +157,7 @@ def check_hold(
             held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache, rtol=HELD_RTOL)
         except (NotConverged, SimulationUnstable) as exc:
             raise _NotHeld(
-                f"the object slides out of the fingers after the hold (no equilibrium: {exc})"
+                f"the object slides out of the fingers after the hold (no equilibrium: {_what(exc)})"
             ) from exc
         track.step(held.contacts[0], "at the held equilibrium")
     except _NotHeld as why:
@@ -190,7 +194,7 @@ def _simulate_hold(
             state = implicit_euler_step(scene, state, h, cache=cache)
         except (NotConverged, SimulationUnstable) as exc:
             if h <= HOLD_DT / 2**MAX_HALVINGS:
-                raise _NotHeld(f"the object slides out of the fingers {when} (no solution: {exc})") from exc
+                raise _NotHeld(f"the object slides out of the fingers {when} (no solution: {_what(exc)})") from exc
             dt = h / 2.0  # a sudden slip or release: resolve it in shorter steps
             continue
         track.step(state.contacts[0], when)

@@ -38,7 +38,12 @@ __all__ = [
     "cycle_period",
     "STALL_RTOL",
     "NEGATIVE_CURVATURE_MAX_GROWTH",
+    "SMALLER_STEPS",
 ]
+
+#: The advice of a static solve that did not converge (:attr:`NotConverged.advice`): a load step
+#: that moves less starts Newton nearer its solution.
+SMALLER_STEPS = "use smaller load steps"
 
 #: A Newton iteration that stalls (contact kinks) is accepted when the largest unbalanced force
 #: is below this fraction of the largest force present (the target is ``rtol``).
@@ -249,7 +254,8 @@ def newton(
             raise NotConverged(
                 f"static solve crawls (largest unbalanced force {res:.3g} N, falling by at most "
                 f"{1.0 - rate:.1%} per iteration, too slowly to balance in the {max_iter} Newton "
-                f"iterations it is given); use smaller load steps"
+                f"iterations it is given)",
+                SMALLER_STEPS,
             )
         if climbs(history, plain):
             if _free_rigid_motion(scene, x, t, contacts, C):
@@ -273,7 +279,8 @@ def newton(
                 raise NotConverged(f"static solve did not converge: {_SINGULAR}")
             raise NotConverged(
                 f"static solve cycles (the same {period} iterates over and over, largest unbalanced force "
-                f"{res:.3g} N); use smaller load steps"
+                f"{res:.3g} N)",
+                SMALLER_STEPS,
             )
         log.debug(
             "newton it %d: unbalanced %.6e N (scale %.3e), step %.3g x %.3g, shift %.1e",
@@ -300,7 +307,8 @@ def newton(
         raise NotConverged(f"static solve did not converge: {_SINGULAR}")
     raise NotConverged(
         f"static solve did not converge in {max_iter} Newton iterations (largest unbalanced force "
-        f"{res:.3g} N); use smaller load steps"
+        f"{res:.3g} N)",
+        SMALLER_STEPS,
     )
 
 

@@ -28,7 +28,7 @@ from softgrasp.linalg import pardiso
 from softgrasp.linalg.solve import SolverCache, assembly_threads
 from softgrasp.physics.body import Body
 from softgrasp.sim.inertia import Inertia
-from softgrasp.sim.newton import newton, unbalanced, valid
+from softgrasp.sim.newton import SMALLER_STEPS, newton, unbalanced, valid
 from softgrasp.sim.scene import Scene, State
 
 #: The friction passes and the load increments at DEBUG level (Newton's iterations:
@@ -220,7 +220,7 @@ def _solve_static(
         if np.abs(f).max() <= max(10 * rtol * scale, 2 * res):
             return State(x, zeros, tt, contacts), StaticInfo(total_it, p, float(np.abs(f).max()), -lam)
     raise NotConverged(
-        f"friction did not settle in {max_friction_passes} stick/slip passes; use smaller load steps"
+        f"friction did not settle in {max_friction_passes} stick/slip passes", SMALLER_STEPS
     )
 
 
