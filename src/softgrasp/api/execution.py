@@ -340,6 +340,7 @@ def _execute(
         "wall_time_s": wall,
         "realtime_factor": sim / wall if wall > 0 else None,
         "mujoco_solver_capped_share": hand.scene.solver_capped_share,
+        "mujoco_newton_share": hand.scene.newton_share,
     }
     return Execution(
         plan,

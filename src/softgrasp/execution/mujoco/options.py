@@ -14,7 +14,12 @@ Choices
   and blew up (NaN in ``qacc``) within 4 steps of 2 ms: the 388-node sphere's highest mode
   (estimated ~6e3 rad/s) limits explicit steps to ~3e-4 s. ``CG`` is matrix-free; ``Newton``
   gave the same forces (within 1 %) at 1.5-2.5x the cost (it folds the flex stiffness into its
-  Hessian).
+  Hessian). Where CG stops at its iteration cap, its contact forces are not resolved: on a soft,
+  heavy object (a 60 mm ball of E = 5 kPa, 111 g) resting on the table it did so in 21 % of the
+  steps and the ball sank to a dome. Such a step is taken again with ``Newton``, which converges
+  there in tens of iterations, and so are the :data:`NEWTON_RUN` steps after it (doubling up to
+  :data:`MAX_NEWTON_RUN` while CG keeps stopping at its cap right after them):
+  :meth:`softgrasp.execution.mujoco.scene.MujocoScene.step`.
 * **Solver budget**: each step solves ``(M + h D + h^2 K) a = f`` for ``qacc_smooth`` by
   block-Jacobi PCG capped by ``iterations`` and stopped at the relative residual ``tolerance``.
   MuJoCo's default cap (100) ran out on the rubber sphere (``mjWARN_INERTIA``, "Flex stiffness
@@ -90,6 +95,8 @@ __all__ = [
     "SOLVER",
     "SOLVER_ITERATIONS",
     "SOLVER_TOLERANCE",
+    "NEWTON_RUN",
+    "MAX_NEWTON_RUN",
     "IMPRATIO",
     "IMPRATIO_NODES",
     "impratio",
@@ -128,6 +135,10 @@ SOLVER = "CG"
 SOLVER_ITERATIONS = 1000
 #: Relative tolerance of both solves.
 SOLVER_TOLERANCE = 1e-8
+#: Steps taken with the Newton solver after a CG step that stopped at its cap (module docstring),
+#: and the most that doubling makes of them.
+NEWTON_RUN = 25
+MAX_NEWTON_RUN = 800
 
 #: Ratio of the friction constraints' impedance to the normal one's (elliptic cones) on a flex of
 #: :data:`IMPRATIO_NODES` vertices (module docstring; :func:`impratio`).

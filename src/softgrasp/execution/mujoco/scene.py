@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from softgrasp.errors import ConfigError, SimulationUnstable
 from softgrasp.execution.mujoco.elements import actuator_name, tip_geom_name
 from softgrasp.execution.mujoco.mjcf import build_mjcf
-from softgrasp.execution.mujoco.options import ARM_JOINTS, OBJECT_NAME
+from softgrasp.execution.mujoco.options import ARM_JOINTS, MAX_NEWTON_RUN, NEWTON_RUN, OBJECT_NAME
 from softgrasp.execution.mujoco.spec import SceneSpec, rigid_transform
 from softgrasp.offscreen import prefer_headless_gl
 
@@ -124,10 +124,16 @@ class MujocoScene:
         self.data = data
         self.spec = spec
         self.fingers: tuple[str, ...] = tuple(spec.hand.fingers)
-        #: Steps taken, and those whose constraint solve stopped at ``opt.iterations``
+        #: Steps taken; those whose CG solve stopped at ``opt.iterations`` and were taken again
+        #: with MuJoCo's Newton solver (:meth:`step`); and those Newton left capped too
         #: (:attr:`solver_capped_share`).
         self.steps = 0
+        self.newton_steps = 0
         self.capped_steps = 0
+        self._state_kind = mujoco.mjtState.mjSTATE_INTEGRATION
+        self._saved = np.empty(mujoco.mj_stateSize(model, self._state_kind))
+        self._newton_left = 0  # steps still to take with Newton (step)
+        self._newton_run = 0  # how many the last capped CG step started (0: the last CG step was resolved)
 
         def ident(kind: Any, name: str) -> int:
             i = mujoco.mj_name2id(model, kind, name)
@@ -238,9 +244,14 @@ class MujocoScene:
     @property
     def solver_capped_share(self) -> float:
         """The share of the steps taken whose constraint solve stopped at its iteration cap
-        (``opt.iterations``) instead of its tolerance: their contact forces are not resolved (a
-        heavy, soft object then sinks into the table). A few per mille is usual."""
+        (``opt.iterations``) instead of its tolerance even with Newton's solver (:meth:`step`):
+        their contact forces are not resolved (a heavy, soft object then sinks into the table)."""
         return self.capped_steps / self.steps if self.steps else 0.0
+
+    @property
+    def newton_share(self) -> float:
+        """The share of the steps taken again with MuJoCo's Newton solver (:meth:`step`)."""
+        return self.newton_steps / self.steps if self.steps else 0.0
 
     def forward(self) -> None:
         """Recompute the derived quantities (positions, contacts, contact forces) of the current
@@ -248,14 +259,43 @@ class MujocoScene:
         self._mj.mj_forward(self.model, self.data)
 
     def step(self, n: int = 1) -> None:
-        """Advance the simulation by ``n`` time steps."""
+        """Advance the simulation by ``n`` time steps, one at a time.
+
+        A step whose constraint solve (the scene's ``CG``) stops at its iteration cap
+        (``opt.iterations``) has not resolved its contact forces: a heavy, soft object resting on
+        the table then sinks into it. Such a step is taken again from the same state with
+        MuJoCo's ``Newton`` solver, which folds the flex's stiffness into its Hessian and
+        converges there in tens of iterations (:data:`~softgrasp.execution.mujoco.options.SOLVER`
+        says why CG is the scene's solver). The steps after it use Newton too: a load CG cannot
+        resolve usually lasts. They are :data:`NEWTON_RUN` steps, twice as many each time CG stops
+        at its cap again right after them (up to :data:`MAX_NEWTON_RUN`), and the count starts
+        over once a CG step is resolved. A usual run needs Newton in a few per cent of its
+        steps."""
         if isinstance(n, bool) or int(n) != n or n < 1:
             raise ConfigError(f"n = {n} must be an integer >= 1")
-        t = float(self.data.time)
-        cap = int(self.model.opt.iterations)
-        for _ in range(int(n)):  # one at a time: the solver's iterations are those of the last
-            self._mj.mj_step(self.model, self.data)
-            self.capped_steps += int(self.data.solver_niter[0]) >= cap
+        mj, model, data = self._mj, self.model, self.data
+        t = float(data.time)
+        cap = int(model.opt.iterations)
+        cg, newton = int(model.opt.solver), int(mj.mjtSolver.mjSOL_NEWTON)
+        for _ in range(int(n)):
+            if self._newton_left == 0 or cg == newton:
+                mj.mj_getState(model, data, self._saved, self._state_kind)
+                mj.mj_step(model, data)
+                if int(data.solver_niter[0]) < cap or cg == newton:
+                    self._newton_run = 0
+                    self.capped_steps += int(data.solver_niter[0]) >= cap
+                    continue
+                mj.mj_setState(model, data, self._saved, self._state_kind)  # again, by Newton
+                self._newton_run = min(2 * self._newton_run, MAX_NEWTON_RUN) or NEWTON_RUN
+                self._newton_left = self._newton_run
+            model.opt.solver = newton
+            try:
+                mj.mj_step(model, data)
+            finally:
+                model.opt.solver = cg
+            self._newton_left -= 1
+            self.newton_steps += 1
+            self.capped_steps += int(data.solver_niter[0]) >= cap
         self.steps += int(n)
         what = blow_up(self.model, self.data, t)
         if what is not None:
