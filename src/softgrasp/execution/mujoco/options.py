@@ -17,9 +17,11 @@ Choices
   Hessian). Where CG stops at its iteration cap, its contact forces are not resolved: on a soft,
   heavy object (a 60 mm ball of E = 5 kPa, 111 g) resting on the table it did so in 21 % of the
   steps and the ball sank to a dome. Such a step is taken again with ``Newton``, which converges
-  there in tens of iterations, and so are the :data:`NEWTON_RUN` steps after it (doubling up to
-  :data:`MAX_NEWTON_RUN` while CG keeps stopping at its cap right after them):
-  :meth:`softgrasp.execution.mujoco.scene.MujocoScene.step`.
+  there in tens of iterations; when CG stops at its cap again right after, the next is taken
+  by Newton together with the one after it, and so on, the run of Newton steps doubling up to
+  :data:`MAX_NEWTON_RUN` while CG keeps stopping at its cap between runs:
+  :meth:`softgrasp.execution.mujoco.scene.MujocoScene.step`. (A run of 25 from the first cap
+  cost the 2 196-node sphere's executions 1.8 times their time: most of their caps are single.)
 * **Solver budget**: each step solves ``(M + h D + h^2 K) a = f`` for ``qacc_smooth`` by
   block-Jacobi PCG capped by ``iterations`` and stopped at the relative residual ``tolerance``.
   MuJoCo's default cap (100) ran out on the rubber sphere (``mjWARN_INERTIA``, "Flex stiffness
@@ -95,7 +97,6 @@ __all__ = [
     "SOLVER",
     "SOLVER_ITERATIONS",
     "SOLVER_TOLERANCE",
-    "NEWTON_RUN",
     "MAX_NEWTON_RUN",
     "IMPRATIO",
     "IMPRATIO_NODES",
@@ -135,9 +136,8 @@ SOLVER = "CG"
 SOLVER_ITERATIONS = 1000
 #: Relative tolerance of both solves.
 SOLVER_TOLERANCE = 1e-8
-#: Steps taken with the Newton solver after a CG step that stopped at its cap (module docstring),
-#: and the most that doubling makes of them.
-NEWTON_RUN = 25
+#: The most steps one run with the Newton solver takes after CG steps that stopped at their cap
+#: (module docstring).
 MAX_NEWTON_RUN = 800
 
 #: Ratio of the friction constraints' impedance to the normal one's (elliptic cones) on a flex of

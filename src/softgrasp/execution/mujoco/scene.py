@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from softgrasp.errors import ConfigError, SimulationUnstable
 from softgrasp.execution.mujoco.elements import actuator_name, tip_geom_name
 from softgrasp.execution.mujoco.mjcf import build_mjcf
-from softgrasp.execution.mujoco.options import ARM_JOINTS, MAX_NEWTON_RUN, NEWTON_RUN, OBJECT_NAME
+from softgrasp.execution.mujoco.options import ARM_JOINTS, MAX_NEWTON_RUN, OBJECT_NAME
 from softgrasp.execution.mujoco.spec import SceneSpec, rigid_transform
 from softgrasp.offscreen import prefer_headless_gl
 
@@ -266,11 +266,10 @@ class MujocoScene:
         the table then sinks into it. Such a step is taken again from the same state with
         MuJoCo's ``Newton`` solver, which folds the flex's stiffness into its Hessian and
         converges there in tens of iterations (:data:`~softgrasp.execution.mujoco.options.SOLVER`
-        says why CG is the scene's solver). The steps after it use Newton too: a load CG cannot
-        resolve usually lasts. They are :data:`NEWTON_RUN` steps, twice as many each time CG stops
-        at its cap again right after them (up to :data:`MAX_NEWTON_RUN`), and the count starts
-        over once a CG step is resolved. A usual run needs Newton in a few per cent of its
-        steps."""
+        says why CG is the scene's solver). A load CG cannot resolve often lasts: when CG stops at
+        its cap again right after Newton's steps, the run of steps taken by Newton doubles (1, 2,
+        4, ... up to :data:`~softgrasp.execution.mujoco.options.MAX_NEWTON_RUN`), and it starts
+        over at 1 once a CG step is resolved."""
         if isinstance(n, bool) or int(n) != n or n < 1:
             raise ConfigError(f"n = {n} must be an integer >= 1")
         mj, model, data = self._mj, self.model, self.data
@@ -286,7 +285,7 @@ class MujocoScene:
                     self.capped_steps += int(data.solver_niter[0]) >= cap
                     continue
                 mj.mj_setState(model, data, self._saved, self._state_kind)  # again, by Newton
-                self._newton_run = min(2 * self._newton_run, MAX_NEWTON_RUN) or NEWTON_RUN
+                self._newton_run = min(2 * self._newton_run, MAX_NEWTON_RUN) or 1
                 self._newton_left = self._newton_run
             model.opt.solver = newton
             try:
