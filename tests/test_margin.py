@@ -78,8 +78,9 @@ def test_the_critical_scale_closes_from_the_closings_own_start(sphere, plans):
 def test_the_search_brackets_the_critical_scale_and_tries_one_tolerance_below_the_guess(monkeypatch):
     """With a force control that holds exactly from a scale c up (a stand-in for the closings), the
     search returns the bracket (not held, held] of one tolerance around c, wherever c and the
-    guess lie, without trying a scale twice; where c lies within one tolerance below the guess
-    (five of sixteen plans measured) it takes two checks."""
+    guess lie, without trying a scale twice, with the reason the lower end was not held; where c
+    lies within one tolerance below the guess (five of sixteen plans measured) it takes two
+    checks."""
     from types import SimpleNamespace
 
     from softgrasp.grasp import margin
@@ -91,7 +92,8 @@ def test_the_search_brackets_the_critical_scale_and_tries_one_tolerance_below_th
 
         def check(body, config, setpoints, setup, c=c, tried=tried):
             tried.append(float(setpoints[0]))
-            return SimpleNamespace(held=setpoints[0] >= c, systems=1)
+            held = setpoints[0] >= c
+            return SimpleNamespace(held=held, systems=1, reason="held" if held else f"slid at {setpoints[0]}")
 
         monkeypatch.setattr(margin, "hold_setpoints", check)
         m = margin.critical_scale(None, None, np.ones(3), guess=guess, setup=object())
@@ -100,6 +102,7 @@ def test_the_search_brackets_the_critical_scale_and_tries_one_tolerance_below_th
             assert m.scale == 0.5 and m.not_held == 0.0
             continue
         assert m.not_held < c <= m.scale and m.scale - m.not_held <= 0.02 * (1 + 1e-9)
+        assert m.why_not == f"slid at {m.not_held}"  # why the bracket's lower end was not held
         if 0.5 + 0.04 <= guess - 0.02 < c <= guess <= 1.0:
             assert len(m.checks) == 2
 

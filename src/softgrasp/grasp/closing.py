@@ -155,7 +155,7 @@ class Closing:
                     continue
             raise InfeasibleGrasp(
                 f"mu = {self.cfg.contact.mu:g} cannot hold the object: the closing found no equilibrium of "
-                f"the squeezed object at {t * 1e3:.3g} mm of travel before it was held ({exc})"
+                f"the squeezed object at {t * 1e3:.3g} mm of travel before it was held ({exc.diagnosis})"
                 f"{self._rigid_need()}; raise the friction coefficient, or grasp a lighter or stiffer object"
             ) from exc
 
@@ -345,5 +345,5 @@ def _advance(
         state, _, _ = solve_increment(scene, state, t, cache=cache, guess=guess, rtol=STEP_RTOL)
     except NotConverged as exc:
         what = f"{t * 1e3:.3g} mm of travel" if cfg.solver == "quasistatic" else f"t = {t:.4g} s"
-        raise NotConverged(f"closing increment to {what} failed: {exc}") from exc
+        raise NotConverged(f"closing increment to {what} failed: {exc.diagnosis}", exc.advice) from exc
     return state

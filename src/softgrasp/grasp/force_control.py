@@ -168,6 +168,40 @@ def _law_travels(
     )
 
 
+def _increment(
+    body: Body,
+    cfg: PlanConfig,
+    setup: ClosingSetup,
+    fc: FingertipContact,
+    state: State,
+    move: NDArray[np.float64],
+    s: NDArray[np.float64],
+    cache: SolverCache,
+) -> tuple[NDArray[np.float64], FingertipContact, State]:
+    """One closing increment: the fingertips moved by ``move`` [m] along their lines (from their
+    travels ``s``, never past the crushing limit nor behind a line's start) and the object at
+    rest there. Where Newton finds no rest (its iterates cycling as a node of the object flips in
+    and out of the table's contact, the object rocking on it: a band of travel a few tenths of a
+    millimetre wide), moves half as long, 1.5 and 2 times as long, a quarter and 3 times as long
+    are tried in turn, as the position-controlled closing goes on past such a travel
+    (:meth:`~softgrasp.grasp.closing.Closing.close`); the next increments correct any overshoot.
+    Returns (the move made, the fingertips there, the rest); raises the first NotConverged when
+    none of them finds a rest."""
+    first: NotConverged | None = None
+    for factor in (1.0, 0.5, 1.5, 2.0, 0.25, 3.0):
+        made = np.clip(factor * move, -s, setup.max_travel - s)
+        tips = _tips(cfg, fc.centres(1.0), setup.directions * made[:, None])
+        scene = Scene(body, (setup.table, tips))
+        try:
+            rest, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache, rtol=STEP_RTOL)
+        except NotConverged as exc:
+            first = exc if first is None else first
+            continue
+        return made, tips, rest
+    assert first is not None
+    raise first
+
+
 def hold_setpoints(
     body: Body,
     config: PlanConfig,
@@ -277,13 +311,12 @@ def hold_setpoints(
         g = np.maximum(forces, 0.0) ** power
         rest = first * np.clip((g_set - g) / g_set, 0.0, 1.0)  # the law's travel from g to g_set
         move, gain, jac = _next_move(s - s_prev, g - g_prev, g_set - g, gain, jac, cfg.step, rest)
-        move = np.clip(move, -s, limit - s)  # never past the crushing limit nor behind the line's start
-        fc = _tips(cfg, fc.centres(1.0), u * move[:, None])
-        scene = Scene(body, (setup.table, fc))
         try:
-            state, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache, rtol=STEP_RTOL)
+            move, fc, state = _increment(body, cfg, setup, fc, state, move, s, cache)
         except NotConverged as exc:
-            return result(s, forces, increments, False, f"a closing increment found no equilibrium ({exc})")
+            return result(
+                s, forces, increments, False, f"a closing increment found no equilibrium ({exc.diagnosis})"
+            )
         increments += 1
         s_prev, g_prev = s, g
         s = s + move

@@ -36,6 +36,7 @@ class Margin:
     checks: every scale tried and whether it held.
     systems: Newton systems the search solved (its settle, when made here, and every check's closing
         and hold).
+    why_not: why the object was not held at ``not_held`` ("" when every scale tried held).
     """
 
     scale: float
@@ -43,6 +44,7 @@ class Margin:
     tolerance: float
     checks: tuple[tuple[float, bool], ...]
     systems: int = 0
+    why_not: str = ""
 
     def relative_to(self, factor: float) -> dict[str, object]:
         """The margin as ``plan.json`` states it: scales relative to set-points that are
@@ -84,6 +86,7 @@ def critical_scale(
     as without it."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: dict[float, bool] = {}  # every scale tried, in order, and whether it held
+    reasons: dict[float, str] = {}  # why each scale not held was not
     systems: list[int] = []  # the Newton systems of the settle (when made here) and of each check
     if setup is None:
         cache = SolverCache()
@@ -94,11 +97,12 @@ def critical_scale(
         if s not in checks:
             check = hold_setpoints(body, config, s * setpoints, setup=setup)
             checks[s] = bool(check.held)
+            reasons[s] = "" if check.held else check.reason
             systems.append(check.systems)
         return checks[s]
 
     def margin(scale: float, not_held: float) -> Margin:
-        return Margin(scale, not_held, tolerance, tuple(checks.items()), sum(systems))
+        return Margin(scale, not_held, tolerance, tuple(checks.items()), sum(systems), reasons.get(not_held, ""))
 
     g = float(guess) if np.isfinite(guess) else 1.0
     g = min(max(g, lowest), 1.0)

@@ -146,8 +146,8 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: S
         raise InfeasibleGrasp(
             f"mu = {mu:g} cannot hold the object under force control: closed to the held state's normal "
             f"forces ({_forces(normal)} N), and to up to {margin_.not_held:g} times them, the fingers "
-            f"end elsewhere than the closing and the object is not held{need}; raise the friction "
-            "coefficient or move the grasp (--grasp)"
+            f"end elsewhere than the closing and the object is not held (at {margin_.not_held:g} times: "
+            f"{margin_.why_not}){need}; raise the friction coefficient or move the grasp (--grasp)"
         )
     setpoints = cfg.safety_factor * margin_.scale * normal
     # The load the set-points put on the object: Hertz's pressure at them (the strain: the held state's).

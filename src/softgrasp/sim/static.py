@@ -224,6 +224,11 @@ def _solve_static(
     )
 
 
+def _diagnosis(exc: NotConverged) -> str:
+    """What a solver that did not converge did, without the advice its message ends with."""
+    return getattr(exc, "diagnosis", str(exc))
+
+
 def solve_increment(
     scene: Scene,
     state: State,
@@ -275,7 +280,8 @@ def solve_increment(
                 except NotConverged as last:
                     raise NotConverged(
                         f"load increment to t = {t:.6g} did not converge even when split into {n} parts "
-                        f"({exc}), nor by backward Euler steps ({last})"
+                        f"({_diagnosis(exc)}), nor by backward Euler steps ({_diagnosis(last)})",
+                        SMALLER_STEPS,
                     ) from exc
     raise AssertionError("unreachable")  # pragma: no cover
 
@@ -324,7 +330,7 @@ def proximal_solve(
         except NotConverged as exc:
             failed += 1
             if failed == max_failed:
-                raise NotConverged(f"{failed} backward Euler steps found no rest ({exc})") from exc
+                raise NotConverged(f"{failed} backward Euler steps found no rest ({_diagnosis(exc)})") from exc
             dt /= 4.0
             continue
         iterations += info.newton_iterations
