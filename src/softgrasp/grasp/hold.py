@@ -147,7 +147,9 @@ def check_hold(
                     max_iter=RELEASE_MAX_ITER,
                 )
             except (NotConverged, SimulationUnstable) as exc:
-                raise _NotHeld(f"the object slides out of the fingers {when} (no equilibrium: {_what(exc)})") from exc
+                raise _NotHeld(
+                    f"the object slides out of the fingers {when} (no equilibrium: {_what(exc)})"
+                ) from exc
             track.step(st.contacts[0], when)
             drift = max(drift, float(np.linalg.norm(centre_of_mass(body, st.x) - c0)))
         start = State(st.x, np.zeros_like(st.x), 0.0, (st.contacts[0],))
@@ -194,7 +196,9 @@ def _simulate_hold(
             state = implicit_euler_step(scene, state, h, cache=cache)
         except (NotConverged, SimulationUnstable) as exc:
             if h <= HOLD_DT / 2**MAX_HALVINGS:
-                raise _NotHeld(f"the object slides out of the fingers {when} (no solution: {_what(exc)})") from exc
+                raise _NotHeld(
+                    f"the object slides out of the fingers {when} (no solution: {_what(exc)})"
+                ) from exc
             dt = h / 2.0  # a sudden slip or release: resolve it in shorter steps
             continue
         track.step(state.contacts[0], when)

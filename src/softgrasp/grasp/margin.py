@@ -102,7 +102,8 @@ def critical_scale(
         return checks[s]
 
     def margin(scale: float, not_held: float) -> Margin:
-        return Margin(scale, not_held, tolerance, tuple(checks.items()), sum(systems), reasons.get(not_held, ""))
+        why = reasons.get(not_held, "")
+        return Margin(scale, not_held, tolerance, tuple(checks.items()), sum(systems), why)
 
     g = float(guess) if np.isfinite(guess) else 1.0
     g = min(max(g, lowest), 1.0)

@@ -219,9 +219,7 @@ def _solve_static(
                   np.abs(f).max())  # fmt: skip
         if np.abs(f).max() <= max(10 * rtol * scale, 2 * res):
             return State(x, zeros, tt, contacts), StaticInfo(total_it, p, float(np.abs(f).max()), -lam)
-    raise NotConverged(
-        f"friction did not settle in {max_friction_passes} stick/slip passes", SMALLER_STEPS
-    )
+    raise NotConverged(f"friction did not settle in {max_friction_passes} stick/slip passes", SMALLER_STEPS)
 
 
 def _diagnosis(exc: NotConverged) -> str:
@@ -330,7 +328,9 @@ def proximal_solve(
         except NotConverged as exc:
             failed += 1
             if failed == max_failed:
-                raise NotConverged(f"{failed} backward Euler steps found no rest ({_diagnosis(exc)})") from exc
+                raise NotConverged(
+                    f"{failed} backward Euler steps found no rest ({_diagnosis(exc)})"
+                ) from exc
             dt /= 4.0
             continue
         iterations += info.newton_iterations
