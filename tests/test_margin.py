@@ -5,6 +5,7 @@ on where the plan stops holding."""
 from __future__ import annotations
 
 import importlib.util
+import re
 
 import numpy as np
 import pytest
@@ -105,6 +106,28 @@ def test_the_search_brackets_the_critical_scale_and_tries_one_tolerance_below_th
         assert m.why_not == f"slid at {m.not_held}"  # why the bracket's lower end was not held
         if 0.5 + 0.04 <= guess - 0.02 < c <= guess <= 1.0:
             assert len(m.checks) == 2
+
+
+def test_force_control_that_holds_at_no_scale_is_refused_with_mu_the_rigid_need_and_why(monkeypatch):
+    """When force control holds the object at no scale of the held forces up to 2 (a search
+    stand-in here), the plan is refused with InfeasibleGrasp: it names mu, why the largest scale
+    tried was not held, and the normal force a rigid object would need at the held contacts."""
+    from softgrasp.grasp import planner
+    from softgrasp.grasp.margin import Margin
+    from softgrasp.model.objects import make_object
+    from softgrasp.physics.body import build_body
+
+    why = "the thumb fingertip slid 0.20 mm in the object with the table's support down to 0%"
+    monkeypatch.setattr(
+        planner, "critical_scale", lambda *a, **kw: Margin(float("inf"), 2.0, 0.02, ((2.0, False),), 0, why)
+    )
+    mesh, material, mass = make_object("sphere")
+    with pytest.raises(sg.InfeasibleGrasp) as info:
+        planner.plan_grasp(build_body(mesh, material, mass=mass), planner.PlanConfig())
+    message = str(info.value)
+    assert "mu = 0.8 cannot hold the object under force control" in message
+    assert f"(at 2 times: {why})" in message
+    assert re.search(r"needs at least \d+\.\d+ N of normal force in all", message), message
 
 
 def test_a_safety_factor_below_one_is_refused(sphere):
