@@ -84,3 +84,33 @@ def test_the_simulated_curve_is_a_smooth_function_of_the_modulus_near_a_bifurcat
     force, lateral = np.array(last).T
     assert np.ptp(force) <= 1e-7 * force.max(), force
     assert np.ptp(lateral) <= 1e-7 * lateral.max(), lateral
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.5])
+def test_a_compression_that_finds_no_rest_names_the_last_strain_at_rest(monkeypatch, friction):
+    """When an increment finds no rest (a stand-in solver that finds none past 10 % strain), the
+    compression stops with NotConverged naming the strain it failed at and the last strain at
+    rest, and advises a final strain no larger than that (and lubricated platens when they are
+    rough), instead of smaller load steps."""
+    from softgrasp.errors import NotConverged
+    from softgrasp.experiments import compression
+
+    real = compression.solve_increment
+    H = 0.05
+
+    def solve(scene, state, t, **kwargs):
+        if t > 0.1 * H + 1e-12:
+            raise NotConverged("static solve cycles", "use smaller load steps")
+        return real(scene, state, t, **kwargs)
+
+    monkeypatch.setattr(compression, "solve_increment", solve)
+    body = build_body(box(H, 3), Material(1e5, 0.3, 100.0))
+    with pytest.raises(NotConverged) as info:
+        compression_test(body, strain=0.3, steps=10, plate_friction=friction)
+    message = str(info.value)
+    assert "found no rest at 12.0% strain, past 9.0%" in message, message
+    assert "(static solve cycles)" in message and "load steps" not in message
+    assert message.endswith(
+        "compress to --strain 0.09 or less"
+        + (friction > 0) * ", or with lubricated platens (--plate-friction 0)"
+    )

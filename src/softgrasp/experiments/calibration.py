@@ -167,8 +167,9 @@ def fit_compression(
             body = build_body(mesh, Material(E, nu_, density, edge, name="calibrated"), mass=mass)
             return compression_test(body, strain=strain, steps=steps, plate_friction=friction)
         except SoftgraspError as exc:
+            what = exc.diagnosis if isinstance(exc, NotConverged) else str(exc)
             raise NotConverged(
-                f"the simulated compression test failed during the fit ({exc}); try another --mesh-size "
+                f"the simulated compression test failed during the fit ({what}); try another --mesh-size "
                 "or --steps"
             ) from None
 

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull
 
-from softgrasp.errors import ConfigError
+from softgrasp.errors import ConfigError, NotConverged
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
 from softgrasp.physics.planes import Plane, PlaneContact
@@ -101,6 +101,19 @@ def _schedule(strain: float, steps: int, first: float) -> NDArray[np.float64]:
     return np.concatenate([[0.0], small, np.linspace(strain / steps, strain, steps)])
 
 
+def _no_rest(strain: float, last: float, plate_friction: float, exc: NotConverged) -> NotConverged:
+    """Why a compression stopped at ``strain`` (the last at rest: ``last``) and what to change: a
+    smaller final strain, or lubricated platens (with friction, nodes of the faces flip between
+    sticking and leaving the plates as the sides bulge, and the static solve can cycle there
+    whatever the increments)."""
+    options = f"compress to --strain {last:.3g} or less"
+    if plate_friction > 0:
+        options += ", or with lubricated platens (--plate-friction 0)"
+    return NotConverged(
+        f"the compression found no rest at {strain:.1%} strain, past {last:.1%} ({exc.diagnosis})", options
+    )
+
+
 def compression_test(
     body: Body,
     *,
@@ -126,7 +139,8 @@ def compression_test(
     Raises
     ------
     ConfigError: strain or steps out of range.
-    NotConverged: an increment did not reach equilibrium.
+    NotConverged: an increment did not reach equilibrium (the message names the strain reached
+        and what to change).
     """
     if not (0 < strain <= 0.8):
         raise ConfigError(f"compression strain = {strain} is invalid: give a value in (0, 0.8]")
@@ -164,7 +178,10 @@ def compression_test(
         if i > 0 and e_last != e_prev:
             guess = extrapolated(state.x, previous.x, (e - e_last) / (e_last - e_prev))
         previous, e_prev, e_last = state, e_last, e
-        state, its, _ = solve_increment(scene, state, e * H, cache=cache, guess=guess)
+        try:
+            state, its, _ = solve_increment(scene, state, e * H, cache=cache, guess=guess)
+        except NotConverged as exc:
+            raise _no_rest(e, e_prev, plate_friction, exc) from exc
         f = top.static_forces(body, state.x, state.t, state.contacts[1]).sum(axis=0)
         disp.append(e * H)
         force.append(float(-f[2]))
