@@ -45,7 +45,7 @@ from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.params import Fingertip
 from softgrasp.sim.scene import Scene, State
-from softgrasp.sim.static import solve_increment
+from softgrasp.sim.static import solve_increment, solve_static
 
 __all__ = ["SetpointHold", "hold_setpoints", "TOLERANCE", "MAX_INCREMENTS"]
 
@@ -185,20 +185,34 @@ def _increment(
     millimetre wide), moves half as long, 1.5 and 2 times as long, a quarter and 3 times as long
     are tried in turn, as the position-controlled closing goes on past such a travel
     (:meth:`~softgrasp.grasp.closing.Closing.close`); the next increments correct any overshoot.
-    Returns (the move made, the fingertips there, the rest); raises the first NotConverged when
-    none of them finds a rest."""
-    first: NotConverged | None = None
-    for factor in (1.0, 0.5, 1.5, 2.0, 0.25, 3.0):
+    Each is tried first by one static solve, the cheap way past the band, and only when none of
+    them finds a rest so with the increment's splitting and backward Euler steps
+    (:func:`~softgrasp.sim.static.solve_increment`), which cost some 25 times as much where they
+    fail. Returns (the move made, the fingertips there, the rest); raises the first NotConverged
+    when none of them finds a rest."""
+
+    def at(factor: float) -> tuple[NDArray[np.float64], FingertipContact, Scene]:
         made = np.clip(factor * move, -s, setup.max_travel - s)
         tips = _tips(cfg, fc.centres(1.0), setup.directions * made[:, None])
-        scene = Scene(body, (setup.table, tips))
-        try:
-            rest, _, _ = solve_increment(scene, replace(state, t=0.0), 1.0, cache=cache, rtol=STEP_RTOL)
-        except NotConverged as exc:
-            first = exc if first is None else first
-            continue
-        return made, tips, rest
-    assert first is not None
+        return made, tips, Scene(body, (setup.table, tips))
+
+    start = replace(state, t=0.0)
+    made, tips, scene = at(1.0)
+    try:
+        return made, tips, solve_increment(scene, start, 1.0, cache=cache, rtol=STEP_RTOL)[0]
+    except NotConverged as exc:
+        first = exc
+    for whole in (False, True):
+        for factor in (0.5, 1.5, 2.0, 0.25, 3.0):
+            made, tips, scene = at(factor)
+            try:
+                if whole:
+                    rest = solve_increment(scene, start, 1.0, cache=cache, rtol=STEP_RTOL)[0]
+                else:
+                    rest = solve_static(scene, start, t=1.0, cache=cache, rtol=STEP_RTOL)[0]
+            except NotConverged:
+                continue
+            return made, tips, rest
     raise first
 
 
