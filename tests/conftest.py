@@ -74,6 +74,20 @@ def planned_sphere(tmp_path_factory):
 
 
 def pytest_collection_modifyitems(config, items):
-    """The slow tests first: started at once on the workers, they do not leave one worker running
-    the last of them while the other idles at the end of the session."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """The slow tests first on every pytest-xdist worker, dealt among them in turn: started at
+    once, they do not leave one worker running the last of them while another idles at the end
+    of the session. (xdist's ``worksteal`` hands each of the ``n`` workers a contiguous ``1/n``
+    of the collection at the start, and a worker that runs dry steals from the end of another's
+    queue: with every slow test at the front of the collection, one worker ran them all.) Each
+    worker's share begins with its slow tests; without xdist the slow tests simply come first."""
+    n = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    slow = [item for item in items if item.get_closest_marker("slow") is not None]
+    fast = [item for item in items if item.get_closest_marker("slow") is None]
+    dealt = [slow[i::n] for i in range(n)]
+    ordered: list = []
+    for i in range(n):  # share i: its slow tests, then fast ones up to the size xdist sends it
+        size = (len(items) - len(ordered)) // (n - i)
+        take = max(size - len(dealt[i]), 0) if i < n - 1 else len(fast)
+        ordered += dealt[i] + fast[:take]
+        fast = fast[take:]
+    items[:] = ordered
