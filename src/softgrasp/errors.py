@@ -16,6 +16,7 @@ __all__ = [
     "SimulationUnstable",
     "ConfigError",
     "SoftgraspWarning",
+    "diagnosis",
 ]
 
 
@@ -52,6 +53,13 @@ class NotConverged(SoftgraspError):
         super().__init__(diagnosis if advice is None else f"{diagnosis}; {advice}")
         self.diagnosis = diagnosis
         self.advice = advice
+
+
+def diagnosis(exc: BaseException) -> str:
+    """What a failed solver did, without the advice its message may end with
+    (:attr:`NotConverged.diagnosis`; any other exception's whole message): for a message that
+    embeds it and gives its own advice."""
+    return exc.diagnosis if isinstance(exc, NotConverged) else str(exc)
 
 
 class SimulationUnstable(SoftgraspError):

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from softgrasp.errors import ConfigError, MaterialError, NotConverged, SoftgraspError
+from softgrasp.errors import ConfigError, MaterialError, NotConverged, SoftgraspError, diagnosis
 from softgrasp.experiments.calibration_data import (
     MAX_STRAIN,
     CompressionData,
@@ -167,10 +167,9 @@ def fit_compression(
             body = build_body(mesh, Material(E, nu_, density, edge, name="calibrated"), mass=mass)
             return compression_test(body, strain=strain, steps=steps, plate_friction=friction)
         except SoftgraspError as exc:
-            what = exc.diagnosis if isinstance(exc, NotConverged) else str(exc)
             raise NotConverged(
-                f"the simulated compression test failed during the fit ({what}); try another --mesh-size "
-                "or --steps"
+                f"the simulated compression test failed during the fit ({diagnosis(exc)}); try another "
+                "--mesh-size or --steps"
             ) from None
 
     # The edge-law and ratio simulations reach beyond the data (a test's last increments are its

@@ -19,7 +19,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.errors import NotConverged, SimulationUnstable
+from softgrasp.errors import NotConverged, SimulationUnstable, diagnosis
 from softgrasp.grasp.config import (
     HELD_RTOL,
     HOLD_DT,
@@ -50,12 +50,6 @@ Held = tuple[State, FingertipContact, float, NDArray[np.float64]]
 
 class _NotHeld(Exception):
     """The hold check's verdict, raised where it is found."""
-
-
-def _what(exc: Exception) -> str:
-    """What a solver that found no equilibrium did, without advice on load steps: the hold check's
-    are its own, and a step that finds none is its verdict that the object slides out."""
-    return exc.diagnosis if isinstance(exc, NotConverged) else str(exc)
 
 
 def object_size(x: NDArray[np.float64]) -> float:
@@ -148,7 +142,7 @@ def check_hold(
                 )
             except (NotConverged, SimulationUnstable) as exc:
                 raise _NotHeld(
-                    f"the object slides out of the fingers {when} (no equilibrium: {_what(exc)})"
+                    f"the object slides out of the fingers {when} (no equilibrium: {diagnosis(exc)})"
                 ) from exc
             track.step(st.contacts[0], when)
             drift = max(drift, float(np.linalg.norm(centre_of_mass(body, st.x) - c0)))
@@ -159,7 +153,7 @@ def check_hold(
             held, _ = solve_static(scene, replace(end, t=0.0), t=0.0, cache=cache, rtol=HELD_RTOL)
         except (NotConverged, SimulationUnstable) as exc:
             raise _NotHeld(
-                f"the object slides out of the fingers after the hold (no equilibrium: {_what(exc)})"
+                f"the object slides out of the fingers after the hold (no equilibrium: {diagnosis(exc)})"
             ) from exc
         track.step(held.contacts[0], "at the held equilibrium")
     except _NotHeld as why:
@@ -197,7 +191,7 @@ def _simulate_hold(
         except (NotConverged, SimulationUnstable) as exc:
             if h <= HOLD_DT / 2**MAX_HALVINGS:
                 raise _NotHeld(
-                    f"the object slides out of the fingers {when} (no solution: {_what(exc)})"
+                    f"the object slides out of the fingers {when} (no solution: {diagnosis(exc)})"
                 ) from exc
             dt = h / 2.0  # a sudden slip or release: resolve it in shorter steps
             continue

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from softgrasp import backend
-from softgrasp.errors import NotConverged, SimulationUnstable
+from softgrasp.errors import NotConverged, SimulationUnstable, diagnosis
 from softgrasp.linalg import pardiso
 from softgrasp.linalg.solve import SolverCache, assembly_threads
 from softgrasp.physics.body import Body
@@ -222,11 +222,6 @@ def _solve_static(
     raise NotConverged(f"friction did not settle in {max_friction_passes} stick/slip passes", SMALLER_STEPS)
 
 
-def _diagnosis(exc: NotConverged) -> str:
-    """What a solver that did not converge did, without the advice its message ends with."""
-    return getattr(exc, "diagnosis", str(exc))
-
-
 def solve_increment(
     scene: Scene,
     state: State,
@@ -278,7 +273,7 @@ def solve_increment(
                 except NotConverged as last:
                     raise NotConverged(
                         f"load increment to t = {t:.6g} did not converge even when split into {n} parts "
-                        f"({_diagnosis(exc)}), nor by backward Euler steps ({_diagnosis(last)})",
+                        f"({diagnosis(exc)}), nor by backward Euler steps ({diagnosis(last)})",
                         SMALLER_STEPS,
                     ) from exc
     raise AssertionError("unreachable")  # pragma: no cover
@@ -329,7 +324,7 @@ def proximal_solve(
             failed += 1
             if failed == max_failed:
                 raise NotConverged(
-                    f"{failed} backward Euler steps found no rest ({_diagnosis(exc)})"
+                    f"{failed} backward Euler steps found no rest ({diagnosis(exc)})"
                 ) from exc
             dt /= 4.0
             continue
