@@ -256,6 +256,67 @@ def test_too_small_set_points_drop_the_object():
     assert res.slip > 0.025
 
 
+class SlidingOutHand(SpringHand):
+    """A :class:`SpringHand` whose object, once it has slid ``out`` metres below the fingertips,
+    is out of their reach: they neither touch nor grip it any more, and it falls onto the table."""
+
+    def __init__(self, out=0.005, **kw):
+        super().__init__(**kw)
+        self.out = out
+
+    def _normal_forces(self):
+        forces = super()._normal_forces()
+        gone = self.base[2] - self.com[2] > self.out
+        return dict.fromkeys(forces, 0.0) if gone else forces
+
+
+class NumbHand(SpringHand):
+    """A :class:`SpringHand` whose tactile sensors read nothing once the base rises, although its
+    fingertips still grip the object and carry it up."""
+
+    def fingertip_normal_forces(self):
+        forces = super().fingertip_normal_forces()
+        return dict.fromkeys(forces, 0.0) if self.base[2] > 0 else forces
+
+
+def test_the_run_ends_once_the_object_is_out_of_the_hand_with_the_whole_runs_outcome(monkeypatch):
+    """Set-points too small: the object slides out of the fingertips and falls onto the table.
+    The run ends RELEASE_TIME after it lies there untouched, with the outcome of the whole run
+    (measured with the early end switched off): dropped, the same rise, zero held forces; the
+    time series is the whole run's up to there."""
+    from softgrasp.execution import controller
+
+    cfg = ExecuteConfig(lift=0.05, hold_time=0.5)
+    k = round(controller.RELEASE_TIME / cfg.control_dt)  # control periods of the release window
+    hand = SlidingOutHand()
+    res = execute_plan(hand, lines_for(hand, 0.1), cfg)
+    monkeypatch.setattr(controller, "RELEASE_TIME", 1e9)
+    whole_hand = SlidingOutHand()
+    whole = execute_plan(whole_hand, lines_for(whole_hand, 0.1), cfg)
+    assert "released" not in whole.events and whole.dropped
+    assert res.dropped and not res.lifted
+    t = res.events["released"]
+    assert res.events["lift"] < t < res.events["lift"] + 1.0 and "hold" not in res.events
+    assert res.events["end"] == t and res.series["t"][-1] == pytest.approx(t)
+    assert res.rise == pytest.approx(whole.rise, abs=1e-9) and res.rise < 0.5 * cfg.lift
+    assert res.held == dict.fromkeys(hand.fingers, 0.0) == whole.held
+    f, z = res.series["force"], res.series["com"][:, 2]
+    assert np.array_equal(res.series["com"], whole.series["com"][: len(z)])
+    # it ended at the first period that closed a window untouched and at rest, not later
+    assert not f[-k:].any() and abs(z[-1] - z[-1 - k]) < controller.REST_DRIFT
+    assert f[-k - 1 :].any() or abs(z[-2] - z[-2 - k]) >= controller.REST_DRIFT
+
+
+def test_an_object_that_rises_untouched_is_not_released():
+    """The fingertips' sensors read nothing during the lift while the fingertips carry the
+    object up: it is not at rest, so the run goes on to the end, and the object is lifted."""
+    cfg = ExecuteConfig(lift=0.05, hold_time=0.5)
+    hand = NumbHand()
+    res = execute_plan(hand, lines_for(hand, 0.3), cfg)
+    assert "released" not in res.events and "hold" in res.events
+    assert res.lifted and res.rise == pytest.approx(0.05, abs=1e-3)
+
+
 def test_bad_lines_and_settings_are_refused():
     with pytest.raises(ConfigError, match="set-point"):
         ClosingLine(setpoint=-1.0, start=np.zeros(3), direction=np.array([1.0, 0, 0]), max_travel=0.01)

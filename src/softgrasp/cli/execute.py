@@ -193,6 +193,8 @@ def _run(args: argparse.Namespace, out: Path) -> int:
             f"{100 * fd['error_N'] / fd['setpoint_N']:>9.1f}{fd['held_N']:>9.3f}"
         )
     state = "DROPPED" if res.dropped else "lifted"
+    if "released" in res.events:  # the run ends once nothing can lift the object any more
+        state += f" (out of the hand at t = {res.events['released']:.2f} s, where the run ended)"
     print(
         f"{state}: object rose {res.rise * 1e3:.1f} mm of {cfg.lift * 1e3:.0f} mm; slip "
         f"{res.slip * 1e3:.2f} mm; set-points {'reached' if res.reached else 'NOT reached'} within "

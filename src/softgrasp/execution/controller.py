@@ -20,6 +20,12 @@ The slip is the object's displacement relative to the fingertips during the lift
 ``max_t |(c(t) - g(t)) - (c(t0) - g(t0))|`` with c the object's centre of mass and g the centroid
 of the fingertips (world), t0 the start of the lift. The object is *dropped* when at the end it
 has risen less than half the lift.
+
+The lift and the hold end early once the object is out of the hand: no fingertip has read a
+force for :data:`RELEASE_TIME` while the object, risen less than half the lift, lay at rest (its
+centre of mass moved less than :data:`REST_DRIFT`). Nothing the fingertips do not touch then
+lifts it (it lies on the table, or on a link without a sensor that is not rising either), so the
+outcome is the one the rest of the run would give: dropped. The event ``released`` records when.
 """
 
 from __future__ import annotations
@@ -51,6 +57,10 @@ __all__ = [
 PHASES = ("settle", "close", "lift", "hold")
 #: Longest execution [s] of hand time (settle, closing, lift and hold together).
 MAX_SIMULATED_TIME = 300.0
+#: The object is out of the hand when no fingertip has read a force for this long [s] ...
+RELEASE_TIME = 0.1
+#: ... while its centre of mass moved less than this [m], below half the lift (module docstring).
+REST_DRIFT = 5e-4
 #: The default wall-clock bound of an execution: this many seconds ...
 WALL_TIME_BASE = 60.0
 #: ... plus this many times its longest hand time (MuJoCo runs the 388-node sphere ~6x slower
@@ -203,14 +213,16 @@ class ExecutionResult:
     fingers: finger names.  setpoints: [N] per finger.
     reached: whether the closing brought every finger within the tolerance.
     measured: tactile normal force per finger when the closing ended [N].
-    held: mean tactile normal force per finger over the last half of the hold [N].
+    held: mean tactile normal force per finger over the last half of the hold (over the
+        :data:`RELEASE_TIME` before the end when the object was released) [N].
     lifted: the object rose with the hand.  dropped: it did not (rose < half the lift).
     slip: the object's largest displacement relative to the fingertips during lift and hold [m].
     rise: the object's final rise [m].
     series: time series, one row per control period: ``t``, ``phase`` (index in :data:`PHASES`),
         per finger ``force`` (normal, N) and ``travel`` (m), the base rise ``base_z`` and the
         object's centre ``com`` (3,), the fingertip centroid ``tips`` (3,).
-    events: time [s] at which each phase began, and ``first_contact`` per finger.
+    events: time [s] at which each phase began, ``first_contact`` per finger, and ``released``
+        when the run ended early with the object out of the hand (:data:`RELEASE_TIME`).
     lag: per finger, the hand's position lag measured at its touch [s] (0 where it did not touch
         under way), which sets its closing's time constant.
     """
@@ -381,9 +393,21 @@ def execute_plan(
         on_event("closed")
 
     # 3. lift, and 4. hold
-    def run(phase: int, duration: float, base_z: Callable[[float], float] | None = None) -> None:
-        """``duration`` seconds of control periods; ``base_z(elapsed)`` commands the base."""
-        nonlocal last
+    window = max(1, math.ceil(RELEASE_TIME / dt - 1e-9))  # control periods in RELEASE_TIME
+    untouched = 0  # control periods since a fingertip last read a force
+    lift_com_z = hand.object_position()[2]
+
+    def released() -> bool:
+        """Whether the object is out of the hand (module docstring)."""
+        if untouched < window or len(rows) <= window:
+            return False
+        com, before = rows[-1][5], rows[-1 - window][5]
+        return bool(np.linalg.norm(com - before) < REST_DRIFT and com[2] - lift_com_z < 0.5 * cfg.lift)
+
+    def run(phase: int, duration: float, base_z: Callable[[float], float] | None = None) -> bool:
+        """``duration`` seconds of control periods; ``base_z(elapsed)`` commands the base. False
+        when it ended early, the object released."""
+        nonlocal last, untouched
         start = hand.time
         while hand.time < start + duration - 1e-12:
             if base_z is not None:
@@ -395,15 +419,21 @@ def execute_plan(
             step()
             last = hand.fingertip_normal_forces()
             record(phase, last)
+            untouched = 0 if any(last[f] > 0 for f in names) else untouched + 1
+            if released():
+                events["released"] = hand.time
+                return False
+        return True
 
     rise_time = cfg.lift / cfg.lift_speed
     events["lift"] = hand.time
     lift_start = len(rows)
     # A smooth rise (half a cosine: no jerk at either end) at lift_speed on average.
-    run(2, rise_time, lambda e: cfg.lift * 0.5 * (1.0 - math.cos(math.pi * min(e / rise_time, 1.0))))
-    events["hold"] = hand.time
+    rising = run(2, rise_time, lambda e: cfg.lift * 0.5 * (1.0 - math.cos(math.pi * min(e / rise_time, 1.0))))
     hold_start = len(rows)
-    run(3, cfg.hold_time)
+    if rising:
+        events["hold"] = hand.time
+        run(3, cfg.hold_time)
     events["end"] = hand.time
     if on_event is not None:
         on_event("end")
@@ -427,7 +457,10 @@ def execute_plan(
     com0 = series["com"][lift_start - 1] if lift_start > 0 else hand.object_position()
     rise = float(series["com"][-1, 2] - com0[2]) if len(rows) else 0.0
     dropped = rise < 0.5 * cfg.lift
-    last = series["force"][hold_start + (len(rows) - hold_start) // 2 :]
+    if "released" in events:  # the readings of the release window (none touches)
+        last = series["force"][len(rows) - window :]
+    else:
+        last = series["force"][hold_start + (len(rows) - hold_start) // 2 :]
     held = {f: float(last[:, j].mean()) if len(last) else math.nan for j, f in enumerate(names)}
     return ExecutionResult(
         fingers=names,
