@@ -224,7 +224,8 @@ def test_every_kernel_module_has_a_name_for_the_first_run():
 def test_a_cold_kernel_cache_is_told_from_a_warm_one(tmp_path):
     """:func:`softgrasp.jitcache.cached` reads a kernel's cache index: no machine code for the current
     sources before the first call, some after it (also in a new process); another digest of the
-    sources has none. :func:`softgrasp.cli.warm.cold` says so for an empty cache folder."""
+    sources has none. :func:`softgrasp.cli.warm.cold` and :func:`~softgrasp.cli.warm.solvers_cold`
+    say so for an empty cache folder, and not once the kernels are loaded (compiled if need be)."""
     (tmp_path / "kern.py").write_text(
         textwrap.dedent(
             """
@@ -251,31 +252,36 @@ def test_a_cold_kernel_cache_is_told_from_a_warm_one(tmp_path):
     assert first.stdout.split() == ["False", "True", "False"], first.stderr
     assert again.stdout.split() == ["True", "True", "False"], again.stderr
     empty = {**ENV, "NUMBA_CACHE_DIR": str(tmp_path / "empty")}
-    cold = subprocess.run(
-        [sys.executable, "-c", "from softgrasp.cli.warm import cold; print(cold())"],
-        env=empty,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert cold.stdout.strip() == "True", cold.stderr
+    from softgrasp.cli.warm import warm_up, warm_up_solvers
+
+    warm_up()
+    warm_up_solvers()
+    probe = "from softgrasp.cli.warm import cold, solvers_cold; print(cold(), solvers_cold())"
+    for where, expected in ((empty, ["True", "True"]), (ENV, ["False", "False"])):
+        told = subprocess.run(
+            [sys.executable, "-c", probe], env=where, capture_output=True, text=True, timeout=120
+        )
+        assert told.stdout.split() == expected, told.stderr
 
 
 def test_the_install_compiles_the_kernels_ahead_and_says_so_only_when_it_does(monkeypatch, capsys):
     """``python -m softgrasp.cli.warm`` (the Makefile's install runs it): on a cold cache it says
     it compiles and compiles the fingertip contact's kernels in a second process; on a warm one it
-    loads them quietly; a failure is one line and does not fail the install. The Makefile runs
-    it after both installs."""
+    loads them quietly; then the other solvers' kernels, saying so when they compile; a failure
+    is one line and does not fail the install. The Makefile runs it after both installs."""
     from softgrasp.cli import warm
 
     calls = []
     monkeypatch.setattr(warm, "warm_up", lambda split=False: calls.append(split))
+    monkeypatch.setattr(warm, "warm_up_solvers", lambda: calls.append("solvers"))
     for first in (True, False):
         monkeypatch.setattr(warm, "cold", lambda first=first: first)
+        monkeypatch.setattr(warm, "solvers_cold", lambda first=first: not first)
         assert warm.main() == 0
         err = capsys.readouterr().err
         assert ("compiling kernels (first run only" in err) is first, err
-    assert calls == [True, False]
+        assert ("compiling the dynamic and multigrid solvers' kernels" in err) is not first, err
+    assert calls == [True, "solvers", False, "solvers"]
 
     def broken(split=False):
         raise RuntimeError("no space left on device")

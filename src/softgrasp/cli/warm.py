@@ -21,6 +21,11 @@ child only when the fork comes from the thread that started them (from another, 
 the child's TBB may be in an invalid state); the command line forks no process after the warm-up
 (its figure worker is a new program, started by exec).
 
+The install (:func:`main`) also compiles the kernels of the solvers a plan does not load: the
+compiled Runge-Kutta stepper (``plan --solver dynamic``, the experiments' dynamics) and the
+multigrid solver of large meshes (:func:`warm_up_solvers`, about 20 s on a first install), so
+that no command compiles after installing.
+
 A first run (or the first after an edit of a kernel's source, which keys the cache:
 :mod:`softgrasp.jitcache`) compiles instead of loading: :func:`cold` tells it beforehand from the
 cache's index of a few kernels the warm-up compiles first and last, so that the command line can
@@ -48,14 +53,19 @@ __all__ = [
     "cold",
     "main",
     "pause_collector",
+    "solvers_cold",
     "resume_collector",
     "warm_up",
     "warm_up_in_background",
+    "warm_up_solvers",
 ]
 
 #: About how long compiling the kernels takes on a first run [s] (on a 2-core machine, the
 #: fingertip contact's in a second process).
 COMPILE_TIME_S = 12
+#: About how long compiling the other solvers' kernels takes on a first install [s]
+#: (:func:`warm_up_solvers`).
+SOLVERS_COMPILE_TIME_S = 20
 
 #: What the kernels of each package compute, as a first run names them while it compiles them.
 KERNEL_GROUPS = (
@@ -81,6 +91,16 @@ def cold() -> bool:
     from softgrasp.physics import volume
 
     return not all(jitcache.cached(k) for k in (volume._inverted, descent._solve))
+
+
+def solvers_cold() -> bool:
+    """Whether the kernels :func:`warm_up_solvers` loads first are not yet compiled on disk for
+    the current sources (the compiled Runge-Kutta stepper's and a multigrid smoother's)."""
+    from softgrasp import jitcache
+    from softgrasp.linalg import smoothers
+    from softgrasp.sim.fused import rk4
+
+    return not all(jitcache.cached(k) for k in (rk4.advance, smoothers._l1_inverse_diagonal))
 
 
 def _problem():
@@ -192,6 +212,23 @@ def warm_up(split: bool = False) -> None:
     fingers.contact_frames(body, rest.x, t, rest.contacts[1])
     if child is None:
         _place_hand()
+
+
+def warm_up_solvers() -> None:
+    """Load (or compile) the kernels of the solvers a plan does not use, on the warm-up's problem:
+    a few steps of the compiled explicit Runge-Kutta stepper (:func:`softgrasp.sim.explicit.simulate`)
+    and a static solve by multigrid (:class:`~softgrasp.linalg.solve.SolverCache` ``amg``)."""
+    if not compiled():
+        return
+    from softgrasp.linalg.solve import SolverCache
+    from softgrasp.sim.explicit import simulate
+    from softgrasp.sim.scene import Scene
+    from softgrasp.sim.static import solve_static
+
+    body, _, table, fingers, t = _problem()
+    scene = Scene(body, (table, fingers))
+    simulate(scene, scene.initial_state(), 2e-5)
+    solve_static(scene, scene.initial_state(), t=t, cache=SolverCache(method="amg"))
 
 
 def _place_hand() -> None:
@@ -318,10 +355,10 @@ def warm_up_in_background() -> WarmUp:
 
 
 def main() -> int:
-    """Compile the kernels a plan uses now, once, instead of on the first plan: what the
-    Makefile's install runs (``python -m softgrasp.cli.warm``). Says so when it compiles; a
-    failure is reported in one line and does not fail the install (the first plan then compiles
-    and meets the same problem)."""
+    """Compile the kernels a plan uses now, once, instead of on the first plan, then the other
+    solvers' (:func:`warm_up_solvers`): what the Makefile's install runs (``python -m
+    softgrasp.cli.warm``). Says so when it compiles; a failure is reported in one line and does
+    not fail the install (the first plan then compiles and meets the same problem)."""
     import sys
 
     if not compiled():
@@ -335,6 +372,14 @@ def main() -> int:
                 flush=True,
             )
         warm_up(split=first)
+        if solvers_cold():
+            print(
+                "softgrasp: compiling the dynamic and multigrid solvers' kernels "
+                f"(once, ~{SOLVERS_COMPILE_TIME_S} s)",
+                file=sys.stderr,
+                flush=True,
+            )
+        warm_up_solvers()
     except Exception as exc:  # noqa: BLE001 - an optimisation only
         print(
             f"softgrasp: the kernels were not compiled ahead ({exc}); the first plan compiles them",
