@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -206,7 +207,29 @@ def test_no_hold_before_the_maximum_squeeze_fails_with_the_reason(sphere_body):
     """Low friction and a squeeze limit of 2 % of the reach (~1 mm): the fingers cannot yet hold
     the 50 g sphere there, and the planner says so instead of returning a plan."""
     cfg = PlanConfig(contact=ContactParams(mu=0.2), max_squeeze=0.02, hold_time=0.0)
-    with pytest.raises(InfeasibleGrasp, match=r"no hold before the maximum squeeze .* mu = 0.2"):
+    with pytest.raises(InfeasibleGrasp, match=r"no hold before the maximum squeeze .* mu = 0.2") as err:
+        plan_grasp(sphere_body, cfg)
+    # less in all than a rigid sphere needs there: more squeeze, more friction or another object
+    found = re.search(r"at least ([\d.]+) N.*reached ([\d.]+) N", str(err.value))
+    need, reached = (float(v) for v in found.groups())
+    assert reached < need
+    assert str(err.value).endswith(
+        "allow more squeeze (--max-squeeze, now 0.02), raise the friction coefficient, or grasp a "
+        "lighter or stiffer object"
+    )
+
+
+def test_no_hold_with_more_than_the_rigid_need_names_the_proportions(sphere_body, monkeypatch):
+    """Where the fingers reached more normal force in all than a rigid object needs at their
+    contacts (a stand-in for the rigid-body LP's answer), it is their proportions that do not hold:
+    the message says so rather than only asking for more friction."""
+    from softgrasp.grasp.closing import Closing
+
+    monkeypatch.setattr(
+        Closing, "_rigid_need_and_excess", lambda self: ("; mu = 0.2 needs at least 0.10 N", True)
+    )
+    cfg = PlanConfig(contact=ContactParams(mu=0.2), max_squeeze=0.02, hold_time=0.0)
+    with pytest.raises(InfeasibleGrasp, match="not in the proportions that hold it: allow more squeeze"):
         plan_grasp(sphere_body, cfg)
 
 

@@ -163,11 +163,16 @@ class Closing:
         """What the rigid-body LP (:func:`~softgrasp.grasp.equilibrium.minimum_normal_forces`)
         says of the last increment's contacts: the least normal force in all that holds the
         object if it were rigid, and what the fingers reached."""
+        return self._rigid_need_and_excess()[0]
+
+    def _rigid_need_and_excess(self) -> tuple[str, bool]:
+        """:meth:`_rigid_need`, and whether the fingers reached more than that least force in all
+        (then it is their proportions, not their sum, that do not hold)."""
         t, st, _, total = self.last
         body, cfg = self.body, self.cfg
         pts, push, fn = self.fingers.contact_frames(body, st.x, t * self.scale, st.contacts[1])
         if (fn <= 0).any():
-            return ""
+            return "", False
         mu = cfg.contact.mu
         try:
             need = minimum_normal_forces(
@@ -175,11 +180,12 @@ class Closing:
                 torsion=patch_torsion(body, self.fingers, fn, mu),
             ).sum()
         except InfeasibleGrasp:
-            return f"; with mu = {mu:g} no normal forces at these contacts would hold even a rigid object"
+            none = f"; with mu = {mu:g} no normal forces at these contacts would hold even a rigid object"
+            return none, False
         return (
             f"; mu = {mu:g} needs at least {need:.2f} N of normal force in all to hold even a rigid object "
             f"at these contacts, the fingers reached {total:.2f} N"
-        )
+        ), bool(total > need)
 
     def too_far(self, t: float) -> None:
         """Raise :class:`InfeasibleGrasp` if travel ``t`` [m] is past the largest allowed (the
@@ -188,17 +194,24 @@ class Closing:
         if t > max_travel + 1e-12:
             cfg, checks = self.cfg, self.checks
             last = self.rows[-1][2] if self.rows else np.zeros(len(self.cfg.fingers))
+            need, excess = self._rigid_need_and_excess() if self.rows else ("", False)
+            more = f"allow more squeeze (--max-squeeze, now {cfg.max_squeeze:g})"
+            if max(last, default=0.0) <= 0.0:
+                advice = f"; {more}"
+            elif excess:  # enough force in all, in proportions that do not hold
+                advice = (
+                    "; the fingers press more than a rigid object needs, but not in the proportions "
+                    f"that hold it: {more}, raise the friction coefficient, or grasp elsewhere (--grasp)"
+                )
+            else:
+                advice = f"; {more}, raise the friction coefficient, or grasp a lighter or stiffer object"
             raise InfeasibleGrasp(
                 f"no hold before the maximum squeeze ({(max_travel - first.max()) * 1e3:.1f} mm past "
                 f"first contact, {cfg.max_squeeze:.0%} of the fingers' reach): finger forces reached "
                 f"{', '.join(f'{v:.2f}' for v in last)} N with mu = {cfg.contact.mu:g}"
                 + (f" (last hold check at {checks[-1][0] * 1e3:.3g} mm: {checks[-1][1]})" if checks else "")
-                + (self._rigid_need() if self.rows else "")
-                + (
-                    f"; allow more squeeze (--max-squeeze, now {cfg.max_squeeze:g})"
-                    if max(last, default=0.0) <= 0.0
-                    else "; raise the friction coefficient, or grasp a lighter or stiffer object"
-                )
+                + need
+                + advice
             )
 
     def until_the_grasp_test(self) -> Point:
