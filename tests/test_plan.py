@@ -693,8 +693,15 @@ def test_a_lowered_start_that_finds_no_rest_is_followed_by_the_level_one(monkeyp
             settle.settle_on_table(
                 build_body(mesh, preset("rubber"), mass=5.0), PlanConfig(), SolverCache(method="amg")
             )
-        message = str(info.value)
+        message = info.value.diagnosis
         assert [part.split(": ")[0] for part in message.split(": ", 1)[1].split("; ")] == tried
+        # the advice: how far the weight strains it, and what may help
+        advice = re.fullmatch(
+            r"its weight strains it by about ([\d.]+) % \(rho g H / E\).*--mesh-size.*", info.value.advice
+        )
+        D = float(np.ptp(mesh.points[:, 2]))  # a ball: rho = 5 kg / (pi D^3 / 6), H = D
+        expected = 100 * 5.0 / (math.pi * D**3 / 6) * 9.81 * D / preset("rubber").E
+        assert float(advice.group(1)) == pytest.approx(expected, rel=0.1)
 
 
 @pytest.mark.slow

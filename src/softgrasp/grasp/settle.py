@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull, QhullError
 
-from softgrasp.errors import NotConverged
+from softgrasp.errors import NotConverged, diagnosis
 from softgrasp.grasp.config import LOWERED_MAX_ITER, LOWERED_MIN_NODES, PATH_RTOL, PlanConfig
 from softgrasp.linalg.solve import SolverCache, by_multigrid
 from softgrasp.model.mesh.placement import stable_facet_pose
@@ -136,6 +136,19 @@ def settle_on_table(
             return proximal_solve(rest, rest.initial_state(x), 0.0, cache=cache, rtol=PATH_RTOL)[0], table, x
         except NotConverged as exc:
             failures.append((f"{where}, by backward Euler steps", exc))
+    x = np.asarray(body.mesh.points, dtype=np.float64)
+    sag = weight_strain(body, float(np.ptp(x[:, 2])))
     raise NotConverged(
-        "the object found no rest on the table: " + "; ".join(f"{where}: {exc}" for where, exc in failures)
+        "the object found no rest on the table: "
+        + "; ".join(f"{where}: {diagnosis(exc)}" for where, exc in failures),
+        f"its weight strains it by about {100 * sag:.2g} % (rho g H / E), and the table's contact with its "
+        "nodes flips as they touch and leave: a finer mesh (--mesh-size) spreads that over more, "
+        "smaller nodes and may let it rest",
     ) from failures[-1][1]
+
+
+def weight_strain(body: Body, height_m: float) -> float:
+    """The strain the object's own weight causes at its base, rho g H / E (``height_m`` [m] the
+    object's height): how far it sags onto the table."""
+    rho = body.total_mass / body.mesh.volume
+    return float(rho * np.linalg.norm(body.gravity) * height_m / body.material.E)
