@@ -444,24 +444,55 @@ def test_ctrl_c_in_a_sweep_stops_the_workers_quietly(tmp_path):
 
 
 # ----------------------------------------------------------------------- the drop's advice
-def _run(reached: bool, measured: float, capped: float = 0.004):
+def _run(reached: bool, measured: float, capped: float = 0.004, peak: float | None = None):
+    """A stand-in run: both fingers read ``measured`` at the end of the closing, and ``peak`` (their
+    end reading when None) at its most."""
     from types import SimpleNamespace
 
+    peak = measured if peak is None else peak
     res = SimpleNamespace(
         reached=reached,
         fingers=("thumb", "first"),
         measured={"thumb": measured, "first": measured},
         setpoints={"thumb": 0.3, "first": 0.2},
+        series={
+            "phase": np.array([0, 1, 1, 1]),
+            "force": np.array([[0.0] * 2, [peak] * 2, [measured] * 2, [measured] * 2]),
+        },
     )
     document = {"mujoco_solver_capped_share": capped}
     return SimpleNamespace(result=res, config=ExecuteConfig(), document=document)
+
+
+def test_a_closing_that_pressed_past_its_set_points_but_never_settled_is_told_apart():
+    """Every finger read its set-point or more during the closing, which still did not end within
+    the tolerance: the hand could press that hard; the readings jumped (a stiff object under small
+    set-points), and larger set-points are the remedy, not a new plan."""
+    from types import SimpleNamespace
+
+    from softgrasp.cli.execute import _drop_advice
+
+    args = SimpleNamespace(material=None, scale=1.0)
+    advice = _drop_advice(args, _run(False, 0.1, peak=0.35))
+    assert "every finger pressed as hard as its set-point" in advice and "larger set-points" in advice
+    assert "could not press that hard" not in advice
+    # one finger short of its set-point throughout: the hand could not press that hard
+    advice = _drop_advice(args, _run(False, 0.1, peak=0.25))
+    assert "could not press that hard" in advice
 
 
 @pytest.mark.parametrize(
     ("reached", "measured", "material", "scale", "capped", "needle"),
     [
         (False, 0.0, None, 1.0, 0.004, "the fingers never pressed the object"),
-        (False, 0.1, None, 1.0, 0.004, "did not reach their set-points in 6 s of closing (thumb 0.100 of"),
+        (
+            False,
+            0.1,
+            None,
+            1.0,
+            0.004,
+            "did not reach their set-points in 6 s of closing (thumb 0.1 of 0.3 N",
+        ),
         (True, 0.3, "o.toml", 1.0, 0.004, "plan for it (softgrasp plan --material o.toml)"),
         (True, 0.3, None, 0.25, 0.004, "the set-points scaled by 0.25 do not hold it: raise --scale"),
         (True, 0.3, None, 1.0, 0.004, "raise the set-points (plan with --safety-factor)"),

@@ -107,11 +107,20 @@ def _drop_advice(args: argparse.Namespace, run) -> str:
             "fingers miss it): this simulation does not tell whether the plan holds"
         )
     if not res.reached:
-        short = [f"{n} {res.measured[n]:.3f} of {res.setpoints[n]:.3f} N" for n in res.fingers]
+        short = [f"{n} {res.measured[n]:.3g} of {res.setpoints[n]:.3g} N" for n in res.fingers]
         if all(res.measured[n] <= 0 for n in res.fingers):
             return (
                 f"the fingers never pressed the object in {cfg.max_close_time:g} s of closing: their "
                 "closing lines miss it; check that the plan and its object.vtu belong together, or re-plan"
+            )
+        closing = res.series["force"][res.series["phase"] == 1]
+        if len(closing) and all(closing[:, j].max() >= res.setpoints[n] for j, n in enumerate(res.fingers)):
+            return (
+                f"every finger pressed as hard as its set-point, but they did not stay within "
+                f"{cfg.tolerance:.0%} of them together in {cfg.max_close_time:g} s of closing (at its end "
+                f"{', '.join(short)}): the contact force jumped by more than that from one reading to the "
+                "next, as on a stiff object under small set-points; larger set-points (--scale, or plan "
+                "with a larger --safety-factor) make the jumps relatively smaller"
             )
         return (
             f"the fingers did not reach their set-points in {cfg.max_close_time:g} s of closing "

@@ -168,7 +168,7 @@ def plot_execution_forces(
     fig, ax = plt.subplots(figsize=(7.2, 4.4), dpi=120)
     for i, name in enumerate(names):
         colour, _ = finger_style(i)
-        ax.plot(x, f[:, i], lw=1.4, color=colour, label=f"{name} (set-point {sp[i]:.2f} N)")
+        ax.plot(x, f[:, i], lw=1.4, color=colour, label=f"{name} (set-point {sp[i]:.3g} N)")
         ax.axhline(sp[i], color=colour, lw=1.0, ls="--")
         ax.axhspan(sp[i] * (1 - tolerance), sp[i] * (1 + tolerance), color=colour, alpha=0.12, lw=0)
     top = float(max(f.max(initial=0.0), sp.max()) * 1.25)
