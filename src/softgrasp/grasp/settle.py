@@ -150,5 +150,4 @@ def settle_on_table(
 def weight_strain(body: Body, height_m: float) -> float:
     """The strain the object's own weight causes at its base, rho g H / E (``height_m`` [m] the
     object's height): how far it sags onto the table."""
-    rho = body.total_mass / body.mesh.volume
-    return float(rho * np.linalg.norm(body.gravity) * height_m / body.material.E)
+    return float(body.density * np.linalg.norm(body.gravity) * height_m / body.material.E)

@@ -84,6 +84,11 @@ class Body:
         return float(self.mass.sum())
 
     @property
+    def density(self) -> float:
+        """Mean density [kg/m^3]: total mass over the mesh's volume."""
+        return self.total_mass / self.mesh.volume
+
+    @property
     def barrier(self) -> bool:
         """Whether the volume term uses the inversion barrier (kappa >= 0)."""
         return self.kappa >= 0
@@ -258,7 +263,7 @@ class Body:
     def fundamental_frequency(self) -> float:
         """Estimate of the lowest elastic angular frequency [rad/s]: pi c / L with the bar-wave
         speed c = sqrt(E / rho) and L the largest extent of the mesh."""
-        rho = self.total_mass / self.mesh.volume
+        rho = self.density
         L = float(np.ptp(self.mesh.points, axis=0).max())
         return math.pi * math.sqrt(self.material.E / rho) / L
 

@@ -125,7 +125,7 @@ def nominal_values(body, mu: float) -> dict[str, float]:
         "mu": float(mu),
         "E": float(m.E),
         "nu": float(m.nu),
-        "density": float(m.density) if m.density is not None else float(body.total_mass / body.mesh.volume),
+        "density": float(m.density) if m.density is not None else float(body.density),
         "mass": float(body.total_mass),
         "a2": float(law.get("a2", 0.0)),
         "a3": float(law.get("a3", 0.0)),
