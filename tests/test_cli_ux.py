@@ -9,6 +9,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -92,6 +93,14 @@ def test_set_points_without_room_to_the_least_that_holds_are_noted(coarse_run, t
     assert tight["not_held_scale"] >= 0.95
     assert f"note: at {tight['not_held_scale']:.2f} x the set-points the object is not held" in out.getvalue()
     assert "--safety-factor" in out.getvalue()
+    # the margin line: the least scale held and the one not held, printed apart (3 decimals where 2
+    # would print them alike), each the plan.json's
+    held, not_held = re.search(
+        r"held down to ([\d.]+) x the set-points, not at ([\d.]+)", out.getvalue()
+    ).groups()
+    assert held != not_held
+    assert float(held) == pytest.approx(tight["critical_scale"], abs=0.005)
+    assert float(not_held) == pytest.approx(tight["not_held_scale"], abs=0.005)
     roomy = json.loads((coarse_run[0] / "plan.json").read_text())["margin"]
     assert roomy["not_held_scale"] < 0.95
     with contextlib.redirect_stdout(out := io.StringIO()), contextlib.redirect_stderr(io.StringIO()):

@@ -256,9 +256,11 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
         f"{g.com_drift * 1e3:.2f} mm in {g.hold_time:g} s"
     )
     mg = doc["margin"]
+    held, not_held = mg["critical_scale"], mg["not_held_scale"]
+    digits = 2 if f"{held:.2f}" != f"{not_held:.2f}" else 3  # two scales apart, printed apart
     bar.write(
         f"margin: set-points {mg['safety_factor']:g} x the least that holds: held down to "
-        f"{mg['critical_scale']:.2f} x the set-points, not at {mg['not_held_scale']:.2f} (softgrasp's model)"
+        f"{held:.{digits}f} x the set-points, not at {not_held:.{digits}f} (softgrasp's model)"
     )
     if g.damage is not None:
         j = int(g.damage.pressure.argmax())
