@@ -226,7 +226,7 @@ def test_no_hold_with_more_than_the_rigid_need_names_the_proportions(sphere_body
     from softgrasp.grasp.closing import Closing
 
     monkeypatch.setattr(
-        Closing, "_rigid_need_and_excess", lambda self: ("; mu = 0.2 needs at least 0.10 N", True)
+        Closing, "_rigid_need", lambda self: ("; mu = 0.2 needs at least 0.10 N", True)
     )
     cfg = PlanConfig(contact=ContactParams(mu=0.2), max_squeeze=0.02, hold_time=0.0)
     with pytest.raises(InfeasibleGrasp, match="not in the proportions that hold it: allow more squeeze"):

@@ -395,14 +395,14 @@ def execute_plan(
     # 3. lift, and 4. hold
     window = max(1, math.ceil(RELEASE_TIME / dt - 1e-9))  # control periods in RELEASE_TIME
     untouched = 0  # control periods since a fingertip last read a force
-    lift_com_z = hand.object_position()[2]
+    lift_com = hand.object_position()  # where the rise is measured from
 
     def released() -> bool:
         """Whether the object is out of the hand (module docstring)."""
         if untouched < window or len(rows) <= window:
             return False
         com, before = rows[-1][5], rows[-1 - window][5]
-        return bool(np.linalg.norm(com - before) < REST_DRIFT and com[2] - lift_com_z < 0.5 * cfg.lift)
+        return bool(np.linalg.norm(com - before) < REST_DRIFT and com[2] - lift_com[2] < 0.5 * cfg.lift)
 
     def run(phase: int, duration: float, base_z: Callable[[float], float] | None = None) -> bool:
         """``duration`` seconds of control periods; ``base_z(elapsed)`` commands the base. False
@@ -454,8 +454,7 @@ def execute_plan(
         slip = float(np.linalg.norm(rel[lift_start:] - ref, axis=1).max())
     else:
         slip = 0.0
-    com0 = series["com"][lift_start - 1] if lift_start > 0 else hand.object_position()
-    rise = float(series["com"][-1, 2] - com0[2]) if len(rows) else 0.0
+    rise = float(series["com"][-1, 2] - lift_com[2]) if len(rows) else 0.0
     dropped = rise < 0.5 * cfg.lift
     if "released" in events:  # the readings of the release window (none touches)
         last = series["force"][len(rows) - window :]

@@ -156,18 +156,15 @@ class Closing:
             raise InfeasibleGrasp(
                 f"mu = {self.cfg.contact.mu:g} cannot hold the object: the closing found no equilibrium of "
                 f"the squeezed object at {t * 1e3:.3g} mm of travel before it was held ({exc.diagnosis})"
-                f"{self._rigid_need()}; raise the friction coefficient, or grasp a lighter or stiffer object"
+                f"{self._rigid_need()[0]}; raise the friction coefficient, or grasp a lighter or stiffer "
+                "object"
             ) from exc
 
-    def _rigid_need(self) -> str:
+    def _rigid_need(self) -> tuple[str, bool]:
         """What the rigid-body LP (:func:`~softgrasp.grasp.equilibrium.minimum_normal_forces`)
         says of the last increment's contacts: the least normal force in all that holds the
-        object if it were rigid, and what the fingers reached."""
-        return self._rigid_need_and_excess()[0]
-
-    def _rigid_need_and_excess(self) -> tuple[str, bool]:
-        """:meth:`_rigid_need`, and whether the fingers reached more than that least force in all
-        (then it is their proportions, not their sum, that do not hold)."""
+        object if it were rigid, and what the fingers reached; and whether they reached more than
+        that (then it is their proportions, not their sum, that do not hold)."""
         t, st, _, total = self.last
         body, cfg = self.body, self.cfg
         pts, push, fn = self.fingers.contact_frames(body, st.x, t * self.scale, st.contacts[1])
@@ -194,7 +191,7 @@ class Closing:
         if t > max_travel + 1e-12:
             cfg, checks = self.cfg, self.checks
             last = self.rows[-1][2] if self.rows else np.zeros(len(self.cfg.fingers))
-            need, excess = self._rigid_need_and_excess() if self.rows else ("", False)
+            need, excess = self._rigid_need() if self.rows else ("", False)
             more = f"allow more squeeze (--max-squeeze, now {cfg.max_squeeze:g})"
             if max(last, default=0.0) <= 0.0:
                 advice = f"; {more}"
