@@ -18,11 +18,12 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from softgrasp import backend
-from softgrasp.errors import MaterialError
+from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.model.material import Material
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.network import NetworkCalibration, calibrate_network
 from softgrasp.physics.forces import BlockPattern
+from softgrasp.physics.nodal_volume import NodalVolume
 
 __all__ = ["Body", "build_body", "STANDARD_GRAVITY", "DEFAULT_DAMPING_RATIO"]
 
@@ -32,6 +33,8 @@ STANDARD_GRAVITY = 9.80665
 ANISOTROPY_WARNING = 0.02
 #: Default damping ratio of the body's fundamental mode (edge dashpots, stiffness-proportional).
 DEFAULT_DAMPING_RATIO = 0.1
+#: The volume terms a body may have (:attr:`Body.volume`).
+VOLUME_TERMS = ("element", "nodal")
 
 
 def _row_max(J: sp.spmatrix) -> NDArray[np.float64]:
@@ -55,6 +58,9 @@ class Body:
     damping_time: stiffness-proportional damping time beta [s] with ``damping = beta * stiffness``.
     gravity: acceleration of gravity [m/s^2], (3,).
     calibration: how springs and volume term were set (see :mod:`softgrasp.model.network`).
+    volume: how the volume term counts volume: ``"element"`` per tet
+        (:mod:`softgrasp.physics.volume`), ``"nodal"`` per node, on a quarter of each of its tets
+        (:mod:`softgrasp.physics.nodal_volume`: no volumetric locking as nu nears 1/2).
     """
 
     mesh: TetMesh
@@ -67,6 +73,7 @@ class Body:
     damping_time: float
     gravity: NDArray[np.float64]
     calibration: NetworkCalibration
+    volume: str = "element"
 
     @property
     def n_nodes(self) -> int:
@@ -94,6 +101,18 @@ class Body:
         return self.kappa >= 0
 
     @property
+    def _element_kappa(self) -> float:
+        """kappa of the per-tet volume term the compiled force kernels add (0 for a nodal one)."""
+        return self.kappa if self.volume == "element" else 0.0
+
+    @cached_property
+    def _nodal(self) -> NodalVolume | None:
+        """The node-averaged volume term (:mod:`softgrasp.physics.nodal_volume`), or None."""
+        if self.volume != "nodal" or self.kappa == 0.0:
+            return None
+        return NodalVolume(self.mesh.tets, self.mesh.volumes, self.n_nodes, self.kappa, self.barrier)
+
+    @property
     def weight(self) -> NDArray[np.float64]:
         """Total gravity force [N], (3,)."""
         return self.total_mass * self.gravity
@@ -111,20 +130,24 @@ class Body:
         damped = v is not None and self.damping_time > 0
         forces = self._partitioned(x, v if damped else None, False)
         if forces is not None:
-            return forces[0]
-        return elastic.internal_forces(
-            x,
-            v if damped else None,
-            self.edges,
-            self.rest_length,
-            self.stiffness,
-            self.damping if damped else None,
-            self.material.law,
-            self.mesh.tets,
-            self.mesh.volumes,
-            self.kappa,
-            self.barrier,
-        )
+            out = forces[0]
+        else:
+            out = elastic.internal_forces(
+                x,
+                v if damped else None,
+                self.edges,
+                self.rest_length,
+                self.stiffness,
+                self.damping if damped else None,
+                self.material.law,
+                self.mesh.tets,
+                self.mesh.volumes,
+                self._element_kappa,
+                self.barrier,
+            )
+        if self._nodal is not None:
+            self._nodal.forces(x, out)
+        return out
 
     def internal_energy(self, x: NDArray[np.float64]) -> float:
         """Elastic energy of springs and volume term [J], summed as :meth:`internal_forces`."""
@@ -132,29 +155,37 @@ class Body:
 
         summed = self._partitioned(x, None, True)
         if summed is not None:
-            return summed[1]
-        return elastic.internal_energy(
-            x,
-            self.edges,
-            self.rest_length,
-            self.stiffness,
-            self.material.law,
-            self.mesh.tets,
-            self.mesh.volumes,
-            self.kappa,
-            self.barrier,
-        )
+            energy = summed[1]
+        else:
+            energy = elastic.internal_energy(
+                x,
+                self.edges,
+                self.rest_length,
+                self.stiffness,
+                self.material.law,
+                self.mesh.tets,
+                self.mesh.volumes,
+                self._element_kappa,
+                self.barrier,
+            )
+        if self._nodal is not None:
+            energy += self._nodal.forces(x, np.zeros((self.n_nodes, 3)))
+        return energy
 
     @cached_property
     def _jacobian_pattern(self) -> BlockPattern:
         """Sparsity of :meth:`internal_jacobian`, built once: the spring blocks, then the volume
         term's."""
+        from softgrasp.physics.nodal_volume import star_pairs
         from softgrasp.physics.springs import spring_pairs
         from softgrasp.physics.volume import volume_pairs
 
         rows, cols = spring_pairs(self.edges)
         if self.kappa != 0.0:
-            vr, vc = volume_pairs(self.mesh.tets)
+            if self.volume == "element":
+                vr, vc = volume_pairs(self.mesh.tets)
+            else:
+                vr, vc = star_pairs(self.mesh.tets, self.n_nodes)
             rows, cols = np.concatenate([rows, vr]), np.concatenate([cols, vc])
         return BlockPattern(self.n_nodes, rows, cols)
 
@@ -178,7 +209,7 @@ class Body:
         if self.n_nodes < elastic.PARTITIONED_MIN_NODES or backend.forked():
             return None
         return elastic.partitioned_forces(
-            x, v, self._force_elements, self.material.law, self.kappa, self.barrier, want_energy
+            x, v, self._force_elements, self.material.law, self._element_kappa, self.barrier, want_energy
         )
 
     @cached_property
@@ -207,7 +238,7 @@ class Body:
             self.material.law,
             self.mesh.tets,
             self.mesh.volumes,
-            self.kappa,
+            self._element_kappa,
             self.barrier,
             pattern.block_base,
             pattern.block_stride,
@@ -215,6 +246,8 @@ class Body:
             self._assembly_partition,
             threads,
         )
+        if self._nodal is not None:
+            self._nodal.add_jacobian(x, pattern.indptr, pattern.indices, data)
         return pattern.matrix(data)
 
     def damping_jacobian(self, x: NDArray[np.float64]) -> sp.csr_matrix:
@@ -291,6 +324,7 @@ def build_body(
     damping_ratio: float = DEFAULT_DAMPING_RATIO,
     gravity: float = STANDARD_GRAVITY,
     isotropize: bool = True,
+    volume: str = "element",
 ) -> Body:
     """Build the mass-spring model of ``mesh`` made of ``material``.
 
@@ -309,12 +343,19 @@ def build_body(
         Magnitude [m/s^2] of gravity, acting along -z. 0 switches it off.
     isotropize:
         Direction re-weighting of the springs (see :func:`softgrasp.model.network.calibrate_network`).
+    volume:
+        ``"element"`` (a volume term per tet) or ``"nodal"`` (per node: for nu near 1/2, where
+        the per-tet term locks; :mod:`softgrasp.physics.nodal_volume`).
 
     Raises
     ------
     MaterialError
         No density and no mass, or a non-positive mass, damping ratio or gravity.
+    ConfigError
+        ``volume`` is neither ``"element"`` nor ``"nodal"``.
     """
+    if volume not in VOLUME_TERMS:
+        raise ConfigError(f"volume term {volume!r} is unknown; choose one of {', '.join(VOLUME_TERMS)}")
     if mass is not None:
         if not (math.isfinite(mass) and mass > 0):
             raise MaterialError(f"object mass = {mass} kg is invalid: it must be > 0")
@@ -352,4 +393,5 @@ def build_body(
         damping_time=beta,
         gravity=np.array([0.0, 0.0, -gravity]),
         calibration=cal,
+        volume=volume,
     )

@@ -77,11 +77,13 @@ def supported(body: Any, planes: list[Any], fingers: list[Any]) -> str | None:
     """Why the fused stepper cannot run this body and these interactions, or None when it can.
 
     It needs a polynomial stress-strain law
-    (:func:`softgrasp.physics.forces_compiled.polynomial_coefficients`) and at most one fingertip
-    interaction.
+    (:func:`softgrasp.physics.forces_compiled.polynomial_coefficients`), the per-tet volume term
+    and at most one fingertip interaction.
     """
     if polynomial_coefficients(body.material.law) is None:
         return f"stress-strain law {type(body.material.law).__name__} is not a polynomial"
+    if getattr(body, "volume", "element") != "element":
+        return f"the {body.volume} volume term (the fused kernels sum the per-tet one)"
     if len(fingers) > 1:
         return "more than one fingertip interaction"
     return None
