@@ -171,3 +171,30 @@ def test_an_unknown_volume_term_is_refused(sphere):
     body, _ = sphere
     with pytest.raises(ConfigError, match="volume term 'per-edge' is unknown; choose one of element, nodal"):
         build_body(body.mesh, body.material, mass=body.total_mass, volume="per-edge")
+
+
+def test_a_plan_with_the_nodal_term_holds_at_the_same_forces_and_squeezes_deeper():
+    """``sg.plan`` of the sphere loaded with ``volume_term="nodal"`` records the term in plan.json;
+    its set-points (the least forces that hold, times the safety factor: friction and weight set
+    them) are within 3 % of the per-tet body's, while the unlocked body lets the fingertips in
+    further and strains more under them."""
+    import softgrasp as sg
+
+    element = sg.plan(sg.load_object("sphere"))
+    nodal = sg.plan(sg.load_object("sphere", volume_term="nodal"))
+    assert nodal.document["object"]["volume_term"] == "nodal"
+    assert element.document["object"]["volume_term"] == "element"
+    for name, force in element.setpoints_N.items():
+        assert nodal.setpoints_N[name] == pytest.approx(force, rel=0.03), name
+    pen = {g: np.array([f.penetration for f in r.grasp.fingers]) for g, r in (("e", element), ("n", nodal))}
+    assert (pen["n"] > pen["e"]).all()
+    assert nodal.grasp.damage.strain > element.grasp.damage.strain
+
+
+def test_an_unknown_volume_term_in_a_config_file_names_the_choices(tmp_path):
+    from softgrasp.api.planning import plan_options
+
+    conf = tmp_path / "plan.toml"
+    conf.write_text('volume_term = "per-tet"\n')
+    with pytest.raises(ConfigError, match="volume_term must be element or nodal, got 'per-tet'"):
+        plan_options({}, str(conf))

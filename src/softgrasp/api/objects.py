@@ -129,6 +129,7 @@ def load_object(
     reorient: bool = False,
     density_kg_m3: float | None = None,
     mass_kg: float | None = None,
+    volume_term: str = "element",
 ) -> SoftObject:
     """The soft object ``source``: a built-in object (``sphere``: the paper's 64 mm rubber sphere,
     ``cube``: its 50 mm foam cube), a shape (``box:0.04x0.03x0.02``, ``cylinder:DxH``, ``ball:R``,
@@ -154,12 +155,18 @@ def load_object(
         mean side).
     reorient:
         Flip inverted tets of a volume mesh file instead of refusing it.
+    volume_term:
+        The body's volume term: ``element`` (per tet) or ``nodal`` (per node; no volumetric
+        locking as nu nears 1/2, at about four times the Newton matrix's blocks:
+        :mod:`softgrasp.physics.nodal_volume`).
     """
     from softgrasp.io.options import load_placed_body
     from softgrasp.model.ranges import check
 
     if units not in UNITS:
         raise ConfigError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    if volume_term not in ("element", "nodal"):
+        raise ConfigError(f"volume_term must be element or nodal, got {volume_term!r}")
     if isinstance(material, dict):
         raise ConfigError("material must be a Material, a preset name, key=value text or a .toml file")
     if density_kg_m3 is not None and mass_kg is not None:
@@ -172,8 +179,9 @@ def load_object(
     source = str(source)
     spec, mfile = _material_file(material)
     body, T = load_placed_body(
-        source, mesh_size_m, spec, reorient=reorient, mfile=mfile, overrides=overrides, scale=UNITS[units]
-    )
+        source, mesh_size_m, spec, reorient=reorient, mfile=mfile, overrides=overrides, scale=UNITS[units],
+        volume=volume_term,
+    )  # fmt: skip
     T.setflags(write=False)
     return SoftObject(
         source, body, spec, mfile, mesh_size_m, units, reorient, density_kg_m3, mass_kg, T

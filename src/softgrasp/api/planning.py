@@ -76,6 +76,8 @@ def plan_options(given: Mapping[str, object], config_file: str | Path | None = N
         raise ConfigError(f"contact_law must be resolved or paper, got {merged['contact_law']!r}")
     if merged["solver"] not in ("quasistatic", "dynamic"):
         raise ConfigError(f"solver must be quasistatic or dynamic, got {merged['solver']!r}")
+    if merged["volume_term"] not in ("element", "nodal"):
+        raise ConfigError(f"volume_term must be element or nodal, got {merged['volume_term']!r}")
     return merged
 
 
@@ -365,6 +367,7 @@ def plan(
         "mesh_size": obj.mesh_size_m,
         "units": obj.units,
         "reorient": obj.reorient,
+        "volume_term": obj.body.volume,
         "fingertip_radius": None if fingertip_radius_m is None else float(fingertip_radius_m),
         "density": obj.density_kg_m3,
         "mass": obj.given_mass_kg,

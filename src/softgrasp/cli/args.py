@@ -142,6 +142,13 @@ def add_common(p: argparse.ArgumentParser) -> None:
         "--reorient", action="store_true", help="flip inverted tets of a mesh file instead of refusing it"
     )
     p.add_argument(
+        "--volume-term",
+        choices=("element", "nodal"),
+        default=None,
+        help="the body's volume term: element (one per tet, the default) or nodal (one per node: "
+        "no volumetric locking as nu nears 0.5, about 4x the Newton matrix)",
+    )
+    p.add_argument(
         "--out",
         default=None,
         metavar="DIR",
@@ -221,6 +228,7 @@ def load(args: argparse.Namespace) -> SoftObject:
             reorient=args.reorient,
             density_kg_m3=getattr(args, "density", None),
             mass_kg=getattr(args, "mass", None),
+            volume_term=getattr(args, "volume_term", None) or "element",
         )
     for w in caught:
         if issubclass(w.category, SoftgraspWarning):

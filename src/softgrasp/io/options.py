@@ -7,7 +7,8 @@ Options are plain values: ``object`` (built-in name, shape or mesh file), ``mesh
 ``mass`` [kg] of the object (over its material's), the planner's settings
 (:data:`PLAN_DEFAULTS`; ``grasp`` names a ``plan.json`` whose initial grasp is closed from instead
 of searching for one), and optional material overrides (:data:`MATERIAL_OVERRIDES`: ``E`` [Pa],
-``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3``) applied over the object's material.
+``nu``, ``density`` [kg/m^3], ``mass`` [kg], ``a2``, ``a3``) applied over the object's material;
+``volume_term`` (``element`` or ``nodal``: :attr:`~softgrasp.physics.body.Body.volume`).
 """
 
 from __future__ import annotations
@@ -73,6 +74,7 @@ PLAN_DEFAULTS: dict[str, object] = {
     "reorient": False,
     "density": None,
     "mass": None,
+    "volume_term": "element",
 }
 
 #: Material parameters a sweep may set over the object's material.
@@ -89,6 +91,7 @@ TEXT_OPTIONS: dict[str, str] = {
     "fingertips": "FINGER=LINK pairs, e.g. thumb=th_tip,first=ff_tip,middle=mf_tip",
     "grasp": "a plan.json file",
     "contact_law": "resolved or paper",
+    "volume_term": "element or nodal",
     "out": "a folder",
 }
 
@@ -166,11 +169,13 @@ def load_body(
     mfile: MaterialFile | None = None,
     overrides: Mapping[str, float] | None = None,
     scale: float = 1.0,
+    volume: str = "element",
 ) -> Body:
     """The object's body (:func:`load_placed_body`)."""
     return load_placed_body(
-        object_name, mesh_size, material, reorient=reorient, mfile=mfile, overrides=overrides, scale=scale
-    )[0]
+        object_name, mesh_size, material, reorient=reorient, mfile=mfile, overrides=overrides, scale=scale,
+        volume=volume,
+    )[0]  # fmt: skip
 
 
 def _checked_overrides(overrides: Mapping[str, float] | None) -> dict[str, float]:
@@ -211,6 +216,7 @@ def load_placed_body(
     mfile: MaterialFile | None = None,
     overrides: Mapping[str, float] | None = None,
     scale: float = 1.0,
+    volume: str = "element",
 ) -> tuple[Body, NDArray[np.float64]]:
     """The object's body: its mesh (a mesh file's coordinates times ``scale`` in metres), its
     material (the object's default, a :class:`Material`, a preset or key=value list, or a material
@@ -225,7 +231,8 @@ def load_placed_body(
     unless ``density`` or ``mass`` is given), and a mesh file whose material has no density,
     1000 kg/m^3: each default with a :class:`~softgrasp.errors.SoftgraspWarning` (none for a shape
     given its density or mass). A shape whose material has no density is refused (ConfigError
-    naming ``--density`` and ``--mass``).
+    naming ``--density`` and ``--mass``). ``volume``: the body's volume term
+    (:attr:`~softgrasp.physics.body.Body.volume`).
     """
     from softgrasp.model.material import Polynomial, check_given, parse_material
     from softgrasp.model.objects import FILE_MATERIAL, OBJECTS, is_mesh_file, make_placed_object
@@ -305,7 +312,7 @@ def load_placed_body(
             f"the object's {given} is a mean density of {rho:.4g} kg/m^3, outside {r.text} ({r.why}); "
             "give a density or mass in range"
         )
-    return build_body(mesh, mat, mass=mass), transform
+    return build_body(mesh, mat, mass=mass, volume=volume), transform
 
 
 def hand_model(

@@ -153,6 +153,7 @@ def plan_document(
                 "density_kg_m3": m.density,
                 "law": m.law.describe(),
             },
+            "volume_term": body.volume,
         },
         "parameters": plan.config.describe(),
         "setpoints_N": {f.name: float(plan.setpoints[j]) for j, f in enumerate(plan.fingers)},

@@ -313,6 +313,7 @@ class Body:
             "damping_time_s": self.damping_time,
             "gravity_m_s2": self.gravity.tolist(),
             "network": self.calibration.describe(),
+            "volume_term": self.volume,
         }
 
 

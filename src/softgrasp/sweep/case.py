@@ -144,6 +144,7 @@ def run_case(
             mfile=mf,
             overrides=material,
             scale=check_units(plan_opts.get("units", "m")),
+            volume=str(plan_opts.get("volume_term", "element")),
         )
         mu = plan_opts["mu"] if "mu" in options or mf is None or "mu" not in mf.contact else None
         law = str(plan_opts.get("contact_law", "resolved"))
