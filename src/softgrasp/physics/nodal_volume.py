@@ -147,38 +147,48 @@ def _forces(x, tets, v0n, kappa, barrier, out):  # pragma: no cover - compiled
     return energy
 
 
-@jit
-def _block(indptr, indices, r, c):  # pragma: no cover - compiled
-    """(first entry, row stride) of the 3x3 block (r, c) in a CSR matrix of 3x3 blocks."""
-    lo = indptr[3 * r]
-    hi = indptr[3 * r + 1]
-    key = 3 * c
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if indices[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo, indptr[3 * r + 1] - indptr[3 * r]
+def _block_positions(
+    indptr: IntArray, indices: IntArray, rows: IntArray, cols: IntArray
+) -> tuple[IntArray, IntArray]:
+    """(first CSR entry, row stride) of the 3x3 blocks (rows, cols) of a CSR matrix of 3x3 blocks
+    whose pattern holds them."""
+    n3 = len(indptr) - 1
+    row_of = np.repeat(np.arange(n3, dtype=np.int64), np.diff(indptr))
+    keys = row_of * n3 + indices  # sorted: CSR rows in order, columns sorted within each
+    r3 = 3 * rows.astype(np.int64)
+    base = np.searchsorted(keys, r3 * n3 + 3 * cols.astype(np.int64))
+    return base, (indptr[r3 + 1] - indptr[r3]).astype(np.int64)
 
 
 @jit
-def _jacobian(x, tets, v0n, kappa, barrier, ntp, nts, indptr, indices, out):  # pragma: no cover
-    """Add the blocks of d f / d x (module docstring) to the CSR data ``out`` of a pattern that
-    holds every pair of :func:`star_pairs`."""
+def _jacobian(
+    x, tets, v0n, kappa, barrier, ntp, nts, slot, star_ptr, pair_ptr, pair_base, star_stride, tet_base,
+    tet_stride, out,
+):  # pragma: no cover  # fmt: skip
+    """Add the blocks of d f / d x (module docstring) to the CSR data ``out``: the star pairs'
+    blocks at ``pair_base`` (row strides ``star_stride`` of each star member), each tet's 16 at
+    ``tet_base``/``tet_stride`` (:meth:`NodalVolume._layout`)."""
     n = v0n.shape[0]
-    vn = _node_volumes(x, tets, n)
+    m_tets = tets.shape[0]
+    grads = np.empty((m_tets, 4, 3))
+    vn = np.zeros(n)
+    g = np.empty((4, 3))
+    for t in range(m_tets):
+        q = 0.25 * _gradients(x, tets, t, g)
+        for a in range(4):
+            vn[tets[t, a]] += q
+            for d in range(3):
+                grads[t, a, d] = g[a, d]
     dpsi = np.empty(n)
     w = np.empty(n)
     for k in range(n):
         _, dp, d2p = _psi(vn[k] / v0n[k], barrier)
         dpsi[k] = dp
         w[k] = kappa * d2p / v0n[k]
-    g = np.empty((4, 3))
     # sum_t p_t d^2 V_t: d g_a / d x_b = skew(s) / 6 with s = x_c - x_d for (a, b, c, d) an even
     # permutation of the tet's nodes (zero for a = b)
-    for t in range(tets.shape[0]):
-        pt = 0.25 * kappa * (dpsi[tets[t, 0]] + dpsi[tets[t, 1]] + dpsi[tets[t, 2]] + dpsi[tets[t, 3]])
+    for t in range(m_tets):
+        h = -0.25 * kappa * (dpsi[tets[t, 0]] + dpsi[tets[t, 1]] + dpsi[tets[t, 2]] + dpsi[tets[t, 3]]) / 6.0
         for a in range(4):
             for b in range(4):
                 if a == b:
@@ -188,8 +198,8 @@ def _jacobian(x, tets, v0n, kappa, barrier, ntp, nts, indptr, indices, out):  # 
                 sx = x[tets[t, c], 0] - x[tets[t, d], 0]
                 sy = x[tets[t, c], 1] - x[tets[t, d], 1]
                 sz = x[tets[t, c], 2] - x[tets[t, d], 2]
-                h = -pt / 6.0
-                i0, st = _block(indptr, indices, tets[t, a], tets[t, b])
+                i0 = tet_base[t, 4 * a + b]
+                st = tet_stride[t, 4 * a + b]
                 # skew(s) = [[0, -sz, sy], [sz, 0, -sx], [-sy, sx, 0]]
                 out[i0 + 1] += h * -sz
                 out[i0 + 2] += h * sy
@@ -197,45 +207,33 @@ def _jacobian(x, tets, v0n, kappa, barrier, ntp, nts, indptr, indices, out):  # 
                 out[i0 + st + 2] += h * -sx
                 out[i0 + 2 * st] += h * -sy
                 out[i0 + 2 * st + 1] += h * sx
-    # sum_n w_n g_n g_n^T over each node's star
-    slot = -np.ones(n, dtype=np.int64)
-    members = np.empty(64, dtype=np.int64)
+    # sum_n w_n g_n g_n^T over each node's star: g_n in the star's slots, then its outer product
     gn = np.zeros((64, 3))
     for k in range(n):
-        m = 0
+        m = star_ptr[k + 1] - star_ptr[k]
+        if m > gn.shape[0]:
+            gn = np.zeros((m, 3))
+        for i in range(m):
+            gn[i, 0] = 0.0
+            gn[i, 1] = 0.0
+            gn[i, 2] = 0.0
         for q in range(ntp[k], ntp[k + 1]):
             t = nts[q]
-            _gradients(x, tets, t, g)
             for a in range(4):
-                node = tets[t, a]
-                s = slot[node]
-                if s < 0:
-                    if m == members.shape[0]:
-                        grown = np.empty(2 * m, dtype=np.int64)
-                        grown[:m] = members
-                        members = grown
-                        gg = np.zeros((2 * m, 3))
-                        gg[:m] = gn[:m]
-                        gn = gg
-                    s = m
-                    slot[node] = s
-                    members[s] = node
-                    gn[s, 0] = 0.0
-                    gn[s, 1] = 0.0
-                    gn[s, 2] = 0.0
-                    m += 1
+                sl = slot[4 * q + a]
                 for d in range(3):
-                    gn[s, d] += 0.25 * g[a, d]
+                    gn[sl, d] += 0.25 * grads[t, a, d]
         wk = -w[k]
+        p = pair_ptr[k]
         for i in range(m):
+            st = star_stride[star_ptr[k] + i]
             for j in range(m):
-                i0, st = _block(indptr, indices, members[i], members[j])
+                i0 = pair_base[p]
+                p += 1
                 for r in range(3):
                     c0 = wk * gn[i, r]
                     for s2 in range(3):
                         out[i0 + r * st + s2] += c0 * gn[j, s2]
-        for i in range(m):
-            slot[members[i]] = -1
     return out
 
 
@@ -257,6 +255,7 @@ class NodalVolume:
             self.tets.ravel(), weights=np.repeat(f64(rest_volume) / 4.0, 4), minlength=self.n_nodes
         )
         self._ntp, self._nts = _node_tets(self.tets, self.n_nodes)
+        self._layouts: dict[tuple[int, int, int], tuple] = {}
 
     def node_volumes(self, x: Array) -> Array:
         """V_n [m^3], (N,)."""
@@ -266,10 +265,50 @@ class NodalVolume:
         """Add the term's forces [N] to ``out`` (N, 3); returns its energy [J]."""
         return float(_forces(f64(x), self.tets, self.rest_node_volume, self.kappa, self.barrier, out))
 
+    def _layout(self, indptr: IntArray, indices: IntArray) -> tuple:
+        """Where the Jacobian's blocks go in the CSR pattern (``indptr``, ``indices``), worked out
+        once per pattern: each node's star (its members sorted), the star slot of each node of
+        each of its tets, the CSR position of every star pair's block and of every tet's 16."""
+        key = (id(indptr), id(indices), len(indices))
+        if key in self._layouts:
+            return self._layouts[key]
+        n, tets = self.n_nodes, self.tets
+        inc = sp.csr_matrix(
+            (np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))), shape=(n, len(tets))
+        )
+        star = (inc @ inc.T).tocsr()
+        star.sort_indices()
+        star_ptr, members = star.indptr.astype(np.int64), star.indices.astype(np.int64)
+        # the star slot of node tets[nts[q], a] in the star of the node whose tet list holds q
+        owner = np.repeat(np.arange(n, dtype=np.int64), np.diff(self._ntp))
+        node = tets[self._nts].reshape(-1)
+        star_keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(star_ptr)) * n + members
+        slot = np.searchsorted(star_keys, np.repeat(owner, 4) * n + node) - np.repeat(star_ptr[owner], 4)
+        m = np.diff(star_ptr)
+        pair_ptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(m * m, out=pair_ptr[1:])
+        of = np.repeat(np.arange(n, dtype=np.int64), m * m)
+        local = np.arange(pair_ptr[-1], dtype=np.int64) - pair_ptr[of]
+        rows = members[star_ptr[of] + local // m[of]]
+        cols = members[star_ptr[of] + local % m[of]]
+        indptr, indices = i64(indptr), i64(indices)
+        pair_base, _ = _block_positions(indptr, indices, rows, cols)
+        _, star_stride = _block_positions(indptr, indices, members, members)
+        tr = np.repeat(tets, 4, axis=1)
+        tc = np.tile(tets, (1, 4))
+        tet_base, tet_stride = _block_positions(indptr, indices, tr.ravel(), tc.ravel())
+        layout = (
+            slot, star_ptr, pair_ptr, pair_base, star_stride,
+            tet_base.reshape(-1, 16), tet_stride.reshape(-1, 16),
+        )  # fmt: skip
+        self._layouts = {key: layout}  # one pattern per body
+        return layout
+
     def add_jacobian(self, x: Array, indptr: IntArray, indices: IntArray, data: Array) -> None:
-        """Add d f / d x to the CSR ``data`` of a (3N, 3N) pattern (``indptr``, ``indices``) that
-        holds the 3x3 blocks of every pair of :func:`star_pairs`."""
+        """Add d f / d x to the CSR ``data`` of a (3N, 3N) pattern (``indptr``, ``indices``, the
+        body's: the same arrays every call) that holds the 3x3 blocks of every pair of
+        :func:`star_pairs`."""
         _jacobian(
             f64(x), self.tets, self.rest_node_volume, self.kappa, self.barrier, self._ntp, self._nts,
-            i64(indptr), i64(indices), data,
+            *self._layout(indptr, indices), data,
         )  # fmt: skip
