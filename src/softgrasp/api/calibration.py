@@ -250,6 +250,7 @@ def calibrate(
                 plate_friction=plate_friction,
                 steps=steps,
                 progress=update,
+                volume=body.volume,
             )
         material = Material(fitted.E, fitted.nu, density, fitted.law, name="calibrated")
         fits["compression"], sources["compression"] = fit, str(compression)
@@ -259,7 +260,7 @@ def calibrate(
     contact = None
     if ind_data is not None:
         say(f"indentation: {len(ind_data.force_N)} points from {ind_data.source}")
-        ibody = build_body(mesh, material, mass=mass)
+        ibody = build_body(mesh, material, mass=mass, volume=body.volume)
         with stage("fit indentation") as update:
             contact, ifit = fit_indentation(
                 ibody,

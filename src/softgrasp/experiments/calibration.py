@@ -102,6 +102,7 @@ def fit_compression(
     plate_friction: float = 0.5,
     steps: int = 12,
     progress: Callable[[int], None] | None = None,
+    volume: str = "element",
 ) -> tuple[Material, CalibrationFit]:
     """Fit the specimen's uniaxial law (E, c2, c3 of :mod:`softgrasp.experiments.uniaxial`) and,
     with lateral data, nu to a compression curve, and give the body the edge law that reproduces
@@ -128,6 +129,8 @@ def fit_compression(
     plate_friction: friction coefficient between plates and specimen (0.5: dry platens).
     steps: load increments of each simulated test.
     progress: called with the number of simulated tests so far.
+    volume: the simulated body's volume term (:attr:`~softgrasp.physics.body.Body.volume`): the
+        one the calibrated material will be used with.
 
     Returns
     -------
@@ -164,7 +167,8 @@ def fit_compression(
         if progress is not None:
             progress(count[0])
         try:
-            body = build_body(mesh, Material(E, nu_, density, edge, name="calibrated"), mass=mass)
+            specimen = Material(E, nu_, density, edge, name="calibrated")
+            body = build_body(mesh, specimen, mass=mass, volume=volume)
             return compression_test(body, strain=strain, steps=steps, plate_friction=friction)
         except SoftgraspError as exc:
             raise NotConverged(
