@@ -33,6 +33,7 @@ KERNEL_MODULES = (
     "softgrasp.physics.jit",
     "softgrasp.physics.springs",
     "softgrasp.physics.volume",
+    "softgrasp.physics.nodal_volume",
     "softgrasp.physics.forces_compiled",
     "softgrasp.physics.planes_compiled",
     "softgrasp.physics.fingertip.laws",

@@ -21,10 +21,10 @@ child only when the fork comes from the thread that started them (from another, 
 the child's TBB may be in an invalid state); the command line forks no process after the warm-up
 (its figure worker is a new program, started by exec).
 
-The install (:func:`main`) also compiles the kernels of the solvers a plan does not load: the
-compiled Runge-Kutta stepper (``plan --solver dynamic``, the experiments' dynamics) and the
-multigrid solver of large meshes (:func:`warm_up_solvers`, about 20 s on a first install), so
-that no command compiles after installing.
+The install (:func:`main`) also compiles the kernels a default plan does not load: the compiled
+Runge-Kutta stepper (``plan --solver dynamic``, the experiments' dynamics), the multigrid solver
+of large meshes and the nodal volume term (``--volume-term nodal``) (:func:`warm_up_solvers`,
+about 20 s on a first install), so that no command compiles after installing.
 
 A first run (or the first after an edit of a kernel's source, which keys the cache:
 :mod:`softgrasp.jitcache`) compiles instead of loading: :func:`cold` tells it beforehand from the
@@ -94,13 +94,16 @@ def cold() -> bool:
 
 
 def solvers_cold() -> bool:
-    """Whether the kernels :func:`warm_up_solvers` loads first are not yet compiled on disk for
-    the current sources (the compiled Runge-Kutta stepper's and a multigrid smoother's)."""
+    """Whether the kernels :func:`warm_up_solvers` loads are not yet compiled on disk for the
+    current sources (the compiled Runge-Kutta stepper's, the multigrid smoother its problem runs
+    and the nodal volume term's Jacobian)."""
     from softgrasp import jitcache
     from softgrasp.linalg import smoothers
+    from softgrasp.physics import nodal_volume
     from softgrasp.sim.fused import rk4
 
-    return not all(jitcache.cached(k) for k in (rk4.advance, smoothers._l1_inverse_diagonal))
+    kernels = (rk4.advance, smoothers._l1_block_inverse, nodal_volume._jacobian)
+    return not all(jitcache.cached(k) for k in kernels)
 
 
 def _problem():
@@ -215,11 +218,14 @@ def warm_up(split: bool = False) -> None:
 
 
 def warm_up_solvers() -> None:
-    """Load (or compile) the kernels of the solvers a plan does not use, on the warm-up's problem:
-    a few steps of the compiled explicit Runge-Kutta stepper (:func:`softgrasp.sim.explicit.simulate`)
-    and a static solve by multigrid (:class:`~softgrasp.linalg.solve.SolverCache` ``amg``)."""
+    """Load (or compile) the kernels a default plan does not use, on the warm-up's problem: a few
+    steps of the compiled explicit Runge-Kutta stepper (:func:`softgrasp.sim.explicit.simulate`),
+    a static solve by multigrid (:class:`~softgrasp.linalg.solve.SolverCache` ``amg``) and one
+    of the body with the nodal volume term (:mod:`softgrasp.physics.nodal_volume`)."""
     if not compiled():
         return
+    from dataclasses import replace
+
     from softgrasp.linalg.solve import SolverCache
     from softgrasp.sim.explicit import simulate
     from softgrasp.sim.scene import Scene
@@ -229,6 +235,8 @@ def warm_up_solvers() -> None:
     scene = Scene(body, (table, fingers))
     simulate(scene, scene.initial_state(), 2e-5)
     solve_static(scene, scene.initial_state(), t=t, cache=SolverCache(method="amg"))
+    nodal = Scene(replace(body, volume="nodal"), (table, fingers))
+    solve_static(nodal, nodal.initial_state(), t=t, cache=SolverCache())
 
 
 def _place_hand() -> None:
@@ -374,8 +382,8 @@ def main() -> int:
         warm_up(split=first)
         if solvers_cold():
             print(
-                "softgrasp: compiling the dynamic and multigrid solvers' kernels "
-                f"(once, ~{SOLVERS_COMPILE_TIME_S} s)",
+                "softgrasp: compiling the dynamic and multigrid solvers' and the nodal volume term's "
+                f"kernels (once, ~{SOLVERS_COMPILE_TIME_S} s)",
                 file=sys.stderr,
                 flush=True,
             )
