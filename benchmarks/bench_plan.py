@@ -12,13 +12,15 @@ that do not drift with the machine's throughput. Peers measured in the same run:
 reference linear solver (SciPy's sparse LU of the symmetrised Newton matrix up to 1 500 unknowns,
 multigrid-preconditioned CG beyond; ``--reference``), and the
 dynamic solver (the paper's explicit RK4 through every increment at 50 mm/s, then a static rest;
-``--dynamic``, the ~500-node mesh only: its cost grows as N^(4/3) per simulated second).
+``--dynamic``, the ~500-node mesh only: its cost grows as N^(4/3) per simulated second), and the
+nodal volume term (``--nodal``, below 10 000 nodes: the body without volumetric locking, whose
+Newton matrices have about four times the blocks).
 
 ``--cli N`` times the whole default ``softgrasp plan`` command instead, its figures drawn by a
 child process and, as the peer, in its own process (``FigureWorker("inline")``).
 
 Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_plan.py [--quick] [--large]
-[--reference] [--dynamic] [--cli N]``.
+[--reference] [--dynamic] [--nodal] [--cli N]``.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ LARGE = (0.0031, 0.00295)
 WARM_REPEATS = 3
 
 
-def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover - child process
+def _run(h: float, solver: str, linsolve: str, volume: str, out) -> None:  # pragma: no cover - child
     from softgrasp.grasp.planner import PlanConfig, plan_grasp
     from softgrasp.linalg.solve import SolverCache
     from softgrasp.model.objects import make_object
@@ -50,7 +52,7 @@ def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover
 
     t0 = time.perf_counter()
     mesh, mat, mass = make_object("sphere", h)
-    body = build_body(mesh, mat, mass=mass)
+    body = build_body(mesh, mat, mass=mass, volume=volume)
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
@@ -84,11 +86,11 @@ def _run(h: float, solver: str, linsolve: str, out) -> None:  # pragma: no cover
     out.send(result)
 
 
-def measure(h: float, solver: str = "quasistatic", linsolve: str = "auto") -> dict:
+def measure(h: float, solver: str = "quasistatic", linsolve: str = "auto", volume: str = "element") -> dict:
     """One plan in a fresh process: nodes, build and plan seconds, peak MB, forces."""
     ctx = mp.get_context("spawn")
     recv, send = ctx.Pipe(duplex=False)
-    p = ctx.Process(target=_run, args=(h, solver, linsolve, send))
+    p = ctx.Process(target=_run, args=(h, solver, linsolve, volume, send))
     p.start()
     result = recv.recv()
     p.join()
@@ -149,6 +151,7 @@ def main() -> None:
     ap.add_argument("--large", action="store_true", help="also the 27 749 and 32 543-node meshes")
     ap.add_argument("--reference", action="store_true", help="also the reference linear solver (slow)")
     ap.add_argument("--dynamic", action="store_true", help="also the dynamic solver on the ~500-node mesh")
+    ap.add_argument("--nodal", action="store_true", help="also the nodal volume term below 10 000 nodes")
     ap.add_argument(
         "--cli",
         type=int,
@@ -180,6 +183,8 @@ def main() -> None:
             print(_row(measure(h, linsolve="reference"), "quasi-static, reference", r["plan_s"]), flush=True)
         if args.dynamic and h == SIZES[0]:
             print(_row(measure(h, "dynamic"), "dynamic (RK4)", r["plan_s"]), flush=True)
+        if args.nodal and r["nodes"] < 10_000:
+            print(_row(measure(h, volume="nodal"), "quasi-static, nodal", r["plan_s"]), flush=True)
     if len(fast) >= 2:
         n, t = np.array(fast, dtype=float).T
         slope = float(np.polyfit(np.log(n), np.log(t), 1)[0])
