@@ -6,6 +6,7 @@ than Hertz's contact on every mesh."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -35,10 +36,17 @@ def _deformed(body, scale=2e-3, seed=0):
     return np.asarray(body.mesh.points) + scale * rng.standard_normal((body.n_nodes, 3))
 
 
-def test_forces_are_the_energy_gradient_and_the_jacobian_their_derivative(sphere):
+@pytest.mark.parametrize("nu", [0.45, 0.2])
+def test_forces_are_the_energy_gradient_and_the_jacobian_their_derivative(sphere, nu):
     """Central differences of the energy along a random direction give -f . d, and of the forces
-    the Jacobian's product; the Jacobian is symmetric (a potential's Hessian)."""
+    the Jacobian's product; the Jacobian is symmetric (a potential's Hessian). At nu = 0.45 the
+    volume term has the inversion barrier; at nu = 0.2 its modulus is negative (nu < 1/4: the
+    springs alone are too stiff in bulk) and psi the quadratic."""
     body, _ = sphere
+    if nu != body.material.nu:
+        material = dataclasses.replace(body.material, nu=nu)
+        body = build_body(body.mesh, material, mass=body.total_mass, volume="nodal")
+        assert body.kappa < 0 and not body.barrier
     x = _deformed(body)
     d = np.random.default_rng(1).standard_normal(x.shape)
     h = 1e-7
