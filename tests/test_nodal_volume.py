@@ -230,3 +230,27 @@ def test_calibration_fits_with_the_volume_term_it_will_be_used_with(tmp_path):
     }
     assert fitted["nodal"] == pytest.approx(true.E, rel=1e-3)
     assert fitted["element"] < 0.99 * true.E
+
+
+def test_newton_factorises_the_per_tet_matrix_of_a_large_nodal_body_and_corrects_its_products(monkeypatch):
+    """Above NODAL_DIRECT_MAX_NODES the Newton matrix of a nodal body is the per-tet term's (its
+    sparsity: a quarter of the blocks) and the correction turns its products into the exact
+    Jacobian's; both paths reach the same rest of the sphere squeezed 2 mm (to the solves'
+    tolerance)."""
+    import softgrasp.physics.body as body_module
+
+    mesh, material, mass = make_object("sphere")
+    body = build_body(mesh, material, mass=mass, volume="nodal")
+    x = _deformed(body)
+    assert body.newton_correction(x) is None  # 388 nodes: the exact matrix
+    monkeypatch.setattr(body_module, "NODAL_DIRECT_MAX_NODES", 0)
+    A = -body.newton_jacobian(x)
+    assert A.nnz == build_body(mesh, material, mass=mass).internal_jacobian(x).nnz
+    v = np.random.default_rng(2).standard_normal(3 * body.n_nodes)
+    product = A @ v
+    body.newton_correction(x)(v, product)
+    exact = -(body.internal_jacobian(x) @ v)
+    assert np.abs(product - exact).max() < 1e-12 * np.abs(exact).max()
+    approximated = _squeeze(0.016, "nodal")
+    monkeypatch.setattr(body_module, "NODAL_DIRECT_MAX_NODES", 10**9)
+    assert approximated == pytest.approx(_squeeze(0.016, "nodal"), rel=1e-6)

@@ -237,6 +237,64 @@ def _jacobian(
     return out
 
 
+@jit
+def _difference_product(x, tets, v0t, v0n, kappa, barrier, v, out):  # pragma: no cover - compiled
+    """Add (J_tet - J) v to ``out`` (N, 3) without assembling either matrix: J the nodal term's
+    d f / d x (module docstring), J_tet the per-tet term's at the same positions (rest tet
+    volumes ``v0t``; :mod:`softgrasp.physics.volume`). On node a of tet t both are
+    ``-c g_a + h sum_b s_ab x v_b`` (s_ab x v_b = 6 (d g_a / d x_b) v_b): the per-tet term's with
+    ``c = (kappa psi''(J_t) / V0_t) g_t . v``, ``h = -kappa psi'(J_t) / 6``; the nodal term's with
+    the means over the tet's nodes of ``(kappa psi''(J_n) / V0_n) g_n . v`` and of
+    ``-kappa psi'(J_n) / 6``."""
+    n = v0n.shape[0]
+    m_tets = tets.shape[0]
+    grads = np.empty((m_tets, 4, 3))
+    vt = np.empty(m_tets)
+    dvt = np.empty(m_tets)
+    vn = np.zeros(n)
+    dvn = np.zeros(n)  # g_n . v
+    g = np.empty((4, 3))
+    for t in range(m_tets):
+        vt[t] = _gradients(x, tets, t, g)
+        dv = 0.0
+        for a in range(4):
+            k = tets[t, a]
+            for d in range(3):
+                grads[t, a, d] = g[a, d]
+                dv += g[a, d] * v[k, d]
+        dvt[t] = dv
+        for a in range(4):
+            vn[tets[t, a]] += 0.25 * vt[t]
+            dvn[tets[t, a]] += 0.25 * dv
+    dpsi = np.empty(n)
+    for k in range(n):
+        _, dp, d2p = _psi(vn[k] / v0n[k], barrier)
+        dpsi[k] = dp
+        dvn[k] *= kappa * d2p / v0n[k]  # now w_n g_n . v
+    for t in range(m_tets):
+        n0, n1, n2, n3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        _, dpt, d2pt = _psi(vt[t] / v0t[t], barrier)
+        c = kappa * d2pt / v0t[t] * dvt[t] - 0.25 * (dvn[n0] + dvn[n1] + dvn[n2] + dvn[n3])
+        h = -kappa * (dpt - 0.25 * (dpsi[n0] + dpsi[n1] + dpsi[n2] + dpsi[n3])) / 6.0
+        for a in range(4):
+            ka = tets[t, a]
+            for d in range(3):
+                out[ka, d] -= c * grads[t, a, d]
+            for b in range(4):
+                if a == b:
+                    continue
+                kc = tets[t, _OTHER[a, b, 0]]
+                kd = tets[t, _OTHER[a, b, 1]]
+                kb = tets[t, b]
+                sx = x[kc, 0] - x[kd, 0]
+                sy = x[kc, 1] - x[kd, 1]
+                sz = x[kc, 2] - x[kd, 2]
+                out[ka, 0] += h * (sy * v[kb, 2] - sz * v[kb, 1])
+                out[ka, 1] += h * (sz * v[kb, 0] - sx * v[kb, 2])
+                out[ka, 2] += h * (sx * v[kb, 1] - sy * v[kb, 0])
+    return out
+
+
 class NodalVolume:
     """The node-averaged volume term of one mesh (module docstring).
 
@@ -251,6 +309,7 @@ class NodalVolume:
         self.n_nodes = int(n_nodes)
         self.kappa = float(kappa)
         self.barrier = bool(barrier)
+        self.rest_volume = f64(rest_volume)
         self.rest_node_volume = np.bincount(
             self.tets.ravel(), weights=np.repeat(f64(rest_volume) / 4.0, 4), minlength=self.n_nodes
         )
@@ -312,3 +371,11 @@ class NodalVolume:
             f64(x), self.tets, self.rest_node_volume, self.kappa, self.barrier, self._ntp, self._nts,
             *self._layout(indptr, indices), data,
         )  # fmt: skip
+
+    def add_difference(self, x: Array, v: Array, out: Array) -> None:
+        """Add (J_tet - J) v [N] to ``out`` (N, 3) for a displacement ``v`` (N, 3) [m]: what turns
+        a product with the per-tet term's d f / d x into one with this term's, neither assembled
+        (:func:`_difference_product`)."""
+        _difference_product(
+            f64(x), self.tets, self.rest_volume, self.rest_node_volume, self.kappa, self.barrier, f64(v), out
+        )

@@ -48,7 +48,7 @@ def _body_pattern(body: Body) -> _BodyPattern:
     """The :class:`_BodyPattern` of ``body``'s Jacobian (built once, kept while the body lives)."""
     pat = _PATTERNS.get(body)
     if pat is None:
-        J = body.internal_jacobian(np.asarray(body.mesh.points, dtype=np.float64))
+        J = body.newton_jacobian(np.asarray(body.mesh.points, dtype=np.float64))
         n = J.shape[0]
         rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(J.indptr))
         keys = rows * n + J.indices.astype(np.int64)
@@ -98,7 +98,7 @@ def newton_matrix(
     forces along v. (A Newton iteration with the symmetrised matrix converges only linearly,
     about tenfold per iteration; with the exact product, quadratically.)"""
     body = scene.body
-    J = body.internal_jacobian(x, threads=threads)  # in the body's fixed pattern, data fresh
+    J = body.newton_jacobian(x, threads=threads)  # in the body's fixed pattern, data fresh
     pat = _body_pattern(body)
     data = J.data
     approx = []
@@ -133,20 +133,25 @@ def newton_matrix(
     for M in outside:
         A = A - M
     A = A.tocsr()
-    if not approx:
+    body_part = body.newton_correction(x)
+    if not approx and body_part is None:
         return A, None
-    return A, ExactProduct(A, approx, x, L)
+    return A, ExactProduct(A, approx, x, L, () if body_part is None else (body_part,))
 
 
 class ExactProduct:
     """The product with the exact Newton matrix: ``matrix @ v`` with the approximated
-    interactions' part of it replaced by a forward difference of their forces along v, i.e.
-    ``correction(v, matrix @ v)`` (a solver with a faster product of ``matrix`` applies that and
-    passes it to :meth:`correction`)."""
+    interactions' part of it replaced by a forward difference of their forces along v, and the
+    body's approximated part (:meth:`~softgrasp.physics.body.Body.newton_correction`, ``exact``)
+    by its exact product, i.e. ``correction(v, matrix @ v)`` (a solver with a faster product of
+    ``matrix`` applies that and passes it to :meth:`correction`)."""
 
-    def __init__(self, A: sp.csr_matrix, approx: list, x: NDArray[np.float64], L: float) -> None:
+    def __init__(
+        self, A: sp.csr_matrix, approx: list, x: NDArray[np.float64], L: float, exact: tuple = ()
+    ) -> None:
         self.matrix = A
         self._approx = approx
+        self._exact = exact
         self._x = x
         self._L = L
         self._base: list[NDArray[np.float64]] = []
@@ -155,9 +160,11 @@ class ExactProduct:
         """Add to ``out`` (``matrix @ v``) what turns it into the exact product: for each
         approximated interaction, its matrix part taken back out and the forward difference of its
         forces along v put in. Returns ``out``."""
+        for add in self._exact:
+            add(v, out)
         V = v.reshape(-1, 3)
         vmax = float(np.abs(V).max())
-        if vmax == 0:
+        if vmax == 0 or not self._approx:
             return out
         h = FD_STEP * self._L / vmax
         if not self._base:
