@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -24,7 +25,9 @@ from softgrasp.model.material import Material
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.network import NetworkCalibration, calibrate_network
 from softgrasp.physics.forces import BlockPattern
-from softgrasp.physics.nodal_volume import NodalVolume
+
+if TYPE_CHECKING:  # loaded with the first nodal body: a plan of the per-tet term never needs it
+    from softgrasp.physics.nodal_volume import NodalVolume
 
 __all__ = ["Body", "build_body", "STANDARD_GRAVITY", "DEFAULT_DAMPING_RATIO"]
 
@@ -116,6 +119,8 @@ class Body:
         """The node-averaged volume term (:mod:`softgrasp.physics.nodal_volume`), or None."""
         if self.volume != "nodal" or self.kappa == 0.0:
             return None
+        from softgrasp.physics.nodal_volume import NodalVolume
+
         return NodalVolume(self.mesh.tets, self.mesh.volumes, self.n_nodes, self.kappa, self.barrier)
 
     @property
