@@ -96,13 +96,14 @@ def cold() -> bool:
 def solvers_cold() -> bool:
     """Whether the kernels :func:`warm_up_solvers` loads are not yet compiled on disk for the
     current sources (the compiled Runge-Kutta stepper's, the multigrid smoother its problem runs
-    and the nodal volume term's Jacobian)."""
+    and the nodal volume term's Jacobian and exact product)."""
     from softgrasp import jitcache
     from softgrasp.linalg import smoothers
     from softgrasp.physics import nodal_volume
     from softgrasp.sim.fused import rk4
 
-    kernels = (rk4.advance, smoothers._l1_block_inverse, nodal_volume._jacobian)
+    nodal = (nodal_volume._jacobian, nodal_volume._difference_product)
+    kernels = (rk4.advance, smoothers._l1_block_inverse, *nodal)
     return not all(jitcache.cached(k) for k in kernels)
 
 
@@ -237,6 +238,9 @@ def warm_up_solvers() -> None:
     solve_static(scene, scene.initial_state(), t=t, cache=SolverCache(method="amg"))
     nodal = Scene(replace(body, volume="nodal"), (table, fingers))
     solve_static(nodal, nodal.initial_state(), t=t, cache=SolverCache())
+    # the exact product of large nodal bodies (Body.newton_correction), which this one is not
+    x = nodal.body.mesh.points.copy()
+    nodal.body._nodal.add_difference(x, np.zeros_like(x), np.zeros_like(x))
 
 
 def _place_hand() -> None:
