@@ -161,12 +161,11 @@ def load_object(
         :mod:`softgrasp.physics.nodal_volume`).
     """
     from softgrasp.io.options import load_placed_body
-    from softgrasp.model.ranges import check
+    from softgrasp.model.ranges import check, check_volume_term
 
     if units not in UNITS:
         raise ConfigError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
-    if volume_term not in ("element", "nodal"):
-        raise ConfigError(f"volume_term must be element or nodal, got {volume_term!r}")
+    check_volume_term(volume_term)
     if isinstance(material, dict):
         raise ConfigError("material must be a Material, a preset name, key=value text or a .toml file")
     if density_kg_m3 is not None and mass_kg is not None:

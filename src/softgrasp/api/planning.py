@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 from softgrasp.api.objects import SoftObject, load_object
 from softgrasp.errors import ConfigError, SoftgraspError
 from softgrasp.io.options import PLAN_DEFAULTS, check_inputs, check_option
+from softgrasp.model.ranges import check_volume_term
 
 if TYPE_CHECKING:
     from softgrasp.grasp.planner import GraspPlan, PlanConfig
@@ -76,8 +77,7 @@ def plan_options(given: Mapping[str, object], config_file: str | Path | None = N
         raise ConfigError(f"contact_law must be resolved or paper, got {merged['contact_law']!r}")
     if merged["solver"] not in ("quasistatic", "dynamic"):
         raise ConfigError(f"solver must be quasistatic or dynamic, got {merged['solver']!r}")
-    if merged["volume_term"] not in ("element", "nodal"):
-        raise ConfigError(f"volume_term must be element or nodal, got {merged['volume_term']!r}")
+    check_volume_term(merged["volume_term"])
     return merged
 
 

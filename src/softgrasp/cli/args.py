@@ -95,6 +95,8 @@ def limits(key: str) -> str:
 
 def add_common(p: argparse.ArgumentParser) -> None:
     """The options naming the object, its length unit, material and mesh, and the output folder."""
+    from softgrasp.model.ranges import VOLUME_TERMS
+
     p.add_argument(
         "--object",
         default="sphere",
@@ -143,7 +145,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--volume-term",
-        choices=("element", "nodal"),
+        choices=VOLUME_TERMS,
         default=None,
         help="the body's volume term: element (one per tet, the default) or nodal (one per node: "
         "no volumetric locking as nu nears 0.5, about 4x the Newton matrix)",

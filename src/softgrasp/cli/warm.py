@@ -228,6 +228,7 @@ def warm_up_solvers() -> None:
     from dataclasses import replace
 
     from softgrasp.linalg.solve import SolverCache
+    from softgrasp.physics.nodal_volume import NodalVolume
     from softgrasp.sim.explicit import simulate
     from softgrasp.sim.scene import Scene
     from softgrasp.sim.static import solve_static
@@ -239,8 +240,9 @@ def warm_up_solvers() -> None:
     nodal = Scene(replace(body, volume="nodal"), (table, fingers))
     solve_static(nodal, nodal.initial_state(), t=t, cache=SolverCache())
     # the exact product of large nodal bodies (Body.newton_correction), which this one is not
-    x = nodal.body.mesh.points.copy()
-    nodal.body._nodal.add_difference(x, np.zeros_like(x), np.zeros_like(x))
+    x = np.array(body.mesh.points)
+    term = NodalVolume(body.mesh.tets, body.mesh.volumes, body.n_nodes, body.kappa, body.barrier)
+    term.add_difference(x, np.zeros_like(x), np.zeros_like(x))
 
 
 def _place_hand() -> None:

@@ -23,16 +23,22 @@ __all__ = [
     "Range",
     "RANGES",
     "UNITS",
+    "VOLUME_TERMS",
     "OBJECT_SIZE_M",
     "OBJECT_MASS_KG",
     "check",
     "check_units",
+    "check_volume_term",
     "check_object_size",
     "check_object_mass",
 ]
 
 #: Length units of mesh files and shape sizes: name -> metres per unit.
 UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+
+#: The volume terms a body may have: one per tet or one per node
+#: (:attr:`softgrasp.physics.body.Body.volume`).
+VOLUME_TERMS = ("element", "nodal")
 
 #: Sizes of an object a hand can grasp [m]: its thinnest side at least 1 mm (thinner is a film,
 #: whose forces a mass-spring mesh cannot resolve), its largest at most 0.5 m (beyond a hand's span).
@@ -158,6 +164,13 @@ def check_units(units: object, name: str = "units") -> float:
     if not isinstance(units, str) or units not in UNITS:
         raise ConfigError(f"{name} must be one of {', '.join(UNITS)}, got {units!r}")
     return UNITS[units]
+
+
+def check_volume_term(term: object, name: str = "volume_term") -> str:
+    """``term`` when it names one of :data:`VOLUME_TERMS`; ConfigError otherwise."""
+    if term not in VOLUME_TERMS:
+        raise ConfigError(f"{name} must be {' or '.join(VOLUME_TERMS)}, got {term!r}")
+    return str(term)
 
 
 def _fits(extent: Sequence[float]) -> bool:

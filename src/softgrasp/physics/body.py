@@ -24,6 +24,7 @@ from softgrasp.errors import ConfigError, MaterialError
 from softgrasp.model.material import Material
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.network import NetworkCalibration, calibrate_network
+from softgrasp.model.ranges import VOLUME_TERMS
 from softgrasp.physics.forces import BlockPattern
 
 if TYPE_CHECKING:  # loaded with the first nodal body: a plan of the per-tet term never needs it
@@ -37,8 +38,6 @@ STANDARD_GRAVITY = 9.80665
 ANISOTROPY_WARNING = 0.02
 #: Default damping ratio of the body's fundamental mode (edge dashpots, stiffness-proportional).
 DEFAULT_DAMPING_RATIO = 0.1
-#: The volume terms a body may have (:attr:`Body.volume`).
-VOLUME_TERMS = ("element", "nodal")
 #: Up to this many nodes Newton factorises the nodal volume term's exact matrix; above, the
 #: per-tet term's, with GMRES on the exact product (:meth:`Body.newton_jacobian`). Default plans
 #: of the sphere measured both ways: exact 0.47, 0.76, 1.23 and 3.40 s at 388, 745, 1 239 and

@@ -34,7 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from softgrasp.physics.jit import Array, IntArray, f64, i64, jit
-from softgrasp.physics.volume import J_FLOOR
+from softgrasp.physics.volume import psi, psi_derivatives
 
 __all__ = ["NodalVolume", "star_pairs"]
 
@@ -67,13 +67,21 @@ def _node_tets(tets: IntArray, n_nodes: int) -> tuple[IntArray, IntArray]:
     return indptr, owner[order]
 
 
-def star_pairs(tets: IntArray, n_nodes: int) -> tuple[IntArray, IntArray]:
-    """Node pairs (rows, cols) of the blocks of the nodal volume term's Jacobian: every (a, b)
-    with a and b in the star of one node (both share a tet with it), each pair once."""
+def _stars(tets: IntArray, n_nodes: int) -> sp.csr_matrix:
+    """Each node's star, the nodes that share a tet with it (itself included), as the rows of a
+    CSR pattern (N, N) with sorted indices."""
     inc = sp.csr_matrix(
         (np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))), shape=(n_nodes, len(tets))
     )
-    star = (inc @ inc.T).tocsr()  # the nodes sharing a tet with each node
+    star = (inc @ inc.T).tocsr()
+    star.sort_indices()
+    return star
+
+
+def star_pairs(tets: IntArray, n_nodes: int) -> tuple[IntArray, IntArray]:
+    """Node pairs (rows, cols) of the blocks of the nodal volume term's Jacobian: every (a, b)
+    with a and b in the star of one node (both share a tet with it), each pair once."""
+    star = _stars(tets, n_nodes)
     ring = (star @ star).tocoo()
     return ring.row.astype(np.int64), ring.col.astype(np.int64)
 
@@ -118,15 +126,6 @@ def _node_volumes(x, tets, n_nodes):  # pragma: no cover - compiled
 
 
 @jit
-def _psi(J, barrier):  # pragma: no cover - compiled
-    """(psi, psi', psi'') at J (the barrier's J floored at J_FLOOR)."""
-    if barrier:
-        Jc = J if J > J_FLOOR else J_FLOOR
-        return Jc - 1.0 - np.log(Jc), 1.0 - 1.0 / Jc, 1.0 / (Jc * Jc)
-    return 0.5 * (J - 1.0) ** 2, J - 1.0, 1.0
-
-
-@jit
 def _forces(x, tets, v0n, kappa, barrier, out):  # pragma: no cover - compiled
     """Add the nodal volume term's forces to ``out`` (N, 3); returns its energy [J]."""
     n = v0n.shape[0]
@@ -134,9 +133,9 @@ def _forces(x, tets, v0n, kappa, barrier, out):  # pragma: no cover - compiled
     dpsi = np.empty(n)
     energy = 0.0
     for k in range(n):
-        p, dp, _ = _psi(vn[k] / v0n[k], barrier)
-        energy += kappa * v0n[k] * p
-        dpsi[k] = dp
+        J = vn[k] / v0n[k]
+        energy += kappa * v0n[k] * psi(J, barrier)
+        dpsi[k], _ = psi_derivatives(J, barrier)
     g = np.empty((4, 3))
     for t in range(tets.shape[0]):
         _gradients(x, tets, t, g)
@@ -182,7 +181,7 @@ def _jacobian(
     dpsi = np.empty(n)
     w = np.empty(n)
     for k in range(n):
-        _, dp, d2p = _psi(vn[k] / v0n[k], barrier)
+        dp, d2p = psi_derivatives(vn[k] / v0n[k], barrier)
         dpsi[k] = dp
         w[k] = kappa * d2p / v0n[k]
     # sum_t p_t d^2 V_t: d g_a / d x_b = skew(s) / 6 with s = x_c - x_d for (a, b, c, d) an even
@@ -268,12 +267,12 @@ def _difference_product(x, tets, v0t, v0n, kappa, barrier, v, out):  # pragma: n
             dvn[tets[t, a]] += 0.25 * dv
     dpsi = np.empty(n)
     for k in range(n):
-        _, dp, d2p = _psi(vn[k] / v0n[k], barrier)
+        dp, d2p = psi_derivatives(vn[k] / v0n[k], barrier)
         dpsi[k] = dp
         dvn[k] *= kappa * d2p / v0n[k]  # now w_n g_n . v
     for t in range(m_tets):
         n0, n1, n2, n3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        _, dpt, d2pt = _psi(vt[t] / v0t[t], barrier)
+        dpt, d2pt = psi_derivatives(vt[t] / v0t[t], barrier)
         c = kappa * d2pt / v0t[t] * dvt[t] - 0.25 * (dvn[n0] + dvn[n1] + dvn[n2] + dvn[n3])
         h = -kappa * (dpt - 0.25 * (dpsi[n0] + dpsi[n1] + dpsi[n2] + dpsi[n3])) / 6.0
         for a in range(4):
@@ -332,11 +331,7 @@ class NodalVolume:
         if key in self._layouts:
             return self._layouts[key]
         n, tets = self.n_nodes, self.tets
-        inc = sp.csr_matrix(
-            (np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))), shape=(n, len(tets))
-        )
-        star = (inc @ inc.T).tocsr()
-        star.sort_indices()
+        star = _stars(tets, n)
         star_ptr, members = star.indptr.astype(np.int64), star.indices.astype(np.int64)
         # the star slot of node tets[nts[q], a] in the star of the node whose tet list holds q
         owner = np.repeat(np.arange(n, dtype=np.int64), np.diff(self._ntp))

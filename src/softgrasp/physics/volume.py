@@ -31,6 +31,26 @@ __all__ = [
 J_FLOOR = 1e-12
 
 
+@jit
+def psi(J, barrier):  # pragma: no cover - compiled
+    """psi(J) of the module docstring: with the inversion barrier ``J - 1 - ln J`` (J floored at
+    :data:`J_FLOOR` in ln J), else ``(J - 1)^2 / 2``."""
+    if barrier:
+        return J - 1.0 - math.log(J if J > J_FLOOR else J_FLOOR)
+    d = J - 1.0
+    return 0.5 * d * d
+
+
+@jit
+def psi_derivatives(J, barrier):  # pragma: no cover - compiled
+    """(psi'(J), psi''(J)) of :func:`psi` (the barrier's J floored at :data:`J_FLOOR`); apart
+    from psi, whose logarithm the force kernels need only for the energy."""
+    if barrier:
+        Jc = J if J > J_FLOOR else J_FLOOR
+        return 1.0 - 1.0 / Jc, 1.0 / (Jc * Jc)
+    return J - 1.0, 1.0
+
+
 @fjit
 def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, out):  # pragma: no cover
     """Volume-term forces of tets ``lo:hi`` added to ``out`` (N, 3): on node k
@@ -74,15 +94,9 @@ def _volumes(x, tets, inv6v0, v0, kappa, barrier, want_energy, check, lo, hi, ou
                 first = np.int64(t)
             count += 1
         J = det * inv6v0[t]
-        if barrier:
-            Jc = J if J > J_FLOOR else J_FLOOR
-            dw = 1.0 - 1.0 / Jc
-            if want_energy:
-                energy += kappa * v0[t] * (J - 1.0 - math.log(Jc))
-        else:
-            dw = J - 1.0
-            if want_energy:
-                energy += kappa * v0[t] * (0.5 * dw * dw)
+        dw, _ = psi_derivatives(J, barrier)
+        if want_energy:
+            energy += kappa * v0[t] * psi(J, barrier)
         s = ck * dw
         out[p1, 0] += s * c1x
         out[p1, 1] += s * c1y
@@ -128,14 +142,7 @@ def _volume_blocks(
         for d in range(3):
             g[0, d] = -(g[1, d] + g[2, d] + g[3, d])
         V = av[1, 0] * g[1, 0] + av[1, 1] * g[1, 1] + av[1, 2] * g[1, 2]
-        J = V / rest[t]
-        if barrier:
-            Jc = J if J > J_FLOOR else J_FLOOR
-            dw = 1.0 - 1.0 / Jc
-            d2w = 1.0 / (Jc * Jc)
-        else:
-            dw = J - 1.0
-            d2w = 1.0
+        dw, d2w = psi_derivatives(V / rest[t], barrier)
         cg = kappa * d2w / rest[t]
         ch = kappa * dw / 6.0
         for d in range(3):
