@@ -33,6 +33,7 @@ from softgrasp.physics.fingertip.laws import effective_modulus
 
 __all__ = [
     "Damage",
+    "contact_radii",
     "hertz_peak_pressure",
     "principal_strains",
     "peak_strain",
@@ -104,14 +105,30 @@ def principal_strains(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]
     return np.maximum(1.0 - stretch[:, 0], stretch[:, 2] - 1.0)
 
 
+def contact_radii(
+    body: Body, fingers: FingertipContact, normal_N: NDArray[np.float64], t: float = 0.0
+) -> NDArray[np.float64]:
+    """Each fingertip's Hertz contact radius [m] under the normal forces ``normal_N`` [N] at time
+    ``t`` (the fingertips' landing points then): ``a = (3 F R_eff / (4 E*))^(1/3)`` with the pair's
+    effective modulus E* (Eq. 12) and radius R_eff (:meth:`FingertipContact.law_table`)."""
+    return _hertz(body, fingers, normal_N, t)[1]
+
+
+def _hertz(
+    body: Body, fingers: FingertipContact, normal_N: NDArray[np.float64], t: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`hertz_peak_pressure` of each fingertip's normal force on ``body`` at time ``t``."""
+    m = body.material
+    E_star = np.array([effective_modulus(f.E, f.nu, m.E, m.nu) for f in fingers.fingertips])
+    radius = fingers.law_table(body, t)[:, 5]
+    return hertz_peak_pressure(np.asarray(normal_N, dtype=np.float64), radius, E_star)
+
+
 def grasp_damage(
     body: Body, fingers: FingertipContact, x: NDArray[np.float64], normal_N: NDArray[np.float64]
 ) -> Damage:
     """The load of the held grasp (fixed ``fingers``, positions ``x``, normal forces ``normal_N``)."""
-    m = body.material
-    E_star = np.array([effective_modulus(f.E, f.nu, m.E, m.nu) for f in fingers.fingertips])
-    radius = fingers.law_table(body, 0.0)[:, 5]
-    p0, a = hertz_peak_pressure(normal_N, radius, E_star)
+    p0, a = _hertz(body, fingers, normal_N, 0.0)
     strain, tet = peak_strain(body, x)
     return Damage(p0, a, strain, tet, tuple(f.name for f in fingers.fingertips))
 
@@ -125,11 +142,7 @@ def patch_torsion(
     (their point contacts resist every load already)."""
     if len(fingers.fingertips) != 2:
         return None
-    m = body.material
-    E_star = np.array([effective_modulus(f.E, f.nu, m.E, m.nu) for f in fingers.fingertips])
-    radius = fingers.law_table(body, 0.0)[:, 5]
-    _, a = hertz_peak_pressure(np.asarray(normal_N, dtype=np.float64), radius, E_star)
-    return 3.0 * math.pi / 16.0 * mu * a
+    return 3.0 * math.pi / 16.0 * mu * contact_radii(body, fingers, normal_N)
 
 
 def check_limits(

@@ -21,7 +21,7 @@ finger is within ``tolerance`` of its set-point. Then the table is taken away an
 held for ``hold_time`` seconds
 (:func:`softgrasp.grasp.hold.check_hold`): the grasp holds when every step finds its
 equilibrium, every finger keeps contact and no fingertip slides in the object by more than
-``max_slip`` times its size.
+``max_slip`` times its contact radius.
 
 This answers "do these set-points hold this object?" for any material and friction, which is what
 robust set-points (:mod:`softgrasp.sweep.robust`) are checked with.

@@ -3,13 +3,18 @@ table is taken away and the fingers alone must hold the object: the table's supp
 static load steps (a slow lift), then implicit dynamics over the holding time, then the held
 state is brought to static equilibrium. The object is held when every step finds its
 equilibrium, every finger keeps contact and no fingertip slides in the object by more than
-``max_slip`` times the object's size.
+``max_slip`` times its contact radius: a fingertip that slides less stays on the patch it held by,
+while one that slides further has let go of it (the grasp's contacts have moved).
 
 A fingertip slides *as a whole* only when every pair of its contact patch slips (Algorithm 1's
 slip displacement u grows on each): its slip over one step is the least slip increment among its
 pairs in contact before and after (a patch with one sticking pair does not slide; rim pairs slip
 in partial slip, as in Mindlin's contact). The elastic deformation of the object, its sag in the
 fingers included, moves no anchor and is no slip.
+
+The contact radius is Hertz's at each fingertip's normal force where the check starts
+(:func:`~softgrasp.grasp.damage.contact_radii`): the limit follows the grasp's contacts, not the
+object's size, so that a small stiff contact and a large soft one are held to the same geometry.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from softgrasp.grasp.config import (
     STEP_RTOL,
     PlanConfig,
 )
+from softgrasp.grasp.damage import contact_radii
 from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.linalg.solve import SolverCache
 from softgrasp.physics.body import Body
@@ -41,7 +47,7 @@ from softgrasp.sim.loads import RampedLoad
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import extrapolated, solve_static
 
-__all__ = ["Held", "check_hold", "cone_usage", "finger_slip", "object_size"]
+__all__ = ["Held", "check_hold", "cone_usage", "finger_slip"]
 
 #: A held state: (state at rest in the fingers, the fixed fingers, the centre of mass's largest
 #: motion from the table [m], each fingertip's slip in the object [m] (3,)).
@@ -50,11 +56,6 @@ Held = tuple[State, FingertipContact, float, NDArray[np.float64]]
 
 class _NotHeld(Exception):
     """The hold check's verdict, raised where it is found."""
-
-
-def object_size(x: NDArray[np.float64]) -> float:
-    """The object's size [m]: the largest extent of its nodes ``x`` along a world axis."""
-    return float(np.ptp(x, axis=0).max())
 
 
 def finger_slip(before: FingerState, after: FingerState) -> NDArray[np.float64]:
@@ -67,10 +68,14 @@ def finger_slip(before: FingerState, after: FingerState) -> NDArray[np.float64]:
 
 
 class _Tracker:
-    """Each fingertip's slip summed over the steps of one hold check, and the verdicts on it."""
+    """Each fingertip's slip summed over the steps of one hold check, and the verdicts on it:
+    ``share`` (``max_slip``) of each fingertip's contact ``radius`` [m] (n_f,) is its limit."""
 
-    def __init__(self, limit: float, size: float, fs: FingerState, names: tuple[str, ...]) -> None:
-        self.limit, self.size, self.last, self.names = limit, size, fs, names
+    def __init__(
+        self, share: float, radius: NDArray[np.float64], fs: FingerState, names: tuple[str, ...]
+    ) -> None:
+        self.share, self.radius, self.last, self.names = share, radius, fs, names
+        self.limit = share * radius
         self.slip = np.zeros(fs.active.shape[0])
 
     def step(self, fs: FingerState, when: str) -> None:
@@ -79,11 +84,13 @@ class _Tracker:
         touching = fs.active.any(axis=1)
         if not touching.all():
             raise _NotHeld(f"the {self.names[int(np.argmin(touching))]} finger lost contact {when}")
-        if self.slip.max() > self.limit:
-            j = int(np.argmax(self.slip))
+        over = self.slip - self.limit
+        if (over > 0).any():
+            j = int(np.argmax(over))
             raise _NotHeld(
                 f"the {self.names[j]} fingertip slid {self.slip[j] * 1e3:.2f} mm in the object {when} "
-                f"(limit {self.limit * 1e3:.2f} mm, {self.limit / self.size:.1%} of its size)"
+                f"(limit {self.limit[j] * 1e3:.2f} mm, {self.share:.1%} of its "
+                f"{self.radius[j] * 1e3:.2f} mm contact radius)"
             )
 
 
@@ -104,7 +111,8 @@ def check_hold(
     (a release step that needs more than ``RELEASE_MAX_ITER`` Newton iterations finds none);
     then the held state's static equilibrium in the fingers alone. After every step each finger
     must touch the object and each fingertip's slip so far (:func:`finger_slip`, summed) must stay
-    within ``cfg.max_slip`` times the object's size (:func:`object_size`). A step that finds no
+    within ``cfg.max_slip`` times its contact radius at the start
+    (:func:`~softgrasp.grasp.damage.contact_radii` of its normal force there). A step that finds no
     equilibrium means the object slides out of the fingers. Returns the :data:`Held` state or,
     when the object is not held, why not (a sentence)."""
     fixed = FingertipContact(
@@ -116,8 +124,9 @@ def check_hold(
     release = Scene(body, (fixed, support))
     scene = Scene(body, (fixed,))
     c0 = centre_of_mass(body, state.x)
-    size = object_size(state.x)
-    track = _Tracker(cfg.max_slip * size, size, state.contacts[1], tuple(f.name for f in fc.fingertips))
+    normal = fc.report(body, state.x, None, t, state.contacts[1], static=True).normal
+    radius = contact_radii(body, fc, normal, t)
+    track = _Tracker(cfg.max_slip, radius, state.contacts[1], tuple(f.name for f in fc.fingertips))
     drift = 0.0
     try:
         st = State(state.x, np.zeros_like(state.x), 0.0, (state.contacts[1], None))

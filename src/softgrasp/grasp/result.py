@@ -79,7 +79,7 @@ class GraspPlan:
         the fingers close further.
     slip: how far each fingertip slid as a whole in the object from the table's removal to the
         held state [m], (3,) (:func:`~softgrasp.grasp.hold.finger_slip`, summed over the check's
-        steps; at most ``max_slip`` times the object's size).
+        steps; at most ``max_slip`` times its contact radius).
     damage: the set-points' peak contact pressures and the held state's peak strain
         (:mod:`softgrasp.grasp.damage`).
     setpoints: the force set-points [N], (3,): the normal forces the fingers close to under force
