@@ -82,6 +82,23 @@ def test_plan_prints_one_line_per_phase_off_a_terminal(coarse_run):
     assert "%" not in err  # no bar off a terminal
 
 
+def test_a_margin_held_at_every_scale_tried_says_so(tmp_path, capsys):
+    """The rubber box at mu = 0.15: its closing squeezes twice what holds under force control, so
+    every scale the critical-scale search tries holds, down to its lowest (half the held forces).
+    The margin line says that, and that the least that holds lies lower, instead of naming a
+    scale not held (plan.json: ``not_held_scale`` 0)."""
+    out = io.StringIO()
+    args = ["plan", "--object", "box:0.05x0.04x0.03", "--mu", "0.15", "--out", str(tmp_path / "box")]
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()), pytest.warns(UserWarning):
+        assert main(args) == 0
+    margin = json.loads((tmp_path / "box" / "plan.json").read_text())["margin"]
+    assert margin["not_held_scale"] == 0.0
+    assert all(c["held"] for c in margin["checks"])
+    line = next(x for x in out.getvalue().splitlines() if x.startswith("margin:"))
+    assert f"held at every scale tried, down to {margin['critical_scale']:.2f} x the set-points" in line
+    assert "least that holds" in line and "not at" not in line
+
+
 def test_set_points_without_room_to_the_least_that_holds_are_noted(coarse_run, tmp_path, capsys):
     """The default plan's set-points are 1.25 times the least normal forces that hold: no note.
     With --safety-factor 1 a scale of them within the force controller's 5 % tolerance is not

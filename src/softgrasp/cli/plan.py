@@ -197,6 +197,24 @@ def run(args: argparse.Namespace) -> int:
             bar.close()
 
 
+def _margin_line(mg: dict) -> str:
+    """The margin as plan.json's ``margin`` states it, in one line: the least scale of the
+    set-points held and the largest not held; or, when every scale tried held (down to the
+    search's lowest), that the least that holds lies lower still."""
+    held, not_held = mg["critical_scale"], mg["not_held_scale"]
+    if not not_held > 0:
+        return (
+            f"margin: held at every scale tried, down to {held:.2f} x the set-points, the search's "
+            f"lowest (softgrasp's model): the set-points are at least {mg['safety_factor']:g} x the "
+            "least that holds"
+        )
+    digits = 2 if f"{held:.2f}" != f"{not_held:.2f}" else 3  # two scales apart, printed apart
+    return (
+        f"margin: set-points {mg['safety_factor']:g} x the least that holds: held down to "
+        f"{held:.{digits}f} x the set-points, not at {not_held:.{digits}f} (softgrasp's model)"
+    )
+
+
 def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, bar: PhaseBar) -> int:
     from softgrasp.cli.warm import resume_collector, warm_up_in_background
 
@@ -256,12 +274,7 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
         f"{g.com_drift * 1e3:.2f} mm in {g.hold_time:g} s"
     )
     mg = doc["margin"]
-    held, not_held = mg["critical_scale"], mg["not_held_scale"]
-    digits = 2 if f"{held:.2f}" != f"{not_held:.2f}" else 3  # two scales apart, printed apart
-    bar.write(
-        f"margin: set-points {mg['safety_factor']:g} x the least that holds: held down to "
-        f"{held:.{digits}f} x the set-points, not at {not_held:.{digits}f} (softgrasp's model)"
-    )
+    bar.write(_margin_line(mg))
     if g.damage is not None:
         j = int(g.damage.pressure.argmax())
         bar.write(
