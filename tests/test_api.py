@@ -126,6 +126,8 @@ def test_load_object_scales_mesh_files_by_their_units(tmp_path):
     assert np.ptp(cm.mesh.points, axis=0) == pytest.approx(extent)
     assert mm.mass_kg == pytest.approx(950 * 0.04 * 0.03 * 0.02)
     assert mm.material is rubber and mm.name == "box_mm"
+    # a shape's label is its whole spec, decimal points and all (a file's is its stem)
+    assert sg.load_object("box:0.05x0.04x0.03", material=rubber).name == "box:0.05x0.04x0.03"
     with pytest.raises(sg.ConfigError, match="units"):
         sg.load_object(tmp_path / "box_mm.vtu", units="inch")
     with pytest.raises(sg.MeshError, match="metres"):

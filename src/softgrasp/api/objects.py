@@ -66,8 +66,11 @@ class SoftObject:
 
     @property
     def name(self) -> str:
-        """The object's label in plan outputs: a file's stem, else the source."""
-        return Path(self.source).stem if "." in self.source else self.source
+        """The object's label in plan outputs: a mesh file's stem, else the source (a built-in
+        object or a shape, whose sizes may have decimal points)."""
+        from softgrasp.model.objects import is_mesh_file
+
+        return Path(self.source).stem if is_mesh_file(self.source) else self.source
 
     @property
     def mesh(self) -> TetMesh:

@@ -111,7 +111,7 @@ def _make_object(
         spec = OBJECTS[name_or_path]
         mesh, T = _generated(name_or_path, mesh_size)
         return mesh, preset(spec.material), spec.mass, T.copy()
-    if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
+    if _is_shape(name_or_path):
         mesh, T = _generated(name_or_path, mesh_size, scale)
         return mesh, FILE_MATERIAL, None, T.copy()
     path = Path(name_or_path)
@@ -129,8 +129,12 @@ def _make_object(
 
 def is_mesh_file(name_or_path: str) -> bool:
     """Whether ``name_or_path`` names a mesh file rather than a built-in object or a shape."""
-    shape = ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES
-    return name_or_path not in OBJECTS and not shape
+    return name_or_path not in OBJECTS and not _is_shape(name_or_path)
+
+
+def _is_shape(name_or_path: str) -> bool:
+    """Whether ``name_or_path`` is a parametric shape (``KIND:DIMENSIONS``, :data:`SHAPES`)."""
+    return ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES
 
 
 def check_object(name_or_path: str, scale: float = 1.0) -> None:
@@ -142,7 +146,7 @@ def check_object(name_or_path: str, scale: float = 1.0) -> None:
             f"units apply to mesh files and shapes; the built-in {name_or_path!r} has its own size "
             "in metres: leave --units at m"
         )
-    if ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES:
+    if _is_shape(name_or_path):
         _shape_sizes(name_or_path, scale)
 
 
