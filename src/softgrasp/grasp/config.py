@@ -124,7 +124,7 @@ class PlanConfig:
         the held state, as a fraction of its Hertz contact radius at its normal force where the
         check starts: beyond it the fingertip has left the patch it held by, and the object slides
         in the fingers (its elastic sag is no slip). An eighth: 0.27-0.31 mm on the default
-        sphere, 0.4-0.6 mm on the 50 x 40 x 30 mm rubber box. A fixed share of the object's size
+        sphere, 0.3-0.6 mm on the 50 x 40 x 30 mm rubber box. A fixed share of the object's size
         (0.25 %, the same limit on the sphere) would count the box's fingers, which slide
         0.1-0.2 mm down its faces as the table goes and then hold, as letting go: its set-points
         then come out at 1.6-4.5 times the rigid-body least force and not monotone in mu. Half
