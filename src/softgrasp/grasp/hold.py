@@ -75,7 +75,6 @@ class _Tracker:
         self, share: float, radius: NDArray[np.float64], fs: FingerState, names: tuple[str, ...]
     ) -> None:
         self.share, self.radius, self.last, self.names = share, radius, fs, names
-        self.limit = share * radius
         self.slip = np.zeros(fs.active.shape[0])
 
     def step(self, fs: FingerState, when: str) -> None:
@@ -84,12 +83,12 @@ class _Tracker:
         touching = fs.active.any(axis=1)
         if not touching.all():
             raise _NotHeld(f"the {self.names[int(np.argmin(touching))]} finger lost contact {when}")
-        over = self.slip - self.limit
-        if (over > 0).any():
-            j = int(np.argmax(over))
+        limit = self.share * self.radius
+        if (self.slip > limit).any():
+            j = int(np.argmax(self.slip - limit))
             raise _NotHeld(
                 f"the {self.names[j]} fingertip slid {self.slip[j] * 1e3:.2f} mm in the object {when} "
-                f"(limit {self.limit[j] * 1e3:.2f} mm, {self.share:.1%} of its "
+                f"(limit {limit[j] * 1e3:.2f} mm, {self.share:.1%} of its "
                 f"{self.radius[j] * 1e3:.2f} mm contact radius)"
             )
 
