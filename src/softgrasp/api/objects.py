@@ -21,10 +21,11 @@ from softgrasp.model.material import Material
 
 if TYPE_CHECKING:
     from softgrasp.hand.kinematics import HandModel
+    from softgrasp.model.mesh.generate import LocalRefinement
     from softgrasp.model.mesh.tetmesh import TetMesh
     from softgrasp.physics.body import Body
 
-__all__ = ["UNITS", "SoftObject", "load_object", "material", "load_hand"]
+__all__ = ["UNITS", "SoftObject", "load_object", "refined", "material", "load_hand"]
 
 #: Length units of mesh files: name -> metres per unit.
 UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
@@ -51,6 +52,8 @@ class SoftObject:
     transform: the transform (4, 4) from the source's coordinates to the body's mesh,
         ``p_body = T p_source`` (homogeneous; a mesh file's coordinates in ``units``, metres out):
         the scaling by the units, then the turn and move that rest the object on the table.
+    refinement: the finer elements asked for near points of the source
+        (:class:`~softgrasp.model.mesh.generate.LocalRefinement`), or None.
     """
 
     source: str
@@ -63,6 +66,7 @@ class SoftObject:
     density_kg_m3: float | None = None
     given_mass_kg: float | None = None
     transform: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
+    refinement: LocalRefinement | None = None
 
     @property
     def name(self) -> str:
@@ -133,6 +137,7 @@ def load_object(
     density_kg_m3: float | None = None,
     mass_kg: float | None = None,
     volume_term: str = "element",
+    refinement: LocalRefinement | None = None,
 ) -> SoftObject:
     """The soft object ``source``: a built-in object (``sphere``: the paper's 64 mm rubber sphere,
     ``cube``: its 50 mm foam cube), a shape (``box:0.04x0.03x0.02``, ``cylinder:DxH``, ``ball:R``,
@@ -162,6 +167,11 @@ def load_object(
         The body's volume term: ``element`` (per tet) or ``nodal`` (per node; no volumetric
         locking as nu nears 1/2, at about four times the Newton matrix's blocks:
         :mod:`softgrasp.physics.nodal_volume`).
+    refinement:
+        Finer elements near points of a gmsh-meshed object (the sphere, ``ball:R``,
+        ``cylinder:DxH``), in the coordinates softgrasp generates it in (standing on z = 0, its
+        centroid on the z axis: the sphere's top at (0, 0, 0.128)):
+        :class:`~softgrasp.model.mesh.generate.LocalRefinement`.
     """
     from softgrasp.io.options import load_placed_body
     from softgrasp.model.ranges import check, check_volume_term
@@ -182,11 +192,29 @@ def load_object(
     spec, mfile = _material_file(material)
     body, T = load_placed_body(
         source, mesh_size_m, spec, reorient=reorient, mfile=mfile, overrides=overrides, scale=UNITS[units],
-        volume=volume_term,
+        volume=volume_term, refinement=refinement,
     )  # fmt: skip
     T.setflags(write=False)
     return SoftObject(
-        source, body, spec, mfile, mesh_size_m, units, reorient, density_kg_m3, mass_kg, T
+        source, body, spec, mfile, mesh_size_m, units, reorient, density_kg_m3, mass_kg, T, refinement
+    )
+
+
+def refined(obj: SoftObject, refinement: LocalRefinement) -> SoftObject:
+    """``obj`` meshed again with ``refinement`` (points in the coordinates softgrasp generates it
+    in, :func:`load_object`); the same source, mesh size, material, mass and volume term. The
+    new mesh rests on the table in its own stable pose. MeshError for an object that gmsh does not
+    mesh here (the structured boxes, mesh files)."""
+    return load_object(
+        obj.source,
+        units=obj.units,
+        material=obj.material_spec,
+        mesh_size_m=obj.mesh_size_m,
+        reorient=obj.reorient,
+        density_kg_m3=obj.density_kg_m3,
+        mass_kg=obj.given_mass_kg,
+        volume_term=obj.body.volume,
+        refinement=refinement,
     )
 
 

@@ -29,6 +29,7 @@ from softgrasp.model.ranges import RANGES, check_units
 
 if TYPE_CHECKING:  # the heavy modules load when used: the command line's --help stays quick
     from softgrasp.grasp.planner import PlanConfig
+    from softgrasp.model.mesh.generate import LocalRefinement
     from softgrasp.physics.body import Body
     from softgrasp.physics.fingertip.params import ContactParams
 
@@ -217,6 +218,7 @@ def load_placed_body(
     overrides: Mapping[str, float] | None = None,
     scale: float = 1.0,
     volume: str = "element",
+    refinement: LocalRefinement | None = None,
 ) -> tuple[Body, NDArray[np.float64]]:
     """The object's body: its mesh (a mesh file's coordinates times ``scale`` in metres), its
     material (the object's default, a :class:`Material`, a preset or key=value list, or a material
@@ -232,13 +234,16 @@ def load_placed_body(
     1000 kg/m^3: each default with a :class:`~softgrasp.errors.SoftgraspWarning` (none for a shape
     given its density or mass). A shape whose material has no density is refused (ConfigError
     naming ``--density`` and ``--mass``). ``volume``: the body's volume term
-    (:attr:`~softgrasp.physics.body.Body.volume`).
+    (:attr:`~softgrasp.physics.body.Body.volume`). ``refinement``: finer elements near points
+    of a gmsh-meshed object (:func:`~softgrasp.model.objects.make_placed_object`).
     """
     from softgrasp.model.material import Polynomial, check_given, parse_material
     from softgrasp.model.objects import FILE_MATERIAL, OBJECTS, is_mesh_file, make_placed_object
     from softgrasp.physics.body import build_body
 
-    mesh, mat, mass, transform = make_placed_object(object_name, mesh_size, reorient=reorient, scale=scale)
+    mesh, mat, mass, transform = make_placed_object(
+        object_name, mesh_size, reorient=reorient, scale=scale, refinement=refinement
+    )
     ov = _checked_overrides(overrides)
     mass_given = "density" in ov or "mass" in ov
     file = is_mesh_file(object_name)

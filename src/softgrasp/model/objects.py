@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +22,7 @@ from softgrasp import usercache
 from softgrasp.errors import MeshError
 from softgrasp.model.material import Material, preset
 from softgrasp.model.memory import release_freed_memory
+from softgrasp.model.mesh.generate import LocalRefinement
 from softgrasp.model.mesh.placement import rest_on_table_transform
 from softgrasp.model.mesh.tetmesh import TetMesh
 from softgrasp.model.ranges import RANGES, check_object_size
@@ -87,21 +88,40 @@ def make_object(
 
 
 def make_placed_object(
-    name_or_path: str, mesh_size: float | None = None, *, reorient: bool = False, scale: float = 1.0
+    name_or_path: str,
+    mesh_size: float | None = None,
+    *,
+    reorient: bool = False,
+    scale: float = 1.0,
+    refinement: LocalRefinement | None = None,
 ) -> tuple[TetMesh, Material, float | None, NDArray[np.float64]]:
     """:func:`make_object`, and the transform (4, 4) from the source's coordinates to the mesh's
     (``p_mesh = T p_source``, homogeneous; metres out): a mesh file's coordinates in its units
     (``scale`` metres each), turned and moved to rest on the table; a built-in object's or a
-    shape's coordinates as softgrasp generates them (metres: a box standing on z = 0 about the z
-    axis, a sphere, ball or cylinder about its centre at the origin)."""
-    mesh, material, mass, T = _make_object(name_or_path, mesh_size, reorient, scale)
+    shape's coordinates as softgrasp generates them (metres: standing on z = 0, a box about the z
+    axis, a sphere, ball or cylinder with its centroid on it). ``refinement``: finer elements
+    near points in those coordinates (the gmsh-meshed sphere, balls and cylinders)."""
+    mesh, material, mass, T = _make_object(name_or_path, mesh_size, reorient, scale, refinement)
     release_freed_memory()
     return mesh, material, mass, T
 
 
 def _make_object(
-    name_or_path: str, mesh_size: float | None, reorient: bool, scale: float = 1.0
+    name_or_path: str,
+    mesh_size: float | None,
+    reorient: bool,
+    scale: float = 1.0,
+    refinement: LocalRefinement | None = None,
 ) -> tuple[TetMesh, Material, float | None, NDArray[np.float64]]:
+    if refinement is not None and not refinable(name_or_path):
+        raise MeshError(
+            f"local refinement needs a gmsh-meshed shape (sphere, ball:R, cylinder:DxH); {name_or_path} is "
+            + (
+                "a structured box: refine it with --mesh-size"
+                if _is_box(name_or_path)
+                else "a mesh file: refine it where the fingertips press before loading it"
+            )
+        )
     if mesh_size is not None:
         RANGES["mesh_size"].check("mesh size", mesh_size, MeshError)
     if not (math.isfinite(scale) and scale > 0):
@@ -109,10 +129,10 @@ def _make_object(
     check_object(name_or_path, scale)
     if name_or_path in OBJECTS:
         spec = OBJECTS[name_or_path]
-        mesh, T = _generated(name_or_path, mesh_size)
+        mesh, T = _generated(name_or_path, mesh_size, 1.0, refinement)
         return mesh, preset(spec.material), spec.mass, T.copy()
     if _is_shape(name_or_path):
-        mesh, T = _generated(name_or_path, mesh_size, scale)
+        mesh, T = _generated(name_or_path, mesh_size, scale, refinement)
         return mesh, FILE_MATERIAL, None, T.copy()
     path = Path(name_or_path)
     if not path.suffix:
@@ -137,6 +157,17 @@ def _is_shape(name_or_path: str) -> bool:
     return ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES
 
 
+def _is_box(name_or_path: str) -> bool:
+    """Whether ``name_or_path`` is meshed as a structured box (the cube or ``box:...``)."""
+    return name_or_path == "cube" or (_is_shape(name_or_path) and name_or_path.startswith("box:"))
+
+
+def refinable(name_or_path: str) -> bool:
+    """Whether ``name_or_path`` is meshed by gmsh here, so that it can be refined locally (the
+    sphere, balls and cylinders; not the structured boxes nor mesh files)."""
+    return (name_or_path in OBJECTS or _is_shape(name_or_path)) and not _is_box(name_or_path)
+
+
 def check_object(name_or_path: str, scale: float = 1.0) -> None:
     """Refuse, before any meshing, units (``scale`` metres per unit, 1 for metres) given with a
     built-in object, and a shape that cannot be read or whose size lies outside
@@ -151,7 +182,9 @@ def check_object(name_or_path: str, scale: float = 1.0) -> None:
 
 
 @functools.lru_cache(maxsize=GENERATED_KEPT)
-def _generated(name: str, mesh_size: float | None, scale: float = 1.0) -> tuple[TetMesh, NDArray[np.float64]]:
+def _generated(
+    name: str, mesh_size: float | None, scale: float = 1.0, refinement: LocalRefinement | None = None
+) -> tuple[TetMesh, NDArray[np.float64]]:
     """The mesh of a built-in object or parametric shape, generated once per process for each
     (name, mesh size) among the last few asked for: meshing is deterministic, the mesh immutable
     (its arrays read-only), and a sweep or a script planning the same object again (another
@@ -160,12 +193,13 @@ def _generated(name: str, mesh_size: float | None, scale: float = 1.0) -> tuple[
     Across processes the meshes are kept in softgrasp's cache folder (:mod:`softgrasp.usercache`),
     keyed by the parameters, gmsh's version and the meshing modules' sources."""
     key = usercache.entry_key(
-        "mesh", name, mesh_size, scale, _gmsh_version(), usercache.source_digest(*MESHING_MODULES)
-    )
+        "mesh", name, mesh_size, scale, _gmsh_version(), usercache.source_digest(*MESHING_MODULES),
+        *(() if refinement is None else ("refined", *astuple(refinement))),
+    )  # fmt: skip
     kept = usercache.load("meshes", key)
     if kept is not None and {"points", "tets", "T", "name"} <= kept.keys():
         return TetMesh(kept["points"], kept["tets"], name=str(kept["name"])), kept["T"]
-    mesh, T = _generate(name, mesh_size, scale)
+    mesh, T = _generate(name, mesh_size, scale, refinement)
     usercache.store("meshes", key, {"points": mesh.points, "tets": mesh.tets, "T": T, "name": mesh.name})
     return mesh, T
 
@@ -189,7 +223,9 @@ def _gmsh_version() -> str:
         return "none"
 
 
-def _generate(name: str, mesh_size: float | None, scale: float) -> tuple[TetMesh, NDArray[np.float64]]:
+def _generate(
+    name: str, mesh_size: float | None, scale: float, refinement: LocalRefinement | None = None
+) -> tuple[TetMesh, NDArray[np.float64]]:
     from softgrasp.model.mesh import generate
 
     if name in OBJECTS:
@@ -197,8 +233,10 @@ def _generate(name: str, mesh_size: float | None, scale: float) -> tuple[TetMesh
         h = spec.mesh_size if mesh_size is None else mesh_size
         if spec.name == "cube":
             return generate.box(CUBE_SIZE, _box_cells("cube", (CUBE_SIZE,) * 3, h), name="cube"), np.eye(4)
-        return rest_on_table_transform(generate.sphere(SPHERE_RADIUS, h, name="sphere"))
-    return _shape(name, mesh_size, scale)
+        return rest_on_table_transform(
+            generate.sphere(SPHERE_RADIUS, h, name="sphere", refinement=refinement)
+        )
+    return _shape(name, mesh_size, scale, refinement)
 
 
 def _box_cells(what: str, size: Sequence[float], h: float) -> list[int]:
@@ -247,7 +285,9 @@ def _shape_sizes(spec: str, scale: float) -> tuple[str, list[float]]:
     return kind, vals
 
 
-def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> tuple[TetMesh, NDArray[np.float64]]:
+def _shape(
+    spec: str, mesh_size: float | None, scale: float = 1.0, refinement: LocalRefinement | None = None
+) -> tuple[TetMesh, NDArray[np.float64]]:
     """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
     ``ball:0.03``; the sizes times ``scale`` in metres), meshed with about four elements across
     its smallest dimension by default."""
@@ -267,6 +307,7 @@ def _shape(spec: str, mesh_size: float | None, scale: float = 1.0) -> tuple[TetM
     if kind == "cylinder":
         D, H = vals
         h = min(D, H) / 4 if mesh_size is None else mesh_size
-        return rest_on_table_transform(generate.cylinder(D / 2, H, h, name=spec))
+        return rest_on_table_transform(generate.cylinder(D / 2, H, h, name=spec, refinement=refinement))
     R = vals[0]
-    return rest_on_table_transform(generate.sphere(R, R / 4 if mesh_size is None else mesh_size, name=spec))
+    h = R / 4 if mesh_size is None else mesh_size
+    return rest_on_table_transform(generate.sphere(R, h, name=spec, refinement=refinement))

@@ -24,6 +24,7 @@ from softgrasp.model.mesh.tetmesh import TetMesh
 
 __all__ = [
     "MAX_TETS",
+    "TETS_PER_H3",
     "check_mesh_size",
     "compact_nodes",
     "default_mesh_size",
@@ -35,7 +36,7 @@ __all__ = [
 MAX_TETS = 2_000_000
 #: Tets per h^3 of solid volume for a gmsh Delaunay mesh of size h (measured 4.5-5.3 on spheres
 #: and cylinders at fine sizes; rounded up so the estimate errs on the large side).
-_TETS_PER_H3 = 6.0
+TETS_PER_H3 = 6.0
 #: Options pinned for every session: silent, single-threaded, fixed seed and algorithms, linear
 #: elements, netgen optimisation for quality.
 _OPTIONS: dict[str, float] = {
@@ -228,9 +229,9 @@ def check_mesh_size(mesh_size: float, volume: float, what: str, extent: float | 
             + millimetre_hint(h, 0.5 * extent)
             + f"use mesh_size <= {0.5 * extent:.3g} m"
         )
-    expected = _TETS_PER_H3 * volume / h**3
+    expected = TETS_PER_H3 * volume / h**3
     if expected > MAX_TETS:
-        h_min = (_TETS_PER_H3 * volume / MAX_TETS) ** (1.0 / 3.0)
+        h_min = (TETS_PER_H3 * volume / MAX_TETS) ** (1.0 / 3.0)
         raise MeshError(
             f"{what} mesh_size {h:.3g} m is too small: about {expected:.2g} tetrahedra would be "
             f"needed (limit {MAX_TETS:.0e}); use mesh_size >= {h_min:.3g} m"

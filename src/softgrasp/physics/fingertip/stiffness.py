@@ -81,11 +81,14 @@ def _normal_jacobian_blocks(
     return 0.5 * (J + J.transpose(0, 2, 1, 4, 3))
 
 
-def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float, state: FingerState) -> sp.csr_matrix:
+def contact_jacobian(
+    contact: Any, body: Body, x: NDArray[np.float64], t: float, state: FingerState
+) -> sp.csr_matrix:
     """``d f / d x`` at rest, symmetrised: the normal forces' per-pair derivative (central
     differences of the 9 facet coordinates, so the facet's rotation and the moving contact
     point are included; exact for the literal rule with the facets' normals; for the patch rule
-    with the weights w_j held fixed, plus the magnitude's dependence on the deepest facet) and
+    with the weights w_j held fixed, plus the magnitude's slope carried by each pair as if its own
+    facet were the deepest: positive semi-definite, where the exact coupling symmetrised is not) and
     the friction springs' ``w k_t H^T P_t H`` (or the slip tangent). With the smooth surface's
     normals the force is no longer the gradient of the contact's energy (the penetration stays
     the facet's): the true derivative is slightly unsymmetric (3 % on a sphere's pair) and this
@@ -103,12 +106,9 @@ def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float,
     corners = contact.corners(body)
     corners = None if corners is None else corners[pr.facet]
     if patch:
-        # Pair force w_j F(delta_max) along its normal at its contact point: their
-        # motion with the facet at fixed magnitude (central differences, exponent 0), plus the
-        # magnitude's dependence on the finger's deepest facet, d delta_max / d x_l =
-        # b_l (c - Q) / |c - Q| with b and Q that facet's contact point (the closest point
-        # slides on the surface at no first-order cost); the weights are lagged.
-        deep = ev.deep
+        # Pair force w_j F(delta_max) along its normal at its contact point: its motion with
+        # the facet at fixed magnitude (central differences, exponent 0); the magnitude's slope
+        # is added below, the weights are lagged.
         zero = np.zeros(len(pr))
         Jn = _normal_jacobian_blocks(x[fac], centres, radii, ev.w * ev.elastic, zero, True, corners)
     else:
@@ -131,18 +131,14 @@ def contact_jacobian(contact: Any, body: Body, x: NDArray[np.float64], t: float,
     cols = np.tile(fac, (1, 3)).ravel()
     blocks = blocks.reshape(-1, 3, 3)
     if patch:
-        gap = centres - pr.point[deep]
-        gdir = gap / np.maximum(np.linalg.norm(gap, axis=1), 1e-300)[:, None]
+        # The magnitude's dependence on the deepest facet, exactly the rank-one coupling
+        # (sum_j g_j b_j n_j) (b_deep gdir)^T, enters the exact products (it is unsymmetric, and
+        # symmetrised it is indefinite once the patch spans many facets). Here each pair carries it
+        # as if its own facet set the magnitude: g_j (b_j n_j)(b_j n_j)^T, positive semi-definite,
+        # equal to the coupling on a single facet, and about as stiff against the patch pressed
+        # as a whole (the weights sum to one).
         g = ev.w * ev.slope
-        bd = pr.bary[deep]
-        cpl = (
-            -(g[:, None, None] * pr.bary[:, :, None] * bd[:, None, :])[:, :, :, None, None]
-            * (pr.normal[:, :, None] * gdir[:, None, :])[:, None, None, :, :]
-        )  # (k, own node, deep node, 3, 3)
-        r1 = np.repeat(fac, 3, axis=1).ravel()
-        c1 = np.tile(fac[deep], (1, 3)).ravel()
-        half = 0.5 * cpl.reshape(-1, 3, 3)
-        rows = np.concatenate([rows, r1, c1])
-        cols = np.concatenate([cols, c1, r1])
-        blocks = np.concatenate([blocks, half, half.transpose(0, 2, 1)])
+        bn = pr.bary[:, :, None] * pr.normal[:, None, :]  # (k, node, 3)
+        own = g[:, None, None, None, None] * bn[:, :, None, :, None] * bn[:, None, :, None, :]
+        blocks = blocks - own.reshape(-1, 3, 3)
     return assemble_blocks(N, rows, cols, blocks)
