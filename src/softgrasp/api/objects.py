@@ -108,13 +108,22 @@ class SoftObject:
         return f"{self.body.mesh.summary()}, mass {self.mass_kg * 1e3:.1f} g"
 
     def to_dict(self, folder: str | Path | None = None) -> dict[str, object]:
-        """JSON-ready description: name, mesh and model sizes, material (units in the keys). With
+        """JSON-ready description: name, mesh and model sizes, material, the local refinement
+        asked for (units in the keys). With
         ``folder`` (the output folder that records it), a mesh file is named by its path relative
         to it (:func:`~softgrasp.io.portable.portable_path`), not by this machine's path."""
         from softgrasp.io.portable import portable_path
 
         name = self.source if folder is None else portable_path(self.source, folder)
-        return {"name": name, **self.body.describe()}
+        out = {"name": name, **self.body.describe()}
+        if self.refinement is not None:
+            r = self.refinement
+            out["refinement"] = {
+                "points_m": [list(p) for p in r.points_m],
+                "size_m": r.size_m,
+                "radius_m": r.radius_m,
+            }
+        return out
 
 
 def _material_file(
