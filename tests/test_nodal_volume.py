@@ -99,7 +99,7 @@ def test_under_uniform_deformation_it_is_the_per_tet_term(sphere, seed):
 R_TIP = 0.008
 
 
-def _squeeze(mesh_size: float, volume: str, travel: float = 2e-3) -> np.ndarray:
+def _squeeze(mesh_size: float, volume: str, travel: float = 2e-3, exact_body: bool = False) -> np.ndarray:
     """Force over Hertz's of two rigid 8 mm fingertips squeezing the rubber sphere (R = 64 mm,
     nu = 0.45) on the table across its equator, each ``travel`` past first touch, (2,). Hertz:
     each contact's approach delta gives F = 4/3 E* sqrt(R_eff) delta^1.5, 1 / R_eff = 1 / R_tip +
@@ -130,7 +130,7 @@ def _squeeze(mesh_size: float, volume: str, travel: float = 2e-3) -> np.ndarray:
     fc = tips(hi)
     table = PlaneContact(Plane([0, 0, 0], [0, 0, 1]), mu=0.8)
     scene = Scene(body, (table, fc))
-    state, cache, before = scene.initial_state(), SolverCache(), None
+    state, cache, before = scene.initial_state(), SolverCache(exact_body=exact_body), None
     for t in np.linspace(0.0, travel, 9)[1:]:
         guess = None if before is None else 2.0 * state.x - before
         before = state.x.copy()
@@ -235,8 +235,9 @@ def test_calibration_fits_with_the_volume_term_it_will_be_used_with(tmp_path):
 def test_newton_factorises_the_per_tet_matrix_of_a_large_nodal_body_and_corrects_its_products(monkeypatch):
     """Above NODAL_DIRECT_MAX_NODES the Newton matrix of a nodal body is the per-tet term's (its
     sparsity: a quarter of the blocks) and the correction turns its products into the exact
-    Jacobian's; both paths reach the same rest of the sphere squeezed 2 mm (to the solves'
-    tolerance)."""
+    Jacobian's, unless the solver cache asks for the exact matrix (``exact_body``); the three
+    paths reach the same rest of the sphere squeezed 2 mm (to the solves' tolerance; asked for, the
+    exact matrix gives the small body's own path exactly)."""
     import softgrasp.physics.body as body_module
 
     mesh, material, mass = make_object("sphere")
@@ -251,6 +252,11 @@ def test_newton_factorises_the_per_tet_matrix_of_a_large_nodal_body_and_corrects
     body.newton_correction(x)(v, product)
     exact = -(body.internal_jacobian(x) @ v)
     assert np.abs(product - exact).max() < 1e-12 * np.abs(exact).max()
+    assert body.newton_correction(x, exact=True) is None
+    assert (body.newton_jacobian(x, exact=True) != body.internal_jacobian(x)).nnz == 0
     approximated = _squeeze(0.016, "nodal")
+    asked_exact = _squeeze(0.016, "nodal", exact_body=True)
     monkeypatch.setattr(body_module, "NODAL_DIRECT_MAX_NODES", 10**9)
-    assert approximated == pytest.approx(_squeeze(0.016, "nodal"), rel=1e-6)
+    direct = _squeeze(0.016, "nodal")
+    assert approximated == pytest.approx(direct, rel=1e-6)
+    assert np.array_equal(asked_exact, direct)  # the same matrices, bit for bit (the GMRES path: ~1e-11)

@@ -276,10 +276,10 @@ class Indentation:
 #: The automatic local element size under an indenting fingertip, as a share of the Hertz contact
 #: radius at the depth; the refined zone reaches :data:`CONTACT_ZONE` contact radii. Measured with
 #: the nodal volume term, force over Hertz's at the fingertip and the table: a 20 mm ball pressed
-#: 1 mm (a = 2.8 mm), 1.024 / 0.992 / 0.978 at elements of 1.40 / 0.93 / 0.70 mm (871 / 1 704 /
-#: 2 937 nodes, 2 / 14 / 98 s, mostly settling the finely meshed bottom on the table), 0.973 /
-#: 1.068 at 1.41 / 0.94 mm; the 64 mm sphere pressed 3 mm, 1.040 / 0.952 / 1.037 at a share of
-#: 1/3, 1/4, 1/6. Within 10 %, but a few per cent of scatter with the mesh's details remain.
+#: 1 mm (a = 2.8 mm), 1.024 / 1.003 / 0.992 / 1.070 / 0.987 at elements of 1.40 / 1.41 / 0.93 /
+#: 0.94 / 0.70 mm (871 to 2 937 nodes, 2 to 21 s, mostly settling the finely meshed bottom on the
+#: table); the 64 mm sphere pressed 3 mm, 1.040 / 0.952 / 1.037 at a share of 1/3, 1/4, 1/6.
+#: Within 10 %, with a few per cent of scatter from the mesh's details.
 CONTACT_SHARE = 1.0 / 3.0
 CONTACT_ZONE = 2.0
 
@@ -292,7 +292,7 @@ def contact_mesh(
     ``depth_m`` into a half-space, which bounds the real one) within :data:`CONTACT_ZONE` times
     ``a`` of its top and of its bottom (the table's contact), above and below its centroid as
     generated, and the point (x, y) [m] to press at: the top's, once the new mesh rests on the
-    table (its pose turns by about the bottom's fine facets' tilt, ~1 degree)."""
+    table (its pose turns by about the tilt of the fine bottom's facets: a degree or two)."""
     import math
 
     import numpy as np

@@ -70,6 +70,10 @@ class SolverCache:
         iterate within rounding of the tolerance on an indefinite matrix: a compressed softening
         cube about to buckle) float32 rounding makes that choice noisy; the material tests, whose
         curves the calibration fits difference, use ``"double"``.
+    exact_body: whether Newton factorises the body's exact matrix where it would otherwise
+        approximate it (a nodal body above
+        :data:`~softgrasp.physics.body.NODAL_DIRECT_MAX_NODES` nodes:
+        :meth:`~softgrasp.physics.body.Body.newton_jacobian`).
     stats: counts of what the solves did: Newton ``systems`` solved, PARDISO ``analyses``,
         ``factorisations`` and solves with an older factor (``stale_solves``), multigrid solves
         (``amg_solves``), hierarchy set-ups and V-cycles (``multigrid_setups``,
@@ -88,6 +92,7 @@ class SolverCache:
     _excess: int = field(default=0, repr=False)
     _fresh: int = field(default=-1, repr=False)
     _correction: Any = field(default=None, repr=False)
+    exact_body: bool = False
     stats: dict[str, int] = field(
         default_factory=lambda: {
             "systems": 0,

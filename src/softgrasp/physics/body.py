@@ -39,7 +39,8 @@ ANISOTROPY_WARNING = 0.02
 #: Default damping ratio of the body's fundamental mode (edge dashpots, stiffness-proportional).
 DEFAULT_DAMPING_RATIO = 0.1
 #: Up to this many nodes Newton factorises the nodal volume term's exact matrix; above, the
-#: per-tet term's, with GMRES on the exact product (:meth:`Body.newton_jacobian`). Default plans
+#: per-tet term's, with GMRES on the exact product (:meth:`Body.newton_jacobian`), unless the
+#: solver cache asks for the exact one (the material tests do). Default plans
 #: of the sphere measured both ways: exact 0.47, 0.76, 1.23 and 3.40 s at 388, 745, 1 239 and
 #: 2 196 nodes; GMRES 0.75, 3.15, 2.14 and 2.81 s.
 NODAL_DIRECT_MAX_NODES = 1500
@@ -267,24 +268,30 @@ class Body:
 
         return replace(self, volume="element")
 
-    def newton_jacobian(self, x: NDArray[np.float64], threads: int = 1) -> sp.csr_matrix:
+    def approximates(self, exact: bool = False) -> bool:
+        """Whether :meth:`newton_jacobian` approximates ``d f / d x``: a nodal body above
+        :data:`NODAL_DIRECT_MAX_NODES` nodes, unless ``exact`` asks for the exact matrix."""
+        return self._nodal is not None and self.n_nodes > NODAL_DIRECT_MAX_NODES and not exact
+
+    def newton_jacobian(self, x: NDArray[np.float64], threads: int = 1, exact: bool = False) -> sp.csr_matrix:
         """The matrix Newton factorises: ``d f / d x``, or above :data:`NODAL_DIRECT_MAX_NODES`
-        an approximation of it in the per-tet term's sparsity: the nodal volume term's (whose
-        exact matrix has about four times the blocks, and costs four to six times as much to
-        factorise) by the per-tet term's, stiffer (it locks) but alike at every uniform
-        deformation, which preconditions GMRES on the exact product (about 12 iterations at
-        nu = 0.45); :meth:`newton_correction` turns its products into the exact ones."""
-        if self._nodal is None or self.n_nodes <= NODAL_DIRECT_MAX_NODES:
+        (unless ``exact``) an approximation of it in the per-tet term's sparsity: the nodal
+        volume term's (whose exact matrix has about four times the blocks, and costs four to six
+        times as much to factorise) by the per-tet term's, stiffer (it locks) but alike at every
+        uniform deformation, which preconditions GMRES on the exact product (about 12 iterations
+        at nu = 0.45 on a plan); :meth:`newton_correction` turns its products into the exact
+        ones."""
+        if not self.approximates(exact):
             return self.internal_jacobian(x, threads)
         return self._element_twin.internal_jacobian(x, threads)
 
     def newton_correction(
-        self, x: NDArray[np.float64]
+        self, x: NDArray[np.float64], exact: bool = False
     ) -> Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]] | None:
-        """What turns a product with ``-newton_jacobian(x)`` into one with ``-internal_jacobian(x)``:
-        a function adding ``(J_approx - J) v`` to ``out`` (flat, 3N, contiguous: changed in
-        place), or None where they are one matrix (the per-tet volume term)."""
-        if self._nodal is None or self.n_nodes <= NODAL_DIRECT_MAX_NODES:
+        """What turns a product with ``-newton_jacobian(x, exact=exact)`` into one with
+        ``-internal_jacobian(x)``: a function adding ``(J_approx - J) v`` to ``out`` (flat, 3N,
+        contiguous: changed in place), or None where they are one matrix."""
+        if not self.approximates(exact):
             return None
         nodal, shape = self._nodal, (self.n_nodes, 3)
 

@@ -151,7 +151,9 @@ def newton(
         f, f_int, scale = unbalanced(scene, x, t, contacts)
         if C is None and (res := float(np.abs(f).max())) <= rtol * scale:
             return x, it - 1, res, lam, contacts  # balanced already: no system to solve
-        A, exact = newton_matrix(scene, x, t, contacts, L, assembly_threads(3 * body.n_nodes, cache))
+        A, exact = newton_matrix(
+            scene, x, t, contacts, L, assembly_threads(3 * body.n_nodes, cache), exact_body=cache.exact_body
+        )
         # Inexact Newton: the linear solve need only be as accurate as the step is far from
         # convergence (the forcing term; quadratic convergence is kept).
         forcing = min(FORCING_MAX, float(np.abs(f).max()) / scale)

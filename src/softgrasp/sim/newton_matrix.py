@@ -41,14 +41,16 @@ class _BodyPattern:
     diagonal: NDArray[np.int64]
 
 
-_PATTERNS: weakref.WeakKeyDictionary[Body, _BodyPattern] = weakref.WeakKeyDictionary()
+_PATTERNS: weakref.WeakKeyDictionary[Body, dict[bool, _BodyPattern]] = weakref.WeakKeyDictionary()
 
 
-def _body_pattern(body: Body) -> _BodyPattern:
-    """The :class:`_BodyPattern` of ``body``'s Jacobian (built once, kept while the body lives)."""
-    pat = _PATTERNS.get(body)
+def _body_pattern(body: Body, exact: bool = False) -> _BodyPattern:
+    """The :class:`_BodyPattern` of ``body``'s Newton Jacobian (``exact``: as
+    :meth:`~softgrasp.physics.body.Body.newton_jacobian`; built once, kept while the body lives)."""
+    kept = _PATTERNS.setdefault(body, {})
+    pat = kept.get(exact)
     if pat is None:
-        J = body.newton_jacobian(np.asarray(body.mesh.points, dtype=np.float64))
+        J = body.newton_jacobian(np.asarray(body.mesh.points, dtype=np.float64), exact=exact)
         n = J.shape[0]
         rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(J.indptr))
         keys = rows * n + J.indices.astype(np.int64)
@@ -60,7 +62,7 @@ def _body_pattern(body: Body) -> _BodyPattern:
         diagonal = np.searchsorted(keys, want)
         if not np.array_equal(keys[np.minimum(diagonal, keys.size - 1)], want):
             raise AssertionError("a node without its diagonal block in the body's Jacobian pattern")
-        pat = _PATTERNS[body] = _BodyPattern(keys, diagonal)
+        pat = kept[exact] = _BodyPattern(keys, diagonal)
     return pat
 
 
@@ -90,16 +92,24 @@ def _static_forces_of(inter, body: Body, t: float, st, x: NDArray[np.float64]) -
 
 
 def newton_matrix(
-    scene: Scene, x: NDArray[np.float64], t: float, contacts: tuple, L: float, threads: int = 1
+    scene: Scene,
+    x: NDArray[np.float64],
+    t: float,
+    contacts: tuple,
+    L: float,
+    threads: int = 1,
+    exact_body: bool = False,
 ) -> tuple[sp.csr_matrix, Callable[[NDArray[np.float64]], NDArray[np.float64]] | None]:
     """The Newton matrix A = -d f / d x as assembled (symmetric: interactions whose Jacobian is a
-    symmetrised approximation contribute that), and, where there are such interactions, the
-    product with the exact matrix: their part of ``A v`` replaced by a forward difference of their
-    forces along v. (A Newton iteration with the symmetrised matrix converges only linearly,
-    about tenfold per iteration; with the exact product, quadratically.)"""
+    symmetrised approximation contribute that; the body's as
+    :meth:`~softgrasp.physics.body.Body.newton_jacobian` with ``exact_body``), and, where there
+    are such interactions or the body's is approximate, the product with the exact matrix: their
+    part of ``A v`` replaced by a forward difference of their forces along v. (A Newton iteration
+    with the symmetrised matrix converges only linearly, about tenfold per iteration; with the
+    exact product, quadratically.)"""
     body = scene.body
-    J = body.newton_jacobian(x, threads=threads)  # in the body's fixed pattern, data fresh
-    pat = _body_pattern(body)
+    J = body.newton_jacobian(x, threads=threads, exact=exact_body)  # in the body's fixed pattern, data fresh
+    pat = _body_pattern(body, exact_body)
     data = J.data
     approx = []
     outside: list[sp.csr_matrix] = []
@@ -133,7 +143,7 @@ def newton_matrix(
     for M in outside:
         A = A - M
     A = A.tocsr()
-    body_part = body.newton_correction(x)
+    body_part = body.newton_correction(x, exact=exact_body)
     if not approx and body_part is None:
         return A, None
     return A, ExactProduct(A, approx, x, L, () if body_part is None else (body_part,))
