@@ -262,6 +262,8 @@ class Indentation:
         write_json(out / "indent.json", self.to_dict(started, folder))
         m = self.object.material
         title = f"Indentation of the {self.object.source} ({m.name}), R = {self.radius_m * 1e3:.3g} mm"
+        if self.object.refinement is not None:
+            title += f"\non a contact mesh of {self.object.refinement.size_m * 1e3:.2g} mm elements"
         measured = None if self.measured is None else (self.measured.penetration_m, self.measured.force_N)
         plot_force_penetration(
             out / "indent.png",
