@@ -61,7 +61,7 @@ def test_a_fingertip_on_a_finely_meshed_patch_of_a_nodal_sphere_meets_hertz():
     10 % of Hertz at the fingertip and the table (measured 1.01). With the patch rule's coupling
     to the deepest facet symmetrised into the Newton matrix, the matrix turned indefinite and the
     solve stalled at 1.7 mm."""
-    obj = sg.load_object("sphere", volume_term="nodal", refinement=LocalRefinement(TOP, 2e-3, 8e-3))
+    obj = sg.load_object("sphere", volume_term="nodal", refinement=sg.LocalRefinement(TOP, 2e-3, 8e-3))
     top = obj.transform @ np.array([*TOP[0], 1.0])
     res = indentation_test(
         obj.body, depth=3e-3, radius=0.008, params=contact_params(None, None), point=top[:2]

@@ -16,12 +16,14 @@ from softgrasp.api.experiments import Compression, Indentation, compress, indent
 from softgrasp.api.objects import SoftObject, load_hand, load_object, material
 from softgrasp.api.planning import Plan, plan
 from softgrasp.model.material import Material
+from softgrasp.model.mesh.generate import LocalRefinement
 
 __all__ = [
     "Calibration",
     "Compression",
     "Execution",
     "Indentation",
+    "LocalRefinement",
     "Material",
     "Plan",
     "SoftObject",
