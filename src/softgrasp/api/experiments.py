@@ -278,10 +278,11 @@ class Indentation:
 #: The automatic local element size under an indenting fingertip, as a share of the Hertz contact
 #: radius at the depth; the refined zone reaches :data:`CONTACT_ZONE` contact radii. Measured with
 #: the nodal volume term, force over Hertz's at the fingertip and the table: a 20 mm ball pressed
-#: 1 mm (a = 2.8 mm), 1.024 / 1.003 / 0.992 / 1.070 / 0.987 at elements of 1.40 / 1.41 / 0.93 /
-#: 0.94 / 0.70 mm (871 to 2 937 nodes, 2 to 21 s, mostly settling the finely meshed bottom on the
-#: table); the 64 mm sphere pressed 3 mm, 1.040 / 0.952 / 1.037 at a share of 1/3, 1/4, 1/6.
-#: Within 10 %, with a few per cent of scatter from the mesh's details.
+#: 1 mm (a = 2.83 mm), 1.024 / 1.003 / 0.973 / 0.992 / 1.070 / 0.987 at elements of 1.40 /
+#: 1.4140 / 1.4142 / 0.93 / 0.943 / 0.70 mm (831 to 2 937 nodes, 2 to 21 s, mostly settling the
+#: finely meshed bottom on the table); the 64 mm sphere pressed 3 mm, 1.040 / 0.952 / 1.037 at a
+#: share of 1/3, 1/4, 1/6. Within 10 %, with a few per cent of scatter from the mesh's details
+#: (gmsh meshes 1.4140 and 1.4142 mm differently).
 CONTACT_SHARE = 1.0 / 3.0
 CONTACT_ZONE = 2.0
 
