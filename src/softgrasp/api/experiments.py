@@ -314,9 +314,9 @@ def contact_mesh(
         size = check("mesh_size", size_m, "the contact mesh size")
     mesh = obj.body.mesh
     x = np.asarray(mesh.points)
-    source = (x - obj.transform[:3, 3]) @ obj.transform[:3, :3]  # the body's rigid placement undone
-    centre = np.asarray(mesh.centroid, dtype=float) - obj.transform[:3, 3]
-    centre = centre @ obj.transform[:3, :3]
+    R, shift = obj.transform[:3, :3], obj.transform[:3, 3]
+    source = (x - shift) @ R  # the body's rigid placement undone
+    centre = (np.asarray(mesh.centroid, dtype=float) - shift) @ R
     top, _ = surface_height(source, mesh.facets, centre[:2])
     bottom = float(source[:, 2].min())
     points = ((float(centre[0]), float(centre[1]), top), (float(centre[0]), float(centre[1]), bottom))
