@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
 from scipy.optimize import brentq
 
 import softgrasp.api as sg
+from softgrasp.api.objects import refined
 from softgrasp.errors import ConfigError, MeshError
 from softgrasp.experiments.indentation import indentation_test
 from softgrasp.io.options import contact_params
@@ -117,6 +119,26 @@ def test_an_indentation_on_a_contact_mesh_converges_to_hertz():
         hertz = _hertz_two_contacts(1e-3, m.E / (1 - m.nu**2), 0.008, 0.02, ind.object.mass_kg * 9.81)
         forces.append(ind.force_at_depth_N / hertz)
     assert np.all(np.abs(np.array(forces) - 1) < 0.10), forces
+
+
+def test_a_remeshed_object_does_not_repeat_its_loading_warnings(tmp_path, capsys):
+    """A ball given without a material warns once that it takes rubber's and water's: loading it
+    says so, meshing it again finely (``refined``, ``indent --contact-mesh-size``) does not say it
+    again, and the remake keeps the defaults (the same E, density within the meshes' volumes)."""
+    from softgrasp.cli.main import main
+    from softgrasp.errors import SoftgraspWarning
+
+    with pytest.warns(SoftgraspWarning, match="without a material"):
+        obj = sg.load_object("ball:0.02")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SoftgraspWarning)
+        new = refined(obj, LocalRefinement(((0.0, 0.0, 0.04),), 2e-3, 4e-3))
+    assert new.material.E == obj.material.E
+    assert new.mass_kg / new.body.mesh.volume == pytest.approx(obj.mass_kg / obj.body.mesh.volume)
+    args = ["indent", "--object", "ball:0.02", "--depth", "0.0005", "--steps", "2"]
+    assert main([*args, "--contact-mesh-size", "0.004", "--out", str(tmp_path / "run")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("without a material") == 1 and "SoftgraspWarning" not in err, err
 
 
 def test_the_indent_command_names_what_to_change(tmp_path, capsys):

@@ -213,18 +213,25 @@ def refined(obj: SoftObject, refinement: LocalRefinement) -> SoftObject:
     """``obj`` meshed again with ``refinement`` (points in the coordinates softgrasp generates it
     in, :func:`load_object`); the same source, mesh size, material, mass and volume term. The
     new mesh rests on the table in its own stable pose. MeshError for an object that gmsh does not
-    mesh here (the structured boxes, mesh files)."""
-    return load_object(
-        obj.source,
-        units=obj.units,
-        material=obj.material_spec,
-        mesh_size_m=obj.mesh_size_m,
-        reorient=obj.reorient,
-        density_kg_m3=obj.density_kg_m3,
-        mass_kg=obj.given_mass_kg,
-        volume_term=obj.body.volume,
-        refinement=refinement,
-    )
+    mesh here (the structured boxes, mesh files). The defaults ``obj`` took were said when it
+    was loaded (:class:`~softgrasp.errors.SoftgraspWarning`): the remake does not say them again."""
+    import warnings
+
+    from softgrasp.errors import SoftgraspWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SoftgraspWarning)
+        return load_object(
+            obj.source,
+            units=obj.units,
+            material=obj.material_spec,
+            mesh_size_m=obj.mesh_size_m,
+            reorient=obj.reorient,
+            density_kg_m3=obj.density_kg_m3,
+            mass_kg=obj.given_mass_kg,
+            volume_term=obj.body.volume,
+            refinement=refinement,
+        )
 
 
 def material(name: str) -> Material:
