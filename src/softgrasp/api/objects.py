@@ -177,9 +177,9 @@ def load_object(
         locking as nu nears 1/2, at about four times the Newton matrix's blocks:
         :mod:`softgrasp.physics.nodal_volume`).
     refinement:
-        Finer elements near points of a gmsh-meshed object (the sphere, ``ball:R``,
-        ``cylinder:DxH``), in the coordinates softgrasp generates it in (standing on z = 0, its
-        centroid on the z axis: the sphere's top at (0, 0, 0.128)):
+        Finer elements near points of a built-in object or a shape (a box is then meshed by gmsh
+        instead of on its grid), in the coordinates softgrasp generates it in (standing on
+        z = 0, its centroid on the z axis: the sphere's top at (0, 0, 0.128)):
         :class:`~softgrasp.model.mesh.generate.LocalRefinement`.
     """
     from softgrasp.io.options import load_placed_body
@@ -212,9 +212,10 @@ def load_object(
 def refined(obj: SoftObject, refinement: LocalRefinement) -> SoftObject:
     """``obj`` meshed again with ``refinement`` (points in the coordinates softgrasp generates it
     in, :func:`load_object`); the same source, mesh size, material, mass and volume term. The
-    new mesh rests on the table in its own stable pose. MeshError for an object that gmsh does not
-    mesh here (the structured boxes, mesh files). The defaults ``obj`` took were said when it
-    was loaded (:class:`~softgrasp.errors.SoftgraspWarning`): the remake does not say them again."""
+    new mesh rests on the table in its own stable pose (a box is meshed by gmsh instead of on its
+    grid). MeshError for a mesh file (it is not meshed here). The defaults ``obj`` took were said
+    when it was loaded (:class:`~softgrasp.errors.SoftgraspWarning`): the remake does not say them
+    again."""
     import warnings
 
     from softgrasp.errors import SoftgraspWarning

@@ -73,7 +73,7 @@ def add_parser(sub) -> None:
         metavar="SIZE|auto",
         help="mesh the object again with elements of SIZE [m] where the fingertip presses and where it "
         "rests on the table (auto: a third of the Hertz contact radius at --depth), so that the mesh "
-        "resolves the contact patches; the sphere, ball:R and cylinder:DxH only",
+        "resolves the contact patches (a built-in object or a shape; boxes are then meshed by gmsh)",
     )
     i.add_argument(
         "--data",

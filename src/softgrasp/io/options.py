@@ -235,7 +235,7 @@ def load_placed_body(
     given its density or mass). A shape whose material has no density is refused (ConfigError
     naming ``--density`` and ``--mass``). ``volume``: the body's volume term
     (:attr:`~softgrasp.physics.body.Body.volume`). ``refinement``: finer elements near points
-    of a gmsh-meshed object (:func:`~softgrasp.model.objects.make_placed_object`).
+    of a built-in object or a shape (:func:`~softgrasp.model.objects.make_placed_object`).
     """
     from softgrasp.model.material import Polynomial, check_given, parse_material
     from softgrasp.model.objects import FILE_MATERIAL, OBJECTS, is_mesh_file, make_placed_object

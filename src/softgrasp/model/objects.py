@@ -100,7 +100,7 @@ def make_placed_object(
     (``scale`` metres each), turned and moved to rest on the table; a built-in object's or a
     shape's coordinates as softgrasp generates them (metres: standing on z = 0, a box about the z
     axis, a sphere, ball or cylinder with its centroid on it). ``refinement``: finer elements
-    near points in those coordinates (the gmsh-meshed sphere, balls and cylinders)."""
+    near points in those coordinates (a built-in object or a shape; a box is then meshed by gmsh)."""
     mesh, material, mass, T = _make_object(name_or_path, mesh_size, reorient, scale, refinement)
     release_freed_memory()
     return mesh, material, mass, T
@@ -115,12 +115,8 @@ def _make_object(
 ) -> tuple[TetMesh, Material, float | None, NDArray[np.float64]]:
     if refinement is not None and not refinable(name_or_path):
         raise MeshError(
-            f"local refinement needs a gmsh-meshed shape (sphere, ball:R, cylinder:DxH); {name_or_path} is "
-            + (
-                "a structured box: refine it with --mesh-size"
-                if _is_box(name_or_path)
-                else "a mesh file: refine it where the fingertips press before loading it"
-            )
+            f"local refinement needs a built-in object or a shape meshed here; {name_or_path} is a mesh "
+            "file: refine it where the fingertips press before loading it"
         )
     if mesh_size is not None:
         RANGES["mesh_size"].check("mesh size", mesh_size, MeshError)
@@ -157,15 +153,11 @@ def _is_shape(name_or_path: str) -> bool:
     return ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES
 
 
-def _is_box(name_or_path: str) -> bool:
-    """Whether ``name_or_path`` is meshed as a structured box (the cube or ``box:...``)."""
-    return name_or_path == "cube" or (_is_shape(name_or_path) and name_or_path.startswith("box:"))
-
-
 def refinable(name_or_path: str) -> bool:
-    """Whether ``name_or_path`` is meshed by gmsh here, so that it can be refined locally (the
-    sphere, balls and cylinders; not the structured boxes nor mesh files)."""
-    return (name_or_path in OBJECTS or _is_shape(name_or_path)) and not _is_box(name_or_path)
+    """Whether ``name_or_path`` is meshed here, so that it can be refined locally (the built-in
+    objects and the shapes; a box refined is meshed by gmsh, :func:`~softgrasp.model.mesh.generate.cuboid`,
+    instead of on its grid); not a mesh file."""
+    return name_or_path in OBJECTS or _is_shape(name_or_path)
 
 
 def check_object(name_or_path: str, scale: float = 1.0) -> None:
@@ -232,11 +224,20 @@ def _generate(
         spec = OBJECTS[name]
         h = spec.mesh_size if mesh_size is None else mesh_size
         if spec.name == "cube":
-            return generate.box(CUBE_SIZE, _box_cells("cube", (CUBE_SIZE,) * 3, h), name="cube"), np.eye(4)
+            return _box(generate, (CUBE_SIZE,) * 3, h, "cube", refinement), np.eye(4)
         return rest_on_table_transform(
             generate.sphere(SPHERE_RADIUS, h, name="sphere", refinement=refinement)
         )
     return _shape(name, mesh_size, scale, refinement)
+
+
+def _box(generate, size: Sequence[float], h: float, name: str, refinement: LocalRefinement | None) -> TetMesh:
+    """A box standing on the table meshed at about ``h``: on its grid
+    (:func:`~softgrasp.model.mesh.generate.box`), or by gmsh where it is refined locally."""
+    if refinement is None:
+        return generate.box(size, _box_cells(name, size, h), name=name)
+    _box_cells(name, size, h)  # the same check of the mesh size against the thinnest edge
+    return generate.cuboid(size, h, name=name, refinement=refinement)
 
 
 def _box_cells(what: str, size: Sequence[float], h: float) -> list[int]:
@@ -297,13 +298,14 @@ def _shape(
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
         h = min(size) / 4 if mesh_size is None else mesh_size
-        cells = _box_cells(spec, size, h)
-        if cells[0] * cells[1] * cells[2] > MAX_SHAPE_CELLS:
-            raise MeshError(
-                f"{spec} at {h * 1e3:.3g} mm elements needs {cells[0] * cells[1] * cells[2]} cells (at most "
-                f"{MAX_SHAPE_CELLS}); give a larger --mesh-size"
-            )
-        return generate.box(size, cells, name=spec), np.eye(4)
+        if refinement is None:
+            cells = _box_cells(spec, size, h)
+            if cells[0] * cells[1] * cells[2] > MAX_SHAPE_CELLS:
+                raise MeshError(
+                    f"{spec} at {h * 1e3:.3g} mm elements needs {cells[0] * cells[1] * cells[2]} cells (at "
+                    f"most {MAX_SHAPE_CELLS}); give a larger --mesh-size"
+                )
+        return _box(generate, size, h, spec, refinement), np.eye(4)
     if kind == "cylinder":
         D, H = vals
         h = min(D, H) / 4 if mesh_size is None else mesh_size

@@ -1,4 +1,5 @@
-"""Mesh generators: structured box; sphere and cylinder through the gmsh mesher.
+"""Mesh generators: structured box; sphere, cylinder and (locally refined) cuboid through the
+gmsh mesher.
 
 The box uses a body-centred cubic (BCC) tetrahedralisation: corner nodes on a regular grid, one
 node at the centre of every cell, and one at the centre of every boundary face. In the bulk it is a
@@ -25,7 +26,7 @@ from softgrasp.model.mesh._gmsh import (
 )
 from softgrasp.model.mesh.tetmesh import TetMesh, signed_volumes
 
-__all__ = ["GROWTH", "LocalRefinement", "box", "cylinder", "sphere"]
+__all__ = ["GROWTH", "LocalRefinement", "box", "cuboid", "cylinder", "sphere"]
 
 #: How fast a locally refined mesh's elements grow away from the refined zone: the element size
 #: rises by this many metres per metre of distance, up to the mesh size. The rubber sphere (nodal
@@ -337,3 +338,38 @@ def cylinder(
         gmsh.model.mesh.generate(3)
         mesh = tet_mesh_from_model(gmsh, name)
     return mesh.on_table() if on_table else mesh
+
+
+def cuboid(
+    size: Sequence[float],
+    mesh_size: float,
+    *,
+    on_table: bool = True,
+    name: str = "box",
+    refinement: LocalRefinement | None = None,
+) -> TetMesh:
+    """An unstructured tet mesh of a rectangular box made by gmsh: what :func:`box` meshes on a
+    grid, where elements of one size everywhere will not do (``refinement``: finer elements near
+    points given in the returned mesh's coordinates, :class:`LocalRefinement`).
+
+    Parameters
+    ----------
+    size: edge lengths [m] along x, y, z.
+    mesh_size: target edge length [m] away from the refined zones.
+    on_table: if true the box stands on z = 0 centred on the z axis (as :func:`box`'s); otherwise
+        it spans [0, size].
+
+    Raises
+    ------
+    MeshError
+        A size or ``mesh_size`` not positive and finite, too many tets, gmsh missing or failing.
+    """
+    sx, sy, sz = (_positive("box size", v) for v in size)
+    h = check_mesh_size(mesh_size, sx * sy * sz, "box", extent=min(sx, sy, sz))
+    x0, y0 = (-0.5 * sx, -0.5 * sy) if on_table else (0.0, 0.0)
+    with gmsh_session(h) as gmsh:
+        gmsh.model.occ.addBox(x0, y0, 0.0, sx, sy, sz)
+        gmsh.model.occ.synchronize()
+        _refine(gmsh, refinement, h)
+        gmsh.model.mesh.generate(3)
+        return tet_mesh_from_model(gmsh, name)
