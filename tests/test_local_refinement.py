@@ -121,29 +121,6 @@ def test_refinement_input_is_checked(tmp_path):
         sg.indent("sphere", depth_m=1e-3, contact_mesh_size_m="fine")
 
 
-def test_an_indentation_on_a_contact_mesh_converges_to_hertz():
-    """``indent`` with a contact mesh: a 20 mm rubber ball (nodal volume term) pressed 1 mm by a
-    rigid 8 mm fingertip, meshed at a half and a third of the contact radius a = sqrt(R depth)
-    where the fingertip presses and where the ball rests: the force is within 10 % of Hertz at
-    both contacts (measured 0.973 and 1.070: the refinement does not converge to 5 %; sizes 1.40,
-    1.4140 and 0.93 mm give 1.024, 1.003 and 0.992); the press point stays within 1.5 mm of the
-    vertical through the centroid. The uniform default mesh (elements ~5 mm, the contact radius ~2.5 mm)
-    is not used."""
-    obj = sg.load_object("ball:0.02", material="rubber", density_kg_m3=1000, volume_term="nodal")
-    a = math.sqrt(0.008 * 1e-3)
-    m = obj.material
-    forces = []
-    for share in (1 / 2, 1 / 3):
-        ind = sg.indent(obj, depth_m=1e-3, contact_mesh_size_m=share * a)
-        assert ind.object.body.n_nodes > 2 * obj.body.n_nodes
-        assert ind.object.to_dict()["refinement"]["size_m"] == pytest.approx(share * a)
-        c, p = ind.object.body.mesh.centroid, ind.result.point_m
-        assert math.hypot(p[0] - c[0], p[1] - c[1]) < 1.5e-3
-        hertz = _hertz_two_contacts(1e-3, m.E / (1 - m.nu**2), 0.008, 0.02, ind.object.mass_kg * 9.81)
-        forces.append(ind.force_at_depth_N / hertz)
-    assert np.all(np.abs(np.array(forces) - 1) < 0.10), forces
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name, depth, sizes",
@@ -154,14 +131,19 @@ def test_contact_meshes_meet_hertz_at_every_mesh_size(name, depth, sizes):
     default mesh size down: the rubber sphere pressed 3 mm (within 10 % of Hertz's force at the
     fingertip and at the table, the sphere preloaded by its weight) and the foam cube 0.5 mm
     (within 10 % of Hertz's sphere on a half-space: the cube is 6 fingertip radii wide and deep),
-    the force changing by less than 5 % from one mesh size to the next. Measured: sphere 1.037,
-    1.031, 1.016 (and 1.011 at 6 mm; with the nodal term 0.931, 0.946, 0.926, 0.929); cube 0.969,
-    0.952, 0.969, 0.950. (On the sphere's uniform meshes the force moves by up to 30 % from one
+    the force changing by less than 5 % from one mesh size to the next; the press point, the
+    refined top where the new mesh came to rest, within 1.5 mm of the vertical through its
+    centroid. Measured: sphere 1.037,
+    1.031, 1.016 (and 1.011 at 6 mm; 1.043-1.055 at 16 mm with elements 2 % apart); cube 0.969,
+    0.952, 0.969, 0.950 (0.954-0.986 with elements 2 % apart). (The nodal term scatters more
+    there: 0.93-1.02 on the 16 mm sphere with elements 2 % apart.) (On the sphere's uniform meshes the force moves by up to 30 % from one
     mesh size to the next: docs/physics.md.)"""
     forces = []
     for size in sizes:
         ind = sg.indent(sg.load_object(name, mesh_size_m=size), depth_m=depth, contact_mesh_size_m="auto")
         assert ind.object.to_dict()["refinement"]["size_m"] == pytest.approx(math.sqrt(0.008 * depth) / 3)
+        c, p = ind.object.body.mesh.centroid, ind.result.point_m
+        assert math.hypot(p[0] - c[0], p[1] - c[1]) < 1.5e-3  # pressed on top, where it is refined
         forces.append(ind.force_at_depth_N)
     m = ind.object.material
     E_star = m.E / (1 - m.nu**2)

@@ -276,13 +276,13 @@ class Indentation:
 
 
 #: The automatic local element size under an indenting fingertip, as a share of the Hertz contact
-#: radius at the depth; the refined zone reaches :data:`CONTACT_ZONE` contact radii. Measured with
-#: the nodal volume term, force over Hertz's at the fingertip and the table: a 20 mm ball pressed
-#: 1 mm (a = 2.83 mm), 1.024 / 1.003 / 0.973 / 0.992 / 1.070 / 0.987 at elements of 1.40 /
-#: 1.4140 / 1.4142 / 0.93 / 0.943 / 0.70 mm (831 to 2 937 nodes, 2 to 21 s, mostly settling the
-#: finely meshed bottom on the table); the 64 mm sphere pressed 3 mm, 1.040 / 0.952 / 1.037 at a
-#: share of 1/3, 1/4, 1/6. Within 10 %, with a few per cent of scatter from the mesh's details
-#: (gmsh meshes 1.4140 and 1.4142 mm differently).
+#: radius at the depth; the refined zone reaches :data:`CONTACT_ZONE` contact radii. Measured, force
+#: over Hertz's (at the fingertip and the table for the sphere; a half-space for the cube), with the
+#: per-tet volume term: the sphere pressed 3 mm, 1.037 / 1.031 / 1.016 / 1.011 on the 16 / 12 / 8 /
+#: 6 mm meshes, 1.043-1.055 with shares 2 % apart on the 16 mm one; the foam cube pressed 0.5 mm,
+#: 0.969 / 0.952 / 0.969 / 0.950 on its 8.3 to 4.2 mm meshes, 0.954-0.986 with shares 2 % apart.
+#: The nodal term scatters more with the mesh's details: 0.93-1.02 on the 16 mm sphere with shares
+#: 2 % apart; on a 20 mm ball pressed 1 mm (a = 2.83 mm) 0.97-1.07 at elements of 1.40 to 0.70 mm.
 CONTACT_SHARE = 1.0 / 3.0
 CONTACT_ZONE = 2.0
 
