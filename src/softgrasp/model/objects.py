@@ -224,16 +224,18 @@ def _generate(
         spec = OBJECTS[name]
         h = spec.mesh_size if mesh_size is None else mesh_size
         if spec.name == "cube":
-            return _box(generate, (CUBE_SIZE,) * 3, h, "cube", refinement), np.eye(4)
+            return _box((CUBE_SIZE,) * 3, h, "cube", refinement), np.eye(4)
         return rest_on_table_transform(
             generate.sphere(SPHERE_RADIUS, h, name="sphere", refinement=refinement)
         )
     return _shape(name, mesh_size, scale, refinement)
 
 
-def _box(generate, size: Sequence[float], h: float, name: str, refinement: LocalRefinement | None) -> TetMesh:
+def _box(size: Sequence[float], h: float, name: str, refinement: LocalRefinement | None) -> TetMesh:
     """A box standing on the table meshed at about ``h``: on its grid
     (:func:`~softgrasp.model.mesh.generate.box`), or by gmsh where it is refined locally."""
+    from softgrasp.model.mesh import generate
+
     if refinement is None:
         return generate.box(size, _box_cells(name, size, h), name=name)
     _box_cells(name, size, h)  # the same check of the mesh size against the thinnest edge
@@ -305,7 +307,7 @@ def _shape(
                     f"{spec} at {h * 1e3:.3g} mm elements needs {cells[0] * cells[1] * cells[2]} cells (at "
                     f"most {MAX_SHAPE_CELLS}); give a larger --mesh-size"
                 )
-        return _box(generate, size, h, spec, refinement), np.eye(4)
+        return _box(size, h, spec, refinement), np.eye(4)
     if kind == "cylinder":
         D, H = vals
         h = min(D, H) / 4 if mesh_size is None else mesh_size
