@@ -135,8 +135,8 @@ def test_contact_meshes_meet_hertz_at_every_mesh_size(name, depth, sizes):
     refined top where the new mesh came to rest, within 1.5 mm of the vertical through its
     centroid.
 
-    Measured: sphere 1.037, 1.031, 1.016 (1.011 at 6 mm; 1.043-1.055 at 16 mm with elements 2 %
-    apart); cube 0.969, 0.952, 0.969 (0.950 at n = 12; 0.954-0.986 with elements 2 % apart). The
+    Measured: sphere 1.037, 1.031, 1.016 (1.003 at 6 mm; 1.043-1.055 at 16 mm with elements 2 %
+    apart); cube 0.973, 0.952, 0.969 (0.953 at n = 12; 0.954-0.986 with elements 2 % apart). The
     nodal term scatters more there (0.93-1.02 on the 16 mm sphere with elements 2 % apart), and
     on the sphere's uniform meshes the force moves by up to 30 % from one mesh size to the next
     (docs/physics.md)."""

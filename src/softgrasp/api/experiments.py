@@ -278,9 +278,9 @@ class Indentation:
 #: The automatic local element size under an indenting fingertip, as a share of the Hertz contact
 #: radius at the depth; the refined zone reaches :data:`CONTACT_ZONE` contact radii. Measured, force
 #: over Hertz's (at the fingertip and the table for the sphere; a half-space for the cube), with the
-#: per-tet volume term: the sphere pressed 3 mm, 1.037 / 1.031 / 1.016 / 1.011 on the 16 / 12 / 8 /
+#: per-tet volume term: the sphere pressed 3 mm, 1.037 / 1.031 / 1.016 / 1.003 on the 16 / 12 / 8 /
 #: 6 mm meshes, 1.043-1.055 with shares 2 % apart on the 16 mm one; the foam cube pressed 0.5 mm,
-#: 0.969 / 0.952 / 0.969 / 0.950 on its 8.3 to 4.2 mm meshes, 0.954-0.986 with shares 2 % apart.
+#: 0.973 / 0.952 / 0.969 / 0.953 on its 8.3 to 4.2 mm meshes, 0.954-0.986 with shares 2 % apart.
 #: The nodal term scatters more with the mesh's details: 0.93-1.02 on the 16 mm sphere with shares
 #: 2 % apart; on a 20 mm ball pressed 1 mm (a = 2.83 mm) 0.97-1.07 at elements of 1.40 to 0.70 mm.
 CONTACT_SHARE = 1.0 / 3.0
