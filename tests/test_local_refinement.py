@@ -186,9 +186,8 @@ def test_the_indent_command_names_what_to_change(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["indent", "--contact-mesh-size", "fine", "--out", str(out)]) != 0
     assert "must be auto or a length" in capsys.readouterr().err
-    for args, words in (
-        (["--object", "sphere", "--contact-mesh-size", "0.02"], "smaller than the mesh size"),
-    ):
-        code = main(["indent", "--depth", "0.003", "--contact-mesh-size", "auto", *args, "--out", str(out)])
-        assert code != 0 and words in capsys.readouterr().err
-        assert not out.exists()
+    code = main(
+        ["indent", "--depth", "0.003", "--object", "sphere", "--contact-mesh-size", "0.02", "--out", str(out)]
+    )
+    assert code != 0 and "smaller than the mesh size" in capsys.readouterr().err
+    assert not out.exists()

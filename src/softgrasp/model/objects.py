@@ -113,7 +113,9 @@ def _make_object(
     scale: float = 1.0,
     refinement: LocalRefinement | None = None,
 ) -> tuple[TetMesh, Material, float | None, NDArray[np.float64]]:
-    if refinement is not None and not refinable(name_or_path):
+    # A built-in object or a shape is meshed here and refines (a box then by gmsh,
+    # generate.cuboid, instead of on its grid); a mesh file does not.
+    if refinement is not None and is_mesh_file(name_or_path):
         raise MeshError(
             f"local refinement needs a built-in object or a shape meshed here; {name_or_path} is a mesh "
             "file: refine it where the fingertips press before loading it"
@@ -151,13 +153,6 @@ def is_mesh_file(name_or_path: str) -> bool:
 def _is_shape(name_or_path: str) -> bool:
     """Whether ``name_or_path`` is a parametric shape (``KIND:DIMENSIONS``, :data:`SHAPES`)."""
     return ":" in name_or_path and name_or_path.split(":", 1)[0] in SHAPES
-
-
-def refinable(name_or_path: str) -> bool:
-    """Whether ``name_or_path`` is meshed here, so that it can be refined locally (the built-in
-    objects and the shapes; a box refined is meshed by gmsh, :func:`~softgrasp.model.mesh.generate.cuboid`,
-    instead of on its grid); not a mesh file."""
-    return name_or_path in OBJECTS or _is_shape(name_or_path)
 
 
 def check_object(name_or_path: str, scale: float = 1.0) -> None:
