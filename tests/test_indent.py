@@ -19,8 +19,9 @@ from softgrasp.model.objects import make_object
 from softgrasp.physics.body import build_body
 
 HEADER = ["time_s", "penetration_m", "force_N", "normal_force_N", "tangential_force_N", "contacts"]
-#: A coarse cube (4 x 4 x 4 cells) and a short path keep the CLI runs at about a second each.
-FAST = ["--mesh-size", "0.0125", "--depth", "0.002", "--steps", "4"]
+#: A coarse cube (4 x 4 x 4 cells, not refined at the contacts) and a short path keep the CLI runs
+#: at about a second each.
+FAST = ["--mesh-size", "0.0125", "--contact-mesh-size", "none", "--depth", "0.002", "--steps", "4"]
 
 
 def _main(argv: list[str], capsys) -> tuple[int, str]:
@@ -68,6 +69,8 @@ def test_cli_writes_csv_json_png(default_cube_run):
         assert key in data
     assert "mean_abs_error_N" not in data
     assert data["object"]["name"] == "cube" and data["object"]["material"]["E_Pa"] == 4.9284e6
+    # by default the mesh resolves the contact patch: a third of Hertz's radius sqrt(R depth)
+    assert data["object"]["refinement"]["size_m"] == pytest.approx((0.008 * 0.005) ** 0.5 / 3)
     assert data["contact"]["mu"] == 0.8 and data["contact"]["rule"] == "patch"
     assert data["fingertip"]["radius_m"] == 0.008 and data["fingertip"]["velocity_m_s"] == [0.0, 0.0, -0.005]
     assert data["parameters"]["depth_m"] == 0.005 and data["parameters"]["steps"] == 10

@@ -121,19 +121,41 @@ def test_refinement_input_is_checked(tmp_path):
         sg.indent("sphere", depth_m=1e-3, contact_mesh_size_m="fine")
 
 
+def test_indent_refines_by_default_only_where_softgrasp_meshes_and_the_mesh_does_not_resolve(tmp_path):
+    """``indent``'s default contact mesh (``auto``: a third of Hertz's radius sqrt(R depth)) is
+    made for an object softgrasp meshes, under the resolved law, whose elements are coarser than
+    that; a mesh file, the paper law's run and a ball already meshed that finely are indented on
+    their own meshes."""
+    from softgrasp.model.mesh import box
+    from softgrasp.model.mesh.io import save_mesh
+
+    path = tmp_path / "block.vtu"
+    save_mesh(box(0.02, 2), path)
+    block = sg.load_object(str(path), material="rubber")
+    ball = sg.load_object("ball:0.02", material="rubber", density_kg_m3=1000.0)  # its elements 5 mm
+    kept = [
+        sg.indent(block, depth_m=5e-4, steps=2),
+        sg.indent(ball, depth_m=5e-4, steps=2, contact_law="paper"),
+        sg.indent(ball, depth_m=5e-3, radius_m=0.05, steps=2),  # a third of 15.8 mm: 5.3 mm
+    ]
+    assert [ind.object for ind in kept] == [block, ball, ball]
+    made = sg.indent(ball, depth_m=2e-3, radius_m=0.05, steps=2).object  # a third of 10 mm: 3.3 mm
+    assert made.refinement is not None and made.refinement.size_m == pytest.approx(math.sqrt(1e-4) / 3)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name, depth, sizes",
     [("sphere", 3e-3, (0.016, 0.012, 0.008)), ("cube", 5e-4, (0.05 / 6, 0.05 / 8, 0.05 / 10))],
 )
 def test_contact_meshes_meet_hertz_at_every_mesh_size(name, depth, sizes):
-    """``indent --contact-mesh-size auto`` with the default (per-tet) volume term, from the
-    default mesh size down: the rubber sphere pressed 3 mm (within 10 % of Hertz's force at the
-    fingertip and at the table, the sphere preloaded by its weight) and the foam cube 0.5 mm
-    (within 10 % of Hertz's sphere on a half-space: the cube is 6 fingertip radii wide and deep),
-    the force changing by less than 5 % from one mesh size to the next; the press point, the
-    refined top where the new mesh came to rest, within 1.5 mm of the vertical through its
-    centroid.
+    """``indent`` as it is by default (its contact mesh ``auto``) with the default (per-tet)
+    volume term, from the default mesh size down: the rubber sphere pressed 3 mm (within 10 % of
+    Hertz's force at the fingertip and at the table, the sphere preloaded by its weight) and the
+    foam cube 0.5 mm (within 10 % of Hertz's sphere on a half-space: the cube is 6 fingertip
+    radii wide and deep), the force changing by less than 5 % from one mesh size to the next; the
+    press point, the refined top where the new mesh came to rest, within 1.5 mm of the vertical
+    through its centroid.
 
     Measured: sphere 1.037, 1.031, 1.016 (1.003 at 6 mm; 1.043-1.055 at 16 mm with elements 2 %
     apart); cube 0.973, 0.952, 0.969 (0.953 at n = 12; 0.954-0.986 with elements 2 % apart). The
@@ -142,7 +164,7 @@ def test_contact_meshes_meet_hertz_at_every_mesh_size(name, depth, sizes):
     (docs/physics.md)."""
     forces = []
     for size in sizes:
-        ind = sg.indent(sg.load_object(name, mesh_size_m=size), depth_m=depth, contact_mesh_size_m="auto")
+        ind = sg.indent(sg.load_object(name, mesh_size_m=size), depth_m=depth)
         assert ind.object.to_dict()["refinement"]["size_m"] == pytest.approx(math.sqrt(0.008 * depth) / 3)
         c, p = ind.object.body.mesh.centroid, ind.result.point_m
         assert math.hypot(p[0] - c[0], p[1] - c[1]) < 1.5e-3  # pressed on top, where it is refined
@@ -179,13 +201,13 @@ def test_a_remeshed_object_does_not_repeat_its_loading_warnings(tmp_path, capsys
 
 
 def test_the_indent_command_names_what_to_change(tmp_path, capsys):
-    """``softgrasp indent --contact-mesh-size``: a word other than auto and a local size above the
-    mesh size each end with a message and no output folder."""
+    """``softgrasp indent --contact-mesh-size``: a word other than auto or none and a local size
+    above the mesh size each end with a message and no output folder."""
     from softgrasp.cli.main import main
 
     out = tmp_path / "run"
     assert main(["indent", "--contact-mesh-size", "fine", "--out", str(out)]) != 0
-    assert "must be auto or a length" in capsys.readouterr().err
+    assert "must be auto, none or a length" in capsys.readouterr().err
     code = main(
         ["indent", "--depth", "0.003", "--object", "sphere", "--contact-mesh-size", "0.02", "--out", str(out)]
     )

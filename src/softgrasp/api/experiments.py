@@ -289,13 +289,15 @@ CONTACT_ZONE = 2.0
 
 def contact_mesh(
     obj: SoftObject, depth_m: float, radius_m: float, size_m: float | str
-) -> tuple[SoftObject, tuple[float, float]]:
+) -> tuple[SoftObject, tuple[float, float] | None]:
     """``obj`` meshed again with elements of ``size_m`` [m] (``"auto"``: :data:`CONTACT_SHARE`
     times ``a = sqrt(R depth)``, the Hertz contact radius of a rigid fingertip of radius R pressed
     ``depth_m`` into a half-space, which bounds the real one) within :data:`CONTACT_ZONE` times
     ``a`` of its top and of its bottom (the table's contact), above and below its centroid as
     generated, and the point (x, y) [m] to press at: the top's, once the new mesh rests on the
-    table (its pose turns by about the tilt of the fine bottom's facets: a degree or two)."""
+    table (its pose turns by about the tilt of the fine bottom's facets: a degree or two).
+    ``"auto"`` on an object meshed no coarser than that already: ``obj`` itself and None (the
+    point: :func:`~softgrasp.experiments.indentation.indentation_test`'s own)."""
     import math
 
     import numpy as np
@@ -303,13 +305,16 @@ def contact_mesh(
     from softgrasp.api.objects import refined
     from softgrasp.experiments.indentation import surface_height
     from softgrasp.model.mesh.generate import LocalRefinement
-    from softgrasp.model.ranges import check
+    from softgrasp.model.objects import element_size
+    from softgrasp.model.ranges import UNITS, check
 
     a = math.sqrt(radius_m * depth_m)
     if isinstance(size_m, str):
         if size_m != "auto":
             raise ConfigError(f"the contact mesh size must be a length in metres or auto, got {size_m!r}")
         size = CONTACT_SHARE * a
+        if size >= element_size(obj.source, obj.mesh_size_m, UNITS[obj.units]):
+            return obj, None  # its elements resolve the patch as they are
     else:
         size = check("mesh_size", size_m, "the contact mesh size")
     mesh = obj.body.mesh
@@ -323,6 +328,14 @@ def contact_mesh(
     new = refined(obj, LocalRefinement(points, size, max(CONTACT_ZONE * a, 2.0 * size)))
     pressed = new.transform @ np.append(points[0], 1.0)
     return new, (float(pressed[0]), float(pressed[1]))
+
+
+def _refines(obj: SoftObject, contact_law: str) -> bool:
+    """Whether ``indent``'s ``auto`` contact mesh applies to ``obj`` under ``contact_law``: an
+    object softgrasp meshes (not a mesh file) under the ``resolved`` law."""
+    from softgrasp.model.objects import is_mesh_file
+
+    return contact_law == "resolved" and not is_mesh_file(obj.source)
 
 
 def check_indent(
@@ -357,7 +370,7 @@ def indent(
     rule: str = "patch",
     contact_law: str = "resolved",
     data: str | Path | ForceCurve | None = None,
-    contact_mesh_size_m: float | str | None = None,
+    contact_mesh_size_m: float | str | None = "auto",
     progress: Callable[[float], None] | None = None,
 ) -> Indentation:
     """Press a fingertip of radius ``radius_m`` [m] ``depth_m`` [m] into ``obj`` (beyond first
@@ -368,10 +381,12 @@ def indent(
     ``facet`` (the paper's literal rule). ``contact_law``: ``resolved`` (the object's compliance
     counted once) or ``paper`` (K delta^n, Eq. 9-11). ``data``: a measured force-penetration curve to compare
     with (:func:`read_force_curve`, or its file). ``contact_mesh_size_m``: mesh the object again
-    with elements of this size [m] where the fingertip presses and where it rests on the table
-    (``"auto"``: a third of the Hertz contact radius at the depth, :func:`contact_mesh`), so that
-    the mesh resolves the contact patches; the fingertip then presses where the refined zone came
-    to rest.
+    with elements of this size [m] where the fingertip presses and where it rests on the table,
+    so that the mesh resolves the contact patches (:func:`contact_mesh`); the fingertip then
+    presses where the refined zone came to rest. ``"auto"`` (the default): a third of the Hertz
+    contact radius at the depth, for an object softgrasp meshes under the ``resolved`` law; a
+    mesh file, or the ``paper`` law (which reproduces the paper's run on its mesh), is indented
+    on the mesh as it is. ``None``: the object's own mesh.
     """
     from softgrasp.experiments.indentation import default_steps, indentation_test, mean_abs_force_error
     from softgrasp.io.options import contact_params
@@ -386,8 +401,11 @@ def indent(
     measured = read_force_curve(data, depth_m) if isinstance(data, str | Path) else data
     n = steps if steps is not None else default_steps(depth_m)
     point = None
-    if contact_mesh_size_m is not None:
-        obj, point = contact_mesh(obj, depth_m, radius_m, contact_mesh_size_m)
+    size = contact_mesh_size_m
+    if size == "auto" and not _refines(obj, contact_law):
+        size = None  # a mesh file, or the paper's law: the mesh as it is
+    if size is not None:
+        obj, point = contact_mesh(obj, depth_m, radius_m, size)
     res = indentation_test(
         obj.body,
         depth=depth_m,

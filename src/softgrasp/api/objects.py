@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from softgrasp.errors import ConfigError
 from softgrasp.io.materialfile import MaterialFile, is_material_file, read_material_file
 from softgrasp.model.material import Material
+from softgrasp.model.ranges import UNITS
 
 if TYPE_CHECKING:
     from softgrasp.hand.kinematics import HandModel
@@ -26,9 +27,6 @@ if TYPE_CHECKING:
     from softgrasp.physics.body import Body
 
 __all__ = ["UNITS", "SoftObject", "load_object", "refined", "material", "load_hand"]
-
-#: Length units of mesh files: name -> metres per unit.
-UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 
 
 @dataclass(frozen=True, eq=False)

@@ -69,11 +69,13 @@ def add_parser(sub) -> None:
     i.add_argument(
         "--contact-mesh-size",
         type=_contact_size,
-        default=None,
-        metavar="SIZE|auto",
+        default="auto",
+        metavar="SIZE|auto|none",
         help="mesh the object again with elements of SIZE [m] where the fingertip presses and where it "
-        "rests on the table (auto: a third of the Hertz contact radius at --depth), so that the mesh "
-        "resolves the contact patches (a built-in object or a shape; boxes are then meshed by gmsh)",
+        "rests on the table, so that the mesh resolves the contact patches (a built-in object or a "
+        "shape; boxes are then meshed by gmsh). auto (default): a third of the Hertz contact radius "
+        "at --depth, under the resolved law on an object softgrasp meshes (a mesh file and the paper "
+        "law keep the mesh as it is); none: the object's own mesh",
     )
     i.add_argument(
         "--data",
@@ -85,14 +87,17 @@ def add_parser(sub) -> None:
 
 
 def _contact_size(text: str) -> float | str:
-    """An argument type: ``auto`` or an element size in metres (--mesh-size's range)."""
+    """An argument type: ``auto``, ``none`` (None) or an element size in metres (--mesh-size's
+    range)."""
     if text == "auto":
         return text
+    if text == "none":
+        return None
     try:
         float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"--contact-mesh-size must be auto or a length in metres, got {text!r}"
+            f"--contact-mesh-size must be auto, none or a length in metres, got {text!r}"
         ) from None
     return number("mesh_size", "--contact-mesh-size")(text)
 
@@ -107,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, out: Path) -> int:
     from softgrasp.api.experiments import check_indent, indent, read_force_curve
+    from softgrasp.model.objects import is_mesh_file
 
     t0 = time.perf_counter()
     check_indent(args.mu, args.steps)
@@ -135,8 +141,14 @@ def _run(args: argparse.Namespace, out: Path) -> int:
         bar.close()
     test.save(out, started=t0)
     res = test.result
-    if args.contact_mesh_size is not None:
-        print(f"mesh     {test.object.summary()}, refined at the fingertip and the table")
+    if test.object.refinement is not None:
+        size = test.object.refinement.size_m
+        print(f"mesh     {test.object.summary()}, {size * 1e3:.3g} mm at the fingertip and the table")
+    elif args.contact_mesh_size == "auto" and is_mesh_file(test.object.source):
+        print(
+            "note: a mesh file is indented on its own mesh; mesh it finer where the fingertip presses and "
+            "where it rests to resolve the contact patches"
+        )
     print(
         f"finger   R = {args.radius * 1e3:.3g} mm, depth {args.depth * 1e3:.3g} mm in {test.steps} "
         "increments, "

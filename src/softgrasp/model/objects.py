@@ -37,6 +37,7 @@ __all__ = [
     "make_placed_object",
     "check_object",
     "is_mesh_file",
+    "element_size",
 ]
 
 #: Edge of the default foam cube [m].
@@ -215,15 +216,26 @@ def _generate(
 ) -> tuple[TetMesh, NDArray[np.float64]]:
     from softgrasp.model.mesh import generate
 
+    h = element_size(name, mesh_size, scale)
     if name in OBJECTS:
         spec = OBJECTS[name]
-        h = spec.mesh_size if mesh_size is None else mesh_size
         if spec.name == "cube":
             return _box((CUBE_SIZE,) * 3, h, "cube", refinement), np.eye(4)
         return rest_on_table_transform(
             generate.sphere(SPHERE_RADIUS, h, name="sphere", refinement=refinement)
         )
-    return _shape(name, mesh_size, scale, refinement)
+    return _shape(name, h, scale, refinement)
+
+
+def element_size(name: str, mesh_size: float | None, scale: float = 1.0) -> float:
+    """The element size [m] a built-in object or a shape is meshed at: ``mesh_size``, else its
+    default (a shape's: a quarter of its smallest size given, a ball's radius)."""
+    if mesh_size is not None:
+        return mesh_size
+    if name in OBJECTS:
+        return OBJECTS[name].mesh_size
+    kind, vals = _shape_sizes(name, scale)
+    return min(vals) / 4
 
 
 def _box(size: Sequence[float], h: float, name: str, refinement: LocalRefinement | None) -> TetMesh:
@@ -292,9 +304,9 @@ def _shape(
     from softgrasp.model.mesh import generate
 
     kind, vals = _shape_sizes(spec, scale)
+    h = element_size(spec, mesh_size, scale)
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
-        h = min(size) / 4 if mesh_size is None else mesh_size
         if refinement is None:
             cells = _box_cells(spec, size, h)
             if cells[0] * cells[1] * cells[2] > MAX_SHAPE_CELLS:
@@ -305,8 +317,6 @@ def _shape(
         return _box(size, h, spec, refinement), np.eye(4)
     if kind == "cylinder":
         D, H = vals
-        h = min(D, H) / 4 if mesh_size is None else mesh_size
         return rest_on_table_transform(generate.cylinder(D / 2, H, h, name=spec, refinement=refinement))
     R = vals[0]
-    h = R / 4 if mesh_size is None else mesh_size
     return rest_on_table_transform(generate.sphere(R, h, name=spec, refinement=refinement))
