@@ -86,7 +86,7 @@ def add_parser(sub) -> None:
     )
 
 
-def _contact_size(text: str) -> float | str:
+def _contact_size(text: str) -> float | str | None:
     """An argument type: ``auto``, ``none`` (None) or an element size in metres (--mesh-size's
     range)."""
     if text == "auto":
