@@ -95,44 +95,40 @@ def settle_on_table(
     iterations (a friction pass), level with the table; the linear solver's state is dropped
     between starts. Smaller bodies and PARDISO's exact solves start level: there the iterates of a
     lowered sphere may zig-zag along its nearly neutral rolling mode.
-    Where no start finds a rest by Newton directly (a soft, heavy object sagging far onto the
-    table, whose Newton iterates cycle as nodes flip in and out of contact), each placement is
-    brought to rest by backward Euler steps from rest instead
-    (:func:`~softgrasp.sim.static.proximal_solve`).
+    Where no start of a placement finds a rest by Newton directly (a soft, heavy object sagging
+    far onto the table, whose Newton iterates cycle as nodes flip in and out of contact; a ball
+    meshed finely at its bottom, whose iterates wander along its nearly neutral rolling mode),
+    that placement is brought to rest by backward Euler steps from rest
+    (:func:`~softgrasp.sim.static.proximal_solve`) before the object is turned onto its most
+    stable facet: one that stands stays where it is put.
     Returns (the rest state, the table, the unloaded placement the rest was found from)."""
     lowers = body.n_nodes >= LOWERED_MIN_NODES and by_multigrid(3 * body.n_nodes, cache)
 
-    def starts() -> Iterable[tuple[str, NDArray[np.float64], NDArray[np.float64] | None]]:
+    def placements() -> Iterable[tuple[str, NDArray[np.float64]]]:
         x = np.asarray(body.mesh.points, dtype=np.float64)
-        for where, placed in (("as meshed", x), ("on its most stable facet", None)):
-            if placed is None:
-                placed = stable_pose(body, x)
-            elif not _stands(x, centre_of_mass(body, x)):
-                continue
-            guess = lowered_start(body, placed) if lowers else None
-            if guess is not None:
-                yield f"{where}, lowered", placed, guess
-            yield where, placed, None
+        if _stands(x, centre_of_mass(body, x)):
+            yield "as meshed", x
+        yield "on its most stable facet", stable_pose(body, x)
 
     failures = []
-    placements = []
-    for where, x, guess in starts():
-        if failures:
-            cache.scene_changed()  # the failed start's factor or hierarchy is no guide here
+    for where, x in placements():
         table = table_under(x, cfg.table_mu)
         rest = Scene(body, (table,))
-        limit = {} if guess is None else {"guess": guess, "max_iter": LOWERED_MAX_ITER}
-        try:
-            state = solve_static(rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL, **limit)[0]
-            return state, table, x
-        except NotConverged as exc:
-            failures.append((where, exc))
-            if guess is None:
-                placements.append((where, x, table))
-    for where, x, table in placements:
+        guess = lowered_start(body, x) if lowers else None
+        for label, start in (((f"{where}, lowered", guess),) if guess is not None else ()) + ((where, None),):
+            if failures:
+                cache.scene_changed()  # the failed start's factor or hierarchy is no guide here
+            limit = {} if start is None else {"guess": start, "max_iter": LOWERED_MAX_ITER}
+            try:
+                state = solve_static(rest, rest.initial_state(x), cache=cache, rtol=PATH_RTOL, **limit)[0]
+                return state, table, x
+            except NotConverged as exc:
+                failures.append((label, exc))
+        # Set down where it stands before it is turned: an object that stands stays where it is put
+        # (a ball meshed finely at its bottom, whose nearly neutral rolling mode Newton wanders
+        # along, would otherwise be turned onto a coarse facet across its hull).
         cache.scene_changed()
         try:
-            rest = Scene(body, (table,))
             return proximal_solve(rest, rest.initial_state(x), 0.0, cache=cache, rtol=PATH_RTOL)[0], table, x
         except NotConverged as exc:
             failures.append((f"{where}, by backward Euler steps", exc))
