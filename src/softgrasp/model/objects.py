@@ -234,7 +234,7 @@ def element_size(name: str, mesh_size: float | None, scale: float = 1.0) -> floa
         return mesh_size
     if name in OBJECTS:
         return OBJECTS[name].mesh_size
-    kind, vals = _shape_sizes(name, scale)
+    _, vals = _shape_sizes(name, scale)
     return min(vals) / 4
 
 
