@@ -296,8 +296,9 @@ def contact_mesh(
     ``a`` of its top and of its bottom (the table's contact), above and below its centroid as
     generated, and the point (x, y) [m] to press at: the top's, once the new mesh rests on the
     table (its pose turns by about the tilt of the fine bottom's facets: a degree or two).
-    ``"auto"`` on an object meshed no coarser than that already: ``obj`` itself and None (the
-    point: :func:`~softgrasp.experiments.indentation.indentation_test`'s own)."""
+    ``"auto"`` on a mesh file (softgrasp does not mesh it) or on an object meshed no coarser than
+    that already: ``obj`` itself and None (the point:
+    :func:`~softgrasp.experiments.indentation.indentation_test`'s own)."""
     import math
 
     import numpy as np
@@ -305,7 +306,7 @@ def contact_mesh(
     from softgrasp.api.objects import refined
     from softgrasp.experiments.indentation import surface_height
     from softgrasp.model.mesh.generate import LocalRefinement
-    from softgrasp.model.objects import element_size
+    from softgrasp.model.objects import element_size, is_mesh_file
     from softgrasp.model.ranges import UNITS, check
 
     a = math.sqrt(radius_m * depth_m)
@@ -313,8 +314,8 @@ def contact_mesh(
         if size_m != "auto":
             raise ConfigError(f"the contact mesh size must be a length in metres or auto, got {size_m!r}")
         size = CONTACT_SHARE * a
-        if size >= element_size(obj.source, obj.mesh_size_m, UNITS[obj.units]):
-            return obj, None  # its elements resolve the patch as they are
+        if is_mesh_file(obj.source) or size >= element_size(obj.source, obj.mesh_size_m, UNITS[obj.units]):
+            return obj, None  # a mesh file, or elements that resolve the patch as they are
     else:
         size = check("mesh_size", size_m, "the contact mesh size")
     mesh = obj.body.mesh
@@ -328,14 +329,6 @@ def contact_mesh(
     new = refined(obj, LocalRefinement(points, size, max(CONTACT_ZONE * a, 2.0 * size)))
     pressed = new.transform @ np.append(points[0], 1.0)
     return new, (float(pressed[0]), float(pressed[1]))
-
-
-def _refines(obj: SoftObject, contact_law: str) -> bool:
-    """Whether ``indent``'s ``auto`` contact mesh applies to ``obj`` under ``contact_law``: an
-    object softgrasp meshes (not a mesh file) under the ``resolved`` law."""
-    from softgrasp.model.objects import is_mesh_file
-
-    return contact_law == "resolved" and not is_mesh_file(obj.source)
 
 
 def check_indent(
@@ -401,11 +394,9 @@ def indent(
     measured = read_force_curve(data, depth_m) if isinstance(data, str | Path) else data
     n = steps if steps is not None else default_steps(depth_m)
     point = None
-    size = contact_mesh_size_m
-    if size == "auto" and not _refines(obj, contact_law):
-        size = None  # a mesh file, or the paper's law: the mesh as it is
-    if size is not None:
-        obj, point = contact_mesh(obj, depth_m, radius_m, size)
+    # the paper's law reproduces the paper's run on the object's own mesh
+    if contact_mesh_size_m is not None and not (contact_mesh_size_m == "auto" and contact_law == "paper"):
+        obj, point = contact_mesh(obj, depth_m, radius_m, contact_mesh_size_m)
     res = indentation_test(
         obj.body,
         depth=depth_m,

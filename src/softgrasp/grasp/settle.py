@@ -115,7 +115,8 @@ def settle_on_table(
         table = table_under(x, cfg.table_mu)
         rest = Scene(body, (table,))
         guess = lowered_start(body, x) if lowers else None
-        for label, start in (((f"{where}, lowered", guess),) if guess is not None else ()) + ((where, None),):
+        starts = ([(f"{where}, lowered", guess)] if guess is not None else []) + [(where, None)]
+        for label, start in starts:
             if failures:
                 cache.scene_changed()  # the failed start's factor or hierarchy is no guide here
             limit = {} if start is None else {"guess": start, "max_iter": LOWERED_MAX_ITER}

@@ -296,15 +296,14 @@ def _shape_sizes(spec: str, scale: float) -> tuple[str, list[float]]:
 
 
 def _shape(
-    spec: str, mesh_size: float | None, scale: float = 1.0, refinement: LocalRefinement | None = None
+    spec: str, h: float, scale: float = 1.0, refinement: LocalRefinement | None = None
 ) -> tuple[TetMesh, NDArray[np.float64]]:
     """A specimen of a given shape and size (``box:0.04x0.04x0.02``, ``cylinder:0.03x0.02``,
-    ``ball:0.03``; the sizes times ``scale`` in metres), meshed with about four elements across
-    its smallest dimension by default."""
+    ``ball:0.03``; the sizes times ``scale`` in metres) meshed at element size ``h`` [m]
+    (:func:`element_size`)."""
     from softgrasp.model.mesh import generate
 
     kind, vals = _shape_sizes(spec, scale)
-    h = element_size(spec, mesh_size, scale)
     if kind == "box":
         size = vals * 3 if len(vals) == 1 else vals
         if refinement is None:
