@@ -597,3 +597,26 @@ def test_unique_rows_of_node_indices_as_numpy_unique_by_rows(n: int) -> None:
                 assert np.array_equal(np.ravel(i0), i1) and i1.ndim == 1  # callers ravel it too
                 assert np.array_equal(np.unique(r, axis=0), _unique_rows(typed, n))
     assert (_row_keys(np.zeros((1, 3), dtype=np.int64), n) is None) == (n >= 2**21)
+
+
+def test_a_mesh_moved_rigidly_keeps_its_shape_and_a_deformed_or_mirrored_one_is_refused(
+    coarse_sphere: TetMesh,
+) -> None:
+    """``moved`` places the rest shape elsewhere: a rotation and a shift keep the volume, the
+    facets and the edge lengths; points that stretch an edge by a micrometre, or mirror the
+    mesh (its tets inverted), are refused."""
+    c, s = np.cos(0.7), np.sin(0.7)
+    turn = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    pts = coarse_sphere.points @ turn.T + [0.01, -0.02, 0.03]
+    moved = coarse_sphere.moved(pts)
+    assert moved.volume == pytest.approx(coarse_sphere.volume, rel=1e-12)
+    assert np.array_equal(moved.facets, coarse_sphere.facets)
+    np.testing.assert_allclose(moved.edge_lengths, coarse_sphere.edge_lengths, rtol=1e-12)
+    stretched = pts.copy()
+    stretched[coarse_sphere.edges[0, 0]] += 1e-6
+    with pytest.raises(MeshError, match="not a rigid motion"):
+        coarse_sphere.moved(stretched)
+    with pytest.raises(MeshError, match="inverted"):
+        coarse_sphere.moved(coarse_sphere.points * [-1.0, 1.0, 1.0])
+    with pytest.raises(MeshError, match="points"):
+        coarse_sphere.moved(pts[:-1])

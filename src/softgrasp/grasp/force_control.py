@@ -258,6 +258,7 @@ def hold_setpoints(
     cache = SolverCache()
     if setup is None:
         setup = closing_setup(body, cfg, cache)
+    body = setup.body  # its rest shape where it lies on the table
     u = setup.directions
     limit = setup.max_travel
 

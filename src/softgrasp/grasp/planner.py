@@ -97,6 +97,7 @@ def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: S
     mu = cfg.contact.mu
     progress.enter("initial grasp")
     setup = closing_setup(body, cfg, cache)  # step 1
+    body = setup.body  # its rest shape where it lies on the table
     ig, placement, start, first = setup.grasp, setup.placement, setup.start, setup.first_touch
     progress.enter("closing")
     closing = Closing(body, cfg, setup, cache, progress.within("closing"))  # step 2

@@ -169,7 +169,10 @@ class ClosingSetup:
     Attributes
     ----------
     settled: the object at rest on the table (no fingers).  table: the table.
-    placed: the unloaded object as placed on the table [m], (N, 3).
+    body: the object with its rest shape where it was placed on the table: its mesh turned with
+        it when the settle turned it onto a stable facet (:meth:`Body.placed_at
+        <softgrasp.physics.body.Body.placed_at>`), so that the contact law measures the mesh where
+        the fingertips land on it (:mod:`softgrasp.physics.fingertip.landing`).
     grasp: the initial grasp.  placement: the hand's placement (None without a hand model).
     start: fingertip centres where the closing starts [m], (3, 3).
     directions: unit closing directions (towards the contact triangle's centroid), (3, 3).
@@ -180,7 +183,7 @@ class ClosingSetup:
 
     settled: State
     table: PlaneContact
-    placed: NDArray[np.float64]
+    body: Body
     grasp: InitialGrasp
     placement: HandPlacement | None
     start: NDArray[np.float64]
@@ -188,6 +191,11 @@ class ClosingSetup:
     reach: NDArray[np.float64]
     first_touch: NDArray[np.float64]
     max_squeeze: float
+
+    @property
+    def placed(self) -> NDArray[np.float64]:
+        """The unloaded object as placed on the table [m], (N, 3)."""
+        return self.body.mesh.points
 
     @property
     def max_travel(self) -> float:
@@ -203,6 +211,7 @@ def closing_setup(body: Body, cfg: PlanConfig, cache: SolverCache | None = None)
     before = cache.stats["systems"]
     settled, table, placed = settle_on_table(body, cfg, cache)
     cache.stats["settle_systems"] = cache.stats["systems"] - before
+    body = body.placed_at(placed)  # the rest shape where it lies (turned with it, if it was)
     xs = settled.x
     ig, placement = _initial_grasp(body, xs, centre_of_mass(body, xs), cfg)
     start, u, reach = _start_centres(ig, cfg)
@@ -219,4 +228,4 @@ def closing_setup(body: Body, cfg: PlanConfig, cache: SolverCache | None = None)
             for j in range(len(cfg.fingers))
         ]
     )
-    return ClosingSetup(settled, table, placed, ig, placement, start, u, reach, first, cfg.max_squeeze)
+    return ClosingSetup(settled, table, body, ig, placement, start, u, reach, first, cfg.max_squeeze)

@@ -123,6 +123,17 @@ class Body:
 
         return NodalVolume(self.mesh.tets, self.mesh.volumes, self.n_nodes, self.kappa, self.barrier)
 
+    def placed_at(self, points: NDArray[np.float64]) -> Body:
+        """This body with its rest shape at ``points`` [m], (N, 3), a rigid motion of its mesh
+        (:meth:`~softgrasp.model.mesh.tetmesh.TetMesh.moved`): the object placed elsewhere, its
+        springs, volume term and masses the same; itself when ``points`` are its mesh's."""
+        pts = np.asarray(points, dtype=np.float64)
+        if np.array_equal(pts, self.mesh.points):
+            return self
+        from dataclasses import replace
+
+        return replace(self, mesh=self.mesh.moved(pts))
+
     @property
     def weight(self) -> NDArray[np.float64]:
         """Total gravity force [N], (3,)."""

@@ -340,6 +340,23 @@ class TetMesh:
         """A copy moved by ``offset`` [m], shape ``(3,)``."""
         return TetMesh(self.points + np.asarray(offset, dtype=np.float64), self.tets, name=self.name)
 
+    def moved(self, points: NDArray[np.float64]) -> TetMesh:
+        """A copy with its nodes at ``points`` [m], shape ``(N, 3)``: a rigid motion of this mesh
+        (its rest shape placed elsewhere, as an object turned onto another face), every edge
+        keeping its length to 1e-9 of the mesh's size."""
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.shape != self.points.shape:
+            raise MeshError(f"a moved mesh needs {self.points.shape} points, got {pts.shape}")
+        e = self.edges
+        change = np.abs(np.linalg.norm(pts[e[:, 1]] - pts[e[:, 0]], axis=1) - self.edge_lengths)
+        size = float(np.ptp(self.points, axis=0).max())
+        if not float(change.max()) <= 1e-9 * size:
+            raise MeshError(
+                f"the points are not a rigid motion of mesh '{self.name}': an edge changes its length "
+                f"by {float(change.max()):.3g} m"
+            )
+        return TetMesh(pts, self.tets, name=self.name)
+
     def scaled(self, factor: float) -> TetMesh:
         """A copy scaled about the origin by ``factor`` (> 0)."""
         if not factor > 0:
