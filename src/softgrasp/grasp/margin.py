@@ -92,7 +92,6 @@ def critical_scale(
         cache = SolverCache()
         setup = closing_setup(body, config, cache)  # every check closes from the same start
         systems.append(int(cache.stats["systems"]))
-    body = setup.body  # its rest shape where it lies on the table
 
     def held(s: float) -> bool:
         if s not in checks:
