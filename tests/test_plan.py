@@ -219,6 +219,30 @@ def test_no_hold_before_the_maximum_squeeze_fails_with_the_reason(sphere_body):
     )
 
 
+def test_a_closing_that_finds_no_rest_says_where_and_that_another_path_may_pass(sphere_body, monkeypatch):
+    """Where no rest is found at a travel, half an increment and a whole one further, before the
+    grasp test passes (a stand-in: every travel past 1 mm fails), the plan ends as infeasible at
+    that travel, with the solver's diagnosis, what a rigid object would need, and the options
+    that make the increments pass other travels (a soft, heavy ball of E = 10.2 kPa found no rest
+    at 2.39 mm with 0.5 mm steps and planned with 1 mm ones)."""
+    from softgrasp.grasp import closing
+
+    real = closing._advance
+
+    def no_rest_past_1mm(scene, start, t, *args, **kwargs):
+        if t > 1e-3:
+            raise NotConverged("static solve cycles (forced)")
+        return real(scene, start, t, *args, **kwargs)
+
+    monkeypatch.setattr(closing, "_advance", no_rest_past_1mm)
+    with pytest.raises(InfeasibleGrasp) as err:
+        plan_grasp(sphere_body)
+    text = str(err.value)
+    assert re.search(r"found no equilibrium of the squeezed object at 1\.\d+ mm of travel", text), text
+    assert "static solve cycles (forced)" in text and "--step" in text and "--mesh-size" in text
+    assert re.search(r"at least [\d.]+ N of normal force", text), text
+
+
 def test_no_hold_with_more_than_the_rigid_need_names_the_proportions(sphere_body, monkeypatch):
     """Where the fingers reached more normal force in all than a rigid object needs at their
     contacts (a stand-in for the rigid-body LP's answer), it is their proportions that do not hold:

@@ -157,7 +157,8 @@ class Closing:
                 f"mu = {self.cfg.contact.mu:g} cannot hold the object: the closing found no equilibrium of "
                 f"the squeezed object at {t * 1e3:.3g} mm of travel before it was held ({exc.diagnosis})"
                 f"{self._rigid_need()[0]}; raise the friction coefficient, or grasp a lighter or stiffer "
-                "object"
+                "object; where another --step or --mesh-size plans it (its increments pass other travels), "
+                "the solver, not the friction, ended this closing"
             ) from exc
 
     def _rigid_need(self) -> tuple[str, bool]:
