@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -130,8 +130,6 @@ class Body:
         pts = np.asarray(points, dtype=np.float64)
         if np.array_equal(pts, self.mesh.points):
             return self
-        from dataclasses import replace
-
         return replace(self, mesh=self.mesh.moved(pts))
 
     @property
@@ -275,8 +273,6 @@ class Body:
     @cached_property
     def _element_twin(self) -> Body:
         """This body with the per-tet volume term (the same arrays)."""
-        from dataclasses import replace
-
         return replace(self, volume="element")
 
     def approximates(self, exact: bool = False) -> bool:
