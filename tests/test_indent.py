@@ -15,6 +15,7 @@ import pytest
 from softgrasp.cli import main
 from softgrasp.errors import ConfigError
 from softgrasp.experiments.indentation import indentation_test, read_force_curve
+from softgrasp.model.material import Material
 from softgrasp.model.objects import make_object
 from softgrasp.physics.body import build_body
 
@@ -99,14 +100,64 @@ def test_a_soft_heavy_ball_on_which_newton_cycles_settles_and_is_indented():
     Newton cycles, comes to rest by backward Euler steps (:func:`softgrasp.sim.static.solve_rest`)
     with the top sagging by more than a millimetre, and the fingertip's force then rises from
     zero at first contact, steadily, with the travel."""
-    from softgrasp.model.material import Material
-
     mesh, _, _ = make_object("ball:0.02")
     body = build_body(mesh, Material(5e3, 0.45, 1000.0))
     res = indentation_test(body, depth=0.004, steps=8)
     assert res.settle_sag_m > 1e-3
     assert abs(res.force_N[0]) < 1e-9 * res.force_N[-1]
     assert (np.diff(res.force_N) > 0).all(), res.force_N
+
+
+def _tilted(mesh, degrees: float):
+    """``mesh`` turned about the x axis by ``degrees`` (balanced on an edge: it would tip over)."""
+    from softgrasp.model.mesh.tetmesh import TetMesh
+
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    R = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    return TetMesh(np.asarray(mesh.points) @ R.T, mesh.tets)
+
+
+def test_an_object_given_on_an_edge_is_pressed_as_it_stands():
+    """A block given balanced on an edge (turned 25 degrees) has no rest there but the rough table's
+    stick: it is turned onto its most stable facet, its base, as plan places it, and pressed
+    there with the same forces as the block given standing (the same mesh, moved rigidly); the
+    surface point above a given press point as meshed turns with it."""
+    mesh, _, _ = make_object("box:0.04x0.04x0.03", 0.008)
+    material = Material(2e5, 0.3, 500.0)
+    standing = indentation_test(build_body(mesh, material), depth=0.002, steps=4)
+    tilted_mesh = _tilted(mesh, 25.0)
+    tilted = indentation_test(build_body(tilted_mesh, material), depth=0.002, steps=4)
+    assert not standing.turned and tilted.turned
+    np.testing.assert_allclose(tilted.force_N, standing.force_N, rtol=1e-6, atol=1e-9 * standing.peak_force_N)
+    # A press point 8 mm off the centre, named on the tilted mesh by the point of its surface above
+    # which that spot of the top face lies.
+    spot = np.array([0.008, 0.0, 0.03])
+    c, s = np.cos(np.radians(25.0)), np.sin(np.radians(25.0))
+    above = np.array([spot[0], c * spot[1] - s * spot[2]])
+    off = indentation_test(build_body(mesh, material), depth=0.002, steps=4, point=spot[:2])
+    moved = indentation_test(build_body(tilted_mesh, material), depth=0.002, steps=4, point=above)
+    # The same spot of the block: as far from the centroid (each run's default point).
+    np.testing.assert_allclose(moved.point_m - tilted.point_m, off.point_m - standing.point_m, atol=1e-9)
+    np.testing.assert_allclose(moved.force_N, off.force_N, rtol=1e-6, atol=1e-9 * off.peak_force_N)
+
+
+def test_a_settle_without_rest_says_so_not_to_take_smaller_load_steps(monkeypatch):
+    """Where the object finds no rest on the table before the fingertip comes, the refusal names the
+    settle and its own remedy, not the load steps of a closing the test has not begun."""
+    from softgrasp.errors import NotConverged
+    from softgrasp.experiments import indentation
+    from softgrasp.sim.static import SMALLER_STEPS
+
+    def cycles(*args, **kwargs):
+        raise NotConverged("static solve cycles (the same 2 iterates over and over)", SMALLER_STEPS)
+
+    monkeypatch.setattr(indentation, "solve_rest", cycles)
+    mesh, _, _ = make_object("ball:0.02")
+    with pytest.raises(NotConverged) as err:
+        indentation_test(build_body(mesh, Material(5e3, 0.45, 1000.0)), depth=0.002, steps=2)
+    text = str(err.value)
+    assert "found no rest on the table: static solve cycles" in text
+    assert "--mesh-size" in text and SMALLER_STEPS not in text
 
 
 def test_stiff_object_follows_contact_law():

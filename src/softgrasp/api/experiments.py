@@ -223,6 +223,7 @@ class Indentation:
                 "point_shift_m": res.point_shift_m,
                 "surface_z_m": res.surface_z_m,
                 "first_contact_travel_m": res.first_contact_travel_m,
+                "placement": "turned onto its most stable facet" if res.turned else "as meshed",
                 "penetration": "fingertip travel since first detected contact with the settled object",
                 "solver": "quasi-static: a static Newton solve per increment, after settling on the table",
             },

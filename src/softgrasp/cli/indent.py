@@ -154,6 +154,11 @@ def _run(args: argparse.Namespace, out: Path) -> int:
         "increments, "
         f"mu = {test.contact.mu:g}, {args.rule} rule, {test.contact.law} law"
     )
+    if res.turned:
+        print(
+            "note: the mesh does not stand as given (its centre of mass is not above its lowest nodes): "
+            "it is pressed turned onto its most stable facet, as plan places it"
+        )
     if res.point_shift_m > 0:
         print(
             f"note: press point moved {res.point_shift_m * 1e6:.3g} um off a mesh vertex/edge, where the "

@@ -1,7 +1,8 @@
 """Indentation by one fingertip (paper Sec. 4.3.1, Figs. 10-11): force versus penetration.
 
-A spherical fingertip presses straight down on the object resting on the table. The object first
-settles under gravity on the table (a static solve, :func:`softgrasp.sim.static.solve_rest`); the
+A spherical fingertip presses straight down on the object resting on the table. The object, turned
+onto its most stable facet where it would tip over as meshed (:func:`softgrasp.grasp.settle.standing`,
+as a plan places it), first settles under gravity (:func:`softgrasp.sim.static.solve_rest`); the
 fingertip starts one increment above the surface point under the press point and moves down
 along -z. The test is quasi-static: the fingertip path is cut into load increments and every
 increment is a static solve (:func:`softgrasp.sim.static.solve_increment`, the load parameter
@@ -42,9 +43,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from softgrasp.errors import ConfigError, ContactError, NotConverged
+from softgrasp.errors import ConfigError, ContactError, NotConverged, diagnosis
 from softgrasp.experiments.measured import read_table
+from softgrasp.experiments.surface import surface_height
+from softgrasp.grasp.settle import no_rest_advice, standing
 from softgrasp.linalg.solve import SolverCache
+from softgrasp.model.mesh.placement import rigid_fit
 from softgrasp.physics.body import Body
 from softgrasp.physics.fingertip.contact import FingerReport, FingertipContact
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
@@ -104,6 +108,7 @@ class IndentationResult:
     point_shift_m: distance the press point was moved out of a detection blind spot [m] (0 if not).
     surface_z_m: height of the settled surface under the press point [m].
     settle_sag_m: lowest-to-highest drop of the top under gravity while settling [m].
+    turned: whether the object was turned onto its most stable facet (it does not stand as meshed).
     halvings: increments that had to be split to converge (0 normally).
     wall_time_s: wall time of the test [s].
     final_positions_m: node positions at the last increment [m], (N, 3).
@@ -130,6 +135,7 @@ class IndentationResult:
     point_shift_m: float
     surface_z_m: float
     settle_sag_m: float
+    turned: bool
     halvings: int
     wall_time_s: float
     final_positions_m: NDArray[np.float64]
@@ -139,53 +145,6 @@ def default_steps(depth: float) -> int:
     """Number of increments of about :data:`DEFAULT_INCREMENT` for ``depth`` [m], at least
     :data:`MIN_STEPS`."""
     return max(MIN_STEPS, math.ceil(depth / DEFAULT_INCREMENT - 1e-9))
-
-
-def _upward_facets(x: NDArray[np.float64], facets: NDArray[np.int64], xy: NDArray[np.float64]):
-    """Upward-facing facets whose xy projection contains ``xy``, with the interpolated heights."""
-    tri = x[facets]
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    nz = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    up = nz > 0  # twice the signed projected area: > 0 for an outward normal with a +z component
-    a, b, c, nz = a[up], b[up], c[up], nz[up]
-    idx = np.flatnonzero(up)
-    px, py = float(xy[0]), float(xy[1])
-    lb = ((c[:, 0] - px) * (a[:, 1] - py) - (c[:, 1] - py) * (a[:, 0] - px)) / nz
-    lc = ((a[:, 0] - px) * (b[:, 1] - py) - (a[:, 1] - py) * (b[:, 0] - px)) / nz
-    la = 1.0 - lb - lc
-    lam = np.stack([la, lb, lc], axis=1)
-    inside = (lam >= -1e-9).all(axis=1)
-    z = la * a[:, 2] + lb * b[:, 2] + lc * c[:, 2]
-    return idx[inside], z[inside]
-
-
-def surface_height(
-    x: NDArray[np.float64], facets: NDArray[np.int64], xy: Sequence[float] | NDArray[np.float64]
-) -> tuple[float, int]:
-    """Height [m] of the top of the surface under the point ``xy`` [m], and the facet it lies on.
-
-    Parameters
-    ----------
-    x: node positions [m], (N, 3).
-    facets: boundary facets with outward ordering, (F, 3).
-    xy: the point (x, y) [m].
-
-    Raises
-    ------
-    ConfigError: no upward-facing boundary facet lies above or below the point (it is outside the
-        object's outline seen from above).
-    """
-    p = np.asarray(xy, dtype=np.float64)
-    idx, z = _upward_facets(x, facets, p)
-    if idx.size == 0:
-        lo, hi = x[:, :2].min(axis=0), x[:, :2].max(axis=0)
-        raise ConfigError(
-            f"press point ({p[0] * 1e3:.2f}, {p[1] * 1e3:.2f}) mm is not above the object "
-            f"(its outline spans x {lo[0] * 1e3:.1f}..{hi[0] * 1e3:.1f} mm, "
-            f"y {lo[1] * 1e3:.1f}..{hi[1] * 1e3:.1f} mm)"
-        )
-    k = int(np.argmax(z))
-    return float(z[k]), int(idx[k])
 
 
 def _contact_at(probe: FingertipContact, body: Body, x, xy, ztop: float, travel: float) -> bool:
@@ -302,7 +261,8 @@ def indentation_test(
     steps: number of equal increments from first contact to ``depth``; default about 0.25 mm
         each, at least 10 (:func:`default_steps`).
     params: contact parameters (friction mu, exponent, K prefactor, rule ...).
-    point: (x, y) [m] where to press; default the object's volume centroid.
+    point: (x, y) [m] where to press; default the object's volume centroid. On an object turned to
+        stand, the surface point above it as meshed, turned with the object.
     table_mu: friction coefficient between the object and the table.
     fingertip_E: Young's modulus of the fingertip [Pa] (Eq. 12); ``inf`` (default) is rigid.
     fingertip_nu: Poisson ratio of the fingertip.
@@ -320,6 +280,14 @@ def indentation_test(
     NotConverged: an increment did not reach equilibrium even when split.
     """
     t_start = time.perf_counter()
+    placed = standing(body)
+    turned = placed is not body
+    if turned and point is not None:
+        # The point of the surface above ``point`` as meshed, carried with the turn.
+        x0 = np.asarray(body.mesh.points)
+        top = np.array([point[0], point[1], surface_height(x0, body.mesh.facets, point)[0], 1.0])
+        point = (rigid_fit(x0, placed.mesh.points) @ top)[:2]
+    body = placed
     x_mesh = np.asarray(body.mesh.points)
     zmin = float(x_mesh[:, 2].min())
     height = float(x_mesh[:, 2].max()) - zmin
@@ -339,7 +307,11 @@ def indentation_test(
     )
     rest = Scene(body, (table,))
     # To the stall tolerance, as a plan's settle: a ball rolls neutrally, a tighter rest wanders.
-    settled, its0 = solve_rest(rest, rest.initial_state(), cache=cache, rtol=STALL_RTOL)
+    try:
+        settled, its0 = solve_rest(rest, rest.initial_state(), cache=cache, rtol=STALL_RTOL)
+    except NotConverged as exc:
+        advice = no_rest_advice(body)
+        raise NotConverged(f"the object found no rest on the table: {diagnosis(exc)}", advice) from exc
     xs = settled.x
     top = float(xs[:, 2].max())
     sag = float(x_mesh[:, 2].max() - top)
@@ -432,6 +404,7 @@ def indentation_test(
         point_shift_m=shift,
         surface_z_m=zs,
         settle_sag_m=sag,
+        turned=turned,
         halvings=halvings,
         wall_time_s=time.perf_counter() - t_start,
         final_positions_m=state.x,

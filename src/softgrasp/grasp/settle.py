@@ -23,7 +23,15 @@ from softgrasp.physics.resting import lowered_onto_table
 from softgrasp.sim.scene import Scene, State
 from softgrasp.sim.static import proximal_solve, solve_static
 
-__all__ = ["settle_on_table", "centre_of_mass", "table_under", "stable_pose", "lowered_start"]
+__all__ = [
+    "settle_on_table",
+    "centre_of_mass",
+    "table_under",
+    "stable_pose",
+    "standing",
+    "lowered_start",
+    "no_rest_advice",
+]
 
 
 def centre_of_mass(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -41,6 +49,15 @@ def stable_pose(body: Body, x: NDArray[np.float64]) -> NDArray[np.float64]:
     """``x`` turned onto its most stable hull facet about its centre of mass
     (:func:`softgrasp.model.mesh.placement.stable_facet_pose`)."""
     return stable_facet_pose(x, centre_of_mass(body, x))
+
+
+def standing(body: Body) -> Body:
+    """``body`` as it stands on a table: as meshed where its centre of mass lies above its lowest
+    nodes' hull, otherwise turned onto its most stable hull facet (:func:`stable_pose`), as
+    :func:`settle_on_table` places it. A mesh balanced on an edge or a vertex is otherwise held
+    up only by the rough table's stick, a rest no real object has."""
+    x = np.asarray(body.mesh.points, dtype=np.float64)
+    return body if _stands(x, centre_of_mass(body, x)) else body.placed_at(stable_pose(body, x))
 
 
 def _lowest(x: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -133,15 +150,21 @@ def settle_on_table(
             return proximal_solve(rest, rest.initial_state(x), 0.0, cache=cache, rtol=PATH_RTOL)[0], table, x
         except NotConverged as exc:
             failures.append((f"{where}, by backward Euler steps", exc))
-    x = np.asarray(body.mesh.points, dtype=np.float64)
-    sag = weight_strain(body, float(np.ptp(x[:, 2])))
     raise NotConverged(
         "the object found no rest on the table: "
         + "; ".join(f"{where}: {diagnosis(exc)}" for where, exc in failures),
+        no_rest_advice(body),
+    ) from failures[-1][1]
+
+
+def no_rest_advice(body: Body) -> str:
+    """What to change where ``body`` finds no rest on the table, with how far its weight strains it."""
+    sag = weight_strain(body, float(np.ptp(body.mesh.points[:, 2])))
+    return (
         f"its weight strains it by about {100 * sag:.2g} % (rho g H / E), and the table's contact with its "
         "nodes flips as they touch and leave: a finer mesh (--mesh-size) spreads that over more, "
-        "smaller nodes and may let it rest",
-    ) from failures[-1][1]
+        "smaller nodes and may let it rest"
+    )
 
 
 def weight_strain(body: Body, height_m: float) -> float:
