@@ -401,12 +401,26 @@ def test_no_output_holds_the_machines_paths(ellipsoid, tmp_path, capsys) -> None
             assert json.loads(p.read_text()).get("softgrasp_version") == sg.__version__, p
 
 
-def test_compress_indent_and_calibrate_name_their_inputs_from_the_output_folder(tmp_path, capsys) -> None:
+def test_compress_indent_and_calibrate_name_their_inputs_from_the_output_folder(
+    tmp_path, capsys, monkeypatch
+) -> None:
     """compress, indent (with measured data) and calibrate of a mesh file, each named by its
     absolute path: their JSON (and material.toml) name the mesh and data files relative to the
-    output folder, never by the machine's paths, and every JSON names the softgrasp version."""
+    output folder, never by the machine's paths, and every JSON names the softgrasp version;
+    the figures' titles name the object by the file's stem."""
+    import softgrasp.viz.plots as plots
     from softgrasp.model.mesh.generate import box
     from softgrasp.model.mesh.io import save_mesh
+
+    titles = []
+    for name in ("plot_stress_strain", "plot_force_penetration"):
+        drawn = getattr(plots, name)
+
+        def recorded(*args, _drawn=drawn, **kwargs):
+            titles.append(kwargs["title"])
+            return _drawn(*args, **kwargs)
+
+        monkeypatch.setattr(plots, name, recorded)
 
     inputs = tmp_path / "inputs"
     inputs.mkdir()
@@ -432,6 +446,8 @@ def test_compress_indent_and_calibrate_name_their_inputs_from_the_output_folder(
         assert doc["softgrasp_version"] == sg.__version__
         assert doc.get("object", doc.get("specimen"))["name"] == "../../inputs/block.vtu", c
     assert json.loads((out["indent"] / "indent.json").read_text())["data_file"] == "../../inputs/indent.csv"
+    assert titles[0].startswith("Compression of the block (")
+    assert titles[1].startswith("Indentation of the block (")
     cal = json.loads((out["calibrate"] / "calibration.json").read_text())
     assert cal["fits"]["compression"]["data"] == "../../inputs/comp.csv"
     assert "compression ../../inputs/comp.csv" in (out["calibrate"] / "material.toml").read_text()

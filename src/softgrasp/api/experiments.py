@@ -112,7 +112,7 @@ class Compression:
             res.strain,
             res.stress_Pa,
             apparent_E_Pa=res.apparent_E_Pa,
-            title=f"Compression of the {self.object.source} ({self.object.material.name})",
+            title=f"Compression of the {self.object.name} ({self.object.material.name})",
             linear_E_Pa=self.object.material.E,
         )
 
@@ -262,7 +262,7 @@ class Indentation:
         write_text(out / "indent.csv", _csv(header, rows))
         write_json(out / "indent.json", self.to_dict(started, folder))
         m = self.object.material
-        title = f"Indentation of the {self.object.source} ({m.name}), R = {self.radius_m * 1e3:.3g} mm"
+        title = f"Indentation of the {self.object.name} ({m.name}), R = {self.radius_m * 1e3:.3g} mm"
         if self.object.refinement is not None:
             title += f"\non a contact mesh of {self.object.refinement.size_m * 1e3:.2g} mm elements"
         measured = None if self.measured is None else (self.measured.penetration_m, self.measured.force_N)
