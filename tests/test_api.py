@@ -16,7 +16,7 @@ from softgrasp.cli import main
 from softgrasp.model.material import Material as ModelMaterial
 
 #: ``softgrasp plan``'s default normal-force set-points [N] (thumb, first, middle).
-DEFAULT_NORMAL_N = {"thumb": 0.299, "first": 0.202, "middle": 0.208}
+DEFAULT_NORMAL_N = {"thumb": 0.297, "first": 0.201, "middle": 0.207}
 
 
 @pytest.fixture(scope="module")

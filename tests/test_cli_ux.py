@@ -82,19 +82,25 @@ def test_plan_prints_one_line_per_phase_off_a_terminal(coarse_run):
     assert "%" not in err  # no bar off a terminal
 
 
-def test_a_margin_held_at_every_scale_tried_says_so(tmp_path, capsys):
-    """The rubber box at mu = 0.15: its closing squeezes twice what holds under force control, so
-    every scale the critical-scale search tries holds, down to its lowest (half the held forces).
-    The margin line says that, and that the least that holds lies lower, instead of naming a
-    scale not held (plan.json: ``not_held_scale`` 0)."""
+def test_a_margin_held_at_every_scale_tried_says_so(tmp_path, capsys, monkeypatch):
+    """A critical-scale search whose every scale tried holds, down to its lowest: the search of
+    the default plan, started at and floored at 1 times the held forces, which hold there (the
+    closing stops where they first hold). The margin line says that, and that the least that
+    holds lies lower, instead of naming a scale not held (plan.json: ``not_held_scale`` 0)."""
+    from softgrasp.grasp import margin as margin_module
+    from softgrasp.grasp import planner
+
+    def floored(body, config, normal_N, **kw):
+        return margin_module.critical_scale(body, config, normal_N, **dict(kw, guess=1.0, lowest=1.0))
+
+    monkeypatch.setattr(planner, "critical_scale", floored)
     out = io.StringIO()
-    args = ["plan", "--object", "box:0.05x0.04x0.03", "--mu", "0.15", "--out", str(tmp_path / "box")]
-    quiet = contextlib.redirect_stderr(io.StringIO())
-    with contextlib.redirect_stdout(out), quiet, pytest.warns(UserWarning):  # (the box's anisotropy)
-        assert main(args) == 0
-    margin = json.loads((tmp_path / "box" / "plan.json").read_text())["margin"]
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*COARSE, "--out", str(tmp_path / "floored")]) == 0
+    margin = json.loads((tmp_path / "floored" / "plan.json").read_text())["margin"]
     assert margin["not_held_scale"] == 0.0
-    assert all(c["held"] for c in margin["checks"])
+    assert margin["critical_scale"] == pytest.approx(1.0 / margin["safety_factor"])  # the held forces
+    assert [c["held"] for c in margin["checks"]] == [True]
     line = next(x for x in out.getvalue().splitlines() if x.startswith("margin:"))
     assert f"held at every scale tried, down to {margin['critical_scale']:.2f} x the set-points" in line
     assert "least that holds" in line and "not at" not in line

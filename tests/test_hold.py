@@ -130,27 +130,26 @@ def test_the_box_set_points_fall_with_friction_and_stay_near_the_rigid_need():
 
 
 def test_a_box_rocking_on_its_bottom_edge_is_closed_past_a_travel_without_rest(monkeypatch):
-    """The 50 x 40 x 30 mm rubber box (60 g) at mu = 0.2: at one travel of its closing Newton
-    finds no rest (a bottom-edge node on the table's edge of contact, the box rocking on it) and
-    a little further it does. The closing goes on from there, rather than ending the plan as if
-    friction could not hold the box, and the plan holds it in static equilibrium, its normal
-    forces above the rigid-body least ones."""
+    """The 50 x 40 x 30 mm rubber box (60 g) at mu = 0.2, where one travel of its closing finds
+    no rest (the fourth closing solve is made to fail, as Newton does where a node on the table's
+    edge of contact rocks the box) and a little further one does. The closing goes on from
+    there, rather than ending the plan as if friction could not hold the box, and the plan holds
+    it in static equilibrium, its normal forces above the rigid-body least ones."""
     from softgrasp.grasp.closing import Closing
 
     body = _body("box:0.05x0.04x0.03")
-    failed = []
+    calls = []
     real = Closing.close
 
     def close(self, start, t, guess=None):
-        try:
-            return real(self, start, t, guess)
-        except NotConverged:
-            failed.append(t)
-            raise
+        calls.append(t)
+        if len(calls) == 4:
+            raise NotConverged("static solve cycles (the same 2 iterates over and over)")
+        return real(self, start, t, guess)
 
     monkeypatch.setattr(Closing, "close", close)
     plan = plan_grasp(body, PlanConfig(contact=ContactParams(mu=0.2)))
-    assert failed  # the closing met a travel without rest
+    assert len(calls) > 4 and max(calls) > calls[3]  # it closed past the travel without rest
     W = body.total_mass * 9.81
     assert plan.force_residual < 0.02 * W
     assert "held" in [w for _, w in plan.hold_checks]
@@ -178,6 +177,22 @@ def test_a_soft_heavy_ball_that_sags_far_onto_the_table_is_planned_and_held(monk
     assert (plan.setpoints > 0).all()
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize(("E", "density"), [(1.02e4, 1000.0), (1e4, 980.0), (1.2e4, 990.0)])
+def test_soft_heavy_balls_find_rest_at_every_travel_and_are_held(E, density):
+    """60 mm balls of E about 10 kPa and about water's density. Where the table held its nodes
+    without Coulomb's limit, a node at the edge of the table's contact patch carried a tangential
+    force with almost no normal force at some travel; no rest existed there and the plan was
+    refused (the first two). With the limit they plan: held in static equilibrium, the
+    set-points above the rigid-body least normal forces."""
+    mesh, _, _ = make_object("ball:0.03")
+    body = build_body(mesh, dataclasses.replace(preset("rubber"), E=E, density=density))
+    plan = plan_grasp(body, PlanConfig())
+    assert plan.force_residual < 0.02 * body.total_mass * 9.81
+    assert "held" in [w for _, w in plan.hold_checks]
+    assert _normal(plan).sum() >= 0.9 * plan.rigid_normal_forces.sum()
+
+
 @pytest.mark.parametrize("E", [5e3, 20e3])
 def test_soft_spheres_that_sag_in_the_fingers_are_held(E):
     """Rubber spheres of E = 5 and 20 kPa plan: held in static equilibrium with every fingertip
@@ -194,29 +209,28 @@ def test_soft_spheres_that_sag_in_the_fingers_are_held(E):
 
 def test_force_control_goes_on_past_a_travel_where_the_object_finds_no_rest(monkeypatch):
     """A 60 mm ball of E = 10 kPa and water's density (111 g) closed under force control to
-    0.72, 0.61 and 0.575 N: at about 1.6 mm of travel, a band a few tenths of a millimetre wide,
-    Newton finds no rest of the object on the table (it rocks on a node flipping in and out of
-    the table's contact). The controller tries shorter and longer moves and goes on past it, as
-    the position-controlled closing does: the fingers reach their set-points within the
-    controller's tolerance and the object is held, where every force-controlled closing ended
-    at that band and the plan was refused as if friction could not hold the ball."""
+    0.72, 0.61 and 0.575 N, where one force-controlled increment finds no rest of the object on
+    the table (the third solve is made to fail, as Newton does where a soft object's contact with
+    the table has no balance at some travel). The controller tries shorter and longer moves and
+    goes on past it, as the position-controlled closing does: the fingers reach their set-points
+    within the controller's tolerance and the object is held, instead of the plan being refused
+    as if friction could not hold the ball."""
     from softgrasp.grasp import force_control
 
     mesh, _, _ = make_object("ball:0.03")
     body = build_body(mesh, dataclasses.replace(preset("rubber"), E=1e4, density=1000.0))
-    failed = []
+    calls = []
     real = force_control.solve_increment
 
     def solve(*args, **kwargs):
-        try:
-            return real(*args, **kwargs)
-        except NotConverged:
-            failed.append(1)
-            raise
+        calls.append(1)
+        if len(calls) == 3:
+            raise NotConverged("static solve cycles (the same 2 iterates over and over)")
+        return real(*args, **kwargs)
 
     monkeypatch.setattr(force_control, "solve_increment", solve)
     target = np.array([0.72, 0.61, 0.575])
     check = force_control.hold_setpoints(body, PlanConfig(), target)
-    assert failed  # an increment without rest was met
+    assert len(calls) > 3  # it went on past the increment without rest
     assert check.held, check.reason
     assert check.reached == pytest.approx(target, rel=force_control.TOLERANCE)

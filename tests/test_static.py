@@ -50,21 +50,49 @@ def test_column_shortens_under_its_own_weight_as_a_bar(nu):
 
 
 @pytest.mark.parametrize("normal", [(0.0, 0.0, 1.0), (0.3, -0.2, 0.9)])
-def test_the_table_at_rest_is_the_gradient_of_its_energy_on_the_nodes_it_touches(normal):
-    """A box pressed into a (level or tilted) rough table, its anchors displaced: the table's
-    static forces are minus the central-difference gradient of its energy, zero on every node
-    that does not touch, and its diagonal blocks are the derivative of those forces."""
+def test_the_table_at_rest_holds_by_coulombs_law_with_an_elastic_slip(normal):
+    """A box pressed into a (level or tilted) table, its anchors displaced, at the start of a
+    Newton pass (its limits taken there): the table's static forces are zero on every node that
+    does not touch; on a touching node the friction is at most mu times the normal force, equal
+    to it against the stretch where the node has moved more than its elastic slip (0.5 % of its
+    edges' length) and in proportion below. Within the pass the forces are minus the
+    central-difference gradient of the table's energy, and the diagonal blocks their derivative;
+    outside a pass the same law is taken at the penetrations at hand."""
+    from softgrasp.physics.planes import ELASTIC_SLIP
+
     body = build_body(box(0.04, 3), preset("foam"), mass=0.01)
     n = np.asarray(normal) / np.linalg.norm(normal)
+    P = np.eye(3) - np.outer(n, n)
     rng = np.random.default_rng(2)
     x = np.asarray(body.mesh.points) + 2e-4 * rng.standard_normal((body.n_nodes, 3))
-    table = PlaneContact(Plane(np.array([0.0, 0.0, 0.0]) + 0.004 * n, n), mu=0.7, name="table")
+    mu = 0.7
+    table = PlaneContact(Plane(np.array([0.0, 0.0, 0.0]) + 0.004 * n, n), mu=mu, name="table")
     state = table.init_state(body, x)
-    state = replace(state, anchor=state.anchor + 3e-4 * rng.standard_normal(state.anchor.shape))
+    # Half the anchors within the elastic slip (about 70 um here), half beyond it.
+    shift = rng.standard_normal(state.anchor.shape)
+    length = np.where(np.arange(body.n_nodes) % 2 == 0, 3e-5, 3e-4)
+    shift *= (length / np.linalg.norm(shift, axis=1))[:, None]
+    state = replace(state, anchor=state.anchor + shift)
+    outside = table.static_forces(body, x, 0.0, state)
+    state = table.static_begin(body, x, 0.0, state)
     f = table.static_forces(body, x, 0.0, state)
+    np.testing.assert_array_equal(f, outside)
     pen = -(x - table.plane.point) @ n
-    assert 0 < (pen > 0).sum() < body.n_nodes
+    touching = np.flatnonzero(pen > 0)
+    assert 0 < len(touching) < body.n_nodes
     assert not f[pen <= 0].any()
+    fn, ft = f[touching] @ n, f[touching] @ P
+    np.testing.assert_allclose(fn, table.stiffness(body)[touching] * pen[touching], rtol=1e-12)
+    s = (x - (table.plane.point + state.anchor))[touching] @ P
+    r = np.linalg.norm(s, axis=1)
+    edges = [body.rest_length[(body.edges == i).any(axis=1)] for i in touching]
+    elastic = ELASTIC_SLIP * np.array([np.mean(e) for e in edges])  # of each node's edges' mean length
+    slips = r > elastic
+    assert 0 < slips.sum() < len(touching)
+    np.testing.assert_allclose(np.linalg.norm(ft[slips], axis=1), mu * fn[slips], rtol=1e-12)
+    assert (np.einsum("ij,ij->i", ft[slips], s[slips]) < 0).all()  # against the stretch
+    stick = -(mu * fn / elastic)[:, None] * s
+    np.testing.assert_allclose(ft[~slips], stick[~slips], rtol=1e-9, atol=1e-15)
     h = 1e-8
     grad = np.zeros_like(x)
     for i in range(body.n_nodes):
@@ -77,12 +105,43 @@ def test_the_table_at_rest_is_the_gradient_of_its_energy_on_the_nodes_it_touches
     on, blocks = table.jacobian_diagonal(body, x, 0.0, state)
     assert set(on.tolist()) == set(np.flatnonzero(pen >= 0).tolist())
     for i, B in zip(on, blocks, strict=True):
+        df = np.zeros((3, 3))
         for a in range(3):
             e = np.zeros_like(x)
             e[i, a] = h
             up = table.static_forces(body, x + e, 0.0, state)[i]
-            df = (up - table.static_forces(body, x - e, 0.0, state)[i]) / (2 * h)
-            np.testing.assert_allclose(B[:, a], df, rtol=1e-6, atol=1e-6 * np.abs(B).max())
+            df[:, a] = (up - table.static_forces(body, x - e, 0.0, state)[i]) / (2 * h)
+        np.testing.assert_allclose(B, df, rtol=1e-6, atol=1e-6 * np.abs(B).max())
+
+
+def test_a_block_on_the_table_stays_below_coulombs_limit_and_finds_no_rest_above_it():
+    """A block on a level table pushed sideways by a dead load spread over its nodes, ramped in
+    ten load steps: at 0.9 of mu times its weight the table balances the push (friction = -push,
+    the block creeping by about its elastic slip); ramped to 1.1 times it, no rest is found once
+    the push nears mu W (it slides)."""
+    from softgrasp.sim.loads import RampedLoad
+
+    mu = 0.5
+    body = build_body(box(0.03, 3), Material(2e5, 0.3, 1000.0))
+    W = body.total_mass * G
+    x0 = np.asarray(body.mesh.points)
+    for ratio, rests in ((0.9, True), (1.1, False)):
+        push = np.zeros((body.n_nodes, 3))
+        push[:, 0] = ratio * mu * W * body.mass / body.total_mass
+        scene = Scene(body, (_table(mu), RampedLoad(push, x0, start=0.0, end=1.0)))
+        state, _ = solve_static(scene, scene.initial_state(), t=0.0)
+        try:
+            for t in np.linspace(0.1, 1.0, 10):
+                state, _ = solve_static(scene, state, t=float(t))
+        except NotConverged:
+            assert not rests, f"no rest found at {t:g} of {ratio} mu W"
+            assert t > 1.0 / ratio - 0.1  # it slides once the push passes mu W
+            continue
+        assert rests, f"the block rests at {ratio} mu W"
+        R = scene.interactions[0].static_forces(body, state.x, 1.0, state.contacts[0]).sum(axis=0)
+        assert R[0] == pytest.approx(-ratio * mu * W, rel=1e-6)
+        assert R[2] == pytest.approx(W, rel=1e-6)
+        assert np.abs(state.x[:, 0] - x0[:, 0]).max() < 2e-4  # its elastic slip: 0.5 % of 10 mm edges
 
 
 def test_sphere_rests_on_table_without_rolling():
@@ -120,8 +179,9 @@ def test_newton_matrices_share_the_body_pattern_and_leave_it_intact(method):
 def test_a_predicted_start_finds_the_same_rest_in_fewer_iterations():
     """A block on a rough table pressed down by a rigid plate in two equal load steps: the second
     step started from the first two rests extrapolated (the response is nearly linear) finds the
-    rest found from the first step's alone, to the solver's tolerance, in fewer Newton
-    iterations; a guess that would invert tets is ignored."""
+    rest found from the first step's alone, to the solver's tolerance (10 rtol once the table's
+    friction passes agree), in fewer Newton iterations; a guess that would invert tets is
+    ignored."""
     mesh = box((0.03, 0.03, 0.02), (3, 3, 2))
     body = build_body(mesh, Material(1e5, 0.3, 1000.0))
     plate = PlaneContact(Plane([0, 0, 0.02], [0, 0, -1], velocity=[0, 0, -1e-3]), mu=0.5, name="plate")
@@ -131,7 +191,7 @@ def test_a_predicted_start_finds_the_same_rest_in_fewer_iterations():
     plain, info_plain = solve_static(scene, one, t=2.0)
     predicted, info_predicted = solve_static(scene, one, t=2.0, guess=extrapolated(one.x, start.x))
     scale = float(np.ptp(plain.x - np.asarray(mesh.points)))
-    np.testing.assert_allclose(predicted.x, plain.x, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(predicted.x, plain.x, rtol=0, atol=10 * 1e-9 * scale)
     assert info_predicted.newton_iterations < info_plain.newton_iterations
     inverted = one.x.copy()
     inverted[:, 2] *= -1.0  # every tet turned inside out
@@ -143,8 +203,9 @@ def test_a_predicted_start_finds_the_same_rest_in_fewer_iterations():
 def test_an_increment_solved_to_a_looser_tolerance_stops_there_near_the_tight_rest():
     """``solve_increment`` passes ``rtol`` to the static solve (the planner's closing increments
     use ``STEP_RTOL`` = 1e-4 of the largest force, its held state 1e-9): a block pressed 3 mm by
-    a rigid plate, solved to 1e-6, stops balanced to that and not to 1e-9, one Newton iteration
-    earlier, at a rest within 1e-6 of the displacement of the one solved to 1e-9."""
+    a rigid plate, solved to 1e-6, stops balanced to that (within the 10 rtol the static solve
+    accepts once the table's friction passes agree) and not to 1e-9, in fewer Newton iterations,
+    at a rest within 10 rtol of the displacement of the one solved to 1e-9."""
     mesh = box((0.03, 0.03, 0.02), (3, 3, 2))
     body = build_body(mesh, Material(1e5, 0.3, 1000.0))
     plate = PlaneContact(Plane([0, 0, 0.02], [0, 0, -1], velocity=[0, 0, -3e-3]), mu=0.5, name="plate")
@@ -157,11 +218,11 @@ def test_an_increment_solved_to_a_looser_tolerance_stops_there_near_the_tight_re
 
     loose, it_loose, _ = solve_increment(scene, start, 1.0, rtol=1e-6)
     tight, it_tight, _ = solve_increment(scene, start, 1.0, rtol=1e-9)
-    assert 1e-9 < balance(loose) <= 10 * 1e-6  # solve_static accepts 10 rtol after the slip return
+    assert 1e-8 < balance(loose) <= 10 * 1e-6  # solve_static accepts 10 rtol after the slip return
     assert balance(tight) <= 10 * 1e-9
     assert it_loose < it_tight
     moved = float(np.ptp(tight.x - np.asarray(mesh.points)))
-    assert np.abs(loose.x - tight.x).max() <= 1e-6 * moved
+    assert np.abs(loose.x - tight.x).max() <= 10 * 1e-6 * moved
 
 
 def test_a_tipping_ball_follows_negative_curvature_to_the_same_rest(monkeypatch):

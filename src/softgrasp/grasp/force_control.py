@@ -53,6 +53,10 @@ __all__ = ["SetpointHold", "hold_setpoints", "TOLERANCE", "MAX_INCREMENTS"]
 TOLERANCE = 0.01
 #: Closing increments of the force controller before it gives up.
 MAX_INCREMENTS = 80
+#: The fraction of the way to its set-point that a finger below it aims for by its own secant
+#: alone (before the Jacobian has seen the fingers' coupling): the others' pushes move the object
+#: towards it, on the table's elastic slip, and add to its force.
+OWN_SECANT_REACH = 0.9
 
 
 @dataclass(frozen=True)
@@ -122,14 +126,15 @@ def _next_move(
 
     Each finger's own secant ``gain`` dG_j/ds_j is kept from the last increment that moved it
     with a rising force. Until every finger has one, a finger with a gain steps by err_j / gain_j
-    and one without moves by ``first`` [m] (the contact law's travel from its force to its
-    set-point) towards a set-point above its force, a quarter ``step`` back from one below it.
+    (:func:`_own`) and one without moves by ``first`` [m] (the contact law's travel from its
+    force to its set-point) towards a set-point above its force, a quarter ``step`` back from one
+    below it.
     Then the fingers move together: the Jacobian ``jac`` dG/ds (k, k), started as diag(gain),
     follows Broyden's update (each finger's force also changes when the others push the object),
     and the move solves jac d = err, so that a finger already at its set-point compensates for the
     others. A Jacobian that turns singular or gives a finger a non-positive own gain (a contact
-    slipping or lost) restarts from diag(gain). Each finger's move is clipped to at most ``step``
-    either way.
+    slipping or lost) restarts from diag(gain) (a step by :func:`_own`). Each finger's move is
+    clipped to at most ``step`` either way.
 
     Returns (move, gain, jac)."""
     moved = np.abs(ds) > 1e-12
@@ -139,7 +144,7 @@ def _next_move(
     if not known.all():
         jac = None
         blind = np.where(err > 0, first, -0.25 * step)
-        move = np.where(known, err / np.where(known, gain, 1.0), blind)
+        move = np.where(known, _own(err, np.where(known, gain, 1.0)), blind)
         return np.clip(move, -step, step), gain, jac
     if jac is not None and moved.any():
         jac = jac + np.outer(dG - jac @ ds, ds) / float(ds @ ds)  # Broyden's rank-one update
@@ -151,8 +156,15 @@ def _next_move(
             move = None
     if move is None or not np.isfinite(move).all():
         jac = np.diag(gain)
-        move = err / gain
+        move = _own(err, gain)
     return np.clip(move, -step, step), gain, jac
+
+
+def _own(err: NDArray[np.float64], gain: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each finger's travel to its set-point by its own secant ``gain`` [1/m of G] from its error
+    ``err`` in G, :data:`OWN_SECANT_REACH` of the way from below and the whole way back from
+    above."""
+    return np.where(err > 0, OWN_SECANT_REACH, 1.0) * err / gain
 
 
 def _law_travels(

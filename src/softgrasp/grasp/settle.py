@@ -1,6 +1,6 @@
 """The object at rest on the table, before the fingers close (paper Sec. 4.3.2): the mesh as it
 stands, or turned onto its most stable hull facet where it would tip over, brought to static
-equilibrium under its weight on a rough table.
+equilibrium under its weight on the table, with friction.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def standing(body: Body) -> Body:
     """``body`` as it stands on a table: as meshed where its centre of mass lies above its lowest
     nodes' hull, otherwise turned onto its most stable hull facet (:func:`stable_pose`), as
     :func:`settle_on_table` places it. A mesh balanced on an edge or a vertex is otherwise held
-    up only by the rough table's stick, a rest no real object has."""
+    up only by the table's friction, a rest no real object has."""
     x = np.asarray(body.mesh.points, dtype=np.float64)
     return body if _stands(x, centre_of_mass(body, x)) else body.placed_at(stable_pose(body, x))
 

@@ -329,6 +329,16 @@ class Body:
         return self._stiffness_rows / 2.0  # diagonal + off-diagonal row sums: twice the spring sum
 
     @cached_property
+    def node_edge_length(self) -> NDArray[np.float64]:
+        """Per node, the mean rest length of its edges [m], (N,), read-only: the mesh's local size."""
+        e = self.mesh.edges
+        total = np.bincount(e.ravel(), weights=np.repeat(self.rest_length, 2), minlength=self.n_nodes)
+        count = np.bincount(e.ravel(), minlength=self.n_nodes)
+        out = total / np.maximum(count, 1)
+        out.setflags(write=False)
+        return out
+
+    @cached_property
     def _stiffness_rows(self) -> NDArray[np.float64]:
         """Per node, the largest absolute row sum over its 3 rows of the rest stiffness matrix
         [N/m], (N,), read-only."""

@@ -5,7 +5,9 @@ p = -(x - P)·n. Friction: the elastic-slider model of the paper's Algorithm 1 a
 tangential spring from the node to an *anchor* fixed on the plane (stick displacement v) gives
 ``f_t = -k_t v - c_t v_t``; when its norm would exceed ``mu f_n`` the node slips, the force is
 ``mu f_n`` along the trial direction and the anchor is dragged along (slip displacement u). Anchors
-are created when a node touches the plane and dropped when it leaves.
+are created when a node touches the plane and dropped when it leaves. At rest (the static solver's
+forces) the stick spring is ``mu f_n / s_e``, so that a node slips once it has moved its elastic
+slip s_e from its anchor (:meth:`PlaneContact.static_begin`).
 
 :meth:`PlaneContact.forces` and :meth:`PlaneContact.update` run the law of
 :mod:`softgrasp.physics.planes_compiled`, which the fused stepper calls too.
@@ -63,6 +65,12 @@ class Plane:
         return self.point + t * self.velocity
 
 
+#: A node's elastic slip at rest, as a fraction of its edges' mean length: how far it moves from
+#: where it stuck before it slips (the regularisation of Coulomb's law finite-element codes use,
+#: 0.5 % of the elements' size).
+ELASTIC_SLIP = 0.005
+
+
 @dataclass(frozen=True)
 class PlaneState:
     """Friction state of one plane: which nodes touch and their anchors.
@@ -72,10 +80,14 @@ class PlaneState:
     active: nodes in contact at the last update, (N,) bool.
     anchor: anchor positions in the plane, relative to its moving point [m], (N, 3). A free node's
         anchor follows it, so that a node touching during a step sticks where it entered contact.
+    cap: within a static solve, each node's Coulomb limit ``mu f_n`` [N] where the Newton pass
+        began (NaN where it did not touch then), (N,); None outside one (the static forces then
+        take it from the penetrations at hand).
     """
 
     active: NDArray[np.bool_]
     anchor: NDArray[np.float64]
+    cap: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -158,45 +170,91 @@ class PlaneContact:
 
     def _static_touching(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
         """The touching nodes (the few a body stands on, not all N: only they carry force), their
-        penalty and friction stiffnesses, the normal, their penetrations and tangential stretches.
-
-        At rest the table holds every touching node where it touched (a rough table): sticking
-        without a Coulomb limit keeps the static problem a potential, which Newton's method solves
-        reliably. Sliding on the table is simulated by the dynamic solvers.
-        """
+        penalty stiffnesses, the normal, their penetrations and tangential stretches, their
+        Coulomb limits [N] (NaN: held without one, :meth:`static_begin`) and elastic slips [m]."""
         p0, n, pen = self._geometry(x, t)
         on = np.flatnonzero(pen > 0)
         k = self.stiffness(body)[on]
         s = x[on] - (p0 + state.anchor[on])
-        return on, k, self.tangential_ratio * k, n, pen[on], s - (s @ n)[:, None] * n
+        cap = self.mu * k * pen[on] if state.cap is None else state.cap[on]
+        slip = ELASTIC_SLIP * body.node_edge_length[on]
+        return on, k, n, pen[on], s - (s @ n)[:, None] * n, cap, slip
+
+    def static_begin(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
+        """State at the start of a Newton pass of a static solve: each node's Coulomb limit
+        ``mu f_n`` from its penetration at ``x``, where the pass starts (NaN where it does not
+        touch).
+
+        At rest the table holds each touching node by a stick spring up to Coulomb's limit, and
+        beyond it the node slips, its force ``mu f_n`` against its stretch (Algorithm 1 at rest).
+        The spring's stiffness is ``mu f_n / s_e``: the node slips once it has moved its elastic
+        slip ``s_e`` (:data:`ELASTIC_SLIP` of its edges' length, as finite-element codes
+        regularise Coulomb's law) from where it stuck, whatever its load, so that the kink of the
+        law lies at a scale Newton's steps resolve and a node with no normal force holds nothing.
+        Within a pass the limits stay as they were at its start (Tresca's law: the forces are
+        minus the gradient of :meth:`energy`, a potential), and a node that touches only during
+        the pass is held by the penalty-scaled spring ``k_t`` without a limit; after the pass
+        (:meth:`static_update`) the limits are taken again at the rest, and the static solver
+        repeats passes until the forces balance under them. (Without a limit, a node at the edge
+        of the contact patch can hold a tangential force with no normal force, and where balance
+        needs the table to pull it down no rest exists: a soft, heavy ball's closing found
+        none.)"""
+        _, _, pen = self._geometry(x, t)
+        cap = np.where(pen > 0, self.mu * self.stiffness(body) * np.maximum(pen, 0.0), np.nan)
+        return replace(state, cap=cap)
+
+    def _friction(
+        self,
+        k: NDArray[np.float64],
+        s: NDArray[np.float64],
+        cap: NDArray[np.float64],
+        slip: NDArray[np.float64],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+        """Per touching node (penalty stiffness k, stretch s, limit cap or NaN, elastic slip): the
+        stretch's length [m], the limit (0 for NaN) [N], whether it slips, and the friction's
+        secant stiffness [N/m] (its force over its stretch)."""
+        r = np.linalg.norm(s, axis=1)
+        new = np.isnan(cap)
+        c = np.where(new, 0.0, cap)
+        slips = ~new & (r > slip)
+        secant = np.where(
+            new, self.tangential_ratio * k, np.where(slips, c / np.maximum(r, 1e-300), c / slip)
+        )
+        return r, c, slips, secant
 
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
-        """Potential [J] of the normal penalty springs and of the sticking friction springs
-        ``k_t |s|^2 / 2``."""
-        _, k, kt, _, pen, s = self._static_touching(body, x, t, state)
+        """Potential [J] of the normal penalty springs and of the friction: ``c |s|^2 / (2 s_e)``
+        while a node sticks, ``c (|s| - s_e / 2)`` once it slips (c its limit, s_e its elastic
+        slip; ``k_t |s|^2 / 2`` for a node held without a limit)."""
+        on, k, _, pen, s, cap, slip = self._static_touching(body, x, t, state)
         e = 0.5 * float(np.sum(k * pen**2))
         if self.mu > 0:
-            e += 0.5 * float(np.sum(kt * np.einsum("ij,ij->i", s, s)))
+            r, c, slips, secant = self._friction(k, s, cap, slip)
+            e += float(np.sum(np.where(slips, c * (r - 0.5 * slip), 0.5 * secant * r**2)))
         return e
 
     def static_forces(
         self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState
     ) -> NDArray[np.float64]:
-        """Forces at rest [N], (N, 3): penalty normal force and the sticking elastic-slider friction
-        of touching nodes (minus the gradient of :meth:`energy`)."""
-        on, k, kt, n, pen, s = self._static_touching(body, x, t, state)
+        """Forces at rest [N], (N, 3): penalty normal force and the elastic-slider friction of
+        touching nodes against their stretch, at most ``mu f_n`` (Eq. 15-16 at rest; minus the
+        gradient of :meth:`energy`)."""
+        on, k, n, pen, s, cap, slip = self._static_touching(body, x, t, state)
         f = np.zeros(x.shape)
         f[on] = (k * pen)[:, None] * n
         if self.mu > 0:
-            f[on] -= kt[:, None] * s
+            _, _, _, secant = self._friction(k, s, cap, slip)
+            f[on] -= secant[:, None] * s
         return f
 
     def jacobian_diagonal(
         self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """:meth:`jacobian` by its non-zero diagonal 3x3 blocks (the plane couples no two nodes):
-        (the nodes on or beyond the plane (K,), their blocks (K, 3, 3)); every other block is zero."""
-        _, n, pen = self._geometry(x, t)
+        (the nodes on or beyond the plane (K,), their blocks (K, 3, 3)); every other block is zero.
+        Friction: ``mu f_n / s_e`` where a node sticks; where it slips ``mu f_n / |s|`` across its
+        stretch and none along it (the Hessian of :meth:`energy`)."""
+        p0, n, pen = self._geometry(x, t)
         # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
         # body resting on the plane must not look unsupported to Newton's method (nor slide).
         on = np.flatnonzero(pen >= 0)
@@ -204,7 +262,15 @@ class PlaneContact:
         nn = np.outer(n, n)
         blocks = -k[:, None, None] * nn[None]
         if self.mu > 0:
-            blocks = blocks - (self.tangential_ratio * k)[:, None, None] * (np.eye(3) - nn)[None]
+            s = x[on] - (p0 + state.anchor[on])
+            s = s - (s @ n)[:, None] * n
+            cap = self.mu * k * pen[on] if state.cap is None else state.cap[on]
+            # A node on the plane but not in it has no limit yet: held by k_t, as one touching anew.
+            cap = np.where(pen[on] > 0, cap, np.nan)
+            r, _, slips, secant = self._friction(k, s, cap, ELASTIC_SLIP * body.node_edge_length[on])
+            u = s / np.maximum(r, 1e-300)[:, None]
+            along = np.where(slips[:, None, None], np.einsum("ki,kj->kij", u, u), 0.0)
+            blocks = blocks - secant[:, None, None] * ((np.eye(3) - nn)[None] - along)
         return on, blocks
 
     def jacobian(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> sp.csr_matrix:
@@ -231,17 +297,36 @@ class PlaneContact:
             _f64(x), self.plane.point_at(t), self.plane.normal, float(self.mu), k, kt, active, anchor,
             0, len(x),
         )  # fmt: skip
-        return replace(state, active=active, anchor=anchor)
+        return replace(state, active=active, anchor=anchor, cap=None)
 
-    def static_update(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
-        """State update of a static solve: free nodes carry their anchors along, so a node that
-        touches sticks where it entered contact; touching nodes keep their anchors (no slip)."""
+    def refresh(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
+        """State between Newton steps of a static pass: free nodes carry their anchors along, so a
+        node that touches sticks where it entered contact; touching nodes keep their anchors, and
+        the limits stay the pass's."""
         p0, n, pen = self._geometry(x, t)
         touching = pen > 0
         rel = x - p0
         rel_t = rel - (rel @ n)[:, None] * n
         anchor = np.where(touching[:, None], state.anchor, rel_t)
         return replace(state, anchor=anchor, active=touching.copy())
+
+    def static_update(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
+        """State after a Newton pass of a static solve: :meth:`refresh`, with the limits at ``x``
+        (:meth:`static_begin`), under which the solver checks the balance. The anchors stay those
+        of the solve's start until it ends (:meth:`static_finish`), as a return mapping takes
+        each load increment's slip from the rest before it."""
+        return self.static_begin(body, x, t, self.refresh(body, x, t, state))
+
+    def static_finish(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
+        """State at the end of a static solve: each slipping node has its anchor dragged to its
+        elastic slip (Algorithm 1's slip, u); the limits dropped (they hold within a solve)."""
+        if self.mu == 0:
+            return replace(state, cap=None)
+        on, k, _, _, s, cap, slip = self._static_touching(body, x, t, state)
+        r, _, slips, _ = self._friction(k, s, cap, slip)
+        anchor = np.array(state.anchor, dtype=np.float64, copy=True)
+        anchor[on] += np.where(slips, 1.0 - slip / np.maximum(r, 1e-300), 0.0)[:, None] * s
+        return replace(state, anchor=anchor, cap=None)
 
     def normal_reaction(
         self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState

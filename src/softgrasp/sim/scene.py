@@ -28,7 +28,11 @@ class Interaction(Protocol):
     it couples no two nodes (each node at most once), added to the Newton matrix without a sparse
     matrix; ``symmetric_jacobian = False`` when :meth:`jacobian` is only a symmetric
     approximation (the solver then also differentiates :meth:`static_forces`), and
-    ``pinned_static_forces`` to do that with the touching pairs held fixed.
+    ``pinned_static_forces`` to do that with the touching pairs held fixed; ``static_begin(body,
+    x, t, state)``, the state at the start of each Newton pass (the table's limits),
+    ``refresh(body, x, t, state)``, the state between Newton steps where it differs from the
+    static update, and ``static_finish(body, x, t, state)``, the state once the solve ends (the
+    table's slip return).
     """
 
     @property
@@ -149,6 +153,22 @@ class Scene:
         """Friction states after an accepted step or static solve."""
         return tuple(
             i.update(self.body, x, v, t, st) for i, st in zip(self.interactions, contacts, strict=True)
+        )
+
+    def begin_static(self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> tuple[Any, ...]:
+        """Contact states at the start of a Newton pass of a static solve (``static_begin`` where
+        an interaction defines it, else as they are)."""
+        return tuple(
+            inter.static_begin(self.body, x, t, st) if hasattr(inter, "static_begin") else st
+            for inter, st in zip(self.interactions, contacts, strict=True)
+        )
+
+    def finish_static(self, x: NDArray[np.float64], t: float, contacts: tuple[Any, ...]) -> tuple[Any, ...]:
+        """Contact states at the end of a static solve (``static_finish`` where an interaction
+        defines it, else as they are)."""
+        return tuple(
+            inter.static_finish(self.body, x, t, st) if hasattr(inter, "static_finish") else st
+            for inter, st in zip(self.interactions, contacts, strict=True)
         )
 
     def refresh_contacts(

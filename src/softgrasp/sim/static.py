@@ -136,7 +136,10 @@ def solve_static(
     rtol: convergence when the largest unbalanced force <= rtol x the largest force present.
     cache: linear-solver state to reuse across calls (e.g. the increments of one loading).
     guess: positions [m] (N, 3) Newton starts from instead of ``state.x`` (a prediction, e.g.
-        the last increments extrapolated); ignored if it inverts a tet. The contact states are
+        the last increments extrapolated); ignored if it inverts a tet, and dropped when Newton
+        finds no rest from it (a prediction that carries a body's drop onto the table into it
+        twice starts deep in the table), the solve then starting again from ``state.x``. The
+        contact states are
         still ``state``'s, so the rest found is the one found from ``state.x`` except where a
         contact pair starts during the step: it is anchored where the iterates first touch it
         (the planner's set-points moved by ~4e-6 relative).
@@ -156,8 +159,16 @@ def solve_static(
     """
     cache = cache if cache is not None else SolverCache()
     with pardiso.blas_one_thread(), _force_threads(scene.body, cache):
+        try:
+            return _solve_static(
+                scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, guess
+            )
+        except NotConverged:
+            if guess is None:
+                raise
+            log.debug("no rest from the guess: solving again from the state's positions")
         return _solve_static(
-            scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, guess
+            scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, None
         )
 
 
@@ -218,6 +229,7 @@ def _solve_static(
         log.debug("friction pass %d: %d Newton its, unbalanced after the slip return %.3e N", p, it,
                   np.abs(f).max())  # fmt: skip
         if np.abs(f).max() <= max(10 * rtol * scale, 2 * res):
+            contacts = scene.finish_static(x, tt, contacts)
             return State(x, zeros, tt, contacts), StaticInfo(total_it, p, float(np.abs(f).max()), -lam)
     raise NotConverged(f"friction did not settle in {max_friction_passes} stick/slip passes", SMALLER_STEPS)
 
