@@ -136,7 +136,10 @@ def solve_static(
     rtol: convergence when the largest unbalanced force <= rtol x the largest force present.
     cache: linear-solver state to reuse across calls (e.g. the increments of one loading).
     guess: positions [m] (N, 3) Newton starts from instead of ``state.x`` (a prediction, e.g.
-        the last increments' rests extrapolated); ignored if it inverts a tet. The contact
+        the last increments' rests extrapolated); ignored if it inverts a tet, and dropped when
+        Newton finds no rest from it, the solve then starting again from ``state.x`` (a release
+        step of the hold check of the sphere at mu = 0.05, its fingers slipping, crawls out
+        from its extrapolated guess on one thread and balances from the last rest). The contact
         states are still ``state``'s, so the rest found is the one found from ``state.x`` except
         where a contact pair starts during the step: it is anchored where the iterates first touch
         it (the planner's set-points moved by ~4e-6 relative).
@@ -156,8 +159,16 @@ def solve_static(
     """
     cache = cache if cache is not None else SolverCache()
     with pardiso.blas_one_thread(), _force_threads(scene.body, cache):
+        try:
+            return _solve_static(
+                scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, guess
+            )
+        except NotConverged:
+            if guess is None:
+                raise
+            log.debug("no rest from the guess: solving again from the state's positions")
         return _solve_static(
-            scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, guess
+            scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, None
         )
 
 
