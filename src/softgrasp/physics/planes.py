@@ -7,7 +7,8 @@ tangential spring from the node to an *anchor* fixed on the plane (stick displac
 ``mu f_n`` along the trial direction and the anchor is dragged along (slip displacement u). Anchors
 are created when a node touches the plane and dropped when it leaves. At rest (the static solver's
 forces) the stick spring is ``mu f_n / s_e``, so that a node slips once it has moved its elastic
-slip s_e from its anchor (:meth:`PlaneContact.static_begin`).
+slip s_e from its anchor; within a static solve its stiffness stays that of the solve's first rest
+(:meth:`PlaneContact.static_begin`).
 
 :meth:`PlaneContact.forces` and :meth:`PlaneContact.update` run the law of
 :mod:`softgrasp.physics.planes_compiled`, which the fused stepper calls too.
@@ -83,11 +84,15 @@ class PlaneState:
     cap: within a static solve, each node's Coulomb limit ``mu f_n`` [N] where the Newton pass
         began (NaN where it did not touch then), (N,); None outside one (the static forces then
         take it from the penetrations at hand).
+    stick: within a static solve, from its first pass's rest on, each node's stick stiffness
+        [N/m] (its limit there over its elastic slip; NaN where it did not touch there: its
+        pass's limit over its elastic slip), (N,); None before and outside one.
     """
 
     active: NDArray[np.bool_]
     anchor: NDArray[np.float64]
     cap: NDArray[np.float64] | None = None
+    stick: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -168,17 +173,29 @@ class PlaneContact:
         )  # fmt: skip
         return out
 
-    def _static_touching(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
-        """The touching nodes (the few a body stands on, not all N: only they carry force), their
-        penalty stiffnesses, the normal, their penetrations and tangential stretches, their
-        Coulomb limits [N] (NaN: held without one, :meth:`static_begin`) and elastic slips [m]."""
+    def _static_law(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState, on: NDArray[np.int64]):
+        """The static law's terms at the nodes ``on`` (those on or beyond the plane): penalty
+        stiffnesses, the normal, penetrations, tangential stretches from the anchors, Coulomb
+        limits [N] (NaN: held without one, :meth:`static_begin`; NaN too where a node is not in
+        the plane) and stick stiffnesses [N/m] (the state's frozen ones, else limit over elastic
+        slip)."""
         p0, n, pen = self._geometry(x, t)
-        on = np.flatnonzero(pen > 0)
         k = self.stiffness(body)[on]
         s = x[on] - (p0 + state.anchor[on])
-        cap = self.mu * k * pen[on] if state.cap is None else state.cap[on]
-        slip = ELASTIC_SLIP * body.node_edge_length[on]
-        return on, k, n, pen[on], s - (s @ n)[:, None] * n, cap, slip
+        pen = pen[on]
+        cap = self.mu * k * pen if state.cap is None else state.cap[on]
+        cap = np.where(pen > 0, cap, np.nan)
+        stick = cap / (ELASTIC_SLIP * body.node_edge_length[on])
+        if state.stick is not None:
+            stick = np.where(np.isnan(state.stick[on]), stick, state.stick[on])
+        return k, n, pen, s - (s @ n)[:, None] * n, cap, stick
+
+    def _static_touching(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState):
+        """The touching nodes (the few a body stands on, not all N: only they carry force) and
+        :meth:`_static_law` there."""
+        _, _, pen = self._geometry(x, t)
+        on = np.flatnonzero(pen > 0)
+        return (on, *self._static_law(body, x, t, state, on))
 
     def static_begin(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
         """State at the start of a Newton pass of a static solve: each node's Coulomb limit
@@ -187,18 +204,22 @@ class PlaneContact:
 
         At rest the table holds each touching node by a stick spring up to Coulomb's limit, and
         beyond it the node slips, its force ``mu f_n`` against its stretch (Algorithm 1 at rest).
-        The spring's stiffness is ``mu f_n / s_e``: the node slips once it has moved its elastic
-        slip ``s_e`` (:data:`ELASTIC_SLIP` of its edges' length, as finite-element codes
-        regularise Coulomb's law) from where it stuck, whatever its load, so that the kink of the
-        law lies at a scale Newton's steps resolve and a node with no normal force holds nothing.
-        Within a pass the limits stay as they were at its start (Tresca's law: the forces are
-        minus the gradient of :meth:`energy`, a potential), and a node that touches only during
-        the pass is held by the penalty-scaled spring ``k_t`` without a limit; after the pass
-        (:meth:`static_update`) the limits are taken again at the rest, and the static solver
-        repeats passes until the forces balance under them. (Without a limit, a node at the edge
-        of the contact patch can hold a tangential force with no normal force, and where balance
-        needs the table to pull it down no rest exists: a soft, heavy ball's closing found
-        none.)"""
+        The spring's stiffness is ``mu f_n / s_e`` at the rest of the solve's first pass: the
+        node slips once it has moved about its elastic slip ``s_e`` (:data:`ELASTIC_SLIP` of its
+        edges' length, as finite-element codes regularise Coulomb's law) from where it stuck,
+        whatever its load, so that the kink of the law lies at a scale Newton's steps resolve and
+        a node with no normal force holds nothing. Within a pass the limits stay as they were at
+        its start (Tresca's law: the forces are minus the gradient of :meth:`energy`, a
+        potential), and a node that touches only during the pass is held by the penalty-scaled
+        spring ``k_t`` without a limit; after the pass (:meth:`static_update`) the limits are
+        taken again at the rest, and the static solver repeats passes until the forces balance
+        under them. (Without a limit, a node at the edge of the contact patch can hold a
+        tangential force with no normal force, and where balance needs the table to pull it down
+        no rest exists: a soft, heavy ball's closing found none.) The stick stiffnesses stay those
+        of the first pass's rest for the rest of the solve (:meth:`static_update`): were they to
+        follow the normal forces from pass to pass, a ball rolling a little on the table would load
+        the nodes its stick forces already push it towards, and roll on (the passes of a fine
+        sphere's settle drifted so by 1 % each, and found no rest)."""
         _, _, pen = self._geometry(x, t)
         cap = np.where(pen > 0, self.mu * self.stiffness(body) * np.maximum(pen, 0.0), np.nan)
         return replace(state, cap=cap)
@@ -208,29 +229,28 @@ class PlaneContact:
         k: NDArray[np.float64],
         s: NDArray[np.float64],
         cap: NDArray[np.float64],
-        slip: NDArray[np.float64],
+        stick: NDArray[np.float64],
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
-        """Per touching node (penalty stiffness k, stretch s, limit cap or NaN, elastic slip): the
-        stretch's length [m], the limit (0 for NaN) [N], whether it slips, and the friction's
+        """Per touching node (penalty stiffness k, stretch s, limit cap or NaN, stick stiffness):
+        the stretch's length [m], the limit (0 for NaN) [N], whether it slips, and the friction's
         secant stiffness [N/m] (its force over its stretch)."""
         r = np.linalg.norm(s, axis=1)
         new = np.isnan(cap)
         c = np.where(new, 0.0, cap)
-        slips = ~new & (r > slip)
-        secant = np.where(
-            new, self.tangential_ratio * k, np.where(slips, c / np.maximum(r, 1e-300), c / slip)
-        )
+        kt = np.where(new, 0.0, stick)
+        slips = ~new & (kt * r > c)
+        secant = np.where(new, self.tangential_ratio * k, np.where(slips, c / np.maximum(r, 1e-300), kt))
         return r, c, slips, secant
 
     def energy(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> float:
-        """Potential [J] of the normal penalty springs and of the friction: ``c |s|^2 / (2 s_e)``
-        while a node sticks, ``c (|s| - s_e / 2)`` once it slips (c its limit, s_e its elastic
-        slip; ``k_t |s|^2 / 2`` for a node held without a limit)."""
-        on, k, _, pen, s, cap, slip = self._static_touching(body, x, t, state)
+        """Potential [J] of the normal penalty springs and of the friction: ``K |s|^2 / 2`` while
+        a node sticks, ``c (|s| - c / (2 K))`` once it slips (c its limit, K its stick
+        stiffness; ``k_t |s|^2 / 2`` for a node held without a limit)."""
+        on, k, _, pen, s, cap, stick = self._static_touching(body, x, t, state)
         e = 0.5 * float(np.sum(k * pen**2))
         if self.mu > 0:
-            r, c, slips, secant = self._friction(k, s, cap, slip)
-            e += float(np.sum(np.where(slips, c * (r - 0.5 * slip), 0.5 * secant * r**2)))
+            r, c, slips, secant = self._friction(k, s, cap, stick)
+            e += float(np.sum(np.where(slips, c * (r - 0.5 * c / np.maximum(stick, 1e-300)), 0.5 * secant * r**2)))
         return e
 
     def static_forces(
@@ -239,11 +259,11 @@ class PlaneContact:
         """Forces at rest [N], (N, 3): penalty normal force and the elastic-slider friction of
         touching nodes against their stretch, at most ``mu f_n`` (Eq. 15-16 at rest; minus the
         gradient of :meth:`energy`)."""
-        on, k, n, pen, s, cap, slip = self._static_touching(body, x, t, state)
+        on, k, n, pen, s, cap, stick = self._static_touching(body, x, t, state)
         f = np.zeros(x.shape)
         f[on] = (k * pen)[:, None] * n
         if self.mu > 0:
-            _, _, _, secant = self._friction(k, s, cap, slip)
+            _, _, _, secant = self._friction(k, s, cap, stick)
             f[on] -= secant[:, None] * s
         return f
 
@@ -252,22 +272,18 @@ class PlaneContact:
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """:meth:`jacobian` by its non-zero diagonal 3x3 blocks (the plane couples no two nodes):
         (the nodes on or beyond the plane (K,), their blocks (K, 3, 3)); every other block is zero.
-        Friction: ``mu f_n / s_e`` where a node sticks; where it slips ``mu f_n / |s|`` across its
-        stretch and none along it (the Hessian of :meth:`energy`)."""
-        p0, n, pen = self._geometry(x, t)
+        Friction: the stick stiffness where a node sticks; where it slips ``mu f_n / |s|`` across
+        its stretch and none along it (the Hessian of :meth:`energy`)."""
+        _, _, pen = self._geometry(x, t)
         # A node exactly on the plane counts: the penalty's one-sided derivative there is k, and a
-        # body resting on the plane must not look unsupported to Newton's method (nor slide).
+        # body resting on the plane must not look unsupported to Newton's method (nor slide); it
+        # has no limit yet: held by k_t, as one touching anew.
         on = np.flatnonzero(pen >= 0)
-        k = self.stiffness(body)[on]
+        k, n, _, s, cap, stick = self._static_law(body, x, t, state, on)
         nn = np.outer(n, n)
         blocks = -k[:, None, None] * nn[None]
         if self.mu > 0:
-            s = x[on] - (p0 + state.anchor[on])
-            s = s - (s @ n)[:, None] * n
-            cap = self.mu * k * pen[on] if state.cap is None else state.cap[on]
-            # A node on the plane but not in it has no limit yet: held by k_t, as one touching anew.
-            cap = np.where(pen[on] > 0, cap, np.nan)
-            r, _, slips, secant = self._friction(k, s, cap, ELASTIC_SLIP * body.node_edge_length[on])
+            r, _, slips, secant = self._friction(k, s, cap, stick)
             u = s / np.maximum(r, 1e-300)[:, None]
             along = np.where(slips[:, None, None], np.einsum("ki,kj->kij", u, u), 0.0)
             blocks = blocks - secant[:, None, None] * ((np.eye(3) - nn)[None] - along)
@@ -297,7 +313,7 @@ class PlaneContact:
             _f64(x), self.plane.point_at(t), self.plane.normal, float(self.mu), k, kt, active, anchor,
             0, len(x),
         )  # fmt: skip
-        return replace(state, active=active, anchor=anchor, cap=None)
+        return replace(state, active=active, anchor=anchor, cap=None, stick=None)
 
     def refresh(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
         """State between Newton steps of a static pass: free nodes carry their anchors along, so a
@@ -312,21 +328,33 @@ class PlaneContact:
 
     def static_update(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
         """State after a Newton pass of a static solve: :meth:`refresh`, with the limits at ``x``
-        (:meth:`static_begin`), under which the solver checks the balance. The anchors stay those
-        of the solve's start until it ends (:meth:`static_finish`), as a return mapping takes
-        each load increment's slip from the rest before it."""
-        return self.static_begin(body, x, t, self.refresh(body, x, t, state))
+        (:meth:`static_begin`), under which the solver checks the balance; after the first pass,
+        the stick stiffnesses frozen at its rest (the limits there over the elastic slips). The
+        anchors stay those of the solve's start until it ends (:meth:`static_finish`), as a
+        return mapping takes each load increment's slip from the rest before it."""
+        state = self.static_begin(body, x, t, self.refresh(body, x, t, state))
+        if state.stick is None and self.mu > 0:
+            assert state.cap is not None
+            state = replace(state, stick=state.cap / (ELASTIC_SLIP * body.node_edge_length))
+        return state
 
     def static_finish(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
-        """State at the end of a static solve: each slipping node has its anchor dragged to its
-        elastic slip (Algorithm 1's slip, u); the limits dropped (they hold within a solve)."""
+        """State at the end of a static solve: each touching node's anchor moved so that the law
+        outside a solve (its limit at ``x`` over its elastic slip for stick stiffness) gives it
+        the friction force it has at the rest (a slipping node's is dragged to its elastic slip:
+        Algorithm 1's slip, u); the limits and stick stiffnesses dropped (they hold within a
+        solve)."""
         if self.mu == 0:
-            return replace(state, cap=None)
-        on, k, _, _, s, cap, slip = self._static_touching(body, x, t, state)
-        r, _, slips, _ = self._friction(k, s, cap, slip)
+            return replace(state, cap=None, stick=None)
+        on, k, _, _, s, cap, stick = self._static_touching(body, x, t, state)
+        r, c, slips, secant = self._friction(k, s, cap, stick)
+        force = secant[:, None] * s  # minus the friction force
+        limit = self.mu * k * self._geometry(x, t)[2][on]
+        outside = limit / (ELASTIC_SLIP * body.node_edge_length[on])  # the stick stiffness outside
+        stretch = np.where((outside > 0)[:, None], force / np.maximum(outside, 1e-300)[:, None], 0.0)
         anchor = np.array(state.anchor, dtype=np.float64, copy=True)
-        anchor[on] += np.where(slips, 1.0 - slip / np.maximum(r, 1e-300), 0.0)[:, None] * s
-        return replace(state, anchor=anchor, cap=None)
+        anchor[on] += s - stretch
+        return replace(state, anchor=anchor, cap=None, stick=None)
 
     def normal_reaction(
         self, body: Body, x: NDArray[np.float64], v: NDArray[np.float64], t: float, state: PlaneState

@@ -146,7 +146,7 @@ def newton(
     creep, last_res = 0, np.inf
     history: list[float] = []  # the unbalanced force [N] at the start of each iteration
     plain: list[bool] = []  # whether each iteration's step was a full Newton step, unshifted
-    start = contacts = scene.begin_static(x, t, contacts)
+    start = contacts  # the pass's contact states (limits from its start: Scene.begin_static)
     for it in range(1, max_iter + 1):
         f, f_int, scale = unbalanced(scene, x, t, contacts)
         if C is None and (res := float(np.abs(f).max())) <= rtol * scale:
