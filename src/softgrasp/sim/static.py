@@ -215,8 +215,8 @@ def _solve_static(
     # Register contacts that start at this load step without slip returns: slip is decided only
     # once the body has deformed under the new load (at the end of each pass).
     contacts = scene.refresh_contacts(x, tt, state.contacts)
-    # The first pass's friction limits from the state the solve starts at, not from the guess:
-    # the guess changes where Newton starts, not the law it solves.
+    # The first pass's friction limits are those of the rest the solve starts from (its positions
+    # at its time), not the guess's: a guess moves where Newton starts, not the law it solves.
     contacts = scene.begin_static(state.x, state.t, contacts)
     total_it = 0
     for p in range(1, max_friction_passes + 1):
