@@ -310,6 +310,24 @@ def test_a_newton_climb_away_from_balance_is_recognised():
     assert not newton.climbs(flat, [True] * (len(flat) - 1))  # a repeat is not a rise
 
 
+def test_a_newton_solve_that_finds_no_lower_unbalanced_force_for_its_patience_stalls():
+    """A release step whose object slides out of the fingers (the 2 196-node sphere's below its
+    critical scale: the unbalanced force rising from 3.0e-3 N, each full step followed by a
+    short one that lowers it a little) stalls once ``patience`` iterations in a row stay above the
+    lowest before them; one that converges with a setback (a step the energy merit accepted, the
+    unbalanced force up for a few iterations) does not, nor one with too few iterations to judge."""
+    rising = [3.0e-3]
+    for _ in range(20):
+        rising += [rising[-1] * 1.08, rising[-1] * 1.075]
+    assert newton.stalls(rising[:13], 12)
+    assert not newton.stalls(rising[:12], 12)  # too few to judge
+    setback = [2e-1, 1.5e-2, 2e-4, 3e-4, 5e-4, 4e-4, 1e-4, 1e-6]
+    assert not any(newton.stalls(setback[:n], 4) for n in range(1, len(setback) + 1))
+    assert newton.stalls([*setback[:3], 3e-4, 5e-4, 4e-4, 2e-4], 4)  # back to, not below, its low
+    converging = [1e-1 * 0.3**k for k in range(12)]
+    assert not any(newton.stalls(converging[:n], 1) for n in range(1, 13))
+
+
 def test_static_and_dynamic_rest_states_agree():
     """The static solve and a damped dynamic settle find the same rest state on the table.
 

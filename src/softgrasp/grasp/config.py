@@ -27,6 +27,7 @@ __all__ = [
     "HELD_RTOL",
     "RELEASE_STEPS",
     "RELEASE_MAX_ITER",
+    "RELEASE_PATIENCE",
     "HOLD_DT",
     "MAX_HALVINGS",
     "SETTLED",
@@ -82,6 +83,13 @@ RELEASE_STEPS = 4
 #: One whose object slides out meets ever more singular systems (no stiffness along the slide);
 #: Newton's crawl and climb checks end most of those long before the limit.
 RELEASE_MAX_ITER = 40
+#: A release step gives up once this many Newton iterations in a row found no lower unbalanced
+#: force than an earlier one (:func:`softgrasp.sim.newton.stalls`): its object slides out of the
+#: fingers, each step taken for the energy the fall frees while the forces grow (the 2 196-node
+#: sphere's check below its critical scale rose from 3.0e-3 to 1.1e-2 N over 38 iterations, and
+#: as far again from the last rest). Release steps that balanced went at most 3 iterations so
+#: (the default sphere at mu = 0.05, whose fingers slip), 4 on the rubber box, 0 on the foam cube.
+RELEASE_PATIENCE = 12
 #: First time step of the implicit holding simulation [s]: a twentieth of the default hold.
 HOLD_DT = 0.05
 #: Halvings of the holding simulation's step allowed when a step's Newton solve fails: a sudden

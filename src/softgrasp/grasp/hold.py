@@ -30,6 +30,7 @@ from softgrasp.grasp.config import (
     HOLD_DT,
     MAX_HALVINGS,
     RELEASE_MAX_ITER,
+    RELEASE_PATIENCE,
     RELEASE_STEPS,
     SETTLED,
     STEP_RTOL,
@@ -107,7 +108,8 @@ def check_hold(
     dead load, ramp down to zero over ``RELEASE_STEPS`` static load steps (the weight passes to the
     fingers quasi-statically, as in a slow lift, friction sticking or slipping pair by pair); then
     ``hold_time`` seconds of implicit dynamics (:func:`_simulate_hold`) from that released state
-    (a release step that needs more than ``RELEASE_MAX_ITER`` Newton iterations finds none);
+    (a release step that needs more than ``RELEASE_MAX_ITER`` Newton iterations, or goes
+    ``RELEASE_PATIENCE`` of them without a lower unbalanced force, finds none);
     then the held state's static equilibrium in the fingers alone. After every step each finger
     must touch the object and each fingertip's slip so far (:func:`finger_slip`, summed) must stay
     within ``cfg.max_slip`` times its contact radius at the start
@@ -147,6 +149,7 @@ def check_hold(
                     guess=guess,
                     rtol=rtol,
                     max_iter=RELEASE_MAX_ITER,
+                    patience=RELEASE_PATIENCE,
                 )
             except (NotConverged, SimulationUnstable) as exc:
                 raise _NotHeld(

@@ -173,7 +173,9 @@ class PlaneContact:
         )  # fmt: skip
         return out
 
-    def _static_law(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState, on: NDArray[np.int64]):
+    def _static_law(
+        self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState, on: NDArray[np.int64]
+    ):
         """The static law's terms at the nodes ``on`` (those on or beyond the plane): penalty
         stiffnesses, the normal, penetrations, tangential stretches from the anchors, Coulomb
         limits [N] (NaN: held without one, :meth:`static_begin`; NaN too where a node is not in
@@ -250,7 +252,9 @@ class PlaneContact:
         e = 0.5 * float(np.sum(k * pen**2))
         if self.mu > 0:
             r, c, slips, secant = self._friction(k, s, cap, stick)
-            e += float(np.sum(np.where(slips, c * (r - 0.5 * c / np.maximum(stick, 1e-300)), 0.5 * secant * r**2)))
+            e += float(
+                np.sum(np.where(slips, c * (r - 0.5 * c / np.maximum(stick, 1e-300)), 0.5 * secant * r**2))
+            )
         return e
 
     def static_forces(

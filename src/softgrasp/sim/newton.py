@@ -35,6 +35,7 @@ __all__ = [
     "unbalanced",
     "valid",
     "climbs",
+    "stalls",
     "cycle_period",
     "STALL_RTOL",
     "NEGATIVE_CURVATURE_MAX_GROWTH",
@@ -130,13 +131,15 @@ def newton(
     rtol: float,
     max_iter: int,
     cache: SolverCache,
+    patience: int | None = None,
 ) -> tuple[NDArray[np.float64], int, float, NDArray[np.float64], tuple]:
     """Newton's method on the unbalanced forces, globalised on their norm.
 
     Contact forces are not all exact gradients (fingertip friction, the patch rule's weights), so a
     step is accepted when it reduces the 2-norm of the unbalanced forces or the potential energy;
     when no step length does either, the stiffness diagonal is added (Levenberg-Marquardt) until one
-    does.
+    does. ``patience``: give up once that many iterations in a row found no lower largest
+    unbalanced force than an earlier one (:func:`stalls`; None: never for that).
     """
     body = scene.body
     L = float(np.ptp(body.mesh.points, axis=0).max())
@@ -259,6 +262,12 @@ def newton(
                 f"iterations it is given)",
                 SMALLER_STEPS,
             )
+        if patience is not None and stalls(history, patience):
+            raise NotConverged(
+                f"static solve makes no progress (the largest unbalanced force, {res:.3g} N, not below "
+                f"its lowest, {min(history):.3g} N, for {patience} iterations): the body is not held "
+                "in this configuration"
+            )
         if climbs(history, plain):
             if _free_rigid_motion(scene, x, t, contacts, C):
                 raise NotConverged(f"static solve did not converge: {_SINGULAR}")
@@ -375,6 +384,13 @@ def climbs(history: list[float], plain: list[bool]) -> bool:
     recent = np.asarray(history[-CLIMB_ITERATIONS - 1 :])
     steps = plain[len(history) - CLIMB_ITERATIONS - 1 : len(history) - 1]
     return len(steps) == CLIMB_ITERATIONS and all(steps) and bool((np.diff(recent) > 0.0).all())
+
+
+def stalls(history: list[float], patience: int) -> bool:
+    """Whether none of the last ``patience`` unbalanced forces of ``history`` [N] fell below the
+    lowest before them: the iterates wander without balancing (an object sliding out of fingers
+    that cannot hold it, each step taken for the energy it frees while the forces grow)."""
+    return len(history) > patience and min(history[-patience:]) >= min(history[:-patience])
 
 
 def cycle_period(history: list[float]) -> int:

@@ -123,6 +123,7 @@ def solve_static(
     max_friction_passes: int = 30,
     cache: SolverCache | None = None,
     guess: NDArray[np.float64] | None = None,
+    patience: int | None = None,
 ) -> tuple[State, StaticInfo]:
     """Bring the scene to rest at time (load parameter) ``t``, starting from ``state``.
 
@@ -143,6 +144,8 @@ def solve_static(
         states are still ``state``'s, so the rest found is the one found from ``state.x`` except
         where a contact pair starts during the step: it is anchored where the iterates first touch
         it (the planner's set-points moved by ~4e-6 relative).
+    patience: Newton gives up once that many iterations in a row found no lower unbalanced force
+        (:func:`~softgrasp.sim.newton.stalls`; None: never for that).
 
     Returns
     -------
@@ -159,17 +162,14 @@ def solve_static(
     """
     cache = cache if cache is not None else SolverCache()
     with pardiso.blas_one_thread(), _force_threads(scene.body, cache):
+        common = (scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache)
         try:
-            return _solve_static(
-                scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, guess
-            )
+            return _solve_static(*common, guess, patience)
         except NotConverged:
             if guess is None:
                 raise
             log.debug("no rest from the guess: solving again from the state's positions")
-        return _solve_static(
-            scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache, None
-        )
+        return _solve_static(*common, None, patience)
 
 
 def _force_threads(body: Body, cache: SolverCache) -> contextlib.AbstractContextManager:
@@ -196,6 +196,7 @@ def _solve_static(
     max_friction_passes: int,
     cache: SolverCache,
     guess: NDArray[np.float64] | None,
+    patience: int | None,
 ) -> tuple[State, StaticInfo]:
     tt = state.t if t is None else float(t)
     x = np.array(state.x, dtype=np.float64)
@@ -220,7 +221,7 @@ def _solve_static(
     contacts = scene.begin_static(state.x, state.t, contacts)
     total_it = 0
     for p in range(1, max_friction_passes + 1):
-        x, it, res, lam, contacts = newton(scene, x, tt, contacts, C, rtol, max_iter, cache)
+        x, it, res, lam, contacts = newton(scene, x, tt, contacts, C, rtol, max_iter, cache, patience)
         total_it += it
         new_contacts = scene.static_update_contacts(x, tt, contacts)
         f = scene.static_forces(x, tt, new_contacts).ravel()
@@ -338,9 +339,7 @@ def proximal_solve(
         except NotConverged as exc:
             failed += 1
             if failed == max_failed:
-                raise NotConverged(
-                    f"{failed} backward Euler steps found no rest ({diagnosis(exc)})"
-                ) from exc
+                raise NotConverged(f"{failed} backward Euler steps found no rest ({diagnosis(exc)})") from exc
             dt /= 4.0
             continue
         iterations += info.newton_iterations
