@@ -17,7 +17,7 @@ from softgrasp.physics.body import build_body
 from softgrasp.physics.fingertip.contact import FingertipContact
 from softgrasp.physics.fingertip.params import ContactParams, Fingertip
 from softgrasp.physics.forces import assemble_blocks
-from softgrasp.physics.planes import Plane, PlaneContact
+from softgrasp.physics.planes import ELASTIC_SLIP, Plane, PlaneContact
 from softgrasp.physics.supports import Tether
 from softgrasp.sim import newton
 from softgrasp.sim.explicit import settle
@@ -112,6 +112,60 @@ def test_the_table_at_rest_holds_by_coulombs_law_with_an_elastic_slip(normal):
             up = table.static_forces(body, x + e, 0.0, state)[i]
             df[:, a] = (up - table.static_forces(body, x - e, 0.0, state)[i]) / (2 * h)
         np.testing.assert_allclose(B, df, rtol=1e-6, atol=1e-6 * np.abs(B).max())
+
+
+def test_the_table_keeps_its_stick_stiffness_through_a_solve_and_its_forces_when_it_ends():
+    """Within a static solve the table's stick springs keep the stiffness of the first pass's rest
+    (``PlaneState.stick``): the first pass's update freezes each touching node's limit over its
+    elastic slip there, and a later update, where the penetrations differ, keeps it. With it a
+    node sticks by K s up to its limit (its elastic slip then c / K) and slips at its limit beyond,
+    the forces minus the energy's gradient. When the solve ends the anchors move so that the law
+    outside a solve (its limit over its elastic slip) gives every node the same force at the
+    rest: the forces before and after are equal."""
+    body = build_body(box(0.04, 3), preset("foam"), mass=0.01)
+    rng = np.random.default_rng(5)
+    x = np.asarray(body.mesh.points) + 2e-4 * rng.standard_normal((body.n_nodes, 3))
+    table = PlaneContact(Plane(np.array([0.0, 0.0, 0.004]), np.array([0.0, 0.0, 1.0])), mu=0.6, name="table")
+    state = table.static_begin(body, x, 0.0, table.init_state(body, x))
+    shift = rng.standard_normal(state.anchor.shape) * np.array([1.0, 1.0, 0.0])
+    shift *= (np.where(np.arange(body.n_nodes) % 2 == 0, 2e-5, 4e-4) / np.linalg.norm(shift, axis=1))[:, None]
+    state = replace(state, anchor=state.anchor + shift)
+    first = table.static_update(body, x, 0.0, state)
+    pen = 0.004 - x[:, 2]
+    on = pen > 0
+    frozen = first.stick
+    np.testing.assert_allclose(
+        frozen[on], first.cap[on] / (ELASTIC_SLIP * body.node_edge_length[on]), rtol=1e-12
+    )
+    assert np.isnan(frozen[~on]).all()
+    deeper = x - np.array([0.0, 0.0, 5e-5])  # every penetration 50 um deeper: the limits grow
+    later = table.static_update(body, deeper, 0.0, replace(first, anchor=state.anchor))
+    np.testing.assert_array_equal(later.stick, frozen)
+    assert (later.cap[on] > first.cap[on]).all()
+    f = table.static_forces(body, deeper, 0.0, later)
+    s = deeper[on] - (table.plane.point + later.anchor[on])
+    s[:, 2] = 0.0
+    r = np.linalg.norm(s, axis=1)
+    cap, K = later.cap[on], frozen[on]
+    slips = K * r > cap
+    assert 0 < slips.sum() < on.sum()
+    ft = f[on][:, :2]
+    np.testing.assert_allclose(ft[~slips], -(K[:, None] * s)[~slips][:, :2], rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(np.linalg.norm(ft[slips], axis=1), cap[slips], rtol=1e-12)
+    h = 1e-8
+    for i in np.flatnonzero(on)[:6]:
+        for a in range(2):
+            e = np.zeros_like(x)
+            e[i, a] = h
+            grad = (
+                table.energy(body, deeper + e, 0.0, later) - table.energy(body, deeper - e, 0.0, later)
+            ) / (2 * h)
+            assert abs(f[i, a] + grad) <= 1e-6 * np.abs(f).max()
+    ended = table.static_finish(body, deeper, 0.0, later)
+    assert ended.cap is None and ended.stick is None
+    np.testing.assert_allclose(
+        table.static_forces(body, deeper, 0.0, ended), f, rtol=0, atol=1e-12 * np.abs(f).max()
+    )
 
 
 def test_a_block_on_the_table_stays_below_coulombs_limit_and_finds_no_rest_above_it():
@@ -265,9 +319,10 @@ def test_cycling_newton_iterates_are_recognised():
     assert cycle_period([1.0, 0.5, 1.0, 0.5, 0.25]) == 0  # converging after one return
     assert cycle_period([1e-3, 2e-3, 1e-3]) == 0  # one return only
     assert cycle_period([1e-3 * 0.5**k for k in range(12)]) == 0
-    assert cycle_period(
-        [4.196770e-02, 5.245263e-02, 4.196556e-02, 5.248980e-02, 4.196556e-02, 5.248980e-02]
-    ) == 2
+    assert (
+        cycle_period([4.196770e-02, 5.245263e-02, 4.196556e-02, 5.248980e-02, 4.196556e-02, 5.248980e-02])
+        == 2
+    )
     # Drifting: not a cycle.
     assert cycle_period([1e-3, 2e-3, 1e-3 * (1 + 1e-4), 2e-3, 1e-3 * (1 + 2e-4)]) == 0
 
@@ -507,6 +562,7 @@ def test_a_static_solve_called_alone_holds_numpys_blas_to_one_thread(monkeypatch
     import contextlib
 
     from softgrasp.linalg import pardiso
+
     body = build_body(box(0.02, 3), preset("foam"), mass=0.01)
     table = PlaneContact(Plane(np.zeros(3), np.array([0.0, 0.0, 1.0])), mu=0.5)
     scene = Scene(body, (table,))
