@@ -72,6 +72,13 @@ class Plane:
 ELASTIC_SLIP = 0.005
 
 
+def _stick_stiffness(body: Body, limit: NDArray[np.float64], nodes) -> NDArray[np.float64]:
+    """Stick stiffness [N/m] of the nodes ``nodes`` (indices or a slice) whose Coulomb limits are
+    ``limit`` [N]: the limit over the node's elastic slip (:data:`ELASTIC_SLIP` of its edges'
+    mean length)."""
+    return limit / (ELASTIC_SLIP * body.node_edge_length[nodes])
+
+
 @dataclass(frozen=True)
 class PlaneState:
     """Friction state of one plane: which nodes touch and their anchors.
@@ -187,7 +194,7 @@ class PlaneContact:
         pen = pen[on]
         cap = self.mu * k * pen if state.cap is None else state.cap[on]
         cap = np.where(pen > 0, cap, np.nan)
-        stick = cap / (ELASTIC_SLIP * body.node_edge_length[on])
+        stick = _stick_stiffness(body, cap, on)
         if state.stick is not None:
             stick = np.where(np.isnan(state.stick[on]), stick, state.stick[on])
         return k, n, pen, s - (s @ n)[:, None] * n, cap, stick
@@ -339,7 +346,7 @@ class PlaneContact:
         state = self.static_begin(body, x, t, self.refresh(body, x, t, state))
         if state.stick is None and self.mu > 0:
             assert state.cap is not None
-            state = replace(state, stick=state.cap / (ELASTIC_SLIP * body.node_edge_length))
+            state = replace(state, stick=_stick_stiffness(body, state.cap, slice(None)))
         return state
 
     def static_finish(self, body: Body, x: NDArray[np.float64], t: float, state: PlaneState) -> PlaneState:
@@ -350,11 +357,10 @@ class PlaneContact:
         solve)."""
         if self.mu == 0:
             return replace(state, cap=None, stick=None)
-        on, k, _, _, s, cap, stick = self._static_touching(body, x, t, state)
-        r, c, slips, secant = self._friction(k, s, cap, stick)
+        on, k, _, pen, s, cap, stick = self._static_touching(body, x, t, state)
+        _, _, _, secant = self._friction(k, s, cap, stick)
         force = secant[:, None] * s  # minus the friction force
-        limit = self.mu * k * self._geometry(x, t)[2][on]
-        outside = limit / (ELASTIC_SLIP * body.node_edge_length[on])  # the stick stiffness outside
+        outside = _stick_stiffness(body, self.mu * k * pen, on)  # the stick stiffness outside a solve
         stretch = np.where((outside > 0)[:, None], force / np.maximum(outside, 1e-300)[:, None], 0.0)
         anchor = np.array(state.anchor, dtype=np.float64, copy=True)
         anchor[on] += s - stretch
