@@ -31,7 +31,8 @@ A first run (or the first after an edit of a kernel's source, which keys the cac
 cache's index of a few kernels the warm-up compiles first and last, so that the command line can
 say why it waits (:data:`COMPILE_TIME_S`). It then compiles the fingertip contact's kernels in a
 second process (a new program, :func:`start_fingertip_compile`) while this one compiles the rest,
-and loads them from the cache once that process is done: about 11 s instead of 20 s on two cores.
+and loads them from the cache once that process is done: about 21 s instead of 42 s on the 2-core
+benchmark machine (``benchmarks/bench_cli.py``, first run).
 
 While a plan command starts (its imports and this loading), Python's cyclic garbage collector is
 paused (:func:`pause_collector`, :func:`resume_collector`): what is made then lives as long as
@@ -60,9 +61,9 @@ __all__ = [
     "warm_up_solvers",
 ]
 
-#: About how long compiling the kernels takes on a first run [s] (on a 2-core machine, the
-#: fingertip contact's in a second process).
-COMPILE_TIME_S = 12
+#: About how long compiling the kernels takes on a first run [s] (on the 2-core benchmark machine,
+#: the fingertip contact's in a second process: 21 s of a 26 s first plan).
+COMPILE_TIME_S = 20
 #: About how long compiling the other solvers' kernels takes on a first install [s]
 #: (:func:`warm_up_solvers`).
 SOLVERS_COMPILE_TIME_S = 20

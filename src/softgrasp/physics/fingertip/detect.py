@@ -211,7 +211,7 @@ def _detect(
                 for p in range(indptr[node], indptr[node + 1]):
                     mark[indices[p]] = 1
         # narrow phase, the marked facets in increasing order (a word of eight unmarked skipped at once)
-        q = 0
+        q = np.int64(0)  # not the literal 0: the narrow phase compiles for int64 only
         while q < F:
             if q % 8 == 0 and words[q // 8] == 0:
                 q += 8
