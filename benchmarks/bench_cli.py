@@ -6,7 +6,10 @@ Measured in rounds, alternating, each case in a fresh process as a user starts i
   (``bench_indent.mujoco_flex``: the same scene as ``bench_indent.py``; the 2 s of simulation,
   timed as that script times it);
 * **plan ~2 000 nodes** — ``softgrasp plan --mesh-size 0.008`` (2 196 nodes), the whole process,
-  warm (kernels and the mesh in the cache folders);
+  warm (kernels, the mesh and the object's rest on the table in the cache folders: the same
+  object planned again);
+* **plan ~2 000 nodes, settling** — the same, its rest not kept (a cache folder holding the mesh
+  and the hand only: an object planned for the first time, as meshed);
 * **default plan** — ``softgrasp plan``: the whole process, and the time until its set-points are
   printed (the table's header on stdout);
 * **first run** — ``softgrasp plan`` with empty cache folders (Numba's, ``NUMBA_CACHE_DIR``, and
@@ -71,6 +74,20 @@ def _softgrasp(args: list[str], env: dict[str, str]) -> dict:
 
 #: Packages the default ``softgrasp plan`` must not import in its own process.
 UNNEEDED = ("matplotlib", "mujoco", "dask", "distributed", "pyarrow", "gmsh", "yourdfpy")
+
+
+def _without_rests(folder: str) -> dict[str, str]:
+    """An environment whose softgrasp cache folder (under ``folder``) holds the kept meshes and
+    hands of this one's, and no kept rest."""
+    from softgrasp import usercache
+    from softgrasp.grasp.kept_rest import KIND
+
+    target = Path(folder) / "softgrasp"
+    for kind in ("meshes", "hands"):
+        if (usercache.cache_dir() / kind).is_dir():
+            shutil.copytree(usercache.cache_dir() / kind, target / kind)
+    assert not (target / KIND).exists()
+    return {**os.environ, "XDG_CACHE_HOME": folder}
 
 
 def _imports(env: dict[str, str]) -> tuple[dict[str, float], float]:
@@ -143,6 +160,7 @@ def main() -> None:
     times: dict[str, list[float]] = {
         "yardstick": [],
         "fine": [],
+        "fine_settling": [],
         "default": [],
         "default_setpoints": [],
         "first": [],
@@ -153,6 +171,11 @@ def main() -> None:
         times["yardstick"].append(_yardstick(h452))
         fine = _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], warm_env)
         times["fine"].append(fine["wall"])
+        with tempfile.TemporaryDirectory(prefix="bench_cli_rests_") as folder:
+            settling = _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], _without_rests(folder))
+        times["fine_settling"].append(settling["wall"])
+        if settling["setpoints"] != fine["setpoints"]:
+            changed.append(f"plan ~2 000 nodes settling against its kept rest, round {k + 1}")
         default = _softgrasp([], warm_env)
         times["default"].append(default["wall"])
         times["default_setpoints"].append(default["setpoints_at"])
@@ -174,6 +197,10 @@ def main() -> None:
     print(
         f"  plan --mesh-size {FINE_MESH_SIZE} (2 196 nodes), warm: {med['fine']:.2f} s = "
         f"{med['fine'] / med['yardstick']:.2f} x the yardstick (target <= 0.5)"
+    )
+    print(
+        f"  the same, settling on the table (its rest not kept): {med['fine_settling']:.2f} s = "
+        f"{med['fine_settling'] / med['yardstick']:.2f} x the yardstick"
     )
     print(
         f"  default plan, warm: set-points printed at {med['default_setpoints']:.2f} s (target <= 1 s), "

@@ -1,7 +1,9 @@
 """softgrasp's cache folder: results that are slow to make and the same every time.
 
-A repeated plan of a built-in object does not mesh it again, and a packaged or user hand is not
-read through the URDF library again: both are kept here, one file per entry, named by the
+A repeated plan of a built-in object does not mesh it again, a packaged or user hand is not
+read through the URDF library again, and an object planned again (another hand, other
+fingertips, another safety factor) does not settle on the table again: these are kept here, one
+file per entry, named by the
 SHA-256 of everything the entry depends on (its parameters, the versions of the libraries that
 made it and the sources of the softgrasp modules that made it), so an entry is never stale, only
 unused. The folder is ``$XDG_CACHE_HOME/softgrasp`` (the XDG convention), else
@@ -14,6 +16,7 @@ skipped and the result is made again.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import tempfile
@@ -24,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["cache_dir", "entry_key", "load", "source_digest", "store"]
+__all__ = ["cache_dir", "entry_key", "load", "package_digest", "source_digest", "store", "value_digest"]
 
 def cache_dir() -> Path:
     """The cache folder (module docstring); not created here."""
@@ -40,6 +43,63 @@ def source_digest(*modules: str) -> str:
     for name in modules:
         path = root.joinpath(*name.split(".")[1:]).with_suffix(".py")
         h.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def package_digest(*packages: str) -> str:
+    """SHA-256 of every source file of softgrasp's ``packages`` (dotted names of subpackages, or
+    of modules), in a fixed order, read without importing them."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for name in packages:
+        base = root.joinpath(*name.split(".")[1:])
+        files = sorted(base.rglob("*.py")) if base.is_dir() else [base.with_suffix(".py")]
+        for path in files:
+            h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+class _Opaque(Exception):
+    """A value :func:`value_digest` cannot write down exactly."""
+
+
+def _feed(h, value: object) -> None:
+    if value is None or isinstance(value, (bool, int, float, str, bytes)):
+        h.update(type(value).__name__.encode() + b":" + repr(value).encode() + b"\0")
+    elif isinstance(value, np.generic):
+        _feed(h, value.item())
+    elif isinstance(value, np.ndarray):
+        if value.dtype.hasobject:
+            raise _Opaque(value.dtype)
+        a = np.ascontiguousarray(value)
+        h.update(f"array:{a.dtype.str}:{a.shape}".encode() + b"\0" + a.tobytes() + b"\0")
+    elif isinstance(value, (tuple, list)):
+        h.update(f"{type(value).__name__}:{len(value)}".encode() + b"\0")
+        for v in value:
+            _feed(h, v)
+    elif isinstance(value, dict):
+        h.update(f"dict:{len(value)}".encode() + b"\0")
+        for k in sorted(value, key=repr):
+            _feed(h, k)
+            _feed(h, value[k])
+    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+        h.update(f"{type(value).__module__}.{type(value).__qualname__}".encode() + b"\0")
+        for f in dataclasses.fields(value):
+            h.update(f.name.encode() + b"=")
+            _feed(h, getattr(value, f.name))
+    else:
+        raise _Opaque(type(value))
+
+
+def value_digest(value: object) -> str | None:
+    """SHA-256 of ``value`` written down exactly: numbers, strings, arrays (dtype, shape and
+    bytes), tuples, lists, dicts and dataclasses (their type and every field), recursively; None
+    when it holds anything else (an object whose state this cannot see: no entry is kept for it)."""
+    h = hashlib.sha256()
+    try:
+        _feed(h, value)
+    except _Opaque:
+        return None
     return h.hexdigest()
 
 

@@ -302,6 +302,7 @@ def plan(
     max_strain: float | None = None,
     progress: Callable[[float], None] | None = None,
     phase: Callable[[str], None] | None = None,
+    keep_rest: bool = True,
 ) -> Plan:
     """Plan a grasp of ``obj`` (three fingers, or two with a gripper) and its force set-points.
 
@@ -350,6 +351,11 @@ def plan(
     phase:
         Called with the name of each phase of the planner as it starts (``initial grasp``,
         ``closing``, ``hold check``, ``set-points``), after every option has been checked.
+    keep_rest:
+        Keep the object's rest on the table in softgrasp's cache folder, and read it back when
+        the same object on the same table is planned again (another hand, other fingertips or
+        options): the same plan either way, bit for bit, without settling the object again
+        (:mod:`softgrasp.grasp.kept_rest`).
     """
     from softgrasp.grasp.initial import HandLayout
     from softgrasp.grasp.planner import plan_grasp
@@ -400,6 +406,6 @@ def plan(
             hand=hand,
             layout=HandLayout.for_hand(hand),
         )
-    g = plan_grasp(obj.body, config, progress=progress, phase=phase)
+    g = plan_grasp(obj.body, config, progress=progress, phase=phase, keep_rest=keep_rest)
     doc = plan_document(g, obj.body, obj.name, source_transform=obj.transform, units=obj.units)
     return Plan(obj, g, config, options, doc, _started=started)

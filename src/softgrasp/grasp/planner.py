@@ -65,6 +65,7 @@ def plan_grasp(
     progress: Callable[[float], None] | None = None,
     phase: Callable[[str], None] | None = None,
     cache: SolverCache | None = None,
+    keep_rest: bool = False,
 ) -> GraspPlan:
     """Plan a three-finger grasp of ``body`` resting on a table (paper steps 1-2).
 
@@ -76,6 +77,9 @@ def plan_grasp(
     phase: called with the name of each phase as it starts (``initial grasp``, ``closing``,
         ``hold check``, ``set-points``).
     cache: the linear solves' state (its ``method`` chooses the solver); a fresh one if None.
+    keep_rest: read the object's rest on the table from softgrasp's cache folder when it was kept
+        there, else keep it there (:func:`softgrasp.grasp.kept_rest.settle`; the same plan either
+        way, bit for bit).
 
     Raises
     ------
@@ -88,15 +92,17 @@ def plan_grasp(
     check_object_mass(float(body.total_mass), float(body.mesh.volume))
     with pardiso.blas_one_thread():
         tracker = PlanProgress(progress, phase)
-        return _plan_grasp(body, config, tracker, SolverCache() if cache is None else cache)
+        return _plan_grasp(body, config, tracker, SolverCache() if cache is None else cache, keep_rest)
 
 
-def _plan_grasp(body: Body, config: PlanConfig, progress: PlanProgress, cache: SolverCache) -> GraspPlan:
+def _plan_grasp(
+    body: Body, config: PlanConfig, progress: PlanProgress, cache: SolverCache, keep_rest: bool
+) -> GraspPlan:
     t0 = time.perf_counter()
     cfg = config
     mu = cfg.contact.mu
     progress.enter("initial grasp")
-    setup = closing_setup(body, cfg, cache)  # step 1
+    setup = closing_setup(body, cfg, cache, keep_rest=keep_rest)  # step 1
     body = setup.body  # its rest shape where it lies on the table
     ig, placement, start, first = setup.grasp, setup.placement, setup.start, setup.first_touch
     progress.enter("closing")

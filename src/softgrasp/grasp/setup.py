@@ -16,7 +16,8 @@ from numpy.typing import NDArray
 from softgrasp.errors import InfeasibleGrasp
 from softgrasp.grasp.config import MAX_PLACEMENTS, PER_SPREAD, START_BACKOFF, PlanConfig
 from softgrasp.grasp.initial import InitialGrasp, ranked_grasps
-from softgrasp.grasp.settle import centre_of_mass, settle_on_table
+from softgrasp.grasp.kept_rest import settle
+from softgrasp.grasp.settle import centre_of_mass
 from softgrasp.hand.kinematics import HandModel
 from softgrasp.hand.placement import HandPlacement, place_hand
 from softgrasp.linalg.solve import SolverCache
@@ -204,13 +205,15 @@ class ClosingSetup:
         return float(self.first_touch.max() + self.max_squeeze * self.reach.min())
 
 
-def closing_setup(body: Body, cfg: PlanConfig, cache: SolverCache | None = None) -> ClosingSetup:
+def closing_setup(
+    body: Body, cfg: PlanConfig, cache: SolverCache | None = None, *, keep_rest: bool = False
+) -> ClosingSetup:
     """Settle ``body`` on the table, choose (or take ``cfg.grasp``) the initial grasp the hand
-    reaches, and lay the fingertips' closing lines (paper step 1)."""
+    reaches, and lay the fingertips' closing lines (paper step 1). ``keep_rest``: the rest on the
+    table is read from softgrasp's cache folder when it was kept there, else kept there
+    (:func:`softgrasp.grasp.kept_rest.settle`)."""
     cache = cache if cache is not None else SolverCache()
-    before = cache.stats["systems"]
-    settled, table, placed = settle_on_table(body, cfg, cache)
-    cache.stats["settle_systems"] = cache.stats["systems"] - before
+    settled, table, placed = settle(body, cfg, cache, keep=keep_rest)
     body = body.placed_at(placed)  # the rest shape where it lies (turned with it, if it was)
     xs = settled.x
     ig, placement = _initial_grasp(body, xs, centre_of_mass(body, xs), cfg)
