@@ -383,6 +383,42 @@ def test_a_newton_solve_that_finds_no_lower_unbalanced_force_for_its_patience_st
     assert not any(newton.stalls(converging[:n], 1) for n in range(1, 13))
 
 
+def test_a_release_step_starts_again_only_after_a_failure_a_nearer_start_can_mend(monkeypatch):
+    """With a patience (a release step), a failure from the guess that advises smaller steps (a
+    crawl, a cycle: a start nearer the rest can mend it) is solved again from the state's
+    positions, and one that does not (iterates climbing, stalling: the body not held there) is
+    final; without a patience, every failure from a guess starts again."""
+    from softgrasp.sim import static
+
+    body = build_body(box(0.04, 2), Material(2e4, 0.3, 200.0))
+    scene = Scene(body, ())
+    state = scene.initial_state()
+    rest = object()
+    for patience, advice, again in (
+        (12, None, False),
+        (12, newton.SMALLER_STEPS, True),
+        (None, None, True),
+        (None, newton.SMALLER_STEPS, True),
+    ):
+        starts = []
+
+        def attempt(*args, advice=advice, starts=starts):
+            guess = args[-2]
+            starts.append(guess is not None)
+            if guess is not None:
+                raise NotConverged("static solve from the guess failed", advice)
+            return rest
+
+        monkeypatch.setattr(static, "_solve_static", attempt)
+        if again:
+            assert solve_static(scene, state, guess=state.x + 1e-4, patience=patience) is rest
+            assert starts == [True, False]
+        else:
+            with pytest.raises(NotConverged, match="from the guess failed"):
+                solve_static(scene, state, guess=state.x + 1e-4, patience=patience)
+            assert starts == [True]
+
+
 def test_static_and_dynamic_rest_states_agree():
     """The static solve and a damped dynamic settle find the same rest state on the table.
 

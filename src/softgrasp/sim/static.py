@@ -145,7 +145,14 @@ def solve_static(
         where a contact pair starts during the step: it is anchored where the iterates first touch
         it (the planner's set-points moved by ~4e-6 relative).
     patience: Newton gives up once that many iterations in a row found no lower unbalanced force
-        (:func:`~softgrasp.sim.newton.stalls`; None: never for that).
+        (:func:`~softgrasp.sim.newton.stalls`; None: never for that). A solve given a patience
+        (a release step of a hold check: the body may not be held) starts again from
+        ``state.x`` only after a failure from ``guess`` that a start nearer the rest can mend
+        (:attr:`~softgrasp.errors.NotConverged.advice` :data:`~softgrasp.sim.newton.SMALLER_STEPS`:
+        a crawl, a cycle, the iteration limit), not after iterates that climb, stall or creep,
+        Newton's diagnosis that the body is not held there (over nine plans, spheres at mu = 0.8,
+        0.3 and 0.05 and at two mesh sizes, the cube, a box, a cylinder and a ball: the eight
+        such second starts all failed again, the one that balanced followed a crawl).
 
     Returns
     -------
@@ -165,8 +172,8 @@ def solve_static(
         common = (scene, state, t, constraints, x_ref, rtol, max_iter, max_friction_passes, cache)
         try:
             return _solve_static(*common, guess, patience)
-        except NotConverged:
-            if guess is None:
+        except NotConverged as exc:
+            if guess is None or (patience is not None and exc.advice != SMALLER_STEPS):
                 raise
             log.debug("no rest from the guess: solving again from the state's positions")
         return _solve_static(*common, None, patience)
