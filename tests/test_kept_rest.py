@@ -98,6 +98,19 @@ def test_each_table_object_and_solver_has_its_own_rest(body, rests):
     assert again.stats["rest_kept"] == 1 and len(_entries(rests)) == 4
 
 
+def test_another_processor_keeps_a_rest_of_its_own(body, rests, monkeypatch):
+    """MKL and the kernels round differently on another kind of processor: a cache folder shared
+    between machines holds a rest per kind, none read back on the other."""
+    import llvmlite.binding as llvm
+
+    kept_rest.settle(body, PlanConfig(), SolverCache(), keep=True)
+    monkeypatch.setattr(llvm, "get_host_cpu_name", lambda: "another-processor")
+    other = SolverCache()
+    kept_rest.settle(body, PlanConfig(), other, keep=True)
+    assert "rest_kept" not in other.stats and other.stats["settle_systems"] > 0
+    assert len(_entries(rests)) == 2
+
+
 @pytest.mark.parametrize("damage", ["not an npz file", "truncated", "wrong size"])
 def test_a_damaged_rest_is_found_again(body, rests, damage):
     cfg = PlanConfig()

@@ -11,7 +11,10 @@ everything it depends on:
 * the table's friction coefficient and the linear solver's settings (its method, tolerance,
   precision, and the thread counts of the factorisation and of the force sums: a sum over
   threads rounds differently);
-* the sources of the modules that settle it and the versions of NumPy, SciPy, Numba and MKL.
+* the sources of the modules that settle it, the versions of NumPy, SciPy, Numba and MKL, and
+  the processor's name and features (MKL and the compiled kernels take other code paths, which
+  round differently, on other processors: a cache folder shared between machines keeps a rest
+  per kind of processor).
 
 The settle runs on a solver state of its own (a fresh :class:`~softgrasp.linalg.solve.SolverCache`
 of the caller's settings, whose counts are added to the caller's): what follows it then starts
@@ -77,20 +80,20 @@ def settle(
     return rest, table, placed
 
 
-def _versions() -> tuple[str, ...]:
+def _platform() -> tuple[str, ...]:
+    """The versions of the libraries a rest depends on, and the processor's name and features."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    import llvmlite.binding as llvm
     import numba
     import scipy
 
     try:
-        from importlib.metadata import PackageNotFoundError, version
-
-        try:
-            mkl = version("mkl")
-        except PackageNotFoundError:
-            mkl = "none"
-    except ImportError:  # pragma: no cover - the standard library's
-        mkl = "unknown"
-    return (np.__version__, scipy.__version__, numba.__version__, mkl)
+        mkl = version("mkl")
+    except PackageNotFoundError:
+        mkl = "none"
+    cpu = (llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten())
+    return (np.__version__, scipy.__version__, numba.__version__, mkl, *cpu)
 
 
 def _key(body: Body, cfg: PlanConfig, cache: SolverCache) -> str | None:
@@ -108,7 +111,7 @@ def _key(body: Body, cfg: PlanConfig, cache: SolverCache) -> str | None:
         choose_threads(),
     )
     return usercache.entry_key(
-        "rest", digest, float(cfg.table_mu), solver, _versions(), usercache.package_digest(*SETTLE_SOURCES)
+        "rest", digest, float(cfg.table_mu), solver, _platform(), usercache.package_digest(*SETTLE_SOURCES)
     )
 
 
