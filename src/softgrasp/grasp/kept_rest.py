@@ -116,9 +116,7 @@ def _key(body: Body, cfg: PlanConfig, cache: SolverCache) -> str | None:
 
 
 def _store(key: str, rest: State, placed: NDArray[np.float64]) -> None:
-    (table,) = rest.contacts
-    if table.cap is not None or table.stick is not None:  # pragma: no cover - a rest ends its solve
-        return
+    (table,) = rest.contacts  # a finished solve's: no limits or stick stiffnesses left
     usercache.store(
         KIND,
         key,
