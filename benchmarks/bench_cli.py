@@ -1,20 +1,24 @@
 """Benchmark: the wait a user sees for ``softgrasp plan``, beside MuJoCo, in the same run.
 
-Measured in rounds, alternating, each case in a fresh process as a user starts it:
+Measured in rounds, alternating, each case in a fresh process as a user starts it. The plans
+run as ``softgrasp plan`` runs for a user: in a child of softgrasp's warm server
+(:mod:`softgrasp.cli.launch`, started by ``softgrasp server start`` before the rounds); the ones
+marked *own process* with ``--no-server``, as a plan runs where no server is up:
 
 * **yardstick** — MuJoCo 4 flex pressing the 452-node rubber sphere for 2 s with one fingertip
   (``bench_indent.mujoco_flex``: the same scene as ``bench_indent.py``; the 2 s of simulation,
   timed as that script times it);
 * **plan ~2 000 nodes** — ``softgrasp plan --mesh-size 0.008`` (2 196 nodes), the whole process,
   warm (kernels, the mesh and the object's rest on the table in the cache folders: the same
-  object planned again);
+  object planned again); and the same in its own process;
 * **plan ~2 000 nodes, settling** — the same, its rest not kept (a cache folder holding the mesh
   and the hand only: an object planned for the first time, as meshed);
 * **default plan** — ``softgrasp plan``: the whole process, and the time until its set-points are
-  printed (the table's header on stdout);
+  printed (the table's header on stdout); and that time in its own process;
 * **first run** — ``softgrasp plan`` with empty cache folders (Numba's, ``NUMBA_CACHE_DIR``, and
   softgrasp's, under ``XDG_CACHE_HOME``): what a first run after installing costs, and what it says
-  while it waits.
+  while it waits. No server is up for those caches (a server is keyed by its environment), so it
+  runs in its own process; the server it starts as it ends is stopped before the next case.
 
 Before the rounds, one default plan runs under ``python -X importtime``: its imports by package
 (self times summed; ``-X importtime`` itself adds to them), and whether any package the command
@@ -133,6 +137,37 @@ def _yardstick(h: float) -> float:
     return float(run.stdout.strip().splitlines()[-1])
 
 
+def _server(action: str, env: dict[str, str]) -> str:
+    """``softgrasp server ACTION`` in environment ``env``; what it printed."""
+    cmd = [sys.executable, "-m", "softgrasp", "server", action]
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if run.returncode != 0:
+        raise SystemExit(f"softgrasp server {action} failed ({run.returncode}):\n{run.stderr}")
+    return run.stdout.strip()
+
+
+def _stop_started_server(env: dict[str, str], within_s: float = 10.0) -> None:
+    """Stop the server a plan in environment ``env`` started as it ended, once it has begun (so
+    that it does not load its kernels during the next case), and wait until it is gone."""
+    import signal
+
+    from softgrasp.cli import launch, zygote
+
+    folder = launch.socket_folder()
+    if folder is None:
+        return
+    path = folder / f"{launch.server_key(env)}.sock"
+    end = time.monotonic() + within_s
+    while time.monotonic() < end:
+        mine = [s for s in zygote.running(folder) if s.socket == path]
+        if mine:
+            os.kill(mine[0].pid, signal.SIGTERM)
+            while time.monotonic() < end and any(s.socket == path for s in zygote.running(folder)):
+                time.sleep(0.05)
+            return
+        time.sleep(0.05)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rounds", type=int, default=3, help="rounds of the alternating cases (default 3)")
@@ -142,12 +177,14 @@ def main() -> None:
     warm_env = dict(os.environ)
     h452 = _yardstick_mesh_size()
     # Warm the caches (kernels, meshes, hand) before the rounds.
-    reference = _softgrasp([], warm_env)["setpoints"]
-    _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], warm_env)
+    _server("stop", warm_env)
+    reference = _softgrasp(["--no-server"], warm_env)["setpoints"]
+    _softgrasp(["--mesh-size", str(FINE_MESH_SIZE), "--no-server"], warm_env)
+    print(_server("start", warm_env))
     by, total = _imports(warm_env)
     top = sorted(by.items(), key=lambda kv: -kv[1])[:6]
     print(
-        f"default plan's imports (python -X importtime): {total:.2f} s; "
+        f"default plan's imports in its own process (python -X importtime): {total:.2f} s; "
         + ", ".join(f"{name} {t:.3f} s" for name, t in top)
     )
     loaded = [name for name in UNNEEDED if name in by]
@@ -160,9 +197,11 @@ def main() -> None:
     times: dict[str, list[float]] = {
         "yardstick": [],
         "fine": [],
+        "fine_own": [],
         "fine_settling": [],
         "default": [],
         "default_setpoints": [],
+        "default_own_setpoints": [],
         "first": [],
     }
     first_status = ""
@@ -171,6 +210,10 @@ def main() -> None:
         times["yardstick"].append(_yardstick(h452))
         fine = _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], warm_env)
         times["fine"].append(fine["wall"])
+        own = _softgrasp(["--mesh-size", str(FINE_MESH_SIZE), "--no-server"], warm_env)
+        times["fine_own"].append(own["wall"])
+        if own["setpoints"] != fine["setpoints"]:
+            changed.append(f"plan ~2 000 nodes in its own process, round {k + 1}")
         with tempfile.TemporaryDirectory(prefix="bench_cli_rests_") as folder:
             settling = _softgrasp(["--mesh-size", str(FINE_MESH_SIZE)], _without_rests(folder))
         times["fine_settling"].append(settling["wall"])
@@ -181,10 +224,15 @@ def main() -> None:
         times["default_setpoints"].append(default["setpoints_at"])
         if default["setpoints"] != reference:
             changed.append(f"default plan, round {k + 1}")
+        own = _softgrasp(["--no-server"], warm_env)
+        times["default_own_setpoints"].append(own["setpoints_at"])
+        if own["setpoints"] != reference:
+            changed.append(f"default plan in its own process, round {k + 1}")
         if not args.no_first_run:
             with tempfile.TemporaryDirectory(prefix="bench_cli_cache_") as cache:
                 env = {**warm_env, "NUMBA_CACHE_DIR": f"{cache}/numba", "XDG_CACHE_HOME": f"{cache}/xdg"}
                 first = _softgrasp([], env)
+                _stop_started_server(env)
             times["first"].append(first["wall"])
             first_status = next((ln for ln in first["stderr"].splitlines() if "compiling" in ln), "(none)")
             if not np.allclose(list(first["setpoints"].values()), list(reference.values()), rtol=1e-9):
@@ -199,12 +247,17 @@ def main() -> None:
         f"{med['fine'] / med['yardstick']:.2f} x the yardstick (target <= 0.5)"
     )
     print(
+        f"  the same in its own process (--no-server): {med['fine_own']:.2f} s = "
+        f"{med['fine_own'] / med['yardstick']:.2f} x the yardstick"
+    )
+    print(
         f"  the same, settling on the table (its rest not kept): {med['fine_settling']:.2f} s = "
         f"{med['fine_settling'] / med['yardstick']:.2f} x the yardstick"
     )
     print(
         f"  default plan, warm: set-points printed at {med['default_setpoints']:.2f} s (target <= 1 s), "
-        f"process {med['default']:.2f} s"
+        f"process {med['default']:.2f} s; in its own process (--no-server) at "
+        f"{med['default_own_setpoints']:.2f} s"
     )
     if "first" in med:
         said = first_status.strip()

@@ -1,5 +1,5 @@
 """`python -m softgrasp.cli`: the command line."""
 
-from softgrasp.cli import main
+from softgrasp.cli.launch import entry
 
-raise SystemExit(main())
+raise SystemExit(entry())

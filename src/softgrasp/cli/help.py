@@ -47,6 +47,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "Run the paper's experiments end to end and write a report beside the paper's numbers.",
         "softgrasp reproduce --quick --out runs/reproduce",
     ),
+    "server": (
+        "Start, list or stop the warm server a plan runs in: its modules imported and kernels loaded "
+        "once, a forked child per command (Linux).",
+        "softgrasp server status",
+    ),
 }
 
 
@@ -79,7 +84,7 @@ def _threads(text: str) -> int:
 
 
 def add_global_options(parser: argparse.ArgumentParser, *, command: bool = False) -> None:
-    """``--verbose``, ``--debug`` and ``--threads``, accepted before the command and after it
+    """``--verbose``, ``--debug``, ``--threads`` and ``--no-server``, accepted before the command and after it
     (``command``: on a command's parser, where an option not given leaves the value given before
     the command)."""
     unset = {"default": argparse.SUPPRESS} if command else {}
@@ -99,4 +104,10 @@ def add_global_options(parser: argparse.ArgumentParser, *, command: bool = False
         metavar="N",
         help="threads of the solvers and compiled kernels (default: the cores this process may use)",
         **({"default": argparse.SUPPRESS} if command else {"default": None}),
+    )
+    parser.add_argument(
+        "--no-server",
+        action="store_true",
+        help="run in this process, not in softgrasp's warm server (softgrasp server)",
+        **unset,
     )

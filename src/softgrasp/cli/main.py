@@ -7,7 +7,7 @@ import sys
 from collections.abc import Sequence
 
 from softgrasp import __version__, interrupt
-from softgrasp.cli import calibrate, compress, execute, indent, plan, reproduce, sweep, view
+from softgrasp.cli import calibrate, compress, execute, indent, plan, reproduce, server, sweep, view
 from softgrasp.cli.args import Parser
 from softgrasp.cli.help import add_global_options, describe, exit_codes_epilog
 from softgrasp.cli.status import BAD_INPUT, INTERNAL, INTERRUPTED, exit_status
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"softgrasp {__version__}")
     add_global_options(p)
     sub = p.add_subparsers(dest="command", parser_class=Parser, metavar="COMMAND")
-    for command in (compress, indent, plan, calibrate, view, reproduce, sweep, execute):
+    for command in (compress, indent, plan, calibrate, view, reproduce, sweep, execute, server):
         command.add_parser(sub)
     for name, parser in sub.choices.items():
         describe(name, parser)

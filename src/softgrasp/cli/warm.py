@@ -217,6 +217,13 @@ def warm_up(split: bool = False) -> None:
     fingers.contact_frames(body, rest.x, t, rest.contacts[1])
     if child is None:
         _place_hand()
+    global _loaded
+    _loaded = True
+
+
+#: Whether :func:`warm_up` has run to its end in this process (or in the warm server this
+#: process was forked from: :mod:`softgrasp.cli.zygote`); a :class:`WarmUp` then does nothing.
+_loaded = False
 
 
 def warm_up_solvers() -> None:
@@ -279,6 +286,9 @@ class WarmUp(threading.Thread):
         self.compiling = ""
 
     def run(self) -> None:
+        if _loaded:
+            self.checked.set()
+            return
         try:
             self.cold = cold()
         except Exception:  # noqa: BLE001 - only what the command line says while it waits
