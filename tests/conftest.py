@@ -91,3 +91,27 @@ def pytest_collection_modifyitems(config, items):
         ordered += dealt[i] + fast[:take]
         fast = fast[take:]
     items[:] = ordered
+
+
+def pytest_sessionstart(session):
+    """Note the warm servers running before the suite (:mod:`softgrasp.cli.zygote`)."""
+    if not hasattr(session.config, "workerinput"):
+        from softgrasp.cli import zygote
+
+        session.config.softgrasp_servers = {s.pid for s in zygote.running()}
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Stop the warm servers the suite's ``softgrasp plan`` processes started (they would idle on
+    for a quarter of an hour); the running commands of a server end first."""
+    if hasattr(session.config, "workerinput"):
+        return
+    from softgrasp.cli import zygote
+
+    before = getattr(session.config, "softgrasp_servers", set())
+    for s in zygote.running():
+        if s.pid not in before:
+            try:
+                os.kill(s.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass

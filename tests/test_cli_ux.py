@@ -356,6 +356,7 @@ def test_the_collector_pause_ends_once_and_only_if_it_began(monkeypatch):
         assert not gc.isenabled()
         gc.enable()
         warm.pause_collector()
+        monkeypatch.setattr(warm, "_loaded", False)  # (a warm-up run earlier in this process)
         monkeypatch.setattr(warm, "cold", lambda: True)
         monkeypatch.setattr(warm, "_quietly", lambda split=False: None)
         thread = warm.WarmUp()

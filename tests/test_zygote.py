@@ -1,0 +1,215 @@
+"""softgrasp's warm server (:mod:`softgrasp.cli.launch`, :mod:`softgrasp.cli.zygote`): a plan it
+serves runs in a forked child of the server, writes what a plan in its own process writes, byte
+for byte, takes the client's folder, exit status and Ctrl-C; a client gone, a stale server, a
+stray connection are handled. Each test module's server lives in a private socket folder
+(``XDG_RUNTIME_DIR``), so that no other server is touched."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from softgrasp.cli import launch, zygote
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+#: A coarse plan of the default sphere that runs every step: a few seconds.
+PLAN = ["plan", "--mesh-size", "0.032", "--hold-time", "0.3"]
+#: A bound against a hang (not a timing).
+BOUND_S = 120.0
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the server is Linux's")
+
+
+def _run(argv: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "softgrasp", *argv],
+        env=env,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=BOUND_S,
+    )
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (Linux's /proc)."""
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {
+        p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def server():
+    """A running server in a private socket folder: (its environment, its process id, the folder)."""
+    runtime = Path(tempfile.mkdtemp(prefix="sg"))  # short: a socket's path has at most 107 bytes
+    env = {**os.environ, "PYTHONPATH": SRC, "XDG_RUNTIME_DIR": str(runtime)}
+    try:
+        started = _run(["server", "start"], env, runtime)
+        assert started.returncode == 0, started.stderr
+        [s] = zygote.running(runtime / "softgrasp")
+        assert s.ready and started.stdout.startswith(f"serving: pid {s.pid}")
+        yield env, s.pid, runtime / "softgrasp"
+    finally:
+        _run(["server", "stop", "--all"], env, runtime)
+        end = time.monotonic() + BOUND_S
+        while zygote.running(runtime / "softgrasp") and time.monotonic() < end:
+            time.sleep(0.05)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def _start(argv: list[str], env: dict[str, str], cwd: Path) -> subprocess.Popen:
+    """``softgrasp argv`` started in its own process group (a terminal's job)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "softgrasp", *argv],
+        env=env,
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def _served_child(server_pid: int, p: subprocess.Popen) -> int | None:
+    """The server's child that runs ``p``'s command, once it has one; None if ``p`` ends first."""
+    end = time.monotonic() + BOUND_S
+    while p.poll() is None and time.monotonic() < end:
+        if kids := _children(server_pid):
+            return kids[0]
+        time.sleep(0.005)
+    return None
+
+
+def test_a_served_plan_runs_in_a_child_of_the_server_and_writes_what_its_own_process_writes(server, tmp_path):
+    env, pid, _ = server
+    p = _start([*PLAN, "--out", "served"], env, tmp_path)  # a relative folder: the client's
+    child = _served_child(pid, p)
+    out, err = p.communicate(timeout=BOUND_S)
+    assert p.returncode == 0, err
+    assert child is not None, "the plan did not run in the server"
+    assert "set-point N" in out and "wrote served/plan.json" in out
+    own = _start([*PLAN, "--out", "own", "--no-server"], env, tmp_path)
+    assert _served_child(pid, own) is None  # it ran in its own process
+    assert own.wait(BOUND_S) == 0
+    served, alone = _snapshot(tmp_path / "served"), _snapshot(tmp_path / "own")
+    assert served.keys() == alone.keys()
+    docs = [json.loads(files.pop("plan.json")) for files in (served, alone)]
+    for doc in docs:
+        doc.pop("wall_time_s")
+    assert docs[0] == docs[1]
+    assert served == alone  # the mesh, history, frames and figures, byte for byte
+
+
+def test_a_served_command_s_refusal_reaches_the_client_s_stderr_and_exit_status(server, tmp_path):
+    env, _, _ = server
+    bad = _run(["plan", "--mu", "-1", "--out", "x"], env, tmp_path)
+    assert bad.returncode == 2
+    assert bad.stderr.startswith("softgrasp: error:") and "mu" in bad.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def _earlier(env: dict[str, str], folder: Path) -> dict[str, bytes]:
+    done = _run([*PLAN, "--out", str(folder), "--safety-factor", "1.3", "--no-server"], env, folder.parent)
+    assert done.returncode == 0, done.stderr
+    return _snapshot(folder)
+
+
+def test_ctrl_c_at_a_served_plan_interrupts_it_and_leaves_the_earlier_outputs(server, tmp_path):
+    env, pid, _ = server
+    before = _earlier(env, tmp_path / "d")
+    p = _start([*PLAN, "--out", str(tmp_path / "d")], env, tmp_path)
+    child = _served_child(pid, p)
+    assert child is not None
+    time.sleep(0.5)  # into the plan
+    os.killpg(p.pid, signal.SIGINT)  # the terminal's Ctrl-C reaches the client's job, not the server
+    _, err = p.communicate(timeout=BOUND_S)
+    assert p.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "softgrasp: interrupted"
+    assert _snapshot(tmp_path / "d") == before
+
+
+def test_a_client_killed_outright_has_its_command_interrupted(server, tmp_path):
+    env, pid, _ = server
+    before = _earlier(env, tmp_path / "d")
+    p = _start([*PLAN, "--out", str(tmp_path / "d")], env, tmp_path)
+    child = _served_child(pid, p)
+    assert child is not None
+    time.sleep(0.5)
+    p.kill()
+    p.communicate(timeout=BOUND_S)
+    end = time.monotonic() + zygote.KILL_AFTER_S + BOUND_S
+    while child in _children(pid) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert child not in _children(pid)
+    assert _snapshot(tmp_path / "d") == before
+
+
+def test_a_stray_connection_does_not_stop_the_server(server, tmp_path):
+    env, pid, folder = server
+    [s] = zygote.running(folder)
+    for junk in (b"", b"\x00\x00\x00\x05{}", b"not a command"):
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
+            c.connect(str(s.socket))
+            c.sendall(junk)
+    p = _start([*PLAN, "--out", "after"], env, tmp_path)
+    assert _served_child(pid, p) is not None
+    assert p.wait(BOUND_S) == 0
+
+
+def test_a_server_that_no_longer_matches_the_sources_stops_listening_and_exits(server):
+    """A socket named by another key (an earlier edit of the sources, say): after loading its
+    kernels the server finds that its key names another socket, removes it and exits."""
+    env, _, folder = server
+    stale = folder / ("0" * 24 + ".sock")
+    p = subprocess.Popen(
+        [sys.executable, "-m", "softgrasp.cli.zygote", str(stale)],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    assert p.wait(BOUND_S) == 0
+    assert not stale.exists()
+
+
+def test_the_key_follows_the_environment_that_the_server_imports_with():
+    base = dict(os.environ)
+    key = launch.server_key(base)
+    assert launch.server_key({**base, "NUMBA_NUM_THREADS": "1"}) != key
+    assert launch.server_key({**base, "SOFTGRASP_THREADS": "1"}) != key
+    for name in ("PWD", "COLUMNS", "TERM", "XDG_CACHE_HOME"):  # read when a command runs
+        assert launch.server_key({**base, name: "elsewhere"}) == key
+
+
+@pytest.mark.parametrize(
+    ("argv", "served"),
+    [
+        (["plan"], True),
+        (["--threads", "2", "--verbose", "plan", "--mu", "0.5"], True),
+        (["plan", "--no-server"], False),
+        (["--no-server", "plan"], False),
+        (["view", "run"], False),
+        (["server", "status"], False),
+        (["--help"], False),
+        ([], False),
+    ],
+)
+def test_which_command_lines_a_server_runs(argv, served):
+    assert launch._served(argv) is served
