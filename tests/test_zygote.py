@@ -192,8 +192,8 @@ def test_a_server_that_no_longer_matches_the_sources_stops_listening_and_exits(s
 def test_the_key_follows_the_environment_that_the_server_imports_with():
     base = dict(os.environ)
     key = launch.server_key(base)
-    assert launch.server_key({**base, "NUMBA_NUM_THREADS": "1"}) != key
-    assert launch.server_key({**base, "SOFTGRASP_THREADS": "1"}) != key
+    for name in ("NUMBA_NUM_THREADS", "SOFTGRASP_THREADS", "MKL_NUM_THREADS"):  # read at import
+        assert launch.server_key({**base, name: base.get(name, "") + "0"}) != key
     for name in ("PWD", "COLUMNS", "TERM", "XDG_CACHE_HOME"):  # read when a command runs
         assert launch.server_key({**base, name: "elsewhere"}) == key
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 
-__all__ = ["compiled", "forked"]
+__all__ = ["compiled", "forked", "forks_lose_threads"]
 
 
 def compiled() -> bool:
@@ -124,6 +124,12 @@ def _threads_lost() -> bool:
     except ValueError:  # no parallel kernel has run: the child starts its own threads
         return False
     return layer == "omp"
+
+
+def forks_lose_threads() -> bool:
+    """Whether a child forked from this process now would lose Numba's threads
+    (:func:`_threads_lost`: GNU OpenMP's layer has started them)."""
+    return _threads_lost()
 
 
 def _mark_forked() -> None:

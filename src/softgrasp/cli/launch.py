@@ -14,7 +14,7 @@ executable, softgrasp's sources (their sizes and times), the installed packages'
 environment (:func:`server_key`), so an edit, an upgrade or another environment finds no server
 and starts its own. When there is none, the command runs in this process, as before, and a served
 command that ended normally then starts one in the background for the next
-(:func:`start_server`); it exits after :data:`softgrasp.cli.zygote.IDLE_S` without a command.
+(:func:`start_server`, saying so); it exits after :data:`IDLE_MINUTES` without a command.
 ``--no-server`` runs a command here; ``softgrasp server`` starts, lists and stops servers.
 Linux only (Unix sockets passing file descriptors, ``fork``); elsewhere every command runs here.
 
@@ -46,6 +46,8 @@ UNKEYED_ENV = frozenset(
 #: Longest wait [s] for a server to take a command (it may still be importing and loading its
 #: kernels, about a second) before the command runs in this process instead.
 TAKE_WAIT_S = 30.0
+#: A server exits after this many minutes without a command (:data:`softgrasp.cli.zygote.IDLE_S`).
+IDLE_MINUTES = 15
 #: Global options that take a value (skipped when finding the command in the arguments).
 _VALUED = frozenset({"--threads"})
 
@@ -63,9 +65,21 @@ def entry() -> int:
     from softgrasp.cli.main import main
 
     status = main()
-    if path is not None and status == 0:
-        start_server(path)
+    if path is not None and status == 0 and _forkable() and start_server(path):
+        print(
+            "softgrasp: a warm server starts for the next plans (it stops after "
+            f"{IDLE_MINUTES} min unused; 'softgrasp server stop' stops it now)",
+            file=sys.stderr,
+        )
     return status
+
+
+def _forkable() -> bool:
+    """Whether this process's Numba threads would survive a fork (a server's children would
+    otherwise run the serial kernels: :mod:`softgrasp.backend`)."""
+    from softgrasp import backend
+
+    return not backend.forks_lose_threads()
 
 
 def _served(argv: list[str]) -> bool:
@@ -150,15 +164,16 @@ def connect(path: Path) -> socket.socket | None:
     return s
 
 
-def start_server(path: Path | None = None) -> None:
+def start_server(path: Path | None = None) -> bool:
     """Start a server for this program at ``path`` (default :func:`socket_path`) in the
     background, in the environment this program started with, detached from its terminal
-    (:mod:`softgrasp.cli.zygote`; a second one for the same socket exits at once)."""
+    (:mod:`softgrasp.cli.zygote`; a second one for the same socket exits at once). Whether it
+    was started."""
     import subprocess
 
     path = socket_path() if path is None else path
     if path is None:
-        return
+        return False
     try:
         subprocess.Popen(
             [sys.executable, "-m", "softgrasp.cli.zygote", str(path)],
@@ -170,7 +185,8 @@ def start_server(path: Path | None = None) -> None:
             env=ENVIRON,
         )
     except OSError:
-        pass
+        return False
+    return True
 
 
 def _request(argv: list[str]) -> bytes:

@@ -40,12 +40,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from softgrasp.cli.launch import server_key
+from softgrasp.cli.launch import IDLE_MINUTES, server_key
 
 __all__ = ["IDLE_S", "KILL_AFTER_S", "PRELOAD", "Command", "Server", "main", "running", "serve"]
 
 #: A server without a command for this long exits [s].
-IDLE_S = 900.0
+IDLE_S = 60.0 * IDLE_MINUTES
 #: How often the server checks its socket and sources [s].
 CHECK_S = 2.0
 #: A child whose client went away is killed this long after its interrupt [s].
@@ -145,7 +145,7 @@ def _warm() -> bool:
     if warm.cold():
         return False
     warm.warm_up()
-    if backend._threads_lost():
+    if backend.forks_lose_threads():
         return False
     gc.collect()
     gc.freeze()
