@@ -74,7 +74,7 @@ def server():
         shutil.rmtree(runtime, ignore_errors=True)
 
 
-def _start(argv: list[str], env: dict[str, str], cwd: Path) -> subprocess.Popen:
+def _start(argv: list[str], env: dict[str, str], cwd: Path, preexec=None) -> subprocess.Popen:
     """``softgrasp argv`` started in its own process group (a terminal's job)."""
     return subprocess.Popen(
         [sys.executable, "-m", "softgrasp", *argv],
@@ -84,6 +84,7 @@ def _start(argv: list[str], env: dict[str, str], cwd: Path) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=preexec,
     )
 
 
@@ -143,6 +144,23 @@ def test_ctrl_c_at_a_served_plan_interrupts_it_and_leaves_the_earlier_outputs(se
     assert p.returncode == 130, err
     assert err.strip().splitlines()[-1] == "softgrasp: interrupted"
     assert _snapshot(tmp_path / "d") == before
+
+
+def _private_and_deaf() -> None:
+    os.umask(0o077)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job of a shell without job control
+
+
+def test_a_served_plan_keeps_the_client_s_file_mask_and_ignored_ctrl_c(server, tmp_path):
+    env, pid, _ = server
+    p = _start([*PLAN, "--out", "private"], env, tmp_path, preexec=_private_and_deaf)
+    assert _served_child(pid, p) is not None
+    time.sleep(0.5)
+    os.killpg(p.pid, signal.SIGINT)  # ignored, as by a process of its own
+    _, err = p.communicate(timeout=BOUND_S)
+    assert p.returncode == 0, err
+    files = [f for f in (tmp_path / "private").rglob("*") if f.is_file()]
+    assert files and all(f.stat().st_mode & 0o077 == 0 for f in files)
 
 
 def test_a_client_killed_outright_has_its_command_interrupted(server, tmp_path):

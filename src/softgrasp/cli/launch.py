@@ -190,9 +190,24 @@ def start_server(path: Path | None = None) -> bool:
 
 
 def _request(argv: list[str]) -> bytes:
-    """The command as the server reads it: a length-prefixed JSON document."""
+    """The command as the server reads it, a length-prefixed JSON document: the arguments, the
+    working folder, the environment, the CPU affinity, the file-creation mask, the scheduling
+    priority and the signals this process ignores."""
     affinity = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    body = json.dumps({"argv": argv, "cwd": os.getcwd(), "env": ENVIRON, "affinity": affinity})
+    umask = os.umask(0o022)
+    os.umask(umask)
+    ignored = [int(sig) for sig in _Relay.SIGNALS if signal.getsignal(sig) is signal.SIG_IGN]
+    body = json.dumps(
+        {
+            "argv": argv,
+            "cwd": os.getcwd(),
+            "env": ENVIRON,
+            "affinity": affinity,
+            "umask": umask,
+            "nice": os.getpriority(os.PRIO_PROCESS, 0),
+            "ignored": ignored,
+        }
+    )
     data = body.encode("utf-8", "surrogateescape")
     return struct.pack("!I", len(data)) + data
 
@@ -251,7 +266,8 @@ class _Relay:
         for sig in (*self.SIGNALS, signal.SIGTSTP, signal.SIGCONT):
             self._saved[sig] = signal.getsignal(sig)
         for sig in self.SIGNALS:
-            signal.signal(sig, self._forward)
+            if self._saved[sig] is not signal.SIG_IGN:  # an ignored one the child ignores too
+                signal.signal(sig, self._forward)
         signal.signal(signal.SIGTSTP, self._stop)
         signal.signal(signal.SIGCONT, self._continue)
         return self

@@ -10,11 +10,13 @@
    compiled (it would compile them while a command waited) or when Numba's threads would not
    survive a fork (GNU OpenMP's layer: :mod:`softgrasp.backend`);
 2. for each command (a length-prefixed JSON document with the client's arguments, working
-   directory, environment and CPU affinity, its stdin, stdout and stderr passed with it) forks a
-   child, sends the client the child's process id and then lets the child go. The child takes the
-   client's terminal, folder, environment, affinity and signal dispositions and runs the command
-   line (:func:`softgrasp.cli.main`) as a fresh ``softgrasp`` process would; it exits through
-   the interpreter's normal exit (its ``atexit`` functions, its threads joined);
+   directory, environment, CPU affinity, file-creation mask, priority and ignored signals, its
+   stdin, stdout and stderr passed with it) forks a child, sends the client the child's process
+   id and then lets the child go. The child takes all of these (a priority above the server's
+   only where allowed), gives again the warnings the server gave, and runs the command line
+   (:func:`softgrasp.cli.main`) as a fresh ``softgrasp`` process would; it ends as the
+   interpreter ends one (its threads joined, its ``atexit`` functions run, its streams flushed)
+   without freeing the server's objects one by one. Resource limits are the server's;
 3. reports each child's exit status to its client (``128 + N`` for a child ended by signal N).
    A client that goes away first has its child interrupted (``SIGINT``: its run folder left as it
    was), and killed :data:`KILL_AFTER_S` later if it still runs;
@@ -82,9 +84,15 @@ class Command:
     env: dict[str, str]
     affinity: list[int] | None
     fds: list[int]
+    umask: int = 0o022
+    nice: int = 0
+    ignored: tuple[int, ...] = ()
 
     def run(self) -> int:
-        """Take the client's terminal, folder, environment and affinity; run the command line."""
+        """Take the client's terminal, folder, environment, affinity, file-creation mask,
+        priority (where it is not above the server's) and ignored signals; run the command line."""
+        import warnings
+
         for target, fd in enumerate(self.fds):
             os.dup2(fd, target)
             os.close(fd)
@@ -93,12 +101,25 @@ class Command:
         for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD):
             signal.signal(sig, signal.SIG_DFL)
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        for sig in self.ignored:
+            signal.signal(sig, signal.SIG_IGN)
         signal.set_wakeup_fd(-1)
+        os.umask(self.umask)
+        from softgrasp.io import atomic
+
+        atomic.read_umask()
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, self.nice)
+        except OSError:  # a higher priority than the server's needs privileges
+            pass
         if self.affinity and hasattr(os, "sched_setaffinity"):
             try:
                 os.sched_setaffinity(0, self.affinity)
             except OSError:
                 pass
+        filters = warnings.filters[:]  # a warning the server gave (to nothing) is given again
+        warnings.simplefilter("default")
+        warnings.filters[:] = filters
         _standard_streams()
         if "numpy.random" in sys.modules:
             sys.modules["numpy.random"].seed()  # as unpredictable as a fresh process's
@@ -415,6 +436,9 @@ def _read(conn: socket.socket) -> Command:
         env={str(k): str(v) for k, v in doc["env"].items()},
         affinity=doc.get("affinity"),
         fds=list(fds),
+        umask=int(doc.get("umask", 0o022)),
+        nice=int(doc.get("nice", 0)),
+        ignored=tuple(int(sig) for sig in doc.get("ignored", ())),
     )
 
 

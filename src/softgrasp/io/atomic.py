@@ -10,17 +10,22 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_write", "write_json", "write_text"]
+__all__ = ["atomic_write", "read_umask", "write_json", "write_text"]
 
 
-def _read_umask() -> int:
-    """The process umask, read once at import (setting it is process-wide, so not per write)."""
+def read_umask() -> int:
+    """Read the process umask into the mode new files get, and return it: at import (setting
+    the umask to read it is process-wide, so not per write), and again in a process whose umask
+    changed since (a child of softgrasp's warm server takes its client's: :mod:`softgrasp.cli.zygote`)."""
+    global _UMASK
     mask = os.umask(0o022)
     os.umask(mask)
+    _UMASK = mask
     return mask
 
 
-_UMASK = _read_umask()
+_UMASK = 0o022
+read_umask()
 
 
 def atomic_write(path: str | Path, writer: Callable[[Path], None]) -> Path:
