@@ -38,6 +38,24 @@ def test_the_child_draws_the_same_png_bytes_as_this_process(tmp_path):
         assert (there / name).read_bytes() == (here / name).read_bytes()
 
 
+def test_a_worker_made_not_started_starts_its_child_when_told_or_at_its_first_figure(tmp_path):
+    """``start=False``: no child until :meth:`start` (once, however often called) or the first
+    figure; the figures are those drawn here."""
+    plots.plot_plan_forces(K, F, NAMES, tmp_path / "here.png")
+    for when in ("start", "draw"):
+        with FigureWorker("child", start=False) as figures:
+            assert not figures.in_child
+            if when == "start":
+                figures.start()
+                child = figures._proc
+                figures.start()
+                assert figures.in_child and figures._proc is child
+            figures.draw("plot_plan_forces", K, F, NAMES, tmp_path / f"{when}.png")
+            assert figures.in_child
+            figures.finish()
+        assert (tmp_path / f"{when}.png").read_bytes() == (tmp_path / "here.png").read_bytes()
+
+
 def test_a_failing_figure_raises_in_the_caller_and_the_others_are_still_drawn(tmp_path):
     """A figure whose data do not fit (three names, two force columns) raises the child's own
     error from finish(); the figure queued after it is written all the same."""

@@ -166,9 +166,10 @@ def connect(path: Path) -> socket.socket | None:
 
 def start_server(path: Path | None = None) -> bool:
     """Start a server for this program at ``path`` (default :func:`socket_path`) in the
-    background, in the environment this program started with, detached from its terminal
-    (:mod:`softgrasp.cli.zygote`; a second one for the same socket exits at once). Whether it
-    was started."""
+    background, in the environment this program started with, detached from its terminal, with
+    no working folder on its ``sys.path`` (``-P``: a child imports what the ``softgrasp`` program
+    imports wherever its client runs) (:mod:`softgrasp.cli.zygote`; a second one for the same
+    socket exits at once). Whether it was started."""
     import subprocess
 
     path = socket_path() if path is None else path
@@ -176,7 +177,7 @@ def start_server(path: Path | None = None) -> bool:
         return False
     try:
         subprocess.Popen(
-            [sys.executable, "-m", "softgrasp.cli.zygote", str(path)],
+            [sys.executable, "-P", "-m", "softgrasp.cli.zygote", str(path)],  # no folder on sys.path
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,

@@ -186,10 +186,10 @@ def run(args: argparse.Namespace) -> int:
         from softgrasp.cli.extras import require
 
         require("sweep", "softgrasp plan --uncertain")  # robust set-points run on Dask
-    # Matplotlib loads in a child process meanwhile; it then draws the figures while the other
-    # files are written.
+    # Matplotlib loads in a child process meanwhile (started by _plan); it then draws the figures
+    # while the other files are written.
     # (The worker stops before the folder is committed or cleared: no figure lands after.)
-    with ExitStack() as folder, FigureWorker() as figures:
+    with ExitStack() as folder, FigureWorker(start=False) as figures:
         bar = PhaseBar("plan", PLAN_SHARES)
         try:
             return _plan(args, figures, folder, bar)
@@ -219,6 +219,12 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
     from softgrasp.cli.warm import resume_collector, warm_up_in_background
 
     warm = warm_up_in_background()  # the compiled kernels load while the object is meshed
+
+    def start_figures() -> None:  # the figure process, unless the kernels compile (a first run)
+        if warm.checked.is_set() and not warm.cold:
+            figures.start()
+
+    start_figures()
     from softgrasp.api.planning import plan
     from softgrasp.io.options import contact_params
 
@@ -231,6 +237,7 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
     out = Path(str(args.out))
     bar.phase("meshing", quiet=True)  # a refused mesh or material stays one line
     obj = load(args)
+    start_figures()
     m = obj.material
     bar.write(f"object   {obj.summary()}")
     bar.write(f"material {m.name}: E = {m.E / 1e3:.4g} kPa, nu = {m.nu:g}")
@@ -242,6 +249,7 @@ def _plan(args: argparse.Namespace, figures: FigureWorker, folder: ExitStack, ba
     def phase(name: str) -> None:  # the planner's phases, every option checked by then
         if not bar.phases or bar.phases[-1] == "meshing":
             kernels_phase(bar, warm)
+            figures.start()  # (after the compiling, on a first run)
             resume_collector()  # the start-up is over: softgrasp.cli.warm.pause_collector
         bar.phase(name)
 

@@ -459,7 +459,9 @@ def main(argv: list[str] | None = None) -> int:
     if len(args) != 1:
         print("usage: python -m softgrasp.cli.zygote SOCKET", file=sys.stderr)
         return 2
-    command = serve(Path(args[0]))
+    path = Path(args[0]).absolute()
+    os.chdir("/")  # holds no folder of the client's; each child enters its client's
+    command = serve(path)
     if command is None:
         return 0
     _exit(command.run())

@@ -16,6 +16,9 @@ child can be started, or it dies, the figures not yet drawn are drawn here: the 
 later. Each figure function writes its PNG atomically, so a failure or a stopped child leaves no
 half-written file.
 
+``FigureWorker(mode, start=False)`` starts the child later, when the caller calls :meth:`~FigureWorker.start`
+or at the first figure (a first run of ``softgrasp plan`` starts it once its kernels are
+compiled, so that Matplotlib's start does not take CPU from the compiling).
 ``FigureWorker(mode)`` chooses: ``"auto"`` (the default) starts the child where this process may
 run on more than one core (:func:`softgrasp.linalg.threads.choose_threads`: a fixed rule, not the
 machine's momentary load; one core would run the child's start-up instead of the caller's work),
@@ -118,14 +121,22 @@ class FigureWorker:
             figures.finish()
     """
 
-    def __init__(self, mode: str = "auto") -> None:
+    def __init__(self, mode: str = "auto", *, start: bool = True) -> None:
         self._jobs: list[tuple[str, tuple[Any, ...], dict[str, Any]]] = []
         self._done = 0  # jobs drawn (here or there) and answered, in order
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._answers: IO[bytes] | None = None
-        if not _want_child(mode):
+        self._child = _want_child(mode)  # (checked now: a bad mode fails at once)
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Start the child, if ``mode`` wants one and it is not started yet (a worker made with
+        ``start=False`` starts it here, or at its first figure)."""
+        if not self._child:
             return  # finish() draws the figures here
+        self._child = False  # one child at most
         env = dict(os.environ)
         # The child imports this softgrasp, wherever it was imported from.
         root = str(Path(__file__).resolve().parents[2])
@@ -156,6 +167,7 @@ class FigureWorker:
 
     def draw(self, name: str, *args: Any, **kwargs: Any) -> None:
         """Queue the figure function ``softgrasp.viz.plots.<name>(*args, **kwargs)``."""
+        self.start()
         self._jobs.append((name, args, kwargs))
         if self._sock is not None:
             try:
