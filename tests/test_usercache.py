@@ -129,3 +129,60 @@ def test_a_repeated_plan_neither_meshes_nor_reads_the_urdf_again(tmp_path):
     import json
 
     assert json.loads(runs[0][1])["setpoints_N"] == json.loads(runs[1][1])["setpoints_N"]
+
+
+_MAKER = """
+import sys, time
+from softgrasp import usercache
+with usercache.making("things", "k"):
+    print("locked", flush=True)
+    time.sleep(1.0)
+    usercache.store("things", "k", {"who": "the other process"})
+"""
+
+
+def test_an_entry_being_made_by_another_process_is_waited_for_and_read(cache):
+    """The pattern of :func:`~softgrasp.usercache.making`: while another process makes the entry
+    under its lock, this one waits, finds it made and makes nothing."""
+    other = subprocess.Popen(
+        [sys.executable, "-c", _MAKER],
+        env={**os.environ, "PYTHONPATH": SRC},
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert other.stdout is not None and other.stdout.readline().strip() == "locked"
+    made_here = False
+    kept = usercache.load("things", "k")
+    assert kept is None  # not made yet: the other process holds the lock
+    with usercache.making("things", "k"):
+        kept = usercache.load("things", "k")
+        if kept is None:
+            made_here = True
+    assert other.wait(60) == 0
+    assert not made_here and str(kept["who"]) == "the other process"
+
+
+def test_a_hand_read_meanwhile_by_another_process_is_not_read_again(cache, monkeypatch):
+    """A first plan's second process reads the default hand while the first waits for it
+    (:func:`softgrasp.cli.warm.warm_up_fingertips`): the waiting one does not call yourdfpy."""
+    from softgrasp.hand.kinematics import HandModel
+
+    code = (
+        "import time; from softgrasp import usercache; from softgrasp.hand import urdf\n"
+        "read = urdf._read\n"
+        "def slow(*a):\n    print('reading', flush=True); time.sleep(1.0); return read(*a)\n"
+        "urdf._read = slow\n"
+        "from softgrasp.hand.kinematics import HandModel; HandModel.packaged('shadow_like')\n"
+    )
+    other = subprocess.Popen(
+        [sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": SRC}, stdout=subprocess.PIPE, text=True
+    )
+    assert other.stdout is not None and other.stdout.readline().strip() == "reading"
+
+    def refuse(*_args):
+        raise AssertionError("read here too")
+
+    monkeypatch.setattr(urdf, "_read", refuse)
+    hand = HandModel.packaged("shadow_like")
+    assert other.wait(60) == 0
+    assert hand.grasp_fingers

@@ -11,7 +11,9 @@ unused. The folder is ``$XDG_CACHE_HOME/softgrasp`` (the XDG convention), else
 
 Entries are NumPy ``.npz`` files (no pickles: nothing is executed on load) written atomically.
 The cache is an optimisation only: a folder that cannot be written, or a damaged entry, is
-skipped and the result is made again.
+skipped and the result is made again. An entry is made under its lock (:func:`making`): a
+second process that needs it meanwhile waits for it instead of making it too (a first plan's
+two compiling processes, the workers of a sweep).
 """
 
 from __future__ import annotations
@@ -21,13 +23,24 @@ import hashlib
 import os
 import tempfile
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["cache_dir", "entry_key", "load", "package_digest", "source_digest", "store", "value_digest"]
+__all__ = [
+    "cache_dir",
+    "entry_key",
+    "load",
+    "making",
+    "package_digest",
+    "source_digest",
+    "store",
+    "value_digest",
+]
+
 
 def cache_dir() -> Path:
     """The cache folder (module docstring); not created here."""
@@ -124,6 +137,37 @@ def load(kind: str, key: str) -> dict[str, NDArray] | None:
             return {name: data[name] for name in data.files}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
         return None
+
+
+@contextmanager
+def making(kind: str, key: str) -> Iterator[None]:
+    """Hold the lock of entry ``kind``/``key`` while it is made: another process making the same
+    entry waits here until this one is done, then finds it with :func:`load`. Use::
+
+        kept = load(kind, key)
+        if kept is None:
+            with making(kind, key):
+                kept = load(kind, key)  # made meanwhile by another process
+                if kept is None:
+                    ...  # make it and store() it
+
+    Without a lock (a folder that cannot be written, a system without ``fcntl``) it only runs
+    the block."""
+    try:
+        import fcntl
+
+        path = _path(kind, key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        lock = open(f"{path}.lock", "a")  # noqa: SIM115 - held across the yield
+    except (ImportError, OSError):
+        yield
+        return
+    with lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+        except OSError:
+            pass
+        yield
 
 
 def store(kind: str, key: str, arrays: Mapping[str, NDArray | str | float]) -> None:

@@ -134,9 +134,16 @@ def _problem():
 def warm_up_fingertips() -> None:
     """Compile (or load) the fingertip contact's kernels alone: the calls a static solve and the
     planner make on it, on the warm-up's problem. A first run runs this in a second process
-    while :func:`warm_up` compiles the other kernels (:func:`start_fingertip_compile`)."""
+    while :func:`warm_up` compiles the other kernels (:func:`start_fingertip_compile`); that
+    process first reads the default hand (yourdfpy and its mesh library import for about a
+    second) into softgrasp's cache folder, under the entry's lock
+    (:func:`softgrasp.usercache.making`), so that the first process, which compiles more,
+    reads it from there instead."""
     if not compiled():
         return
+    from softgrasp.hand.kinematics import HandModel
+
+    HandModel.default()
     body, x, _, fingers, t = _problem()
     x = x.copy()  # writable, as a solve's positions are (another type to the kernels)
     state = fingers.init_state(body, x, t)
@@ -199,8 +206,8 @@ def warm_up(split: bool = False) -> None:
     from softgrasp.sim.scene import Scene
     from softgrasp.sim.static import solve_static
 
+    child = start_fingertip_compile() if split else None  # first: it reads the hand first
     body, _, table, fingers, t = _problem()
-    child = start_fingertip_compile() if split else None
     if child is not None:
         try:
             alone = Scene(body, (table,))

@@ -108,15 +108,27 @@ def _robot(data: bytes, source: str) -> tuple[list[Joint], list[str], dict[str, 
     key = usercache.entry_key(
         "urdf", data, version("yourdfpy"), usercache.source_digest(*_READING_MODULES)
     )
-    kept = usercache.load("hands", key)
+    kept = _kept(key)
     if kept is not None:
-        try:
-            return _unpack(kept)
-        except (KeyError, ValueError, IndexError):
-            pass  # a damaged entry: read the file again
-    joints, links, spheres = _read(data, source)
-    usercache.store("hands", key, _pack(joints, links, spheres))
+        return kept
+    with usercache.making("hands", key):
+        kept = _kept(key)  # read meanwhile by another process
+        if kept is not None:
+            return kept
+        joints, links, spheres = _read(data, source)
+        usercache.store("hands", key, _pack(joints, links, spheres))
     return joints, links, spheres
+
+
+def _kept(key: str) -> tuple[list[Joint], list[str], dict[str, Sphere]] | None:
+    """The hand kept under ``key``, or None (none, or a damaged entry: the file is read again)."""
+    kept = usercache.load("hands", key)
+    if kept is None:
+        return None
+    try:
+        return _unpack(kept)
+    except (KeyError, ValueError, IndexError):
+        return None
 
 
 def _pack(joints: list[Joint], links: list[str], spheres: dict[str, Sphere]) -> dict[str, np.ndarray]:

@@ -184,12 +184,23 @@ def _generated(
         "mesh", name, mesh_size, scale, _gmsh_version(), usercache.source_digest(*MESHING_MODULES),
         *(() if refinement is None else ("refined", *astuple(refinement))),
     )  # fmt: skip
+    kept = _kept_mesh(key)
+    if kept is not None:
+        return kept
+    with usercache.making("meshes", key):  # (another process meshing it: its mesh, once made)
+        kept = _kept_mesh(key)
+        if kept is not None:
+            return kept
+        mesh, T = _generate(name, mesh_size, scale, refinement)
+        usercache.store("meshes", key, {"points": mesh.points, "tets": mesh.tets, "T": T, "name": mesh.name})
+    return mesh, T
+
+
+def _kept_mesh(key: str) -> tuple[TetMesh, NDArray[np.float64]] | None:
     kept = usercache.load("meshes", key)
     if kept is not None and {"points", "tets", "T", "name"} <= kept.keys():
         return TetMesh(kept["points"], kept["tets"], name=str(kept["name"])), kept["T"]
-    mesh, T = _generate(name, mesh_size, scale, refinement)
-    usercache.store("meshes", key, {"points": mesh.points, "tets": mesh.tets, "T": T, "name": mesh.name})
-    return mesh, T
+    return None
 
 
 #: The modules whose sources decide a generated mesh (they key its cache entry).
