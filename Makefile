@@ -12,7 +12,7 @@ $(BIN)/python:
 # softgrasp with both optional extras: MuJoCo (`execute`) and Dask with PyArrow (`sweep`); then
 # its bytecode is written (an editable install writes none, and where PYTHONDONTWRITEBYTECODE is
 # set, as in many containers, every run would compile every module: ~0.12 s of a plan) and its
-# kernels compile once (about 30 s on a first install, the solvers a plan does not use
+# kernels compile once (about a minute on a first install, the solvers a plan does not use
 # included; nothing to do after).
 install: $(BIN)/python gl
 	$(BIN)/python -m pip install --quiet -e ".[execute,sweep]"

@@ -24,15 +24,16 @@ the child's TBB may be in an invalid state); the command line forks no process a
 The install (:func:`main`) also compiles the kernels a default plan does not load: the compiled
 Runge-Kutta stepper (``plan --solver dynamic``, the experiments' dynamics), the multigrid solver
 of large meshes and the nodal volume term (``--volume-term nodal``) (:func:`warm_up_solvers`,
-about 20 s on a first install), so that no command compiles after installing.
+about 40 s on a first install), so that no command compiles after installing.
 
 A first run (or the first after an edit of a kernel's source, which keys the cache:
 :mod:`softgrasp.jitcache`) compiles instead of loading: :func:`cold` tells it beforehand from the
 cache's index of a few kernels the warm-up compiles first and last, so that the command line can
 say why it waits (:data:`COMPILE_TIME_S`). It then compiles the fingertip contact's kernels in a
-second process (a new program, :func:`start_fingertip_compile`) while this one compiles the rest,
-and loads them from the cache once that process is done: about 21 s instead of 42 s on the 2-core
-benchmark machine (``benchmarks/bench_cli.py``, first run).
+second process (a new program, :func:`start_fingertip_compile`, which first reads the default
+hand into the cache folder so that this one need not import the URDF library) while this one
+compiles the rest, and loads them from the cache once that process is done: about 11-15 s instead
+of 22-28 s on the 2-core benchmark machine (``benchmarks/bench_cli.py``, first run).
 
 While a plan command starts (its imports and this loading), Python's cyclic garbage collector is
 paused (:func:`pause_collector`, :func:`resume_collector`): what is made then lives as long as
@@ -62,11 +63,12 @@ __all__ = [
 ]
 
 #: About how long compiling the kernels takes on a first run [s] (on the 2-core benchmark machine,
-#: the fingertip contact's in a second process: 21 s of a 26 s first plan).
-COMPILE_TIME_S = 20
+#: the fingertip contact's in a second process: 10-12 s of a 13-14 s first plan; more where the
+#: machine is slower).
+COMPILE_TIME_S = 15
 #: About how long compiling the other solvers' kernels takes on a first install [s]
-#: (:func:`warm_up_solvers`).
-SOLVERS_COMPILE_TIME_S = 20
+#: (:func:`warm_up_solvers`; about 38 s on the 2-core benchmark machine).
+SOLVERS_COMPILE_TIME_S = 40
 
 #: What the kernels of each package compute, as a first run names them while it compiles them.
 KERNEL_GROUPS = (
