@@ -231,3 +231,23 @@ def test_the_key_follows_the_environment_that_the_server_imports_with():
 )
 def test_which_command_lines_a_server_runs(argv, served):
     assert launch._served(argv) is served
+
+
+def test_an_ended_server_s_lock_file_is_removed_and_a_held_one_is_listed(tmp_path):
+    import fcntl
+
+    stale = tmp_path / "a.sock.lock"
+    stale.write_text("12345 ready\n")  # its server ended: nobody holds it
+    assert zygote.running(tmp_path) == []
+    assert not stale.exists()
+    lock = zygote._take_lock(tmp_path / "b.sock.lock")
+    assert lock is not None
+    with lock:
+        zygote._state(lock, f"{os.getpid()} ready")
+        [s] = zygote.running(tmp_path)
+        assert (s.socket, s.pid, s.ready) == (tmp_path / "b.sock", os.getpid(), True)
+        with open(tmp_path / "b.sock.lock") as other:  # a second server would not get it
+            with pytest.raises(OSError):
+                fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert zygote._take_lock(tmp_path / "b.sock.lock", tries=2) is None
+    assert zygote.running(tmp_path) == []

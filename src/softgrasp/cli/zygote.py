@@ -177,11 +177,10 @@ def serve(path: Path) -> Command | None:
     """Serve commands at ``path`` (module docstring). Returns None in the server when it ends,
     and the command in each forked child, which runs it after this returns."""
     server = os.getpid()
-    with open(f"{path}.lock", "a+") as lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            return None  # another server for this socket
+    lock = _take_lock(Path(f"{path}.lock"))
+    if lock is None:
+        return None  # another server for this socket
+    with lock:
         _state(lock, f"{server} starting")
         try:
             path.unlink()
@@ -201,6 +200,28 @@ def serve(path: Path) -> Command | None:
             listener.close()
             if os.getpid() == server:
                 _remove(path, inode)
+
+
+def _take_lock(path: Path, tries: int = 50):
+    """The lock file at ``path``, opened and locked for this server, or None when another server
+    holds it. A lock held for a moment by :func:`running`, or a file it removed meanwhile, is
+    tried again."""
+    for _ in range(tries):
+        lock = open(path, "a+")  # noqa: SIM115 - held for the server's life
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            lock.close()
+            time.sleep(0.02)
+            continue
+        try:
+            same = os.fstat(lock.fileno()).st_ino == os.stat(path).st_ino
+        except OSError:
+            same = False
+        if same:
+            return lock
+        lock.close()  # removed as an ended server's meanwhile: lock the new file
+    return None
 
 
 def _state(lock, text: str) -> None:
@@ -231,13 +252,13 @@ def running(folder: Path | None = None) -> list[Server]:
         try:
             with open(lock_path) as lock:
                 try:
-                    fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                    fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except OSError:  # held: a server runs
                     words = lock.read().split()
                     if len(words) == 2 and words[0].isdigit():
                         found.append(Server(lock_path.with_suffix(""), int(words[0]), words[1] == "ready"))
                     continue
-            lock_path.unlink(missing_ok=True)  # an ended server's
+                lock_path.unlink(missing_ok=True)  # an ended server's (removed while locked)
         except OSError:
             continue
     return found
