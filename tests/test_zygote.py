@@ -88,6 +88,16 @@ def _start(argv: list[str], env: dict[str, str], cwd: Path, preexec=None) -> sub
     )
 
 
+def _into_a_served_plan(server, argv: list[str], cwd: Path, preexec=None) -> tuple[subprocess.Popen, int]:
+    """``softgrasp argv`` started, its server's child found, half a second into its plan."""
+    env, pid, _ = server
+    p = _start(argv, env, cwd, preexec)
+    child = _served_child(pid, p)
+    assert child is not None, "the plan did not run in the server"
+    time.sleep(0.5)
+    return p, child
+
+
 def _served_child(server_pid: int, p: subprocess.Popen) -> int | None:
     """The server's child that runs ``p``'s command, once it has one; None if ``p`` ends first."""
     end = time.monotonic() + BOUND_S
@@ -133,12 +143,8 @@ def _earlier(env: dict[str, str], folder: Path) -> dict[str, bytes]:
 
 
 def test_ctrl_c_at_a_served_plan_interrupts_it_and_leaves_the_earlier_outputs(server, tmp_path):
-    env, pid, _ = server
-    before = _earlier(env, tmp_path / "d")
-    p = _start([*PLAN, "--out", str(tmp_path / "d")], env, tmp_path)
-    child = _served_child(pid, p)
-    assert child is not None
-    time.sleep(0.5)  # into the plan
+    before = _earlier(server[0], tmp_path / "d")
+    p, _ = _into_a_served_plan(server, [*PLAN, "--out", str(tmp_path / "d")], tmp_path)
     os.killpg(p.pid, signal.SIGINT)  # the terminal's Ctrl-C reaches the client's job, not the server
     _, err = p.communicate(timeout=BOUND_S)
     assert p.returncode == 130, err
@@ -152,10 +158,7 @@ def _private_and_deaf() -> None:
 
 
 def test_a_served_plan_keeps_the_client_s_file_mask_and_ignored_ctrl_c(server, tmp_path):
-    env, pid, _ = server
-    p = _start([*PLAN, "--out", "private"], env, tmp_path, preexec=_private_and_deaf)
-    assert _served_child(pid, p) is not None
-    time.sleep(0.5)
+    p, _ = _into_a_served_plan(server, [*PLAN, "--out", "private"], tmp_path, _private_and_deaf)
     os.killpg(p.pid, signal.SIGINT)  # ignored, as by a process of its own
     _, err = p.communicate(timeout=BOUND_S)
     assert p.returncode == 0, err
@@ -164,12 +167,9 @@ def test_a_served_plan_keeps_the_client_s_file_mask_and_ignored_ctrl_c(server, t
 
 
 def test_a_client_killed_outright_has_its_command_interrupted(server, tmp_path):
-    env, pid, _ = server
-    before = _earlier(env, tmp_path / "d")
-    p = _start([*PLAN, "--out", str(tmp_path / "d")], env, tmp_path)
-    child = _served_child(pid, p)
-    assert child is not None
-    time.sleep(0.5)
+    pid = server[1]
+    before = _earlier(server[0], tmp_path / "d")
+    p, child = _into_a_served_plan(server, [*PLAN, "--out", str(tmp_path / "d")], tmp_path)
     p.kill()
     p.communicate(timeout=BOUND_S)
     end = time.monotonic() + zygote.KILL_AFTER_S + BOUND_S
