@@ -151,7 +151,7 @@ def _stop_started_server(env: dict[str, str], within_s: float = 10.0) -> None:
     that it does not load its kernels during the next case), and wait until it is gone."""
     import signal
 
-    from softgrasp.cli import launch, zygote
+    from softgrasp.cli import launch, serverlock
 
     folder = launch.socket_folder()
     if folder is None:
@@ -159,10 +159,10 @@ def _stop_started_server(env: dict[str, str], within_s: float = 10.0) -> None:
     path = folder / f"{launch.server_key(env)}.sock"
     end = time.monotonic() + within_s
     while time.monotonic() < end:
-        mine = [s for s in zygote.running(folder) if s.socket == path]
+        mine = [s for s in serverlock.running(folder) if s.socket == path]
         if mine:
             os.kill(mine[0].pid, signal.SIGTERM)
-            while time.monotonic() < end and any(s.socket == path for s in zygote.running(folder)):
+            while time.monotonic() < end and any(s.socket == path for s in serverlock.running(folder)):
                 time.sleep(0.05)
             return
         time.sleep(0.05)

@@ -96,9 +96,9 @@ def pytest_collection_modifyitems(config, items):
 def pytest_sessionstart(session):
     """Note the warm servers running before the suite (:mod:`softgrasp.cli.zygote`)."""
     if not hasattr(session.config, "workerinput"):
-        from softgrasp.cli import zygote
+        from softgrasp.cli import serverlock
 
-        session.config.softgrasp_servers = {s.pid for s in zygote.running()}
+        session.config.softgrasp_servers = {s.pid for s in serverlock.running()}
 
 
 def pytest_sessionfinish(session, exitstatus):
@@ -106,10 +106,10 @@ def pytest_sessionfinish(session, exitstatus):
     for a quarter of an hour); the running commands of a server end first."""
     if hasattr(session.config, "workerinput"):
         return
-    from softgrasp.cli import zygote
+    from softgrasp.cli import serverlock
 
     before = getattr(session.config, "softgrasp_servers", set())
-    for s in zygote.running():
+    for s in serverlock.running():
         if s.pid not in before:
             try:
                 os.kill(s.pid, signal.SIGTERM)

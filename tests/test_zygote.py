@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from softgrasp.cli import launch, zygote
+from softgrasp.cli import launch, serverlock, zygote
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 #: A coarse plan of the default sphere that runs every step: a few seconds.
@@ -63,13 +63,13 @@ def server():
     try:
         started = _run(["server", "start"], env, runtime)
         assert started.returncode == 0, started.stderr
-        [s] = zygote.running(runtime / "softgrasp")
+        [s] = serverlock.running(runtime / "softgrasp")
         assert s.ready and started.stdout.startswith(f"serving: pid {s.pid}")
         yield env, s.pid, runtime / "softgrasp"
     finally:
         _run(["server", "stop", "--all"], env, runtime)
         end = time.monotonic() + BOUND_S
-        while zygote.running(runtime / "softgrasp") and time.monotonic() < end:
+        while serverlock.running(runtime / "softgrasp") and time.monotonic() < end:
             time.sleep(0.05)
         shutil.rmtree(runtime, ignore_errors=True)
 
@@ -181,7 +181,7 @@ def test_a_client_killed_outright_has_its_command_interrupted(server, tmp_path):
 
 def test_a_stray_connection_does_not_stop_the_server(server, tmp_path):
     env, pid, folder = server
-    [s] = zygote.running(folder)
+    [s] = serverlock.running(folder)
     for junk in (b"", b"\x00\x00\x00\x05{}", b"not a command"):
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
             c.connect(str(s.socket))
@@ -238,16 +238,16 @@ def test_an_ended_server_s_lock_file_is_removed_and_a_held_one_is_listed(tmp_pat
 
     stale = tmp_path / "a.sock.lock"
     stale.write_text("12345 ready\n")  # its server ended: nobody holds it
-    assert zygote.running(tmp_path) == []
+    assert serverlock.running(tmp_path) == []
     assert not stale.exists()
-    lock = zygote._take_lock(tmp_path / "b.sock.lock")
+    lock = serverlock.take_lock(tmp_path / "b.sock.lock")
     assert lock is not None
     with lock:
-        zygote._state(lock, f"{os.getpid()} ready")
-        [s] = zygote.running(tmp_path)
+        serverlock.write_state(lock, f"{os.getpid()} ready")
+        [s] = serverlock.running(tmp_path)
         assert (s.socket, s.pid, s.ready) == (tmp_path / "b.sock", os.getpid(), True)
         with open(tmp_path / "b.sock.lock") as other:  # a second server would not get it
             with pytest.raises(OSError):
                 fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        assert zygote._take_lock(tmp_path / "b.sock.lock", tries=2) is None
-    assert zygote.running(tmp_path) == []
+        assert serverlock.take_lock(tmp_path / "b.sock.lock", tries=2) is None
+    assert serverlock.running(tmp_path) == []

@@ -2,7 +2,9 @@
 and no file formats here.
 
 One module per command (``compress``, ``indent``, ``plan``, ``calibrate``, ``execute``, ``view``,
-``reproduce``, ``sweep``), the parser and dispatch in :mod:`softgrasp.cli.main`, shared options in
+``reproduce``, ``sweep``, ``server``), the program in :mod:`softgrasp.cli.launch` (a ``plan`` runs
+in a child of the warm server, :mod:`softgrasp.cli.zygote`, its lock file in
+:mod:`softgrasp.cli.serverlock`), the parser and dispatch in :mod:`softgrasp.cli.main`, shared options in
 :mod:`softgrasp.cli.args`, the help texts and global options (``--verbose``, ``--debug``,
 ``--threads``, before or after the command) in :mod:`softgrasp.cli.help`, progress by phase in
 :mod:`softgrasp.cli.progress`, the optional extras a command needs in :mod:`softgrasp.cli.extras`.

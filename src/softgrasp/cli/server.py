@@ -31,7 +31,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softgrasp.cli import launch, zygote
+    from softgrasp.cli import launch, serverlock
     from softgrasp.cli.status import NOT_DONE
     from softgrasp.errors import ConfigError
 
@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.all and args.action != "stop":
         raise ConfigError("--all applies to 'softgrasp server stop'")
-    servers = zygote.running(path.parent)
+    servers = serverlock.running(path.parent)
     mine = [s for s in servers if s.socket == path]
     if args.action == "status":
         if not servers:
@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         launch.start_server(path)
     start, seen = time.monotonic(), False
     while time.monotonic() - start < START_WAIT_S:
-        mine = [s for s in zygote.running(path.parent) if s.socket == path]
+        mine = [s for s in serverlock.running(path.parent) if s.socket == path]
         if mine and mine[0].ready:
             print(f"serving: pid {mine[0].pid} ({path})")
             return 0

@@ -30,7 +30,6 @@ fresh process (``tests/test_zygote.py`` compares the files of both, byte for byt
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import selectors
@@ -43,8 +42,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from softgrasp.cli.launch import IDLE_MINUTES, server_key
+from softgrasp.cli.serverlock import take_lock, write_state
 
-__all__ = ["IDLE_S", "KILL_AFTER_S", "PRELOAD", "Command", "Server", "main", "running", "serve"]
+__all__ = ["IDLE_S", "KILL_AFTER_S", "PRELOAD", "Command", "main", "serve"]
 
 #: A server without a command for this long exits [s].
 IDLE_S = 60.0 * IDLE_MINUTES
@@ -177,11 +177,11 @@ def serve(path: Path) -> Command | None:
     """Serve commands at ``path`` (module docstring). Returns None in the server when it ends,
     and the command in each forked child, which runs it after this returns."""
     server = os.getpid()
-    lock = _take_lock(Path(f"{path}.lock"))
+    lock = take_lock(Path(f"{path}.lock"))
     if lock is None:
         return None  # another server for this socket
     with lock:
-        _state(lock, f"{server} starting")
+        write_state(lock, f"{server} starting")
         try:
             path.unlink()
         except FileNotFoundError:
@@ -194,74 +194,12 @@ def serve(path: Path) -> Command | None:
             listener.listen(64)
             if not _warm():
                 return None
-            _state(lock, f"{server} ready")
+            write_state(lock, f"{server} ready")
             return _Loop(listener, path, inode).run()
         finally:
             listener.close()
             if os.getpid() == server:
                 _remove(path, inode)
-
-
-def _take_lock(path: Path, tries: int = 50):
-    """The lock file at ``path``, opened and locked for this server, or None when another server
-    holds it. A lock held for a moment by :func:`running`, or a file it removed meanwhile, is
-    tried again."""
-    for _ in range(tries):
-        lock = open(path, "a+")  # noqa: SIM115 - held for the server's life
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            lock.close()
-            time.sleep(0.02)
-            continue
-        try:
-            same = os.fstat(lock.fileno()).st_ino == os.stat(path).st_ino
-        except OSError:
-            same = False
-        if same:
-            return lock
-        lock.close()  # removed as an ended server's meanwhile: lock the new file
-    return None
-
-
-def _state(lock, text: str) -> None:
-    """Write the server's process id and state into its lock file (:func:`running`)."""
-    lock.seek(0)
-    lock.truncate()
-    lock.write(text + "\n")
-    lock.flush()
-
-
-@dataclass(frozen=True)
-class Server:
-    """A running server: its socket, process id and whether it serves yet."""
-
-    socket: Path
-    pid: int
-    ready: bool
-
-
-def running(folder: Path | None = None) -> list[Server]:
-    """This user's running servers (their lock files held), in ``folder`` (default
-    :func:`softgrasp.cli.launch.socket_folder`)."""
-    from softgrasp.cli.launch import socket_folder
-
-    folder = socket_folder() if folder is None else folder
-    found = []
-    for lock_path in sorted(folder.glob("*.sock.lock")) if folder is not None else []:
-        try:
-            with open(lock_path) as lock:
-                try:
-                    fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except OSError:  # held: a server runs
-                    words = lock.read().split()
-                    if len(words) == 2 and words[0].isdigit():
-                        found.append(Server(lock_path.with_suffix(""), int(words[0]), words[1] == "ready"))
-                    continue
-                lock_path.unlink(missing_ok=True)  # an ended server's (removed while locked)
-        except OSError:
-            continue
-    return found
 
 
 def _remove(path: Path, inode: int | None) -> None:
