@@ -238,8 +238,10 @@ def test_an_ended_server_s_lock_file_is_removed_and_a_held_one_is_listed(tmp_pat
 
     stale = tmp_path / "a.sock.lock"
     stale.write_text("12345 ready\n")  # its server ended: nobody holds it
+    (tmp_path / "a.sock").write_text("")  # and left its socket (killed outright)
+    (tmp_path / "c.sock").write_text("")  # a socket alone
     assert serverlock.running(tmp_path) == []
-    assert not stale.exists()
+    assert not list(tmp_path.iterdir())
     lock = serverlock.take_lock(tmp_path / "b.sock.lock")
     assert lock is not None
     with lock:
@@ -251,3 +253,22 @@ def test_an_ended_server_s_lock_file_is_removed_and_a_held_one_is_listed(tmp_pat
                 fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
         assert serverlock.take_lock(tmp_path / "b.sock.lock", tries=2) is None
     assert serverlock.running(tmp_path) == []
+
+
+def test_a_server_stopped_while_it_loads_removes_its_socket(server):
+    env, _, folder = server
+    path = folder / ("1" * 24 + ".sock")
+    p = subprocess.Popen(
+        [sys.executable, "-m", "softgrasp.cli.zygote", str(path)],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    end = time.monotonic() + BOUND_S
+    while not path.exists() and time.monotonic() < end:
+        time.sleep(0.005)
+    assert path.exists()  # bound: it imports and loads its kernels now
+    p.terminate()
+    assert p.wait(BOUND_S) == 0
+    assert not path.exists()

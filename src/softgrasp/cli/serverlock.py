@@ -60,22 +60,29 @@ class Server:
 
 def running(folder: Path | None = None) -> list[Server]:
     """This user's running servers (their lock files held), in ``folder`` (default
-    :func:`softgrasp.cli.launch.socket_folder`)."""
+    :func:`softgrasp.cli.launch.socket_folder`). The socket and lock file of an ended server
+    (one killed outright leaves its socket) are removed, under the lock."""
     from softgrasp.cli.launch import socket_folder
 
     folder = socket_folder() if folder is None else folder
+    if folder is None:
+        return []
+    sockets = {p.with_suffix("") for p in folder.glob("*.sock.lock")} | set(folder.glob("*.sock"))
     found = []
-    for lock_path in sorted(folder.glob("*.sock.lock")) if folder is not None else []:
+    for sock in sorted(sockets):
+        lock_path = Path(f"{sock}.lock")
         try:
-            with open(lock_path) as lock:
+            with open(lock_path, "a+") as lock:
                 try:
                     fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except OSError:  # held: a server runs
+                    lock.seek(0)
                     words = lock.read().split()
                     if len(words) == 2 and words[0].isdigit():
-                        found.append(Server(lock_path.with_suffix(""), int(words[0]), words[1] == "ready"))
+                        found.append(Server(sock, int(words[0]), words[1] == "ready"))
                     continue
-                lock_path.unlink(missing_ok=True)  # an ended server's (removed while locked)
+                sock.unlink(missing_ok=True)  # an ended server's (removed while locked)
+                lock_path.unlink(missing_ok=True)
         except OSError:
             continue
     return found

@@ -177,6 +177,7 @@ def serve(path: Path) -> Command | None:
     """Serve commands at ``path`` (module docstring). Returns None in the server when it ends,
     and the command in each forked child, which runs it after this returns."""
     server = os.getpid()
+    signal.signal(signal.SIGTERM, _terminate)  # stopped while it loads: its socket removed
     lock = take_lock(Path(f"{path}.lock"))
     if lock is None:
         return None  # another server for this socket
@@ -200,6 +201,10 @@ def serve(path: Path) -> Command | None:
             listener.close()
             if os.getpid() == server:
                 _remove(path, inode)
+
+
+def _terminate(_signum: int, _frame: object) -> None:
+    raise SystemExit(0)
 
 
 def _remove(path: Path, inode: int | None) -> None:
