@@ -149,8 +149,6 @@ def _server(action: str, env: dict[str, str]) -> str:
 def _stop_started_server(env: dict[str, str], within_s: float = 10.0) -> None:
     """Stop the server a plan in environment ``env`` started as it ended, once it has begun (so
     that it does not load its kernels during the next case), and wait until it is gone."""
-    import signal
-
     from softgrasp.cli import launch, serverlock
 
     folder = launch.socket_folder()
@@ -161,7 +159,7 @@ def _stop_started_server(env: dict[str, str], within_s: float = 10.0) -> None:
     while time.monotonic() < end:
         mine = [s for s in serverlock.running(folder) if s.socket == path]
         if mine:
-            os.kill(mine[0].pid, signal.SIGTERM)
+            serverlock.stop(mine[0])
             while time.monotonic() < end and any(s.socket == path for s in serverlock.running(folder)):
                 time.sleep(0.05)
             return

@@ -111,7 +111,4 @@ def pytest_sessionfinish(session, exitstatus):
     before = getattr(session.config, "softgrasp_servers", set())
     for s in serverlock.running():
         if s.pid not in before:
-            try:
-                os.kill(s.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
+            serverlock.stop(s)

@@ -98,6 +98,17 @@ def _into_a_served_plan(server, argv: list[str], cwd: Path, preexec=None) -> tup
     return p, child
 
 
+def _zygote(path: Path, env: dict[str, str]) -> subprocess.Popen:
+    """A server for the socket ``path`` started directly (its output discarded)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "softgrasp.cli.zygote", str(path)],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+
 def _served_child(server_pid: int, p: subprocess.Popen) -> int | None:
     """The server's child that runs ``p``'s command, once it has one; None if ``p`` ends first."""
     end = time.monotonic() + BOUND_S
@@ -196,13 +207,7 @@ def test_a_server_that_no_longer_matches_the_sources_stops_listening_and_exits(s
     kernels the server finds that its key names another socket, removes it and exits."""
     env, _, folder = server
     stale = folder / ("0" * 24 + ".sock")
-    p = subprocess.Popen(
-        [sys.executable, "-m", "softgrasp.cli.zygote", str(stale)],
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    p = _zygote(stale, env)
     assert p.wait(BOUND_S) == 0
     assert not stale.exists()
 
@@ -258,13 +263,7 @@ def test_an_ended_server_s_lock_file_is_removed_and_a_held_one_is_listed(tmp_pat
 def test_a_server_stopped_while_it_loads_removes_its_socket(server):
     env, _, folder = server
     path = folder / ("1" * 24 + ".sock")
-    p = subprocess.Popen(
-        [sys.executable, "-m", "softgrasp.cli.zygote", str(path)],
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    p = _zygote(path, env)
     end = time.monotonic() + BOUND_S
     while not path.exists() and time.monotonic() < end:
         time.sleep(0.005)

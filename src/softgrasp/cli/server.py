@@ -54,15 +54,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"pid {s.pid}: {state}, {whose} ({s.socket})")
         return 0
     if args.action == "stop":
-        import os
-        import signal
-
         stopped = servers if args.all else mine
         for s in stopped:
-            try:
-                os.kill(s.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
+            serverlock.stop(s)
         print(f"stopped {len(stopped)} server{'s' if len(stopped) != 1 else ''}")
         return 0
     from softgrasp.cli.warm import cold

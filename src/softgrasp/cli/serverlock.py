@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["Server", "running", "take_lock", "write_state"]
+__all__ = ["Server", "running", "stop", "take_lock", "write_state"]
 
 
 def take_lock(path: Path, tries: int = 50):
@@ -86,3 +86,13 @@ def running(folder: Path | None = None) -> list[Server]:
         except OSError:
             continue
     return found
+
+
+def stop(server: Server) -> None:
+    """Ask ``server`` to stop (``SIGTERM``: it stops listening; its running commands end first)."""
+    import signal
+
+    try:
+        os.kill(server.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        pass
