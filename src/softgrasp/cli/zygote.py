@@ -177,7 +177,10 @@ def serve(path: Path) -> Command | None:
     """Serve commands at ``path`` (module docstring). Returns None in the server when it ends,
     and the command in each forked child, which runs it after this returns."""
     server = os.getpid()
-    signal.signal(signal.SIGTERM, _terminate)  # stopped while it loads: its socket removed
+    bound: list[int] = []  # the socket's inode, once bound
+    # stopped while it loads: it ends at once, its socket removed. Raising an exception instead
+    # could land inside the import of an extension module, which then cannot be imported again
+    signal.signal(signal.SIGTERM, lambda *_: _terminate(path, bound))
     lock = take_lock(Path(f"{path}.lock"))
     if lock is None:
         return None  # another server for this socket
@@ -192,6 +195,7 @@ def serve(path: Path) -> Command | None:
         try:
             listener.bind(str(path))
             inode = os.stat(path).st_ino
+            bound.append(inode)
             listener.listen(64)
             if not _warm():
                 return None
@@ -203,8 +207,11 @@ def serve(path: Path) -> Command | None:
                 _remove(path, inode)
 
 
-def _terminate(_signum: int, _frame: object) -> None:
-    raise SystemExit(0)
+def _terminate(path: Path, bound: list[int]) -> None:
+    """End a server that has served nothing yet: its socket removed (if it is still this
+    server's) and its process ended with status 0. Its lock is released with the process."""
+    _remove(path, bound[0] if bound else None)
+    os._exit(0)
 
 
 def _remove(path: Path, inode: int | None) -> None:
