@@ -66,7 +66,7 @@ def critical_scale(
     *,
     guess: float = 1.0,
     lowest: float = 0.5,
-    tolerance: float = 0.02,
+    tolerance: float = 0.01,
     setup: ClosingSetup | None = None,
 ) -> Margin:
     """The least scale of the normal forces ``normal_N`` [N] (3,) at which the object is held
