@@ -210,6 +210,7 @@ def test_an_unknown_volume_term_in_a_config_file_names_the_choices(tmp_path):
         plan_options({}, str(conf))
 
 
+@pytest.mark.slow
 def test_calibration_fits_with_the_volume_term_it_will_be_used_with(tmp_path):
     """A compression curve (sticking platens, 20 %) simulated with a nodal body of E = 100 kPa,
     nu = 0.45: fitted with the nodal term it gives E back (0.99998 of it); fitted with the per-tet
