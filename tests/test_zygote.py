@@ -270,7 +270,7 @@ def test_a_server_stopped_while_it_loads_removes_its_socket(server):
     for batch in range(0, len(moments), 4):
         started = []
         for k, after_s in enumerate(moments[batch : batch + 4]):
-            path = folder / (f"{k}" * 24 + ".sock")
+            path = folder / (f"{k + 1}" * 24 + ".sock")  # ("0" * 24: the stale server's test)
             started.append((_zygote(path, env), path, after_s))
         for _, path, _ in started:
             end = time.monotonic() + BOUND_S

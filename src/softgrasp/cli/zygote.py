@@ -177,10 +177,10 @@ def serve(path: Path) -> Command | None:
     """Serve commands at ``path`` (module docstring). Returns None in the server when it ends,
     and the command in each forked child, which runs it after this returns."""
     server = os.getpid()
-    bound: list[int] = []  # the socket's inode, once bound
+    inode: int | None = None  # the socket's, once bound
     # stopped while it loads: it ends at once, its socket removed. Raising an exception instead
     # could land inside the import of an extension module, which then cannot be imported again
-    signal.signal(signal.SIGTERM, lambda *_: _terminate(path, bound))
+    signal.signal(signal.SIGTERM, lambda *_: _terminate(path, inode))
     lock = take_lock(Path(f"{path}.lock"))
     if lock is None:
         return None  # another server for this socket
@@ -191,11 +191,9 @@ def serve(path: Path) -> Command | None:
         except FileNotFoundError:
             pass
         listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        inode = None
         try:
             listener.bind(str(path))
             inode = os.stat(path).st_ino
-            bound.append(inode)
             listener.listen(64)
             if not _warm():
                 return None
@@ -207,10 +205,11 @@ def serve(path: Path) -> Command | None:
                 _remove(path, inode)
 
 
-def _terminate(path: Path, bound: list[int]) -> None:
+def _terminate(path: Path, inode: int | None) -> None:
     """End a server that has served nothing yet: its socket removed (if it is still this
-    server's) and its process ended with status 0. Its lock is released with the process."""
-    _remove(path, bound[0] if bound else None)
+    server's, bound with ``inode``) and its process ended with status 0. Its lock is released
+    with the process."""
+    _remove(path, inode)
     os._exit(0)
 
 
