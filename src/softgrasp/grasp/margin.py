@@ -23,6 +23,9 @@ from softgrasp.physics.body import Body
 
 __all__ = ["Margin", "critical_scale"]
 
+#: Tolerances below the guess that the search bisects first (from its middle).
+WINDOW = 4
+
 
 @dataclass(frozen=True)
 class Margin:
@@ -74,16 +77,17 @@ def critical_scale(
     ``tolerance``, between ``lowest`` and 1; above 1 (up to 2) when force control does not hold
     at 1 (scale ``inf`` when not even at 2).
 
-    The search starts at ``guess`` (the planner's: the rigid-body utilisation of the held
-    squeeze, which lies near the critical scale). Held there, it tries one tolerance below: not
-    held, that bracket is the answer (one check fewer: five of sixteen plans measured, spheres at
-    several frictions, stiffnesses and meshes, cubes, a box and a cylinder; in two it lay one
-    tolerance lower, at the same cost, and in one further down, at one check more); held, it
-    steps down from the guess by twice the tolerance (three times, then doubling the step) until
-    a scale is not held (or ``lowest`` is). Not held at the guess, it tries 1 (and up). The
-    bracket found is then bisected to ``tolerance``; the one-tolerance probe is the bisection's
-    first midpoint below the guess (a scale is never checked twice), so the bracket is the same
-    as without it."""
+    The search starts from ``guess`` (the planner's: the rigid-body utilisation of the held
+    squeeze, which lies near the critical scale). Below it, the scales tried lie on the grid
+    ``guess - k tolerance`` (k = 0, 1, 2, ...): the search bisects the window k = 0..4 from its
+    middle, k = 2 (in twenty plans measured, spheres at frictions 0.05-0.8 and several meshes,
+    cubes, boxes, cylinders and balls of foam and rubber, fourteen critical scales lay below the
+    guess, ten of them 0-2 tolerances below: each settles in two or three checks), and beyond
+    the window steps down by doubling steps (k = 8, 16, ...) until a scale does not hold (or
+    ``lowest`` does), then bisects on the grid. Not held at the guess, it tries 1 (and up) and
+    bisects that bracket to ``tolerance``. Where the verdicts grow monotonically with the scale
+    the bracket found is the grid's, whatever the order the scales are tried in; a scale is never
+    checked twice."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: dict[float, bool] = {}  # every scale tried, in order, and whether it held
     reasons: dict[float, str] = {}  # why each scale not held was not
@@ -107,29 +111,43 @@ def critical_scale(
 
     g = float(guess) if np.isfinite(guess) else 1.0
     g = min(max(g, lowest), 1.0)
-    if held(g):  # down from the guess until a scale does not hold
-        hi, steps = g, 0
-        if g - 2.0 * tolerance >= lowest:  # the first bracket's midpoint, as the bisection computes it
-            near = 0.5 * ((g - 2.0 * tolerance) + g)
-            if not held(near):
-                return margin(g, near)
-        while True:
-            if hi <= lowest:
+
+    def at(k: int) -> float:  # the grid below the guess, down to lowest
+        return max(g - k * tolerance, lowest)
+
+    first = WINDOW // 2
+    bracket: tuple[int, int | None] | None = None  # (a held k, a k above it not held, once found)
+    if held(at(first)):
+        bracket = (first, None)
+    elif at(0) != at(first) and held(at(0)):
+        bracket = (0, first)
+    if bracket is not None:
+        hi, lo = bracket
+        while lo is None:  # down: the window's lower half, then doubling steps
+            if at(hi) <= lowest:
                 return margin(lowest, 0.0)
-            lo = max(hi - 2.0 * tolerance * 2.0 ** max(steps - 2, 0), lowest)
-            if not held(lo):
-                break
-            hi, steps = lo, steps + 1
-    else:  # up from the guess: 1, then beyond (force control ends elsewhere than the closing)
-        lo, hi = g, 1.0 if g < 1.0 else 1.0 / 0.9
-        while not held(hi):
-            if hi >= 2.0:
-                return margin(float("inf"), hi)
-            lo, hi = hi, min(2.0, hi / 0.9)
-    while hi - lo > tolerance * (1.0 + 1e-9):  # (a bracket of 2 tolerances halves once)
-        mid = 0.5 * (lo + hi)
+            k = hi + 1 if hi < WINDOW else 2 * hi
+            if held(at(k)):
+                hi = k
+            else:
+                lo = k
+        while lo - hi > 1:  # bisect on the grid
+            k = (lo + hi) // 2
+            if held(at(k)):
+                hi = k
+            else:
+                lo = k
+        return margin(at(hi), at(lo))
+    # not held at the guess: up to 1, then beyond (force control ends elsewhere than the closing)
+    low, high = g, 1.0 if g < 1.0 else 1.0 / 0.9
+    while not held(high):
+        if high >= 2.0:
+            return margin(float("inf"), high)
+        low, high = high, min(2.0, high / 0.9)
+    while high - low > tolerance * (1.0 + 1e-9):
+        mid = 0.5 * (low + high)
         if held(mid):
-            hi = mid
+            high = mid
         else:
-            lo = mid
-    return margin(hi, lo)
+            low = mid
+    return margin(high, low)
