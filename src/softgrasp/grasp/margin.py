@@ -23,7 +23,7 @@ from softgrasp.physics.body import Body
 
 __all__ = ["Margin", "critical_scale"]
 
-#: Tolerances below the guess that the search bisects first (from its middle).
+#: Tolerances below the guess of the window the search tries first, from its middle.
 WINDOW = 4
 
 
@@ -79,15 +79,16 @@ def critical_scale(
 
     The search starts from ``guess`` (the planner's: the rigid-body utilisation of the held
     squeeze, which lies near the critical scale). Below it, the scales tried lie on the grid
-    ``guess - k tolerance`` (k = 0, 1, 2, ...): the search bisects the window k = 0..4 from its
-    middle, k = 2 (in twenty plans measured, spheres at frictions 0.05-0.8 and several meshes,
-    cubes, boxes, cylinders and balls of foam and rubber, fourteen critical scales lay below the
-    guess, ten of them 0-2 tolerances below: each settles in two or three checks), and beyond
-    the window steps down by doubling steps (k = 8, 16, ...) until a scale does not hold (or
-    ``lowest`` does), then bisects on the grid. Not held at the guess, it tries 1 (and up) and
-    bisects that bracket to ``tolerance``. Where the verdicts grow monotonically with the scale
-    the bracket found is the grid's, whatever the order the scales are tried in; a scale is never
-    checked twice."""
+    ``guess - k tolerance`` (k = 0, 1, 2, ...), in the window k = 0..4 first, from its middle:
+    k = 2; held there, k = 3 and 4, then doubling steps (k = 8, 16, ...) until a scale does not
+    hold (or ``lowest`` does); not held, k = 0 and, held there, k = 1. The bracket found is
+    bisected on the grid. (In twenty plans measured, spheres at frictions 0.05-0.8 and several
+    meshes, cubes, boxes, cylinders and balls of foam and rubber, fourteen critical scales lay
+    below the guess, ten of them 0-2 tolerances below: each of those takes two or three checks.)
+    Not held at k = 2 nor at the guess, the search tries 1 (and up) and bisects that bracket to
+    ``tolerance``. Where the verdicts grow monotonically with the scale, the bracket below the
+    guess is the grid's whatever the order the scales are tried in; a scale is never checked
+    twice."""
     setpoints = np.asarray(normal_N, dtype=np.float64)
     checks: dict[float, bool] = {}  # every scale tried, in order, and whether it held
     reasons: dict[float, str] = {}  # why each scale not held was not
