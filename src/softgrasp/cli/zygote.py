@@ -192,8 +192,14 @@ def serve(path: Path) -> Command | None:
             pass
         listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            listener.bind(str(path))
-            inode = os.stat(path).st_ino
+            # SIGTERM waits while the socket is bound and its inode read: the handler then
+            # removes it (between the two it would leave the socket behind)
+            mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+            try:
+                listener.bind(str(path))
+                inode = os.stat(path).st_ino
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
             listener.listen(64)
             if not _warm():
                 return None
