@@ -98,10 +98,12 @@ def _into_a_served_plan(server, argv: list[str], cwd: Path, preexec=None) -> tup
     return p, child
 
 
-def _zygote(path: Path, env: dict[str, str]) -> subprocess.Popen:
-    """A server for the socket ``path`` started directly (its output discarded)."""
+def _zygote(path: Path, env: dict[str, str], program: str | None = None) -> subprocess.Popen:
+    """A server for the socket ``path`` started directly (its output discarded); ``program``: the
+    Python source run instead of ``-m softgrasp.cli.zygote`` (the socket's path its argument)."""
+    run = ["-m", "softgrasp.cli.zygote"] if program is None else ["-c", program]
     return subprocess.Popen(
-        [sys.executable, "-m", "softgrasp.cli.zygote", str(path)],
+        [sys.executable, *run, str(path)],
         env=env,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
@@ -309,13 +311,7 @@ def test_a_server_stopped_between_binding_its_socket_and_reading_its_inode_remov
     env = {**os.environ, "PYTHONPATH": SRC}
     for k in range(3):
         path = tmp_path / (f"{k}" * 24 + ".sock")
-        p = subprocess.Popen(
-            [sys.executable, "-c", _SLOW_INODE, str(path)],
-            env=env,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        p = _zygote(path, env, _SLOW_INODE)
         bound = Path(f"{path}.bound")
         end = time.monotonic() + BOUND_S
         while not bound.exists() and time.monotonic() < end:
